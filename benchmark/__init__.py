@@ -1,0 +1,1 @@
+"""skidbench.benchmark: horizon evaluation, MLflow logging, reports, discrepancy discovery, benchmarks."""

@@ -1,0 +1,113 @@
+"""The model plugin interface (scikit-learn style).
+
+A model predicts body velocities (vx, vy, wz) from the columns of a split table (see
+``skidbench.pipeline.schema.SPLIT_COLUMNS``). It is fitted per terrain on the Train split, and its
+parameters are plain JSON data. Built-in models and third-party plugins register the same way: an
+entry point in the group ``skidbench.models`` (``name = "package.module:Class"``).
+
+Minimal plugin::
+
+    class MyModel(KinematicModel):
+        name = "mymodel"
+        version = "1.0"
+        required_columns = ("cmd_wl", "cmd_wr")
+
+        def fit(self, table):
+            ...; self.params = {"k": 1.0}; self.fit_loss_ = 0.01; return self
+
+        def predict(self, table):
+            return np.column_stack([vx, vy, wz])   # (T, 3) float64
+"""
+
+from __future__ import annotations
+
+import json
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+import pandas as pd
+from skidbench.pipeline.errors import SkidbenchError
+from skidbench.pipeline.robot import Robot
+
+
+class ModelError(SkidbenchError):
+    """A model cannot be built, fitted or used on the given table (the message names the model)."""
+
+
+class KinematicModel(ABC):
+    name: ClassVar[str]
+    version: ClassVar[str] = "1.0"
+    #: split columns ``fit`` and ``predict`` read (``valid``, ``vx``, ``vy``, ``wz`` are implied for fit)
+    required_columns: ClassVar[tuple[str, ...]] = ("cmd_wl", "cmd_wr")
+
+    def __init__(self, robot: Robot, params: dict[str, Any] | None = None, **options: Any):
+        self.robot = robot
+        self.params: dict[str, Any] = dict(params or {})
+        self.options: dict[str, Any] = dict(options)
+        self.fit_loss_: float | None = None  # mean squared velocity error on the training table
+
+    # -- the two methods a plugin implements --------------------------------------------------
+    @abstractmethod
+    def fit(self, table: pd.DataFrame) -> KinematicModel:
+        """Fit on a training table (rows with ``valid`` False must be ignored). Returns self."""
+
+    @abstractmethod
+    def predict(self, table: pd.DataFrame) -> np.ndarray:
+        """Body velocities (T, 3) = (vx, vy, wz) in m/s, m/s, rad/s, one row per table row."""
+
+    # -- shared plumbing ----------------------------------------------------------------------
+    def check_columns(self, table: pd.DataFrame, fitting: bool = False) -> None:
+        """Raise ModelError naming the model if the table lacks a needed column or holds non-finite
+        values in one."""
+        need = list(self.required_columns) + (["vx", "vy", "wz", "valid"] if fitting else [])
+        missing = [c for c in need if c not in table.columns]
+        if missing:
+            raise ModelError(f"model {self.name}: table lacks column(s) {missing}")
+        if fitting and len(table) and not table["valid"].any():
+            raise ModelError(f"model {self.name}: training table has no valid rows")
+        rows = table["valid"].to_numpy(bool) if (fitting and "valid" in table) else slice(None)
+        for c in need:
+            if c == "valid":
+                continue
+            col = table[c].to_numpy(dtype=float, na_value=np.nan)[rows]
+            if not np.all(np.isfinite(col)):
+                bad = int(np.sum(~np.isfinite(col)))
+                raise ModelError(f"model {self.name}: column {c} holds {bad} non-finite value(s)")
+
+    def get_params(self) -> dict[str, Any]:
+        return json.loads(json.dumps(self.params))
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "model": self.name,
+            "version": self.version,
+            "params": self.get_params(),
+            "options": self.options,
+            "fit_loss": self.fit_loss_,
+        }
+
+    @classmethod
+    def from_json(cls, robot: Robot, data: dict[str, Any]) -> KinematicModel:
+        if data.get("model") != cls.name:
+            raise ModelError(f"model {cls.name}: parameters are for model {data.get('model')!r}")
+        m = cls(robot, data.get("params") or {}, **(data.get("options") or {}))
+        m.fit_loss_ = data.get("fit_loss")
+        return m
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, version={self.version!r}, params={self.params})"
+
+
+def concat_sequences(tables: list[tuple[pd.DataFrame, dict]] | list[pd.DataFrame]) -> pd.DataFrame:
+    """Concatenate split tables of several sequences, adding a ``sequence`` column (int codes kept
+    stable by order) so that models and metrics never integrate or differentiate across a boundary."""
+    frames = []
+    for i, item in enumerate(tables):
+        df, meta = item if isinstance(item, tuple) else (item, {})
+        df = df.copy()
+        df["sequence"] = meta.get("sequence", str(i))
+        frames.append(df)
+    if not frames:
+        raise ModelError("no sequences to concatenate")
+    return pd.concat(frames, ignore_index=True)

@@ -1,0 +1,173 @@
+"""SE(2)/SE(3) geometry: the one home for pose composition, angle wrapping and quaternion conversion.
+
+Planar poses are arrays ``(..., 3)`` of ``(x, y, yaw)`` in metres and radians. Quaternions are
+``(..., 4)`` in ``(qx, qy, qz, qw)`` order (ROS and TUM order).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a (+) b: pose ``b`` expressed in frame ``a``, mapped to a's parent frame. Broadcasts."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, a[..., 2] + b[..., 2]], axis=-1)
+
+
+def se2_inverse(a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -c * a[..., 0] - s * a[..., 1]
+    y = s * a[..., 0] - c * a[..., 1]
+    return np.stack([x, y, -a[..., 2]], axis=-1)
+
+
+def se2_relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(-a) (+) b: pose of ``b`` in the frame of ``a``. Yaw is not wrapped (keeps unwrapped differences)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx = b[..., 0] - a[..., 0]
+    dy = b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, b[..., 2] - a[..., 2]], axis=-1)
+
+
+def integrate_body_velocity(pose0: np.ndarray, vel: np.ndarray, dt: np.ndarray | float) -> np.ndarray:
+    """Dead-reckon body-frame velocities ``vel`` (T, 3) = (vx, vy, wz) from ``pose0`` (3,).
+
+    Exact SE(2) exponential per step (constant body twist over each interval). ``dt`` is a scalar or
+    (T,) array of step lengths; returns poses (T+1, 3) with yaw unwrapped (cumulative).
+    """
+    vel = np.asarray(vel, dtype=float)
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), vel.shape[:1])
+    steps = se2_exp(vel * dt[:, None])
+    # yaw is cumulative; positions need the running heading, so accumulate in two passes
+    yaw = pose0[2] + np.concatenate([[0.0], np.cumsum(steps[:, 2])])
+    c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+    dx = c * steps[:, 0] - s * steps[:, 1]
+    dy = s * steps[:, 0] + c * steps[:, 1]
+    x = pose0[0] + np.concatenate([[0.0], np.cumsum(dx)])
+    y = pose0[1] + np.concatenate([[0.0], np.cumsum(dy)])
+    return np.stack([x, y, yaw], axis=-1)
+
+
+def se2_exp(xi: np.ndarray) -> np.ndarray:
+    """SE(2) exponential of twists ``xi`` (..., 3) = (dx, dy, dtheta) in the body frame."""
+    xi = np.asarray(xi, dtype=float)
+    th = xi[..., 2]
+    small = np.abs(th) < 1e-9
+    th_safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(th_safe) / th_safe)  # sin(th)/th
+    b = np.where(small, th / 2.0, (1.0 - np.cos(th_safe)) / th_safe)  # (1-cos th)/th
+    x = a * xi[..., 0] - b * xi[..., 1]
+    y = b * xi[..., 0] + a * xi[..., 1]
+    return np.stack([x, y, th], axis=-1)
+
+
+def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Yaw (rotation about z, ZYX convention) of quaternions (..., 4) in (qx, qy, qz, qw) order."""
+    q = np.asarray(q, dtype=float)
+    qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def quaternion_from_yaw(yaw: np.ndarray) -> np.ndarray:
+    yaw = np.asarray(yaw, dtype=float)
+    z = np.zeros_like(yaw)
+    return np.stack([z, z, np.sin(yaw / 2.0), np.cos(yaw / 2.0)], axis=-1)
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from unit quaternions (..., 4) in (qx, qy, qz, qw) order."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = np.empty(q.shape[:-1] + (3, 3))
+    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    r[..., 0, 1] = 2 * (x * y - z * w)
+    r[..., 0, 2] = 2 * (x * z + y * w)
+    r[..., 1, 0] = 2 * (x * y + z * w)
+    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    r[..., 1, 2] = 2 * (y * z - x * w)
+    r[..., 2, 0] = 2 * (x * z - y * w)
+    r[..., 2, 1] = 2 * (y * z + x * w)
+    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
+def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) (qx, qy, qz, qw), qw >= 0, from rotation matrices (..., 3, 3)."""
+    r = np.asarray(r, dtype=float)
+    m = r.reshape(-1, 3, 3)
+    out = np.empty((m.shape[0], 4))
+    tr = np.trace(m, axis1=1, axis2=2)
+    for i in range(m.shape[0]):  # robust branch per matrix (Shepperd); only used on small arrays
+        a = m[i]
+        if tr[i] > 0:
+            s = 2.0 * np.sqrt(tr[i] + 1.0)
+            out[i] = [(a[2, 1] - a[1, 2]) / s, (a[0, 2] - a[2, 0]) / s, (a[1, 0] - a[0, 1]) / s, 0.25 * s]
+        else:
+            k = int(np.argmax(np.diag(a)))
+            j, l = (k + 1) % 3, (k + 2) % 3
+            s = 2.0 * np.sqrt(1.0 + a[k, k] - a[j, j] - a[l, l])
+            v = np.empty(3)
+            v[k] = 0.25 * s
+            v[j] = (a[j, k] + a[k, j]) / s
+            v[l] = (a[l, k] + a[k, l]) / s
+            out[i, :3] = v
+            out[i, 3] = (a[l, j] - a[j, l]) / s
+    out *= np.where(out[:, 3:4] < 0, -1.0, 1.0)
+    return out.reshape(r.shape[:-2] + (4,))
+
+
+def se3_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Homogeneous transforms (..., 4, 4) from translations (..., 3) and quaternions (..., 4)."""
+    t = np.asarray(t, dtype=float)
+    out = np.zeros(t.shape[:-1] + (4, 4))
+    out[..., :3, :3] = quaternion_to_matrix(q)
+    out[..., :3, 3] = t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_inverse(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    out = np.zeros_like(T)
+    rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_from_xyz_rpy(xyz: np.ndarray, rpy: np.ndarray) -> np.ndarray:
+    """A 4x4 transform from a translation and roll-pitch-yaw (ZYX, radians), as URDF writes it."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    rot = np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+    T = np.eye(4)
+    T[:3, :3] = rot
+    T[:3, 3] = xyz
+    return T
+
+
+def se3_to_se2(T: np.ndarray) -> np.ndarray:
+    """Project transforms (..., 4, 4) to planar poses (..., 3): x, y and the yaw of the x axis."""
+    T = np.asarray(T, dtype=float)
+    return np.stack([T[..., 0, 3], T[..., 1, 3], np.arctan2(T[..., 1, 0], T[..., 0, 0])], axis=-1)

@@ -1,0 +1,85 @@
+"""Robot constants (from the ``robot`` config group: jackal, husky, warthog)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Robot:
+    """A four-wheel skid-steer robot. SI units; the body frame is x forward, y left, z up, origin at the
+    geometric centre (the paper's point O); ``cg_offset`` = (x_CG, y_CG) of the centre of gravity."""
+
+    name: str
+    mass: float  # kg
+    wheel_radius: float  # r, m
+    track_width: float  # B, m
+    wheelbase: float  # m (front-rear axle distance)
+    body_length: float  # m
+    body_width: float  # m
+    cg_offset: tuple[float, float] = (0.0, 0.0)  # (x_CG, y_CG), m
+    cg_height: float = 0.1  # m, for load transfer in the simulator
+    inertia_z: float | None = None  # kg m^2 about the CG; None: box m (l^2 + w^2) / 12
+    left_joints: tuple[str, ...] = ()
+    right_joints: tuple[str, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)  # e.g. camera extrinsic, motor limits
+
+    @property
+    def I_z(self) -> float:
+        if self.inertia_z is not None:
+            return float(self.inertia_z)
+        return self.mass * (self.body_length**2 + self.body_width**2) / 12.0
+
+    @property
+    def wheel_positions(self) -> np.ndarray:
+        """(4, 2) wheel contact points (x, y) from the geometric centre: FL, RL, FR, RR."""
+        a, b = self.wheelbase / 2.0, self.track_width / 2.0
+        return np.array([[a, b], [-a, b], [a, -b], [-a, -b]])
+
+    def wheel_rates_from_twist(self, v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal differential-drive inverse kinematics: body (v, w) -> wheel angular rates (wl, wr), rad/s."""
+        v = np.asarray(v, dtype=float)
+        w = np.asarray(w, dtype=float)
+        r, B = self.wheel_radius, self.track_width
+        return (v - w * B / 2.0) / r, (v + w * B / 2.0) / r
+
+    def twist_from_wheel_rates(self, wl: np.ndarray, wr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal differential-drive forward kinematics (eq. 1 with chi = 1): (wl, wr) -> (v, w)."""
+        r, B = self.wheel_radius, self.track_width
+        wl = np.asarray(wl, dtype=float)
+        wr = np.asarray(wr, dtype=float)
+        return r * (wl + wr) / 2.0, r * (wr - wl) / B
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["inertia_z"] = self.I_z
+        return d
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> Robot:
+        """Build from a (resolved) ``robot`` config mapping; unknown keys go to ``extra``."""
+        cfg = dict(cfg)
+        known = {f for f in cls.__dataclass_fields__ if f != "extra"}
+        missing = [k for k in ("name", "mass", "wheel_radius", "track_width", "wheelbase") if k not in cfg]
+        if missing:
+            raise ConfigError(f"robot config is missing {', '.join(missing)}")
+        kwargs = {k: cfg.pop(k) for k in list(cfg) if k in known}
+        for k in ("cg_offset", "left_joints", "right_joints"):
+            if k in kwargs and kwargs[k] is not None:
+                kwargs[k] = tuple(kwargs[k])
+        kwargs.setdefault("body_length", kwargs["wheelbase"])
+        kwargs.setdefault("body_width", kwargs["track_width"])
+        return cls(**kwargs, extra=cfg)
+
+
+def robot_from_hydra(cfg: Any) -> Robot:
+    """Robot from a Hydra/OmegaConf node."""
+    from omegaconf import OmegaConf
+
+    return Robot.from_config(OmegaConf.to_container(cfg, resolve=True))

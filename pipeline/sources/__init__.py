@@ -1,0 +1,1 @@
+"""skidbench.pipeline.sources"""
