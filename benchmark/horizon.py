@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+
 from skidbench.pipeline.errors import SkidbenchError
 from skidbench.pipeline.geometry import integrate_body_velocity, se2_compose, se2_relative
 

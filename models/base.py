@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
+
 from skidbench.pipeline.errors import SkidbenchError
 from skidbench.pipeline.robot import Robot
 
