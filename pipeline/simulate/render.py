@@ -1,0 +1,454 @@
+"""Stereo camera renderer of the simulator's textured 3D world (flat ground plus boxes and posts).
+
+The world is periodic with period ``L = ground_texture_px * ground_texel_m`` in x and y (a large seeded
+tile, so an LD drive of any length stays inside textured ground). It holds
+
+- a ground plane z = 0 textured with seeded multi-octave noise, gravel-like blobs and lines (no two
+  places of the tile look alike at feature scale);
+- seeded boxes and posts (vertical faces textured from a seeded wall atlas): far features and rotation
+  observability. A box whose footprint, grown by ``hide_margin_m``, contains the camera is not drawn
+  (the robot may drive "through" it; it vanishes instead of filling the view).
+
+Rendering is exact pinhole geometry: the ground is one homography per mip band of image rows
+(``cv2.warpPerspective`` with ``BORDER_WRAP`` on a texture pyramid, so far ground does not alias), each
+visible box face is a homography warped into its bounding box, and occlusion is an inverse-depth
+z-buffer (inverse depth is affine in the pixel coordinates for a plane). Same seed and pose, same pixels.
+
+Frames: world z up; base pose (x, y, yaw) on flat ground; left camera ``T_b_c`` from ``robot.camera``
+(``xyz``, ``rpy``; optical frame x right, y down, z forward); the right camera is ``baseline`` metres
+along the left camera's +x axis (= -y of the base for the Jackal mount), same orientation: an ideal
+rectified pair.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..geometry import se3_from_xyz_rpy
+
+DEFAULTS = {
+    "width": 320,
+    "height": 240,
+    "fx": 250.0,  # pixels (fy = fx); cx, cy default to the image centre
+    "fy": None,
+    "cx": None,
+    "cy": None,
+    "fps": 15.0,
+    "jpeg_quality": 90,
+    "noise_std": 1.5,  # grey levels of additive sensor noise (deterministic per pose)
+    "ground_texture_px": 4096,
+    "ground_texel_m": 0.005,  # 4096 * 5 mm = 20.48 m world period
+    "wall_texture_px": 1024,
+    "wall_texel_m": 0.01,
+    "n_boxes": 8,  # per world period
+    "n_posts": 6,
+    "hide_margin_m": 0.6,
+    "max_range_m": 16.0,
+    "fog_m": 40.0,  # contrast halves at ~0.7 * fog_m
+    "near_m": 0.05,
+}
+
+
+# --------------------------------------------------------------------------------------------------
+# procedural textures (cached per seed: several renderers in one process share them)
+
+
+def _wrap_blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    pad = int(3 * sigma) + 1
+    big = np.pad(img, pad, mode="wrap")
+    big = cv2.GaussianBlur(big, (0, 0), sigma)
+    return big[pad:-pad, pad:-pad]
+
+
+def _periodic_noise(rng: np.random.Generator, n: int, cell: int) -> np.ndarray:
+    """Smooth periodic noise of feature size ~``cell`` texels on an n x n tile (zero mean, unit std)."""
+    m = max(4, n // cell)
+    small = rng.standard_normal((m, m)).astype(np.float32)
+    small = _wrap_blur(small, 0.7)
+    pad = 2
+    big = np.pad(small, pad, mode="wrap")
+    f = n / m
+    up = cv2.resize(
+        big, (int(round(big.shape[1] * f)), int(round(big.shape[0] * f))), interpolation=cv2.INTER_CUBIC
+    )
+    o = int(round(pad * f))
+    up = up[o : o + n, o : o + n]
+    return (up - up.mean()) / (up.std() + 1e-9)
+
+
+@functools.lru_cache(maxsize=2)
+def ground_texture(seed: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, 101])
+    acc = np.zeros((n, n), np.float32)
+    for cell, w in ((1024, 0.8), (256, 0.7), (64, 0.6), (16, 0.5), (4, 0.35)):
+        if cell < n:
+            acc += w * _periodic_noise(rng, n, cell)
+    acc = 128.0 + 28.0 * acc
+    img = np.clip(acc, 0, 255).astype(np.uint8)
+    # gravel: blobs of many sizes and grey levels, plus a few crack-like lines (corner features)
+    n_blobs = n * n // 350
+    xs = rng.integers(0, n, n_blobs)
+    ys = rng.integers(0, n, n_blobs)
+    rs = (2.0 + rng.pareto(2.0, n_blobs) * 3.0).clip(1, 30).astype(int)
+    gs = rng.integers(0, 256, n_blobs)
+    ax = rng.uniform(0.4, 1.0, n_blobs)
+    an = rng.uniform(0, 180, n_blobs)
+    for x, y, r, g, a, t in zip(xs, ys, rs, gs, ax, an, strict=True):
+        if r < x < n - r and r < y < n - r:
+            cv2.ellipse(img, (int(x), int(y)), (int(r), max(1, int(r * a))), float(t), 0, 360, int(g), -1)
+    n_lines = n * n // 20000
+    for _ in range(n_lines):
+        x0, y0 = rng.integers(40, n - 40, 2)
+        d = rng.integers(-35, 36, 2)
+        cv2.line(img, (int(x0), int(y0)), (int(x0 + d[0]), int(y0 + d[1])), int(rng.integers(0, 256)), 2)
+    img = cv2.addWeighted(img, 0.85, np.full_like(img, 128), 0.15, 0)
+    return _wrap_blur(img.astype(np.float32), 0.6).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=2)
+def wall_texture(seed: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, 202])
+    acc = 120.0 + 30.0 * (_periodic_noise(rng, n, 128) + 0.6 * _periodic_noise(rng, n, 16))
+    img = np.clip(acc, 0, 255).astype(np.uint8)
+    for _ in range(n * n // 900):  # posters, bricks, bolts
+        x, y = rng.integers(10, n - 10, 2)
+        w, h = rng.integers(3, 60, 2)
+        g = int(rng.integers(0, 256))
+        if rng.random() < 0.7:
+            cv2.rectangle(img, (int(x), int(y)), (int(min(n - 1, x + w)), int(min(n - 1, y + h))), g, -1)
+        else:
+            cv2.circle(img, (int(x), int(y)), int(min(w, 10)), g, -1)
+    return _wrap_blur(img.astype(np.float32), 0.6).astype(np.uint8)
+
+
+def _pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
+    out = [img]
+    for _ in range(levels - 1):
+        a = out[-1]
+        # periodic downsample (wrap-pad so the tile stays seamless)
+        big = np.pad(a, 4, mode="wrap")
+        d = cv2.pyrDown(big)
+        out.append(np.ascontiguousarray(d[2:-2, 2:-2]))
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Box:
+    cx: float
+    cy: float
+    hx: float
+    hy: float
+    h: float
+    tex_off: tuple  # per-face (u, v) offsets into the wall atlas, 4 faces
+
+
+def _layout(seed: int, period: float, n_boxes: int, n_posts: int) -> list[Box]:
+    rng = np.random.default_rng([seed, 303])
+    boxes: list[Box] = []
+    tries = 0
+    while len(boxes) < n_boxes + n_posts and tries < 5000:
+        tries += 1
+        post = len(boxes) >= n_boxes
+        if post:
+            hx = hy = rng.uniform(0.05, 0.12)
+            h = rng.uniform(1.5, 3.0)
+        else:
+            hx, hy = rng.uniform(0.2, 1.2, 2)
+            h = rng.uniform(0.6, 2.5)
+        cx, cy = rng.uniform(0, period, 2)
+        ok = all(abs(cx - b.cx) > hx + b.hx + 1.0 or abs(cy - b.cy) > hy + b.hy + 1.0 for b in boxes)
+        if ok:
+            offs = tuple((int(rng.integers(0, 1 << 20)), int(rng.integers(0, 1 << 20))) for _ in range(4))
+            boxes.append(Box(float(cx), float(cy), float(hx), float(hy), float(h), offs))
+    return boxes
+
+
+class StereoRenderer:
+    """Render the rectified stereo pair seen from a base pose; see the module docstring.
+
+    ``camera_cfg``: ``robot.camera`` (``xyz``, ``rpy``, ``baseline``; optional ``width``, ``height``,
+    ``fx``, ``fy``, ``cx``, ``cy``, ``fps``). ``render_options`` override those and :data:`DEFAULTS`.
+    """
+
+    def __init__(self, camera_cfg: dict, seed: int, **render_options):
+        cfg = dict(DEFAULTS)
+        cam = dict(camera_cfg)
+        for k in DEFAULTS:
+            if k in cam:
+                cfg[k] = cam[k]
+        unknown = set(render_options) - set(DEFAULTS)
+        if unknown:
+            raise ValueError(f"unknown render options {sorted(unknown)}; known: {sorted(DEFAULTS)}")
+        cfg.update(render_options)
+        self.opts = cfg
+        self.seed = int(seed)
+        self.width, self.height = int(cfg["width"]), int(cfg["height"])
+        fx = float(cfg["fx"])
+        fy = float(cfg["fy"] if cfg["fy"] is not None else fx)
+        cx = float(cfg["cx"] if cfg["cx"] is not None else (self.width - 1) / 2.0)
+        cy = float(cfg["cy"] if cfg["cy"] is not None else (self.height - 1) / 2.0)
+        self.K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        self.Kinv = np.linalg.inv(self.K)
+        self.baseline = float(cam.get("baseline", 0.12))
+        self.fps = float(cfg["fps"])
+        self.T_b_c = se3_from_xyz_rpy(np.asarray(cam["xyz"], float), np.asarray(cam["rpy"], float))
+        self.T_cl_cr = np.eye(4)
+        self.T_cl_cr[0, 3] = self.baseline
+
+        self.texel = float(cfg["ground_texel_m"])
+        n = int(cfg["ground_texture_px"])
+        self.period = n * self.texel
+        self.ground = _pyramid(ground_texture(self.seed, n), 5)
+        self.wall_texel = float(cfg["wall_texel_m"])
+        self.wall = _pyramid(wall_texture(self.seed, int(cfg["wall_texture_px"])), 4)
+        self.boxes = _layout(self.seed, self.period, int(cfg["n_boxes"]), int(cfg["n_posts"]))
+        rng = np.random.default_rng([self.seed, 404])
+        self._noise = [
+            np.clip(
+                np.round(rng.normal(0, float(cfg["noise_std"]), (self.height, self.width))), -8, 8
+            ).astype(np.int16)
+            for _ in range(16)
+        ]
+        v = np.arange(self.height, dtype=np.float64)
+        self._sky = np.tile((170.0 + 40.0 * v / self.height)[:, None], (1, self.width)).astype(np.uint8)
+        self._rows = v
+        self._inst = None
+        self._uu, self._vv = np.meshgrid(
+            np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
+        )
+
+    # ----------------------------------------------------------------------------------------------
+    def camera_info(self) -> dict:
+        K = self.K
+        fx = K[0, 0]
+
+        def info(tx: float) -> dict:
+            return {
+                "width": self.width,
+                "height": self.height,
+                "distortion_model": "plumb_bob",
+                "K": K.tolist(),
+                "D": [0.0] * 5,
+                "R": np.eye(3).tolist(),
+                "P": [
+                    [float(K[0, 0]), 0.0, float(K[0, 2]), float(tx)],
+                    [0.0, float(K[1, 1]), float(K[1, 2]), 0.0],
+                    [0.0, 0.0, 1.0, 0.0],
+                ],
+            }
+
+        return {"left": info(0.0), "right": info(-fx * self.baseline)}
+
+    def encode(self, img: np.ndarray) -> bytes:
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(self.opts["jpeg_quality"])])
+        if not ok:  # pragma: no cover
+            raise RuntimeError("JPEG encoding failed")
+        return buf.tobytes()
+
+    # ----------------------------------------------------------------------------------------------
+    def camera_poses(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """World<-camera transforms (left, right) for a base pose."""
+        c, s = np.cos(yaw), np.sin(yaw)
+        T_w_b = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+        T_w_cl = T_w_b @ self.T_b_c
+        return T_w_cl, T_w_cl @ self.T_cl_cr
+
+    def render(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        T_w_cl, T_w_cr = self.camera_poses(float(x), float(y), float(yaw))
+        # the world is periodic: move the cameras into the first period (same shift for both)
+        shift = np.floor(T_w_cl[:2, 3] / self.period) * self.period
+        T_w_cl = T_w_cl.copy()
+        T_w_cr = T_w_cr.copy()
+        T_w_cl[:2, 3] -= shift
+        T_w_cr[:2, 3] -= shift
+        boxes = self._visible_boxes(T_w_cl[:2, 3])
+        key = hashlib.blake2b(
+            np.array([x, y, yaw], float).tobytes() + self.seed.to_bytes(8, "little", signed=True)
+        )
+        k = key.digest()[0]
+        left = self._render_one(T_w_cl, boxes, self._noise[k % 16])
+        right = self._render_one(T_w_cr, boxes, self._noise[(k // 16) % 16])
+        return left, right
+
+    def _visible_boxes(self, cam_xy: np.ndarray) -> list[tuple[float, float, Box]]:
+        """Box instances (of the 3 x 3 neighbouring periods) in range and not hiding the camera."""
+        if self._inst is None:
+            L = self.period
+            rows = [
+                (b.cx + i * L, b.cy + j * L, k)
+                for k, b in enumerate(self.boxes)
+                for i in (-1, 0, 1)
+                for j in (-1, 0, 1)
+            ]
+            self._inst = np.array(rows, dtype=float).reshape(-1, 3)
+            self._inst_h = np.array(
+                [[self.boxes[int(k)].hx, self.boxes[int(k)].hy] for k in self._inst[:, 2]]
+            ).reshape(-1, 2)
+        R = float(self.opts["max_range_m"])
+        m = float(self.opts["hide_margin_m"])
+        d = np.abs(self._inst[:, :2] - cam_xy)
+        keep = np.all(d < R + self._inst_h, axis=1) & ~np.all(d < self._inst_h + m, axis=1)
+        return [(bx, by, self.boxes[int(k)]) for bx, by, k in self._inst[keep]]
+
+    def _in_view(self, boxes, R_c_w, t_c_w):
+        """Frustum culling: keep boxes with a corner in front of the camera and not all off one side."""
+        if not boxes:
+            return boxes
+        K = self.K
+        out = []
+        for bx, by, b in boxes:
+            xs = (bx - b.hx, bx + b.hx)
+            ys = (by - b.hy, by + b.hy)
+            c = np.array([[x, y, z] for x in xs for y in ys for z in (0.0, b.h)]) @ R_c_w.T + t_c_w
+            if np.all(c[:, 2] < self.opts["near_m"]):
+                continue
+            u = c[:, 0] * K[0, 0] + c[:, 2] * (K[0, 2] + 0.5)
+            lim_r = c[:, 2] * (self.width - K[0, 2] + 0.5)
+            if np.all(u < 0) or np.all(c[:, 0] * K[0, 0] > lim_r):
+                continue
+            out.append((bx, by, b))
+        return out
+
+    def _render_one(self, T_w_c: np.ndarray, boxes, noise: np.ndarray) -> np.ndarray:
+        H, W = self.height, self.width
+        K = self.K
+        R_c_w = T_w_c[:3, :3].T
+        t_c_w = -R_c_w @ T_w_c[:3, 3]
+        cz = T_w_c[2, 3]
+        img = self._sky.copy()
+        # ---- ground: ray z component per row (exact when the camera has no roll w.r.t. the ground)
+        rays = self.Kinv @ np.vstack([np.full(H, K[0, 2]), self._rows, np.ones(H)])  # camera frame, z = 1
+        dz = (T_w_c[:3, :3] @ rays)[2]  # world z of the ray per unit depth
+        with np.errstate(divide="ignore"):
+            depth = np.where(dz < -1e-6, cz / -dz, np.inf)  # optical-axis depth of the ground per row
+        inv_depth = np.where(np.isfinite(depth), 1.0 / depth, 0.0)
+        zbuf = np.tile(inv_depth[:, None], (1, W)).astype(np.float32)
+        # texel footprint per pixel grows with depth and with grazing angle
+        ray_len = np.linalg.norm(rays, axis=0)
+        grazing = np.clip(-dz / ray_len, 1e-3, 1.0)
+        footprint = depth * ray_len / (K[1, 1] * self.texel) / np.sqrt(grazing)
+        with np.errstate(divide="ignore"):
+            level = np.clip(np.floor(np.log2(np.maximum(footprint, 1e-9) * 0.7)), 0, len(self.ground) - 1)
+        level = np.where(np.isfinite(depth), level, -1).astype(int)
+        G = np.column_stack([R_c_w[:, 0], R_c_w[:, 1], t_c_w])  # ground (X, Y, 1) -> camera
+        H_img_world = K @ G
+        for lev in range(len(self.ground)):
+            rows = np.nonzero(level == lev)[0]
+            if rows.size == 0:
+                continue
+            r0, r1 = rows[0], rows[-1] + 1
+            s = self.texel * (2**lev)
+            A = np.diag([s, s, 1.0])
+            Tr = np.array([[1, 0, 0], [0, 1, -r0], [0, 0, 1.0]])
+            M = np.linalg.inv(Tr @ H_img_world @ A)  # band pixel -> texel
+            band = cv2.warpPerspective(
+                self.ground[lev],
+                M,
+                (W, int(r1 - r0)),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_WRAP,
+            )
+            img[r0:r1] = band
+        # fog per row towards the sky grey
+        fog = np.exp(-np.where(np.isfinite(depth), depth, 1e9) / float(self.opts["fog_m"]))
+        gmask = np.isfinite(depth)
+        if gmask.any():
+            f = fog[gmask][:, None]
+            img[gmask] = (img[gmask] * f + 150.0 * (1 - f)).astype(np.uint8)
+        # ---- boxes: visible vertical faces, z-buffered
+        for bx, by, b in self._in_view(boxes, R_c_w, t_c_w):
+            self._draw_box(img, zbuf, bx, by, b, R_c_w, t_c_w, T_w_c[:3, 3])
+        out = img.astype(np.int16) + noise
+        return np.clip(out, 0, 255).astype(np.uint8)
+
+    def _draw_box(self, img, zbuf, bx, by, b: Box, R_c_w, t_c_w, cam):
+        H, W = self.height, self.width
+        K = self.K
+        near = float(self.opts["near_m"])
+        # faces: (corner p0 on the ground, direction e along the face, outward normal n, length)
+        faces = (
+            ((bx - b.hx, by - b.hy), (1.0, 0.0), (0.0, -1.0), 2 * b.hx),
+            ((bx + b.hx, by - b.hy), (0.0, 1.0), (1.0, 0.0), 2 * b.hy),
+            ((bx + b.hx, by + b.hy), (-1.0, 0.0), (0.0, 1.0), 2 * b.hx),
+            ((bx - b.hx, by + b.hy), (0.0, -1.0), (-1.0, 0.0), 2 * b.hy),
+        )
+        for fi, (p0, e, nrm, length) in enumerate(faces):
+            if (cam[0] - p0[0]) * nrm[0] + (cam[1] - p0[1]) * nrm[1] <= 1e-6:
+                continue  # back face
+            P0 = np.array([p0[0], p0[1], b.h])
+            E = np.array([e[0], e[1], 0.0])
+            corners_w = np.array([P0, P0 + length * E, P0 + length * E - [0, 0, b.h], P0 - [0, 0, b.h]])
+            pc = corners_w @ R_c_w.T + t_c_w
+            poly = _clip_near(pc, near)
+            if len(poly) < 3:
+                continue
+            uv = poly[:, :2] / poly[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+            x0 = max(0, int(np.floor(uv[:, 0].min())))
+            x1 = min(W, int(np.ceil(uv[:, 0].max())) + 1)
+            y0 = max(0, int(np.floor(uv[:, 1].min())))
+            y1 = min(H, int(np.ceil(uv[:, 1].max())) + 1)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            # plane in camera coordinates: n_c . X = d ; inverse depth = n_c . K^-1 (u, v, 1) / d
+            n_c = R_c_w @ np.array([nrm[0], nrm[1], 0.0])
+            d = n_c @ (R_c_w @ P0 + t_c_w)
+            a = (n_c @ self.Kinv) / d
+            uu = self._uu[y0:y1, x0:x1]
+            vv = self._vv[y0:y1, x0:x1]
+            invz = (a[0] * uu + a[1] * vv + a[2]).astype(np.float32)
+            mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+            pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
+            cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
+            sel = (mask > 0) & (invz > zbuf[y0:y1, x0:x1])
+            if not sel.any():
+                continue
+            # texture: face coords (s along e, t down from the top) in texels of a mip level
+            dist = 1.0 / max(float(invz[sel].max()), 1e-6)
+            foot = dist / (K[0, 0] * self.wall_texel)
+            lev = int(np.clip(np.floor(np.log2(max(foot * 0.7, 1e-9))), 0, len(self.wall) - 1))
+            s = self.wall_texel * (2**lev)
+            ou, ov = b.tex_off[fi]
+            tex = self.wall[lev]
+            n_t = tex.shape[0]
+            # face texel (i, j) -> world: P0 + (i + ou) * s * E - (j + ov) * s * z ; offsets mod tile
+            ou, ov = ou % n_t, ov % n_t
+            Dn = np.array([0.0, 0.0, -1.0])
+            Mface = np.column_stack(
+                [R_c_w @ (E * s), R_c_w @ (Dn * s), R_c_w @ (P0 - ou * s * E - ov * s * Dn) + t_c_w]
+            )
+            Tr = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
+            Minv = np.linalg.inv(Tr @ K @ Mface)
+            patch = cv2.warpPerspective(
+                tex,
+                Minv,
+                (x1 - x0, y1 - y0),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_WRAP,
+            )
+            f = np.exp(-dist / float(self.opts["fog_m"]))
+            patch = (patch * f + 150.0 * (1 - f)).astype(np.uint8)
+            img[y0:y1, x0:x1][sel] = patch[sel]
+            zbuf[y0:y1, x0:x1][sel] = invz[sel]
+
+
+def _clip_near(pc: np.ndarray, near: float) -> np.ndarray:
+    """Clip a convex polygon (camera coordinates) to z >= near (Sutherland-Hodgman, one plane)."""
+    out = []
+    n = len(pc)
+    for i in range(n):
+        a, b = pc[i], pc[(i + 1) % n]
+        ina, inb = a[2] >= near, b[2] >= near
+        if ina:
+            out.append(a)
+        if ina != inb:
+            t = (near - a[2]) / (b[2] - a[2])
+            out.append(a + t * (b - a))
+    return np.array(out)
