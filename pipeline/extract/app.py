@@ -1,0 +1,82 @@
+"""``skidbench extract``: every sequence of the configured source -> ``<ds>/extracted/<seq>/``.
+
+Dispatches on ``source.kind``: ``bag`` (the simulated dataset and a user's own bags) is handled here;
+any other kind (``amrl_txt``, ``drive_df``, ...) by ``skidbench.pipeline.sources.<kind>.extract_source``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from ..cli import stage
+from ..errors import ConfigError
+from ..layout import Layout, layout_from_cfg
+from .bag import ExtractOptions, extract_bag
+from .reader import discover_sequences, topic_specs
+
+log = logging.getLogger("skidbench.extract")
+
+
+def options_from_cfg(cfg: DictConfig) -> ExtractOptions:
+    ext = OmegaConf.to_container(cfg.extract, resolve=True)
+    return ExtractOptions(
+        images=str(ext["images"]),
+        batch_rows=int(ext["batch_rows"]),
+        batch_bytes=int(ext["batch_bytes"]),
+        force=bool(ext["force"]),
+        progress=bool(ext["progress"]),
+        typestores=dict(ext["typestores"]),
+    )
+
+
+def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
+    """Extract every sequence of a bag source; returns the ``_extract.json`` records in order.
+
+    For a user's bags (no ``manifest.json`` in ``source.root``) the manifest built from the folder tree
+    is written to ``<ds>/raw/manifest.json``, so later stages find terrain and category the same way for
+    every source.
+    """
+    source = OmegaConf.to_container(cfg.source, resolve=True)
+    specs = topic_specs(source.get("topics") or {})
+    if not specs:
+        raise ConfigError("source.topics is empty: nothing to extract")
+    opts = options_from_cfg(cfg)
+    manifest, found = discover_sequences(source)
+    if not found:
+        manifest.write(layout.manifest)
+    records = []
+    seqs = manifest.sequences
+    for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):
+        meta = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category}
+        info = extract_bag(manifest.resolve(seq), layout.extracted / seq.name, specs, opts, meta)
+        verb = "up to date" if info.get("skipped") else "extracted"
+        counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
+        log.info("%s %s: %s", verb, seq.name, counts)
+        records.append(info)
+    return records
+
+
+def run(cfg: DictConfig) -> Any:
+    """Extract the configured source into ``<out_root>/<dataset>/extracted``."""
+    layout = layout_from_cfg(cfg)
+    kind = str(cfg.source.get("kind", "bag"))
+    if kind == "bag":
+        return extract_bags(cfg, layout)
+    try:
+        module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
+    except ImportError as exc:
+        raise ConfigError(f"source.kind={kind!r}: no reader for this kind of source ({exc})") from exc
+    return module.extract_source(cfg, layout)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="extract")
+@stage("extract")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+    print(f"extracted: {layout_from_cfg(cfg).extracted}")

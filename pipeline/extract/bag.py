@@ -1,0 +1,128 @@
+"""One bag -> one folder of Parquet tables (``<seq>/<topic_key>.parquet``) plus ``<seq>/_extract.json``.
+
+Streams: messages are read one at a time, converted to a row, buffered in small batches and appended to
+temporary Parquet files that are renamed only when the whole bag has been read (see ``writer.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from ..cache import Stamp
+from ..errors import ConfigError
+from ..io import write_json_atomic
+from .convert import CONVERTERS, IMAGE_MODES, image_row, image_suffix, schema_for
+from .reader import TopicSpec, iter_messages, open_bag, select_connections
+from .writer import SequenceWriter
+
+EXTRACT_INFO = "_extract.json"
+STAMP = ".stamp.json"  # skidbench.pipeline.cache: skip a sequence whose bag and config are unchanged
+EXTRACT_SCHEMA = 1
+
+
+@dataclass(frozen=True)
+class ExtractOptions:
+    """``extract.*`` settings. ``batch_rows``: rows buffered per table before a write; ``batch_bytes``:
+    image bytes buffered per table before a write (bytes); ``typestores``: default typestore per bag
+    format, for bags without message definitions."""
+
+    images: str = "ref"
+    batch_rows: int = 4096
+    batch_bytes: int = 8 << 20
+    force: bool = False
+    progress: bool = True
+    typestores: Mapping[str, str] = field(
+        default_factory=lambda: {"ros1": "ros1_noetic", "ros2": "ros2_humble"}
+    )
+
+    def __post_init__(self):
+        if self.images not in IMAGE_MODES:
+            raise ConfigError(f"extract.images={self.images!r}: must be one of {', '.join(IMAGE_MODES)}")
+
+
+def _stamp_config(specs: list[TopicSpec], opts: ExtractOptions) -> dict[str, Any]:
+    """What of the config changes the output (the stamp's key)."""
+    return {"topics": [asdict(s) for s in specs], "images": opts.images, "schema": EXTRACT_SCHEMA}
+
+
+def extract_bag(
+    bag: Path,
+    out_dir: Path,
+    specs: list[TopicSpec],
+    opts: ExtractOptions,
+    meta: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Extract the configured topics of ``bag`` into ``out_dir``; returns the ``_extract.json`` record.
+
+    Skips the work (and returns the existing record) when ``out_dir`` is up to date, unless
+    ``opts.force``. Raises ExtractError for a bag that cannot be read or does not match the config, in
+    which case nothing of this sequence is written or changed.
+    """
+    bag, out_dir = Path(bag), Path(out_dir)
+    stamp = Stamp(out_dir / STAMP, "extract")
+    key = bag_fp = ""
+    if bag.exists():
+        key = stamp.key([bag], _stamp_config(specs, opts))
+        bag_fp = stamp.fp(bag)
+        if not opts.force and stamp.is_fresh(key):
+            return {**json.loads((out_dir / EXTRACT_INFO).read_text()), "skipped": True}
+    started = time.perf_counter()
+    spec_of = {s.key: s for s in specs}
+    schemas = {s.key: schema_for(s.msgtype, opts.images) for s in specs}  # unsupported type: fail early
+    with open_bag(bag, opts.typestores) as reader:
+        selected = select_connections(reader, specs, bag)
+        total = sum(c.msgcount for conns in selected.values() for c in conns)
+        with SequenceWriter(out_dir, opts.batch_rows, opts.batch_bytes) as out:
+            sinks = {key: out.table(key, schemas[key]) for key in selected}
+            rows = {
+                k: CONVERTERS[spec_of[k].msgtype].row for k in selected if spec_of[k].msgtype in CONVERTERS
+            }
+            image_count = dict.fromkeys(selected, 0)
+            with tqdm(
+                total=total, unit="msg", desc=out_dir.name, leave=False, disable=not opts.progress
+            ) as bar:
+                done = 0
+                for key, bag_time_ns, msg in iter_messages(reader, selected, bag):
+                    convert = rows.get(key)
+                    if convert is not None:
+                        sinks[key].append(convert(msg, bag_time_ns))
+                    else:  # CompressedImage
+                        index = image_count[key]
+                        image_count[key] += 1
+                        row = image_row(msg, bag_time_ns, index, opts.images)
+                        sinks[key].append(row, nbytes=len(msg.data))
+                        if opts.images == "files":
+                            out.image_path(key, f"{index:06d}{image_suffix(msg.format)}").write_bytes(
+                                msg.data
+                            )
+                    done += 1
+                    if done % 2048 == 0:
+                        bar.update(2048)
+                bar.update(done % 2048)
+            info = {
+                "schema": EXTRACT_SCHEMA,
+                "bag": str(bag),
+                "bag_fingerprint": bag_fp,
+                "images": opts.images,
+                "topics": {
+                    key: {
+                        "topic": spec_of[key].topic,
+                        "type": spec_of[key].msgtype,
+                        "count": sinks[key].count,
+                    }
+                    for key in selected
+                },
+                "absent": [s.key for s in specs if s.key not in selected],
+                "seconds": round(time.perf_counter() - started, 3),
+                **dict(meta or {}),
+            }
+    write_json_atomic(out_dir / EXTRACT_INFO, info)
+    stamp.record(key, [*(out_dir / f"{k}.parquet" for k in selected), out_dir / EXTRACT_INFO])
+    return info
