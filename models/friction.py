@@ -1,0 +1,109 @@
+"""Friction-based kinematic model (the paper's section III, eqs. 5-12).
+
+Per time step, theta = (s_l, s_r, x_ICR) solves the force/torque balance F(theta) = 0 (eqs. 9-11) built from
+the commanded wheel rates and their derivatives; eq. (8) then gives (vx, vy, wz). The inner solve is
+batched over all steps (``friction_solver.solve``). The five parameters {mu_r, mu_x, mu_y, lambda, C} are
+fitted by nonlinear least squares (scipy ``least_squares``, in log space so they stay positive) on the
+velocity prediction error, each evaluation warm-started from the previous evaluation's slips.
+
+Identifiability (what the data can and cannot pin down):
+- mu_x only matters where a tractive force saturates (lambda |s| >= mu_x in eq. 6); on data where the min()
+  never saturates it has no effect and is not identifiable (kept at its initial value).
+- C and mu_y enter eq. (7) as mu_y (1 - exp(-|alpha|/C)); at small slip angles this is mu_y |alpha| / C, so
+  only mu_y / C is identifiable unless slip angles reach a sizeable fraction of C.
+- mu_r and lambda: straight driving fixes the slip mu_r / lambda; their scale relative to the inertial
+  terms M a needs accelerations and turns. All friction coefficients scale together with M a otherwise.
+- Zero slip: mu_r = 0 and no accelerations (steady straight driving) give s = 0, i.e. the ideal model;
+  lambda -> infinity with mu_r = 0 gives zero slip ratios for any motion (eq. 8 with s = 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import least_squares
+
+from ._util import col, mse, targets, training_rows
+from .base import KinematicModel, ModelError
+from .friction_solver import PARAM_NAMES, FrictionGeometry, SolveResult, body_velocity, solve
+
+DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.3}
+
+
+class FrictionBased(KinematicModel):
+    name = "friction"
+    version = "1.0"
+    required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
+
+    def __init__(self, robot, params=None, **options):
+        super().__init__(robot, params, **options)
+        self.params = {**DEFAULT_PARAMS, **self.params}
+        self.geometry = FrictionGeometry.from_robot(robot)
+        self.last_solve_: SolveResult | None = None
+        self.fit_info_: dict = {}
+
+    @staticmethod
+    def inputs(table: pd.DataFrame) -> tuple[np.ndarray, ...]:
+        """(wl, wr, dwl, dwr): commanded wheel rates (rad/s) and their derivatives (rad/s^2), each (T,)."""
+        return tuple(col(table, c) for c in ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"))
+
+    def velocities(self, inputs, params=None, theta0=None) -> tuple[np.ndarray, SolveResult]:
+        """(T, 3) body velocities and the per-step solve (eq. 12 then eq. 8)."""
+        p = self.params if params is None else params
+        sol = solve(*inputs, p, self.geometry, theta0=theta0)
+        wl, wr = inputs[0], inputs[1]
+        return body_velocity(sol.theta, wl, wr, self.geometry.r, self.geometry.B), sol
+
+    def fit(self, table: pd.DataFrame) -> FrictionBased:
+        self.check_columns(table, fitting=True)
+        train = training_rows(table)
+        inp = self.inputs(train)
+        y = targets(train)
+        names = list(self.options.get("fit_params") or PARAM_NAMES)
+        unknown = [n for n in names if n not in PARAM_NAMES]
+        if unknown:
+            raise ModelError(f"model {self.name}: unknown fit_params {unknown} (known: {PARAM_NAMES})")
+        base = dict(self.params)
+        warm = {"theta": None}
+        n_rows = len(train)
+
+        def unpack(z):
+            p = dict(base)
+            p.update({n: float(np.exp(v)) for n, v in zip(names, z, strict=True)})
+            return p
+
+        def resid(z):
+            v, sol = self.velocities(inp, unpack(z), theta0=warm["theta"])
+            if warm["theta"] is None or np.all(sol.status > 0):
+                warm["theta"] = sol.theta  # warm start for the next evaluation
+            return ((v - y) / np.sqrt(n_rows)).ravel()
+
+        z0 = np.log([float(base[n]) for n in names])
+        res = least_squares(
+            resid,
+            z0,
+            method="trf",
+            diff_step=1e-6,
+            xtol=float(self.options.get("xtol", 1e-10)),
+            ftol=float(self.options.get("ftol", 1e-12)),
+            gtol=float(self.options.get("gtol", 1e-12)),
+            max_nfev=int(self.options.get("max_nfev", 200)),
+        )
+        self.params = unpack(res.x)
+        pred, sol = self.velocities(inp)
+        self.last_solve_ = sol
+        self.fit_loss_ = mse(pred, y)
+        self.fit_info_ = {
+            "nfev": int(res.nfev),
+            "optimizer_status": int(res.status),
+            "fitted": names,
+            "steps_not_converged": sol.n_not_converged,
+            "steps_without_root": int(np.sum(sol.status == 2)),
+        }
+        return self
+
+    def predict(self, table: pd.DataFrame) -> np.ndarray:
+        self.check_columns(table)
+        pred, sol = self.velocities(self.inputs(table))
+        self.last_solve_ = sol
+        return pred

@@ -1,0 +1,127 @@
+"""Model plugins: discovery through the entry-point group ``skidbench.models``.
+
+Built-in models register exactly like a third party (``pyproject.toml``)::
+
+    [project.entry-points."skidbench.models"]
+    ridge = "skidbench_ridge.model:RidgeSlip"
+
+A plugin is a class that subclasses :class:`~skidbench.models.base.KinematicModel` or duck-types it
+(class attributes ``name`` and ``version``, methods ``fit`` and ``predict``). A plugin that fails to import
+or breaks the interface is reported as one line naming it and the problem; the others still work.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from importlib.metadata import EntryPoint, entry_points
+
+from .base import KinematicModel, ModelError
+
+GROUP = "skidbench.models"
+
+
+@dataclass
+class PluginInfo:
+    """One entry point of the group: the loaded class, or the problem that stopped it loading."""
+
+    name: str
+    target: str  # "module:Class"
+    package: str  # distribution name ("?" if unknown)
+    package_version: str
+    cls: type | None = None
+    error: str | None = None
+
+    @property
+    def version(self) -> str:
+        return str(getattr(self.cls, "version", "?")) if self.cls is not None else "?"
+
+    @property
+    def ok(self) -> bool:
+        return self.cls is not None
+
+
+def interface_problem(cls: object, name: str) -> str | None:
+    """Why ``cls`` is not a usable model class (None if it is)."""
+    if not isinstance(cls, type):
+        return f"{cls!r} is not a class"
+    if not issubclass(cls, KinematicModel):
+        missing = [a for a in ("name", "version", "fit", "predict") if not hasattr(cls, a)]
+        if missing:
+            return f"class {cls.__name__} lacks {', '.join(missing)} (subclass KinematicModel)"
+        bad = [a for a in ("fit", "predict") if not callable(getattr(cls, a))]
+        if bad:
+            return f"class {cls.__name__}: {', '.join(bad)} not callable"
+    elif getattr(cls, "__abstractmethods__", None):
+        return f"class {cls.__name__} does not implement {', '.join(sorted(cls.__abstractmethods__))}"
+    if getattr(cls, "name", None) != name:
+        return f"class {cls.__name__} has name {getattr(cls, 'name', None)!r}, entry point says {name!r}"
+    return None
+
+
+def _load(ep: EntryPoint) -> PluginInfo:
+    dist = getattr(ep, "dist", None)
+    info = PluginInfo(
+        name=ep.name,
+        target=ep.value,
+        package=getattr(dist, "name", None) or "?",
+        package_version=getattr(dist, "version", None) or "?",
+    )
+    try:
+        cls = ep.load()
+    except Exception as exc:  # any failure of third-party code is that plugin's problem only
+        info.error = f"cannot import {ep.value}: {type(exc).__name__}: {exc}"
+        return info
+    problem = interface_problem(cls, ep.name)
+    if problem:
+        info.error = problem
+    else:
+        info.cls = cls
+    return info
+
+
+def discover() -> dict[str, PluginInfo]:
+    """All entry points of the group by name (broken ones included, with ``error`` set)."""
+    found: dict[str, PluginInfo] = {}
+    for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
+        info = _load(ep)
+        if ep.name in found and found[ep.name].package != info.package:
+            prev = found[ep.name]
+            info.cls = None
+            info.error = f"name also registered by package {prev.package}; uninstall one of them"
+            found[f"{ep.name} ({info.package})"] = info
+            continue
+        found[ep.name] = info
+    return found
+
+
+def available() -> list[str]:
+    """Names of the models that load and pass the interface check."""
+    return [n for n, i in discover().items() if i.ok]
+
+
+def get_model_class(name: str) -> type[KinematicModel]:
+    """The model class registered as ``name``; ModelError (one line) if absent or broken."""
+    infos = discover()
+    info = infos.get(name)
+    if info is None:
+        ok = ", ".join(n for n, i in infos.items() if i.ok) or "none"
+        raise ModelError(f"model {name}: not installed (installed: {ok}); pip install its package")
+    if not info.ok:
+        raise ModelError(f"model {name} (package {info.package}): {info.error}")
+    return info.cls  # type: ignore[return-value]
+
+
+def list_main() -> None:
+    """``skidbench models``: one line per installed model (name, version, package); broken plugins are
+    reported one line each on stderr and do not stop the listing."""
+    infos = discover()
+    rows = [(i.name, i.version, f"{i.package} {i.package_version}") for i in infos.values() if i.ok]
+    w0 = max([len("name")] + [len(r[0]) for r in rows])
+    w1 = max([len("version")] + [len(r[1]) for r in rows])
+    print(f"{'name'.ljust(w0)}  {'version'.ljust(w1)}  package")
+    for n, v, p in rows:
+        print(f"{n.ljust(w0)}  {v.ljust(w1)}  {p}")
+    for key, i in infos.items():
+        if not i.ok:
+            print(f"skidbench models: plugin {key} (package {i.package}): {i.error}", file=sys.stderr)
