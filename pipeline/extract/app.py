@@ -6,8 +6,10 @@ any other kind (``amrl_txt``, ``drive_df``, ...) by ``skidbench.pipeline.sources
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import logging
+from pathlib import Path
 from typing import Any
 
 import hydra
@@ -17,8 +19,9 @@ from tqdm import tqdm
 from ..cli import stage
 from ..errors import ConfigError
 from ..layout import Layout, layout_from_cfg
+from ..manifest import Manifest
 from .bag import ExtractOptions, extract_bag
-from .reader import discover_sequences, topic_specs
+from .reader import bag_format, discover_sequences, topic_specs
 
 log = logging.getLogger("skidbench.extract")
 
@@ -48,8 +51,11 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
         raise ConfigError("source.topics is empty: nothing to extract")
     opts = options_from_cfg(cfg)
     manifest, found = discover_sequences(source)
-    if not found:
-        manifest.write(layout.manifest)
+    if not found:  # paths made absolute: the manifest is written away from the bags
+        seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
+        formats = {bag_format(Path(s.path)) for s in seqs}
+        fmt = formats.pop() if len(formats) == 1 else "mixed"
+        Manifest(seqs, format=fmt or "ros1", base=layout.raw).write(layout.manifest)
     records = []
     seqs = manifest.sequences
     for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):

@@ -67,11 +67,11 @@ def extract_bag(
     """
     bag, out_dir = Path(bag), Path(out_dir)
     stamp = Stamp(out_dir / STAMP, "extract")
-    key = bag_fp = ""
+    stamp_key = bag_fp = ""
     if bag.exists():
-        key = stamp.key([bag], _stamp_config(specs, opts))
+        stamp_key = stamp.key([bag], _stamp_config(specs, opts))
         bag_fp = stamp.fp(bag)
-        if not opts.force and stamp.is_fresh(key):
+        if not opts.force and stamp.is_fresh(stamp_key):
             return {**json.loads((out_dir / EXTRACT_INFO).read_text()), "skipped": True}
     started = time.perf_counter()
     spec_of = {s.key: s for s in specs}
@@ -124,5 +124,5 @@ def extract_bag(
                 **dict(meta or {}),
             }
     write_json_atomic(out_dir / EXTRACT_INFO, info)
-    stamp.record(key, [*(out_dir / f"{k}.parquet" for k in selected), out_dir / EXTRACT_INFO])
+    stamp.record(stamp_key, [*(out_dir / f"{k}.parquet" for k in selected), out_dir / EXTRACT_INFO])
     return info
