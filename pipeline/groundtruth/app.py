@@ -1,0 +1,221 @@
+"""``skidbench groundtruth``: every sequence of the manifest -> ``groundtruth/<seq>.tum`` + ``<seq>.json``,
+then the loop-closure check over the ``loop`` sequences -> ``groundtruth/loop_closure.json``.
+
+``groundtruth.method``: ``vo`` (stereo VO from the bag, :mod:`.vo`), ``orbslam`` (ORB-SLAM files from
+``groundtruth.orbslam.dir``, :mod:`.orbslam`) or ``pose_topic`` (an extracted pose table, :mod:`.pose_topic`).
+When the simulator's truth table is present the ground truth is also scored against it (absolute and
+``relative_horizon`` s relative error), per sequence and over the dataset.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from ..cli import stage
+from ..errors import ConfigError, GroundTruthError
+from ..geometry import se2_relative, se3_from_xyz_rpy, wrap_angle
+from ..io import fingerprint_file, write_json_atomic
+from ..layout import Layout, layout_from_cfg
+from ..manifest import Manifest, Sequence
+from .orbslam import read_orbslam
+from .pose_topic import read_pose_table
+from .trajectory import Trajectory, write_tum
+
+log = logging.getLogger("skidbench.groundtruth")
+
+LOOP_REPORT = "loop_closure.json"
+
+
+def camera_extrinsic(cfg: DictConfig) -> np.ndarray:
+    """``T_b_c`` from ``robot.camera`` (xyz + rpy)."""
+    cam = cfg.robot.get("camera")
+    if cam is None:
+        raise ConfigError(f"robot {cfg.robot.name}: no camera extrinsic (robot.camera.xyz/rpy)")
+    return se3_from_xyz_rpy(np.array(cam.xyz, dtype=float), np.array(cam.rpy, dtype=float))
+
+
+def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence):
+    """One sequence's ground truth: ``(Trajectory, report)``; report lists the source files consumed."""
+    gt = cfg.groundtruth
+    method = str(gt.method)
+    ext = layout.extracted / seq.name
+    max_gap = float(gt.max_gap)
+    if method == "pose_topic":
+        path = ext / f"{gt.pose_topic.key}.parquet"
+        if not path.is_file():
+            why = _extract_notes(ext)
+            raise GroundTruthError(
+                f"{path}: pose table not found{' (' + why + ')' if why else ''}; "
+                "set groundtruth.pose_topic.key or run `skidbench extract`"
+            )
+        traj = read_pose_table(path, max_gap, str(gt.pose_topic.stamp))
+        return traj, {"files": {str(path): fingerprint_file(path)}}
+    if method == "orbslam":
+        o = gt.orbslam
+        path = Path(str(o.dir)) / str(o.pattern).format(seq=seq.name)
+        if not path.is_file():
+            raise GroundTruthError(
+                f"{path}: no ORB-SLAM file for sequence {seq.name}; set groundtruth.orbslam.dir"
+            )
+        times = Path(str(o.dir)) / str(o.times_pattern).format(seq=seq.name)
+        ref_stamp = ref_bag = None
+        if o.associate_to:
+            ref = ext / f"{o.associate_to}.parquet"
+            if ref.is_file():
+                tab = pd.read_parquet(ref, columns=["stamp_ns", "bag_time_ns"])
+                ref_stamp, ref_bag = tab["stamp_ns"].to_numpy(), tab["bag_time_ns"].to_numpy()
+            else:
+                log.warning("%s absent: ORB-SLAM stamps + time_offset are taken as bag time", ref)
+        traj, report = read_orbslam(
+            path, camera_extrinsic(cfg), str(o.format), str(o.unit), times if times.is_file() else None,
+            float(o.time_offset), ref_stamp, ref_bag, float(o.max_diff), max_gap, float(o.max_speed),
+        )  # fmt: skip
+        files = {str(p): fingerprint_file(p) for p in (path, times) if p.is_file()}
+        return traj, {**report, "files": files}
+    if method == "vo":
+        try:
+            vo = importlib.import_module("skidbench.pipeline.groundtruth.vo")
+        except ImportError as exc:
+            raise GroundTruthError(f"groundtruth.method=vo is not available ({exc}); use pose_topic") from exc
+        bag = manifest.resolve(seq)
+        traj = vo.run_stereo_vo(bag, cfg)
+        fp = fingerprint_file(bag) if bag.is_file() else None
+        return traj, {"files": {str(bag): fp}}
+    raise ConfigError(f"groundtruth.method={method!r}: expected vo, orbslam or pose_topic")
+
+
+def _extract_notes(ext: Path) -> str:
+    import json
+
+    info = ext / "_extract.json"
+    if info.is_file():
+        return "; ".join(json.loads(info.read_text()).get("notes", []))
+    return ""
+
+
+def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[str, float] | None:
+    """The ground truth against the simulator's truth, both planar. The truth is sampled at the GT stamps
+    (linear interpolation) and both are expressed relative to their first common pose (SE(2)).
+    Absolute: RMS and max position error (m), RMS yaw error (rad). Relative: over every GT pose pair
+    ``horizon_s`` apart, RMS position error (m) and its ratio to the distance driven, RMS yaw error."""
+    tt, gt_t = truth.t, gt.t
+    inside = (gt_t >= tt[0]) & (gt_t <= tt[-1])
+    if inside.sum() < 2:
+        return None
+    g = gt.se2[inside]
+    ts = truth.se2
+    tr = np.column_stack([np.interp(gt_t[inside], tt, ts[:, i]) for i in range(3)])
+    g_rel, t_rel = se2_relative(g[0], g), se2_relative(tr[0], tr)
+    pos = np.linalg.norm(g_rel[:, :2] - t_rel[:, :2], axis=1)
+    out = {
+        "ate_rms_m": float(np.sqrt(np.mean(pos**2))),
+        "ate_max_m": float(pos.max()),
+        "ate_yaw_rms_rad": float(np.sqrt(np.mean(wrap_angle(g_rel[:, 2] - t_rel[:, 2]) ** 2))),
+    }
+    tg = gt_t[inside]
+    j = np.searchsorted(tg, tg + horizon_s)
+    ok = j < len(tg)
+    if ok.any():
+        i, j = np.flatnonzero(ok), j[ok]
+        dg, dtr = se2_relative(g[i], g[j]), se2_relative(tr[i], tr[j])
+        err = np.linalg.norm(dg[:, :2] - dtr[:, :2], axis=1)
+        steps = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(tr[:, :2], axis=0), axis=1))])
+        dist = steps[j] - steps[i]
+        moving = dist > 0.1
+        out.update(
+            {
+                "rpe_horizon_s": horizon_s,
+                "rpe_trans_rms_m": float(np.sqrt(np.mean(err**2))),
+                "rpe_trans_rel_rms": float(np.sqrt(np.mean((err[moving] / dist[moving]) ** 2))) if moving.any() else None,
+                "rpe_yaw_rms_rad": float(np.sqrt(np.mean(wrap_angle(dg[:, 2] - dtr[:, 2]) ** 2))),
+            }
+        )  # fmt: skip
+    return out
+
+
+def loop_closure(cfg: DictConfig, trajs: dict[str, Trajectory]) -> dict[str, Any]:
+    """The loop-closure check (the paper's localization accuracy) with :mod:`.loop`'s formulas."""
+    bounds = {k: float(v) for k, v in cfg.groundtruth.loop_bound.items()}
+    if not trajs:
+        return {"trials": 0, "flagged": False, "bounds": bounds, "note": "no loop sequences in the manifest"}
+    try:
+        loop = importlib.import_module("skidbench.pipeline.groundtruth.loop")
+    except ImportError as exc:
+        log.warning("loop-closure module unavailable (%s): check skipped", exc)
+        return {"trials": len(trajs), "flagged": False, "bounds": bounds, "note": f"check skipped: {exc}"}
+    stats = loop.loop_closure_stats([t.se2 for t in trajs.values()])
+    flagged = (
+        stats["translational_mean"] > bounds["translational"]
+        or stats["rotational_mean"] > bounds["rotational"]
+    )
+    return {
+        "trials": len(trajs),
+        "sequences": list(trajs),
+        **stats,
+        "bounds": bounds,
+        "flagged": bool(flagged),
+    }
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Compute every sequence's ground truth and the loop-closure report; returns the report."""
+    layout = layout_from_cfg(cfg)
+    manifest = Manifest.read(layout.manifest)
+    gt_cfg = cfg.groundtruth
+    out = layout.groundtruth
+    loops: dict[str, Trajectory] = {}
+    truth_scores = {}
+    for seq in manifest.sequences:
+        traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
+        if len(traj) < 2:
+            raise GroundTruthError(f"{seq.name}: empty sequence ({len(traj)} pose)")
+        truth_path = layout.extracted / seq.name / f"{gt_cfg.truth_key}.parquet"
+        is_truth = gt_cfg.method == "pose_topic" and gt_cfg.pose_topic.key == gt_cfg.truth_key
+        if truth_path.is_file() and not is_truth:
+            truth = read_pose_table(truth_path, float(gt_cfg.max_gap))
+            score = truth_errors(traj, truth, float(gt_cfg.relative_horizon))
+            if score:
+                report["truth_error"] = truth_scores[seq.name] = score
+        dur = (traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9
+        report.update(
+            {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category, "method": str(gt_cfg.method),
+             "poses": len(traj), "duration_s": dur, "gaps": [[a, b] for a, b in traj.gaps]}
+        )  # fmt: skip
+        write_tum(
+            traj, out / f"{seq.name}.tum", header=f"skidbench groundtruth {seq.name} method={gt_cfg.method}"
+        )
+        write_json_atomic(out / f"{seq.name}.json", report)
+        log.info("%s: %d poses, %.1f s, %d gap(s)", seq.name, len(traj), dur, len(traj.gaps))
+        if seq.category == "loop":
+            loops[seq.name] = traj
+    result = loop_closure(cfg, loops)
+    result["method"] = str(gt_cfg.method)
+    if truth_scores:
+        keys = ("ate_rms_m", "rpe_trans_rms_m", "rpe_trans_rel_rms", "rpe_yaw_rms_rad")
+        result["truth_error"] = {
+            k: float(np.mean([s[k] for s in truth_scores.values() if s.get(k) is not None]))
+            for k in keys
+            if any(s.get(k) is not None for s in truth_scores.values())
+        }
+    write_json_atomic(out / LOOP_REPORT, result)
+    if result.get("flagged"):
+        log.warning(
+            "ground truth FLAGGED by the loop-closure check: %s",
+            {k: result.get(k) for k in result if k.endswith("_mean")},
+        )
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="groundtruth")
+@stage("groundtruth")
+def main(cfg: DictConfig) -> None:
+    log.debug(OmegaConf.to_yaml(cfg))
+    run(cfg)

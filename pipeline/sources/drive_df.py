@@ -1,0 +1,216 @@
+"""``source=drive_df``: the Norlab DRIVE dataframes (real Husky/Warthog data, ../shared/data/real/drive).
+
+Two forms (``source.form``: ``auto`` picks by the columns):
+
+Window form (``*_windows.parquet``): each row is a 2 s window of 40 samples at 20 Hz (``cmd_left_k``,
+``cmd_right_k``: commanded wheel rates; ``left_wheel_vel_k``, ``right_wheel_vel_k``: measured;
+``icp_x_k``, ``icp_y_k``, ``icp_yaw_k``: lidar-ICP pose relative to the window start, in the start's
+body frame); three consecutive windows share one 6 s ``calib_step``. Our choices:
+- Chaining. DRIVE runs its calibration steps back to back, so windows are chained in order: window w+1
+  starts at window w's last pose (the one 50 ms interval between them is not in the data; ICP holds its
+  value for about half of all samples anyway). Each step gets a slot of max(3, n_windows) x 2 s; a step
+  with fewer than 3 windows leaves a hole, which becomes a ground-truth gap (nothing interpolated across
+  it) and a command timeout (zero command).
+- Categories. DRIVE has no Train/CV/LD. Steps are ordered by ``calib_step`` and cut into three
+  contiguous blocks by ``source.split_fractions`` (default 0.6/0.2/0.2): the first block is the
+  sequence ``<label>_train_00``, then ``<label>_cv_00`` and ``<label>_ld_00``. Deterministic, and no
+  6 s step is shared by two splits.
+
+Raw form (``*_raw.parquet``): a 20 Hz time series (``ros_time`` ns, ``cmd_vel_x``, ``cmd_vel_omega``,
+``meas_left_vel``, ``meas_right_vel``, ``icp_pos_*``, ``icp_quat_*``, ``calib_step``). One sequence per
+``calib_step``, categories by the same contiguous rule. Repairs (logged): rows with a zero or
+non-numeric timestamp are dropped; mixed-type columns are coerced to numbers and rows that do not
+convert in a needed column are dropped. A file whose ICP pose never changes (ICP did not run: the
+published ``workshop_raw``/``close_raw`` are such) has no ground truth: no ``gt_pose`` table is written
+and ``_extract.json`` says why; ``groundtruth`` then fails with that reason. Encoders that read exactly
+zero throughout while the robot is commanded are treated as absent (no ``enc_wheels``).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import ConfigError, SourceError
+from ..geometry import se2_compose, yaw_from_quaternion
+from ..manifest import Manifest, Sequence
+from .common import TWIST_COLUMNS, category_by_rank, stamped, write_sequence
+
+log = logging.getLogger(__name__)
+
+WINDOW = 40
+STEP_WINDOWS = 3
+KNOWN_ROBOTS = ("husky", "warthog", "jackal")
+RAW_COLUMNS = ("ros_time", "cmd_vel_x", "cmd_vel_omega", "meas_left_vel", "meas_right_vel", "calib_step")
+
+
+def read_frame(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_parquet(path)
+    except FileNotFoundError as exc:
+        raise SourceError(f"{path}: no such file; set source.root and source.file") from exc
+    except Exception as exc:  # pyarrow raises several types for a corrupt file
+        raise SourceError(f"{path}: not a readable Parquet file ({type(exc).__name__}: {exc})") from exc
+
+
+def _cols(df: pd.DataFrame, prefix: str, path: Path) -> np.ndarray:
+    names = [f"{prefix}_{k}" for k in range(WINDOW)]
+    missing = [n for n in names if n not in df.columns]
+    if missing:
+        raise SourceError(f"{path}: window form lacks {missing[0]} (and {len(missing) - 1} more)")
+    return df[names].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
+
+
+def windows_to_sequences(df: pd.DataFrame, path: Path, rate_hz: float, fractions, label: str) -> list[dict]:
+    """Window form -> ``[{"name", "category", "tables"}]`` (see the module docstring for the choices)."""
+    if len(df) == 0:
+        raise SourceError(f"{path}: empty sequence (no windows)")
+    step = pd.to_numeric(df["calib_step"], errors="coerce").to_numpy()
+    if not np.isfinite(step).all():
+        raise SourceError(f"{path}: calib_step holds non-numeric values")
+    order = np.argsort(step, kind="stable")
+    df, step = df.iloc[order].reset_index(drop=True), step[order]
+    arrays = {
+        k: _cols(df, k, path)
+        for k in ("cmd_left", "cmd_right", "left_wheel_vel", "right_wheel_vel", "icp_x", "icp_y", "icp_yaw")
+    }
+    steps = list(dict.fromkeys(step.tolist()))
+    cats = category_by_rank(steps, tuple(fractions))
+    dt_ns = int(round(1e9 / rate_hz))
+    out = []
+    for cat in ("train", "cv", "ld"):
+        rows_t, rows_i = [], []
+        slot = 0  # in windows
+        for s in (s for s in steps if cats[s] == cat):
+            idx = np.flatnonzero(step == s)
+            for j, i in enumerate(idx):
+                rows_t.append(slot + j)
+                rows_i.append(i)
+            slot += max(STEP_WINDOWS, len(idx))
+        if not rows_i:
+            continue
+        rows_i = np.array(rows_i)
+        win_t = np.array(rows_t)
+        stamps = ((win_t[:, None] * WINDOW + np.arange(WINDOW)[None, :]) * dt_ns).ravel()
+        rel = np.stack([arrays["icp_x"][rows_i], arrays["icp_y"][rows_i], arrays["icp_yaw"][rows_i]], axis=-1)
+        # chain: each window starts at the previous window's last pose (a serial fold over windows)
+        starts = np.zeros((len(rows_i), 3))
+        for w in range(1, len(rows_i)):
+            starts[w] = se2_compose(starts[w - 1], rel[w - 1, -1])
+        poses = se2_compose(starts[:, None, :], rel).reshape(-1, 3)
+        pick = {k: v[rows_i].ravel() for k, v in arrays.items()}
+        tables = {
+            "cmd_wheels": stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"]),
+            "enc_wheels": stamped(stamps, wl=pick["left_wheel_vel"], wr=pick["right_wheel_vel"]),
+            "gt_pose": stamped(stamps, x=poses[:, 0], y=poses[:, 1], yaw=poses[:, 2]),
+        }
+        out.append({"name": f"{label}_{cat}_00", "category": cat, "tables": tables, "steps": len(idx)})
+    return out
+
+
+def _numeric(df: pd.DataFrame, cols: list[str], path: Path) -> pd.DataFrame:
+    """Coerce mixed-type columns to float; drop (logged) rows whose needed values do not convert."""
+    out = df.copy()
+    for c in cols:
+        if out[c].dtype == object or str(out[c].dtype) in ("string", "str"):
+            log.warning("%s: column %s has mixed types; coerced to numbers", path, c)
+        out[c] = pd.to_numeric(out[c], errors="coerce")
+    bad = out[cols].isna().any(axis=1)
+    if bad.any():
+        log.warning("%s: dropped %d row(s) with non-numeric values in %s", path, int(bad.sum()), cols)
+    return out[~bad]
+
+
+def raw_to_sequences(df: pd.DataFrame, path: Path, fractions, label: str) -> list[dict]:
+    """Raw form -> ``[{"name", "category", "tables", "note"}]``, one sequence per calib_step."""
+    missing = [c for c in RAW_COLUMNS if c not in df.columns]
+    if missing:
+        raise SourceError(f"{path}: raw form lacks columns {missing}")
+    pose_cols = [c for c in df.columns if c.startswith("icp_pos_") or c.startswith("icp_quat_")]
+    df = _numeric(df, list(RAW_COLUMNS) + pose_cols, path)
+    zero = df["ros_time"].to_numpy() <= 0
+    if zero.any():
+        log.warning("%s: dropped %d row(s) with a zero timestamp", path, int(zero.sum()))
+        df = df[~zero]
+    if len(df) == 0:
+        raise SourceError(f"{path}: empty sequence (no rows with a valid timestamp)")
+    t = df["ros_time"].to_numpy(dtype=float).astype(np.int64)  # float64 ns: ~256 ns resolution
+    back = np.flatnonzero(np.diff(t) < 0)
+    if len(back):
+        raise SourceError(f"{path}: non-monotonic ros_time at row {int(back[0]) + 1}")
+    steps = list(dict.fromkeys(df["calib_step"].tolist()))
+    cats = category_by_rank(sorted(steps), tuple(fractions))
+    has_icp = {"icp_pos_x", "icp_pos_y", "icp_quat_w"} <= set(df.columns)
+    icp_constant = has_icp and df[pose_cols].nunique().max() <= 1
+    commanded = (df[["cmd_vel_x", "cmd_vel_omega"]].abs().to_numpy() > 0).any()
+    enc_absent = commanded and not (df[["meas_left_vel", "meas_right_vel"]].to_numpy() != 0).any()
+    note = []
+    if not has_icp or icp_constant:
+        note.append("no ground truth: the ICP pose never changes in this file (ICP did not run)")
+        log.warning("%s: %s; no gt_pose table is written", path, note[-1])
+    if enc_absent:
+        note.append("encoders read zero throughout while commanded: treated as absent")
+        log.warning("%s: %s", path, note[-1])
+    out, counter = [], {}
+    for s in steps:
+        part = df[df["calib_step"] == s]
+        ts = t[(df["calib_step"] == s).to_numpy()]
+        cat = cats[s]
+        n = counter.get(cat, 0)
+        counter[cat] = n + 1
+        zeros = np.zeros(len(part))
+        twist = [part["cmd_vel_x"], zeros, zeros, zeros, zeros, part["cmd_vel_omega"]]
+        tables = {"cmd_vel": stamped(ts, **dict(zip(TWIST_COLUMNS, twist, strict=True)))}
+        if not enc_absent:
+            tables["enc_wheels"] = stamped(ts, wl=part["meas_left_vel"], wr=part["meas_right_vel"])
+        if has_icp and not icp_constant:
+            q = part[["icp_quat_x", "icp_quat_y", "icp_quat_z", "icp_quat_w"]].to_numpy(dtype=float)
+            tables["gt_pose"] = stamped(
+                ts,
+                x=part["icp_pos_x"],
+                y=part["icp_pos_y"],
+                z=part.get("icp_pos_z", zeros),
+                yaw=yaw_from_quaternion(q),
+                qx=q[:, 0],
+                qy=q[:, 1],
+                qz=q[:, 2],
+                qw=q[:, 3],
+            )
+        out.append({"name": f"{label}_{cat}_{n:02d}", "category": cat, "tables": tables, "note": note})
+    return out
+
+
+def extract_source(cfg, layout) -> list[dict]:
+    """Extract ``source.root/source.file`` into ``<ds>/extracted`` and write the manifest."""
+    src = cfg.source
+    path = Path(str(src.root)).expanduser().absolute() / str(src.file)
+    stem = path.name.split("_")[0].lower()
+    robot = str(cfg.robot.name)
+    if stem in KNOWN_ROBOTS and stem != robot:
+        raise ConfigError(f"{path}: this is {stem} data but robot={robot}; set robot={stem}")
+    df = read_frame(path)
+    form = str(src.get("form", "auto"))
+    if form == "auto":
+        form = "windows" if "cmd_left_0" in df.columns else "raw"
+    label = str(src.get("label") or path.stem)
+    fractions = tuple(float(f) for f in src.split_fractions)
+    if form == "windows":
+        seqs = windows_to_sequences(df, path, float(src.rate_hz), fractions, label)
+    elif form == "raw":
+        seqs = raw_to_sequences(df, path, fractions, label)
+    else:
+        raise ConfigError(f"source.form={form!r}: expected auto, windows or raw")
+    terrain = str(src.terrain)
+    records = []
+    for s in seqs:
+        info = {"sequence": s["name"], "terrain": terrain, "category": s["category"], "source": "drive_df",
+                "form": form, "notes": s.get("note", [])}  # fmt: skip
+        records.append(write_sequence(layout.extracted / s["name"], s["tables"], [path], info))
+        counts = ", ".join(f"{k} {len(v)}" for k, v in s["tables"].items())
+        log.info("extracted %s (%s): %s", s["name"], s["category"], counts)
+    manifest = [Sequence(s["name"], terrain, s["category"], str(path)) for s in seqs]
+    Manifest(manifest, robot=robot, format=f"drive_df/{form}", base=path.parent).write(layout.manifest)
+    return records

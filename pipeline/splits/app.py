@@ -1,0 +1,166 @@
+"""``skidbench split`` and ``skidbench card``.
+
+split: for every ``train``/``cv``/``ld`` sequence of the manifest, ``groundtruth/<seq>.tum`` + the
+extracted commands (``cmd_vel`` Twist, or ``cmd_wheels``) and wheel measurements (``joint_states``: the
+mean of ``robot.left_joints``/``right_joints`` velocities, or ``enc_wheels``) -> one split file (see
+:mod:`.build` for the clock, the hold and the differentiator), then ``splits/card.md``. A ground truth
+flagged by the loop-closure check is refused unless ``split.allow_flagged=true``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from ..cli import stage
+from ..errors import SplitError
+from ..groundtruth.trajectory import read_tum
+from ..io import fingerprint_file, write_text_atomic
+from ..layout import Layout, layout_from_cfg
+from ..manifest import SPLITS, Manifest, Sequence
+from ..robot import Robot, robot_from_hydra
+from ..schema import write_split
+from .build import build_split_table
+from .card import dataset_card
+
+log = logging.getLogger("skidbench.split")
+
+
+def check_flag(layout: Layout, allow: bool) -> None:
+    path = layout.groundtruth / "loop_closure.json"
+    if not path.is_file():
+        raise SplitError(f"{path}: no ground truth report; run `skidbench groundtruth` first")
+    report = json.loads(path.read_text())
+    if report.get("flagged") and not allow:
+        stats = ", ".join(f"{k} {report[k]:.4f}" for k in report if k.endswith("_mean"))
+        raise SplitError(
+            f"{path}: ground truth flagged by the loop-closure check ({stats}; bounds {report.get('bounds')}); "
+            "set split.allow_flagged=true to use it anyway"
+        )
+    if report.get("flagged"):
+        log.warning("using a flagged ground truth (split.allow_flagged=true)")
+
+
+def joint_rates(df: pd.DataFrame, robot: Robot, where: str) -> np.ndarray:
+    """(N, 2) (wl, wr): the mean velocity of the robot's left and right joints in each JointState row."""
+    names = df["name"].iloc[0]
+    lens = df["velocity"].map(len).to_numpy()
+    same = (lens == len(names)).all() and df["name"].map(lambda n: list(n) == list(names)).all()
+    if not same:
+        raise SplitError(f"{where}: joint names or counts change between messages")
+    vel = np.stack(df["velocity"].to_numpy()).astype(float)
+    idx = {n: i for i, n in enumerate(names)}
+    missing = [j for j in (*robot.left_joints, *robot.right_joints) if j not in idx]
+    if missing:
+        raise SplitError(
+            f"{where}: joints {missing} not found (joints: {list(names)}); set robot.left_joints/right_joints"
+        )
+    left = vel[:, [idx[j] for j in robot.left_joints]].mean(axis=1)
+    right = vel[:, [idx[j] for j in robot.right_joints]].mean(axis=1)
+    return np.column_stack([left, right])
+
+
+def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence) -> Path:
+    """Build and write one sequence's split file; returns its path."""
+    sp = cfg.split
+    ext = layout.extracted / seq.name
+    tum = layout.groundtruth / f"{seq.name}.tum"
+    if not tum.is_file():
+        raise SplitError(f"{tum}: no ground truth for {seq.name}; run `skidbench groundtruth`")
+    gt = read_tum(tum)
+    sources = {"groundtruth": {"path": str(tum), "fingerprint": fingerprint_file(tum)}}
+    if (ext / "cmd_vel.parquet").is_file():
+        cmd_path, kind = ext / "cmd_vel.parquet", "twist"
+        c = pd.read_parquet(cmd_path, columns=["bag_time_ns", "linear_x", "angular_z"])
+        cmd = c[["linear_x", "angular_z"]].to_numpy(float)
+    elif (ext / "cmd_wheels.parquet").is_file():
+        cmd_path, kind = ext / "cmd_wheels.parquet", "wheels"
+        c = pd.read_parquet(cmd_path, columns=["bag_time_ns", "wl", "wr"])
+        cmd = c[["wl", "wr"]].to_numpy(float)
+    else:
+        raise SplitError(f"{ext}: no cmd_vel or cmd_wheels table; run `skidbench extract`")
+    if len(c) == 0:
+        raise SplitError(f"{cmd_path}: empty sequence (no commands)")
+    cmd_t = c["bag_time_ns"].to_numpy(np.int64)
+    order = np.argsort(cmd_t, kind="stable")
+    cmd_t, cmd = cmd_t[order], cmd[order]
+    sources["cmd"] = {"path": str(cmd_path), "fingerprint": fingerprint_file(cmd_path)}
+    enc_t = enc = None
+    if (ext / "joint_states.parquet").is_file():
+        p = ext / "joint_states.parquet"
+        j = pd.read_parquet(p, columns=["bag_time_ns", "name", "velocity"])
+        if len(j):
+            enc_t, enc = j["bag_time_ns"].to_numpy(np.int64), joint_rates(j, robot, str(p))
+            sources["enc"] = {"path": str(p), "fingerprint": fingerprint_file(p)}
+    elif (ext / "enc_wheels.parquet").is_file():
+        p = ext / "enc_wheels.parquet"
+        j = pd.read_parquet(p, columns=["bag_time_ns", "wl", "wr"])
+        enc_t, enc = j["bag_time_ns"].to_numpy(np.int64), j[["wl", "wr"]].to_numpy(float)
+        sources["enc"] = {"path": str(p), "fingerprint": fingerprint_file(p)}
+    window, order_ = int(sp.differentiator.window), int(sp.differentiator.order)
+    df = build_split_table(
+        robot, gt.stamp_ns, gt.se2, gt.gaps, cmd_t, cmd, kind, enc_t, enc, float(sp.rate_hz),
+        float(sp.cmd_timeout), float(sp.max_gap), window, order_,
+    )  # fmt: skip
+    if len(df) == 0 or not df["valid"].any():
+        raise SplitError(
+            f"{tum}: empty sequence: no valid ground truth overlapping the commands of {cmd_path}"
+        )
+    path = layout.split_file(seq.terrain, seq.category, seq.name)
+    meta = {
+        "sequence": seq.name,
+        "terrain": seq.terrain,
+        "split": seq.category,
+        "robot": robot.to_dict(),
+        "sources": sources,
+        "rate_hz": float(sp.rate_hz),
+        "cmd_timeout_s": float(sp.cmd_timeout),
+        "differentiator": {"kind": "savitzky_golay", "window": window, "order": order_},
+    }
+    write_split(df, path, meta)
+    log.info("%s -> %s (%d rows, %.0f%% valid)", seq.name, path, len(df), 100 * df["valid"].mean())
+    return path
+
+
+def run(cfg: DictConfig) -> list[Path]:
+    layout = layout_from_cfg(cfg)
+    check_flag(layout, bool(cfg.split.allow_flagged))
+    manifest = Manifest.read(layout.manifest)
+    robot = robot_from_hydra(cfg.robot)
+    seqs = [s for s in manifest.sequences if s.category in SPLITS]
+    if not seqs:
+        raise SplitError(f"{layout.manifest}: empty split: no train/cv/ld sequences")
+    written = [split_sequence(cfg, layout, robot, s) for s in seqs]
+    keep = set(written)
+    for stale in layout.splits.glob("*/*/*.parquet"):  # sequences no longer in the manifest
+        if stale not in keep and not stale.name.startswith("."):
+            stale.unlink()
+    write_card(cfg, layout, robot)
+    return written
+
+
+def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
+    card_cfg: Any = cfg.get("card") or {}
+    text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)))
+    write_text_atomic(layout.splits / "card.md", text)
+    return text
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="split")
+@stage("split")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="card")
+@stage("card")
+def card_main(cfg: DictConfig) -> None:
+    layout = layout_from_cfg(cfg)
+    print(write_card(cfg, layout, robot_from_hydra(cfg.robot)))

@@ -1,0 +1,164 @@
+"""One sequence's split table (``schema.SPLIT_COLUMNS``) on a uniform clock. Pure computation on arrays.
+
+Clock: ``t_k = t0 + k / rate_hz`` from the later of the first command and the first ground-truth pose to
+the last ground-truth pose.
+
+Commands: zero-order hold of the last command, as the robot's controller applies it; a command older than
+``cmd_timeout`` s is zero (the Jackal's controller stops after 0.25 s without a command). Body commands
+(``cmd_v``, ``cmd_w``) and wheel commands (``cmd_wl``, ``cmd_wr``, rad/s) are converted into each other
+with the robot's ideal kinematics (r, B). ``cmd_dwl``/``cmd_dwr``: central differences of the held wheel
+commands on the grid (a step command becomes a one-sample acceleration pulse, as the paper's commanded
+acceleration).
+
+Encoders: linear interpolation of the measured wheel rates; null outside their coverage or where two
+samples are over ``max_gap`` apart.
+
+Pose: x, y and the unwrapped yaw interpolated linearly from the ground truth, never across a gap: grid
+times inside a gap, outside the ground truth, or further than ``max_gap`` from a pose are ``valid=False``
+(their x, y, yaw hold the nearest pose so the columns stay finite).
+
+Body velocities (the smoothing differentiator): a Savitzky-Golay filter (``window`` samples, polynomial
+``order``; defaults 9 samples = 0.3 s at 30 Hz, order 3) gives dx/dt, dy/dt and dyaw/dt on each run of
+valid samples separately; (vx, vy) is (dx/dt, dy/dt) rotated into the body frame by the yaw; wz =
+dyaw/dt. A valid run shorter than the window uses central differences. On a constant-twist arc this is
+exact up to the filter's polynomial fit (tested against the closed form).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy.signal import savgol_filter
+
+from ..robot import Robot
+from ..schema import SPLIT_COLUMNS
+
+
+def hold(
+    stamps_ns: np.ndarray, values: np.ndarray, grid_ns: np.ndarray, timeout_ns: int | None
+) -> np.ndarray:
+    """Zero-order hold of ``values`` (N, k) at ``grid_ns``; zero before the first sample and after a
+    timeout."""
+    values = np.asarray(values, dtype=float).reshape(len(stamps_ns), -1)
+    i = np.searchsorted(stamps_ns, grid_ns, side="right") - 1
+    out = values[np.clip(i, 0, None)].copy()
+    stale = i < 0
+    if timeout_ns is not None:
+        stale |= grid_ns - stamps_ns[np.clip(i, 0, None)] > timeout_ns
+    out[stale] = 0.0
+    return out
+
+
+def interp_with_gaps(
+    stamps_ns: np.ndarray, values: np.ndarray, grid_ns: np.ndarray, max_gap_ns: int, gaps=()
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of ``values`` (N, k) at ``grid_ns`` and a mask of where it is trusted: inside
+    the coverage, between samples at most ``max_gap_ns`` apart, not inside any ``gaps`` interval."""
+    values = np.asarray(values, dtype=float).reshape(len(stamps_ns), -1)
+    t = (stamps_ns - stamps_ns[0]).astype(float)
+    g = (grid_ns - stamps_ns[0]).astype(float)
+    out = np.column_stack([np.interp(g, t, values[:, c]) for c in range(values.shape[1])])
+    j = np.searchsorted(stamps_ns, grid_ns, side="right")
+    inside = (j > 0) & (j < len(stamps_ns)) | (grid_ns == stamps_ns[-1])
+    jl, jr = np.clip(j - 1, 0, len(stamps_ns) - 1), np.clip(j, 0, len(stamps_ns) - 1)
+    ok = inside & ((stamps_ns[jr] - stamps_ns[jl]) <= max_gap_ns)
+    for a, b in gaps:
+        ok &= ~((grid_ns > a) & (grid_ns < b))
+    return out, ok
+
+
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[(start, stop)]`` index ranges of the True runs of ``mask``."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
+    return list(zip(edges[::2], edges[1::2], strict=True))
+
+
+def body_velocities(
+    pose: np.ndarray, valid: np.ndarray, dt: float, window: int = 9, order: int = 3
+) -> np.ndarray:
+    """(vx, vy, wz) (T, 3) from poses (T, 3) (x, y, unwrapped yaw) on a uniform clock (module docstring).
+    Invalid rows get zeros."""
+    vel = np.zeros_like(pose, dtype=float)
+    for a, b in runs(valid):
+        seg = pose[a:b]
+        if b - a >= window:
+            d = savgol_filter(seg, window, order, deriv=1, delta=dt, axis=0, mode="interp")
+        elif b - a >= 2:
+            d = np.gradient(seg, dt, axis=0)
+        else:
+            continue
+        c, s = np.cos(seg[:, 2]), np.sin(seg[:, 2])
+        vel[a:b, 0] = c * d[:, 0] + s * d[:, 1]
+        vel[a:b, 1] = -s * d[:, 0] + c * d[:, 1]
+        vel[a:b, 2] = d[:, 2]
+    return vel
+
+
+def build_split_table(
+    robot: Robot,
+    gt_stamp_ns: np.ndarray,
+    gt_pose: np.ndarray,
+    gt_gaps,
+    cmd_stamp_ns: np.ndarray,
+    cmd: np.ndarray,
+    cmd_kind: str,
+    enc_stamp_ns: np.ndarray | None = None,
+    enc: np.ndarray | None = None,
+    rate_hz: float = 30.0,
+    cmd_timeout_s: float = 0.25,
+    max_gap_s: float = 0.5,
+    window: int = 9,
+    order: int = 3,
+) -> pd.DataFrame:
+    """The split table of one sequence. ``gt_pose`` (N, 3) (x, y, unwrapped yaw); ``cmd`` (M, 2) is
+    (v, w) when ``cmd_kind == "twist"`` or (wl, wr) when ``"wheels"``; ``enc`` (K, 2) (wl, wr) or None.
+    Returns an empty frame when the command and ground-truth times do not overlap."""
+    dt_ns = 1e9 / rate_hz
+    t0 = max(int(gt_stamp_ns[0]), int(cmd_stamp_ns[0]))
+    n = int(np.floor((int(gt_stamp_ns[-1]) - t0) / dt_ns)) + 1
+    if n < 2:
+        return pd.DataFrame(columns=list(SPLIT_COLUMNS))
+    grid = t0 + np.round(np.arange(n) * dt_ns).astype(np.int64)
+    held = hold(cmd_stamp_ns, cmd, grid, int(cmd_timeout_s * 1e9) if cmd_timeout_s else None)
+    if cmd_kind == "twist":
+        v, w = held[:, 0], held[:, 1]
+        wl, wr = robot.wheel_rates_from_twist(v, w)
+    else:
+        wl, wr = held[:, 0], held[:, 1]
+        v, w = robot.twist_from_wheel_rates(wl, wr)
+    dt = 1.0 / rate_hz
+    pose, valid = interp_with_gaps(gt_stamp_ns, gt_pose, grid, int(max_gap_s * 1e9), gt_gaps)
+    if not valid.all() and valid.any():  # invalid rows hold the nearest valid pose (finite columns)
+        idx = np.where(valid, np.arange(n), -1)
+        idx = np.maximum.accumulate(idx)
+        first = int(np.argmax(valid))
+        idx[idx < 0] = first
+        pose = pose[idx]
+    vel = body_velocities(pose, valid, dt, window, order)
+    enc_l = enc_r = np.full(n, np.nan)
+    if enc is not None and enc_stamp_ns is not None and len(enc_stamp_ns) >= 2:
+        e, ok = interp_with_gaps(enc_stamp_ns, enc, grid, int(max_gap_s * 1e9))
+        enc_l, enc_r = np.where(ok, e[:, 0], np.nan), np.where(ok, e[:, 1], np.nan)
+    df = pd.DataFrame(
+        {
+            "t": (grid - grid[0]) * 1e-9,
+            "stamp_ns": grid,
+            "cmd_v": v,
+            "cmd_w": w,
+            "cmd_wl": wl,
+            "cmd_wr": wr,
+            "cmd_dwl": np.gradient(wl, dt),
+            "cmd_dwr": np.gradient(wr, dt),
+            "enc_wl": enc_l,
+            "enc_wr": enc_r,
+            "x": pose[:, 0],
+            "y": pose[:, 1],
+            "yaw": pose[:, 2],
+            "vx": vel[:, 0],
+            "vy": vel[:, 1],
+            "wz": vel[:, 2],
+            "valid": valid,
+        }
+    )
+    return df
