@@ -49,7 +49,7 @@ def read_rows(path: Path, ncols: int) -> np.ndarray:
         i = int(bad[0])
         raise SourceError(f"{path}:{i + 1}: expected {ncols} values a row, found {counts[i]}")
     try:
-        return np.loadtxt(io.StringIO(sep.sub(" ", "\n".join(ln.strip() for ln in lines))), ndmin=2)
+        return np.loadtxt(io.StringIO("\n".join(sep.sub(" ", ln.strip()) for ln in lines)), ndmin=2)
     except ValueError as exc:
         raise SourceError(f"{path}: non-numeric value ({exc})") from exc
 
