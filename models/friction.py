@@ -91,6 +91,13 @@ class FrictionBased(KinematicModel):
         )
         self.params = unpack(res.x)
         pred, sol = self.velocities(inp)
+        # mu_x matters only where eq. (6) saturates; if nothing saturates, any mu_x above the largest
+        # lambda |s| fits equally well: keep the initial value (raised to that bound) and say so
+        lam_s = float(self.params["lambda"]) * np.abs(sol.theta[:, :2]).max(initial=0.0)
+        mu_x_identified = bool(np.any(sol.saturated(inp[0], inp[1], self.params)))
+        if "mu_x" in names and not mu_x_identified:
+            self.params["mu_x"] = max(float(base["mu_x"]), lam_s)
+            pred, sol = self.velocities(inp)
         self.last_solve_ = sol
         self.fit_loss_ = mse(pred, y)
         self.fit_info_ = {
@@ -99,6 +106,8 @@ class FrictionBased(KinematicModel):
             "fitted": names,
             "steps_not_converged": sol.n_not_converged,
             "steps_without_root": int(np.sum(sol.status == 2)),
+            "mu_x_identified": mu_x_identified,
+            "mu_x_lower_bound": lam_s,
         }
         return self
 
