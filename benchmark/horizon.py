@@ -27,6 +27,23 @@ class HorizonConfig:
     min_rotation_rad: float = np.deg2rad(10.0)  # ... that turn less, out of the rotational metric
 
 
+#: the columns of :func:`window_errors`, in order
+WINDOW_COLUMNS = (
+    "start",
+    "t0",
+    "distance",
+    "rotation",
+    "trans_err",
+    "rot_err",
+    "rel_trans",
+    "rel_rot",
+    "end",
+    "pred_x",
+    "pred_y",
+    "pred_yaw",
+)
+
+
 def horizon_steps(t: np.ndarray, horizon_s: float) -> int:
     """Number of steps in the horizon for a uniform clock ``t`` (s)."""
     if len(t) < 2:
@@ -49,7 +66,8 @@ def window_errors(
     model's (vx, vy, wz). valid: (T,) bool; windows touching an invalid sample are dropped.
     Returns one row per window: ``start`` (index), ``t0``, ``distance`` (m travelled, ground truth),
     ``rotation`` (rad turned, absolute), ``trans_err`` (m), ``rot_err`` (rad, signed: true - predicted),
-    ``rel_trans``, ``rel_rot`` (NaN where the window is under the minimum distance / rotation).
+    ``rel_trans``, ``rel_rot`` (NaN where the window is under the minimum distance / rotation), then the
+    details: ``end`` (index), ``pred_x``, ``pred_y``, ``pred_yaw`` (predicted pose at the window's end).
     """
     cfg = cfg or HorizonConfig(horizon_s=horizon_s)
     t = np.asarray(t, dtype=float)
@@ -57,9 +75,8 @@ def window_errors(
     velocity = np.asarray(velocity, dtype=float)
     T = len(t)
     n = horizon_steps(t, horizon_s)
-    cols = ["start", "t0", "distance", "rotation", "trans_err", "rot_err", "rel_trans", "rel_rot"]
     if n < 1 or T <= n:
-        return pd.DataFrame({c: np.array([], dtype=float) for c in cols})
+        return pd.DataFrame({c: np.array([], dtype=float) for c in WINDOW_COLUMNS})
     dt = np.diff(t)
     dead = integrate_body_velocity(np.zeros(3), velocity[:-1], dt)  # (T, 3)
     starts = np.arange(T - n)
@@ -91,6 +108,10 @@ def window_errors(
             "rot_err": rot_err,
             "rel_trans": rel_trans,
             "rel_rot": rel_rot,
+            "end": ends,
+            "pred_x": pred[:, 0],
+            "pred_y": pred[:, 1],
+            "pred_yaw": pred[:, 2],
         }
     )
     return out[keep].reset_index(drop=True)
@@ -108,6 +129,21 @@ def naive_window_errors(
         traj = integrate_body_velocity(gt_pose[i], velocity[i : i + n], np.diff(t[i : i + n + 1]))
         out.append(traj[-1])
     return np.array(out).reshape(-1, 3)
+
+
+def window_trajectory(
+    t: np.ndarray, gt_pose: np.ndarray, velocity: np.ndarray, start: int, horizon_s: float
+) -> np.ndarray:
+    """The predicted trajectory (n+1, 3) of one window, integrated from the ground truth at ``start``
+    (the same steps :func:`window_errors` composes; for plots such as the paper's Fig. 7)."""
+    t = np.asarray(t, dtype=float)
+    n = horizon_steps(t, horizon_s)
+    if n < 1 or start + n >= len(t):
+        raise EvaluationError(f"window at sample {start} has no full {horizon_s:g} s horizon")
+    vel = np.asarray(velocity, dtype=float)[start : start + n]
+    return integrate_body_velocity(
+        np.asarray(gt_pose, dtype=float)[start], vel, np.diff(t[start : start + n + 1])
+    )
 
 
 def rmsre(rel: np.ndarray) -> float:

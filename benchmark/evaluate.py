@@ -1,0 +1,483 @@
+"""The 6 s horizon benchmark (SPEC.md "Evaluation"): fit every model on each terrain's Train split,
+predict the CV and LD sequences, score every window with :func:`~skidbench.benchmark.horizon.window_errors`
+and log RMSRE per model, terrain, split and horizon to MLflow (:mod:`skidbench.benchmark.tracking`).
+
+:func:`run_benchmark` is the stage without Hydra; ``evaluate_app.main`` is the CLI. Data problems that
+make the benchmark meaningless (no splits, an empty test split, a horizon longer than every sequence) are
+raised as one-line :class:`EvaluationError` before any run is created; a model that fails to fit or
+predict gets its child run marked FAILED with the reason, and the others carry on.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+import logging
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from skidbench.pipeline.errors import SkidbenchError, one_line
+from skidbench.pipeline.io import fingerprint_obj, write_json_atomic, write_parquet_atomic
+from skidbench.pipeline.layout import Layout, layout_from_cfg
+from skidbench.pipeline.schema import list_split_files, read_split
+
+from . import tracking as trk
+from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
+
+log = logging.getLogger(__name__)
+
+ENTRY_POINT_GROUP = "skidbench.models"
+TRAIN = "train"
+KINDS = {"translational": "rel_trans", "rotational": "rel_rot"}
+
+
+# -- data -------------------------------------------------------------------------------------------
+@dataclass
+class TestSequence:
+    name: str
+    path: Path
+    table: pd.DataFrame
+    meta: dict[str, Any]
+
+    @property
+    def duration_s(self) -> float:
+        t = self.table["t"].to_numpy()
+        return float(t[-1] - t[0]) if len(t) > 1 else 0.0
+
+
+def find_terrains(layout: Layout) -> list[str]:
+    """Terrains with at least one split file, sorted."""
+    if not layout.splits.is_dir():
+        raise EvaluationError(f"{layout.splits}: no splits; run `skidbench split` first")
+    terrains = sorted({p.parents[1].name for p in list_split_files(layout.splits)})
+    if not terrains:
+        raise EvaluationError(
+            f"{layout.splits}: no split files (*/<train|cv|ld>/*.parquet); run `skidbench split`"
+        )
+    return terrains
+
+
+def load_test_split(layout: Layout, terrain: str, split: str) -> list[TestSequence]:
+    """The sequences of one test split; EvaluationError when there are none or all are empty."""
+    where = layout.splits / terrain / split
+    files = list_split_files(layout.splits, terrain, split)
+    if not files:
+        raise EvaluationError(
+            f"{where}: empty {split} split (no sequences) for terrain {terrain}; re-run `skidbench split`, "
+            f"or leave it out with splits=[...] / terrains=[...]"
+        )
+    seqs = []
+    for p in files:
+        try:
+            df, meta = read_split(p)
+        except SkidbenchError as exc:
+            raise EvaluationError(one_line(str(exc))) from None
+        seqs.append(TestSequence(str(meta.get("sequence") or p.stem), p, df, meta))
+    if all(len(s.table) == 0 for s in seqs):
+        raise EvaluationError(
+            f"{where}: empty {split} split (every sequence has 0 rows) for terrain {terrain}"
+        )
+    return seqs
+
+
+def check_horizons(terrain: str, split: str, seqs: Sequence[TestSequence], horizons: Sequence[float]) -> None:
+    """EvaluationError when a horizon is longer than every sequence of a split (no window at all)."""
+    for h in horizons:
+        if not h > 0:
+            raise EvaluationError(f"horizon {h} s is not positive; set horizons=[6.0]")
+        if not any(len(s.table) > horizon_steps(s.table["t"].to_numpy(), h) >= 1 for s in seqs):
+            longest = max(s.duration_s for s in seqs)
+            raise EvaluationError(
+                f"splits/{terrain}/{split}: horizon {h:g} s is longer than every sequence "
+                f"(longest {longest:.1f} s); lower horizons=[...]"
+            )
+
+
+def split_fingerprint(files: Sequence[Path], root: Path) -> str:
+    """Fingerprint of a set of split files: the content fingerprints recorded by the split stage in
+    the file metadata when present, else the files' own content hashes."""
+    from skidbench.pipeline.cache import Fingerprints
+
+    fp = Fingerprints()
+    return fingerprint_obj({str(Path(p).relative_to(root)): fp(p) for p in sorted(files)})
+
+
+# -- model plumbing ---------------------------------------------------------------------------------
+def installed_models() -> dict[str, md.EntryPoint]:
+    return {ep.name: ep for ep in md.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def plugin_package(model_name: str, model: Any = None) -> str:
+    """``distribution==version`` that provides a model (its entry point, else its top-level module)."""
+    ep = installed_models().get(model_name)
+    if ep is not None and ep.dist is not None:
+        return f"{ep.dist.name}=={ep.dist.version}"
+    if model is not None:
+        top = type(model).__module__.split(".")[0]
+        dists = md.packages_distributions().get(top) or []
+        if dists:
+            name = dists[0]
+            try:
+                return f"{name}=={md.version(name)}"
+            except md.PackageNotFoundError:
+                return name
+        return f"module:{type(model).__module__}"
+    return "unknown"
+
+
+def default_fit_fn() -> Callable[[Any, str, str], Any]:
+    try:
+        from skidbench.models.fitting import fit_model
+    except ImportError as exc:
+        raise EvaluationError(f"model fitting is not available ({exc})") from None
+    return fit_model
+
+
+def predict_split(model: Any, seqs: Sequence[TestSequence]) -> tuple[list[np.ndarray], float]:
+    """Predict every sequence of a split in one batched call; returns per-sequence (T, 3) and seconds."""
+    from skidbench.models.base import concat_sequences
+
+    nonempty = [s for s in seqs if len(s.table)]
+    table = concat_sequences([(s.table, {"sequence": s.name}) for s in nonempty])
+    t0 = time.perf_counter()
+    vel = np.asarray(model.predict(table), dtype=float)
+    dt = time.perf_counter() - t0
+    name = getattr(model, "name", type(model).__name__)
+    if vel.shape != (len(table), 3):
+        raise EvaluationError(f"model {name}: predict returned shape {vel.shape}, expected ({len(table)}, 3)")
+    bad = int(np.sum(~np.isfinite(vel)))
+    if bad:
+        raise EvaluationError(f"model {name}: predict returned {bad} non-finite value(s)")
+    out, i = [], 0
+    for s in seqs:
+        out.append(vel[i : i + len(s.table)])
+        i += len(s.table)
+    return out, dt
+
+
+def score_split(
+    seqs: Sequence[TestSequence],
+    velocities: Sequence[np.ndarray],
+    horizons: Sequence[float],
+    hcfg: HorizonConfig,
+) -> pd.DataFrame:
+    """Per-window errors of every sequence and horizon (columns: horizon_s, sequence, window columns,
+    and the true end pose gt_x, gt_y, gt_yaw)."""
+    frames = []
+    for h in horizons:
+        cfg_h = HorizonConfig(h, hcfg.min_distance_m, hcfg.min_rotation_rad)
+        for s, vel in zip(seqs, velocities, strict=True):
+            df = s.table
+            gt = df[["x", "y", "yaw"]].to_numpy(dtype=float)
+            w = window_errors(df["t"].to_numpy(float), gt, vel, h, df["valid"].to_numpy(bool), cfg_h)
+            if len(w) == 0:
+                continue
+            end = w["end"].to_numpy(int)
+            w["gt_x"], w["gt_y"], w["gt_yaw"] = gt[end, 0], gt[end, 1], gt[end, 2]
+            w.insert(0, "sequence", s.name)
+            w.insert(0, "horizon_s", float(h))
+            frames.append(w)
+    if not frames:
+        return pd.DataFrame()
+    return pd.concat(frames, ignore_index=True)
+
+
+def summarise(windows: pd.DataFrame, split: str, horizons: Sequence[float]) -> dict[str, float]:
+    """RMSRE metrics (names from :func:`tracking.metric_key`) and window counts of one split."""
+    out: dict[str, float] = {}
+    for h in horizons:
+        w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
+        for kind, col in KINDS.items():
+            vals = w[col].to_numpy(float) if len(w) else np.array([])
+            out[trk.metric_key(kind, split, h)] = rmsre(vals)
+            out[f"n_windows_{kind}_{split}_{h:g}s"] = float(np.isfinite(vals).sum())
+    return out
+
+
+# -- the benchmark ----------------------------------------------------------------------------------
+@dataclass
+class ChildResult:
+    model: str
+    terrain: str
+    run_id: str
+    status: str
+    metrics: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+
+
+@dataclass
+class BenchmarkResult:
+    tracking_uri: str
+    experiment: str
+    parent_run_id: str
+    children: list[ChildResult]
+
+    @property
+    def failed(self) -> list[ChildResult]:
+        return [c for c in self.children if c.status != "FINISHED"]
+
+    def table(self) -> pd.DataFrame:
+        rows = [
+            {"model": c.model, "terrain": c.terrain, "status": c.status, **c.metrics} for c in self.children
+        ]
+        return pd.DataFrame(rows)
+
+
+def _as_container(cfg: Any) -> dict[str, Any]:
+    try:
+        from omegaconf import OmegaConf
+
+        if OmegaConf.is_config(cfg):
+            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+    except ImportError:  # pragma: no cover
+        pass
+    return dict(cfg)
+
+
+def settings_from_cfg(cfg: Any) -> tuple[list[str], list[str] | None, list[str], list[float], HorizonConfig]:
+    models = [str(m) for m in (cfg.models or [])]
+    if not models:
+        raise EvaluationError("no models to evaluate; set models=[ideal,friction,...]")
+    terrains = [str(t) for t in cfg.terrains] if cfg.get("terrains") else None
+    splits = [str(s) for s in (cfg.splits or [])]
+    if not splits:
+        raise EvaluationError("no test splits; set splits=[cv,ld]")
+    horizons = [float(h) for h in (cfg.horizons or [])]
+    if not horizons:
+        raise EvaluationError("no horizons; set horizons=[6.0]")
+    hcfg = HorizonConfig(
+        horizons[0], float(cfg.min_distance_m), float(np.deg2rad(float(cfg.min_rotation_deg)))
+    )
+    return models, terrains, splits, horizons, hcfg
+
+
+def run_benchmark(
+    cfg: Any,
+    fit_fn: Callable[[Any, str, str], Any] | None = None,
+    log_figures: bool | None = None,
+) -> BenchmarkResult:
+    """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(cfg, model, terrain)``
+    returns a FitResult-like object (``model``, ``path``, ``fit_loss``, ``fit_time_s``, ``n_train``);
+    default :func:`skidbench.models.fitting.fit_model`."""
+    layout = layout_from_cfg(cfg)
+    models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
+    if log_figures is None:
+        log_figures = bool(cfg.get("log_figures", True))
+    if fit_fn is None:
+        known = installed_models()
+        unknown = [m for m in models if known and m not in known]
+        if unknown:
+            raise EvaluationError(
+                f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
+            )
+        fit_fn = default_fit_fn()
+
+    # 1. the data, checked before anything is logged
+    found = find_terrains(layout)
+    if terrains is None:
+        terrains = found
+    missing = [t for t in terrains if t not in found]
+    if missing:
+        raise EvaluationError(f"{layout.splits}: no splits for terrain(s) {missing}; found {found}")
+    tests: dict[str, dict[str, list[TestSequence]]] = {}
+    files_of: dict[str, list[Path]] = {}
+    for terrain in terrains:
+        train_files = list_split_files(layout.splits, terrain, TRAIN)
+        if not train_files:
+            raise EvaluationError(
+                f"{layout.splits / terrain / TRAIN}: empty train split for terrain {terrain}"
+            )
+        tests[terrain] = {}
+        for split in splits:
+            seqs = load_test_split(layout, terrain, split)
+            check_horizons(terrain, split, seqs, horizons)
+            tests[terrain][split] = seqs
+        files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
+
+    # 2. the store (an unreachable server is one line, here)
+    tracker = trk.tracker_from_cfg(cfg, layout)
+    conf = _as_container(cfg)
+    params = trk.flatten(conf)
+    commit = trk.git_commit()
+    all_files = [p for fs in files_of.values() for p in fs]
+    common_tags = {
+        trk.TAG_DATASET: str(cfg.dataset),
+        trk.TAG_GIT: commit,
+        "mlflow.source.git.commit": commit.split("+")[0],
+    }
+    children: list[ChildResult] = []
+    from mlflow.exceptions import MlflowException
+
+    try:
+        with tracker.run(
+            f"evaluate {cfg.dataset}",
+            {
+                **common_tags,
+                trk.TAG_ROLE: "parent",
+                trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
+                "skidbench.models": ",".join(models),
+                "skidbench.terrains": ",".join(terrains),
+            },
+        ) as parent_id:
+            tracker.log(parent_id, params=params)
+            for terrain in terrains:
+                fp = split_fingerprint(files_of[terrain], layout.splits)
+                for model_name in models:
+                    child = _run_child(
+                        cfg, tracker, parent_id, layout, model_name, terrain, tests[terrain], horizons, hcfg,
+                        fit_fn, params, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
+                    )  # fmt: skip
+                    children.append(child)
+            n_failed = sum(c.status != "FINISHED" for c in children)
+            tracker.log(
+                parent_id,
+                metrics={"n_children": len(children), "n_failed": n_failed},
+                tags={trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED"},
+            )
+    except MlflowException as exc:
+        raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
+    result = BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children)
+    write_json_atomic(
+        layout.eval / "last_evaluate.json",
+        {
+            "tracking_uri": result.tracking_uri,
+            "experiment": result.experiment,
+            "parent_run_id": parent_id,
+            "children": [c.__dict__ for c in children],
+        },
+    )
+    return result
+
+
+def _run_child(
+    cfg,
+    tracker,
+    parent_id,
+    layout,
+    model_name,
+    terrain,
+    tests,
+    horizons,
+    hcfg,
+    fit_fn,
+    params,
+    tags,
+    log_figures,
+) -> ChildResult:
+    run_id = tracker.start(
+        f"{model_name}/{terrain}",
+        {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain},
+        parent_id,
+    )
+    tracker.log(run_id, params={**params, "model": model_name, "terrain": terrain})
+    stage = "fit"
+    try:
+        fit = fit_fn(cfg, model_name, terrain)
+        model = fit.model
+        tracker.log(
+            run_id,
+            metrics={
+                "fit_loss": _num(getattr(fit, "fit_loss", None)),
+                "fit_time_s": _num(getattr(fit, "fit_time_s", None)),
+                "n_train": _num(getattr(fit, "n_train", None)),
+            },
+            tags={
+                trk.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
+                trk.TAG_PLUGIN: plugin_package(model_name, model),
+            },
+        )
+        out_dir = layout.eval / model_name
+        params_json = out_dir / f"{terrain}.params.json"
+        write_json_atomic(params_json, model.to_json())
+        tracker.artifact(run_id, params_json, "fit")
+        stage = "predict"
+        metrics: dict[str, float] = {}
+        frames = []
+        predict_time = 0.0
+        for split, seqs in tests.items():
+            vel, dt = predict_split(model, seqs)
+            predict_time += dt
+            stage = f"score {split}"
+            w = score_split(seqs, vel, horizons, hcfg)
+            if len(w):
+                w.insert(0, "split", split)
+                frames.append(w)
+            metrics.update(summarise(w, split, horizons))
+            stage = "predict"
+        metrics["predict_time_s"] = predict_time
+        stage = "logging"
+        windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+        win_path = out_dir / f"{terrain}.windows.parquet"
+        import pyarrow as pa
+
+        write_parquet_atomic(
+            pa.Table.from_pandas(windows, preserve_index=False),
+            win_path,
+            {"model": model_name, "terrain": terrain, "horizons": list(horizons), "run_id": run_id},
+        )
+        tracker.artifact(run_id, win_path, "windows")
+        if log_figures and len(windows):
+            from .figures import window_error_figure
+
+            fig_path = out_dir / f"{terrain}.errors.png"
+            window_error_figure(windows, f"{model_name} on {terrain}", fig_path)
+            tracker.artifact(run_id, fig_path, "figures")
+        nan_metrics = [k for k, v in metrics.items() if k.startswith("rmsre_") and not np.isfinite(v)]
+        tracker.log(
+            run_id,
+            metrics=metrics,
+            tags={
+                trk.TAG_STATUS: "FINISHED",
+                **(
+                    {"skidbench.warning": f"no window over the minimum distance/rotation for {nan_metrics}"}
+                    if nan_metrics
+                    else {}
+                ),
+            },
+        )
+        tracker.end(run_id, "FINISHED")
+        log.info("%s/%s: %s", model_name, terrain, _brief(metrics))
+        return ChildResult(model_name, terrain, run_id, "FINISHED", metrics)
+    except KeyboardInterrupt:
+        tracker.fail(run_id, "interrupted")
+        raise
+    except Exception as exc:
+        from mlflow.exceptions import MlflowException
+
+        if isinstance(exc, MlflowException):
+            raise
+        reason = f"{stage} failed: {type(exc).__name__}: {one_line(str(exc))}"
+        log.warning("%s/%s FAILED: %s", model_name, terrain, reason)
+        log.debug("%s", traceback.format_exc())
+        tracker.fail(run_id, reason)
+        return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason)
+
+
+def _num(v: Any) -> float | None:
+    try:
+        return None if v is None else float(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def _brief(metrics: dict[str, float]) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if k.startswith("rmsre_"))
+
+
+def format_result(result: BenchmarkResult) -> str:
+    """A short text summary for the console."""
+    df = result.table()
+    cols = ["model", "terrain", "status"] + sorted(c for c in df.columns if c.startswith("rmsre_"))
+    lines = [
+        f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
+        df[[c for c in cols if c in df.columns]].to_string(index=False, float_format=lambda x: f"{x:.4f}"),
+    ]
+    for c in result.failed:
+        lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
+    return "\n".join(lines)

@@ -1,0 +1,301 @@
+"""The benchmark's figures (matplotlib, Agg): the paper's Figs. 3-7 and a per-run error figure.
+
+Every function takes plain arrays/tables and a path, writes one PNG atomically and returns the path, so
+the figures can be drawn from MLflow results, from local files or from tests alike.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from skidbench.pipeline.io import atomic_path  # noqa: E402
+
+#: display order and names of the built-in models (plugins follow in the order they come)
+MODEL_ORDER = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction")
+MODEL_LABELS = {
+    "ideal": "Ideal DD",
+    "edd": "Extended DD",
+    "full_linear": "Full linear",
+    "roc": "ROC-based",
+    "enhanced": "Enhanced kin.",
+    "friction": "Friction-based",
+}
+SPLIT_LABELS = {"cv": "Constant velocity (CV)", "ld": "Long distance (LD)", "train": "Train"}
+_PALETTE = plt.get_cmap("tab10").colors
+
+
+def order_models(models: Sequence[str]) -> list[str]:
+    known = [m for m in MODEL_ORDER if m in models]
+    return known + sorted(m for m in set(models) if m not in MODEL_ORDER)
+
+
+def model_color(model: str, models: Sequence[str]) -> tuple:
+    if model in MODEL_ORDER:
+        return _PALETTE[MODEL_ORDER.index(model)]
+    extra = [m for m in order_models(models) if m not in MODEL_ORDER]
+    return _PALETTE[(len(MODEL_ORDER) + extra.index(model)) % len(_PALETTE)]
+
+
+def label(model: str) -> str:
+    return MODEL_LABELS.get(model, model)
+
+
+def _save(fig, path: Path, dpi: int = 130) -> Path:
+    path = Path(path)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path
+
+
+# -- Figs. 3 and 4 ----------------------------------------------------------------------------------
+def rmsre_bars(
+    board: pd.DataFrame,
+    kind: str,
+    horizon_s: float,
+    splits: Sequence[str],
+    path: Path,
+    dpi: int = 130,
+) -> Path:
+    """Bar chart of RMSRE per model (bars) and terrain (groups), one panel per test split.
+
+    ``board``: one row per (model, terrain) with columns ``model``, ``terrain``, ``status`` and the
+    metric columns ``rmsre_<kind>_<split>_<h>s``. FAILED runs are marked, not dropped."""
+    models = order_models(board["model"].unique().tolist())
+    terrains = sorted(board["terrain"].unique().tolist())
+    nm, nt = len(models), len(terrains)
+    width = 0.8 / max(nm, 1)
+    fig, axes = plt.subplots(
+        1, len(splits), figsize=(1.2 + 2.3 * len(splits) * max(nt, 1.5), 3.8), squeeze=False
+    )
+    percent = 100.0
+    for ax, split in zip(axes[0], splits, strict=True):
+        col = f"rmsre_{kind}_{split}_{horizon_s:g}s"
+        top = 0.0
+        for i, m in enumerate(models):
+            xs, ys = [], []
+            for j, ter in enumerate(terrains):
+                row = board[(board["model"] == m) & (board["terrain"] == ter)]
+                x = j + (i - (nm - 1) / 2) * width
+                v = (
+                    float(row[col].iloc[0])
+                    if len(row) and col in row and pd.notna(row[col].iloc[0])
+                    else np.nan
+                )
+                failed = len(row) and str(row["status"].iloc[0]) != "FINISHED"
+                if failed:
+                    ax.text(x, 0, "failed", rotation=90, ha="center", va="bottom", fontsize=7, color="0.3")
+                xs.append(x)
+                ys.append(v * percent)
+            ys_arr = np.array(ys)
+            top = max(top, np.nanmax(ys_arr) if np.isfinite(ys_arr).any() else 0.0)
+            ax.bar(xs, np.nan_to_num(ys_arr), width * 0.92, label=label(m), color=model_color(m, models))
+        ax.set_xticks(range(nt), [t.capitalize() for t in terrains])
+        ax.set_title(SPLIT_LABELS.get(split, split), fontsize=10)
+        ax.set_ylabel(f"{kind} RMSRE (%)")
+        ax.set_ylim(0, top * 1.12 if top > 0 else 1.0)
+        ax.grid(axis="y", alpha=0.3)
+        ax.set_axisbelow(True)
+    handles, labels_ = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels_, loc="lower center", ncol=min(nm, 6), fontsize=8, frameon=False)
+    fig.suptitle(f"{kind.capitalize()} prediction error, {horizon_s:g} s horizon", fontsize=11)
+    fig.tight_layout(rect=(0, 0.08 if nm <= 6 else 0.14, 1, 1))
+    return _save(fig, path, dpi)
+
+
+# -- Fig. 5 -----------------------------------------------------------------------------------------
+def residual_vs_acceleration(
+    wz_pred: np.ndarray, wz_meas: np.ndarray, accel: np.ndarray, title: str, path: Path, dpi: int = 130
+) -> Path:
+    """(a) measured yaw rate against the linear model's prediction (the side view of the model's plane),
+    coloured by angular acceleration; (b) the residual against angular acceleration, with binned means
+    and a least-squares line (the paper's Fig. 5)."""
+    wz_pred, wz_meas, accel = (np.asarray(a, float) for a in (wz_pred, wz_meas, accel))
+    ok = np.isfinite(wz_pred) & np.isfinite(wz_meas) & np.isfinite(accel)
+    wz_pred, wz_meas, accel = wz_pred[ok], wz_meas[ok], accel[ok]
+    res = wz_meas - wz_pred
+    lim = np.nanpercentile(np.abs(accel), 98) if accel.size else 1.0
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.5, 4.2))
+    order = np.argsort(np.abs(accel))  # large |accel| on top
+    sc = a1.scatter(wz_pred[order], wz_meas[order], c=accel[order], s=3, cmap="coolwarm", vmin=-lim, vmax=lim)
+    if wz_pred.size:
+        lo, hi = np.nanpercentile(np.r_[wz_pred, wz_meas], [0.5, 99.5])
+        a1.plot([lo, hi], [lo, hi], "k-", lw=1, label="model plane (measured = predicted)")
+        a1.legend(loc="upper left", fontsize=8)
+    a1.set_xlabel(r"predicted $\omega_z$ (rad/s)")
+    a1.set_ylabel(r"measured $\omega_z$ (rad/s)")
+    a1.set_title("(a) side view of the model's plane", fontsize=10)
+    fig.colorbar(sc, ax=a1, label=r"angular acceleration (rad/s$^2$)")
+    a2.scatter(accel, res, s=2, alpha=0.25, color="0.45", rasterized=True)
+    if accel.size > 10:
+        edges = np.linspace(-lim, lim, 17)
+        idx = np.digitize(accel, edges)
+        centers, means = [], []
+        for k in range(1, len(edges)):
+            sel = idx == k
+            if sel.sum() >= 5:
+                centers.append(0.5 * (edges[k - 1] + edges[k]))
+                means.append(np.mean(res[sel]))
+        a2.plot(centers, means, "o-", color="C3", ms=4, label="binned mean")
+        slope, icpt = np.polyfit(accel, res, 1)
+        r = np.corrcoef(accel, res)[0, 1]
+        xx = np.array([-lim, lim])
+        a2.plot(xx, slope * xx + icpt, "k--", lw=1, label=f"fit: {slope:+.3f} s, r = {r:+.2f}")
+        a2.legend(loc="upper right", fontsize=8)
+        ylim = np.nanpercentile(np.abs(res), 99.5) * 1.1
+        a2.set_ylim(-ylim, ylim)
+    a2.set_xlim(-lim * 1.05, lim * 1.05)
+    a2.axhline(0, color="k", lw=0.5)
+    a2.set_xlabel(r"measured angular acceleration (rad/s$^2$)")
+    a2.set_ylabel(r"residual $\delta\omega_z$ = measured - predicted (rad/s)")
+    a2.set_title("(b) residual against angular acceleration", fontsize=10)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path, dpi)
+
+
+# -- Fig. 6 -----------------------------------------------------------------------------------------
+def yaw_rate_surfaces(
+    wl: np.ndarray,
+    wr: np.ndarray,
+    surfaces: Mapping[float, np.ndarray],
+    title: str,
+    path: Path,
+    dpi: int = 130,
+) -> Path:
+    """(a) the model's yaw rate over the wheel-velocity plane, one surface per commanded angular
+    acceleration; (b) the slice through the spot-turn diagonal (w_r = -w_l), where the surfaces separate
+    most clearly (the paper's Fig. 6)."""
+    accels = sorted(surfaces)
+    cmap = plt.get_cmap("coolwarm")
+    colors = {
+        a: cmap(0.5 + 0.5 * a / max(abs(x) for x in accels)) if any(accels) else cmap(0.5) for a in accels
+    }
+    fig = plt.figure(figsize=(11, 4.6))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    for a in accels:
+        ax.plot_surface(wl, wr, surfaces[a], color=colors[a], alpha=0.55, linewidth=0, antialiased=True)
+        ax.plot_wireframe(wl, wr, surfaces[a], color=colors[a], linewidth=0.3, rstride=3, cstride=3)
+    ax.set_xlabel(r"$\omega_l$ (rad/s)", fontsize=8, labelpad=2)
+    ax.set_ylabel(r"$\omega_r$ (rad/s)", fontsize=8, labelpad=2)
+    ax.set_zlabel(r"$\omega_z$ (rad/s)", fontsize=8, labelpad=2)
+    ax.tick_params(labelsize=7, pad=0)
+    ax.view_init(elev=18, azim=-50)
+    from matplotlib.patches import Patch
+
+    ax.legend(
+        [Patch(color=colors[a]) for a in accels],
+        [rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$" for a in accels],
+        loc="upper left",
+        fontsize=7,
+    )
+    ax.set_title("(a) yaw rate over the wheel-velocity plane", fontsize=10)
+    a2 = fig.add_subplot(1, 2, 2)
+    n = wl.shape[0]
+    diag = np.arange(n)
+    anti = n - 1 - diag
+    x = wr[anti, diag] if np.allclose(wl[anti, diag], -wr[anti, diag]) else None
+    if x is None:  # grid is not symmetric: fall back to the middle row
+        x = wr[:, n // 2]
+        sl = {a: surfaces[a][:, n // 2] for a in accels}
+        xlabel = r"$\omega_r$ (rad/s) at $\omega_l$ = " + f"{wl[0, n // 2]:.1f}"
+    else:
+        sl = {a: surfaces[a][anti, diag] for a in accels}
+        xlabel = r"$\omega_r = -\omega_l$ (rad/s): turning in place"
+    for a in accels:
+        a2.plot(x, sl[a], color=colors[a], lw=2, label=rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$")
+    a2.axhline(0, color="k", lw=0.5)
+    a2.axvline(0, color="k", lw=0.5)
+    a2.set_xlabel(xlabel)
+    a2.set_ylabel(r"predicted $\omega_z$ (rad/s)")
+    a2.grid(alpha=0.3)
+    a2.legend(fontsize=8)
+    a2.set_title("(b) slice: spot turn", fontsize=10)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path, dpi)
+
+
+# -- Fig. 7 -----------------------------------------------------------------------------------------
+def trajectories(samples: Sequence[Mapping], horizon_s: float, path: Path, dpi: int = 130) -> Path:
+    """Predicted and true trajectories of sample windows: one panel per window. Each sample: ``split``,
+    ``sequence``, ``t0``, ``truth`` (n+1, 3) and ``pred`` {model: (n+1, 3)}."""
+    splits = list(dict.fromkeys(s["split"] for s in samples))
+    ncol = max(sum(s["split"] == sp for s in samples) for sp in splits)
+    fig, axes = plt.subplots(len(splits), ncol, figsize=(3.3 * ncol, 3.3 * len(splits) + 0.6), squeeze=False)
+    all_models = order_models(sorted({m for s in samples for m in s["pred"]}))
+    for r, sp in enumerate(splits):
+        row = [s for s in samples if s["split"] == sp]
+        for c in range(ncol):
+            ax = axes[r][c]
+            if c >= len(row):
+                ax.axis("off")
+                continue
+            s = row[c]
+            origin = s["truth"][0]
+            ca, sa = np.cos(origin[2]), np.sin(origin[2])
+
+            def local(p, origin=origin, ca=ca, sa=sa):  # start pose at (0, 0) heading +x
+                dx, dy = p[:, 0] - origin[0], p[:, 1] - origin[1]
+                return ca * dx + sa * dy, -sa * dx + ca * dy
+
+            for m in all_models:
+                if m in s["pred"]:
+                    x, y = local(s["pred"][m])
+                    ax.plot(x, y, "-", lw=1.3, color=model_color(m, all_models), label=label(m))
+            x, y = local(s["truth"])
+            ax.plot(x, y, "k-", lw=2.4, label="ground truth")
+            ax.plot([0], [0], "ko", ms=4)
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=7)
+            ax.set_title(f"{SPLIT_LABELS.get(sp, sp)}\n{s['sequence']} t={s['t0']:.0f} s", fontsize=8)
+            if c == 0:
+                ax.set_ylabel("y (m), start frame", fontsize=8)
+            if r == len(splits) - 1:
+                ax.set_xlabel("x (m), start frame", fontsize=8)
+    handles, labels_ = [], []
+    for ax in axes.flat:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels_:
+                handles.append(h)
+                labels_.append(lab)
+    fig.legend(handles, labels_, loc="lower center", ncol=min(len(labels_), 7), fontsize=8, frameon=False)
+    fig.suptitle(f"True and predicted {horizon_s:g} s trajectories", fontsize=11)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return _save(fig, path, dpi)
+
+
+# -- per run ----------------------------------------------------------------------------------------
+def window_error_figure(windows: pd.DataFrame, title: str, path: Path, dpi: int = 110) -> Path:
+    """Relative translational and rotational error of every window over time, per test split (first
+    horizon), for one (model, terrain) run."""
+    h = float(windows["horizon_s"].iloc[0])
+    w = windows[windows["horizon_s"] == h]
+    splits = list(dict.fromkeys(w["split"]))
+    fig, axes = plt.subplots(2, len(splits), figsize=(4.2 * len(splits), 4.6), squeeze=False, sharey="row")
+    for c, sp in enumerate(splits):
+        ws = w[w["split"] == sp]
+        for r, (col, name) in enumerate((("rel_trans", "translational"), ("rel_rot", "rotational"))):
+            ax = axes[r][c]
+            for k, (seq, g) in enumerate(ws.groupby("sequence", sort=True)):
+                ax.plot(g["t0"], 100 * g[col], ".", ms=1.5, color=_PALETTE[k % 10], label=seq)
+            ax.set_ylabel(f"{name} rel. error (%)", fontsize=8)
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=7)
+            if r == 0:
+                ax.set_title(SPLIT_LABELS.get(sp, sp), fontsize=9)
+            else:
+                ax.set_xlabel("window start (s)", fontsize=8)
+    fig.suptitle(f"{title}: per-window errors, {h:g} s horizon", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path, dpi)

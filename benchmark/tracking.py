@@ -1,0 +1,250 @@
+"""MLflow tracking for the benchmark: the one place that talks to an MLflow store.
+
+Store: ``mlflow.tracking_uri`` (config; ``MLFLOW_TRACKING_URI`` when set), else the SQLite file
+``<out_root>/mlflow.db`` with artifacts under ``<out_root>/mlartifacts`` (no server needed). An
+``http(s)://`` URI (a ``mlflow server``) works the same; it is health-checked first so that an unreachable
+server is one clear line, not minutes of HTTP retries.
+
+Runs (SPEC.md "MLflow"): one *parent* run per ``skidbench evaluate`` invocation and one *child* run per
+(model, terrain), linked by the ``mlflow.parentRunId`` tag. Tags under ``skidbench.*`` say what a run is
+(``skidbench.role`` = parent | child, ``skidbench.model``, ``skidbench.terrain``, ...). A child whose
+model failed ends ``FAILED`` with ``skidbench.failure_reason``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import os
+import re
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from skidbench.pipeline.errors import one_line
+from skidbench.pipeline.layout import Layout
+
+from .horizon import EvaluationError
+
+log = logging.getLogger(__name__)
+
+MAX_PARAM_LEN = 6000  # MLflow's limit on a param value
+MAX_TAG_LEN = 5000
+
+TAG_ROLE = "skidbench.role"
+TAG_MODEL = "skidbench.model"
+TAG_MODEL_VERSION = "skidbench.model_version"
+TAG_PLUGIN = "skidbench.plugin_package"
+TAG_TERRAIN = "skidbench.terrain"
+TAG_DATASET = "skidbench.dataset"
+TAG_FINGERPRINT = "skidbench.dataset_fingerprint"
+TAG_GIT = "skidbench.git_commit"
+TAG_STATUS = "skidbench.status"
+TAG_REASON = "skidbench.failure_reason"
+TAG_PARENT = "mlflow.parentRunId"
+
+
+def _quiet_mlflow_logs() -> None:
+    # a fresh SQLite store runs its schema migrations through alembic, which is chatty at INFO
+    for name in ("alembic", "alembic.runtime.migration", "mlflow.store.db.utils"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def resolve_tracking_uri(cfg: Any, layout: Layout) -> str:
+    """``mlflow.tracking_uri`` (the config reads ``MLFLOW_TRACKING_URI``) or the local SQLite store."""
+    node = cfg.get("mlflow") if hasattr(cfg, "get") else None
+    uri = (node.get("tracking_uri") if node is not None else None) or os.environ.get("MLFLOW_TRACKING_URI")
+    return str(uri) if uri else layout.mlflow_uri
+
+
+def is_server(uri: str) -> bool:
+    return uri.startswith(("http://", "https://"))
+
+
+def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
+    """Raise EvaluationError (one line) when an ``http(s)`` tracking server does not answer /health."""
+    if not is_server(uri):
+        return
+    url = uri.rstrip("/") + "/health"
+    try:
+        with urllib.request.urlopen(url, timeout=timeout_s) as resp:  # noqa: S310 (http(s) only)
+            if resp.status != 200:
+                raise EvaluationError(f"MLflow tracking server {uri}: /health answered HTTP {resp.status}")
+    except (urllib.error.URLError, OSError, TimeoutError) as exc:
+        reason = getattr(exc, "reason", exc)
+        raise EvaluationError(
+            f"MLflow tracking server {uri} is unreachable ({reason}); start it "
+            "(mlflow server --backend-store-uri ...) or unset MLFLOW_TRACKING_URI to use the local store"
+        ) from None
+
+
+@functools.lru_cache(maxsize=1)
+def git_commit() -> str:
+    """The commit of the skidbench source tree ("+dirty" when it has local changes), or "unknown"."""
+    here = Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=here,
+            capture_output=True,
+            text=True,
+            timeout=5,
+        ).stdout.strip()
+        return sha + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """Flatten a nested mapping to ``a.b.c`` -> str(value) (lists as their repr), for MLflow params."""
+    out: dict[str, str] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(flatten(v, key + "."))
+        else:
+            s = "null" if v is None else str(v)
+            out[key] = s if len(s) <= MAX_PARAM_LEN else s[: MAX_PARAM_LEN - 3] + "..."
+    return out
+
+
+def metric_key(kind: str, split: str, horizon_s: float) -> str:
+    """``rmsre_translational_cv_6s`` (the metric names compare and the leaderboard read)."""
+    return f"rmsre_{kind}_{split}_{horizon_s:g}s"
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "default"
+
+
+class Tracker:
+    """An MLflow client bound to one store and one experiment (created if absent)."""
+
+    def __init__(self, uri: str, experiment: str, artifact_root: Path | None = None, timeout_s: float = 5.0):
+        _quiet_mlflow_logs()
+        from mlflow.tracking import MlflowClient
+
+        self.uri = uri
+        check_reachable(uri, timeout_s)
+        if uri.startswith("sqlite:///"):
+            Path(uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+        self.client = MlflowClient(tracking_uri=uri)
+        self.experiment_name = experiment
+        self.experiment_id = self._ensure_experiment(experiment, artifact_root)
+
+    def _ensure_experiment(self, name: str, artifact_root: Path | None) -> str:
+        from mlflow.exceptions import MlflowException
+
+        try:
+            exp = self.client.get_experiment_by_name(name)
+            if exp is not None:
+                if exp.lifecycle_stage == "deleted":
+                    raise EvaluationError(
+                        f"MLflow experiment {name!r} at {self.uri} is deleted; "
+                        "restore it or set mlflow.experiment"
+                    )
+                return exp.experiment_id
+            loc = None
+            if artifact_root is not None and not is_server(self.uri):
+                loc = (Path(artifact_root).absolute() / _safe_name(name)).as_uri()
+            try:
+                return self.client.create_experiment(name, artifact_location=loc)
+            except MlflowException:  # created concurrently (a parallel sweep)
+                exp = self.client.get_experiment_by_name(name)
+                if exp is None:
+                    raise
+                return exp.experiment_id
+        except MlflowException as exc:
+            raise EvaluationError(f"MLflow store {self.uri}: {one_line(exc.message)[:300]}") from None
+
+    # -- runs ------------------------------------------------------------------------------------
+    def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
+        t = {k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}
+        if parent_id:
+            t[TAG_PARENT] = parent_id
+        run = self.client.create_run(self.experiment_id, run_name=run_name, tags=t)
+        return run.info.run_id
+
+    def log(
+        self,
+        run_id: str,
+        params: Mapping[str, Any] | None = None,
+        metrics: Mapping[str, float] | None = None,
+        tags: Mapping[str, Any] | None = None,
+    ) -> None:
+        from mlflow.entities import Metric, Param, RunTag
+
+        now = int(time.time() * 1000)
+        ps = [Param(k, str(v)[:MAX_PARAM_LEN]) for k, v in (params or {}).items()]
+        ms = [Metric(k, float(v), now, 0) for k, v in (metrics or {}).items() if v is not None]
+        ts = [RunTag(k, str(v)[:MAX_TAG_LEN]) for k, v in (tags or {}).items()]
+        for i in range(0, max(len(ps), len(ms), len(ts), 1), 100):  # the REST API takes <= 100 params a call
+            self.client.log_batch(
+                run_id, metrics=ms[i : i + 100], params=ps[i : i + 100], tags=ts[i : i + 100]
+            )
+
+    def artifact(self, run_id: str, path: Path, artifact_path: str | None = None) -> None:
+        path = Path(path)
+        if path.is_dir():
+            self.client.log_artifacts(run_id, str(path), artifact_path)
+        else:
+            self.client.log_artifact(run_id, str(path), artifact_path)
+
+    def end(self, run_id: str, status: str = "FINISHED") -> None:
+        self.client.set_terminated(run_id, status=status)
+
+    def fail(self, run_id: str, reason: str) -> None:
+        self.log(run_id, tags={TAG_STATUS: "FAILED", TAG_REASON: one_line(reason)})
+        self.end(run_id, "FAILED")
+
+    @contextlib.contextmanager
+    def run(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> Iterator[str]:
+        """A run that ends FINISHED, or FAILED with the reason when the body raises (the error propagates)."""
+        run_id = self.start(run_name, tags, parent_id)
+        try:
+            yield run_id
+        except BaseException as exc:
+            reason = (
+                f"{type(exc).__name__}: {exc}" if not isinstance(exc, KeyboardInterrupt) else "interrupted"
+            )
+            with contextlib.suppress(Exception):
+                self.fail(run_id, reason)
+            raise
+        else:
+            self.end(run_id, "FINISHED")
+
+    # -- queries ----------------------------------------------------------------------------------
+    def latest_parent(self) -> str | None:
+        runs = self.client.search_runs(
+            [self.experiment_id],
+            filter_string=f"tags.`{TAG_ROLE}` = 'parent'",
+            order_by=["attributes.start_time DESC"],
+            max_results=1,
+        )
+        return runs[0].info.run_id if runs else None
+
+
+def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
+    node = cfg.mlflow
+    uri = resolve_tracking_uri(cfg, layout)
+    try:
+        return Tracker(
+            uri,
+            str(node.experiment),
+            artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
+            timeout_s=float(node.get("timeout_s", 5.0)),
+        )
+    except EvaluationError:
+        raise
+    except Exception as exc:  # a malformed URI, an unwritable store, ...
+        raise EvaluationError(
+            f"MLflow store {uri}: {type(exc).__name__}: {one_line(str(exc))[:300]}"
+        ) from None

@@ -1,0 +1,153 @@
+"""Split-like data and a tiny model for the evaluate/compare/MLflow tests (no other stage needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from skidbench.models.base import KinematicModel
+from skidbench.pipeline.geometry import integrate_body_velocity
+from skidbench.pipeline.robot import Robot
+from skidbench.pipeline.schema import write_split
+
+JACKAL = Robot("jackal", 16.0, 0.098, 0.37559, 0.262, 0.508, 0.430)
+TRUE_CHI = 0.7  # the "terrain": yaw rate is 70 % of the ideal one
+
+
+def sequence_table(seed: int, duration_s: float = 30.0, rate_hz: float = 30.0, chi: float = TRUE_CHI):
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    knots = np.arange(0.0, duration_s + 2.0, 2.0)
+    v = np.interp(t, knots, rng.uniform(0.2, 1.2, len(knots)))
+    w = np.interp(t, knots, rng.uniform(-1.5, 1.5, len(knots)))
+    wl, wr = JACKAL.wheel_rates_from_twist(v, w)
+    true = np.column_stack([v, 0.02 * w, chi * w])
+    pose = integrate_body_velocity(np.zeros(3), true[:-1], np.diff(t))
+    df = pd.DataFrame(
+        {
+            "t": t,
+            "stamp_ns": (t * 1e9).astype(np.int64) + 10**18,
+            "cmd_v": v,
+            "cmd_w": w,
+            "cmd_wl": wl,
+            "cmd_wr": wr,
+            "cmd_dwl": np.gradient(wl, t),
+            "cmd_dwr": np.gradient(wr, t),
+            "enc_wl": wl,
+            "enc_wr": wr,
+            "x": pose[:, 0],
+            "y": pose[:, 1],
+            "yaw": pose[:, 2],
+            "vx": true[:, 0],
+            "vy": true[:, 1],
+            "wz": true[:, 2],
+            "valid": np.ones(len(t), bool),
+        }
+    )
+    return df
+
+
+def write_splits(
+    ds_root: Path,
+    terrains=("tile", "grass"),
+    counts=None,
+    duration_s: float = 30.0,
+) -> None:
+    """<ds_root>/splits/<terrain>/<split>/<seq>.parquet with a few synthetic sequences."""
+    counts = counts or {"train": 2, "cv": 1, "ld": 1}
+    seed = 0
+    for terrain in terrains:
+        for split, n in counts.items():
+            for k in range(n):
+                name = f"{terrain}_{split}_{k:02d}"
+                df = sequence_table(seed, duration_s)
+                seed += 1
+                meta = {
+                    "sequence": name,
+                    "terrain": terrain,
+                    "split": split,
+                    "robot": {"name": "jackal"},
+                    "sources": {},
+                    "rate_hz": 30.0,
+                }
+                write_split(df, ds_root / "splits" / terrain / split / f"{name}.parquet", meta)
+
+
+class ChiModel(KinematicModel):
+    """Extended differential drive with one parameter (the yaw-rate factor chi); the tests' model."""
+
+    name = "chi"
+    version = "0.1"
+
+    def fit(self, table):
+        v, w = self.robot.twist_from_wheel_rates(table["cmd_wl"].to_numpy(), table["cmd_wr"].to_numpy())
+        ok = table["valid"].to_numpy(bool)
+        self.params = {"chi": float(np.dot(w[ok], table["wz"].to_numpy()[ok]) / np.dot(w[ok], w[ok]))}
+        self.fit_loss_ = float(np.mean((self.params["chi"] * w[ok] - table["wz"].to_numpy()[ok]) ** 2))
+        return self
+
+    def predict(self, table):
+        v, w = self.robot.twist_from_wheel_rates(table["cmd_wl"].to_numpy(), table["cmd_wr"].to_numpy())
+        return np.column_stack([v, np.zeros_like(v), self.params.get("chi", 1.0) * w])
+
+
+class IdealModel(ChiModel):
+    name = "ideal_t"
+
+    def fit(self, table):
+        self.params = {"chi": 1.0}
+        self.fit_loss_ = 0.0
+        return self
+
+
+class BrokenModel(ChiModel):
+    name = "broken"
+
+    def fit(self, table):
+        raise RuntimeError("singular normal equations on purpose")
+
+
+class NaNModel(ChiModel):
+    name = "nan_model"
+
+    def predict(self, table):
+        out = super().predict(table)
+        out[5, 2] = np.nan
+        return out
+
+
+MODELS = {m.name: m for m in (ChiModel, IdealModel, BrokenModel, NaNModel)}
+
+
+class Fit:
+    def __init__(self, model, fit_time_s, n_train):
+        self.model, self.fit_time_s, self.n_train = model, fit_time_s, n_train
+        self.fit_loss = model.fit_loss_
+        self.path = None
+
+
+def fit_fn(cfg, model_name, terrain):
+    """A stand-in for skidbench.models.fitting.fit_model on the synthetic splits."""
+    import time
+
+    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.schema import load_split_tables
+
+    tables = load_split_tables(layout_from_cfg(cfg).splits, terrain, "train")
+    table = concat_sequences(tables)
+    t0 = time.perf_counter()
+    model = MODELS[model_name](JACKAL).fit(table)
+    return Fit(model, time.perf_counter() - t0, len(table))
+
+
+def compose(config_name: str, out_root: Path, overrides=()):
+    from hydra import compose as hcompose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        return hcompose(config_name, overrides=[f"out_root={out_root}", *overrides])

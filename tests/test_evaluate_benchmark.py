@@ -1,0 +1,158 @@
+"""`run_benchmark` on synthetic splits with a tiny model, logged to a SQLite MLflow store in tmp."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+from _bench_data import compose, fit_fn, write_splits
+
+from skidbench.benchmark import tracking as trk
+from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.horizon import EvaluationError
+from skidbench.pipeline.layout import Layout
+
+DS = "sim-mini"
+
+
+def _cfg(tmp_path, *over):
+    return compose(
+        "evaluate", tmp_path, ["models=[chi,ideal_t,broken,nan_model]", "horizons=[2.0,6.0]", *over]
+    )
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory, monkeypatch_module):
+    out = tmp_path_factory.mktemp("bench")
+    write_splits(out / DS)
+    cfg = _cfg(out)
+    return out, cfg, run_benchmark(cfg, fit_fn=fit_fn, log_figures=True)
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    mp = pytest.MonkeyPatch()
+    mp.delenv("MLFLOW_TRACKING_URI", raising=False)
+    yield mp
+    mp.undo()
+
+
+def _runs(out, parent_id):
+    mlflow.set_tracking_uri(Layout(out, DS).mlflow_uri)
+    return mlflow.search_runs(
+        experiment_names=[f"skidbench-{DS}"], filter_string=f"tags.mlflow.parentRunId = '{parent_id}'"
+    )
+
+
+def test_one_parent_and_a_child_per_model_and_terrain(bench):
+    out, _, res = bench
+    assert (out / "mlflow.db").is_file()
+    runs = _runs(out, res.parent_run_id)
+    assert len(runs) == 8  # 4 models x 2 terrains
+    assert set(runs["tags.skidbench.model"]) == {"chi", "ideal_t", "broken", "nan_model"}
+    assert set(runs["tags.skidbench.terrain"]) == {"tile", "grass"}
+    parent = mlflow.get_run(res.parent_run_id)
+    assert parent.data.tags["skidbench.role"] == "parent"
+    assert parent.data.params["horizons"] == "[2.0, 6.0]"
+    assert parent.info.status == "FINISHED"
+
+
+def test_metrics_params_tags_and_artifacts_of_a_child(bench):
+    out, _, res = bench
+    runs = _runs(out, res.parent_run_id)
+    ok = runs[(runs["status"] == "FINISHED")]
+    assert set(ok["tags.skidbench.model"]) == {"chi", "ideal_t"}
+    for split in ("cv", "ld"):
+        for kind in ("translational", "rotational"):
+            for h in ("2s", "6s"):
+                col = f"metrics.rmsre_{kind}_{split}_{h}"
+                assert np.isfinite(ok[col]).all()
+    chi = ok[ok["tags.skidbench.model"] == "chi"]
+    ideal = ok[ok["tags.skidbench.model"] == "ideal_t"]
+    assert (
+        chi["metrics.rmsre_rotational_ld_6s"] < 0.05
+    ).all()  # chi is recovered: small error (lateral slip)
+    assert (ideal["metrics.rmsre_rotational_ld_6s"] > 0.2).all()  # ideal ignores the 30 % yaw slip
+    for m in ("fit_loss", "fit_time_s", "predict_time_s", "n_train"):
+        assert np.isfinite(ok[f"metrics.{m}"]).all()
+    row = chi.iloc[0]
+    assert row["params.model"] == "chi" and row["params.min_distance_m"] == "0.5"
+    assert row["tags.skidbench.model_version"] == "0.1"
+    assert row["tags.skidbench.plugin_package"]
+    assert len(row["tags.skidbench.dataset_fingerprint"]) == 32
+    assert row["tags.skidbench.git_commit"]
+    client = mlflow.MlflowClient()
+    arts = {a.path for d in ("fit", "windows", "figures") for a in client.list_artifacts(row["run_id"], d)}
+    assert any(a.endswith(".params.json") for a in arts)
+    assert any(a.endswith(".windows.parquet") for a in arts)
+    assert any(a.endswith(".png") for a in arts)
+    local = client.download_artifacts(
+        row["run_id"], f"windows/{row['tags.skidbench.terrain']}.windows.parquet"
+    )
+    w = pd.read_parquet(local)
+    assert {"split", "horizon_s", "sequence", "rel_trans", "rel_rot", "pred_x", "gt_x"} <= set(w.columns)
+    assert set(w["split"]) == {"cv", "ld"} and set(w["horizon_s"]) == {2.0, 6.0}
+    assert (out / "mlartifacts").is_dir()
+
+
+def test_failed_fit_and_bad_prediction_are_failed_runs_with_reasons(bench):
+    out, _, res = bench
+    runs = _runs(out, res.parent_run_id)
+    bad = runs[runs["status"] == "FAILED"]
+    assert set(bad["tags.skidbench.model"]) == {"broken", "nan_model"}
+    reasons = dict(zip(bad["tags.skidbench.model"], bad["tags.skidbench.failure_reason"], strict=False))
+    assert "fit failed" in reasons["broken"] and "singular normal equations" in reasons["broken"]
+    assert "non-finite" in reasons["nan_model"]
+    assert {(c.model, c.status) for c in res.failed} == {(m, "FAILED") for m in ("broken", "nan_model")}
+    parent = mlflow.get_run(res.parent_run_id)
+    assert parent.data.metrics["n_failed"] == 4
+    assert "FAILED" in parent.data.tags["skidbench.status"]
+
+
+def test_empty_test_split_is_one_line_error(tmp_path, monkeypatch_module):
+    write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "ld": 1})
+    (tmp_path / DS / "splits" / "tile" / "cv").mkdir()
+    with pytest.raises(EvaluationError, match=r"tile/cv: empty cv split") as e:
+        run_benchmark(_cfg(tmp_path), fit_fn=fit_fn)
+    assert "\n" not in str(e.value)
+    assert not (tmp_path / "mlflow.db").exists()  # nothing logged for a benchmark that cannot run
+
+
+def test_horizon_longer_than_every_sequence_is_one_line_error(tmp_path, monkeypatch_module):
+    write_splits(tmp_path / DS, terrains=("tile",), duration_s=8.0)
+    with pytest.raises(
+        EvaluationError, match=r"horizon 10 s is longer than every sequence \(longest 8.0 s\)"
+    ):
+        run_benchmark(_cfg(tmp_path, "horizons=[10]"), fit_fn=fit_fn)
+
+
+def test_no_splits_is_one_line_error(tmp_path, monkeypatch_module):
+    with pytest.raises(EvaluationError, match="no splits; run `skidbench split`"):
+        run_benchmark(_cfg(tmp_path), fit_fn=fit_fn)
+
+
+def test_unreachable_tracking_server_is_one_line_error_fast(tmp_path, monkeypatch):
+    import socket
+
+    write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1})
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{port}")
+    t0 = time.monotonic()
+    with pytest.raises(
+        EvaluationError, match=rf"MLflow tracking server http://127.0.0.1:{port} is unreachable"
+    ):
+        run_benchmark(_cfg(tmp_path), fit_fn=fit_fn)
+    assert time.monotonic() - t0 < 10
+
+
+def test_metric_names_and_flatten():
+    assert trk.metric_key("translational", "cv", 6.0) == "rmsre_translational_cv_6s"
+    assert trk.metric_key("rotational", "ld", 2.5) == "rmsre_rotational_ld_2.5s"
+    assert trk.flatten({"a": {"b": 1, "c": [1, 2]}, "d": None}) == {"a.b": "1", "a.c": "[1, 2]", "d": "null"}
+    assert not math.isnan(0.0)

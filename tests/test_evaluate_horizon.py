@@ -1,0 +1,94 @@
+"""The O(T) window errors (SE(2) relative composition) against naive per-window integration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skidbench.benchmark.horizon import (
+    EvaluationError,
+    HorizonConfig,
+    naive_window_errors,
+    rmsre,
+    window_errors,
+    window_trajectory,
+)
+from skidbench.pipeline.geometry import integrate_body_velocity
+
+
+def _drive(T=1500, dt=1 / 30, seed=3):
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) * dt
+    vel = np.column_stack(
+        [
+            1.0 + 0.5 * np.sin(t / 3.0) + 0.05 * rng.standard_normal(T),
+            0.05 * rng.standard_normal(T),
+            1.2 * np.sin(t / 2.0) + 0.1 * rng.standard_normal(T),
+        ]
+    )
+    true = vel * np.array([0.95, 1.0, 0.8]) + [0.0, 0.02, 0.0]  # the "robot" slips
+    gt = integrate_body_velocity(np.array([2.0, -1.0, 0.3]), true[:-1], np.diff(t))
+    return t, gt, vel
+
+
+def test_window_errors_match_naive_integration_to_1e9():
+    t, gt, vel = _drive()
+    w = window_errors(t, gt, vel, 6.0)
+    naive = naive_window_errors(t, gt, vel, 6.0)
+    assert len(w) == len(naive) == len(t) - 180
+    pred = w[["pred_x", "pred_y", "pred_yaw"]].to_numpy()
+    assert np.max(np.abs(pred - naive)) < 1e-9
+    end = w["end"].to_numpy()
+    pos = np.hypot(gt[end, 0] - naive[:, 0], gt[end, 1] - naive[:, 1])
+    assert np.max(np.abs(w["trans_err"].to_numpy() - pos)) < 1e-9
+    assert np.max(np.abs(w["rot_err"].to_numpy() - (gt[end, 2] - naive[:, 2]))) < 1e-9
+
+
+def test_window_trajectory_ends_where_window_errors_predicts():
+    t, gt, vel = _drive(T=400)
+    w = window_errors(t, gt, vel, 2.0)
+    traj = window_trajectory(t, gt, vel, 17, 2.0)
+    assert traj.shape == (61, 3)
+    np.testing.assert_allclose(traj[0], gt[17])
+    row = w[w["start"] == 17].iloc[0]
+    np.testing.assert_allclose(traj[-1], row[["pred_x", "pred_y", "pred_yaw"]].to_numpy(float), atol=1e-12)
+    with pytest.raises(EvaluationError, match="no full"):
+        window_trajectory(t, gt, vel, 390, 2.0)
+
+
+def test_perfect_model_has_zero_error_and_rmsre_closed_form():
+    t = np.arange(600) / 30.0
+    vel = np.zeros((600, 3))
+    vel[:, 0], vel[:, 2] = 1.0, 0.5
+    gt = integrate_body_velocity(np.zeros(3), vel[:-1], np.diff(t))
+    w = window_errors(t, gt, vel, 3.0)
+    assert np.max(w["trans_err"]) < 1e-9 and np.max(np.abs(w["rot_err"])) < 1e-9
+    assert rmsre(np.array([0.3, 0.4, np.nan])) == pytest.approx(np.sqrt((0.09 + 0.16) / 2))
+    assert np.isnan(rmsre(np.array([np.nan])))
+
+
+def test_relative_errors_and_minimum_distance_rotation():
+    t = np.arange(301) / 30.0
+    vel = np.tile([1.0, 0.0, 0.0], (301, 1))  # straight at 1 m/s: 2 m in 2 s, no rotation
+    gt = integrate_body_velocity(np.zeros(3), vel[:-1] * [1.1, 1, 1], np.diff(t))  # truly 10 % faster
+    w = window_errors(t, gt, vel, 2.0, cfg=HorizonConfig(2.0, min_distance_m=0.5))
+    np.testing.assert_allclose(w["distance"], 2.2, rtol=1e-9)
+    np.testing.assert_allclose(w["rel_trans"], 0.2 / 2.2, rtol=1e-9)
+    assert w["rel_rot"].isna().all()  # under the minimum rotation: left out
+    w = window_errors(t, gt, vel, 2.0, cfg=HorizonConfig(2.0, min_distance_m=5.0))
+    assert w["rel_trans"].isna().all()
+
+
+def test_windows_touching_invalid_samples_are_dropped():
+    t, gt, vel = _drive(T=300)
+    valid = np.ones(300, bool)
+    valid[150] = False
+    w = window_errors(t, gt, vel, 1.0, valid=valid)
+    n = 30
+    assert not ((w["start"] <= 150) & (w["end"] >= 150)).any()
+    assert len(w) == (300 - n) - (n + 1)
+
+
+def test_horizon_longer_than_sequence_gives_no_windows():
+    t, gt, vel = _drive(T=90)
+    assert len(window_errors(t, gt, vel, 6.0)) == 0
