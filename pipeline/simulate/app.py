@@ -1,0 +1,246 @@
+"""``skidbench simulate``: the built-in default dataset (simulated Jackal bags, manifest, dataset card).
+
+    skidbench simulate                         # scale=mini, ROS1 bags under outputs/sim-mini/raw/
+    skidbench simulate scale=full seed=3       # Table I durations
+    skidbench simulate format=ros2             # ROS2 bags (sqlite3); format=mcap for mcap storage
+
+A sequence whose bag is up to date (same config, seed and simulator code; bag intact) is skipped, so a
+killed run resumes where it stopped; ``force=true`` re-simulates everything.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from ..cache import Stamp
+from ..cli import stage
+from ..errors import SimulateError
+from ..io import atomic_path, fingerprint_file, write_text_atomic
+from ..layout import layout_from_cfg
+from ..manifest import Manifest, Sequence
+from ..robot import Robot, robot_from_hydra
+from .bag import FORMATS, BagSink, bag_path
+from .card import build_rows, render_card, sequence_moments
+from .physics import load_physics
+from .scenarios import plan_sequences
+from .sequence import simulate_sequence
+
+log = logging.getLogger("skidbench.simulate")
+
+_CODE_FILES = ("physics.py", "scenarios.py", "sequence.py", "bag.py", "render.py")
+
+
+def code_fingerprint() -> dict[str, str]:
+    """Fingerprints of the simulator's source: a changed model re-simulates."""
+    here = Path(__file__).parent
+    return {f: fingerprint_file(here / f) for f in _CODE_FILES if (here / f).is_file()}
+
+
+def make_renderer(robot: Robot, cfg: DictConfig, seed: int):
+    """The stereo renderer (pipeline/simulate/render.py), or None when ``images=false``."""
+    if not cfg.images:
+        return None
+    try:
+        from .render import StereoRenderer
+    except ImportError as exc:
+        raise SimulateError(
+            f"pipeline/simulate/render.py: stereo renderer unavailable ({exc}); set images=false"
+        ) from exc
+    camera = robot.extra.get("camera")
+    if not camera:
+        raise SimulateError(f"robot {robot.name}: no camera section in the robot config; set images=false")
+    try:
+        return StereoRenderer(dict(camera), seed, **dict(cfg.render or {}))
+    except (ValueError, KeyError) as exc:
+        raise SimulateError(f"simulate.render: {exc}") from exc
+
+
+def _write_bag(final: Path, fmt: str, fill) -> None:
+    """Write a bag atomically: ROS1 to a temp file renamed over ``final``; ROS2 (a folder whose storage
+    file is named after it) in a temp folder, then the inner folder renamed to ``final``."""
+    if fmt == "ros1":
+        with atomic_path(final, suffix=".bag") as tmp:
+            with BagSink(tmp, fmt) as sink:
+                fill(sink)
+        return
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmpdir = Path(tempfile.mkdtemp(prefix=".tmp-" + final.name + ".", dir=final.parent))
+    try:
+        inner = tmpdir / final.name
+        with BagSink(inner, fmt) as sink:
+            fill(sink)
+        if final.is_dir():
+            shutil.rmtree(final)
+        elif final.exists():
+            final.unlink()
+        os.replace(inner, final)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+def _fill(holder, spec, index, robot, terrain, drive, tyre, run_cfg, seed, renderer, tick, sink) -> None:
+    holder["truth"] = simulate_sequence(
+        spec, index, robot, terrain, drive, tyre, run_cfg, seed, sink, renderer, tick
+    )
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Simulate every sequence of the configured scale; returns a summary (paths, card rows, timing)."""
+    t_start = time.perf_counter()
+    fmt = str(cfg.format)
+    if fmt not in FORMATS:
+        raise SimulateError(f"format={fmt!r}: not one of {', '.join(FORMATS)}")
+    robot = robot_from_hydra(cfg.robot)
+    if not robot.left_joints or not robot.right_joints:
+        raise SimulateError(f"robot {robot.name}: left_joints/right_joints are empty in the robot config")
+    terrains, drive, tyre = load_physics(OmegaConf.to_container(cfg.sim, resolve=True))
+    specs = plan_sequences(OmegaConf.to_container(cfg.scale.simulate, resolve=True))
+    missing = sorted({s.terrain for s in specs} - set(terrains))
+    if missing:
+        raise SimulateError(
+            f"sim config: no physics for terrain(s) {', '.join(missing)}; add them under sim.terrains"
+        )
+    sim_cfg = OmegaConf.to_container(cfg, resolve=True)
+    seed = int(cfg.seed)
+    rates = dict(sim_cfg["rates"])
+    camera = robot.extra.get("camera") or {}
+    rates["camera"] = float(camera.get("fps", 15.0))
+    run_cfg = {"dt": sim_cfg["dt"], "rates": rates, "sensors": sim_cfg["sensors"]}
+
+    layout = layout_from_cfg(cfg)
+    bags_dir = layout.raw / "bags"
+    stamps_dir = layout.raw / ".stamps"
+    renderer = None
+    code = code_fingerprint()
+    results: list[dict[str, Any]] = []
+    skipped = 0
+    with tqdm(
+        total=sum(s.duration if s.category != "loop" else s.options["target"] for s in specs),
+        unit="s",
+        desc=f"simulate {layout.dataset}",
+        dynamic_ncols=True,
+        mininterval=1.0,
+    ) as bar:
+        for index, spec in enumerate(specs):
+            final = bag_path(bags_dir, spec.name, fmt)
+            stamp = Stamp(stamps_dir / f"{spec.name}.json", "simulate")
+            key = stamp.key(
+                [],
+                {
+                    "spec": spec.__dict__,
+                    "index": index,
+                    "seed": seed,
+                    "format": fmt,
+                    "images": bool(cfg.images),
+                    "render": sim_cfg.get("render"),
+                    "run": run_cfg,
+                    "robot": robot.to_dict(),
+                    "physics": sim_cfg["sim"],
+                    "code": code,
+                },
+            )
+            if not cfg.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
+                moments = stamp.data["info"]["moments"]
+                skipped += 1
+                bar.update(
+                    spec.options.get("target", spec.duration) if spec.category == "loop" else spec.duration
+                )
+            else:
+                if renderer is None and cfg.images:
+                    renderer = make_renderer(robot, cfg, seed)
+                bar.set_postfix_str(spec.name)
+                done = [0.0]
+
+                def tick(dt_s: float, _done=done) -> None:
+                    _done[0] += dt_s
+                    bar.update(dt_s)
+
+                holder: dict[str, Any] = {}
+                fill = functools.partial(
+                    _fill,
+                    holder,
+                    spec,
+                    index,
+                    robot,
+                    terrains[spec.terrain],
+                    drive,
+                    tyre,
+                    run_cfg,
+                    seed,
+                    renderer,
+                    tick,
+                )
+                _write_bag(final, fmt, fill)
+                truth = holder["truth"]
+                if spec.category == "loop":
+                    bar.update(max(0.0, spec.options["target"] - done[0]))
+                moments = sequence_moments(truth, robot.track_width, robot.wheel_radius)
+                stamp.record(key, [final], {"moments": moments, "duration": float(truth.t[-1])})
+            results.append({"spec": spec, "path": final, "moments": moments})
+
+    manifest = Manifest(
+        [
+            Sequence(
+                r["spec"].name, r["spec"].terrain, r["spec"].category, str(r["path"].relative_to(layout.raw))
+            )
+            for r in results
+        ],
+        robot=robot.name,
+        format=fmt,
+        base=layout.raw,
+    )
+    manifest.write(layout.manifest)
+    rows = build_rows(
+        [
+            {"category": r["spec"].category, "terrain": r["spec"].terrain, "moments": r["moments"]}
+            for r in results
+        ]
+    )
+    card = render_card(rows, f"{layout.dataset} (seed {seed})")
+    write_text_atomic(layout.raw / "card.md", card)
+    size = sum(_size(r["path"]) for r in results)
+    return {
+        "layout": layout,
+        "card": card,
+        "rows": rows,
+        "sequences": len(results),
+        "skipped": skipped,
+        "bytes": size,
+        "seconds": time.perf_counter() - t_start,
+    }
+
+
+def _size(path: Path) -> int:
+    if path.is_dir():
+        return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    return path.stat().st_size if path.exists() else 0
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="simulate")
+@stage("simulate")
+def main(cfg: DictConfig) -> None:
+    summary = run(cfg)
+    layout = summary["layout"]
+    print(summary["card"])
+    print(
+        f"simulate: {summary['sequences']} sequences ({summary['skipped']} up to date), "
+        f"{summary['bytes'] / 1e6:.1f} MB of {cfg.format} bags in {summary['seconds']:.1f} s"
+    )
+    print(f"simulate: bags     -> {layout.raw / 'bags'}")
+    print(f"simulate: manifest -> {layout.manifest}")
+    print(f"simulate: card     -> {layout.raw / 'card.md'}")
+
+
+if __name__ == "__main__":
+    main()
