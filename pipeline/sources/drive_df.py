@@ -130,6 +130,12 @@ def raw_to_sequences(df: pd.DataFrame, path: Path, fractions, label: str) -> lis
     if missing:
         raise SourceError(f"{path}: raw form lacks columns {missing}")
     pose_cols = [c for c in df.columns if c.startswith("icp_pos_") or c.startswith("icp_quat_")]
+    unused = [
+        c for c in df.columns if c not in RAW_COLUMNS and c not in pose_cols and df[c].dtype.kind in "OSU"
+    ]
+    unused += [c for c in df.columns if str(df[c].dtype) in ("string", "str") and c not in unused]
+    if unused:  # e.g. calib_state holds 'idle', 'calib', '' and '0.0': not needed, left out
+        log.warning("%s: mixed types in unused column(s) %s: ignored", path, sorted(set(unused)))
     df = _numeric(df, list(RAW_COLUMNS) + pose_cols, path)
     zero = df["ros_time"].to_numpy() <= 0
     if zero.any():

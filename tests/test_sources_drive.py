@@ -1,0 +1,82 @@
+"""drive_df source on the real DRIVE files (skipped when ../shared is absent)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from skidbench.pipeline.errors import GroundTruthError
+from skidbench.pipeline.geometry import se2_compose
+from skidbench.pipeline.sources.drive_df import raw_to_sequences, windows_to_sequences
+
+
+def test_windows_chain_into_train_cv_ld_sequences(shared_real):
+    path = shared_real / "drive" / "husky_windows.parquet"
+    df = pd.read_parquet(path)
+    seqs = windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "husky")
+    assert [s["category"] for s in seqs] == ["train", "cv", "ld"]
+    assert sum(len(s["tables"]["gt_pose"]) for s in seqs) == 40 * len(df)
+    gt = seqs[0]["tables"]["gt_pose"]
+    # the second window starts where the first one ended (chaining in the start's body frame)
+    first = df.sort_values("calib_step", kind="stable").iloc[:2]
+    end0 = first[["icp_x_39", "icp_y_39", "icp_yaw_39"]].to_numpy()[0]
+    rel1 = first[["icp_x_5", "icp_y_5", "icp_yaw_5"]].to_numpy()[1]
+    np.testing.assert_allclose(gt[["x", "y", "yaw"]].to_numpy()[45], se2_compose(end0, rel1), atol=1e-12)
+    assert np.all(np.diff(gt["stamp_ns"]) > 0)
+
+
+def test_windows_pipeline_writes_splits_and_a_card(shared_real, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline.api import prepare_splits
+
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        cfg = compose("split", [f"out_root={tmp_path}", "source=drive_df", "robot=warthog",
+                                f"source.root={shared_real / 'drive'}", "source.file=warthog_windows.parquet"])  # fmt: skip
+    splits = prepare_splits(cfg)
+    files = sorted(p.relative_to(splits).as_posix() for p in splits.glob("*/*/*.parquet"))
+    assert files == [f"unspecified/{s}/warthog_{s}_00.parquet" for s in ("cv", "ld", "train")]
+    assert "| train | unspecified |" in (splits / "card.md").read_text()
+    mtime = (splits / "unspecified" / "train" / "warthog_train_00.parquet").stat().st_mtime_ns
+    prepare_splits(cfg)  # up to date: nothing is rewritten
+    assert (splits / "unspecified" / "train" / "warthog_train_00.parquet").stat().st_mtime_ns == mtime
+
+
+def test_raw_form_repairs_zero_stamps_and_mixed_types_and_reports_missing_icp(shared_real, caplog):
+    path = shared_real / "drive" / "close_raw.parquet"
+    with caplog.at_level(logging.WARNING):
+        seqs = raw_to_sequences(pd.read_parquet(path), path, (0.6, 0.2, 0.2), "close")
+    assert "zero timestamp" in caplog.text and "mixed types" in caplog.text
+    assert [s["category"] for s in seqs] == ["train", "cv", "ld"]
+    assert all("gt_pose" not in s["tables"] for s in seqs)  # ICP never ran in this file
+    assert all(np.all(np.diff(s["tables"]["cmd_vel"]["stamp_ns"]) > 0) for s in seqs)
+    assert "ICP did not run" in seqs[0]["note"][0]
+
+
+def test_raw_form_without_ground_truth_fails_groundtruth_in_one_line(shared_real, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline.extract.app import run as extract
+    from skidbench.pipeline.groundtruth.app import run as groundtruth
+
+    over = [f"out_root={tmp_path}", "source=drive_df", f"source.root={shared_real / 'drive'}",
+            "source.file=workshop_raw.parquet", "source.label=workshop"]  # fmt: skip
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        extract(compose("extract", over))
+        with pytest.raises(GroundTruthError, match="gt_pose.parquet: pose table not found.*ICP did not run"):
+            groundtruth(compose("groundtruth", over))
+
+
+def test_raw_form_with_icp_poses_yields_a_gt_pose_table(shared_real):
+    path = shared_real / "drive" / "close_raw.parquet"
+    df = pd.read_parquet(path)
+    n = len(df)
+    df["icp_pos_x"] = np.linspace(0, 5, n)
+    df["icp_quat_z"], df["icp_quat_w"] = np.sin(0.1), np.cos(0.1)
+    seqs = raw_to_sequences(df, path, (0.6, 0.2, 0.2), "close")
+    gt = seqs[0]["tables"]["gt_pose"]
+    np.testing.assert_allclose(gt["yaw"], 0.2)
+    assert gt["x"].is_monotonic_increasing
