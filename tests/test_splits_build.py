@@ -1,0 +1,78 @@
+"""The split table: uniform clock, command hold and timeout, gaps, the smoothing differentiator."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from skidbench.pipeline.errors import SplitError
+from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.splits.app import check_flag
+from skidbench.pipeline.splits.build import body_velocities, build_split_table, hold
+
+S = 1_000_000_000
+
+
+def arc(t, v=1.2, w=0.7):
+    yaw = w * t
+    return np.column_stack([v / w * np.sin(yaw), v / w * (1 - np.cos(yaw)), yaw])
+
+
+def test_savitzky_golay_differentiator_recovers_a_constant_twist_arc():
+    dt = 1 / 30
+    t = np.arange(300) * dt
+    vel = body_velocities(arc(t), np.ones(len(t), bool), dt, window=9, order=3)
+    np.testing.assert_allclose(vel, [[1.2, 0.0, 0.7]] * len(t), atol=1e-4)
+
+
+def test_differentiator_never_uses_samples_across_an_invalid_run():
+    dt = 1 / 30
+    t = np.arange(120) * dt
+    pose = arc(t)
+    pose[60:] += [5.0, -3.0, 0.0]  # a jump (tracking reset) hidden behind invalid samples
+    valid = np.ones(len(t), bool)
+    valid[55:60] = False
+    vel = body_velocities(pose, valid, dt)
+    np.testing.assert_allclose(vel[valid], [[1.2, 0.0, 0.7]] * int(valid.sum()), atol=1e-4)
+    assert np.all(vel[~valid] == 0)
+
+
+def test_command_hold_times_out_to_zero():
+    stamps = np.array([0, 100_000_000]) * 1
+    grid = np.array([0, 50_000_000, 300_000_000, 400_000_000])
+    held = hold(stamps, np.array([[1.0], [2.0]]), grid, 250_000_000)
+    np.testing.assert_array_equal(held[:, 0], [1.0, 1.0, 2.0, 0.0])
+
+
+def test_split_table_marks_gaps_invalid_and_converts_commands(jackal):
+    t = np.arange(0, 10, 1 / 15)
+    gt_ns = (t * S).astype(np.int64) + 5 * S
+    cmd_ns = (np.arange(0, 10, 1 / 45) * S).astype(np.int64) + 5 * S
+    cmd = np.tile([1.2, 0.7], (len(cmd_ns), 1))
+    gap = (int(gt_ns[40]), int(gt_ns[41]))
+    df = build_split_table(jackal, gt_ns, arc(t), [gap], cmd_ns, cmd, "twist")
+    assert df["stamp_ns"].iloc[0] == 5 * S and np.allclose(np.diff(df["t"]), 1 / 30)
+    inside = (df["stamp_ns"] > gap[0]) & (df["stamp_ns"] < gap[1])
+    assert inside.any() and not df.loc[inside, "valid"].any()
+    assert df["valid"].sum() == len(df) - inside.sum()
+    wl, wr = jackal.wheel_rates_from_twist(1.2, 0.7)
+    np.testing.assert_allclose(df[["cmd_wl", "cmd_wr"]].iloc[5].to_numpy(), [wl, wr])
+    ok = df["valid"] & (df["t"] > 0.5) & (df["t"] < 9.0)
+    np.testing.assert_allclose(
+        df.loc[ok, ["vx", "vy", "wz"]].to_numpy(), [[1.2, 0, 0.7]] * int(ok.sum()), atol=5e-3
+    )
+    assert df["enc_wl"].isna().all()
+
+
+def test_split_refuses_a_flagged_ground_truth_unless_allowed(tmp_path):
+    layout = Layout(tmp_path, "ds")
+    with pytest.raises(SplitError, match="run `skidbench groundtruth` first"):
+        check_flag(layout, False)
+    layout.groundtruth.mkdir(parents=True)
+    report = {"flagged": True, "translational_mean": 0.02, "rotational_mean": 0.001, "bounds": {}}
+    (layout.groundtruth / "loop_closure.json").write_text(json.dumps(report))
+    with pytest.raises(SplitError, match="flagged.*split.allow_flagged=true"):
+        check_flag(layout, False)
+    check_flag(layout, True)
