@@ -27,6 +27,8 @@ $(STAMP): pyproject.toml
 reproduce: setup
 	$(SKB) simulate scale=$(SCALE) seed=$(SEED)
 	$(SKB) extract
+	$(SKB) groundtruth
+	$(SKB) split
 	@echo "outputs: $(SKIDBENCH_OUT)"
 
 test: setup

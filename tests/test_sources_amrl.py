@@ -42,7 +42,9 @@ def test_amrl_fixture_goes_to_split_files_with_the_true_body_velocities(tmp_path
     df, meta = read_split(tmp_path / "amrl" / "splits" / "tile" / "train" / "tile_train_01.parquet")
     assert list(df.columns) == list(SPLIT_COLUMNS)
     assert meta["terrain"] == "tile" and meta["split"] == "train" and meta["robot"]["name"] == "jackal"
-    assert set(meta["sources"]) == {"groundtruth", "cmd"} and all(s["fingerprint"] for s in meta["sources"].values())
+    assert set(meta["sources"]) == {"groundtruth", "cmd"} and all(
+        s["fingerprint"] for s in meta["sources"].values()
+    )
     inner = df[df["valid"]].iloc[10:-10]
     np.testing.assert_allclose(inner["vx"], 0.8, atol=2e-3)
     np.testing.assert_allclose(inner["vy"], 0.0, atol=2e-3)

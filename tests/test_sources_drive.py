@@ -34,8 +34,13 @@ def test_windows_pipeline_writes_splits_and_a_card(shared_real, tmp_path):
     from skidbench.pipeline.api import prepare_splits
 
     with initialize_config_module("skidbench.conf", version_base="1.3"):
-        cfg = compose("split", [f"out_root={tmp_path}", "source=drive_df", "robot=warthog",
-                                f"source.root={shared_real / 'drive'}", "source.file=warthog_windows.parquet"])  # fmt: skip
+        over = [
+            f"out_root={tmp_path}",
+            "source=drive_df",
+            "robot=warthog",
+            f"source.root={shared_real / 'drive'}",
+        ]
+        cfg = compose("split", [*over, "source.file=warthog_windows.parquet"])
     splits = prepare_splits(cfg)
     files = sorted(p.relative_to(splits).as_posix() for p in splits.glob("*/*/*.parquet"))
     assert files == [f"unspecified/{s}/warthog_{s}_00.parquet" for s in ("cv", "ld", "train")]

@@ -134,7 +134,9 @@ def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[st
             {
                 "rpe_horizon_s": horizon_s,
                 "rpe_trans_rms_m": float(np.sqrt(np.mean(err**2))),
-                "rpe_trans_rel_rms": float(np.sqrt(np.mean((err[moving] / dist[moving]) ** 2))) if moving.any() else None,
+                "rpe_trans_rel_rms": float(np.sqrt(np.mean((err[moving] / dist[moving]) ** 2)))
+                if moving.any()
+                else None,
                 "rpe_yaw_rms_rad": float(np.sqrt(np.mean(wrap_angle(dg[:, 2] - dtr[:, 2]) ** 2))),
             }
         )  # fmt: skip
@@ -186,7 +188,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 report["truth_error"] = truth_scores[seq.name] = score
         dur = (traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9
         report.update(
-            {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category, "method": str(gt_cfg.method),
+            {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category,
+             "method": str(gt_cfg.method),
              "poses": len(traj), "duration_s": dur, "gaps": [[a, b] for a, b in traj.gaps]}
         )  # fmt: skip
         write_tum(

@@ -222,7 +222,8 @@ def read_orbslam(
         if not ok.any():
             raise GroundTruthError(
                 f"{path}: no pose within {max_diff_s} s of an image stamp (poses {stamps[0] * 1e-9:.3f}.."
-                f"{stamps[-1] * 1e-9:.3f} s, images {ref_stamp_ns.min() * 1e-9:.3f}..{ref_stamp_ns.max() * 1e-9:.3f}"
+                f"{stamps[-1] * 1e-9:.3f} s, images {ref_stamp_ns.min() * 1e-9:.3f}.."
+                f"{ref_stamp_ns.max() * 1e-9:.3f}"
                 " s); set groundtruth.orbslam.time_offset or max_diff"
             )
         if not ok.all():

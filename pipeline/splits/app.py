@@ -41,7 +41,8 @@ def check_flag(layout: Layout, allow: bool) -> None:
     if report.get("flagged") and not allow:
         stats = ", ".join(f"{k} {report[k]:.4f}" for k in report if k.endswith("_mean"))
         raise SplitError(
-            f"{path}: ground truth flagged by the loop-closure check ({stats}; bounds {report.get('bounds')}); "
+            f"{path}: ground truth flagged by the loop-closure check ({stats}; "
+            f"bounds {report.get('bounds')}); "
             "set split.allow_flagged=true to use it anyway"
         )
     if report.get("flagged"):

@@ -88,8 +88,9 @@ def dataset_card(splits_root: Path, robot: Robot, paper: bool = True) -> str:
             (meta.get("split", path.parent.name), meta.get("terrain", path.parent.parent.name)), []
         ).append(df)
     head = (
-        "| Category | Terrain | Name | Duration (s) | Distance (m) | Abs. rotation (deg x1e3) | Lin. vel. mean "
-        "(m/s) | Lin. vel. std | Ang. vel. mean (deg/s) | Ang. vel. std | Slip vel. mean (m/s) | Slip vel. std |"
+        "| Category | Terrain | Name | Duration (s) | Distance (m) | Abs. rotation (deg x1e3) "
+        "| Lin. vel. mean (m/s) | Lin. vel. std | Ang. vel. mean (deg/s) | Ang. vel. std "
+        "| Slip vel. mean (m/s) | Slip vel. std |"
     )
     sep = "|" + "---|" * 12
     order = {"train": 0, "cv": 1, "ld": 2}
@@ -98,11 +99,15 @@ def dataset_card(splits_root: Path, robot: Robot, paper: bool = True) -> str:
         s = table_stats(frames, robot, rate)
         rows.append(
             f"| {split} | {terrain} | {len(frames)} seq | {s['duration_s']:.0f} | {s['distance_m']:.1f} | "
-            f"{s['abs_rotation_kdeg']:.2f} | {s['lin_mean']:.2f} | {s['lin_std']:.2f} | {s['ang_mean']:.1f} | "
+            f"{s['abs_rotation_kdeg']:.2f} | {s['lin_mean']:.2f} | {s['lin_std']:.2f} | "
+            f"{s['ang_mean']:.1f} | "
             f"{s['ang_std']:.1f} | {s['slip_mean']:.3f} | {s['slip_std']:.3f} |"
         )
-    text = [f"# Dataset card: {splits_root.parent.name}", "", f"Robot: {robot.name}. Valid samples only; "
-            "slip velocity = mean over sides of |r w_side - v_side| (pipeline/splits/card.py).", "", head, sep, *rows]  # fmt: skip
+    note = (
+        f"Robot: {robot.name}. Valid samples only; slip velocity = mean over sides of "
+        "|r w_side - v_side| (pipeline/splits/card.py)."
+    )
+    text = [f"# Dataset card: {splits_root.parent.name}", "", note, "", head, sep, *rows]
     if not rows:
         text.append("| (no split files) |" + " |" * 11)
     if paper:
