@@ -1,0 +1,202 @@
+"""The six built-in models: closed forms, parameter recovery, the friction model's physics and solver."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from skidbench.models.base import ModelError
+from skidbench.models.enhanced import EnhancedKinematic
+from skidbench.models.friction import FrictionBased
+from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve, solve_reference
+from skidbench.models.ideal import IdealDifferentialDrive
+from skidbench.models.linear import ExtendedDifferentialDrive, FullLinear
+from skidbench.models.registry import get_model_class
+from skidbench.models.roc import RocBased
+from skidbench.models.synthetic import command_table, label_with
+
+TRUE_FRICTION = {"mu_r": 0.05, "mu_x": 0.9, "mu_y": 0.6, "lambda": 6.0, "C": 0.3}
+
+
+@pytest.fixture(scope="module")
+def table(jackal):
+    return command_table(jackal, 1500, seed=3)
+
+
+@pytest.fixture(scope="module")
+def cg_robot(jackal):
+    from dataclasses import replace
+
+    return replace(jackal, cg_offset=(0.04, 0.0))
+
+
+def ideal(robot, table):
+    return IdealDifferentialDrive(robot).predict(table)
+
+
+@pytest.mark.parametrize(
+    "cls, params",
+    [
+        (ExtendedDifferentialDrive, {"chi": 1.0}),
+        (RocBased, {"b1": 0.0, "b2": 3.0}),
+        (EnhancedKinematic, {f"p{i}": 0.0 for i in range(1, 7)}),
+    ],
+)
+def test_zero_slip_parameters_give_the_ideal_model(jackal, table, cls, params):
+    np.testing.assert_allclose(cls(jackal, params).predict(table), ideal(jackal, table), atol=1e-12)
+
+
+def test_full_linear_with_the_ideal_matrix_is_the_ideal_model(jackal, table):
+    A = FullLinear(jackal).ideal_matrix().tolist()
+    np.testing.assert_allclose(FullLinear(jackal, {"A": A}).predict(table), ideal(jackal, table), atol=1e-12)
+
+
+def test_ideal_model_closed_form(jackal):
+    df = pd.DataFrame({"cmd_wl": [10.0, -5.0], "cmd_wr": [10.0, 5.0]})
+    r, B = jackal.wheel_radius, jackal.track_width
+    np.testing.assert_allclose(ideal(jackal, df), [[10 * r, 0, 0], [0, 0, 10 * r / B]])
+
+
+def test_friction_without_rolling_resistance_or_acceleration_drives_straight_without_slip(jackal):
+    df = pd.DataFrame(
+        {"cmd_wl": [8.0, -3.0], "cmd_wr": [8.0, -3.0], "cmd_dwl": [0.0, 0.0], "cmd_dwr": [0.0, 0.0]}
+    )
+    params = {**TRUE_FRICTION, "mu_r": 0.0}
+    np.testing.assert_allclose(FrictionBased(jackal, params).predict(df), ideal(jackal, df), atol=1e-10)
+
+
+def test_friction_with_stiff_longitudinal_contact_has_the_ideal_forward_and_yaw_rates(jackal, table):
+    """lambda, mu_x -> infinity, mu_r = 0: slip ratios vanish and eq. (8) gives eq. (1)'s vx and wz. (vy is
+    -x_ICR wz, the side slip that balances the centripetal force: a skid-steer robot must skid sideways to
+    turn, so a lateral 'no slip' limit does not exist.)"""
+    stiff = {"mu_r": 0.0, "mu_x": 1e9, "mu_y": 0.6, "lambda": 1e7, "C": 0.3}
+    pred = FrictionBased(jackal, stiff).predict(table)
+    np.testing.assert_allclose(pred[:, [0, 2]], ideal(jackal, table)[:, [0, 2]], atol=1e-5)
+
+
+def test_edd_recovers_chi(jackal, table):
+    truth = ExtendedDifferentialDrive(jackal, {"chi": 1.7})
+    fitted = ExtendedDifferentialDrive(jackal).fit(label_with(table, truth.predict(table)))
+    assert fitted.params["chi"] == pytest.approx(1.7, rel=1e-10)
+    assert fitted.fit_loss_ < 1e-20
+
+
+def test_full_linear_recovers_A(jackal, table):
+    A = [[0.05, 0.047], [0.002, -0.001], [-0.21, 0.2]]
+    fitted = FullLinear(jackal).fit(label_with(table, FullLinear(jackal, {"A": A}).predict(table)))
+    np.testing.assert_allclose(fitted.params["A"], A, atol=1e-10)
+
+
+def test_roc_recovers_b1_b2(jackal, table):
+    truth = RocBased(jackal, {"b1": 0.8, "b2": 2.5})
+    fitted = RocBased(jackal).fit(label_with(table, truth.predict(table)))
+    assert fitted.params["b1"] == pytest.approx(0.8, rel=1e-6)
+    assert fitted.params["b2"] == pytest.approx(2.5, rel=1e-6)
+
+
+def test_enhanced_recovers_p1_to_p6_with_a_cg_offset(cg_robot, table):
+    """p1 multiplies f_lon/N, which on flat ground is the centrifugal M w^2 x_CG: it needs x_CG != 0."""
+    p = {"p1": 0.5, "p2": -0.05, "p3": 0.1, "p4": 0.3, "p5": 0.02, "p6": -0.15}
+    truth = EnhancedKinematic(cg_robot, p)
+    fitted = EnhancedKinematic(cg_robot).fit(label_with(table, truth.predict(table)))
+    for k, v in p.items():
+        assert fitted.params[k] == pytest.approx(v, rel=1e-6, abs=1e-9), k
+
+
+def test_enhanced_p1_is_not_identifiable_on_flat_ground_with_a_centred_cg(jackal, table):
+    p = {"p1": 0.5, "p2": -0.05, "p3": 0.1, "p4": 0.3, "p5": 0.02, "p6": -0.15}
+    fitted = EnhancedKinematic(jackal).fit(label_with(table, EnhancedKinematic(jackal, p).predict(table)))
+    assert fitted.params["p1"] == 0.0  # f_lon = 0: the minimum-norm solution
+    assert fitted.params["p2"] == pytest.approx(-0.05, rel=1e-8)
+
+
+def test_friction_fit_recovers_its_identifiable_parameters(jackal, table):
+    """mu_r, mu_y, lambda, C are recovered; mu_x is not identifiable here because the min() of eq. (6) never
+    saturates on this data (lambda |s| stays below mu_x), so any mu_x above that bound fits equally well."""
+    truth = FrictionBased(jackal, TRUE_FRICTION)
+    data = label_with(table, truth.predict(table))
+    assert not truth.last_solve_.saturated(table["cmd_wl"], table["cmd_wr"], TRUE_FRICTION).any()
+    start = {"mu_r": 0.035, "mu_x": 0.8, "mu_y": 0.75, "lambda": 8.0, "C": 0.4}
+    fitted = FrictionBased(jackal, start).fit(data)
+    for k in ("mu_r", "mu_y", "lambda", "C"):
+        assert fitted.params[k] == pytest.approx(TRUE_FRICTION[k], rel=0.02), k
+    assert fitted.fit_info_["mu_x_identified"] is False
+    assert fitted.params["mu_x"] >= fitted.fit_info_["mu_x_lower_bound"]
+    json.dumps(fitted.to_json())
+
+
+def test_friction_yaw_rate_falls_as_commanded_angular_acceleration_rises(jackal):
+    """The paper's Fig. 6: fixed wheel rates, larger commanded angular acceleration -> lower yaw rate."""
+    wl, wr = jackal.wheel_rates_from_twist(0.8, 1.0)
+    dw = np.linspace(0.0, 8.0, 9)  # rad/s^2
+    dwl, dwr = jackal.wheel_rates_from_twist(np.zeros_like(dw), dw)
+    df = pd.DataFrame({"cmd_wl": wl, "cmd_wr": wr, "cmd_dwl": dwl, "cmd_dwr": dwr})
+    wz = FrictionBased(jackal, TRUE_FRICTION).predict(df)[:, 2]
+    assert np.all(np.diff(wz) < 0)
+
+
+def random_steps(robot, n, seed):
+    rng = np.random.default_rng(seed)
+    wl, wr = robot.wheel_rates_from_twist(rng.uniform(-1.5, 1.5, n), rng.uniform(-2, 2, n))
+    dwl, dwr = robot.wheel_rates_from_twist(rng.normal(0, 1.0, n), rng.normal(0, 3.0, n))
+    return wl, wr, dwl, dwr
+
+
+def test_batched_solve_agrees_with_per_step_trust_region_reference(jackal):
+    geo = FrictionGeometry.from_robot(jackal)
+    inp = random_steps(jackal, 200, seed=7)
+    fast = solve(*inp, TRUE_FRICTION, geo)
+    ref = solve_reference(*inp, TRUE_FRICTION, geo)
+    both = (fast.status == 1) & (ref.status == 1)
+    assert both.sum() >= 190
+    vf = body_velocity(fast.theta, inp[0], inp[1], geo.r, geo.B)
+    vr = body_velocity(ref.theta, inp[0], inp[1], geo.r, geo.B)
+    assert np.max(np.abs(vf - vr)[both]) < 1e-6
+
+
+def test_batched_solve_reports_non_converged_steps(jackal):
+    geo = FrictionGeometry.from_robot(jackal)
+    sol = solve(*random_steps(jackal, 50, seed=1), TRUE_FRICTION, geo, max_iter=1)
+    assert sol.n_not_converged > 0 and sol.n_not_converged == int(np.sum(~sol.converged))
+
+
+def test_standstill_and_one_side_stopped(jackal):
+    geo = FrictionGeometry.from_robot(jackal)
+    z = np.zeros(3)
+    sol = solve(z, z, np.array([0.0, 5.0, -5.0]), np.array([0.0, 5.0, 5.0]), TRUE_FRICTION, geo)
+    v = body_velocity(sol.theta, z, z, geo.r, geo.B)
+    assert np.all(v == 0) and np.all(np.isfinite(sol.theta)) and np.all(sol.converged)
+    # a side commanded to zero has no slip ratio (pinned to 0), and nothing is divided by zero
+    sol = solve(np.array([0.0]), np.array([6.0]), np.array([0.0]), np.array([0.0]), TRUE_FRICTION, geo)
+    assert sol.theta[0, 0] == 0.0 and np.all(np.isfinite(sol.theta))
+
+
+@pytest.mark.parametrize("name", ["ideal", "edd", "full_linear", "roc", "enhanced", "friction"])
+def test_every_builtin_is_registered_and_round_trips_through_json(jackal, table, name):
+    cls = get_model_class(name)
+    m = cls(jackal).fit(table)
+    back = cls.from_json(jackal, json.loads(json.dumps(m.to_json())))
+    np.testing.assert_allclose(back.predict(table.iloc[:50]), m.predict(table.iloc[:50]), atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["edd", "friction"])
+def test_missing_column_is_a_one_line_error_naming_the_model(jackal, table, name):
+    with pytest.raises(ModelError, match=rf"model {name}: table lacks column\(s\) \['cmd_wr'\]"):
+        get_model_class(name)(jackal).fit(table.drop(columns=["cmd_wr"]))
+
+
+def test_non_finite_value_is_a_one_line_error_naming_the_model(jackal, table):
+    bad = table.copy()
+    bad.loc[5, "cmd_dwl"] = np.inf
+    with pytest.raises(ModelError, match=r"model friction: column cmd_dwl holds 1 non-finite"):
+        FrictionBased(jackal).predict(bad)
+
+
+def test_invalid_rows_are_ignored_by_fit(jackal, table):
+    df = label_with(table, ExtendedDifferentialDrive(jackal, {"chi": 1.4}).predict(table))
+    df.loc[:100, "wz"] = np.nan
+    df.loc[:100, "valid"] = False
+    assert ExtendedDifferentialDrive(jackal).fit(df).params["chi"] == pytest.approx(1.4)
