@@ -6,9 +6,10 @@ temporary Parquet files that are renamed only when the whole bag has been read (
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from ..errors import ConfigError
 from ..io import write_json_atomic
 from .convert import CONVERTERS, IMAGE_MODES, image_row, image_suffix, schema_for
 from .reader import TopicSpec, iter_messages, open_bag, select_connections
-from .writer import SequenceWriter
+from .writer import SequenceWriter, TableSink
 
 EXTRACT_INFO = "_extract.json"
 STAMP = ".stamp.json"  # skidbench.pipeline.cache: skip a sequence whose bag and config are unchanged
@@ -52,6 +53,31 @@ def _stamp_config(specs: list[TopicSpec], opts: ExtractOptions) -> dict[str, Any
     return {"topics": [asdict(s) for s in specs], "images": opts.images, "schema": EXTRACT_SCHEMA}
 
 
+def _handler(
+    sink: TableSink, msgtype: str, key: str, out: SequenceWriter, images: str
+) -> Callable[[Any, int], None]:
+    """``handle(msg, bag_time_ns)``: the hot loop's per-message work for one topic, lookups hoisted."""
+    buffer, limit, flush = sink.buffer, sink.batch_rows, sink.flush
+    if msgtype in CONVERTERS:
+        convert = CONVERTERS[msgtype].row
+
+        def handle(msg: Any, bag_time_ns: int) -> None:
+            buffer.append(convert(msg, bag_time_ns))
+            if len(buffer) >= limit:
+                flush()
+
+        return handle
+    count = itertools.count()
+
+    def handle_image(msg: Any, bag_time_ns: int) -> None:
+        index = next(count)
+        sink.append(image_row(msg, bag_time_ns, index, images), nbytes=len(msg.data))
+        if images == "files":
+            out.image_path(key, f"{index:06d}{image_suffix(msg.format)}").write_bytes(msg.data)
+
+    return handle_image
+
+
 def extract_bag(
     bag: Path,
     out_dir: Path,
@@ -81,31 +107,19 @@ def extract_bag(
         total = sum(c.msgcount for conns in selected.values() for c in conns)
         with SequenceWriter(out_dir, opts.batch_rows, opts.batch_bytes) as out:
             sinks = {key: out.table(key, schemas[key]) for key in selected}
-            rows = {
-                k: CONVERTERS[spec_of[k].msgtype].row for k in selected if spec_of[k].msgtype in CONVERTERS
+            handlers = {
+                key: _handler(sinks[key], spec_of[key].msgtype, key, out, opts.images) for key in selected
             }
-            image_count = dict.fromkeys(selected, 0)
             with tqdm(
                 total=total, unit="msg", desc=out_dir.name, leave=False, disable=not opts.progress
             ) as bar:
                 done = 0
                 for key, bag_time_ns, msg in iter_messages(reader, selected, bag):
-                    convert = rows.get(key)
-                    if convert is not None:
-                        sinks[key].append(convert(msg, bag_time_ns))
-                    else:  # CompressedImage
-                        index = image_count[key]
-                        image_count[key] += 1
-                        row = image_row(msg, bag_time_ns, index, opts.images)
-                        sinks[key].append(row, nbytes=len(msg.data))
-                        if opts.images == "files":
-                            out.image_path(key, f"{index:06d}{image_suffix(msg.format)}").write_bytes(
-                                msg.data
-                            )
+                    handlers[key](msg, bag_time_ns)
                     done += 1
-                    if done % 2048 == 0:
-                        bar.update(2048)
-                bar.update(done % 2048)
+                    if done & 4095 == 0:
+                        bar.update(4096)
+                bar.update(done & 4095)
             info = {
                 "schema": EXTRACT_SCHEMA,
                 "bag": str(bag),

@@ -51,7 +51,7 @@ def _quat(q: Any) -> tuple[float, float, float, float]:
 
 def _floats(values: Any) -> list[float]:
     # rosbags gives numeric arrays as numpy arrays; pyarrow wants sequences of Python floats
-    return [float(x) for x in values]
+    return values.tolist() if hasattr(values, "tolist") else [float(x) for x in values]
 
 
 def _field(msg: Any, *names: str) -> Any:

@@ -30,27 +30,27 @@ class TableSink:
         self.batch_rows = batch_rows
         self.batch_bytes = batch_bytes
         self.rows = 0
-        self._buffer: list[tuple] = []
-        self._buffered_bytes = 0
+        self.buffer: list[tuple] = []
+        self.buffered_bytes = 0
         self._writer = pq.ParquetWriter(path, schema, compression="zstd")
 
     @property
     def count(self) -> int:
         """Rows appended so far (written or still buffered)."""
-        return self.rows + len(self._buffer)
+        return self.rows + len(self.buffer)
 
     def append(self, row: tuple, nbytes: int = 0) -> None:
-        self._buffer.append(row)
-        self._buffered_bytes += nbytes
-        if len(self._buffer) >= self.batch_rows or self._buffered_bytes >= self.batch_bytes:
+        self.buffer.append(row)
+        self.buffered_bytes += nbytes
+        if len(self.buffer) >= self.batch_rows or self.buffered_bytes >= self.batch_bytes:
             self.flush()
 
     def flush(self) -> None:
-        if self._buffer:
-            self._writer.write_batch(rows_to_batch(self._buffer, self.schema))
-            self.rows += len(self._buffer)
-            self._buffer.clear()
-            self._buffered_bytes = 0
+        if self.buffer:
+            self._writer.write_batch(rows_to_batch(self.buffer, self.schema))
+            self.rows += len(self.buffer)
+            self.buffer.clear()
+            self.buffered_bytes = 0
 
     def close(self) -> None:
         if self._writer is not None:
@@ -59,7 +59,7 @@ class TableSink:
             self._writer = None
 
     def abort(self) -> None:
-        self._buffer.clear()
+        self.buffer.clear()
         if self._writer is not None:
             with contextlib.suppress(Exception):
                 self._writer.close()
