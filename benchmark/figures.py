@@ -98,11 +98,19 @@ def rmsre_bars(
                 ys.append(v * percent)
             ys_arr = np.array(ys)
             top = max(top, np.nanmax(ys_arr) if np.isfinite(ys_arr).any() else 0.0)
-            ax.bar(xs, np.nan_to_num(ys_arr), width * 0.92, label=label(m), color=model_color(m, models))
+            bars = ax.bar(
+                xs, np.nan_to_num(ys_arr), width * 0.92, label=label(m), color=model_color(m, models)
+            )
+            for b, y in zip(bars, ys_arr, strict=True):
+                if np.isfinite(y):
+                    txt = f"{y:.1f}" if y >= 0.05 else "<0.1"
+                    xy = (b.get_x() + b.get_width() / 2, b.get_height())
+                    ax.annotate(txt, xy, xytext=(0, 2), textcoords="offset points", ha="center", va="bottom",
+                                fontsize=6, rotation=90)  # fmt: skip
         ax.set_xticks(range(nt), [t.capitalize() for t in terrains])
         ax.set_title(SPLIT_LABELS.get(split, split), fontsize=10)
         ax.set_ylabel(f"{kind} RMSRE (%)")
-        ax.set_ylim(0, top * 1.12 if top > 0 else 1.0)
+        ax.set_ylim(0, top * 1.18 if top > 0 else 1.0)
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
     handles, labels_ = axes[0][0].get_legend_handles_labels()
@@ -176,10 +184,9 @@ def yaw_rate_surfaces(
     acceleration; (b) the slice through the spot-turn diagonal (w_r = -w_l), where the surfaces separate
     most clearly (the paper's Fig. 6)."""
     accels = sorted(surfaces)
-    cmap = plt.get_cmap("coolwarm")
-    colors = {
-        a: cmap(0.5 + 0.5 * a / max(abs(x) for x in accels)) if any(accels) else cmap(0.5) for a in accels
-    }
+    cmap = plt.get_cmap("viridis")
+    colors = {a: cmap(0.1 + 0.8 * k / max(len(accels) - 1, 1)) for k, a in enumerate(accels)}
+    styles = {a: ("-", "--", ":", "-.")[k % 4] for k, a in enumerate(accels)}
     fig = plt.figure(figsize=(11, 4.6))
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     for a in accels:
@@ -212,7 +219,7 @@ def yaw_rate_surfaces(
         sl = {a: surfaces[a][anti, diag] for a in accels}
         xlabel = r"$\omega_r = -\omega_l$ (rad/s): turning in place"
     for a in accels:
-        a2.plot(x, sl[a], color=colors[a], lw=2, label=rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$")
+        a2.plot(x, sl[a], styles[a], color=colors[a], lw=2, label=rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$")
     a2.axhline(0, color="k", lw=0.5)
     a2.axvline(0, color="k", lw=0.5)
     a2.set_xlabel(xlabel)

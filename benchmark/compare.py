@@ -1,0 +1,491 @@
+"""`skidbench compare`: the leaderboard from ``mlflow.search_runs`` and the paper's Figs. 3-7, written to
+``<out_root>/<dataset>/reports/`` (report.md, leaderboard.md/.csv, fig*.png) and logged to MLflow.
+
+Runs are selected by experiment (``mlflow.experiment``), parent run (``parent_run_id``: ``latest`` = the
+most recent ``skidbench evaluate``, a run id, or null for every child run) and an MLflow ``filter`` string.
+Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 need the dataset's splits and fits on this machine
+and are skipped, with a note in the report, when they are absent.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from skidbench.pipeline.errors import SkidbenchError, one_line
+from skidbench.pipeline.io import write_text_atomic
+from skidbench.pipeline.layout import Layout, layout_from_cfg
+from skidbench.pipeline.schema import list_split_files, read_split
+
+from . import figures as figs
+from . import tracking as trk
+from .horizon import EvaluationError, horizon_steps, window_errors, window_trajectory
+
+log = logging.getLogger(__name__)
+
+SPLITS = ("cv", "ld")
+KINDS = ("translational", "rotational")
+SHORT = {"translational": "trans", "rotational": "rot"}
+
+
+class CompareError(EvaluationError):
+    pass
+
+
+# -- selecting runs ---------------------------------------------------------------------------------
+def select_runs(
+    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None
+) -> tuple[pd.DataFrame, str | None]:
+    """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None)."""
+    import mlflow
+
+    parent = parent_run_id
+    if parent == "latest":
+        parent = tracker.latest_parent()
+        if parent is None:
+            raise CompareError(
+                f"no `skidbench evaluate` run in experiment {tracker.experiment_name!r} at {tracker.uri}; "
+                "run `skidbench evaluate` first (or set mlflow.experiment)"
+            )
+    clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'"]
+    if parent:
+        clauses.append(f"tags.`{trk.TAG_PARENT}` = '{parent}'")
+    if filter_string:
+        clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
+    mlflow.set_tracking_uri(tracker.uri)
+    try:
+        runs = mlflow.search_runs(
+            experiment_ids=[tracker.experiment_id],
+            filter_string=" AND ".join(clauses),
+            order_by=["attributes.start_time DESC"],
+            output_format="pandas",
+        )
+    except mlflow.exceptions.MlflowException as exc:
+        raise CompareError(f"MLflow search_runs: {one_line(exc.message)[:300]} (check filter=...)") from None
+    if runs.empty:
+        what = f"parent run {parent}" if parent else f"experiment {tracker.experiment_name!r}"
+        raise CompareError(f"no model runs match in {what} (filter: {filter_string or 'none'})")
+    return runs, parent
+
+
+def _col(runs: pd.DataFrame, name: str) -> pd.Series:
+    return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
+
+
+# -- the leaderboard --------------------------------------------------------------------------------
+def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
+    """One row per (model, terrain), the latest run of each: model, terrain, status, reason, the four
+    RMSRE metrics at ``horizon_s`` (fractions), fit/predict numbers, run_id."""
+    df = pd.DataFrame(
+        {
+            "model": _col(runs, f"tags.{trk.TAG_MODEL}"),
+            "terrain": _col(runs, f"tags.{trk.TAG_TERRAIN}"),
+            "status": runs["status"],
+            "reason": _col(runs, f"tags.{trk.TAG_REASON}").fillna(""),
+            "version": _col(runs, f"tags.{trk.TAG_MODEL_VERSION}").fillna(""),
+            "package": _col(runs, f"tags.{trk.TAG_PLUGIN}").fillna(""),
+            "run_id": runs["run_id"],
+            "start_time": runs["start_time"],
+        }
+    )
+    for kind in KINDS:
+        for split in SPLITS:
+            key = trk.metric_key(kind, split, horizon_s)
+            df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
+    for m in ("fit_loss", "fit_time_s", "predict_time_s"):
+        df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
+    df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
+    df = df.sort_values("start_time", ascending=False).drop_duplicates(["model", "terrain"], keep="first")
+    order = {m: i for i, m in enumerate(figs.order_models(df["model"].dropna().unique().tolist()))}
+    df = df.assign(_o=df["model"].map(order)).sort_values(["_o", "terrain"]).drop(columns="_o")
+    return df.reset_index(drop=True)
+
+
+def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
+    """Per model: the mean over terrains of each RMSRE (%), terrains scored, failures; ranked by
+    ``rank_by`` (a metric prefix such as ``rmsre_translational_ld``)."""
+    rows = []
+    for model, g in board.groupby("model", sort=False):
+        ok = g[g["status"] == "FINISHED"]
+        row: dict[str, Any] = {"model": model}
+        for kind in KINDS:
+            for split in SPLITS:
+                vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
+                row[f"{SHORT[kind]} {split.upper()} %"] = (
+                    100 * np.nanmean(vals) if np.isfinite(vals).any() else np.nan
+                )
+        row["terrains"] = f"{len(ok)}/{len(g)}"
+        bad = g[g["status"] != "FINISHED"]
+        row["failed"] = (
+            ", ".join(f"{t} ({s})" for t, s in zip(bad["terrain"], bad["status"], strict=True)) or ""
+        )
+        row["_key"] = np.nanmean(ok[f"{rank_by}_{horizon_s:g}s"].to_numpy(float)) if len(ok) else np.nan
+        rows.append(row)
+    out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
+    out.insert(0, "rank", np.arange(1, len(out) + 1))
+    return out.drop(columns="_key").reset_index(drop=True)
+
+
+def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
+    out = pd.DataFrame({"model": board["model"], "terrain": board["terrain"], "status": board["status"]})
+    for kind in KINDS:
+        for split in SPLITS:
+            out[f"{SHORT[kind]} {split.upper()} %"] = 100 * board[trk.metric_key(kind, split, horizon_s)]
+    out["fit_loss"] = board["fit_loss"]
+    out["fit s"] = board["fit_time_s"]
+    out["predict s"] = board["predict_time_s"]
+    out["run"] = board["run_id"].str[:8]
+    out["reason"] = board["reason"]
+    return out
+
+
+def markdown_table(df: pd.DataFrame, digits: int = 2) -> str:
+    def fmt(v: Any) -> str:
+        if isinstance(v, float | np.floating):
+            if not np.isfinite(v):
+                return "n/a"
+            return f"{v:.{digits}f}" if abs(v) >= 10 ** (-digits) or v == 0 else f"<{10 ** (-digits):g}"
+        return str(v).replace("|", "\\|")
+
+    head = "| " + " | ".join(map(str, df.columns)) + " |"
+    sep = "|" + "|".join("---:" if pd.api.types.is_numeric_dtype(df[c]) else "---" for c in df.columns) + "|"
+    body = ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([head, sep, *body])
+
+
+def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
+    """Does the paper's claim hold here: friction-based best on LD, comparable on CV?"""
+    ok = board[board["status"] == "FINISHED"]
+    if "friction" not in set(ok["model"]):
+        return [
+            "The friction-based model was not evaluated (or failed), so the paper's claim cannot be checked."
+        ]
+    lines = []
+    for kind in KINDS:
+        for split in SPLITS:
+            key = trk.metric_key(kind, split, horizon_s)
+            means = ok.groupby("model")[key].mean().dropna().sort_values()
+            if "friction" not in means:
+                continue
+            rank = list(means.index).index("friction") + 1
+            best, fr = means.iloc[0], means["friction"]
+            lines.append(
+                f"- {kind} RMSRE on {split.upper()} (mean over terrains): friction-based ranks {rank} of "
+                f"{len(means)} ({100 * fr:.2f} % vs best {means.index[0]} {100 * best:.2f} %)"
+            )
+    return lines
+
+
+# -- figures 5-7 (need the local dataset) -----------------------------------------------------------
+def _smoothed_derivative(t: np.ndarray, y: np.ndarray, window_s: float = 0.3) -> np.ndarray:
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    k = max(1, int(round(window_s / dt)))
+    ys = np.convolve(y, np.ones(k) / k, mode="same") if len(y) >= k else y
+    return np.gradient(ys, t) if len(t) > 1 else np.zeros_like(y)
+
+
+def _load_model(cfg: Any, name: str, terrain: str):
+    from skidbench.models.fitting import load_fitted
+
+    return load_fitted(cfg, name, terrain)
+
+
+def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path, dpi: int) -> Path:
+    from skidbench.models.base import concat_sequences
+
+    model = _load_model(cfg, model_name, terrain)
+    files = list_split_files(layout.splits, terrain, "ld") or list_split_files(layout.splits, terrain)
+    tables = [read_split(p) for p in files]
+    table = concat_sequences(tables)
+    acc = np.concatenate(
+        [_smoothed_derivative(df["t"].to_numpy(float), df["wz"].to_numpy(float)) for df, _ in tables]
+    )
+    pred = np.asarray(model.predict(table), float)[:, 2]
+    ok = table["valid"].to_numpy(bool)
+    split = files[0].parent.name if files else "?"
+    return figs.residual_vs_acceleration(
+        pred[ok],
+        table["wz"].to_numpy(float)[ok],
+        acc[ok],
+        f"Yaw-rate residual of the {figs.label(model_name).lower()} model vs angular acceleration "
+        f"({terrain}, {split.upper()} split)",
+        path,
+        dpi,
+    )
+
+
+def figure6(
+    cfg: Any, layout: Layout, terrain: str, model_name: str, accels: Sequence[float], path: Path, dpi: int
+) -> Path:
+    model = _load_model(cfg, model_name, terrain)
+    robot = model.robot
+    files = list_split_files(layout.splits, terrain, "train")
+    lim = 10.0
+    if files:
+        df, _ = read_split(files[0])
+        lim = float(np.nanpercentile(np.abs(df[["cmd_wl", "cmd_wr"]].to_numpy(float)), 95)) or lim
+    n = 31
+    g = np.linspace(-lim, lim, n)
+    wl, wr = np.meshgrid(g, g, indexing="xy")  # symmetric grid: the anti-diagonal is wr = -wl
+    surfaces = {}
+    for a in accels:
+        dwl, dwr = robot.wheel_rates_from_twist(0.0, float(a))  # pure angular acceleration
+        v, w = robot.twist_from_wheel_rates(wl.ravel(), wr.ravel())
+        m = wl.size
+        table = pd.DataFrame(
+            {
+                "t": np.arange(m) / 30.0,
+                "stamp_ns": np.arange(m, dtype=np.int64),
+                "cmd_v": v,
+                "cmd_w": w,
+                "cmd_wl": wl.ravel(),
+                "cmd_wr": wr.ravel(),
+                "cmd_dwl": np.full(m, float(dwl)),
+                "cmd_dwr": np.full(m, float(dwr)),
+                "enc_wl": np.nan,
+                "enc_wr": np.nan,
+                "x": 0.0,
+                "y": 0.0,
+                "yaw": 0.0,
+                "vx": 0.0,
+                "vy": 0.0,
+                "wz": 0.0,
+                "valid": True,
+                "sequence": "grid",
+            }
+        )
+        surfaces[float(a)] = np.asarray(model.predict(table), float)[:, 2].reshape(wl.shape)
+    return figs.yaw_rate_surfaces(
+        wl,
+        wr,
+        surfaces,
+        f"{figs.label(model_name)} model: predicted yaw rate at commanded angular accelerations ({terrain})",
+        path,
+        dpi,
+    )
+
+
+def figure7(
+    cfg: Any,
+    layout: Layout,
+    terrain: str,
+    models: Sequence[str],
+    horizon_s: float,
+    n_windows: int,
+    path: Path,
+    dpi: int,
+) -> Path:
+    from skidbench.models.base import concat_sequences
+
+    loaded = {}
+    for m in models:
+        try:
+            loaded[m] = _load_model(cfg, m, terrain)
+        except SkidbenchError as exc:
+            log.warning("Fig. 7: %s/%s skipped (%s)", m, terrain, one_line(str(exc)))
+    if not loaded:
+        raise CompareError(f"no fitted model for terrain {terrain}")
+    samples = []
+    for split in SPLITS:
+        files = list_split_files(layout.splits, terrain, split)
+        cands = []
+        for p in files:
+            df, meta = read_split(p)
+            t = df["t"].to_numpy(float)
+            if len(df) <= horizon_steps(t, horizon_s):
+                continue
+            gt = df[["x", "y", "yaw"]].to_numpy(float)
+            w = window_errors(t, gt, np.zeros((len(t), 3)), horizon_s, df["valid"].to_numpy(bool))
+            w = w[w["distance"] >= 0.5]
+            if len(w):
+                cands.append((p, df, meta, w))
+        if not cands:
+            continue
+        allw = pd.concat([c[3].assign(_f=i) for i, c in enumerate(cands)], ignore_index=True)
+        qs = np.linspace(0.5, 0.97, n_windows) if n_windows > 1 else [0.9]
+        picked = allw.sort_values("rotation").iloc[[int(q * (len(allw) - 1)) for q in qs]]
+        preds: dict[int, dict[str, np.ndarray]] = {}
+        for _, row in picked.iterrows():
+            fi = int(row["_f"])
+            p, df, meta, _ = cands[fi]
+            if fi not in preds:
+                table = concat_sequences([(df, meta)])
+                preds[fi] = {m: np.asarray(mod.predict(table), float) for m, mod in loaded.items()}
+            t = df["t"].to_numpy(float)
+            gt = df[["x", "y", "yaw"]].to_numpy(float)
+            s0 = int(row["start"])
+            n = horizon_steps(t, horizon_s)
+            samples.append(
+                {
+                    "split": split,
+                    "sequence": str(meta.get("sequence") or p.stem),
+                    "t0": float(t[s0]),
+                    "truth": gt[s0 : s0 + n + 1],
+                    "pred": {m: window_trajectory(t, gt, v, s0, horizon_s) for m, v in preds[fi].items()},
+                }
+            )
+    if not samples:
+        raise CompareError(f"no test window of {horizon_s:g} s on terrain {terrain}")
+    return figs.trajectories(samples, horizon_s, path, dpi)
+
+
+# -- the stage --------------------------------------------------------------------------------------
+@dataclass
+class CompareResult:
+    report: Path
+    leaderboard_md: str
+    parent_run_id: str | None
+    files: list[Path] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def run_compare(cfg: Any) -> CompareResult:
+    layout = layout_from_cfg(cfg)
+    tracker = trk.tracker_from_cfg(cfg, layout)
+    horizon = float(cfg.horizon)
+    parent_cfg = cfg.get("parent_run_id", "latest")
+    runs, parent = select_runs(
+        tracker, None if parent_cfg in (None, "", "null") else str(parent_cfg), cfg.get("filter")
+    )
+    board = board_from_runs(runs, horizon)
+    if not any(
+        trk.metric_key(k, s, horizon) in runs.columns.str.removeprefix("metrics.")
+        for k in KINDS
+        for s in SPLITS
+    ):
+        raise CompareError(
+            f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
+        )
+    summary = summary_table(board, horizon, str(cfg.rank_by))
+    detail = detail_table(board, horizon)
+    out = layout.reports
+    out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    write_text_atomic(out / "leaderboard.csv", detail.to_csv(index=False))
+    lb_md = markdown_table(summary)
+    write_text_atomic(out / "leaderboard.md", lb_md + "\n\n" + markdown_table(detail) + "\n")
+    files += [out / "leaderboard.csv", out / "leaderboard.md"]
+
+    notes: list[str] = []
+    fig_md: list[str] = []
+    fc = cfg.figures
+    if fc.enabled:
+        dpi = int(fc.dpi)
+        finished = board[board["status"] == "FINISHED"]
+        terrains = sorted(finished["terrain"].unique())
+        terrain = str(fc.terrain) if fc.get("terrain") else (terrains[0] if terrains else None)
+        jobs = [
+            ("fig3_translational_rmsre.png", "Fig. 3: translational RMSRE per model, terrain and test split",
+             lambda p: figs.rmsre_bars(board, "translational", horizon, SPLITS, p, dpi)),
+            ("fig4_rotational_rmsre.png", "Fig. 4: rotational RMSRE per model, terrain and test split",
+             lambda p: figs.rmsre_bars(board, "rotational", horizon, SPLITS, p, dpi)),
+        ]  # fmt: skip
+        if terrain is not None:
+            models = figs.order_models(finished[finished["terrain"] == terrain]["model"].tolist())
+            m5, m6 = figs.label(fc.fig5_model).lower(), figs.label(fc.fig6_model).lower()
+            jobs += [
+                ("fig5_residual_vs_acceleration.png",
+                 f"Fig. 5: yaw-rate residual of the {m5} model against angular acceleration ({terrain})",
+                 lambda p: figure5(cfg, layout, terrain, str(fc.fig5_model), p, dpi)),
+                ("fig6_yaw_rate_surfaces.png",
+                 f"Fig. 6: {m6} model's yaw rate over the wheel-velocity plane at commanded angular "
+                 f"accelerations {list(fc.fig6_accels)} rad/s² ({terrain})",
+                 lambda p: figure6(cfg, layout, terrain, str(fc.fig6_model), list(fc.fig6_accels), p, dpi)),
+                ("fig7_trajectories.png",
+                 f"Fig. 7: true and predicted {horizon:g} s trajectories ({terrain})",
+                 lambda p: figure7(cfg, layout, terrain, models, horizon, int(fc.fig7_windows), p, dpi)),
+            ]  # fmt: skip
+        for name, caption, draw in jobs:
+            try:
+                files.append(draw(out / name))
+                fig_md.append(f"### {caption}\n\n![{caption}]({name})\n")
+            except Exception as exc:  # a figure that needs local data we do not have: say so, go on
+                note = f"{caption.split(':')[0]} skipped: {type(exc).__name__}: {one_line(str(exc))[:300]}"
+                log.warning("%s", note)
+                notes.append(note)
+
+    report = out / "report.md"
+    write_text_atomic(
+        report, _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes)
+    )
+    files.append(report)
+    if cfg.get("log_to_mlflow", True):
+        run_id = parent
+        if run_id is None:
+            run_id = tracker.start(
+                f"compare {cfg.dataset}", {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset)}
+            )
+            tracker.end(run_id)
+        for f in files:
+            tracker.artifact(run_id, f, "report")
+    return CompareResult(report, lb_md, parent, files, notes)
+
+
+def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes) -> str:
+    failed = board[board["status"] != "FINISHED"]
+    parts = [
+        f"# skidbench report: {cfg.dataset}",
+        "",
+        f"Horizon {horizon:g} s; RMSRE of the relative translational error (position error / distance "
+        "travelled) and rotational error (|yaw error| / absolute rotation), in %, lower is better. "
+        "Models fitted per terrain on Train, scored on the constant-velocity (CV) and long-distance (LD) "
+        "test splits.",
+        "",
+        f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"
+        + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
+        f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
+        f"- ranked by the mean over terrains of `{cfg.rank_by}_{horizon:g}s`",
+        "",
+        "## Leaderboard (mean over terrains)",
+        "",
+        markdown_table(summary),
+        "",
+        "## Per model and terrain",
+        "",
+        markdown_table(detail),
+        "",
+    ]
+    if len(failed):
+        parts += ["## Failed runs", ""]
+        parts += [
+            f"- **{r.model} / {r.terrain}**: {r.status}: {r.reason or 'no reason recorded'}"
+            for r in failed.itertuples()
+        ]
+        parts.append("")
+    parts += [
+        "## The paper's claim (friction-based best on LD, comparable on CV)",
+        "",
+        *paper_claim(board, horizon),
+        "",
+    ]
+    if fig_md:
+        parts += ["## Figures", "", *fig_md]
+    if notes:
+        parts += ["## Notes", "", *[f"- {n}" for n in notes], ""]
+    parts += [
+        "## Reproduce",
+        "",
+        "```",
+        "make reproduce            # or: skidbench evaluate && skidbench compare",
+        f"skidbench compare parent_run_id={parent or 'null'}",
+        "```",
+        "",
+    ]
+    return "\n".join(parts)
+
+
+def format_console(result: CompareResult) -> str:
+    lines = [
+        "Leaderboard (RMSRE %, mean over terrains):",
+        result.leaderboard_md,
+        "",
+        f"report: {result.report}",
+    ]
+    lines += [f"note: {n}" for n in result.notes]
+    return "\n".join(lines)
