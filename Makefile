@@ -34,6 +34,10 @@ reproduce: setup
 test: setup
 	$(BIN)/python -m pytest -q
 
+# Performance comparisons, one process each -> benchmark/results/latest.{json,md} (BENCH="a b" for some).
+bench: setup
+	$(BIN)/python -m skidbench.benchmark.perf $(BENCH)
+
 lint: setup
 	$(BIN)/ruff check pipeline models benchmark tests examples
 	$(BIN)/ruff format --check pipeline models benchmark tests examples
