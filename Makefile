@@ -24,12 +24,29 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev]'
 	@touch $@
 
+# `make reproduce`: the built-in simulated dataset. `make reproduce SOURCE=amrl_txt|bag|drive_df DATA=<dir>`:
+# the same benchmark on your data (no simulation). Every stage gets the same source arguments.
+ifeq ($(SOURCE),sim)
+SRC_ARGS := scale=$(SCALE) seed=$(SEED)
+else
+SRC_ARGS := source=$(SOURCE) source.root=$(abspath $(DATA))
+endif
+
 reproduce: setup
-	$(SKB) simulate scale=$(SCALE) seed=$(SEED)
-	$(SKB) extract
-	$(SKB) groundtruth
-	$(SKB) split
-	@echo "outputs: $(SKIDBENCH_OUT)"
+ifeq ($(SOURCE),sim)
+	$(SKB) simulate $(SRC_ARGS)
+else
+	@test -n "$(DATA)" || { echo "make reproduce SOURCE=$(SOURCE) needs DATA=<folder with the data>"; exit 2; }
+endif
+	$(SKB) extract $(SRC_ARGS)
+	$(SKB) groundtruth $(SRC_ARGS)
+	$(SKB) split $(SRC_ARGS)
+	$(SKB) evaluate $(SRC_ARGS)
+	$(SKB) compare $(SRC_ARGS)
+
+# The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set).
+mlflow-ui: setup
+	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(SKIDBENCH_OUT)/mlflow.db --port 5000
 
 test: setup
 	$(BIN)/python -m pytest -q
