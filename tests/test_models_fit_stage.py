@@ -1,0 +1,113 @@
+"""``skidbench fit`` and ``fit_model``/``load_fitted`` on split files generated here."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from skidbench.models.base import ModelError
+from skidbench.models.linear import ExtendedDifferentialDrive
+from skidbench.models.synthetic import command_table, label_with
+from skidbench.pipeline.schema import write_split
+
+
+def make_splits(root: Path, robot, terrains=("tile", "grass"), n=600, chi=1.5) -> Path:
+    """<root>/sim-mini/splits/<terrain>/train/*.parquet labelled by an edd model with ``chi``."""
+    for k, terrain in enumerate(terrains):
+        for i in range(2):
+            tab = command_table(robot, n, seed=10 * k + i)
+            tab = label_with(tab, ExtendedDifferentialDrive(robot, {"chi": chi}).predict(tab))
+            seq = f"{terrain}_train_{i:02d}"
+            meta = {
+                "sequence": seq,
+                "terrain": terrain,
+                "split": "train",
+                "robot": "jackal",
+                "sources": {},
+                "rate_hz": 30.0,
+            }
+            write_split(tab, root / "sim-mini" / "splits" / terrain / "train" / f"{seq}.parquet", meta)
+    return root
+
+
+def compose(out_root: Path, overrides=()):
+    from hydra import compose as hcompose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        return hcompose("fit", overrides=[f"out_root={out_root}", *overrides])
+
+
+def test_fit_model_writes_json_and_load_fitted_reads_it(tmp_path, jackal):
+    from skidbench.models.fitting import fit_model, load_fitted
+
+    make_splits(tmp_path, jackal)
+    cfg = compose(tmp_path, ["model=edd", "terrain=tile"])
+    res = fit_model(cfg, "edd", "tile")
+    assert res.path == tmp_path / "sim-mini" / "fits" / "edd" / "tile.json"
+    saved = json.loads(res.path.read_text())
+    assert saved["params"]["chi"] == pytest.approx(1.5) and saved["n_train"] == res.n_train == 1200
+    assert load_fitted(cfg, "edd", "tile").params["chi"] == pytest.approx(1.5)
+    # another model than cfg.model: its config comes from the search path
+    assert fit_model(cfg, "roc", "grass").path.name == "grass.json"
+    assert fit_model(cfg, "edd", "tile").reused  # unchanged inputs: reused
+    assert not fit_model(cfg, "edd", "tile", reuse=False).reused
+
+
+def test_fit_on_a_split_without_the_needed_columns_names_the_model(tmp_path, jackal):
+    from skidbench.models.fitting import fit_model
+
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    cfg = compose(tmp_path, ["terrain=tile"])
+    with pytest.raises(ModelError, match="model edd: no split files"):
+        fit_model(cfg, "edd", "sand")
+    with pytest.raises(ModelError, match="model nope: not installed"):
+        fit_model(cfg, "nope", "tile")
+
+
+def run_cli(args, out_root: Path):
+    env = {**os.environ, "SKIDBENCH_OUT": str(out_root)}
+    return subprocess.run(
+        [sys.executable, "-m", "skidbench.pipeline.cli", *args],
+        env=env,
+        cwd=out_root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_cli_sweep_fits_every_model_and_terrain(tmp_path, jackal):
+    make_splits(tmp_path, jackal)
+    p = run_cli(["fit", "-m", "model=edd,full_linear", "terrain=tile,grass"], tmp_path)
+    assert p.returncode == 0, p.stderr
+    fits = sorted(
+        str(f.relative_to(tmp_path / "sim-mini" / "fits")) for f in (tmp_path / "sim-mini").rglob("*.json")
+    )
+    assert fits == ["edd/grass.json", "edd/tile.json", "full_linear/grass.json", "full_linear/tile.json"]
+
+
+def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    f = next((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))
+    import pandas as pd
+
+    from skidbench.pipeline.schema import read_split
+
+    df, meta = read_split(f)
+    df.loc[3, "cmd_wl"] = np.nan
+    write_split(pd.DataFrame(df), f, meta)
+    p = run_cli(["fit", "model=edd", "terrain=tile"], tmp_path)
+    assert p.returncode == 2
+    assert (
+        p.stderr.strip().splitlines()[-1]
+        == "skidbench fit: error: model edd: column cmd_wl holds 1 non-finite value(s)"
+    )

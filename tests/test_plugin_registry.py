@@ -1,0 +1,83 @@
+"""Plugin discovery: built-ins register like third parties; a broken plugin is one line and never stops the
+others."""
+
+from __future__ import annotations
+
+import sys
+import types
+from importlib.metadata import EntryPoint
+
+import pytest
+
+from skidbench.models import registry
+from skidbench.models.base import ModelError
+
+BUILTINS = {"ideal", "edd", "full_linear", "roc", "enhanced", "friction"}
+
+
+class NotAModel:
+    name = "nomodel"
+
+
+class DuckModel:
+    name = "duck"
+    version = "2.0"
+
+    def __init__(self, robot, params=None, **options):
+        self.params = dict(params or {})
+
+    def fit(self, table):
+        return self
+
+    def predict(self, table):
+        return table[["cmd_wl", "cmd_wr", "cmd_wl"]].to_numpy() * 0.0
+
+
+@pytest.fixture
+def with_plugins(monkeypatch):
+    mod = types.ModuleType("fake_plugins")
+    mod.NotAModel, mod.DuckModel = NotAModel, DuckModel
+    monkeypatch.setitem(sys.modules, "fake_plugins", mod)
+    real = registry.entry_points
+    extra = [
+        EntryPoint("broken", "no_such_package.model:Model", registry.GROUP),
+        EntryPoint("nomodel", "fake_plugins:NotAModel", registry.GROUP),
+        EntryPoint("duck", "fake_plugins:DuckModel", registry.GROUP),
+        EntryPoint("wrongname", "fake_plugins:DuckModel", registry.GROUP),
+    ]
+    monkeypatch.setattr(registry, "entry_points", lambda group: [*real(group=group), *extra])
+
+
+def test_builtins_are_discovered_through_the_entry_point_group():
+    infos = registry.discover()
+    assert BUILTINS <= set(infos)
+    assert all(infos[n].ok and infos[n].package == "skidbench" for n in BUILTINS)
+
+
+def test_broken_plugins_are_reported_and_the_others_still_load(with_plugins):
+    infos = registry.discover()
+    assert "cannot import no_such_package.model:Model" in infos["broken"].error
+    assert "lacks version, fit, predict" in infos["nomodel"].error
+    assert "entry point says 'wrongname'" in infos["wrongname"].error
+    assert infos["duck"].ok  # duck typing is enough
+    assert BUILTINS | {"duck"} == set(registry.available())
+
+
+def test_using_a_broken_plugin_is_a_one_line_model_error(with_plugins):
+    with pytest.raises(ModelError, match=r"^model broken \(package \?\): cannot import") as exc:
+        registry.get_model_class("broken")
+    assert "\n" not in str(exc.value)
+    with pytest.raises(ModelError, match=r"model nope: not installed"):
+        registry.get_model_class("nope")
+    assert registry.get_model_class("edd").name == "edd"
+
+
+def test_skidbench_models_lists_good_plugins_and_one_line_per_broken_one(with_plugins, capsys):
+    registry.list_main()
+    out, err = capsys.readouterr()
+    names = [line.split()[0] for line in out.splitlines()[1:]]
+    assert BUILTINS | {"duck"} == set(names)
+    assert any(line.startswith("friction ") and "skidbench" in line for line in out.splitlines())
+    errs = err.strip().splitlines()
+    assert len(errs) == 3 and all(line.startswith("skidbench models: plugin ") for line in errs)
+    assert any("plugin broken" in line for line in errs)
