@@ -1,9 +1,8 @@
 """In-process entry points for the stages that consume splits (``evaluate``, ``discover``).
 
-:func:`prepare_splits` runs extract -> groundtruth -> split for the configured source, skipping a stage
-whose outputs exist and are newer than its inputs (by modification time; content-fingerprint caching
-comes later). A config that lacks a stage's section (``groundtruth``, ``split``, ``extract``) gets the
-defaults of that stage's primary config.
+:func:`prepare_splits` runs extract -> groundtruth -> split for the configured source, each stage
+skipping the sequences whose content-fingerprint stamps are up to date. A config that lacks a stage's
+section (``groundtruth``, ``split``, ``extract``) gets the defaults of that stage's primary config.
 """
 
 from __future__ import annotations
@@ -34,48 +33,16 @@ def _with_stage(cfg: DictConfig, stage: str) -> DictConfig:
     return out
 
 
-def _newest(paths) -> float:
-    times = [p.stat().st_mtime for p in paths if p.exists()]
-    return max(times) if times else 0.0
-
-
-def _oldest(paths) -> float:
-    times = [p.stat().st_mtime for p in paths]
-    return min(times) if times else 0.0
-
-
-def _source_inputs(cfg: DictConfig, layout) -> list[Path]:
-    src = cfg.source
-    root = Path(str(src.get("root", layout.raw))).expanduser()
-    if src.get("file"):
-        return [root / str(src.file)]
-    if root.is_file():
-        return [root]
-    return [p for p in root.rglob("*") if p.is_file()] if root.is_dir() else []
-
-
 def prepare_splits(cfg: DictConfig) -> Path:
-    """Make ``<ds>/splits`` up to date for ``cfg.source``; returns the splits folder."""
+    """Make ``<ds>/splits`` up to date for ``cfg.source``; returns the splits folder. Each stage skips
+    the units whose stamps (:mod:`skidbench.pipeline.cache`) say they are up to date, so a changed input
+    or config re-runs exactly what depends on it."""
+    from .extract.app import run as extract
     from .groundtruth import app as gt_app
     from .splits import app as split_app
 
     layout = layout_from_cfg(cfg)
-    inputs = _source_inputs(cfg, layout)
-    extracted = list(layout.extracted.glob("*/_extract.json"))
-    if not extracted or not layout.manifest.is_file() or _oldest(extracted) < _newest(inputs):
-        from .extract.app import run as extract
-
-        log.info("prepare_splits: extract")
-        extract(_with_stage(cfg, "extract"))
-        extracted = list(layout.extracted.glob("*/_extract.json"))
-    gt_out = [layout.groundtruth / "loop_closure.json"]
-    gt_in = [p for p in layout.extracted.rglob("*") if p.is_file()]
-    if not gt_out[0].is_file() or _oldest(gt_out) < _newest(gt_in):
-        log.info("prepare_splits: groundtruth")
-        gt_app.run(_with_stage(cfg, "groundtruth"))
-    split_out = [layout.splits / "card.md"]
-    split_in = [p for p in layout.groundtruth.glob("*") if p.is_file()]
-    if not split_out[0].is_file() or _oldest(split_out) < _newest(split_in):
-        log.info("prepare_splits: split")
-        split_app.run(_with_stage(cfg, "split"))
+    extract(_with_stage(cfg, "extract"))
+    gt_app.run(_with_stage(cfg, "groundtruth"))
+    split_app.run(_with_stage(cfg, "split"))
     return layout.splits

@@ -28,6 +28,10 @@ class SplitError(SkidbenchError):
     pass
 
 
+class OutputError(SkidbenchError):
+    """An output that cannot be written (disk full, permission, read-only file system)."""
+
+
 class SourceError(SkidbenchError):
     """A raw source (amrl_txt, drive_df, ...) that cannot be read."""
 

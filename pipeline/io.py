@@ -7,9 +7,11 @@ Every stage writes through these helpers: a temporary file in the destination di
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
+import signal
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -18,9 +20,54 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .errors import SkidbenchError
+from .errors import OutputError, SkidbenchError
 
 TMP_PREFIX = ".tmp-"
+
+#: errno values of a write that fails for a reason outside the program: one clear line, not a traceback
+WRITE_ERRNOS = {errno.ENOSPC, errno.EACCES, errno.EPERM, errno.EROFS, errno.EDQUOT, errno.EFBIG}
+
+#: Test-only fault injection (tests/test_reliability_*.py): ``SKIDBENCH_FAULT=<action>@<n>[:<substring>]``
+#: acts at the n-th atomic write (1-based) of this process whose final path contains ``substring``, after
+#: the temporary file is written and before it is renamed. ``kill``: SIGKILL the process (a killed run);
+#: ``enospc`` / ``eacces``: raise that OSError (a full disk / a permission error).
+FAULT_ENV = "SKIDBENCH_FAULT"
+_fault_count = [0]
+
+
+def _inject_fault(final: Path) -> None:
+    spec = os.environ.get(FAULT_ENV)
+    if not spec:
+        return
+    action, _, rest = spec.partition("@")
+    nth, _, needle = rest.partition(":")
+    if needle and needle not in str(final):
+        return
+    _fault_count[0] += 1
+    if _fault_count[0] != int(nth or 1):
+        return
+    if action == "kill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    code = {"enospc": errno.ENOSPC, "eacces": errno.EACCES}.get(action)
+    if code is not None:
+        raise OSError(code, os.strerror(code), str(final))
+
+
+def _write_failure(final: Path, exc: OSError) -> OutputError | None:
+    """An OutputError for a disk-full/permission failure (pyarrow's OSErrors carry no errno)."""
+    code = exc.errno
+    text = str(exc)
+    if code is None:
+        for c in WRITE_ERRNOS:
+            if os.strerror(c) in text:
+                code = c
+                break
+    if code not in WRITE_ERRNOS:
+        return None
+    return OutputError(
+        f"{final}: cannot write ({os.strerror(code)}); nothing was half-written and earlier outputs are "
+        "intact; free space or fix permissions and re-run (finished work is skipped)"
+    )
 
 
 @contextlib.contextmanager
@@ -30,20 +77,30 @@ def atomic_path(final: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     The temp name starts with ``.tmp-`` so that globbing for outputs never sees it.
     """
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX + final.name + ".", suffix=suffix, dir=final.parent)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX + final.name + ".", suffix=suffix, dir=final.parent)
+    except OSError as exc:
+        err = _write_failure(final, exc)
+        if err is None:
+            raise
+        raise err from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        _inject_fault(final)
         if tmp_path.is_file():
             with open(tmp_path, "rb") as fh:
                 os.fsync(fh.fileno())
         os.replace(tmp_path, final)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError, IsADirectoryError):
+    except BaseException as exc:
+        with contextlib.suppress(FileNotFoundError, IsADirectoryError, PermissionError):
             tmp_path.unlink()
-        raise
+        err = _write_failure(final, exc) if isinstance(exc, OSError) else None
+        if err is None:
+            raise
+        raise err from exc
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

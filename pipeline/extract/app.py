@@ -65,6 +65,9 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
         counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
         log.info("%s %s: %s", verb, seq.name, counts)
         records.append(info)
+    n_skipped = sum(bool(r.get("skipped")) for r in records)
+    if records and n_skipped == len(records):
+        log.info("extract: %d sequences up to date, skipped", len(records))
     return records
 
 

@@ -19,15 +19,16 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from ..cache import Stamp
 from ..cli import stage
 from ..errors import ConfigError, GroundTruthError
 from ..geometry import se2_relative, se3_from_xyz_rpy, wrap_angle
-from ..io import fingerprint_file, write_json_atomic
+from ..io import fingerprint_file, write_json_atomic, write_text_atomic
 from ..layout import Layout, layout_from_cfg
 from ..manifest import Manifest, Sequence
 from .orbslam import read_orbslam
 from .pose_topic import read_pose_table
-from .trajectory import Trajectory, write_tum
+from .trajectory import Trajectory, read_tum, write_tum
 
 log = logging.getLogger("skidbench.groundtruth")
 
@@ -90,6 +91,43 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         fp = fingerprint_file(bag) if bag.is_file() else None
         return traj, {"files": {str(bag): fp}}
     raise ConfigError(f"groundtruth.method={method!r}: expected vo, orbslam or pose_topic")
+
+
+def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence) -> list[Path]:
+    """The files one sequence's ground truth reads (for its stamp): the method's source files, the
+    simulator truth table when present, and for ``vo`` the VO code itself."""
+    gt = cfg.groundtruth
+    method = str(gt.method)
+    ext = layout.extracted / seq.name
+    files: list[Path] = []
+    if method == "pose_topic":
+        files.append(ext / f"{gt.pose_topic.key}.parquet")
+    elif method == "orbslam":
+        o = gt.orbslam
+        d = Path(str(o.dir))
+        files += [d / str(o.pattern).format(seq=seq.name), d / str(o.times_pattern).format(seq=seq.name)]
+        if o.associate_to:
+            files.append(ext / f"{o.associate_to}.parquet")
+    elif method == "vo":
+        files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in ("vo.py", "app.py"))]
+    files.append(ext / f"{gt.truth_key}.parquet")
+    return [f for f in files if f.exists()]
+
+
+def stage_config(cfg: DictConfig) -> dict[str, Any]:
+    """The config sections ground truth reads (its stamps' config)."""
+    return {
+        "groundtruth": OmegaConf.to_container(cfg.groundtruth, resolve=True),
+        "robot": OmegaConf.to_container(cfg.robot, resolve=True),
+    }
+
+
+def _write_if_changed(path: Path, obj: Any) -> None:
+    import json
+
+    text = json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n"
+    if not path.is_file() or path.read_text() != text:
+        write_text_atomic(path, text)
 
 
 def _extract_notes(ext: Path) -> str:
@@ -175,7 +213,22 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out = layout.groundtruth
     loops: dict[str, Trajectory] = {}
     truth_scores = {}
+    conf = stage_config(cfg)
+    skipped = 0
     for seq in manifest.sequences:
+        tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
+        stamp = Stamp(layout.root / ".stamps" / "groundtruth" / f"{seq.name}.json", "groundtruth")
+        key = stamp.key(sequence_inputs(cfg, layout, manifest, seq), conf)
+        if stamp.is_fresh(key):
+            import json
+
+            skipped += 1
+            report = json.loads(rep.read_text())
+            if report.get("truth_error"):
+                truth_scores[seq.name] = report["truth_error"]
+            if seq.category == "loop":
+                loops[seq.name] = read_tum(tum)
+            continue
         traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
         if len(traj) < 2:
             raise GroundTruthError(f"{seq.name}: empty sequence ({len(traj)} pose)")
@@ -192,10 +245,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
              "method": str(gt_cfg.method),
              "poses": len(traj), "duration_s": dur, "gaps": [[a, b] for a, b in traj.gaps]}
         )  # fmt: skip
-        write_tum(
-            traj, out / f"{seq.name}.tum", header=f"skidbench groundtruth {seq.name} method={gt_cfg.method}"
-        )
-        write_json_atomic(out / f"{seq.name}.json", report)
+        write_tum(traj, tum, header=f"skidbench groundtruth {seq.name} method={gt_cfg.method}")
+        write_json_atomic(rep, report)
+        stamp.record(key, [tum, rep])
         log.info("%s: %d poses, %.1f s, %d gap(s)", seq.name, len(traj), dur, len(traj.gaps))
         if seq.category == "loop":
             loops[seq.name] = traj
@@ -208,7 +260,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             for k in keys
             if any(s.get(k) is not None for s in truth_scores.values())
         }
-    write_json_atomic(out / LOOP_REPORT, result)
+    _write_if_changed(out / LOOP_REPORT, result)
+    n = len(manifest.sequences)
+    if skipped == n:
+        log.info("groundtruth: %d sequences up to date, skipped", n)
+    elif skipped:
+        log.info("groundtruth: %d sequences computed, %d up to date", n - skipped, skipped)
     if result.get("flagged"):
         log.warning(
             "ground truth FLAGGED by the loop-closure check: %s",

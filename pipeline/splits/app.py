@@ -17,8 +17,9 @@ from typing import Any
 import hydra
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
+from ..cache import Stamp
 from ..cli import stage
 from ..errors import SplitError
 from ..groundtruth.trajectory import read_tum
@@ -138,13 +139,50 @@ def run(cfg: DictConfig) -> list[Path]:
     seqs = [s for s in manifest.sequences if s.category in SPLITS]
     if not seqs:
         raise SplitError(f"{layout.manifest}: empty split: no train/cv/ld sequences")
-    written = [split_sequence(cfg, layout, robot, s) for s in seqs]
+    conf = {
+        "split": OmegaConf.to_container(cfg.split, resolve=True),
+        "robot": OmegaConf.to_container(cfg.robot, resolve=True),
+    }
+    written, skipped = [], 0
+    for s in seqs:
+        path = layout.split_file(s.terrain, s.category, s.name)
+        stamp = Stamp(layout.root / ".stamps" / "split" / f"{s.name}.json", "split")
+        key = stamp.key(split_inputs(layout, s), {**conf, "terrain": s.terrain, "category": s.category})
+        if stamp.is_fresh(key):
+            skipped += 1
+        else:
+            path = split_sequence(cfg, layout, robot, s)
+            stamp.record(key, [path])
+        written.append(path)
     keep = set(written)
     for stale in layout.splits.glob("*/*/*.parquet"):  # sequences no longer in the manifest
         if stale not in keep and not stale.name.startswith("."):
             stale.unlink()
-    write_card(cfg, layout, robot)
+    card_stamp = Stamp(layout.root / ".stamps" / "split" / "_card.json", "card")
+    card_key = card_stamp.key(written, {"robot": conf["robot"], "card": _card_conf(cfg)})
+    if not card_stamp.is_fresh(card_key):
+        write_card(cfg, layout, robot)
+        card_stamp.record(card_key, [layout.splits / "card.md"])
+    if skipped == len(seqs):
+        log.info("split: %d sequences up to date, skipped", len(seqs))
+    elif skipped:
+        log.info("split: %d sequences split, %d up to date", len(seqs) - skipped, skipped)
     return written
+
+
+SPLIT_INPUTS = ("cmd_vel", "cmd_wheels", "joint_states", "enc_wheels")
+
+
+def split_inputs(layout: Layout, seq: Sequence) -> list[Path]:
+    """The files one sequence's split reads (its stamp's inputs)."""
+    ext = layout.extracted / seq.name
+    files = [layout.groundtruth / f"{seq.name}.tum", *(ext / f"{k}.parquet" for k in SPLIT_INPUTS)]
+    return [f for f in files if f.is_file()]
+
+
+def _card_conf(cfg: DictConfig) -> Any:
+    card_cfg: Any = cfg.get("card") or {}
+    return OmegaConf.to_container(card_cfg, resolve=True) if OmegaConf.is_config(card_cfg) else card_cfg
 
 
 def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
