@@ -10,12 +10,13 @@ killed run resumes where it stopped; ``force=true`` re-simulates everything.
 
 from __future__ import annotations
 
-import functools
 import logging
+import multiprocessing
 import os
 import shutil
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +34,7 @@ from ..robot import Robot, robot_from_hydra
 from .bag import FORMATS, BagSink, bag_path
 from .card import build_rows, render_card, sequence_moments
 from .physics import load_physics
-from .scenarios import plan_sequences
+from .scenarios import SequenceSpec, plan_sequences
 from .sequence import simulate_sequence
 
 log = logging.getLogger("skidbench.simulate")
@@ -89,10 +90,39 @@ def _write_bag(final: Path, fmt: str, fill) -> None:
         shutil.rmtree(tmpdir, ignore_errors=True)
 
 
-def _fill(holder, spec, index, robot, terrain, drive, tyre, run_cfg, seed, renderer, tick, sink) -> None:
-    holder["truth"] = simulate_sequence(
-        spec, index, robot, terrain, drive, tyre, run_cfg, seed, sink, renderer, tick
-    )
+# what a worker needs, set by the parent before it forks (so the renderer's world is built once)
+_CONTEXT: dict[str, Any] = {}
+
+
+def _planned_seconds(spec: SequenceSpec) -> float:
+    """Simulated seconds a sequence is expected to take (loops: their target + lining up at the mark)."""
+    return spec.options["target"] + 4.0 if spec.category == "loop" else spec.duration
+
+
+def _simulate_one(index: int, spec: SequenceSpec, final: Path, tick=None) -> dict[str, float]:
+    """Simulate one sequence into its bag (atomically); returns its card moments."""
+    c = _CONTEXT
+    holder: dict[str, Any] = {}
+
+    def fill(sink: BagSink) -> None:
+        holder["truth"] = simulate_sequence(
+            spec,
+            index,
+            c["robot"],
+            c["terrains"][spec.terrain],
+            c["drive"],
+            c["tyre"],
+            c["run_cfg"],
+            c["seed"],
+            sink,
+            c["renderer"],
+            tick,
+        )
+
+    _write_bag(final, c["fmt"], fill)
+    truth = holder["truth"]
+    robot = c["robot"]
+    return {**sequence_moments(truth, robot.track_width, robot.wheel_radius), "_duration": float(truth.t[-1])}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -101,6 +131,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     fmt = str(cfg.format)
     if fmt not in FORMATS:
         raise SimulateError(f"format={fmt!r}: not one of {', '.join(FORMATS)}")
+    jobs = int(cfg.jobs)
+    if jobs < 1:
+        raise SimulateError(f"jobs={jobs}: must be at least 1")
     robot = robot_from_hydra(cfg.robot)
     if not robot.left_joints or not robot.right_joints:
         raise SimulateError(f"robot {robot.name}: left_joints/right_joints are empty in the robot config")
@@ -121,73 +154,78 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     layout = layout_from_cfg(cfg)
     bags_dir = layout.raw / "bags"
     stamps_dir = layout.raw / ".stamps"
-    renderer = None
     code = code_fingerprint()
-    results: list[dict[str, Any]] = []
-    skipped = 0
-    with tqdm(
-        total=sum(s.duration if s.category != "loop" else s.options["target"] for s in specs),
-        unit="s",
-        desc=f"simulate {layout.dataset}",
-        dynamic_ncols=True,
-        mininterval=1.0,
-    ) as bar:
-        for index, spec in enumerate(specs):
-            final = bag_path(bags_dir, spec.name, fmt)
-            stamp = Stamp(stamps_dir / f"{spec.name}.json", "simulate")
-            key = stamp.key(
-                [],
-                {
-                    "spec": spec.__dict__,
-                    "index": index,
-                    "seed": seed,
-                    "format": fmt,
-                    "images": bool(cfg.images),
-                    "render": sim_cfg.get("render"),
-                    "run": run_cfg,
-                    "robot": robot.to_dict(),
-                    "physics": sim_cfg["sim"],
-                    "code": code,
-                },
-            )
-            if not cfg.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
-                moments = stamp.data["info"]["moments"]
-                skipped += 1
-                bar.update(
-                    spec.options.get("target", spec.duration) if spec.category == "loop" else spec.duration
-                )
+    moments: dict[str, dict[str, float]] = {}
+    todo: list[tuple[int, SequenceSpec, Path, Stamp, str]] = []
+    for index, spec in enumerate(specs):
+        final = bag_path(bags_dir, spec.name, fmt)
+        stamp = Stamp(stamps_dir / f"{spec.name}.json", "simulate")
+        key = stamp.key(
+            [],
+            {
+                "spec": spec.__dict__,
+                "index": index,
+                "seed": seed,
+                "format": fmt,
+                "images": bool(cfg.images),
+                "render": sim_cfg.get("render"),
+                "run": run_cfg,
+                "robot": robot.to_dict(),
+                "physics": sim_cfg["sim"],
+                "code": code,
+            },
+        )
+        if not cfg.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
+            moments[spec.name] = stamp.data["info"]["moments"]
+        else:
+            todo.append((index, spec, final, stamp, key))
+
+    if todo:
+        _CONTEXT.update(
+            robot=robot,
+            terrains=terrains,
+            drive=drive,
+            tyre=tyre,
+            run_cfg=run_cfg,
+            seed=seed,
+            fmt=fmt,
+            renderer=make_renderer(robot, cfg, seed),
+        )
+        total = sum(_planned_seconds(t[1]) for t in todo)
+        with tqdm(
+            total=total, unit="s", desc=f"simulate {layout.dataset}", dynamic_ncols=True, mininterval=1.0
+        ) as bar:
+
+            def finish(item, result) -> None:
+                index, spec, final, stamp, key = item
+                duration = result.pop("_duration")
+                stamp.record(key, [final], {"moments": result, "duration": duration})
+                moments[spec.name] = result
+
+            if jobs == 1:
+                for item in todo:
+                    bar.set_postfix_str(item[1].name)
+                    before = bar.n
+                    result = _simulate_one(item[0], item[1], item[2], bar.update)
+                    bar.update(max(0.0, _planned_seconds(item[1]) - (bar.n - before)))
+                    finish(item, result)
             else:
-                if renderer is None and cfg.images:
-                    renderer = make_renderer(robot, cfg, seed)
-                bar.set_postfix_str(spec.name)
-                done = [0.0]
+                # sequences are independent (own random streams), so any order gives the same bytes;
+                # fork shares the parent's renderer world instead of rebuilding it per worker
+                ctx = multiprocessing.get_context("fork")
+                with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+                    futures = {pool.submit(_simulate_one, t[0], t[1], t[2]): t for t in todo}
+                    for fut in as_completed(futures):
+                        item = futures[fut]
+                        finish(item, fut.result())
+                        bar.set_postfix_str(item[1].name)
+                        bar.update(_planned_seconds(item[1]))
+        _CONTEXT.clear()
 
-                def tick(dt_s: float, _done=done) -> None:
-                    _done[0] += dt_s
-                    bar.update(dt_s)
-
-                holder: dict[str, Any] = {}
-                fill = functools.partial(
-                    _fill,
-                    holder,
-                    spec,
-                    index,
-                    robot,
-                    terrains[spec.terrain],
-                    drive,
-                    tyre,
-                    run_cfg,
-                    seed,
-                    renderer,
-                    tick,
-                )
-                _write_bag(final, fmt, fill)
-                truth = holder["truth"]
-                if spec.category == "loop":
-                    bar.update(max(0.0, spec.options["target"] - done[0]))
-                moments = sequence_moments(truth, robot.track_width, robot.wheel_radius)
-                stamp.record(key, [final], {"moments": moments, "duration": float(truth.t[-1])})
-            results.append({"spec": spec, "path": final, "moments": moments})
+    results = [
+        {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for s in specs
+    ]
+    skipped = len(specs) - len(todo)
 
     manifest = Manifest(
         [
