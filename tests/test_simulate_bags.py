@@ -35,7 +35,7 @@ def ros1(tmp_path_factory) -> dict:
 def read_counts(path: Path, store) -> tuple[dict[str, int], dict[str, str], dict[str, list]]:
     counts, types, first = {}, {}, {}
     with AnyReader([path], default_typestore=store) as reader:
-        for conn, t, raw in reader.messages():
+        for conn, _t, raw in reader.messages():
             counts[conn.topic] = counts.get(conn.topic, 0) + 1
             types[conn.topic] = conn.msgtype
             if conn.topic not in first:

@@ -22,7 +22,8 @@ DT = 0.001
 
 @pytest.fixture(scope="module")
 def robot() -> Robot:
-    return Robot.from_config(yaml.safe_load(files("skidbench.conf").joinpath("robot/jackal.yaml").read_text()))
+    text = files("skidbench.conf").joinpath("robot/jackal.yaml").read_text()
+    return Robot.from_config(yaml.safe_load(text))
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +107,8 @@ def test_mirrored_commands_give_mirrored_motion(robot, physics):
         sim = make(robot, physics, "asphalt")
         for k in range(3000):  # a turning, accelerating command history
             t = k * DT
-            wl, wr = robot.wheel_rates_from_twist(1.0 * math.sin(1.3 * t) + 0.5, sign * (0.6 + 1.2 * math.sin(2.1 * t)))
+            v, w = 1.0 * math.sin(1.3 * t) + 0.5, sign * (0.6 + 1.2 * math.sin(2.1 * t))
+            wl, wr = robot.wheel_rates_from_twist(v, w)
             sim.step(float(wl), float(wr))
         return sim
 
