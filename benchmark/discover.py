@@ -1,0 +1,621 @@
+"""Discrepancy discovery: find where a model and the measured data disagree and name the missing
+physical effect (SPEC.md "Discrepancy discovery").
+
+Workflow, per terrain, on the Train split:
+
+1. Fit the base model (default: extended differential drive, ``edd``) and take its residuals: body
+   velocities (vx, vy, wz) against ground truth, and 6 s horizon pose errors (RMSRE).
+2. For every effect of the catalogue (:mod:`skidbench.benchmark.effects`) not yet in the model, fit the
+   augmented model (base model refitted together with the effect's parameters, by alternation) on the
+   training folds and predict the held-out fold. Folds are whole sequences (k-fold over sequences;
+   long sequences are cut into contiguous chunks when there are too few of them), never random rows.
+3. Score each candidate against the current model on the held-out predictions.
+4. Add the best candidate that passes the significance rule, refit, and repeat; stop when none passes
+   ("no missing effect found").
+
+Significance rule (every part must hold; the constants are ``discover.*`` settings):
+
+* the held-out 6 s horizon gain ``G = sum_m log(RMSRE_m,before^2 / RMSRE_m,after^2)`` over the metrics
+  m in (translational, rotational) (the Gaussian log-likelihood gain of the benchmark's own pose errors)
+  pays for the effect's parameters: ``G - penalty_per_param * n_params >= min_gain`` (defaults 0.02
+  and 0.02: an information-criterion-like charge, AIC's 2/n_eff for ~100 independent windows, so a
+  one-parameter effect must cut one held-out RMSRE by at least 2 %, or both by 1 %);
+* a paired one-sided sign-flip (permutation) test over the held-out units (whole sequences, or
+  contiguous chunks) of the per-unit gains ``d_s`` (the same log ratio, per unit) rejects "no
+  improvement" at ``alpha`` (default 0.01; exact for up to 16 units);
+* the held-out velocity residuals agree: ``sum_c log(MSE_c,before / MSE_c,after)`` over (vx, vy, wz)
+  is positive (an effect that fixes poses while making velocities worse is compensating, not real).
+
+The held-out prediction of each unit comes from the model fitted without it (k-fold over sequences,
+never random rows). Velocity-based fitting, pose-based scoring: the 6 s windows integrate the velocity
+noise of differentiated visual-odometry poses away, and are what the benchmark ranks models by.
+Among the candidates that pass, the one with the largest penalised gain is added.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import least_squares, minimize_scalar
+
+from skidbench.benchmark.effects import (
+    CATALOGUE,
+    EFFECT_IDS,
+    apply_effects,
+    base_targets,
+    command_features,
+    lag_filter,
+    revealing_feature,
+)
+from skidbench.benchmark.horizon import rmsre, window_errors
+from skidbench.models.base import KinematicModel
+from skidbench.pipeline.errors import SkidbenchError
+from skidbench.pipeline.robot import Robot
+from skidbench.pipeline.schema import load_split_tables
+
+log = logging.getLogger("skidbench.discover")
+
+CHANNELS = ("vx", "vy", "wz")
+NO_EFFECT_MESSAGE = "no missing effect found"
+
+
+class DiscoverError(SkidbenchError):
+    pass
+
+
+@dataclass(frozen=True)
+class DiscoverSettings:
+    horizon_s: float = 6.0
+    folds: int = 5
+    min_units: int = 8  # cut sequences into chunks when there are fewer sequences than this
+    chunk_s: float = 30.0  # chunk length when cutting (s); never shorter than 2 horizons
+    alpha: float = 0.01
+    penalty_per_param: float = 0.02
+    min_gain: float = 0.02
+    max_effects: int = 4
+    alternations: int = 6  # base/effect refit alternations
+    tau_bounds: tuple[float, float] = (0.02, 1.5)
+    splits: tuple[str, ...] = ("train",)
+    seed: int = 0
+
+    def rule(self) -> str:
+        return (
+            f"add the best effect whose held-out {self.horizon_s:g} s gain G = sum over (translational, "
+            f"rotational) of log(RMSRE_before^2 / RMSRE_after^2) satisfies G - {self.penalty_per_param:g} * "
+            f"n_params >= {self.min_gain:g}, whose per-held-out-unit gains pass a one-sided paired sign-flip "
+            f"test at alpha = {self.alpha:g}, and whose held-out velocity residual (sum over vx, vy, wz of "
+            f"log MSE_before/MSE_after) also improves; held out by {self.folds}-fold over whole sequences "
+            f"(contiguous chunks of >= {self.chunk_s:g} s when there are fewer than {self.min_units} "
+            "sequences)"
+        )
+
+
+# -- data ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class Pool:
+    """The training sequences of one terrain, concatenated, with held-out units assigned."""
+
+    table: pd.DataFrame  # split columns + "sequence" (= unit code, contiguous)
+    groups: np.ndarray  # (T,) original sequence code (lag filters restart here)
+    units: np.ndarray  # (T,) unit code (held-out granularity)
+    unit_names: list[str]
+    target: np.ndarray  # (T, 3) ground-truth vx, vy, wz
+    valid: np.ndarray  # (T,) bool
+    pose: np.ndarray  # (T, 3)
+    t: np.ndarray  # (T,)
+    sequences: list[str]
+
+    @property
+    def n_units(self) -> int:
+        return len(self.unit_names)
+
+
+def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettings) -> Pool:
+    """Concatenate split tables; cut them into contiguous chunks if there are too few sequences."""
+    tables = [(df, m) for df, m in tables if len(df) > 2]
+    if not tables:
+        raise DiscoverError("no training sequences with data")
+    cut = len(tables) < settings.min_units
+    frames, groups, units, unit_names, names = [], [], [], [], []
+    for g, (df, meta) in enumerate(tables):
+        name = str(meta.get("sequence", f"seq{g}"))
+        names.append(name)
+        df = df.reset_index(drop=True)
+        t = df["t"].to_numpy(float)
+        n = len(df)
+        bounds = [0, n]
+        if cut:
+            chunk = max(settings.chunk_s, 2.0 * settings.horizon_s + 1.0)
+            k = max(1, int((t[-1] - t[0]) // chunk))
+            bounds = [int(round(i * n / k)) for i in range(k + 1)]
+        for j, (a, b) in enumerate(itertools.pairwise(bounds)):
+            unit_names.append(name if len(bounds) == 2 else f"{name}#{j}")
+            units.append(np.full(b - a, len(unit_names) - 1))
+        groups.append(np.full(n, g))
+        frames.append(df)
+    table = pd.concat(frames, ignore_index=True)
+    units_a = np.concatenate(units)
+    table["sequence"] = units_a
+    valid = table["valid"].to_numpy(bool) & np.all(np.isfinite(table[list(CHANNELS)].to_numpy(float)), axis=1)
+    return Pool(
+        table=table,
+        groups=np.concatenate(groups),
+        units=units_a,
+        unit_names=unit_names,
+        target=np.nan_to_num(table[list(CHANNELS)].to_numpy(float)),
+        valid=valid,
+        pose=table[["x", "y", "yaw"]].to_numpy(float),
+        t=table["t"].to_numpy(float),
+        sequences=names,
+    )
+
+
+def load_pool(splits_root: Path, terrain: str, settings: DiscoverSettings) -> Pool:
+    tables = []
+    for s in settings.splits:
+        tables += load_split_tables(Path(splits_root), terrain, s)
+    if not tables:
+        raise DiscoverError(f"{splits_root}/{terrain}: no split files for {'/'.join(settings.splits)}")
+    return build_pool(tables, settings)
+
+
+# -- the augmented model --------------------------------------------------------------------------
+
+
+ModelFactory = Callable[[], KinematicModel]
+
+
+@dataclass
+class FitState:
+    effects: list[str]
+    params: dict[str, np.ndarray]
+    tau: float | None
+    base: KinematicModel
+    pred: np.ndarray  # (T, 3) augmented prediction on every row of the pool
+    base_pred: np.ndarray  # (T, 3) base prediction (on lagged inputs) on every row
+    feats: dict[str, np.ndarray]
+    loss: float
+
+
+class Augmenter:
+    """Fits base model + effects on a subset of a pool's rows and predicts every row."""
+
+    def __init__(self, pool: Pool, factory: ModelFactory, robot: Robot, settings: DiscoverSettings):
+        self.pool = pool
+        self.factory = factory
+        self.robot = robot
+        self.s = settings
+        self._lag_cache: dict[float, tuple[pd.DataFrame, dict]] = {}
+        self._sub_cache: dict[tuple, pd.DataFrame] = {}
+        self._feats0 = command_features(pool.table, robot.wheel_radius, robot.track_width)
+        self.weights = np.ones(3)
+
+    def inputs(self, tau: float | None) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+        if tau is None:
+            return self.pool.table, self._feats0
+        key = round(float(tau), 6)
+        if key not in self._lag_cache:
+            if len(self._lag_cache) > 64:
+                self._lag_cache.clear()
+            tab = lag_filter(self.pool.table, key, self.pool.groups)
+            self._lag_cache[key] = (
+                tab,
+                command_features(tab, self.robot.wheel_radius, self.robot.track_width),
+            )
+        return self._lag_cache[key]
+
+    def _fit_base(
+        self, table: pd.DataFrame, rows: np.ndarray, target: np.ndarray | None, key: tuple
+    ) -> KinematicModel:
+        if key not in self._sub_cache:
+            if len(self._sub_cache) > 64:
+                self._sub_cache.clear()
+            self._sub_cache[key] = table.loc[rows]
+        sub = self._sub_cache[key]
+        if target is not None:
+            sub = sub.copy()
+            for j, c in enumerate(CHANNELS):
+                sub[c] = target[rows, j]
+        return self.factory().fit(sub)
+
+    def _loss(self, pred: np.ndarray, rows: np.ndarray) -> float:
+        r = (pred[rows] - self.pool.target[rows]) ** 2
+        return float(np.sum(r.mean(axis=0) * self.weights))
+
+    def fit(
+        self, effects: list[str], train_units: np.ndarray, warm: dict[str, np.ndarray] | None = None
+    ) -> FitState:
+        rows = np.isin(self.pool.units, train_units) & self.pool.valid
+        if "actuator_lag" in effects:
+            lo, hi = self.s.tau_bounds
+            if warm and "actuator_lag" in warm:  # local search around the known time constant
+                t0 = float(warm["actuator_lag"][0])
+                lo, hi = max(lo, t0 / 1.8), min(hi, t0 * 1.8)
+            res = minimize_scalar(
+                lambda lt: self._fit_at(effects, rows, math.exp(lt), warm, quick=True).loss,
+                bounds=(math.log(lo), math.log(hi)),
+                method="bounded",
+                options={"xatol": 0.03},
+            )
+            return self._fit_at(effects, rows, math.exp(float(res.x)), warm, quick=False)
+        return self._fit_at(effects, rows, None, warm, quick=False)
+
+    def _fit_at(
+        self,
+        effects: list[str],
+        rows: np.ndarray,
+        tau: float | None,
+        warm: dict[str, np.ndarray] | None,
+        quick: bool,
+    ) -> FitState:
+        table, feats = self.inputs(tau)
+        key = (None if tau is None else round(float(tau), 6), rows.tobytes().__hash__())
+        corr = [e for e in effects if CATALOGUE[e].kind != "input"]
+        base = self._fit_base(table, rows, None, key)
+        base_pred = base.predict(table)
+        params = {e: np.array((warm or {}).get(e, CATALOGUE[e].init), dtype=float) for e in corr}
+        n_alt = (2 if quick else self.s.alternations) if corr else 0
+        prev = np.inf
+        for _ in range(n_alt):
+            params = self._fit_params(corr, params, base_pred, feats, rows)
+            bt = base_targets(self.pool.target, base_pred, feats, params)
+            base = self._fit_base(table, rows, bt, key)
+            base_pred = base.predict(table)
+            loss = self._loss(apply_effects(base_pred, feats, params), rows)
+            if prev - loss < 1e-6 * max(prev, 1e-12):
+                break
+            prev = loss
+        if corr:
+            params = self._fit_params(corr, params, base_pred, feats, rows)
+        pred = apply_effects(base_pred, feats, params)
+        all_params = dict(params)
+        if tau is not None:
+            all_params = {"actuator_lag": np.array([tau]), **all_params}
+        return FitState(effects, all_params, tau, base, pred, base_pred, feats, self._loss(pred, rows))
+
+    def _fit_params(self, corr, params, base_pred, feats, rows) -> dict[str, np.ndarray]:
+        """Effect parameters with the base prediction fixed: weighted least squares. All effects but
+        ``curvature_dependent_icr`` are (nearly) linear in their parameters: Gauss-Newton with an
+        exact finite-difference Jacobian converges in one or two steps; otherwise a bounded TRF."""
+        sizes = [CATALOGUE[e].n_params for e in corr]
+        x0 = np.concatenate([params[e] for e in corr]).astype(float)
+        bp = base_pred[rows]
+        fr = {k: v[rows] for k, v in feats.items()}
+        tg = self.pool.target[rows]
+        sw = np.sqrt(self.weights / max(rows.sum(), 1))
+
+        def unpack(x):
+            out, i = {}, 0
+            for e, n in zip(corr, sizes, strict=True):
+                out[e] = x[i : i + n]
+                i += n
+            return out
+
+        def resid(x):
+            return ((apply_effects(bp, fr, unpack(x)) - tg) * sw).ravel()
+
+        if "curvature_dependent_icr" in corr:
+            lo = np.concatenate(
+                [
+                    [-0.5, 0.0] if e == "curvature_dependent_icr" else [-np.inf] * n
+                    for e, n in zip(corr, sizes, strict=True)
+                ]
+            )
+            hi = np.concatenate(
+                [
+                    [20.0, 100.0] if e == "curvature_dependent_icr" else [np.inf] * n
+                    for e, n in zip(corr, sizes, strict=True)
+                ]
+            )
+            x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+            sol = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=100)
+            return unpack(sol.x)
+        x = x0
+        for _ in range(3):
+            r0 = resid(x)
+            J = np.empty((len(r0), len(x)))
+            for j in range(len(x)):
+                xp = x.copy()
+                xp[j] += 1e-3
+                J[:, j] = (resid(xp) - r0) / 1e-3
+            step = np.linalg.lstsq(J, -r0, rcond=None)[0]
+            x = x + step
+            if np.all(np.abs(step) < 1e-9 + 1e-6 * np.abs(x)):
+                break
+        return unpack(x)
+
+
+# -- held-out evaluation ------------------------------------------------------------------------
+
+
+@dataclass
+class HeldOut:
+    effects: list[str]
+    pred: np.ndarray  # (T, 3) held-out prediction of every row
+    mse: np.ndarray  # (3,) pooled held-out MSE per channel
+    unit_mse: np.ndarray  # (U, 3)
+    rmsre: dict[str, float]
+    windows: pd.DataFrame
+    fold_params: list[dict[str, list[float]]] = field(default_factory=list)
+
+
+def folds_of(pool: Pool, k: int) -> list[np.ndarray]:
+    k = max(2, min(k, pool.n_units))
+    ids = np.arange(pool.n_units)
+    return [ids[ids % k == j] for j in range(k)]
+
+
+def horizon_metrics(pool: Pool, pred: np.ndarray, horizon_s: float) -> tuple[dict[str, float], pd.DataFrame]:
+    frames = []
+    for u in range(pool.n_units):
+        m = pool.units == u
+        w = window_errors(pool.t[m], pool.pose[m], pred[m], horizon_s, valid=pool.valid[m])
+        w["unit"] = u
+        frames.append(w)
+    win = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if win.empty:
+        return {"translational": float("nan"), "rotational": float("nan")}, win
+    return {"translational": rmsre(win["rel_trans"]), "rotational": rmsre(win["rel_rot"])}, win
+
+
+def cross_validate(aug: Augmenter, effects: list[str], warm: dict | None = None) -> HeldOut:
+    pool = aug.pool
+    pred = np.zeros_like(pool.target)
+    fold_params = []
+    for held in folds_of(pool, aug.s.folds):
+        train = np.setdiff1d(np.arange(pool.n_units), held)
+        st = aug.fit(effects, train, warm)
+        rows = np.isin(pool.units, held)
+        pred[rows] = st.pred[rows]
+        fold_params.append({e: [float(v) for v in p] for e, p in st.params.items()})
+    err2 = (pred - pool.target) ** 2
+    v = pool.valid
+    mse = err2[v].mean(axis=0)
+    unit_mse = np.array(
+        [
+            err2[v & (pool.units == u)].mean(axis=0) if np.any(v & (pool.units == u)) else [np.nan] * 3
+            for u in range(pool.n_units)
+        ]
+    )
+    rm, win = horizon_metrics(pool, pred, aug.s.horizon_s)
+    return HeldOut(list(effects), pred, mse, unit_mse, rm, win, fold_params)
+
+
+def sign_flip_pvalue(d: np.ndarray, seed: int = 0, n_random: int = 20000) -> float:
+    """One-sided p-value of mean(d) > 0 under random sign flips (exact for up to 16 units)."""
+    d = np.asarray(d, dtype=float)
+    d = d[np.isfinite(d)]
+    n = len(d)
+    if n == 0:
+        return 1.0
+    obs = d.mean()
+    if n <= 16:
+        signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))
+    else:
+        signs = np.random.default_rng(seed).choice((-1.0, 1.0), size=(n_random, n))
+    null = (signs * d).mean(axis=1)
+    return float(np.mean(null >= obs - 1e-15))
+
+
+def unit_rmsre(ho: HeldOut, n_units: int) -> np.ndarray:
+    """(U, 2) held-out translational and rotational RMSRE of every unit."""
+    out = np.full((n_units, 2), np.nan)
+    if ho.windows.empty:
+        return out
+    for u, w in ho.windows.groupby("unit"):
+        out[int(u)] = [rmsre(w["rel_trans"]), rmsre(w["rel_rot"])]
+    return out
+
+
+def _log_ratio2(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = 2.0 * np.log(np.asarray(before, float) / np.asarray(after, float))
+    return np.where(np.isfinite(g), g, np.nan)
+
+
+def compare(before: HeldOut, after: HeldOut, n_params: int, s: DiscoverSettings) -> dict[str, Any]:
+    """The evidence for one candidate: held-out gains and the significance rule's verdict."""
+    keys = ("translational", "rotational")
+    pose_gain = _log_ratio2([before.rmsre[k] for k in keys], [after.rmsre[k] for k in keys])
+    G = float(np.nansum(pose_gain))
+    n_units = len(before.unit_mse)
+    d = np.nansum(_log_ratio2(unit_rmsre(before, n_units), unit_rmsre(after, n_units)), axis=1)
+    p = sign_flip_pvalue(d, s.seed)
+    eps = 1e-18
+    vel_gain = np.log((before.mse + eps) / (after.mse + eps))
+    Gv = float(np.sum(vel_gain))
+    penalised = G - s.penalty_per_param * n_params
+    passes = bool(penalised >= s.min_gain and p <= s.alpha and Gv > 0.0)
+    return {
+        "n_params": n_params,
+        "heldout_gain": G,
+        "heldout_gain_per_metric": dict(zip(keys, map(float, pose_gain), strict=True)),
+        "penalised_gain": float(penalised),
+        "velocity_gain": Gv,
+        "velocity_gain_per_channel": dict(zip(CHANNELS, map(float, vel_gain), strict=True)),
+        "heldout_mse_before": dict(zip(CHANNELS, map(float, before.mse), strict=True)),
+        "heldout_mse_after": dict(zip(CHANNELS, map(float, after.mse), strict=True)),
+        "paired_p_value": p,
+        "n_heldout_units": int(np.sum(np.isfinite(d))),
+        "units_improved": int(np.sum(d > 0)),
+        "heldout_rmsre_before": before.rmsre,
+        "heldout_rmsre_after": after.rmsre,
+        "passes": passes,
+    }
+
+
+# -- the discovery loop -------------------------------------------------------------------------
+
+
+@dataclass
+class TerrainDiscovery:
+    terrain: str
+    base_model: str
+    effects: list[str]
+    steps: list[dict[str, Any]]
+    base: dict[str, Any]
+    final: dict[str, Any]
+    message: str
+    figure_data: list[dict[str, Any]]
+    rejected: dict[str, Any] | None
+    seconds: float
+
+
+def _jsonable_params(params: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    return {e: dict(zip(CATALOGUE[e].param_names, map(float, p), strict=True)) for e, p in params.items()}
+
+
+def discover_terrain(
+    pool: Pool,
+    factory: ModelFactory,
+    robot: Robot,
+    settings: DiscoverSettings,
+    terrain: str,
+    base_name: str,
+    candidates: tuple[str, ...] = EFFECT_IDS,
+    progress: Callable[[str], None] | None = None,
+) -> TerrainDiscovery:
+    t_start = time.perf_counter()
+    say = progress or (lambda msg: log.info(msg))
+    aug = Augmenter(pool, factory, robot, settings)
+    all_units = np.arange(pool.n_units)
+    base_fit = aug.fit([], all_units)
+    res = (base_fit.pred - pool.target)[pool.valid]
+    aug.weights = 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
+    cur = cross_validate(aug, [])
+    base_info = {
+        "train_residual_rmse": dict(zip(CHANNELS, map(float, np.sqrt((res**2).mean(axis=0))), strict=True)),
+        "train_residual_mean": dict(zip(CHANNELS, map(float, res.mean(axis=0)), strict=True)),
+        "heldout_rmsre": cur.rmsre,
+        "heldout_mse": dict(zip(CHANNELS, map(float, cur.mse), strict=True)),
+        "params": base_fit.base.get_params(),
+        "n_sequences": len(pool.sequences),
+        "n_heldout_units": pool.n_units,
+        "n_samples": int(pool.valid.sum()),
+    }
+    say(
+        f"[{terrain}] base {base_name}: held-out {settings.horizon_s:g} s RMSRE "
+        f"trans {cur.rmsre['translational']:.4f} rot {cur.rmsre['rotational']:.4f} "
+        f"({pool.n_units} held-out units from {len(pool.sequences)} sequences)"
+    )
+    effects: list[str] = []
+    warm: dict[str, np.ndarray] = {}
+    steps: list[dict[str, Any]] = []
+    figure_data: list[dict[str, Any]] = []
+    rejected = None
+    state = base_fit
+    while len(effects) < settings.max_effects:
+        scored: dict[str, tuple[dict, HeldOut]] = {}
+        for eid in candidates:
+            if eid in effects:
+                continue
+            ho = cross_validate(aug, effects + [eid], warm)
+            ev = compare(cur, ho, CATALOGUE[eid].n_params, settings)
+            scored[eid] = (ev, ho)
+            say(
+                f"[{terrain}]   {eid:28s} gain {ev['heldout_gain']:+.4f} (penalised "
+                f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} "
+                f"velocity gain {ev['velocity_gain']:+.4f}{'  PASS' if ev['passes'] else ''}"
+            )
+        table = {
+            e: {k: v for k, v in ev.items() if k != "heldout_mse_before"} for e, (ev, _) in scored.items()
+        }
+        passing = [e for e, (ev, _) in scored.items() if ev["passes"]]
+        if not passing:
+            best = max(scored, key=lambda e: scored[e][0]["penalised_gain"]) if scored else None
+            rejected = {"best_candidate": best, "candidates": table}
+            figure_data.append(_residual_panel(pool, state, best, cur, None))
+            break
+        best = max(passing, key=lambda e: scored[e][0]["penalised_gain"])
+        ev, ho = scored[best]
+        prev_state = state
+        state = aug.fit(effects + [best], all_units, warm)  # refit on all training sequences
+        warm = {k: v for k, v in state.params.items()}
+        effects.append(best)
+        e = CATALOGUE[best]
+        steps.append(
+            {
+                "effect": best,
+                "explanation": e.explanation,
+                "formula": e.formula,
+                "evidence": {**ev, "candidates": table},
+                "params": _jsonable_params(state.params),
+                "heldout_rmsre_before": cur.rmsre,
+                "heldout_rmsre_after": ho.rmsre,
+            }
+        )
+        figure_data.append(_residual_panel(pool, prev_state, best, cur, state))
+        say(
+            f"[{terrain}] + {best}: held-out RMSRE trans {cur.rmsre['translational']:.4f} -> "
+            f"{ho.rmsre['translational']:.4f}, rot {cur.rmsre['rotational']:.4f} -> "
+            f"{ho.rmsre['rotational']:.4f}"
+        )
+        cur = ho
+    message = NO_EFFECT_MESSAGE if not effects else "missing effect(s) found: " + ", ".join(effects)
+    if effects and len(effects) < settings.max_effects:
+        message += "; no further effect earns its place"
+    say(f"[{terrain}] {message}")
+    final = {
+        "effects": list(effects),
+        "params": _jsonable_params(state.params),
+        "base_params": state.base.get_params(),
+        "heldout_rmsre": cur.rmsre,
+        "heldout_mse": dict(zip(CHANNELS, map(float, cur.mse), strict=True)),
+    }
+    return TerrainDiscovery(
+        terrain,
+        base_name,
+        effects,
+        steps,
+        base_info,
+        final,
+        message,
+        figure_data,
+        rejected,
+        time.perf_counter() - t_start,
+    )
+
+
+def _residual_panel(
+    pool: Pool, state: FitState, eid: str | None, ho: HeldOut, after: FitState | None
+) -> dict:
+    """Binned held-out residual of the effect's channel against the feature that revealed it."""
+    if eid is None:
+        return {}
+    e = CATALOGUE[eid]
+    ch = 2 if e.channel < 0 else e.channel
+    x = revealing_feature(eid, state.feats, state.base_pred)
+    r = (pool.target - ho.pred)[:, ch]
+    m = pool.valid & np.isfinite(x)
+    x, r = x[m], r[m]
+    out = {"effect": eid, "channel": CHANNELS[ch], "feature": e.feature_label, "accepted": after is not None}
+    if len(x) < 10:
+        return out
+    qs = np.unique(np.quantile(x, np.linspace(0, 1, 21)))
+    idx = np.clip(np.searchsorted(qs, x, side="right") - 1, 0, len(qs) - 2)
+    bx = np.array([x[idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(qs) - 1)])
+    by = np.array([r[idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(qs) - 1)])
+    be = np.array(
+        [
+            r[idx == i].std() / max(1, np.sum(idx == i)) ** 0.5 if np.any(idx == i) else np.nan
+            for i in range(len(qs) - 1)
+        ]
+    )
+    out.update({"bin_x": bx.tolist(), "bin_y": by.tolist(), "bin_se": be.tolist()})
+    if after is not None:  # the correction the effect adds (relative to the previous model), binned
+        delta = (after.pred - state.pred)[:, ch][m]
+        out["bin_fit"] = [
+            float(delta[idx == i].mean()) if np.any(idx == i) else float("nan") for i in range(len(qs) - 1)
+        ]
+    return out

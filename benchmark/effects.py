@@ -1,0 +1,281 @@
+"""The catalogue of named physical effects used by discrepancy discovery (SPEC.md "Discrepancy
+discovery"). The ids are part of the public contract.
+
+Every effect is a parametric augmentation of a base model's predicted body velocities (vx, vy, wz),
+built only from what every data source has: the commanded inputs (``cmd_v``, ``cmd_w``, ``cmd_wl``,
+``cmd_wr``, ``cmd_dwl``, ``cmd_dwr``) and the base model's own prediction. No wheel encoders, no IMU.
+
+An augmented model is evaluated in a fixed order, so that adding effects never depends on the order
+in which discovery found them:
+
+1. ``actuator_lag`` (an input transform): every command channel passes through a causal first-order
+   lag ``tau * dy/dt = u - y``, restarted at each sequence start; the command derivatives become
+   ``(u - y) / tau``. The base model then predicts from the lagged commands.
+2. multiplicative yaw-rate factors on the base prediction (``curvature_dependent_icr``,
+   ``speed_dependent_turn_slip``);
+3. additive corrections (the others).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+CMD_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr")
+
+
+@dataclass(frozen=True)
+class Effect:
+    id: str
+    explanation: str  # one sentence, shown to the user
+    formula: str  # the augmentation, as printed
+    param_names: tuple[str, ...]
+    channel: int  # 0 vx, 1 vy, 2 wz: the velocity channel it changes (-1: all, an input transform)
+    kind: str  # "input" | "mult" | "add"
+    init: tuple[float, ...] = field(default=())
+    feature_label: str = ""  # what the residual is plotted against in the figure
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+
+CATALOGUE: dict[str, Effect] = {
+    e.id: e
+    for e in [
+        Effect(
+            "angular_acceleration_slip",
+            "When the robot is asked to spin up, the wheels must push the body sideways against "
+            "friction to create angular momentum, so they slip and the yaw rate falls short of the "
+            "commanded rate in proportion to the commanded angular acceleration (the paper's Fig. 5).",
+            "wz -= k * dw_cmd/dt",
+            ("k",),
+            2,
+            "add",
+            (0.0,),
+            "commanded angular acceleration (rad/s^2)",
+        ),
+        Effect(
+            "linear_acceleration_slip",
+            "Accelerating the robot's mass takes traction force, which the tyres only produce by "
+            "slipping, so forward speed falls short in proportion to the commanded linear acceleration.",
+            "vx -= k * dv_cmd/dt",
+            ("k",),
+            0,
+            "add",
+            (0.0,),
+            "commanded linear acceleration (m/s^2)",
+        ),
+        Effect(
+            "actuator_lag",
+            "Motors, drivers and the velocity controller cannot change wheel speed instantly, so the "
+            "robot follows its commands through a first-order lag with one time constant for both "
+            "channels.",
+            "u_lagged: tau * du/dt = u_cmd - u (both channels, per sequence, causal)",
+            ("tau",),
+            -1,
+            "input",
+            (0.1,),
+            "commanded acceleration (m/s^2, rad/s^2 scaled)",
+        ),
+        Effect(
+            "centripetal_side_slip",
+            "In a turn the tyres must supply the centripetal force m v w, and the lateral slip this "
+            "takes makes the body skid outward with a lateral velocity proportional to v * w.",
+            "vy += k * vx * wz",
+            ("k",),
+            1,
+            "add",
+            (0.0,),
+            "v * w (m/s * rad/s)",
+        ),
+        Effect(
+            "side_asymmetry",
+            "Left and right sides with different effective wheel radii (tyre pressure, wear, load) "
+            "turn straight-line driving into a yaw rate proportional to forward speed.",
+            "wz += k * v_cmd",
+            ("k",),
+            2,
+            "add",
+            (0.0,),
+            "commanded linear velocity (m/s)",
+        ),
+        Effect(
+            "curvature_dependent_icr",
+            "Tight turns need more lateral scrubbing than wide ones, so the ICR coefficient chi grows "
+            "as the turning radius shrinks, chi = 1 + b1 / (1 + b2 sqrt|R|) (Wang et al., eq. 3).",
+            "wz /= 1 + b1 / (1 + b2 * sqrt|R_cmd|)",
+            ("b1", "b2"),
+            2,
+            "mult",
+            (0.3, 1.0),
+            "commanded turning radius |R| (m)",
+        ),
+        Effect(
+            "lateral_drift",
+            "A constant lateral velocity, as when the robot slides down a side slope or a crowned road "
+            "while driving.",
+            "vy += c",
+            ("c",),
+            1,
+            "add",
+            (0.0,),
+            "sample (time order)",
+        ),
+        Effect(
+            "speed_dependent_turn_slip",
+            "At higher forward speed the tyres already carry more longitudinal slip, so they grip less "
+            "sideways and the yaw-rate deficit of a turn grows with forward speed.",
+            "wz *= 1 - k * |v_cmd|",
+            ("k",),
+            2,
+            "mult",
+            (0.0,),
+            "|v_cmd| * w_pred (m/s * rad/s)",
+        ),
+    ]
+}
+
+EFFECT_IDS: tuple[str, ...] = tuple(CATALOGUE)
+
+
+# -- inputs -------------------------------------------------------------------------------------
+
+
+def lag_filter(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.DataFrame:
+    """Commands through a causal first-order lag with time constant ``tau`` (s), restarted at each
+    group (sequence) start with the first command (a robot at rest starts where it is told).
+    Returns a copy with ``cmd_*`` replaced and ``cmd_dwl``/``cmd_dwr`` = (u - y) / tau."""
+    out = table.copy()
+    t = table["t"].to_numpy(float)
+    u = table[list(CMD_COLUMNS)].to_numpy(float)
+    y = np.empty_like(u)
+    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
+    ends = np.r_[starts[1:], len(t)]
+    for a, b in zip(starts, ends, strict=True):
+        y[a] = u[a]
+        if b - a < 2:
+            continue
+        dt = np.diff(t[a:b])
+        alpha = 1.0 - np.exp(-dt / max(tau, 1e-6))  # exact zero-order-hold discretisation
+        seg_u = u[a + 1 : b]
+        prev = u[a].copy()
+        # a first-order recursion y_k = y_{k-1} + alpha_k (u_k - y_{k-1}); alpha varies only with dt
+        if np.allclose(alpha, alpha[0]):
+            from scipy.signal import lfilter
+
+            al = float(alpha[0])
+            zi = ((1.0 - al) * prev)[None, :]
+            y[a + 1 : b] = lfilter([al], [1.0, -(1.0 - al)], seg_u, axis=0, zi=zi)[0]
+        else:  # non-uniform clock: plain loop (rare)
+            for k in range(len(seg_u)):
+                prev = prev + alpha[k] * (seg_u[k] - prev)
+                y[a + 1 + k] = prev
+    for j, c in enumerate(CMD_COLUMNS):
+        out[c] = y[:, j]
+    out["cmd_dwl"] = (u[:, 2] - y[:, 2]) / max(tau, 1e-6)
+    out["cmd_dwr"] = (u[:, 3] - y[:, 3]) / max(tau, 1e-6)
+    return out
+
+
+def command_features(table: pd.DataFrame, wheel_radius: float, track_width: float) -> dict[str, np.ndarray]:
+    """Commanded quantities every effect is built from (after any input transform)."""
+    r, B = wheel_radius, track_width
+    v = table["cmd_v"].to_numpy(float)
+    w = table["cmd_w"].to_numpy(float)
+    dwl = table["cmd_dwl"].to_numpy(float)
+    dwr = table["cmd_dwr"].to_numpy(float)
+    dv = r * (dwl + dwr) / 2.0
+    dw = r * (dwr - dwl) / B
+    with np.errstate(divide="ignore", invalid="ignore"):
+        R = np.where(np.abs(w) > 1e-6, np.abs(v) / np.abs(w), np.inf)
+    return {"v": v, "w": w, "dv": dv, "dw": dw, "R": R}
+
+
+# -- corrections --------------------------------------------------------------------------------
+
+
+def mult_factor(eid: str, p: np.ndarray, f: dict[str, np.ndarray]) -> np.ndarray:
+    """The yaw-rate factor of a multiplicative effect."""
+    if eid == "curvature_dependent_icr":
+        b1, b2 = float(p[0]), abs(float(p[1]))
+        sq = np.sqrt(np.where(np.isfinite(f["R"]), f["R"], 1e12))
+        return 1.0 / (1.0 + b1 / (1.0 + b2 * sq))
+    if eid == "speed_dependent_turn_slip":
+        return 1.0 - float(p[0]) * np.abs(f["v"])
+    raise KeyError(eid)
+
+
+def additive(eid: str, p: np.ndarray, f: dict[str, np.ndarray], pred: np.ndarray) -> np.ndarray:
+    """The additive correction of an additive effect (on its channel), given the velocity ``pred``
+    after the multiplicative factors."""
+    k = float(p[0])
+    if eid == "angular_acceleration_slip":
+        return -k * f["dw"]
+    if eid == "linear_acceleration_slip":
+        return -k * f["dv"]
+    if eid == "centripetal_side_slip":
+        return k * pred[:, 0] * pred[:, 2]
+    if eid == "side_asymmetry":
+        return k * f["v"]
+    if eid == "lateral_drift":
+        return np.full(len(pred), k)
+    raise KeyError(eid)
+
+
+def apply_effects(
+    base_pred: np.ndarray, feats: dict[str, np.ndarray], params: dict[str, np.ndarray]
+) -> np.ndarray:
+    """Base prediction (on the already lag-filtered inputs) -> augmented prediction."""
+    out = np.array(base_pred, dtype=float, copy=True)
+    for eid, p in params.items():
+        if CATALOGUE[eid].kind == "mult":
+            out[:, 2] *= mult_factor(eid, p, feats)
+    ref = out.copy()
+    for eid, p in params.items():
+        e = CATALOGUE[eid]
+        if e.kind == "add":
+            out[:, e.channel] += additive(eid, p, feats, ref)
+    return out
+
+
+def base_targets(
+    target: np.ndarray, base_pred: np.ndarray, feats: dict[str, np.ndarray], params: dict[str, np.ndarray]
+) -> np.ndarray:
+    """Invert the corrections: what the base model should predict so that the augmented model
+    matches ``target`` (used to refit the base model with the effects in place)."""
+    out = np.array(target, dtype=float, copy=True)
+    fac = np.ones(len(out))
+    for eid, p in params.items():
+        if CATALOGUE[eid].kind == "mult":
+            fac = fac * mult_factor(eid, p, feats)
+    ref = np.array(base_pred, dtype=float, copy=True)
+    ref[:, 2] *= fac
+    for eid, p in params.items():
+        e = CATALOGUE[eid]
+        if e.kind == "add":
+            out[:, e.channel] -= additive(eid, p, feats, ref)
+    safe = np.where(np.abs(fac) > 0.05, fac, np.sign(fac + 1e-12) * 0.05)
+    out[:, 2] /= safe
+    return out
+
+
+def revealing_feature(eid: str, feats: dict[str, np.ndarray], pred: np.ndarray) -> np.ndarray:
+    """What the residual of the effect's channel is plotted against (the evidence in the figure)."""
+    if eid == "angular_acceleration_slip":
+        return feats["dw"]
+    if eid in ("linear_acceleration_slip", "actuator_lag"):
+        return feats["dv"]
+    if eid == "centripetal_side_slip":
+        return pred[:, 0] * pred[:, 2]
+    if eid == "side_asymmetry":
+        return feats["v"]
+    if eid == "curvature_dependent_icr":
+        return np.minimum(feats["R"], 10.0)
+    if eid == "lateral_drift":
+        return np.arange(len(pred), dtype=float)
+    if eid == "speed_dependent_turn_slip":
+        return np.abs(feats["v"]) * pred[:, 2]
+    raise KeyError(eid)

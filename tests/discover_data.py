@@ -1,0 +1,264 @@
+"""Data with a hidden effect, for the discovery tests (and for trying ``skidbench discover`` by hand).
+
+A Jackal-sized robot driven by joystick-like commands (targets held for 0.7-3.5 s, reached under
+acceleration limits that change from segment to segment: gentle and aggressive starts, straight runs,
+wide and spot turns, some reversing) moves by the extended differential drive (ICR coefficient chi)
+plus exactly the effects asked for. The generator writes the effects in their physical form, not in
+the form discovery fits (wheel radii that differ, a motor lag per wheel, chi computed from the
+*actual* turning radius, a saturating speed law), and the ground truth is what a visual-odometry
+system would deliver: poses at 20 Hz with a slowly drifting scale/heading error (about 0.4 % of
+distance, as the paper's loop-closure check) and white jitter (3 mm, 0.2 deg).
+
+Two outputs: split-like tables (what the split stage writes) and the AMRL text layout
+(``<root>/<Terrain>/<Train|ConstantVel|LongDistance>/<cmd|loc>/N.txt``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+R_WHEEL = 0.098
+TRACK = 0.37559
+CHI = 1.5
+
+# moderate sizes: each removes a few percent to a few tens of percent of the base model's error
+DEFAULT_SIZES = {
+    "angular_acceleration_slip": 0.025,  # s: wz shortfall per rad/s^2 commanded
+    "linear_acceleration_slip": 0.04,  # s
+    "actuator_lag": 0.08,  # s, motor time constant
+    "centripetal_side_slip": 0.03,  # s: vy per (m/s * rad/s)
+    "side_asymmetry": 0.004,  # relative wheel-radius difference left/right
+    "curvature_dependent_icr": (0.6, 1.0),  # Wang et al. b1, b2
+    "lateral_drift": 0.012,  # m/s
+    "speed_dependent_turn_slip": 0.12,  # 1/(m/s)
+}
+
+
+def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "train"):
+    """Commands (t, v, w) on a fine clock: targets held for a while, reached under varying limits."""
+    n = int(round(duration / dt)) + 1
+    t = np.arange(n) * dt
+    v = np.zeros(n)
+    w = np.zeros(n)
+    tv = tw = 0.0
+    av = aw = 1.0
+    t_next = 0.0
+    for i in range(1, n):
+        if t[i] >= t_next:
+            if kind == "cv":  # constant-velocity segments at several radii
+                tv = rng.choice([0.3, 0.6, 1.0, 1.4])
+                tw = rng.choice([-1.0, 1.0]) * tv / rng.choice([0.3, 0.6, 1.2, 2.5, 5.0])
+                hold = rng.uniform(4.0, 7.0)
+            else:
+                u = rng.uniform()
+                tv = rng.uniform(0.2, 1.6) if u < 0.85 else rng.uniform(-0.6, 0.0)
+                mode = rng.uniform()
+                if mode < 0.2:
+                    tw = 0.0
+                elif mode < 0.35:
+                    tv, tw = rng.uniform(-0.15, 0.15), rng.choice([-1, 1]) * rng.uniform(1.0, 2.8)
+                else:
+                    tw = rng.choice([-1, 1]) * rng.uniform(0.2, 2.4)
+                hold = rng.uniform(0.7, 3.5)
+            av = rng.uniform(0.5, 4.0)
+            aw = rng.uniform(1.0, 9.0)
+            t_next = t[i] + hold
+        v[i] = v[i - 1] + np.clip(tv - v[i - 1], -av * dt, av * dt)
+        w[i] = w[i - 1] + np.clip(tw - w[i - 1], -aw * dt, aw * dt)
+    return t, v, w
+
+
+def true_velocity(t, v, w, effects: dict[str, object], accel=None):
+    """Body velocities of the robot: edd (chi) + the given effects in physical form. ``accel``: the
+    commanded (dv/dt, dw/dt) of the joystick profile (default: differentiate v, w)."""
+    dv, dw = accel if accel is not None else (np.gradient(v, t), np.gradient(w, t))
+    dt = np.diff(t, prepend=t[0] - (t[1] - t[0]))
+    wl = (v - w * TRACK / 2) / R_WHEEL
+    wr = (v + w * TRACK / 2) / R_WHEEL
+    if "actuator_lag" in effects:  # each wheel's motor: first-order response
+        tau = float(effects["actuator_lag"])
+        from scipy.signal import lfilter
+
+        a = 1 - np.exp(-float(np.median(dt)) / tau)
+        wl = lfilter([a], [1, a - 1], wl, zi=[(1 - a) * wl[0]])[0]
+        wr = lfilter([a], [1, a - 1], wr, zi=[(1 - a) * wr[0]])[0]
+    rl = rr = R_WHEEL
+    if "side_asymmetry" in effects:
+        e = float(effects["side_asymmetry"])
+        rl, rr = R_WHEEL * (1 - e), R_WHEEL * (1 + e)
+    vx = (rl * wl + rr * wr) / 2
+    turn = (rr * wr - rl * wl) / TRACK  # ideal yaw rate
+    chi = np.full(len(t), CHI)
+    if "curvature_dependent_icr" in effects:
+        b1, b2 = effects["curvature_dependent_icr"]
+        chi = np.full(len(t), 1.0 + b1)
+        for _ in range(6):  # chi of the actual radius |vx / wz|
+            wz = turn / chi
+            with np.errstate(divide="ignore", invalid="ignore"):
+                R = np.where(np.abs(wz) > 1e-6, np.abs(vx) / np.abs(wz), 1e6)
+            chi = 1.0 + b1 / (1.0 + b2 * np.sqrt(R))
+    wz = turn / chi
+    if "speed_dependent_turn_slip" in effects:
+        wz = wz / (1.0 + float(effects["speed_dependent_turn_slip"]) * np.abs(vx))
+    if "angular_acceleration_slip" in effects:
+        wz = wz - float(effects["angular_acceleration_slip"]) * dw
+    if "linear_acceleration_slip" in effects:
+        vx = vx - float(effects["linear_acceleration_slip"]) * dv
+    vy = np.zeros(len(t))
+    if "centripetal_side_slip" in effects:
+        vy = vy + float(effects["centripetal_side_slip"]) * vx * wz
+    if "lateral_drift" in effects:
+        vy = vy + float(effects["lateral_drift"])
+    return vx, vy, wz
+
+
+def integrate(t, vx, vy, wz):
+    from skidbench.pipeline.geometry import integrate_body_velocity
+
+    vel = np.column_stack([vx, vy, wz])
+    return integrate_body_velocity(np.zeros(3), vel[:-1], np.diff(t))
+
+
+def vo_poses(rng, t_true, pose, rate_hz=20.0, drift=0.004, jitter_m=0.003, jitter_rad=0.0035):
+    """Visual-odometry-like measurement of a true trajectory at ``rate_hz``."""
+    t = np.arange(t_true[0], t_true[-1], 1.0 / rate_hz)
+    x = np.interp(t, t_true, pose[:, 0])
+    y = np.interp(t, t_true, pose[:, 1])
+    yaw = np.interp(t, t_true, pose[:, 2])
+    from skidbench.pipeline.geometry import se2_relative
+
+    true = np.column_stack([x, y, yaw])
+    rel = se2_relative(true[:-1], true[1:])  # per-frame motion
+    # drift: slowly varying scale and heading errors of the frame-to-frame motion
+    k = len(rel)
+    scale = 1 + np.cumsum(rng.normal(0, drift / 8, k)).clip(-3 * drift, 3 * drift) + rng.normal(0, drift)
+    rscale = 1 + np.cumsum(rng.normal(0, drift / 8, k)).clip(-3 * drift, 3 * drift) + rng.normal(0, drift)
+    meas_rel = rel * scale[:, None]
+    meas_rel[:, 2] = rel[:, 2] * rscale
+    est = np.empty_like(true)
+    est[0] = true[0]
+    for i in range(k):  # compose the measured frame-to-frame motions (exact, no re-linearisation)
+        c, sn = np.cos(est[i, 2]), np.sin(est[i, 2])
+        est[i + 1, 0] = est[i, 0] + c * meas_rel[i, 0] - sn * meas_rel[i, 1]
+        est[i + 1, 1] = est[i, 1] + sn * meas_rel[i, 0] + c * meas_rel[i, 1]
+        est[i + 1, 2] = est[i, 2] + meas_rel[i, 2]
+    est[:, 0] += rng.normal(0, jitter_m, len(t))
+    est[:, 1] += rng.normal(0, jitter_m, len(t))
+    est[:, 2] += rng.normal(0, jitter_rad, len(t))
+    return t, est
+
+
+def sequence(rng, effects, duration=45.0, kind="train", cmd_hz=45.0):
+    """One sequence: commands at ``cmd_hz`` and VO poses at 20 Hz (both with times in s)."""
+    dt = 1.0 / 180.0
+    t, v, w = joystick(rng, duration, dt, kind)
+    step = int(round(1.0 / (cmd_hz * dt)))
+    hold = (np.arange(len(t)) // step) * step  # the robot executes each command message until the next
+    vx, vy, wz = true_velocity(t, v[hold], w[hold], effects, accel=(np.gradient(v, t), np.gradient(w, t)))
+    pose = integrate(t, vx, vy, wz)
+    tl, loc = vo_poses(rng, t, pose)
+    cmd = pd.DataFrame({"t": t[::step], "v": v[::step], "w": w[::step]})
+    return cmd, pd.DataFrame({"t": tl, "x": loc[:, 0], "y": loc[:, 1], "yaw": loc[:, 2]})
+
+
+def to_split(cmd: pd.DataFrame, loc: pd.DataFrame, rate_hz: float = 30.0) -> pd.DataFrame:
+    """What the split stage makes of one sequence: uniform clock, ZOH commands, smoothed
+    ground-truth velocities from the poses (central differences over +-2 samples)."""
+    from scipy.signal import savgol_filter
+
+    t0 = max(cmd.t.iloc[0], loc.t.iloc[0])
+    t1 = min(cmd.t.iloc[-1], loc.t.iloc[-1])
+    t = np.arange(t0, t1, 1.0 / rate_hz)
+    idx = np.clip(np.searchsorted(cmd.t.to_numpy(), t, side="right") - 1, 0, len(cmd) - 1)
+    v, w = cmd.v.to_numpy()[idx], cmd.w.to_numpy()[idx]
+    x = np.interp(t, loc.t, loc.x)
+    y = np.interp(t, loc.t, loc.y)
+    yaw = np.interp(t, loc.t, np.unwrap(loc.yaw))
+    win = 9
+    dx = savgol_filter(x, win, 2, deriv=1, delta=1 / rate_hz)
+    dy = savgol_filter(y, win, 2, deriv=1, delta=1 / rate_hz)
+    wz = savgol_filter(yaw, win, 2, deriv=1, delta=1 / rate_hz)
+    c, s = np.cos(yaw), np.sin(yaw)
+    wl = (v - w * TRACK / 2) / R_WHEEL
+    wr = (v + w * TRACK / 2) / R_WHEEL
+    return pd.DataFrame(
+        {
+            "t": t - t[0],
+            "stamp_ns": (t * 1e9).astype(np.int64),
+            "cmd_v": v,
+            "cmd_w": w,
+            "cmd_wl": wl,
+            "cmd_wr": wr,
+            "cmd_dwl": np.gradient(wl, t),
+            "cmd_dwr": np.gradient(wr, t),
+            "enc_wl": np.full(len(t), np.nan),
+            "enc_wr": np.full(len(t), np.nan),
+            "x": x,
+            "y": y,
+            "yaw": yaw,
+            "vx": c * dx + s * dy,
+            "vy": -s * dx + c * dy,
+            "wz": wz,
+            "valid": np.ones(len(t), bool),
+        }
+    )
+
+
+def dataset(effects: dict[str, object], seed: int, n_train: int = 10, duration: float = 40.0):
+    """Raw sequences {category: [(cmd, loc), ...]} with the given hidden effects."""
+    rng = np.random.default_rng(seed)
+    return {
+        "train": [sequence(rng, effects, duration) for _ in range(n_train)],
+        "cv": [sequence(rng, effects, 30.0, "cv")],
+        "ld": [sequence(rng, effects, 60.0)],
+    }
+
+
+def hidden(names: list[str] | tuple[str, ...]) -> dict[str, object]:
+    return {n: DEFAULT_SIZES[n] for n in names}
+
+
+def split_tables(raw) -> list[tuple[pd.DataFrame, dict]]:
+    return [(to_split(c, lo), {"sequence": f"train_{i:02d}"}) for i, (c, lo) in enumerate(raw["train"])]
+
+
+def write_splits(raw, root: Path, terrain: str = "tile") -> Path:
+    """Write split Parquet files (``<root>/<terrain>/<split>/<seq>.parquet``); returns root."""
+    from skidbench.pipeline.schema import write_split
+
+    for cat, seqs in raw.items():
+        for i, (c, lo) in enumerate(seqs):
+            name = f"{terrain}_{cat}_{i:02d}"
+            meta = {
+                "sequence": name,
+                "terrain": terrain,
+                "split": cat,
+                "robot": "jackal",
+                "sources": {},
+                "rate_hz": 30.0,
+            }
+            write_split(to_split(c, lo), Path(root) / terrain / cat / f"{name}.parquet", meta)
+    return Path(root)
+
+
+AMRL_DIRS = {"train": "Train", "cv": "ConstantVel", "ld": "LongDistance"}
+
+
+def write_amrl(raw, root: Path, terrain: str = "Tile", t0: float = 1_600_000_000.0) -> Path:
+    """The AMRL release layout: cmd rows ``v_x v_y v_z w_x w_y w_z time_s``, loc rows
+    ``time_s x y heading`` (no header; comma-separated)."""
+    for cat, seqs in raw.items():
+        for i, (c, lo) in enumerate(seqs):
+            base = Path(root) / terrain / AMRL_DIRS[cat]
+            (base / "cmd").mkdir(parents=True, exist_ok=True)
+            (base / "loc").mkdir(parents=True, exist_ok=True)
+            z = np.zeros(len(c))
+            cm = np.column_stack([c.v, z, z, z, z, c.w, c.t + t0 + 1000 * i])
+            np.savetxt(base / "cmd" / f"{i + 1}.txt", cm, fmt="%.6f", delimiter=",")
+            yaw = (lo.yaw.to_numpy() + np.pi) % (2 * np.pi) - np.pi
+            lc = np.column_stack([lo.t + t0 + 1000 * i, lo.x, lo.y, yaw])
+            np.savetxt(base / "loc" / f"{i + 1}.txt", lc, fmt="%.6f", delimiter=",")
+    return Path(root)
