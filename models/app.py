@@ -22,9 +22,15 @@ log = logging.getLogger(__name__)
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="fit")
 @stage("fit")
 def main(cfg: DictConfig) -> None:
+    from omegaconf import OmegaConf
     from omegaconf.errors import MissingMandatoryValue
 
-    from .fitting import fit_model
+    from skidbench.pipeline.cache import Stamp
+    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.schema import list_split_files
+
+    from .fitting import fit_model, model_config
+    from .registry import get_model_class
 
     try:
         terrain = str(cfg.terrain)
@@ -33,12 +39,58 @@ def main(cfg: DictConfig) -> None:
             "fit: no terrain given; add terrain=<t> (a folder under <dataset>/splits/)"
         ) from None
     name = str(cfg.model.name)
-    res = fit_model(cfg, name, terrain, reuse=bool(cfg.get("reuse", False)), split=str(cfg.split))
+    split = str(cfg.split)
+    layout = layout_from_cfg(cfg)
+    # the stamp (skidbench.pipeline.cache): the split files fitted on, the model's config and version, robot
+    stamp = Stamp(layout.root / ".stamps" / "fit" / name / f"{terrain}.json", "fit")
+    key = stamp.key(
+        list_split_files(layout.splits, terrain, split),
+        {
+            "model": model_config(cfg, name),
+            "version": getattr(get_model_class(name), "version", "?"),
+            "robot": OmegaConf.to_container(cfg.robot, resolve=True),
+            "terrain": terrain,
+            "split": split,
+        },
+    )
+    if bool(cfg.get("reuse", True)) and stamp.is_fresh(key):
+        print(f"fit: {name}/{terrain} up to date, skipped ({layout.fit_file(name, terrain)})", flush=True)
+        return
+    res = fit_model(cfg, name, terrain, reuse=False, split=split)
+    stamp.record(key, [res.path])
     msg = (
         f"fit {name} on {terrain}: {res.n_train} rows, loss {res.fit_loss:.6g}, {res.fit_time_s:.2f} s, "
         f"params {res.model.params} -> {res.path}"
     )
     log.info(msg)
+    if bool(cfg.get("track", True)):
+        log_fit_run(cfg, layout, name, terrain, res)
+
+
+def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
+    """One MLflow run for this fit (benchmark/tracking.py), tagged with model, terrain and the sweep id."""
+    from skidbench.benchmark import tracking as trk
+    from skidbench.benchmark.sweep import TAG_SWEEP, sweep_id
+
+    tracker = trk.tracker_from_cfg(cfg, layout)
+    tags = {
+        trk.TAG_ROLE: "fit",
+        trk.TAG_MODEL: name,
+        trk.TAG_TERRAIN: terrain,
+        trk.TAG_DATASET: str(cfg.dataset),
+        trk.TAG_MODEL_VERSION: str(getattr(res.model, "version", "unknown")),
+        TAG_SWEEP: sweep_id(),
+        trk.TAG_GIT: trk.git_commit(),
+    }
+    with tracker.run(f"fit {name}/{terrain}", tags) as run_id:
+        params = {"model": name, "terrain": terrain, "split": str(cfg.split)}
+        params.update({f"param.{k}": v for k, v in trk.flatten(dict(res.model.params or {})).items()})
+        metrics = {"fit_time_s": res.fit_time_s, "n_train": res.n_train}
+        if res.fit_loss is not None:
+            metrics["fit_loss"] = res.fit_loss
+        tracker.log(run_id, params=params, metrics=metrics)
+        tracker.artifact(run_id, res.path, "fit")
+    return run_id
 
 
 if __name__ == "__main__":
