@@ -15,8 +15,23 @@ log = logging.getLogger(__name__)
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="evaluate")
 @stage("evaluate")
 def main(cfg: DictConfig) -> None:
+    from skidbench.pipeline.cache import Stamp
+    from skidbench.pipeline.layout import layout_from_cfg
+
     from .evaluate import format_result, run_benchmark
 
+    layout = layout_from_cfg(cfg)
+    stamp = Stamp(layout.root / ".stamps" / "evaluate" / "evaluate.json", "evaluate")
+    if not cfg.get("force", False) and stamp.is_fresh(_stamp_key(cfg, layout, stamp)):
+        cached = _cached_result(cfg, layout, stamp)
+        if cached is not None:
+            print(format_result(cached), flush=True)
+            print(
+                f"evaluate: inputs unchanged (split files, fits, config) and parent run "
+                f"{cached.parent_run_id} exists; skipped (force=true re-runs)",
+                flush=True,
+            )
+            return
     result = run_benchmark(cfg)
     print(format_result(result), flush=True)
     if result.failed:
@@ -25,6 +40,41 @@ def main(cfg: DictConfig) -> None:
             len(result.failed),
             len(result.children),
         )
+    else:  # the key is taken after the run: the fits it (re)wrote are part of it
+        stamp.record(_stamp_key(cfg, layout, stamp), [layout.eval / "last_evaluate.json"])
+
+
+def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
+    """Evaluate's inputs: every split file, every fit of the configured models, and the whole config."""
+    from omegaconf import OmegaConf
+
+    from skidbench.pipeline.schema import list_split_files
+
+    files = list_split_files(layout.splits)
+    files += sorted(p for m in cfg.models for p in (layout.fits / str(m)).glob("*.json"))
+    return stamp.key(files, OmegaConf.to_container(cfg, resolve=True))
+
+
+def _cached_result(cfg: DictConfig, layout, stamp):
+    """The last result when its parent run still exists in the configured MLflow store, else None."""
+    import json
+
+    from . import tracking as trk
+    from .evaluate import BenchmarkResult, ChildResult
+
+    try:
+        last = json.loads((layout.eval / "last_evaluate.json").read_text())
+        tracker = trk.tracker_from_cfg(cfg, layout)
+        if last.get("tracking_uri") != tracker.uri:
+            return None
+        run = tracker.client.get_run(last["parent_run_id"])
+        if run.info.lifecycle_stage != "active" or run.info.experiment_id != tracker.experiment_id:
+            return None
+    except Exception as exc:  # no such run / store: evaluate again
+        log.info("evaluate: cached result not usable (%s); re-running", type(exc).__name__)
+        return None
+    children = [ChildResult(**c) for c in last.get("children", [])]
+    return BenchmarkResult(last["tracking_uri"], last["experiment"], last["parent_run_id"], children)
 
 
 if __name__ == "__main__":
