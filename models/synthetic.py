@@ -73,3 +73,32 @@ def label_with(table: pd.DataFrame, velocities: np.ndarray) -> pd.DataFrame:
     df["x"] = np.cumsum((c * vel[:, 0] - s * vel[:, 1]) * dt)
     df["y"] = np.cumsum((s * vel[:, 0] + c * vel[:, 1]) * dt)
     return df
+
+
+def write_train_splits(
+    root, robot, terrains=("tile", "grass"), n: int = 600, chi: float = 1.5, dataset="sim-mini"
+):
+    """Write ``<root>/<dataset>/splits/<terrain>/train/<terrain>_train_0{0,1}.parquet`` (two sequences per
+    terrain, labelled by an extended differential drive with ``chi``). Returns ``root``."""
+    from pathlib import Path
+
+    from skidbench.pipeline.schema import write_split
+
+    from .linear import ExtendedDifferentialDrive
+
+    root = Path(root)
+    for k, terrain in enumerate(terrains):
+        for i in range(2):
+            tab = command_table(robot, n, seed=10 * k + i)
+            tab = label_with(tab, ExtendedDifferentialDrive(robot, {"chi": chi}).predict(tab))
+            seq = f"{terrain}_train_{i:02d}"
+            meta = {
+                "sequence": seq,
+                "terrain": terrain,
+                "split": "train",
+                "robot": robot.name,
+                "sources": {},
+                "rate_hz": 30.0,
+            }
+            write_split(tab, root / dataset / "splits" / terrain / "train" / f"{seq}.parquet", meta)
+    return root

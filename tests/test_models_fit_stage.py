@@ -12,28 +12,8 @@ import numpy as np
 import pytest
 
 from skidbench.models.base import ModelError
-from skidbench.models.linear import ExtendedDifferentialDrive
-from skidbench.models.synthetic import command_table, label_with
+from skidbench.models.synthetic import write_train_splits as make_splits
 from skidbench.pipeline.schema import write_split
-
-
-def make_splits(root: Path, robot, terrains=("tile", "grass"), n=600, chi=1.5) -> Path:
-    """<root>/sim-mini/splits/<terrain>/train/*.parquet labelled by an edd model with ``chi``."""
-    for k, terrain in enumerate(terrains):
-        for i in range(2):
-            tab = command_table(robot, n, seed=10 * k + i)
-            tab = label_with(tab, ExtendedDifferentialDrive(robot, {"chi": chi}).predict(tab))
-            seq = f"{terrain}_train_{i:02d}"
-            meta = {
-                "sequence": seq,
-                "terrain": terrain,
-                "split": "train",
-                "robot": "jackal",
-                "sources": {},
-                "rate_hz": 30.0,
-            }
-            write_split(tab, root / "sim-mini" / "splits" / terrain / "train" / f"{seq}.parquet", meta)
-    return root
 
 
 def compose(out_root: Path, overrides=()):
