@@ -70,7 +70,8 @@ def test_cli_sweep_fits_every_model_and_terrain(tmp_path, jackal):
     p = run_cli(["fit", "-m", "model=edd,full_linear", "terrain=tile,grass"], tmp_path)
     assert p.returncode == 0, p.stderr
     fits = sorted(
-        str(f.relative_to(tmp_path / "sim-mini" / "fits")) for f in (tmp_path / "sim-mini").rglob("*.json")
+        str(f.relative_to(tmp_path / "sim-mini" / "fits"))
+        for f in (tmp_path / "sim-mini" / "fits").rglob("*.json")
     )
     assert fits == ["edd/grass.json", "edd/tile.json", "full_linear/grass.json", "full_linear/tile.json"]
 
