@@ -181,7 +181,10 @@ def discover_sequences(source: Mapping[str, Any]) -> tuple[Manifest, bool]:
     if (root / "manifest.json").is_file():
         return Manifest.read(root / "manifest.json"), True
     if not root.exists():
-        raise ConfigError(f"{root}: no such file or folder; set source.root")
+        raise ConfigError(
+            f"{root}: no such file or folder; run `skidbench simulate` first for the simulated dataset, "
+            "or give your bags with source=bag source.root=<folder or bag>"
+        )
     if root.is_file() or bag_format(root) == ROS2:
         terrain, category = source.get("terrain"), source.get("category")
         if not terrain or not category:
