@@ -47,7 +47,8 @@ DEFAULTS = {
     "wall_texel_m": 0.01,
     "n_boxes": 8,  # per world period
     "n_posts": 6,
-    "hide_margin_m": 0.6,
+    "hide_margin_m": 1.5,  # boxes closer to the camera than this are not drawn ...
+    "fade_m": 2.0,  # ... and fade in over this distance beyond it (the robot may drive through them)
     "max_range_m": 16.0,
     "fog_m": 40.0,  # contrast halves at ~0.7 * fog_m
     "near_m": 0.05,
@@ -295,8 +296,13 @@ class StereoRenderer:
         R = float(self.opts["max_range_m"])
         m = float(self.opts["hide_margin_m"])
         d = np.abs(self._inst[:, :2] - cam_xy)
-        keep = np.all(d < R + self._inst_h, axis=1) & ~np.all(d < self._inst_h + m, axis=1)
-        return [(bx, by, self.boxes[int(k)]) for bx, by, k in self._inst[keep]]
+        gap = np.max(d - self._inst_h, axis=1)  # distance of the camera from the footprint (Chebyshev)
+        keep = np.all(d < R + self._inst_h, axis=1) & (gap > m)
+        alpha = np.clip((gap - m) / max(float(self.opts["fade_m"]), 1e-6), 0.0, 1.0)
+        return [
+            (bx, by, self.boxes[int(k)], a)
+            for (bx, by, k), a in zip(self._inst[keep], alpha[keep], strict=True)
+        ]
 
     def _in_view(self, boxes, R_c_w, t_c_w):
         """Frustum culling: keep boxes with a corner in front of the camera and not all off one side."""
@@ -304,7 +310,7 @@ class StereoRenderer:
             return boxes
         K = self.K
         out = []
-        for bx, by, b in boxes:
+        for bx, by, b, a in boxes:
             xs = (bx - b.hx, bx + b.hx)
             ys = (by - b.hy, by + b.hy)
             c = np.array([[x, y, z] for x in xs for y in ys for z in (0.0, b.h)]) @ R_c_w.T + t_c_w
@@ -314,7 +320,7 @@ class StereoRenderer:
             lim_r = c[:, 2] * (self.width - K[0, 2] + 0.5)
             if np.all(u < 0) or np.all(c[:, 0] * K[0, 0] > lim_r):
                 continue
-            out.append((bx, by, b))
+            out.append((bx, by, b, a))
         return out
 
     def _render_one(self, T_w_c: np.ndarray, boxes, noise: np.ndarray) -> np.ndarray:
@@ -364,12 +370,12 @@ class StereoRenderer:
             f = fog[gmask][:, None]
             img[gmask] = (img[gmask] * f + 150.0 * (1 - f)).astype(np.uint8)
         # ---- boxes: visible vertical faces, z-buffered
-        for bx, by, b in self._in_view(boxes, R_c_w, t_c_w):
-            self._draw_box(img, zbuf, bx, by, b, R_c_w, t_c_w, T_w_c[:3, 3])
+        for bx, by, b, a in self._in_view(boxes, R_c_w, t_c_w):
+            self._draw_box(img, zbuf, bx, by, b, a, R_c_w, t_c_w, T_w_c[:3, 3])
         out = img.astype(np.int16) + noise
         return np.clip(out, 0, 255).astype(np.uint8)
 
-    def _draw_box(self, img, zbuf, bx, by, b: Box, R_c_w, t_c_w, cam):
+    def _draw_box(self, img, zbuf, bx, by, b: Box, alpha, R_c_w, t_c_w, cam):
         H, W = self.height, self.width
         K = self.K
         near = float(self.opts["near_m"])
@@ -434,9 +440,15 @@ class StereoRenderer:
                 borderMode=cv2.BORDER_WRAP,
             )
             f = np.exp(-dist / float(self.opts["fog_m"]))
-            patch = (patch * f + 150.0 * (1 - f)).astype(np.uint8)
-            img[y0:y1, x0:x1][sel] = patch[sel]
-            zbuf[y0:y1, x0:x1][sel] = invz[sel]
+            sub = img[y0:y1, x0:x1]
+            if alpha >= 1.0:
+                sub[sel] = (patch[sel] * f + 150.0 * (1 - f)).astype(np.uint8)
+            else:
+                sub[sel] = (alpha * (patch[sel] * f + 150.0 * (1 - f)) + (1 - alpha) * sub[sel]).astype(
+                    np.uint8
+                )
+            if alpha >= 0.5:
+                zbuf[y0:y1, x0:x1][sel] = invz[sel]
 
 
 def _clip_near(pc: np.ndarray, near: float) -> np.ndarray:
