@@ -177,7 +177,7 @@ def test_standstill_and_one_side_stopped(jackal):
 @pytest.mark.parametrize("name", ["ideal", "edd", "full_linear", "roc", "enhanced", "friction"])
 def test_every_builtin_is_registered_and_round_trips_through_json(jackal, table, name):
     cls = get_model_class(name)
-    m = cls(jackal).fit(table)
+    m = cls(jackal, max_nfev=5).fit(table.iloc[:400])  # max_nfev: only the friction fit iterates
     back = cls.from_json(jackal, json.loads(json.dumps(m.to_json())))
     np.testing.assert_allclose(back.predict(table.iloc[:50]), m.predict(table.iloc[:50]), atol=1e-9)
 

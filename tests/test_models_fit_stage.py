@@ -67,7 +67,7 @@ def run_cli(args, out_root: Path):
 
 def test_cli_sweep_fits_every_model_and_terrain(tmp_path, jackal):
     make_splits(tmp_path, jackal)
-    p = run_cli(["fit", "-m", "model=edd,full_linear", "terrain=tile,grass"], tmp_path)
+    p = run_cli(["fit", "-m", "model=edd,full_linear", "terrain=tile,grass", "track=false"], tmp_path)
     assert p.returncode == 0, p.stderr
     fits = sorted(
         str(f.relative_to(tmp_path / "sim-mini" / "fits"))
@@ -86,7 +86,7 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
     df, meta = read_split(f)
     df.loc[3, "cmd_wl"] = np.nan
     write_split(pd.DataFrame(df), f, meta)
-    p = run_cli(["fit", "model=edd", "terrain=tile"], tmp_path)
+    p = run_cli(["fit", "model=edd", "terrain=tile", "track=false"], tmp_path)
     assert p.returncode == 2
     assert (
         p.stderr.strip().splitlines()[-1]
