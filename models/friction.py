@@ -93,7 +93,7 @@ class FrictionBased(KinematicModel):
         pred, sol = self.velocities(inp)
         # mu_x matters only where eq. (6) saturates; if nothing saturates, any mu_x above the largest
         # lambda |s| fits equally well: keep the initial value (raised to that bound) and say so
-        lam_s = float(self.params["lambda"]) * np.abs(sol.theta[:, :2]).max(initial=0.0)
+        lam_s = float(self.params["lambda"] * np.abs(sol.theta[:, :2]).max(initial=0.0))
         mu_x_identified = bool(np.any(sol.saturated(inp[0], inp[1], self.params)))
         if "mu_x" in names and not mu_x_identified:
             self.params["mu_x"] = max(float(base["mu_x"]), lam_s)
