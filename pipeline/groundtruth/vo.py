@@ -721,8 +721,7 @@ def read_stereo_camera(reader, bag_path: Path, vo: VOConfig) -> StereoCamera:
         raise GroundTruthError(f"{bag_path}: unusable camera_info ({one_line(exc)})") from exc
 
 
-def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """Stream decoded (stamp_ns, left, right) pairs in stamp order; left/right paired by header stamp."""
+def _check_image_topics(reader, bag_path: Path, vo: VOConfig) -> None:
     topics = {c.topic for c in reader.connections}
     for key, topic in (("left_topic", vo.left_topic), ("right_topic", vo.right_topic)):
         if topic not in topics:
@@ -730,6 +729,11 @@ def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[i
                 f"{bag_path}: image topic {topic} not found (topics: {', '.join(sorted(topics))}); "
                 f"set groundtruth.vo.{key}"
             )
+
+
+def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """Stream decoded (stamp_ns, left, right) pairs in stamp order; left/right paired by header stamp."""
+    _check_image_topics(reader, bag_path, vo)
     conns = [c for c in reader.connections if c.topic in (vo.left_topic, vo.right_topic)]
     pending: dict[str, dict[int, Any]] = {vo.left_topic: {}, vo.right_topic: {}}
     other = {vo.left_topic: vo.right_topic, vo.right_topic: vo.left_topic}
@@ -811,6 +815,7 @@ def run_stereo_vo(
     T_b_c = camera_extrinsic(camera_cfg)
     try:
         with _open(bag_path, cfg) as reader:
+            _check_image_topics(reader, bag_path, vocfg)
             camera = read_stereo_camera(reader, bag_path, vocfg)
             engine = StereoVO(camera, vocfg, T_b_c)
             traj = engine.run(iter_stereo_frames(reader, bag_path, vocfg), T_b_c)

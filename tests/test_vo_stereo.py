@@ -1,0 +1,184 @@
+"""Stereo renderer and visual odometry: determinism, stereo geometry, loop closure, frames, bad bags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from skidbench.pipeline.errors import GroundTruthError
+from skidbench.pipeline.geometry import quaternion_from_yaw, se3_from_xyz_rpy
+from skidbench.pipeline.groundtruth.loop import (
+    evaluate_against_truth,
+    loop_error,
+    summarize_loops,
+)
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
+from skidbench.pipeline.groundtruth.vo import (
+    StereoCamera,
+    StereoVO,
+    VOConfig,
+    base_to_camera,
+    camera_extrinsic,
+    camera_to_base,
+    run_stereo_vo,
+)
+from skidbench.pipeline.simulate.render import StereoRenderer
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL = {"ground_texture_px": 2048, "ground_texel_m": 0.005, "wall_texture_px": 512}
+
+
+@pytest.fixture(scope="module")
+def camera_cfg() -> dict:
+    return yaml.safe_load((REPO / "conf" / "robot" / "jackal.yaml").read_text())["camera"]
+
+
+@pytest.fixture(scope="module")
+def renderer(camera_cfg) -> StereoRenderer:
+    return StereoRenderer(camera_cfg, 7, **SMALL)
+
+
+def test_renderer_is_deterministic_and_camera_info_is_a_rectified_pair(camera_cfg, renderer):
+    again = StereoRenderer(camera_cfg, 7, **SMALL)
+    for pose in [(0.3, -1.2, 0.4), (523.1, 88.0, -2.0)]:
+        a, b = renderer.render(*pose), again.render(*pose)
+        assert a[0].dtype == np.uint8 and a[0].shape == (renderer.height, renderer.width)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+        assert renderer.encode(a[0]) == again.encode(b[0])
+    other = StereoRenderer(camera_cfg, 8, **SMALL).render(0.3, -1.2, 0.4)[0]
+    assert not np.array_equal(other, renderer.render(0.3, -1.2, 0.4)[0])
+    info = renderer.camera_info()
+    fx = info["left"]["P"][0][0]
+    assert info["right"]["P"][0][3] == pytest.approx(-fx * camera_cfg["baseline"])
+    assert np.array(info["left"]["K"]).shape == (3, 3) and np.array(info["right"]["P"]).shape == (3, 4)
+
+
+def test_rendered_disparity_matches_fx_b_over_depth(camera_cfg):
+    """Ground points: the measured stereo disparity equals fx b / Z of the known ground geometry."""
+    r = StereoRenderer(camera_cfg, 3, n_boxes=0, n_posts=0, noise_std=0.0, **SMALL)
+    info = r.camera_info()
+    cam = StereoCamera.from_camera_info(info["left"], info["right"])
+    vo = StereoVO(cam, VOConfig(), camera_extrinsic(camera_cfg))
+    errs = []
+    for k in range(3):
+        pose = (1.0 + 2.1 * k, 2.0 - 0.7 * k, 0.3 + 1.1 * k)
+        left, right = r.render(*pose)
+        pts, X, _ = vo._stereo(left, right)
+        T_w_c, _ = r.camera_poses(*pose)
+        rays = np.linalg.inv(cam.K) @ np.column_stack([pts, np.ones(len(pts))]).T
+        Z_true = T_w_c[2, 3] / -(T_w_c[:3, :3] @ rays)[2]
+        d_true = cam.fx * cam.baseline / Z_true
+        errs.append(cam.fx * cam.baseline / X[:, 2] - d_true)
+    e = np.concatenate(errs)
+    assert len(e) > 150
+    assert abs(np.median(e)) < 0.1  # px
+    assert np.median(np.abs(e)) < 0.25
+
+
+def test_base_camera_conversion_round_trips_and_maps_optical_axis(camera_cfg):
+    T_b_c = camera_extrinsic(camera_cfg)
+    rng = np.random.default_rng(0)
+    T = np.stack([se3_from_xyz_rpy(rng.normal(size=3), rng.normal(size=3)) for _ in range(5)])
+    assert np.allclose(camera_to_base(base_to_camera(T, T_b_c), T_b_c), T)
+    # the camera moving 1 m along its optical axis moves the base along that axis (pitched 12 deg down)
+    fwd = np.eye(4)
+    fwd[2, 3] = 1.0
+    T_b = camera_to_base(fwd[None], T_b_c)[0]
+    assert np.allclose(T_b[:3, 3], [np.cos(np.radians(12)), 0.0, -np.sin(np.radians(12))], atol=1e-9)
+    assert np.allclose(T_b[:3, :3], np.eye(3))
+
+
+def test_loop_errors_closed_form():
+    # a 2 m square driven counter-clockwise, ending 5 cm off (3, 4) with 0.01 rad of yaw error
+    se2 = np.array(
+        [[0, 0, 0], [2, 0, np.pi / 2], [2, 2, np.pi], [0, 2, 1.5 * np.pi], [0.03, 0.04, 2 * np.pi + 0.01]]
+    )
+    e = loop_error(se2, "square")
+    dist = 6.0 + np.hypot(0.03, 1.96)
+    assert e.distance_m == pytest.approx(dist)
+    assert e.trans_err == pytest.approx(0.05 / dist)
+    assert e.abs_rotation_rad == pytest.approx(2 * np.pi + 0.01)
+    assert e.rot_err == pytest.approx(0.01 / (2 * np.pi + 0.01))
+    # as a Trajectory (quaternions wrap the yaw; the unwrapped yaw is used)
+    traj = Trajectory(
+        np.arange(5) * 10**9, np.column_stack([se2[:, :2], np.zeros(5)]), quaternion_from_yaw(se2[:, 2])
+    )
+    assert loop_error(traj).rot_err == pytest.approx(e.rot_err)
+    s = summarize_loops([e, loop_error(se2, "b")], max_trans_err=0.004, max_rot_err=0.001)
+    assert s["trans_err_mean"] == pytest.approx(0.05 / dist) and s["trans_err_std"] == pytest.approx(0.0)
+    assert s["flagged"] and len(s["reasons"]) == 2
+    assert not summarize_loops([e], max_trans_err=0.01, max_rot_err=0.01)["flagged"]
+
+
+def test_truth_errors_vanish_for_a_rigidly_moved_copy():
+    t = np.arange(200) * 50_000_000
+    yaw = 0.02 * np.arange(200)
+    xy = np.column_stack([np.cos(yaw) * 3, np.sin(yaw) * 3])
+    truth = Trajectory(t, np.column_stack([xy, np.zeros(200)]), quaternion_from_yaw(yaw))
+    c, s = np.cos(0.7), np.sin(0.7)
+    moved = np.column_stack([c * xy[:, 0] - s * xy[:, 1] + 5, s * xy[:, 0] + c * xy[:, 1] - 1, np.zeros(200)])
+    est = Trajectory(t[::3], moved[::3], quaternion_from_yaw(yaw[::3] + 0.7))
+    out = evaluate_against_truth(est, truth, rpe_window_s=6.0)
+    assert out["ate_max_m"] < 1e-9 and out["rpe_n"] > 0 and out["rpe_trans_mean_m"] < 1e-9
+
+
+def _circle(n: int, radius: float, v: float, fps: float) -> np.ndarray:
+    t = np.arange(n) / fps
+    th = v / radius * t
+    return np.column_stack([t, radius * np.sin(th), radius * (1 - np.cos(th)), th])
+
+
+def test_vo_closes_a_short_rendered_loop_within_the_papers_bound(camera_cfg, renderer):
+    info = renderer.camera_info()
+    cam = StereoCamera.from_camera_info(info["left"], info["right"])
+    T_b_c = camera_extrinsic(camera_cfg)
+    radius, v, fps = 2.0, 1.0, 15.0
+    n = int(round(2 * np.pi * radius / v * fps)) + 1
+    path = _circle(n, radius, v, fps)
+    x0, y0, th0 = 4.0, 3.0, 0.3
+    c, s = np.cos(th0), np.sin(th0)
+
+    def frames():
+        for t, x, y, th in path:
+            left, right = renderer.render(x0 + c * x - s * y, y0 + s * x + c * y, th0 + th)
+            dec = [
+                cv2.imdecode(np.frombuffer(renderer.encode(im), np.uint8), cv2.IMREAD_GRAYSCALE)
+                for im in (left, right)
+            ]
+            yield int(round(t * 1e9)), dec[0], dec[1]
+
+    vo = StereoVO(cam, VOConfig(), T_b_c)
+    traj = vo.run(frames(), T_b_c)
+    assert len(traj) == n and not traj.gaps
+    err = loop_error(traj)
+    assert err.distance_m == pytest.approx(2 * np.pi * radius, rel=0.02)
+    assert err.trans_err < 0.004 and err.rot_err < 0.002
+    # against the truth: the first pose is the base origin
+    truth = Trajectory(
+        (path[:, 0] * 1e9).round().astype(np.int64),
+        np.column_stack([path[:, 1:3], np.zeros(n)]),
+        quaternion_from_yaw(path[:, 3]),
+    )
+    acc = evaluate_against_truth(traj, truth)
+    assert acc["ate_max_m"] < 0.1
+
+
+def test_bag_without_right_images_is_one_line_error_naming_the_bag(tmp_path):
+    from skidbench.pipeline.extract.synthetic import write_bag
+
+    bag = write_bag(tmp_path / "left_only.bag", "ros1", duration_s=1.0)
+    cfg = {"robot": {"camera": {"xyz": [0.2, 0.06, 0.3], "rpy": [-1.78, 0.0, -1.57], "baseline": 0.12}}}
+    with pytest.raises(GroundTruthError) as info:
+        run_stereo_vo(bag, cfg)
+    msg = str(info.value)
+    assert str(bag) in msg and "/stereo/right/image_raw/compressed" in msg and "\n" not in msg
+    # a truncated bag
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 3])
+    with pytest.raises(GroundTruthError) as info:
+        run_stereo_vo(cut, cfg)
+    assert str(cut) in str(info.value) and "\n" not in str(info.value)
