@@ -29,7 +29,8 @@ WRITE_ERRNOS = {errno.ENOSPC, errno.EACCES, errno.EPERM, errno.EROFS, errno.EDQU
 
 #: Test-only fault injection (tests/test_reliability_*.py): ``SKIDBENCH_FAULT=<action>@<n>[:<substring>]``
 #: acts at the n-th atomic write (1-based) of this process whose final path contains ``substring``, after
-#: the temporary file is written and before it is renamed. ``kill``: SIGKILL the process (a killed run);
+#: the temporary file is written and before it is renamed. ``kill``: SIGKILL the process group
+#: (a killed run; start it in a session of its own);
 #: ``enospc`` / ``eacces``: raise that OSError (a full disk / a permission error).
 FAULT_ENV = "SKIDBENCH_FAULT"
 _fault_count = [0]
@@ -46,8 +47,8 @@ def _inject_fault(final: Path) -> None:
     _fault_count[0] += 1
     if _fault_count[0] != int(nth or 1):
         return
-    if action == "kill":
-        os.kill(os.getpid(), signal.SIGKILL)
+    if action == "kill":  # the whole process group: a stage and its worker processes die together
+        os.killpg(os.getpgid(0), signal.SIGKILL)
     code = {"enospc": errno.ENOSPC, "eacces": errno.EACCES}.get(action)
     if code is not None:
         raise OSError(code, os.strerror(code), str(final))
@@ -79,7 +80,9 @@ def atomic_path(final: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     final = Path(final)
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX + final.name + ".", suffix=suffix, dir=final.parent)
+        remove_stale_tmp(final)
+        prefix = f"{TMP_PREFIX}{final.name}.{os.getpid()}."
+        fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=final.parent)
     except OSError as exc:
         err = _write_failure(final, exc)
         if err is None:
@@ -101,6 +104,38 @@ def atomic_path(final: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
         if err is None:
             raise
         raise err from exc
+
+
+def remove_stale_tmp(final: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files of ``final`` left by a killed process (``.tmp-<name>.<pid>.*`` whose
+    process is gone); a live writer's files are kept. Returns the paths removed."""
+    final = Path(final)
+    head = f"{TMP_PREFIX}{final.name}."
+    removed = []
+    try:
+        entries = [p for p in final.parent.iterdir() if p.name.startswith(head)]
+    except FileNotFoundError:
+        return removed
+    for p in entries:
+        pid = p.name[len(head) :].split(".", 1)[0]
+        if pid.isdigit() and _alive(int(pid)):
+            continue
+        with contextlib.suppress(FileNotFoundError, PermissionError, IsADirectoryError):
+            p.unlink()
+            removed.append(p)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

@@ -33,3 +33,13 @@ def jackal():
         left_joints=("front_left_wheel", "rear_left_wheel"),
         right_joints=("front_right_wheel", "rear_right_wheel"),
     )
+
+
+@pytest.fixture(scope="session")
+def micro_root(tmp_path_factory) -> Path:
+    """An output root holding the micro simulated dataset through split (tests/reliability_data.py)."""
+    from reliability_data import build
+
+    root = tmp_path_factory.mktemp("micro")
+    build(root)
+    return root

@@ -1,0 +1,101 @@
+"""Fault injection: a stage killed (SIGKILL) mid-write resumes to the same bytes with no partial file left;
+a full disk or a permission error is one clear line and keeps earlier outputs; a truncated Parquet
+intermediate fails its fingerprint and is rebuilt, not read.
+
+The kill/ENOSPC/EACCES points come from the test-only hook ``SKIDBENCH_FAULT`` in pipeline/io.py (at the
+n-th atomic write whose path matches, after the temporary file is written, before its rename).
+"""
+
+from __future__ import annotations
+
+import signal
+
+import pyarrow.parquet as pq
+import pytest
+from reliability_data import DATASET, skidbench, snapshot, tmp_files
+
+# stage -> (outputs deleted before the killed run, path fragment of the write that is killed, n-th write)
+KILLS = {
+    "simulate": ("raw/bags/*.bag", ".bag", 2),
+    "extract": ("extracted/*/*.parquet", ".parquet", 7),  # mid-way through the 2nd sequence
+    "groundtruth": ("groundtruth/tile_*", ".tum", 2),
+    "split": ("splits/*/*/*.parquet", ".parquet", 2),
+    "fit": ("fits/edd/tile.json", "tile.json", 1),
+}
+
+
+@pytest.mark.parametrize("stage", list(KILLS))
+def test_a_stage_killed_mid_write_resumes_to_identical_outputs_and_no_partial_file(micro_root, stage):
+    ds = micro_root / DATASET
+    if stage == "fit" and not (ds / "fits/edd/tile.json").is_file():
+        skidbench("fit", micro_root)
+    before = snapshot(micro_root)
+    pattern, needle, nth = KILLS[stage]
+    victims = list(ds.glob(pattern))
+    assert victims, pattern
+    for p in victims:
+        p.unlink()
+
+    killed = skidbench(stage, micro_root, env={"SKIDBENCH_FAULT": f"kill@{nth}:{needle}"}, check=False)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+    left = tmp_files(micro_root)
+    assert left, "the kill should have interrupted a write (a .tmp- file left behind)"
+    assert all(p.name.startswith(".tmp-") for p in left)  # never under a final name
+
+    skidbench(stage, micro_root)
+    assert tmp_files(micro_root) == []
+    assert snapshot(micro_root) == before
+
+
+def test_a_rerun_with_nothing_changed_skips_every_stage_and_says_so(micro_root):
+    for stage, words in (
+        ("extract", "3 sequences up to date, skipped"),
+        ("groundtruth", "3 sequences up to date, skipped"),
+        ("split", "3 sequences up to date, skipped"),
+    ):
+        proc = skidbench(stage, micro_root)
+        assert words in proc.stdout + proc.stderr, (stage, proc.stderr[-1500:])
+    proc = skidbench("simulate", micro_root)
+    assert "(3 up to date)" in proc.stdout
+
+
+@pytest.mark.parametrize("fault", ["enospc", "eacces"])
+def test_disk_full_or_permission_error_is_one_line_and_keeps_earlier_outputs(micro_root, fault):
+    ds = micro_root / DATASET
+    before = snapshot(micro_root)
+    victim = ds / "splits/tile/cv/tile_cv_00.parquet"
+    victim.unlink()  # the split stage has one sequence to redo; its write fails
+    proc = skidbench("split", micro_root, env={"SKIDBENCH_FAULT": f"{fault}@1:.parquet"}, check=False)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("skidbench split: error:")]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    why = "No space left on device" if fault == "enospc" else "Permission denied"
+    assert str(victim) in lines[0] and why in lines[0], lines[0]
+    assert tmp_files(micro_root) == []
+    after = snapshot(micro_root)
+    gone = set(before) - set(after)
+    assert gone == {victim.relative_to(micro_root).as_posix()}
+    assert {k: v for k, v in before.items() if k not in gone} == after  # nothing else touched
+    skidbench("split", micro_root)  # space back: the re-run completes
+    assert snapshot(micro_root) == before
+
+
+@pytest.mark.parametrize(
+    ("stage", "rel"),
+    [
+        ("extract", "extracted/tile_train_00/cmd_vel.parquet"),
+        ("split", "splits/tile/train/tile_train_00.parquet"),
+    ],
+)
+def test_a_truncated_parquet_intermediate_fails_its_fingerprint_and_is_rebuilt(micro_root, stage, rel):
+    before = snapshot(micro_root)
+    path = micro_root / DATASET / rel
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(Exception):  # noqa: B017 (really unreadable)
+        pq.read_table(path)
+    proc = skidbench(stage, micro_root)
+    out = proc.stdout + proc.stderr
+    assert "fails its fingerprint" in out, out[-2000:]
+    assert path.read_bytes() == data
+    assert snapshot(micro_root) == before
