@@ -235,6 +235,7 @@ class SkidSteerSim:
                 fy = f * slip_y / slip * mu_ratio  # friction ellipse: lateral grip mu_y = ratio * mu_x
             else:
                 fx = fy = 0.0
+            side_fx[side] += fx  # the tyre's traction reacts on the wheel (and through it, the motor)
             # rolling / bulldozing resistance against the wheel centre's travel (smooth near rest)
             v_w = math.hypot(v_wx, v_wy)
             if v_w > 1e-12:
@@ -248,7 +249,6 @@ class SkidSteerSim:
             k_x += slope
             k_y += slope * ky * mu_ratio
             k_z += slope * (py * py + ky * mu_ratio * px * px)
-            side_fx[side] += f * slip_x / slip if slip > 1e-12 else 0.0
             side_k[side] += slope * r
 
         # wheels: J domega/dt = T_motor - r F_x - b omega (linearly implicit in omega)
