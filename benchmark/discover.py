@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import minimize_scalar
 
 from skidbench.benchmark.effects import (
     CATALOGUE,
@@ -221,7 +221,8 @@ class Augmenter:
         if key not in self._sub_cache:
             if len(self._sub_cache) > 64:
                 self._sub_cache.clear()
-            self._sub_cache[key] = table.loc[rows]
+            cols = [c for c in table.columns if c not in ("x", "y", "yaw", "stamp_ns")]
+            self._sub_cache[key] = table.loc[rows, cols]
         sub = self._sub_cache[key]
         if target is not None:
             sub = sub.copy()
@@ -287,13 +288,15 @@ class Augmenter:
     def _fit_params(self, corr, params, base_pred, feats, rows) -> dict[str, np.ndarray]:
         """Effect parameters with the base prediction fixed: weighted least squares. All effects but
         ``curvature_dependent_icr`` are (nearly) linear in their parameters: Gauss-Newton with an
-        exact finite-difference Jacobian converges in one or two steps; otherwise a bounded TRF."""
+        exact finite-difference Jacobian converges in one or two steps; the curvature law is fitted by
+        the same bounded Gauss-Newton from a few starting values of b2."""
         sizes = [CATALOGUE[e].n_params for e in corr]
         x0 = np.concatenate([params[e] for e in corr]).astype(float)
         bp = base_pred[rows]
         fr = {k: v[rows] for k, v in feats.items()}
-        tg = self.pool.target[rows]
-        sw = np.sqrt(self.weights / max(rows.sum(), 1))
+        chans = sorted({CATALOGUE[e].channel for e in corr})  # only these depend on the parameters
+        tg = self.pool.target[rows][:, chans]
+        sw = np.sqrt(self.weights[chans] / max(rows.sum(), 1))
 
         def unpack(x):
             out, i = {}, 0
@@ -303,37 +306,60 @@ class Augmenter:
             return out
 
         def resid(x):
-            return ((apply_effects(bp, fr, unpack(x)) - tg) * sw).ravel()
+            return ((apply_effects(bp, fr, unpack(x))[:, chans] - tg) * sw).ravel()
 
-        if "curvature_dependent_icr" in corr:
-            lo = np.concatenate(
-                [
-                    [-0.5, 0.0] if e == "curvature_dependent_icr" else [-np.inf] * n
-                    for e, n in zip(corr, sizes, strict=True)
-                ]
-            )
-            hi = np.concatenate(
-                [
-                    [20.0, 100.0] if e == "curvature_dependent_icr" else [np.inf] * n
-                    for e, n in zip(corr, sizes, strict=True)
-                ]
-            )
-            x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
-            sol = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=100)
-            return unpack(sol.x)
-        x = x0
-        for _ in range(3):
-            r0 = resid(x)
-            J = np.empty((len(r0), len(x)))
-            for j in range(len(x)):
-                xp = x.copy()
-                xp[j] += 1e-3
-                J[:, j] = (resid(xp) - r0) / 1e-3
-            step = np.linalg.lstsq(J, -r0, rcond=None)[0]
-            x = x + step
-            if np.all(np.abs(step) < 1e-9 + 1e-6 * np.abs(x)):
+        lo = np.full(len(x0), -np.inf)
+        hi = np.full(len(x0), np.inf)
+        starts = [x0]
+        if "curvature_dependent_icr" in corr:  # b1 in [-0.5, 20], b2 in [0, 100]; few starts for b2
+            i = sum(sizes[: corr.index("curvature_dependent_icr")])
+            lo[i : i + 2], hi[i : i + 2] = (-0.5, 0.0), (20.0, 100.0)
+            for b2 in (0.3, 1.0, 4.0):
+                xs = x0.copy()
+                xs[i + 1] = b2
+                starts.append(xs)
+        best, best_cost = x0, np.inf
+        for xs in starts:
+            x = _gauss_newton(resid, np.clip(xs, lo, hi), lo, hi, 12 if len(starts) > 1 else 4)
+            c = float(np.sum(resid(x) ** 2))
+            if c < best_cost:
+                best, best_cost = x, c
+        return unpack(best)
+
+
+def _sq(r: np.ndarray) -> float:
+    # einsum, not BLAS: multithreaded BLAS on long vectors stalls on a loaded machine
+    return float(np.einsum("i,i->", r, r))
+
+
+def _gauss_newton(resid, x, lo, hi, iters: int) -> np.ndarray:
+    """Box-bounded Gauss-Newton with step halving and a finite-difference Jacobian (the effects have
+    one or two parameters each and are (nearly) linear in them: one or two steps suffice)."""
+    r0 = resid(x)
+    c0 = _sq(r0)
+    for _ in range(iters):
+        J = np.empty((len(x), len(r0)))
+        for j in range(len(x)):
+            h = 1e-4 * max(1.0, abs(x[j]))
+            xp = x.copy()
+            xp[j] = xp[j] + h if xp[j] + h <= hi[j] else xp[j] - h
+            J[j] = (resid(xp) - r0) / (xp[j] - x[j])
+        JtJ = np.einsum("ij,kj->ik", J, J)
+        Jtr = np.einsum("ij,j->i", J, r0)
+        step = np.linalg.lstsq(JtJ + 1e-12 * np.eye(len(x)) * max(np.trace(JtJ), 1e-30), -Jtr, rcond=None)[0]
+        for a in (1.0, 0.5, 0.25, 0.1):
+            xn = np.clip(x + a * step, lo, hi)
+            rn = resid(xn)
+            cn = _sq(rn)
+            if cn <= c0:
                 break
-        return unpack(x)
+        else:
+            break
+        done = np.all(np.abs(xn - x) < 1e-8 + 1e-6 * np.abs(x)) or c0 - cn < 1e-10 * max(c0, 1e-30)
+        x, r0, c0 = xn, rn, cn
+        if done:
+            break
+    return x
 
 
 # -- held-out evaluation ------------------------------------------------------------------------

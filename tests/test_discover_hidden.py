@@ -1,0 +1,106 @@
+"""Discovery names the effect hidden in the data (SPEC.md "Discrepancy discovery").
+
+Each data set: a Jackal driven by joystick-like commands, moving by the extended differential drive plus
+exactly the hidden effect(s) in their physical form (tests/discover_data.py), observed through
+visual-odometry-like poses (drift and jitter). Discovery runs from ``edd`` with its default settings,
+without being told what is hidden, and must name the hidden effect first and shrink the held-out gap;
+on data without a missing effect it must find none; with two hidden effects it must find both.
+One data set goes through the AMRL text layout and the real CLI.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import discover_data as dd  # noqa: E402
+
+from skidbench.benchmark.discover import DiscoverSettings, build_pool, discover_terrain  # noqa: E402
+from skidbench.benchmark.effects import EFFECT_IDS  # noqa: E402
+
+N_TRAIN = 8  # Train sequences per data set
+DURATION = 36.0  # s each
+CLI_EFFECT = "speed_dependent_turn_slip"  # this one goes through amrl_txt text files and the CLI
+
+
+def _discover(effects: list[str], seed: int, jackal):
+    from skidbench.models.registry import get_model_class
+
+    edd = get_model_class("edd")
+    raw = dd.dataset(dd.hidden(effects), seed, n_train=N_TRAIN, duration=DURATION)
+    s = DiscoverSettings()
+    pool = build_pool(dd.split_tables(raw), s)
+    return discover_terrain(pool, lambda: edd(jackal), jackal, s, "tile", "edd", progress=print)
+
+
+def _gap(rm: dict) -> float:
+    return float(np.hypot(rm["translational"], rm["rotational"]))
+
+
+def _assert_shrinks(step: dict) -> None:
+    before, after = step["heldout_rmsre_before"], step["heldout_rmsre_after"]
+    assert _gap(after) < _gap(before), (before, after)
+    assert after["translational"] <= before["translational"] * 1.01
+    assert after["rotational"] <= before["rotational"] * 1.01
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", [e for e in EFFECT_IDS if e != CLI_EFFECT])
+def test_discover_names_the_hidden_effect_first_and_shrinks_the_gap(effect, jackal):
+    res = _discover([effect], seed=100 + EFFECT_IDS.index(effect), jackal=jackal)
+    assert res.effects, f"{effect}: nothing found ({res.message})"
+    assert res.effects[0] == effect, res.effects
+    _assert_shrinks(res.steps[0])
+
+
+@pytest.mark.slow
+def test_discover_finds_no_missing_effect_when_there_is_none(jackal):
+    res = _discover([], seed=7, jackal=jackal)
+    assert res.effects == [], res.effects
+    assert res.message == "no missing effect found"
+
+
+@pytest.mark.slow
+def test_discover_finds_two_hidden_effects_together(jackal):
+    hidden = ["angular_acceleration_slip", "centripetal_side_slip"]
+    res = _discover(hidden, seed=11, jackal=jackal)
+    assert set(hidden) <= set(res.effects[:3]), res.effects
+    for st in res.steps[:2]:
+        _assert_shrinks(st)
+
+
+@pytest.mark.slow
+def test_discover_cli_on_amrl_text_layout_names_the_hidden_effect(tmp_path):
+    raw = dd.dataset(dd.hidden([CLI_EFFECT]), 23, n_train=N_TRAIN, duration=DURATION)
+    root = dd.write_amrl(raw, tmp_path / "amrl")
+    out = tmp_path / "disc"
+    exe = Path(sys.executable).with_name("skidbench")
+    proc = subprocess.run(
+        [
+            str(exe),
+            "discover",
+            "source=amrl_txt",
+            f"source.root={root}",
+            "terrain=tile",
+            f"out_root={tmp_path / 'out'}",
+            f"discover.out={out}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    doc = json.loads((out / "discovery.json").read_text())
+    assert doc["base_model"] == "edd"
+    assert doc["effects"] and doc["effects"][0] == CLI_EFFECT, doc["effects"]
+    step = doc["steps"][0]
+    assert step["effect"] == CLI_EFFECT and step["explanation"] and step["evidence"]["passes"]
+    _assert_shrinks(step)
+    assert (out / "discovery.png").stat().st_size > 10_000
+    assert CLI_EFFECT in proc.stdout and "significance rule" in proc.stdout
