@@ -44,6 +44,16 @@ endif
 	$(SKB) evaluate $(SRC_ARGS)
 	$(SKB) compare $(SRC_ARGS)
 
+# `make discover`: discrepancy discovery from the extended differential drive (model=edd) on the same data
+# (default: the simulated mini dataset) -> $(OUT)/<dataset>/discovery/{discovery.json,discovery.png}.
+discover: setup
+ifeq ($(SOURCE),sim)
+	$(SKB) simulate $(SRC_ARGS)
+else
+	@test -n "$(DATA)" || { echo "make discover SOURCE=$(SOURCE) needs DATA=<folder with the data>"; exit 2; }
+endif
+	$(SKB) discover $(SRC_ARGS) model=edd
+
 # The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set).
 mlflow-ui: setup
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(SKIDBENCH_OUT)/mlflow.db --port 5000
