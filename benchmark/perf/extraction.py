@@ -94,10 +94,12 @@ def _interleaved_best(fns: dict[str, Any], repeats: int) -> dict[str, tuple[floa
     return {name: tuple(v) for name, v in best.items()}
 
 
-def measure_rss(bag: Path, specs_from: str = "synthetic") -> dict[str, float]:
-    """Peak RSS (MiB) of one extraction of ``bag`` in a fresh interpreter, and the messages read."""
+def measure_rss(bag: Path, mode: str = "ours") -> dict[str, float]:
+    """Peak RSS (MiB) of one run over ``bag`` in a fresh interpreter, and the messages read.
+    ``mode``: ``ours`` (extract_bag, synthetic topics), ``sim`` (extract_bag, the sim config's topics) or
+    ``bare`` (rosbags alone)."""
     with tempfile.TemporaryDirectory(prefix="skidbench-rss-") as tmp:
-        cmd = [sys.executable, "-m", "skidbench.benchmark.perf.extraction", "rss", str(bag), tmp, specs_from]
+        cmd = [sys.executable, "-m", "skidbench.benchmark.perf.extraction", mode, str(bag), tmp]
         proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -132,46 +134,42 @@ def extraction(quick: bool) -> dict[str, Any]:
     (bare_cpu, bare_wall, n_bare), (ours_cpu, ours_wall, n_ours) = runs["bare"], runs["ours"]
     if n_bare != n_ours:
         raise RuntimeError(f"message counts differ: bare {n_bare}, ours {n_ours}")
-    short = measure_rss(synthetic_bag(30.0))
-    long = measure_rss(synthetic_bag(60.0 if quick else 900.0))
+    short_bag, long_bag = synthetic_bag(30.0), synthetic_bag(60.0 if quick else 900.0)
+    short, long = measure_rss(short_bag), measure_rss(long_bag)
+    short_bare, long_bare = measure_rss(short_bag, "bare"), measure_rss(long_bag, "bare")
     metrics: dict[str, Any] = {
         "messages": n_ours,
         "bare_msgs_per_cpu_s": n_bare / bare_cpu,
         "ours_msgs_per_cpu_s": n_ours / ours_cpu,
         "throughput_ratio": bare_cpu / ours_cpu,
         "throughput_ratio_wall": bare_wall / ours_wall,
+        "short_long_messages": f"{short['messages']} / {long['messages']}",
         "rss_short_mb": short["peak_rss_mb"],
         "rss_long_mb": long["peak_rss_mb"],
-        "short_long_messages": f"{short['messages']} / {long['messages']}",
         "rss_growth_long_vs_short": long["peak_rss_mb"] / short["peak_rss_mb"],
-        "rss_long_bare_rosbags_mb": long["bare_peak_rss_mb"],
+        "rss_short_bare_rosbags_mb": short_bare["peak_rss_mb"],
+        "rss_long_bare_rosbags_mb": long_bare["peak_rss_mb"],
     }
     for scale, path in _sim_bags().items():
         metrics[f"rss_sim_{scale}_mb"] = measure_rss(path, "sim")["peak_rss_mb"]
     return metrics
 
 
-def _rss_main(bag: str, out: str, specs_from: str) -> None:
-    """Child process: extract one bag, print peak RSS; then, in a second child, bare rosbags' peak."""
-    specs = SPECS
-    if specs_from == "sim":
-        from hydra import compose, initialize_config_module
+def _rss_main(mode: str, bag: str, out: str) -> None:
+    """Child process: one run over one bag; prints ``{"peak_rss_mb", "messages"}`` as JSON."""
+    if mode == "bare":
+        messages = bare_rosbags(Path(bag))
+    else:
+        specs = SPECS
+        if mode == "sim":
+            from hydra import compose, initialize_config_module
 
-        with initialize_config_module(config_module="skidbench.conf", version_base="1.3"):
-            specs = topic_specs(compose("extract").source.topics)
-    info = extract_bag(Path(bag), Path(out) / "seq", specs, ExtractOptions(progress=False, force=True))
-    result = {"peak_rss_mb": peak_rss_mb(), "messages": sum(v["count"] for v in info["topics"].values())}
-    if specs_from == "synthetic":
-        cmd = [sys.executable, "-m", "skidbench.benchmark.perf.extraction", "bare", bag]
-        result["bare_peak_rss_mb"] = float(
-            subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
-        )
-    print(json.dumps(result))
+            with initialize_config_module(config_module="skidbench.conf", version_base="1.3"):
+                specs = topic_specs(compose("extract").source.topics)
+        info = extract_bag(Path(bag), Path(out) / "seq", specs, ExtractOptions(progress=False, force=True))
+        messages = sum(v["count"] for v in info["topics"].values())
+    print(json.dumps({"peak_rss_mb": peak_rss_mb(), "messages": messages}))
 
 
 if __name__ == "__main__":
-    if sys.argv[1] == "rss":
-        _rss_main(*sys.argv[2:5])
-    elif sys.argv[1] == "bare":
-        bare_rosbags(Path(sys.argv[2]))
-        print(peak_rss_mb())
+    _rss_main(*sys.argv[1:4])

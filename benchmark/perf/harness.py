@@ -32,8 +32,18 @@ RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far (MiB; Linux reports ru_maxrss in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Peak resident set size of this process so far (MiB).
+
+    Linux's ``VmHWM`` (the high-water mark of this process image); not ``ru_maxrss``, which a process
+    started with fork+exec inherits from its parent's size at the fork, a floor that would hide what
+    the child itself used."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
 def run_one(name: str, quick: bool) -> dict[str, Any]:
@@ -41,7 +51,11 @@ def run_one(name: str, quick: bool) -> dict[str, Any]:
     comparisons = load_all()
     started = time.perf_counter()
     metrics = comparisons[name].func(quick)
-    return {"metrics": metrics, "seconds": round(time.perf_counter() - started, 2), "peak_rss_mb": peak_rss_mb()}
+    return {
+        "metrics": metrics,
+        "seconds": round(time.perf_counter() - started, 2),
+        "peak_rss_mb": peak_rss_mb(),
+    }
 
 
 def run_in_subprocess(name: str, quick: bool, timeout_s: float) -> dict[str, Any]:
@@ -87,7 +101,9 @@ def markdown(results: dict[str, Any]) -> str:
             met = "" if target is None else {True: "yes", False: "**no**", None: "?"}[check(value, target)]
             tgt = "" if target is None else f"{target[0]} {_fmt(target[1])}"
             lines.append(f"| {name} | {metric} | {_fmt(value)} | {tgt} | {met} |")
-        lines.append(f"| {name} | wall time (s) / peak RSS (MiB) | {res['seconds']} / {res['peak_rss_mb']:.0f} | | |")
+        lines.append(
+            f"| {name} | wall time (s) / peak RSS (MiB) | {res['seconds']} / {res['peak_rss_mb']:.0f} | | |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -122,7 +138,9 @@ def run_all(names: list[str], quick: bool, timeout_s: float, results_dir: Path) 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m skidbench.benchmark.perf", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m skidbench.benchmark.perf", description=__doc__.split("\n")[0]
+    )
     parser.add_argument("names", nargs="*", help="comparisons to run (default: all)")
     parser.add_argument("--quick", action="store_true", help="small problems (smoke run)")
     parser.add_argument("--list", action="store_true", help="list the comparisons and exit")

