@@ -234,6 +234,7 @@ def figure6(
     g = np.linspace(-lim, lim, n)
     wl, wr = np.meshgrid(g, g, indexing="xy")  # symmetric grid: the anti-diagonal is wr = -wl
     surfaces = {}
+    masked = no_root = 0
     for a in accels:
         dwl, dwr = robot.wheel_rates_from_twist(0.0, float(a))  # pure angular acceleration
         v, w = robot.twist_from_wheel_rates(wl.ravel(), wr.ravel())
@@ -260,15 +261,23 @@ def figure6(
                 "sequence": "grid",
             }
         )
-        surfaces[float(a)] = np.asarray(model.predict(table), float)[:, 2].reshape(wl.shape)
-    return figs.yaw_rate_surfaces(
-        wl,
-        wr,
-        surfaces,
-        f"{figs.label(model_name)} model: predicted yaw rate at commanded angular accelerations ({terrain})",
-        path,
-        dpi,
+        wz = np.asarray(model.predict(table), float)[:, 2]
+        status = getattr(getattr(model, "last_solve_", None), "status", None)
+        if status is not None and len(status) == m:  # the friction model's per-step solve status
+            status = np.asarray(status)
+            wz[status == 0] = np.nan  # not converged: no prediction to show
+            masked += int(np.sum(status == 0))
+            no_root += int(np.sum(status == 2))
+        surfaces[float(a)] = wz.reshape(wl.shape)
+    title = (
+        f"{figs.label(model_name)} model: predicted yaw rate at commanded angular accelerations ({terrain})"
     )
+    if masked or no_root:
+        title += (
+            f"\nof {wl.size * len(accels)} grid points: {no_root} without a force-balance root "
+            f"(least-squares solution shown), {masked} not converged (blank)"
+        )
+    return figs.yaw_rate_surfaces(wl, wr, surfaces, title, path, dpi)
 
 
 def figure7(

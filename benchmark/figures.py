@@ -75,7 +75,7 @@ def rmsre_bars(
     nm, nt = len(models), len(terrains)
     width = 0.8 / max(nm, 1)
     fig, axes = plt.subplots(
-        1, len(splits), figsize=(1.2 + 2.3 * len(splits) * max(nt, 1.5), 3.8), squeeze=False
+        1, len(splits), figsize=(1.2 + 1.9 * len(splits) * max(nt, 1.5), 3.8), squeeze=False
     )
     percent = 100.0
     for ax, split in zip(axes[0], splits, strict=True):
