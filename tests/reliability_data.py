@@ -31,12 +31,21 @@ STAGE_ARGS = {
 PIPELINE = ("simulate", "extract", "groundtruth", "split")
 
 
-def skidbench(stage: str, out_root: Path, *extra: str, env: dict | None = None, check: bool = True):
-    """``skidbench <stage>`` on the micro dataset in a subprocess (niced: the tests share 2 cores)."""
+def skidbench(
+    stage: str,
+    out_root: Path,
+    *extra: str,
+    env: dict | None = None,
+    check: bool = True,
+    base: list[str] | None = None,
+):
+    """``skidbench <stage>`` on the micro dataset in a subprocess (niced: the tests share 2 cores);
+    ``base`` replaces the stage's default overrides (``STAGE_ARGS``)."""
     e = {**os.environ, "SKIDBENCH_OUT": str(out_root), "PYTHONHASHSEED": "0", **(env or {})}
     if "MLFLOW_TRACKING_URI" not in (env or {}):
         e.pop("MLFLOW_TRACKING_URI", None)
-    cmd = [sys.executable, "-m", "skidbench.pipeline.cli", stage, *STAGE_ARGS.get(stage, SCALE), *extra]
+    args = STAGE_ARGS.get(stage, SCALE) if base is None else base
+    cmd = [sys.executable, "-m", "skidbench.pipeline.cli", stage, *args, *extra]
     proc = subprocess.run(
         ["nice", "-n", "5", *cmd], env=e, capture_output=True, text=True, timeout=600, start_new_session=True
     )
