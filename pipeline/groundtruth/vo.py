@@ -72,6 +72,7 @@ class VOConfig:
     refine_stereo: bool = True  # use the current right image in the refinement
     ground_aware: bool = True  # LK on ground-plane-aligned images (removes the ground's stereo shear and
     # the keyframe-to-frame perspective change of ground points); needs the extrinsic, flat ground
+    ground_aware_tracking: bool = True  # also track ground points keyframe -> frame on the warped keyframe
     ground_tol_m: float = 0.05  # a point within ground_tol_m + 0.03 Z of the ground plane is ground
     # bag reading
     left_topic: str = "/stereo/left/image_raw/compressed"
@@ -417,7 +418,10 @@ class StereoVO:
             return idx[:0], np.zeros((0, 2), np.float32)
         p_out = np.zeros((idx.size, 2), np.float32)
         ok = np.zeros(idx.size, bool)
-        ground = kf.ground[idx] if self.plane is not None else np.zeros(idx.size, bool)
+        if self.plane is not None and self.cfg.ground_aware_tracking:
+            ground = kf.ground[idx]
+        else:
+            ground = np.zeros(idx.size, bool)
         for is_g in (False, True):
             sel = ground == is_g
             if not sel.any():
@@ -432,7 +436,8 @@ class StereoVO:
                 src = cv2.warpPerspective(
                     kf.img, Hm, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
                 )
-                p0 = g.copy()
+                # the keyframe patch at p_k sits at H p_k in the warped image (exactly, ground or not)
+                p0 = cv2.perspectiveTransform(p0.astype(np.float64), Hm).astype(np.float32)
             p1, st, _ = cv2.calcOpticalFlowPyrLK(
                 src, left, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk
             )
