@@ -77,6 +77,8 @@ def clean_poses(
     stamp_ns, xyz, quat, breaks = stamp_ns[keep], xyz[keep], quat[keep], breaks[keep]
     if len(stamp_ns) == 0:
         raise GroundTruthError(f"{where}: no valid poses (every row has NaN/inf values)")
+    if len(stamp_ns) == 1:
+        raise GroundTruthError(f"{where}: one-row sequence (1 valid pose): a trajectory needs at least 2")
     quat = quat / np.linalg.norm(quat, axis=1, keepdims=True)
     gaps = find_gaps(stamp_ns, max_gap_s, breaks)
     if gaps:
