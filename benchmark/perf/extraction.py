@@ -120,7 +120,7 @@ def _sim_bags() -> dict[str, Path]:
 @register(
     "extraction",
     "extract_bag vs bare rosbags iterate+deserialise; peak RSS short vs long bag",
-    targets={"throughput_ratio": (">=", 0.7), "rss_growth_long_vs_short": ("<=", 1.25)},
+    targets={"throughput_ratio": (">=", 0.7), "rss_growth_beyond_rosbags_mb": ("<=", 10.0)},
 )
 def extraction(quick: bool) -> dict[str, Any]:
     bag = synthetic_bag(20.0 if quick else 120.0)
@@ -134,7 +134,8 @@ def extraction(quick: bool) -> dict[str, Any]:
     (bare_cpu, bare_wall, n_bare), (ours_cpu, ours_wall, n_ours) = runs["bare"], runs["ours"]
     if n_bare != n_ours:
         raise RuntimeError(f"message counts differ: bare {n_bare}, ours {n_ours}")
-    short_bag, long_bag = synthetic_bag(30.0), synthetic_bag(60.0 if quick else 900.0)
+    # short: long enough that every table's batch has filled once (so buffers are at their bound)
+    short_bag, long_bag = synthetic_bag(60.0 if quick else 120.0), synthetic_bag(120.0 if quick else 900.0)
     short, long = measure_rss(short_bag), measure_rss(long_bag)
     short_bare, long_bare = measure_rss(short_bag, "bare"), measure_rss(long_bag, "bare")
     metrics: dict[str, Any] = {
@@ -146,9 +147,11 @@ def extraction(quick: bool) -> dict[str, Any]:
         "short_long_messages": f"{short['messages']} / {long['messages']}",
         "rss_short_mb": short["peak_rss_mb"],
         "rss_long_mb": long["peak_rss_mb"],
-        "rss_growth_long_vs_short": long["peak_rss_mb"] / short["peak_rss_mb"],
         "rss_short_bare_rosbags_mb": short_bare["peak_rss_mb"],
         "rss_long_bare_rosbags_mb": long_bare["peak_rss_mb"],
+        # rosbags' ROS1 reader holds an index entry per message; what extraction adds on top must not grow
+        "rss_growth_beyond_rosbags_mb": (long["peak_rss_mb"] - short["peak_rss_mb"])
+        - (long_bare["peak_rss_mb"] - short_bare["peak_rss_mb"]),
     }
     for scale, path in _sim_bags().items():
         metrics[f"rss_sim_{scale}_mb"] = measure_rss(path, "sim")["peak_rss_mb"]

@@ -107,6 +107,13 @@ def markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _previous(path: Path) -> dict[str, Any]:
+    try:
+        return dict(json.loads(path.read_text()).get("comparisons", {}))
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return {}
+
+
 def run_all(names: list[str], quick: bool, timeout_s: float, results_dir: Path) -> dict[str, Any]:
     comparisons = load_all()
     unknown = [n for n in names if n not in comparisons]
@@ -120,9 +127,12 @@ def run_all(names: list[str], quick: bool, timeout_s: float, results_dir: Path) 
         "quick": quick,
         "comparisons": {},
     }
+    if names:  # a partial run keeps the other comparisons' last results (each carries its date)
+        results["comparisons"].update(_previous(results_dir / "latest.json"))
     for name in names or list(comparisons):
         print(f"bench: {name} ...", file=sys.stderr, flush=True)
         res = run_in_subprocess(name, quick, timeout_s)
+        res["date"] = results["date"]
         comp = comparisons[name]
         res["description"] = comp.description
         res["targets"] = {k: list(v) for k, v in comp.targets.items()}

@@ -37,7 +37,7 @@ class ExtractOptions:
     format, for bags without message definitions."""
 
     images: str = "ref"
-    batch_rows: int = 4096
+    batch_rows: int = 1024
     batch_bytes: int = 8 << 20
     force: bool = False
     progress: bool = True

@@ -74,7 +74,7 @@ class SequenceWriter:
     commit (a topic that disappeared from the config must not leave a stale table behind).
     """
 
-    def __init__(self, out_dir: Path, batch_rows: int = 4096, batch_bytes: int = 8 << 20):
+    def __init__(self, out_dir: Path, batch_rows: int = 1024, batch_bytes: int = 8 << 20):
         self.out_dir = Path(out_dir)
         self.batch_rows = batch_rows
         self.batch_bytes = batch_bytes
