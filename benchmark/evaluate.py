@@ -471,12 +471,21 @@ def _brief(metrics: dict[str, float]) -> str:
 
 
 def format_result(result: BenchmarkResult) -> str:
-    """A short text summary for the console."""
+    """A short text summary for the console: RMSRE in % per (model, terrain) at each horizon."""
     df = result.table()
-    cols = ["model", "terrain", "status"] + sorted(c for c in df.columns if c.startswith("rmsre_"))
+    cols = {}
+    short = {"translational": "trans", "rotational": "rot"}
+    for c in sorted(
+        (c for c in df.columns if c.startswith("rmsre_")), key=lambda c: c.startswith("rmsre_rot")
+    ):
+        _, kind, split, h = c.split("_", 3)
+        cols[c] = f"{short[kind]} {split.upper()} {h} %"
+    show = df[["model", "terrain", "status", *cols]].rename(columns=cols)
+    for c in cols.values():
+        show[c] = 100 * show[c]
     lines = [
         f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
-        df[[c for c in cols if c in df.columns]].to_string(index=False, float_format=lambda x: f"{x:.4f}"),
+        show.to_string(index=False, float_format=lambda x: f"{x:.2f}", na_rep="-"),
     ]
     for c in result.failed:
         lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
