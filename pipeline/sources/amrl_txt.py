@@ -118,14 +118,25 @@ def extract_source(cfg, layout) -> list[dict]:
     """Extract every AMRL sequence under ``source.root`` into ``<ds>/extracted`` and write the manifest."""
     root = Path(str(cfg.source.root)).expanduser().absolute()
     found = discover(root)
+    from .common import record_stamp, source_stamp
+
     records = []
+    skipped = 0
     for seq, cmd, loc in found:
+        stamp, key, cached = source_stamp(layout, seq.name, [cmd, loc], {"source": "amrl_txt"})
+        if cached is not None:
+            records += cached
+            skipped += 1
+            continue
         tables = read_sequence(cmd, loc)
         info = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category, "source": "amrl_txt"}
         records.append(write_sequence(layout.extracted / seq.name, tables, [cmd, loc], info))
+        record_stamp(stamp, key, [layout.extracted / seq.name])
         log.info(
             "extracted %s: cmd_vel %d, gt_pose %d", seq.name, len(tables["cmd_vel"]), len(tables["gt_pose"])
         )
+    if found and skipped == len(found):
+        log.info("extract: %d sequences up to date, skipped", skipped)
     Manifest([s for s, _, _ in found], robot=str(cfg.robot.name), format="amrl_txt", base=root).write(
         layout.manifest
     )

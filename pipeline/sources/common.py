@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from ..cache import Stamp
 from ..io import fingerprint_file, write_json_atomic, write_parquet_atomic
 
 EXTRACT_INFO = "_extract.json"
@@ -58,3 +59,27 @@ def category_by_rank(keys: list, fractions: tuple[float, float, float]) -> dict:
     for i, k in enumerate(keys):
         out[k] = "train" if i < n_train else "cv" if i < n_train + n_cv else "ld"
     return out
+
+
+def source_stamp(layout, unit: str, inputs: list[Path], config: Any) -> tuple[Stamp, str, list[dict] | None]:
+    """The stamp of one raw-source unit (a file or a sequence): ``(stamp, key, records)`` where
+    ``records`` (the ``_extract.json`` records) is not None when the unit is up to date."""
+    import json
+
+    stamp = Stamp(layout.root / ".stamps" / "extract" / f"{unit}.json", "extract")
+    key = stamp.key(inputs, config)
+    if stamp.is_fresh(key):
+        try:
+            return stamp, key, [json.loads(Path(p).read_text()) for p in stamp.data["info"]["records"]]
+        except (OSError, KeyError, ValueError):
+            pass
+    return stamp, key, None
+
+
+def record_stamp(stamp: Stamp, key: str, out_dirs: list[Path], extra: list[Path] = ()) -> None:
+    """Record a raw-source unit: every file of its sequence folders (and ``extra``) is an output."""
+    outs = [
+        p for d in out_dirs for p in sorted(Path(d).iterdir()) if p.is_file() and not p.name.startswith(".")
+    ]
+    infos = [str(Path(d) / EXTRACT_INFO) for d in out_dirs]
+    stamp.record(key, [*outs, *extra], {"records": infos})

@@ -197,6 +197,15 @@ def extract_source(cfg, layout) -> list[dict]:
     robot = str(cfg.robot.name)
     if stem in KNOWN_ROBOTS and stem != robot:
         raise ConfigError(f"{path}: this is {stem} data but robot={robot}; set robot={stem}")
+    from omegaconf import OmegaConf
+
+    from .common import record_stamp, source_stamp
+
+    conf = {"source": OmegaConf.to_container(src, resolve=True), "robot": robot}
+    stamp, key, cached = source_stamp(layout, path.name, [path], conf)
+    if cached is not None and layout.manifest.is_file():
+        log.info("extract: %s: %d sequences up to date, skipped", path.name, len(cached))
+        return cached
     df = read_frame(path)
     form = str(src.get("form", "auto"))
     if form == "auto":
@@ -219,4 +228,5 @@ def extract_source(cfg, layout) -> list[dict]:
         log.info("extracted %s (%s): %s", s["name"], s["category"], counts)
     manifest = [Sequence(s["name"], terrain, s["category"], str(path)) for s in seqs]
     Manifest(manifest, robot=robot, format=f"drive_df/{form}", base=path.parent).write(layout.manifest)
+    record_stamp(stamp, key, [layout.extracted / s["name"] for s in seqs], [layout.manifest])
     return records
