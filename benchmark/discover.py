@@ -45,7 +45,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import minimize_scalar
 
 from skidbench.benchmark.effects import (
     CATALOGUE,
@@ -115,6 +114,7 @@ class Pool:
     pose: np.ndarray  # (T, 3)
     t: np.ndarray  # (T,)
     sequences: list[str]
+    note: str = ""
 
     @property
     def n_units(self) -> int:
@@ -127,6 +127,9 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
     if not tables:
         raise DiscoverError("no training sequences with data")
     cut = len(tables) < settings.min_units
+    total = sum(float(df["t"].iloc[-1] - df["t"].iloc[0]) for df, _ in tables)
+    # chunks long enough for several 6 s windows, short enough to give min_units held-out units
+    chunk = max(2.0 * settings.horizon_s + 1.0, min(settings.chunk_s, total / max(settings.min_units, 1)))
     frames, groups, units, unit_names, names = [], [], [], [], []
     for g, (df, meta) in enumerate(tables):
         name = str(meta.get("sequence", f"seq{g}"))
@@ -136,7 +139,6 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
         n = len(df)
         bounds = [0, n]
         if cut:
-            chunk = max(settings.chunk_s, 2.0 * settings.horizon_s + 1.0)
             k = max(1, int((t[-1] - t[0]) // chunk))
             bounds = [int(round(i * n / k)) for i in range(k + 1)]
         for j, (a, b) in enumerate(itertools.pairwise(bounds)):
@@ -162,12 +164,25 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
 
 
 def load_pool(splits_root: Path, terrain: str, settings: DiscoverSettings) -> Pool:
+    """The held-out pool of a terrain: the ``settings.splits`` sequences (default Train). When they give
+    fewer than ``min_units`` held-out units (a significance test over fewer units cannot reject at
+    alpha), the terrain's other splits (CV, LD) are added, and ``pool.note`` says so."""
     tables = []
     for s in settings.splits:
         tables += load_split_tables(Path(splits_root), terrain, s)
     if not tables:
         raise DiscoverError(f"{splits_root}/{terrain}: no split files for {'/'.join(settings.splits)}")
-    return build_pool(tables, settings)
+    pool = build_pool(tables, settings)
+    extra = [s for s in ("train", "cv", "ld") if s not in settings.splits]
+    if pool.n_units < settings.min_units and extra:
+        more = [t for s in extra for t in load_split_tables(Path(splits_root), terrain, s)]
+        if more:
+            pool = build_pool(tables + more, settings)
+            pool.note = (
+                f"{'/'.join(settings.splits)} gave fewer than {settings.min_units} held-out units; "
+                f"{'/'.join(extra)} sequences added to the pool"
+            )
+    return pool
 
 
 # -- the augmented model --------------------------------------------------------------------------
@@ -235,21 +250,31 @@ class Augmenter:
         return float(np.sum(r.mean(axis=0) * self.weights))
 
     def fit(
-        self, effects: list[str], train_units: np.ndarray, warm: dict[str, np.ndarray] | None = None
+        self,
+        effects: list[str],
+        train_units: np.ndarray,
+        warm: dict[str, np.ndarray] | None = None,
+        fixed_tau: bool = False,
     ) -> FitState:
         rows = np.isin(self.pool.units, train_units) & self.pool.valid
         if "actuator_lag" in effects:
+            if fixed_tau and warm and "actuator_lag" in warm:  # scoring another candidate: keep tau
+                return self._fit_at(effects, rows, float(warm["actuator_lag"][0]), warm, quick=False)
+            # a fixed log grid (lag-filtered inputs are cached and shared by folds and candidates), then
+            # a parabola through the best grid point and its neighbours (in log tau)
             lo, hi = self.s.tau_bounds
-            if warm and "actuator_lag" in warm:  # local search around the known time constant
-                t0 = float(warm["actuator_lag"][0])
-                lo, hi = max(lo, t0 / 1.8), min(hi, t0 * 1.8)
-            res = minimize_scalar(
-                lambda lt: self._fit_at(effects, rows, math.exp(lt), warm, quick=True).loss,
-                bounds=(math.log(lo), math.log(hi)),
-                method="bounded",
-                options={"xatol": 0.03},
-            )
-            return self._fit_at(effects, rows, math.exp(float(res.x)), warm, quick=False)
+            grid = np.exp(np.linspace(math.log(lo), math.log(hi), 10))
+            losses = np.array([self._fit_at(effects, rows, g, warm, quick=True).loss for g in grid])
+            i = int(np.clip(np.argmin(losses), 1, len(grid) - 2))
+            x = np.log(grid[i - 1 : i + 2])
+            y = losses[i - 1 : i + 2]
+            den = (x[0] - x[1]) * (x[0] - x[2]) * (x[1] - x[2])
+            A = (x[2] * (y[1] - y[0]) + x[1] * (y[0] - y[2]) + x[0] * (y[2] - y[1])) / den
+            B = (x[2] ** 2 * (y[0] - y[1]) + x[1] ** 2 * (y[2] - y[0]) + x[0] ** 2 * (y[1] - y[2])) / den
+            best = float(grid[int(np.argmin(losses))])
+            if A > 0:
+                best = float(np.exp(np.clip(-B / (2 * A), x[0], x[2])))
+            return self._fit_at(effects, rows, best, warm, quick=False)
         return self._fit_at(effects, rows, None, warm, quick=False)
 
     def _fit_at(
@@ -396,12 +421,15 @@ def horizon_metrics(pool: Pool, pred: np.ndarray, horizon_s: float) -> tuple[dic
 
 
 def cross_validate(aug: Augmenter, effects: list[str], warm: dict | None = None) -> HeldOut:
+    """Held-out predictions by k-fold over units. The lag time constant of a model that already has
+    ``actuator_lag`` stays at its fitted value while other candidates are scored (it is re-searched
+    when the model is refitted after an effect is added)."""
     pool = aug.pool
     pred = np.zeros_like(pool.target)
     fold_params = []
     for held in folds_of(pool, aug.s.folds):
         train = np.setdiff1d(np.arange(pool.n_units), held)
-        st = aug.fit(effects, train, warm)
+        st = aug.fit(effects, train, warm, fixed_tau=True)
         rows = np.isin(pool.units, held)
         pred[rows] = st.pred[rows]
         fold_params.append({e: [float(v) for v in p] for e, p in st.params.items()})
@@ -529,7 +557,10 @@ def discover_terrain(
         "n_sequences": len(pool.sequences),
         "n_heldout_units": pool.n_units,
         "n_samples": int(pool.valid.sum()),
+        "pool_note": pool.note,
     }
+    if pool.note:
+        say(f"[{terrain}] note: {pool.note}")
     say(
         f"[{terrain}] base {base_name}: held-out {settings.horizon_s:g} s RMSRE "
         f"trans {cur.rmsre['translational']:.4f} rot {cur.rmsre['rotational']:.4f} "
