@@ -99,3 +99,23 @@ def test_a_truncated_parquet_intermediate_fails_its_fingerprint_and_is_rebuilt(m
     assert "fails its fingerprint" in out, out[-2000:]
     assert path.read_bytes() == data
     assert snapshot(micro_root) == before
+
+
+def test_a_changed_input_reruns_exactly_the_units_downstream_of_it(micro_root):
+    before = snapshot(micro_root)
+    tum = micro_root / DATASET / "groundtruth/tile_cv_00.tum"
+    original = tum.read_bytes()
+    tum.write_bytes(original)  # same content, new mtime: nothing to do
+    proc = skidbench("split", micro_root)
+    assert "3 sequences up to date, skipped" in proc.stdout + proc.stderr
+    lines = original.decode().splitlines(keepends=True)
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    t, *rest = lines[k].split()
+    lines[k] = " ".join([t, str(float(rest[0]) + 0.001), *rest[1:]]) + "\n"  # the first pose moves 1 mm
+    tum.write_text("".join(lines))
+    proc = skidbench("split", micro_root)
+    assert "1 sequences split, 2 up to date" in proc.stdout + proc.stderr, proc.stdout[-1500:]
+    assert snapshot(micro_root) != before
+    tum.write_bytes(original)
+    skidbench("split", micro_root)
+    assert snapshot(micro_root) == before
