@@ -23,6 +23,8 @@ import pyarrow.parquet as pq
 from .errors import OutputError, SkidbenchError
 
 TMP_PREFIX = ".tmp-"
+_UMASK = os.umask(0)
+os.umask(_UMASK)
 
 #: errno values of a write that fails for a reason outside the program: one clear line, not a traceback
 WRITE_ERRNOS = {errno.ENOSPC, errno.EACCES, errno.EPERM, errno.EROFS, errno.EDQUOT, errno.EFBIG}
@@ -90,6 +92,7 @@ def atomic_path(final: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
         raise err from exc
     os.close(fd)
     tmp_path = Path(tmp)
+    os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual file mode
     try:
         yield tmp_path
         _inject_fault(final)
