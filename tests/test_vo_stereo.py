@@ -126,9 +126,10 @@ def test_truth_errors_vanish_for_a_rigidly_moved_copy():
     assert out["ate_max_m"] < 1e-9 and out["rpe_n"] > 0 and out["rpe_trans_mean_m"] < 1e-9
 
 
-def _circle(n: int, radius: float, v: float, fps: float) -> np.ndarray:
+def _circle(n: int, radius: float, fps: float) -> np.ndarray:
+    """(t, x, y, yaw) of n poses on a circle that closes exactly (pose n-1 == pose 0, one turn)."""
     t = np.arange(n) / fps
-    th = v / radius * t
+    th = 2 * np.pi * np.arange(n) / (n - 1)
     return np.column_stack([t, radius * np.sin(th), radius * (1 - np.cos(th)), th])
 
 
@@ -138,7 +139,7 @@ def test_vo_closes_a_short_rendered_loop_within_the_papers_bound(camera_cfg, ren
     T_b_c = camera_extrinsic(camera_cfg)
     radius, v, fps = 2.0, 1.0, 15.0
     n = int(round(2 * np.pi * radius / v * fps)) + 1
-    path = _circle(n, radius, v, fps)
+    path = _circle(n, radius, fps)
     x0, y0, th0 = 4.0, 3.0, 0.3
     c, s = np.cos(th0), np.sin(th0)
 
