@@ -36,3 +36,15 @@ def test_evaluate_twice_in_fresh_roots_gives_identical_mlflow_metrics(micro_root
     second = _evaluate(micro_root, tmp_path / "b")
     assert first and all(any(k.startswith("rmsre_") for k in m) for m in first.values())
     assert first == second  # exact float equality, every metric
+
+
+def test_evaluate_again_with_nothing_changed_is_skipped_and_reprints(micro_root, tmp_path):
+    from reliability_data import skidbench
+
+    shutil.copytree(micro_root / DATASET / "splits", tmp_path / DATASET / "splits")
+    first = skidbench("evaluate", tmp_path)
+    assert "skipped" not in first.stdout
+    again = skidbench("evaluate", tmp_path)
+    assert "inputs unchanged" in again.stdout and "skipped" in again.stdout, again.stdout[-1500:]
+    table = [ln for ln in first.stdout.splitlines() if ln.strip().startswith(("ideal", "edd"))]
+    assert table and all(ln in again.stdout for ln in table)  # compare-style reprint of the same result
