@@ -24,7 +24,11 @@ Significance rule (every part must hold; the constants are ``discover.*`` settin
   contiguous chunks) of the per-unit gains ``d_s`` (the same log ratio, per unit) rejects "no
   improvement" at ``alpha`` (default 0.01; exact for up to 16 units);
 * the held-out velocity residuals agree: ``sum_c log(MSE_c,before / MSE_c,after)`` over (vx, vy, wz)
-  is positive (an effect that fixes poses while making velocities worse is compensating, not real).
+  is positive, and no channel the effect changes gets worse by more than ``channel_tolerance`` (0.01)
+  (an effect that fixes poses while making a velocity worse is compensating for another, not real).
+
+Effects keep their physical direction (parameter bounds in the catalogue: slips are shortfalls, the
+side slip is outward, chi grows in tight turns, the turn deficit grows with speed).
 
 The held-out prediction of each unit comes from the model fitted without it (k-fold over sequences,
 never random rows). Velocity-based fitting, pose-based scoring: the 6 s windows integrate the velocity
@@ -81,6 +85,7 @@ class DiscoverSettings:
     penalty_per_param: float = 0.02
     min_gain: float = 0.02
     max_effects: int = 4
+    channel_tolerance: float = 0.01  # held-out log-MSE loss allowed on a velocity channel the effect changes
     alternations: int = 6  # base/effect refit alternations
     tau_bounds: tuple[float, float] = (0.02, 1.5)
     splits: tuple[str, ...] = ("train",)
@@ -92,7 +97,8 @@ class DiscoverSettings:
             f"rotational) of log(RMSRE_before^2 / RMSRE_after^2) satisfies G - {self.penalty_per_param:g} * "
             f"n_params >= {self.min_gain:g}, whose per-held-out-unit gains pass a one-sided paired sign-flip "
             f"test at alpha = {self.alpha:g}, and whose held-out velocity residual (sum over vx, vy, wz of "
-            f"log MSE_before/MSE_after) also improves; held out by {self.folds}-fold over whole sequences "
+            f"log MSE_before/MSE_after) also improves with no changed channel worse by more than "
+            f"{self.channel_tolerance:g}; held out by {self.folds}-fold over whole sequences "
             f"(contiguous chunks of >= {self.chunk_s:g} s when there are fewer than {self.min_units} "
             "sequences)"
         )
@@ -333,12 +339,11 @@ class Augmenter:
         def resid(x):
             return ((apply_effects(bp, fr, unpack(x))[:, chans] - tg) * sw).ravel()
 
-        lo = np.full(len(x0), -np.inf)
-        hi = np.full(len(x0), np.inf)
+        lo = np.concatenate([[b[0] for b in CATALOGUE[e].bounds] for e in corr])
+        hi = np.concatenate([[b[1] for b in CATALOGUE[e].bounds] for e in corr])
         starts = [x0]
-        if "curvature_dependent_icr" in corr:  # b1 in [-0.5, 20], b2 in [0, 100]; few starts for b2
+        if "curvature_dependent_icr" in corr:  # a few starting values for b2
             i = sum(sizes[: corr.index("curvature_dependent_icr")])
-            lo[i : i + 2], hi[i : i + 2] = (-0.5, 0.0), (20.0, 100.0)
             for b2 in (0.3, 1.0, 4.0):
                 xs = x0.copy()
                 xs[i + 1] = b2
@@ -478,6 +483,11 @@ def _log_ratio2(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(g), g, np.nan)
 
 
+def _channels_of(eid: str) -> tuple[str, ...]:
+    ch = CATALOGUE[eid].channel
+    return CHANNELS if ch < 0 else (CHANNELS[ch],)
+
+
 def compare(before: HeldOut, after: HeldOut, n_params: int, s: DiscoverSettings) -> dict[str, Any]:
     """The evidence for one candidate: held-out gains and the significance rule's verdict."""
     keys = ("translational", "rotational")
@@ -490,7 +500,9 @@ def compare(before: HeldOut, after: HeldOut, n_params: int, s: DiscoverSettings)
     vel_gain = np.log((before.mse + eps) / (after.mse + eps))
     Gv = float(np.sum(vel_gain))
     penalised = G - s.penalty_per_param * n_params
-    passes = bool(penalised >= s.min_gain and p <= s.alpha and Gv > 0.0)
+    touched = [CHANNELS.index(c) for c in _channels_of(after.effects[-1])] if after.effects else []
+    worse = [CHANNELS[c] for c in touched if vel_gain[c] < -s.channel_tolerance]
+    passes = bool(penalised >= s.min_gain and p <= s.alpha and Gv > 0.0 and not worse)
     return {
         "n_params": n_params,
         "heldout_gain": G,
@@ -500,6 +512,7 @@ def compare(before: HeldOut, after: HeldOut, n_params: int, s: DiscoverSettings)
         "velocity_gain_per_channel": dict(zip(CHANNELS, map(float, vel_gain), strict=True)),
         "heldout_mse_before": dict(zip(CHANNELS, map(float, before.mse), strict=True)),
         "heldout_mse_after": dict(zip(CHANNELS, map(float, after.mse), strict=True)),
+        "velocity_channels_worse": worse,
         "paired_p_value": p,
         "n_heldout_units": int(np.sum(np.isfinite(d))),
         "units_improved": int(np.sum(d > 0)),

@@ -46,6 +46,7 @@ def settings_from_cfg(cfg: DictConfig) -> DiscoverSettings:
         penalty_per_param=float(d.penalty_per_param),
         min_gain=float(d.min_gain),
         max_effects=int(d.max_effects),
+        channel_tolerance=float(d.get("channel_tolerance", 0.01)),
         splits=tuple(d.use),
         seed=int(cfg.get("seed", 0) or 0),
     )

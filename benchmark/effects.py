@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 CMD_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr")
+INF = float("inf")
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,8 @@ class Effect:
     kind: str  # "input" | "mult" | "add"
     init: tuple[float, ...] = field(default=())
     feature_label: str = ""  # what the residual is plotted against in the figure
+    #: physical sign/range of each parameter (the effect's direction is part of its meaning)
+    bounds: tuple[tuple[float, float], ...] = ()
 
     @property
     def n_params(self) -> int:
@@ -56,6 +59,7 @@ CATALOGUE: dict[str, Effect] = {
             "add",
             (0.0,),
             "commanded angular acceleration (rad/s^2)",
+            ((0.0, INF),),
         ),
         Effect(
             "linear_acceleration_slip",
@@ -67,6 +71,7 @@ CATALOGUE: dict[str, Effect] = {
             "add",
             (0.0,),
             "commanded linear acceleration (m/s^2)",
+            ((0.0, INF),),
         ),
         Effect(
             "actuator_lag",
@@ -79,17 +84,19 @@ CATALOGUE: dict[str, Effect] = {
             "input",
             (0.1,),
             "commanded acceleration (m/s^2, rad/s^2 scaled)",
+            ((0.0, INF),),
         ),
         Effect(
             "centripetal_side_slip",
             "In a turn the tyres must supply the centripetal force m v w, and the lateral slip this "
             "takes makes the body skid outward with a lateral velocity proportional to v * w.",
-            "vy += k * vx * wz",
+            "vy -= k * vx * wz  (k >= 0: outward)",
             ("k",),
             1,
             "add",
             (0.0,),
             "v * w (m/s * rad/s)",
+            ((0.0, INF),),
         ),
         Effect(
             "side_asymmetry",
@@ -101,6 +108,7 @@ CATALOGUE: dict[str, Effect] = {
             "add",
             (0.0,),
             "commanded linear velocity (m/s)",
+            ((-INF, INF),),
         ),
         Effect(
             "curvature_dependent_icr",
@@ -112,6 +120,7 @@ CATALOGUE: dict[str, Effect] = {
             "mult",
             (0.3, 1.0),
             "commanded turning radius |R| (m)",
+            ((0.0, 20.0), (0.0, 100.0)),
         ),
         Effect(
             "lateral_drift",
@@ -123,6 +132,7 @@ CATALOGUE: dict[str, Effect] = {
             "add",
             (0.0,),
             "sample (time order)",
+            ((-INF, INF),),
         ),
         Effect(
             "speed_dependent_turn_slip",
@@ -134,6 +144,7 @@ CATALOGUE: dict[str, Effect] = {
             "mult",
             (0.0,),
             "|v_cmd| * w_pred (m/s * rad/s)",
+            ((0.0, 2.0),),
         ),
     ]
 }
@@ -216,8 +227,8 @@ def additive(eid: str, p: np.ndarray, f: dict[str, np.ndarray], pred: np.ndarray
         return -k * f["dw"]
     if eid == "linear_acceleration_slip":
         return -k * f["dv"]
-    if eid == "centripetal_side_slip":
-        return k * pred[:, 0] * pred[:, 2]
+    if eid == "centripetal_side_slip":  # outward: to the right (-y) in a left turn
+        return -k * pred[:, 0] * pred[:, 2]
     if eid == "side_asymmetry":
         return k * f["v"]
     if eid == "lateral_drift":

@@ -109,7 +109,7 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
         vx = vx - float(effects["linear_acceleration_slip"]) * dv
     vy = np.zeros(len(t))
     if "centripetal_side_slip" in effects:
-        vy = vy + float(effects["centripetal_side_slip"]) * vx * wz
+        vy = vy - float(effects["centripetal_side_slip"]) * vx * wz  # outward skid
     if "lateral_drift" in effects:
         vy = vy + float(effects["lateral_drift"])
     return vx, vy, wz
