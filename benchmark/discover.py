@@ -22,7 +22,7 @@ Significance rule (every part must hold; the constants are ``discover.*`` settin
   one-parameter effect must cut one held-out RMSRE by at least 2 %, or both by 1 %);
 * a paired one-sided sign-flip (permutation) test over the held-out units (whole sequences, or
   contiguous chunks) of the per-unit gains ``d_s`` (the same log ratio, per unit) rejects "no
-  improvement" at ``alpha`` (default 0.01; exact for up to 16 units);
+  improvement" at ``alpha`` (default 0.05; exact for up to 16 units);
 * the held-out velocity residuals agree: ``sum_c log(MSE_c,before / MSE_c,after)`` over (vx, vy, wz)
   is positive, and no channel the effect changes gets worse by more than ``channel_tolerance`` (0.01)
   (an effect that fixes poses while making a velocity worse is compensating for another, not real).
@@ -81,7 +81,7 @@ class DiscoverSettings:
     folds: int = 5
     min_units: int = 8  # cut sequences into chunks when there are fewer sequences than this
     chunk_s: float = 30.0  # chunk length when cutting (s); never shorter than 2 horizons
-    alpha: float = 0.01
+    alpha: float = 0.05
     penalty_per_param: float = 0.02
     min_gain: float = 0.02
     max_effects: int = 4
