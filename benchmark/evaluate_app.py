@@ -52,7 +52,9 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
     files = list_split_files(layout.splits)
     files += sorted(p for m in cfg.models for p in (layout.fits / str(m)).glob("*.json"))
-    return stamp.key(files, OmegaConf.to_container(cfg, resolve=True))
+    conf = OmegaConf.to_container(cfg, resolve=True)
+    conf.pop("force", None)  # how to run, not what
+    return stamp.key(files, conf)
 
 
 def _cached_result(cfg: DictConfig, layout, stamp):
