@@ -1,0 +1,172 @@
+"""The whole ``make reproduce`` (simulate, extract, groundtruth, split, evaluate, compare) in a fresh out
+root: wall time, CPU time and peak resident memory per stage; and extraction's peak memory on the
+``mini`` vs the ``full`` simulated bags.
+
+Scale: ``mini`` (what ``make reproduce`` runs); ``SKIDBENCH_BENCH_SCALE=tiny`` for a quick run (and
+``--quick`` runs ``tiny`` too).
+
+Each stage runs as ``skidbench <stage> scale=<s> seed=0`` in its own process, under a small wrapper
+(``python -m skidbench.benchmark.perf.reproduce stage <json> <stage> [overrides]``) that runs the stage
+in-process and at exit writes its own ``VmHWM`` (the high-water mark of the stage's process image) and
+``RUSAGE_CHILDREN``'s ``ru_maxrss`` (the largest process the stage started and waited for, e.g. the
+simulator's workers). Not ``/usr/bin/time -v`` nor the benchmark's own ``RUSAGE_CHILDREN``: a process
+started by fork/vfork+exec inherits its parent's resident size as the floor of its ``ru_maxrss``, so
+those would report at least the size of the (Python) process that started them. Peak per stage is the
+larger of the two figures: the largest single process, not the sum of concurrent workers.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from skidbench.pipeline.layout import default_out_root
+
+from . import register
+from .harness import peak_rss_mb
+
+STAGES = ("simulate", "extract", "groundtruth", "split", "evaluate", "compare")
+SCALE_ENV = "SKIDBENCH_BENCH_SCALE"
+
+
+def run_stage(stage: str, args: list[str], out_root: Path, cwd: Path) -> dict[str, Any]:
+    """One stage in a fresh process under the wrapper: wall/CPU seconds, peak RSS (MiB), exit code."""
+    env = dict(os.environ)
+    env["SKIDBENCH_OUT"] = str(out_root)
+    env.pop("MLFLOW_TRACKING_URI", None)  # the fresh root's own mlflow.db
+    with tempfile.NamedTemporaryFile(prefix="skidbench-stage-", suffix=".json", delete=False) as f:
+        report = Path(f.name)
+    cmd = [sys.executable, "-m", "skidbench.benchmark.perf.reproduce", "stage", str(report), stage, *args]
+    log = cwd / f"{stage}.log"
+    started = time.perf_counter()
+    with log.open("w") as out:
+        proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - started
+    try:
+        mem = json.loads(report.read_text() or "{}")
+    except (OSError, json.JSONDecodeError):
+        mem = {}
+    report.unlink(missing_ok=True)
+    res = {
+        "stage": stage,
+        "wall_s": wall,
+        "cpu_s": usage.ru_utime + usage.ru_stime,  # the stage and every process it waited for
+        "peak_rss_mb": max(mem.get("self_mb", 0.0), mem.get("children_mb", 0.0)),
+        "self_rss_mb": mem.get("self_mb"),
+        "children_rss_mb": mem.get("children_mb"),
+        "exit": proc.returncode,
+    }
+    if proc.returncode != 0:
+        tail = log.read_text().strip().splitlines()[-1:] or ["no output"]
+        res["error"] = tail[0][:300]
+    return res
+
+
+def reproduce(scale: str, keep: Path | None = None) -> dict[str, Any]:
+    """Every stage of ``make reproduce`` (simulated source) in a fresh out root; stops at a failure."""
+    with tempfile.TemporaryDirectory(prefix="skidbench-reproduce-") as tmp:
+        root = Path(keep) if keep else Path(tmp)
+        out_root = root / "outputs"
+        out_root.mkdir(parents=True, exist_ok=True)
+        stages = []
+        for stage in STAGES:
+            res = run_stage(stage, [f"scale={scale}", "seed=0"], out_root, root)
+            stages.append(res)
+            print(
+                f"bench reproduce: {stage} {res['wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MiB"
+                + (f" FAILED: {res.get('error')}" if res["exit"] else ""),
+                file=sys.stderr,
+                flush=True,
+            )
+            if res["exit"] != 0:
+                break
+        bags = sorted((out_root / f"sim-{scale}" / "raw" / "bags").glob("*"))
+        return {"scale": scale, "stages": stages, "bags": len(bags)}
+
+
+def extraction_mini_vs_full() -> dict[str, Any]:
+    """Extraction's peak RSS on the longest ``sim-mini`` and ``sim-full`` bags under the default out root
+    (each in a fresh interpreter; see ``extraction.measure_rss``), when they have been simulated."""
+    from .extraction import _sim_bags, measure_rss
+
+    bags = _sim_bags()
+    out: dict[str, Any] = {}
+    for scale in ("mini", "full"):
+        path = bags.get(scale)
+        if path is None:
+            where = default_out_root() / f"sim-{scale}"
+            out[f"extract_rss_{scale}_mb"] = f"not measured ({where} not simulated)"
+            continue
+        size = sum(f.stat().st_size for f in [path, *path.glob("*")]) / 2**20
+        res = measure_rss(path, "sim")
+        out[f"extract_rss_{scale}_mb"] = res["peak_rss_mb"]
+        out[f"extract_{scale}_bag"] = f"{path.name} ({size:.0f} MiB, {res['messages']} messages)"
+    if isinstance(out.get("extract_rss_mini_mb"), float) and isinstance(
+        out.get("extract_rss_full_mb"), float
+    ):
+        out["extract_rss_full_minus_mini_mb"] = out["extract_rss_full_mb"] - out["extract_rss_mini_mb"]
+    return out
+
+
+def metrics(run: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {"scale": run["scale"]}
+    for s in run["stages"]:
+        out[f"{s['stage']}_wall_s"] = s["wall_s"]
+        out[f"{s['stage']}_cpu_s"] = s["cpu_s"]
+        out[f"{s['stage']}_peak_rss_mb"] = s["peak_rss_mb"]
+        if s["exit"]:
+            out[f"{s['stage']}_error"] = s.get("error", f"exit {s['exit']}")
+    done = [s for s in run["stages"] if s["exit"] == 0]
+    out["stages_ok"] = f"{len(done)}/{len(STAGES)}"
+    # the total only counts when every stage ran (a failed run has no meaningful total)
+    total = sum(s["wall_s"] for s in run["stages"])
+    out["total_wall_min"] = total / 60.0 if len(done) == len(STAGES) else f"incomplete ({total / 60:.1f} min)"
+    out["total_cpu_min"] = sum(s["cpu_s"] for s in run["stages"]) / 60.0
+    out["max_peak_rss_mb"] = max((s["peak_rss_mb"] for s in run["stages"]), default=0.0)
+    return out
+
+
+@register(
+    "reproduce",
+    "make reproduce (simulated source) in a fresh out root: wall/CPU time and peak RSS per stage "
+    f"(scale mini; {SCALE_ENV}=tiny for a quick run); extraction RSS on mini vs full bags",
+    targets={"total_wall_min": ("<", 10.0)},
+)
+def reproduce_bench(quick: bool) -> dict[str, Any]:
+    scale = os.environ.get(SCALE_ENV) or ("tiny" if quick else "mini")
+    out = metrics(reproduce(scale))
+    out.update(extraction_mini_vs_full())
+    return out
+
+
+# -------------------------------------------------------------------------------------------------
+# the per-stage wrapper (child process)
+
+
+def _stage_main(report: str, stage: str, args: list[str]) -> None:
+    def write() -> None:
+        children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0  # KiB on Linux
+        Path(report).write_text(json.dumps({"self_mb": peak_rss_mb(), "children_mb": children}))
+
+    atexit.register(write)
+    from skidbench.pipeline.cli import main
+
+    main([stage, *args])
+
+
+if __name__ == "__main__":
+    if len(sys.argv) >= 4 and sys.argv[1] == "stage":
+        _stage_main(sys.argv[2], sys.argv[3], sys.argv[4:])
+    else:
+        print("usage: python -m skidbench.benchmark.perf.reproduce stage <report.json> <stage> [args]")
+        sys.exit(2)

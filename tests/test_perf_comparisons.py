@@ -1,0 +1,51 @@
+"""The `make bench` comparisons vo, reproduce and scaling run at toy size and report their keys (no timing
+assertions: speed lives in `make bench`)."""
+
+from __future__ import annotations
+
+import math
+
+from skidbench.benchmark.perf import load_all
+from skidbench.benchmark.perf import reproduce as rep
+from skidbench.benchmark.perf import scaling as sc
+from skidbench.benchmark.perf import vo as vo_bench
+
+
+def test_new_comparisons_are_registered_with_targets():
+    comps = load_all()
+    assert comps["vo"].targets == {"realtime_ratio": (">=", 2.0)}
+    assert comps["reproduce"].targets == {"total_wall_min": ("<", 10.0)}
+    assert comps["scaling"].targets == {"max_exponent": ("<=", 1.2)}
+
+
+def test_vo_tracks_a_short_rendered_drive_and_reports_rates():
+    small = {"ground_texture_px": 1024, "wall_texture_px": 256, "n_boxes": 2, "n_posts": 2}
+    m = vo_bench.measure(6, small)
+    assert m["frames"] == 5 and m["camera_fps"] == 15.0 and m["cores"] <= 2
+    assert m["fps"] > 0 and math.isclose(m["realtime_ratio"], m["fps"] / 15.0)
+    for key in ("fps_cpu", "decode_ms_per_pair", "keyframes", "lost_frames", "image_size"):
+        assert key in m
+
+
+def test_reproduce_stage_wrapper_reports_time_memory_and_a_failing_stage(tmp_path, monkeypatch):
+    # evaluate on an empty out root fails fast with a one-line error: the run stops there
+    res = rep.run_stage("evaluate", ["scale=tiny"], tmp_path / "outputs", tmp_path)
+    assert res["exit"] == 2 and "split" in res["error"]
+    assert res["wall_s"] > 0 and res["cpu_s"] > 0 and res["peak_rss_mb"] > 10
+    m = rep.metrics({"scale": "tiny", "stages": [res]})
+    assert m["stages_ok"] == "0/6" and m["total_wall_min"].startswith("incomplete")
+    assert m["evaluate_peak_rss_mb"] == res["peak_rss_mb"] and "evaluate_error" in m
+    monkeypatch.setenv("SKIDBENCH_OUT", str(tmp_path / "none"))
+    ext = rep.extraction_mini_vs_full()
+    assert ext["extract_rss_full_mb"].startswith("not measured")
+
+
+def test_scaling_reports_an_exponent_per_model_and_kind():
+    m = sc.scaling(factors=(1, 2), seq_rows=240, base_seqs=1, repeats=1, models=["ideal", "edd"])
+    assert m["rows"] == "240 / 480"
+    for model in ("ideal", "edd"):
+        for kind in ("fit", "eval"):
+            assert math.isfinite(m[f"{model}_{kind}_exponent"])
+            assert len(m[f"{model}_{kind}_cpu_s"].split(" / ")) == 2
+    assert m["max_exponent"] == max(v for k, v in m.items() if k.endswith("_exponent"))
+    assert set(sc.builtin_models()) >= {"ideal", "edd", "full_linear", "roc", "enhanced", "friction"}
