@@ -35,6 +35,8 @@ def test_reproduce_stage_wrapper_reports_time_memory_and_a_failing_stage(tmp_pat
     m = rep.metrics({"scale": "tiny", "stages": [res]})
     assert m["stages_ok"] == "0/6" and m["total_wall_min"].startswith("incomplete")
     assert m["evaluate_peak_rss_mb"] == res["peak_rss_mb"] and "evaluate_error" in m
+    none = rep.metrics(rep.reproduce("tiny", budget_min=0.0))  # no stage started: says why
+    assert none["stages_ok"] == "0/6" and none["stopped"].startswith("budget")
     monkeypatch.setenv("SKIDBENCH_OUT", str(tmp_path / "none"))
     ext = rep.extraction_mini_vs_full()
     assert ext["extract_rss_full_mb"].startswith("not measured")

@@ -3,7 +3,8 @@ root: wall time, CPU time and peak resident memory per stage; and extraction's p
 ``mini`` vs the ``full`` simulated bags.
 
 Scale: ``mini`` (what ``make reproduce`` runs); ``SKIDBENCH_BENCH_SCALE=tiny`` for a quick run (and
-``--quick`` runs ``tiny`` too).
+``--quick`` runs ``tiny`` too). ``SKIDBENCH_BENCH_MAX_MIN=<m>``: start no stage after ``m`` minutes (the
+stages done are reported, the total says incomplete).
 
 Each stage runs as ``skidbench <stage> scale=<s> seed=0`` in its own process, under a small wrapper
 (``python -m skidbench.benchmark.perf.reproduce stage <json> <stage> [overrides]``) that runs the stage
@@ -35,6 +36,7 @@ from .harness import peak_rss_mb
 
 STAGES = ("simulate", "extract", "groundtruth", "split", "evaluate", "compare")
 SCALE_ENV = "SKIDBENCH_BENCH_SCALE"
+BUDGET_ENV = "SKIDBENCH_BENCH_MAX_MIN"  # stop starting stages after this many minutes (a loaded machine)
 
 
 def run_stage(stage: str, args: list[str], out_root: Path, cwd: Path) -> dict[str, Any]:
@@ -72,14 +74,20 @@ def run_stage(stage: str, args: list[str], out_root: Path, cwd: Path) -> dict[st
     return res
 
 
-def reproduce(scale: str, keep: Path | None = None) -> dict[str, Any]:
-    """Every stage of ``make reproduce`` (simulated source) in a fresh out root; stops at a failure."""
+def reproduce(scale: str, keep: Path | None = None, budget_min: float | None = None) -> dict[str, Any]:
+    """Every stage of ``make reproduce`` (simulated source) in a fresh out root; stops at a failure, and
+    with ``budget_min`` does not start a stage once that many minutes have passed (``stopped``)."""
     with tempfile.TemporaryDirectory(prefix="skidbench-reproduce-") as tmp:
         root = Path(keep) if keep else Path(tmp)
         out_root = root / "outputs"
         out_root.mkdir(parents=True, exist_ok=True)
         stages = []
+        stopped = None
+        started = time.perf_counter()
         for stage in STAGES:
+            if budget_min is not None and time.perf_counter() - started > 60.0 * budget_min:
+                stopped = f"budget of {budget_min:g} min spent before {stage}"
+                break
             res = run_stage(stage, [f"scale={scale}", "seed=0"], out_root, root)
             stages.append(res)
             print(
@@ -91,7 +99,7 @@ def reproduce(scale: str, keep: Path | None = None) -> dict[str, Any]:
             if res["exit"] != 0:
                 break
         bags = sorted((out_root / f"sim-{scale}" / "raw" / "bags").glob("*"))
-        return {"scale": scale, "stages": stages, "bags": len(bags)}
+        return {"scale": scale, "stages": stages, "bags": len(bags), "stopped": stopped}
 
 
 def extraction_mini_vs_full() -> dict[str, Any]:
@@ -128,6 +136,8 @@ def metrics(run: dict[str, Any]) -> dict[str, Any]:
             out[f"{s['stage']}_error"] = s.get("error", f"exit {s['exit']}")
     done = [s for s in run["stages"] if s["exit"] == 0]
     out["stages_ok"] = f"{len(done)}/{len(STAGES)}"
+    if run.get("stopped"):
+        out["stopped"] = run["stopped"]
     # the total only counts when every stage ran (a failed run has no meaningful total)
     total = sum(s["wall_s"] for s in run["stages"])
     out["total_wall_min"] = total / 60.0 if len(done) == len(STAGES) else f"incomplete ({total / 60:.1f} min)"
@@ -144,7 +154,8 @@ def metrics(run: dict[str, Any]) -> dict[str, Any]:
 )
 def reproduce_bench(quick: bool) -> dict[str, Any]:
     scale = os.environ.get(SCALE_ENV) or ("tiny" if quick else "mini")
-    out = metrics(reproduce(scale))
+    budget = os.environ.get(BUDGET_ENV)
+    out = metrics(reproduce(scale, budget_min=float(budget) if budget else None))
     out.update(extraction_mini_vs_full())
     return out
 
