@@ -160,6 +160,95 @@ class SolveResult:
         return np.any(m & (lam * np.abs(self.theta[:, :2]) >= mu_x), axis=1)
 
 
+def _lm(theta, F, cost, idx, inp, p, geo, mask, *, ftol, gtol, max_iter, fd_step, stall_rtol, stall_iter):
+    """Levenberg-Marquardt on the steps ``idx`` (in place on theta/F/cost rows); returns (status, n_iter)
+    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged."""
+    wl, wr, dwl, dwr = inp
+    n = idx.size
+    status = np.zeros(n, dtype=np.int8)
+    status[np.max(np.abs(F[idx]), axis=1) < ftol] = 1
+    mu = np.full(n, 1e-3)
+    hist = np.tile(cost[idx][:, None], (1, stall_iter))  # cost over the last stall_iter iterations
+    loc = np.flatnonzero(status == 0)  # positions in idx still iterating
+    eye = np.eye(3)
+    it = 0
+    while loc.size and it < max_iter:
+        it += 1
+        active = idx[loc]
+        th, Fa, m = theta[active], F[active], mask[active]
+        a = (wl[active], wr[active], dwl[active], dwr[active])
+        J = np.empty((active.size, 3, 3))
+        for k in range(3):
+            h = fd_step * np.maximum(1.0, np.abs(th[:, k]))
+            tk = th.copy()
+            tk[:, k] += h
+            J[:, :, k] = (residual(tk, *a, p, geo) - Fa) / h[:, None]
+        J *= m[:, None, :]  # pinned variables have no column
+        g = np.einsum("tij,ti->tj", J, Fa)
+        JTJ = np.einsum("tij,tik->tjk", J, J)
+        d = np.maximum(np.diagonal(JTJ, axis1=1, axis2=2), 1e-12)
+        mua = mu[loc]
+        stat = np.max(np.abs(g) / np.sqrt(d), axis=1) < gtol  # smooth stationary point, not a root
+        A = JTJ + mua[:, None, None] * (d[:, :, None] * eye)
+        delta = -np.linalg.solve(A, g[..., None])[..., 0] * m
+        tn = th + delta
+        Fn = residual(tn, *a, p, geo)
+        cn = 0.5 * np.sum(Fn * Fn, axis=1)
+        ok = cn < cost[active]
+        acc = active[ok]
+        theta[acc], F[acc], cost[acc] = tn[ok], Fn[ok], cn[ok]
+        mu[loc] = np.where(ok, np.maximum(mua / 3.0, 1e-12), mua * 4.0)
+        # stalled: over the last stall_iter iterations the cost fell by less than stall_rtol of itself.
+        # Where no root exists the infimum of F^T F often sits on a kink or jump of F (sgn(V_wy) at zero
+        # yaw rate, the mu_x plateau of eq. 6): no smooth stationary point, the gradient test never fires
+        # and LM creeps along the kink; stalling is the non-smooth stationarity test.
+        oldest = hist[loc, it % stall_iter]
+        stalled = (it >= stall_iter) & (oldest - cost[active] <= stall_rtol * oldest)
+        hist[loc, it % stall_iter] = cost[active]
+        done_root = np.max(np.abs(F[active]), axis=1) < ftol
+        st = np.where(done_root, 1, np.where(stat | stalled | (mua > 1e10), 2, 0)).astype(np.int8)
+        status[loc] = st
+        loc = loc[st == 0]
+    return status, it
+
+
+def low_slip_start(wl, wr, dwl, dwr, params, geo: FrictionGeometry) -> np.ndarray:
+    """(T, 3) analytic start from the low-slip linearisation of eqs. (6), (7), (9)-(11) about the zero-slip
+    motion: lateral forces and rolling resistance from the ideal velocities, longitudinal forces linear in
+    s (lambda s N, clipped at the mu_x plateau), small slip angles for x_ICR."""
+    mu_r, mu_x, mu_y, lam, C = _param_vector(params)
+    r, B = geo.r, geo.B
+    th0 = np.zeros((wl.size, 3))
+    v = body_velocity(th0, wl, wr, r, B)
+    vx, wz = v[:, 0], v[:, 2]
+    x_i, y_i = geo.wheel_xy[:, 0], geo.wheel_xy[:, 1]
+    N = geo.normal
+    vwx = vx[:, None] - wz[:, None] * y_i
+    vwy = wz[:, None] * x_i
+    alpha = np.arctan2(np.abs(vwy), np.abs(vwx))
+    fy = -np.sign(vwy) * mu_y * (1.0 - np.exp(-alpha / C)) * N
+    Rr = mu_r * N * np.sign(vwx)
+    x_cg, y_cg = geo.cg
+    tau_y = ((x_i - x_cg) * fy).sum(-1) + ((y_i - y_cg) * Rr).sum(-1)
+    dvx = r * (dwr + dwl) / 2.0
+    dw = r * (dwr - dwl) / B
+    b = B / 2.0
+    NL, NR = N[:2].sum(), N[2:].sum()
+    sum_fx = geo.mass * dvx + Rr.sum(-1)  # F1 = 0 with a_x ~ dv_x
+    diff_fx = (tau_y - geo.I_z * dw) / b  # F3 = 0: b (fx_L - fx_R) = tau_y - I_z dw (y_CG ~ 0)
+    fl, fr = (sum_fx + diff_fx) / 2.0, (sum_fx - diff_fx) / 2.0
+    cap = 1.05 * mu_x / lam  # just onto the plateau where the force asks for more than mu_x N
+    sl = np.clip(np.sign(wl) * fl / (lam * NL), -cap, cap)
+    sr = np.clip(np.sign(wr) * fr / (lam * NR), -cap, cap)
+    # F2 = 0 with small slip angles: sum_i -(mu_y / C) N_i wz (x_i - x_ICR) / |V_wx,i| = M wz v_x
+    vabs = np.maximum(np.abs(vwx), 1e-3)
+    k = N / vabs
+    x_icr = ((k * x_i).sum(-1) + geo.mass * vx * C / mu_y) / k.sum(-1)
+    x_icr = np.clip(x_icr, -np.abs(x_i).max(), np.abs(x_i).max())
+    out = np.stack([sl, sr, np.where(np.abs(wz) > 0, x_icr, 0.0)], axis=-1)
+    return np.where(free_mask(wl, wr), out, 0.0)
+
+
 def solve(
     wl: np.ndarray,
     wr: np.ndarray,
@@ -173,67 +262,120 @@ def solve(
     gtol: float = 1e-13,
     max_iter: int = 100,
     fd_step: float = 1e-7,
+    stall_rtol: float = 1e-10,
+    stall_iter: int = 8,
+    restarts: bool = True,
+    fallback_max: int = 10,
 ) -> SolveResult:
-    """Batched Levenberg-Marquardt on all steps at once (eq. 12).
+    """Batched Levenberg-Marquardt on all steps at once (eq. 12), with restarts for the steps it leaves
+    without a root.
 
-    Each iteration forms a forward-difference Jacobian (3 extra batched residual evaluations), solves the
+    Each LM iteration forms a forward-difference Jacobian (3 extra batched residual evaluations), solves the
     damped normal equations (J^T J + mu D) delta = -J^T F for every still-active step, and accepts a step
-    only where it lowers |F| (per-step damping mu up/down): a trust-region-like globalisation that
-    tolerates the kinks of sgn/clip. ``theta0`` warm-starts (default: zero slip, x_ICR = 0).
-    Converged: |F|_inf < ftol (root) or the scaled gradient |J^T F|_inf < gtol (stationary, not a root).
+    only where it lowers F^T F (per-step damping mu up/down): a trust-region-like globalisation with F^T F as
+    merit function, which tolerates the kinks of sgn/clip. ``theta0`` warm-starts (default: zero slip,
+    x_ICR = 0, the reference's start).
+
+    Status per step: 1 root (|F|_inf < ftol); 2 stationary point of F^T F that is not a root (scaled gradient
+    |J^T F| < gtol, or F^T F stalled: it fell by less than ``stall_rtol`` of itself over ``stall_iter``
+    iterations, which is how a minimum on a kink of F shows; no theta balances the forces there, e.g. a
+    commanded acceleration that friction cannot deliver, and theta is the least-squares minimiser); 0 not
+    converged (still descending after ``max_iter`` iterations).
+
+    Restarts (``restarts``, only for the steps without a root after the first pass, usually a few percent):
+    from the zero-slip start (if ``theta0`` was given), from the analytic low-slip linearisation
+    (``low_slip_start``), and by continuation over the acceleration (solve at zero commanded acceleration,
+    then warm-start the real one) and from full slip; each step keeps the first root found, else the lowest
+    F^T F. Steps still descending get a last pass with 4 x max_iter iterations, and if at most
+    ``fallback_max`` remain, a per-step scipy trf solve from their best point. Where the first pass finds a root it is kept, so
+    roots are the ones a zero-slip (or warm) start leads to, like the reference's.
     """
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    inp = (wl, wr, dwl, dwr)
     p = _param_vector(params)
     T = wl.size
     mask = free_mask(wl, wr)
-    theta = np.zeros((T, 3)) if theta0 is None else np.array(theta0, dtype=float).reshape(T, 3)
+    zero_start = theta0 is None
+    theta = np.zeros((T, 3)) if zero_start else np.array(theta0, dtype=float).reshape(T, 3)
     theta = np.where(mask, theta, 0.0)
+    theta[~np.isfinite(theta)] = 0.0
     status = np.zeros(T, dtype=np.int8)
-    F = residual(theta, wl, wr, dwl, dwr, p, geo)
+    F = residual(theta, *inp, p, geo)
     cost = 0.5 * np.sum(F * F, axis=1)
-    mu = np.full(T, 1e-3)
     # standstill (both sides zero): eq. (8) gives zero velocity whatever theta; nothing to solve
     still = ~mask.any(axis=1)
     status[still] = 1
-    root = np.max(np.abs(F), axis=1) < ftol
-    status[root] = 1
-    active = np.flatnonzero(status == 0)
-    it = 0
-    eye = np.eye(3)
-    while active.size and it < max_iter:
-        it += 1
-        th, Fa, m = theta[active], F[active], mask[active]
-        a = (wl[active], wr[active], dwl[active], dwr[active])
-        J = np.empty((active.size, 3, 3))
-        for k in range(3):
-            h = fd_step * np.maximum(1.0, np.abs(th[:, k]))
-            tk = th.copy()
-            tk[:, k] += h
-            J[:, :, k] = (residual(tk, *a, p, geo) - Fa) / h[:, None]
-        J *= m[:, None, :]  # pinned variables have no column
-        g = np.einsum("tij,ti->tj", J, Fa)
-        JTJ = np.einsum("tij,tik->tjk", J, J)
-        d = np.maximum(np.diagonal(JTJ, axis1=1, axis2=2), 1e-12)
-        mua = mu[active]
-        # stationary point (gradient vanishes) but not a root
-        stat = np.max(np.abs(g) / np.sqrt(d), axis=1) < gtol
-        A = JTJ + mua[:, None, None] * (d[:, :, None] * eye)
-        delta = -np.linalg.solve(A, g[..., None])[..., 0] * m
-        tn = th + delta
-        Fn = residual(tn, *a, p, geo)
-        cn = 0.5 * np.sum(Fn * Fn, axis=1)
-        ok = cn < cost[active]
-        acc = active[ok]
-        theta[acc], F[acc], cost[acc] = tn[ok], Fn[ok], cn[ok]
-        mu[active] = np.where(ok, np.maximum(mua / 3.0, 1e-12), mua * 4.0)
-        done_root = np.max(np.abs(F[active]), axis=1) < ftol
-        # a rejected step with a tiny relative change, or damping grown so large that steps vanish, means LM
-        # has stalled at a (non-smooth) stationary point, e.g. a locked side whose lateral force has a kink
-        tiny = ~ok & (np.max(np.abs(delta), axis=1) < 1e-15 * (1.0 + np.max(np.abs(th), axis=1)))
-        status[active[done_root]] = 1
-        status[active[~done_root & (stat | tiny | (mua > 1e8))]] = 2
-        active = active[status[active] == 0]
-    return SolveResult(theta, status, cost, it, {"ftol": ftol, "gtol": gtol})
+    opts = dict(
+        ftol=ftol, gtol=gtol, fd_step=fd_step, stall_rtol=stall_rtol, stall_iter=stall_iter
+    )
+    idx = np.flatnonzero(~still)
+    status[idx], n_iter = _lm(theta, F, cost, idx, inp, p, geo, mask, max_iter=max_iter, **opts)
+    info = {"ftol": ftol, "gtol": gtol, "first_pass_not_converged": int(np.sum(status == 0)),
+            "first_pass_no_root": int(np.sum(status == 2)), "restarted": 0}
+    todo = np.flatnonzero(status != 1)
+    if restarts and todo.size:
+        info["restarted"] = int(todo.size)
+        sub = tuple(a[todo] for a in inp)
+        # full slip (the wheels spin, the robot barely moves): where no root exists the least-squares
+        # minimum often lies there, beyond the mu_x plateau a zero-slip start gets stuck on (F flat in s)
+        full = np.tile([0.999, 0.999, 0.0], (todo.size, 1))
+        starts = [low_slip_start(*sub, p, geo), full]
+        if not zero_start:
+            starts.append(np.zeros((todo.size, 3)))
+        # continuation over the acceleration: the zero-acceleration solution as the start
+        z = np.zeros(todo.size)
+        th_c = np.zeros((todo.size, 3))
+        F_c = residual(th_c, sub[0], sub[1], z, z, p, geo)
+        c_c = 0.5 * np.sum(F_c * F_c, axis=1)
+        _lm(th_c, F_c, c_c, np.arange(todo.size), (sub[0], sub[1], z, z), p, geo, mask[todo],
+            max_iter=max_iter, **opts)
+        starts.append(th_c)
+        for th_s in starts:
+            th_s = np.where(mask[todo], th_s, 0.0)
+            F_s = residual(th_s, *sub, p, geo)
+            c_s = 0.5 * np.sum(F_s * F_s, axis=1)
+            st_s, it_s = _lm(th_s, F_s, c_s, np.arange(todo.size), sub, p, geo, mask[todo],
+                             max_iter=max_iter, **opts)
+            n_iter += it_s
+            cur = status[todo]
+            better = (cur != 1) & ((st_s == 1) | (c_s < cost[todo]))
+            k = todo[better]
+            theta[k], F[k], cost[k], status[k] = th_s[better], F_s[better], c_s[better], st_s[better]
+        # still descending: more iterations for these few only
+        left = np.flatnonzero(status == 0)
+        if left.size:
+            status[left], it_s = _lm(theta, F, cost, left, inp, p, geo, mask, max_iter=4 * max_iter, **opts)
+            n_iter += it_s
+    left = np.flatnonzero(status == 0)
+    info["fallback"] = 0
+    if restarts and 0 < left.size <= fallback_max:
+        # the last few stragglers: the per-step trust-region solve from their best point
+        info["fallback"] = int(left.size)
+        _fallback_trf(theta, F, cost, status, left, inp, p, geo, mask, ftol)
+    return SolveResult(theta, status, cost, n_iter, info)
+
+
+def _fallback_trf(theta, F, cost, status, idx, inp, p, geo, mask, ftol, max_nfev: int = 200) -> None:
+    from scipy.optimize import least_squares
+
+    for t in idx:
+        free = np.flatnonzero(mask[t])
+        one = tuple(a[t : t + 1] for a in inp)
+
+        def fun(x, free=free, one=one):
+            th = np.zeros((1, 3))
+            th[0, free] = x
+            return residual(th, *one, p, geo)[0]
+
+        res = least_squares(fun, theta[t, free], method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                            max_nfev=max_nfev)
+        if res.cost > cost[t]:  # trf never goes uphill; guard anyway
+            continue
+        theta[t, free], F[t], cost[t] = res.x, res.fun, res.cost
+        if np.max(np.abs(res.fun)) < ftol:
+            status[t] = 1
+        elif res.status > 0:
+            status[t] = 2  # trf stopped on its own tolerances: a stationary point of F^T F
 
 
 def solve_reference(
