@@ -234,6 +234,7 @@ def figure6(
     g = np.linspace(-lim, lim, n)
     wl, wr = np.meshgrid(g, g, indexing="xy")  # symmetric grid: the anti-diagonal is wr = -wl
     surfaces = {}
+    no_root_cells = {}
     masked = no_root = 0
     for a in accels:
         dwl, dwr = robot.wheel_rates_from_twist(0.0, float(a))  # pure angular acceleration
@@ -268,6 +269,7 @@ def figure6(
             wz[status == 0] = np.nan  # not converged: no prediction to show
             masked += int(np.sum(status == 0))
             no_root += int(np.sum(status == 2))
+            no_root_cells[float(a)] = (status == 2).reshape(wl.shape)
         surfaces[float(a)] = wz.reshape(wl.shape)
     title = (
         f"{figs.label(model_name)} model: predicted yaw rate at commanded angular accelerations ({terrain})"
@@ -277,7 +279,7 @@ def figure6(
             f"\nof {wl.size * len(accels)} grid points: {no_root} without a force-balance root "
             f"(least-squares solution shown), {masked} not converged (blank)"
         )
-    return figs.yaw_rate_surfaces(wl, wr, surfaces, title, path, dpi)
+    return figs.yaw_rate_surfaces(wl, wr, surfaces, title, path, dpi, no_root=no_root_cells)
 
 
 def figure7(

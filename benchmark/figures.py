@@ -179,56 +179,107 @@ def yaw_rate_surfaces(
     title: str,
     path: Path,
     dpi: int = 130,
+    no_root: Mapping[float, np.ndarray] | None = None,
 ) -> Path:
-    """(a) the model's yaw rate over the wheel-velocity plane, one surface per commanded angular
-    acceleration; (b) the slice through the spot-turn diagonal (w_r = -w_l), where the surfaces separate
-    most clearly (the paper's Fig. 6)."""
+    """The paper's Fig. 6. (a) 3D: the model's yaw rate over the wheel-velocity plane, one surface per
+    commanded angular acceleration (distinct colours, shared colour legend); (b) the slice through the
+    spot-turn diagonal (w_r = -w_l) and (c) the slice at a fixed left wheel rate, where the surfaces'
+    ordering (higher commanded angular acceleration -> lower yaw rate) reads off directly. NaN cells (no
+    prediction) are left blank. ``no_root`` (bool grids, optional): cells where the force balance has no root
+    (the least-squares solution of eq. 12 is the prediction); the surfaces show roots only and these cells
+    are drawn as dots, so a missing patch of surface reads as "no force balance", not as a solver failure."""
     accels = sorted(surfaces)
-    cmap = plt.get_cmap("viridis")
-    colors = {a: cmap(0.1 + 0.8 * k / max(len(accels) - 1, 1)) for k, a in enumerate(accels)}
+    no_root = {a: np.asarray(no_root[a], bool) if no_root and a in no_root else None for a in accels}
+    # diverging, colour-blind-safe: negative blue, zero grey, positive orange-red
+    base = {-1: "#1f5fbf", 0: "#4d4d4d", 1: "#d9541e"}
+    colors = {a: base[int(np.sign(a))] for a in accels}
+    if len(set(colors.values())) < len(accels):  # more than one acceleration per sign: a sequential map
+        cmap = plt.get_cmap("coolwarm")
+        colors = {a: cmap(0.05 + 0.9 * k / max(len(accels) - 1, 1)) for k, a in enumerate(accels)}
     styles = {a: ("-", "--", ":", "-.")[k % 4] for k, a in enumerate(accels)}
-    fig = plt.figure(figsize=(11, 4.6))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    lab = {a: rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$" for a in accels}
+    fig = plt.figure(figsize=(13, 6.2))
+    gs = fig.add_gridspec(2, 2, width_ratios=(1.35, 1.0), hspace=0.42, wspace=0.12)
+    ax = fig.add_subplot(gs[:, 0], projection="3d")
+    stride = max(1, wl.shape[0] // 15)
     for a in accels:
-        ax.plot_surface(wl, wr, surfaces[a], color=colors[a], alpha=0.55, linewidth=0, antialiased=True)
-        ax.plot_wireframe(wl, wr, surfaces[a], color=colors[a], linewidth=0.3, rstride=3, cstride=3)
-    ax.set_xlabel(r"$\omega_l$ (rad/s)", fontsize=8, labelpad=2)
-    ax.set_ylabel(r"$\omega_r$ (rad/s)", fontsize=8, labelpad=2)
-    ax.set_zlabel(r"$\omega_z$ (rad/s)", fontsize=8, labelpad=2)
+        z = np.asarray(surfaces[a], float)
+        if no_root[a] is not None:
+            z = np.where(no_root[a], np.nan, z)  # NaN, not a masked array: plot_wireframe ignores masks
+            ax.scatter(wl[no_root[a]], wr[no_root[a]], surfaces[a][no_root[a]], color=colors[a], s=2,
+                       alpha=0.5, depthshade=False)
+        ax.plot_surface(
+            wl, wr, z, color=colors[a], alpha=0.45, linewidth=0, antialiased=True, shade=False
+        )
+        ax.plot_wireframe(wl, wr, z, color=colors[a], linewidth=0.6, rstride=stride, cstride=stride)
+    ax.set_xlabel(r"$\omega_l$ (rad/s)", fontsize=9, labelpad=4)
+    ax.set_ylabel(r"$\omega_r$ (rad/s)", fontsize=9, labelpad=4)
+    ax.set_zlabel(r"predicted $\omega_z$ (rad/s)", fontsize=9, labelpad=4)
     ax.tick_params(labelsize=7, pad=0)
-    ax.view_init(elev=18, azim=-50)
-    from matplotlib.patches import Patch
+    ax.view_init(elev=22, azim=-128)
+    ax.set_box_aspect((1, 1, 0.75))
+    from matplotlib.lines import Line2D
 
     ax.legend(
-        [Patch(color=colors[a]) for a in accels],
-        [rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$" for a in accels],
+        [Line2D([], [], color=colors[a], lw=6, alpha=0.7) for a in accels],
+        [lab[a] for a in accels],
         loc="upper left",
-        fontsize=7,
+        fontsize=8,
+        frameon=True,
     )
     ax.set_title("(a) yaw rate over the wheel-velocity plane", fontsize=10)
-    a2 = fig.add_subplot(1, 2, 2)
+
     n = wl.shape[0]
     diag = np.arange(n)
     anti = n - 1 - diag
-    x = wr[anti, diag] if np.allclose(wl[anti, diag], -wr[anti, diag]) else None
-    if x is None:  # grid is not symmetric: fall back to the middle row
-        x = wr[:, n // 2]
-        sl = {a: surfaces[a][:, n // 2] for a in accels}
-        xlabel = r"$\omega_r$ (rad/s) at $\omega_l$ = " + f"{wl[0, n // 2]:.1f}"
-    else:
-        sl = {a: surfaces[a][anti, diag] for a in accels}
-        xlabel = r"$\omega_r = -\omega_l$ (rad/s): turning in place"
-    for a in accels:
-        a2.plot(x, sl[a], styles[a], color=colors[a], lw=2, label=rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$")
-    a2.axhline(0, color="k", lw=0.5)
-    a2.axvline(0, color="k", lw=0.5)
-    a2.set_xlabel(xlabel)
-    a2.set_ylabel(r"predicted $\omega_z$ (rad/s)")
-    a2.grid(alpha=0.3)
-    a2.legend(fontsize=8)
-    a2.set_title("(b) slice: spot turn", fontsize=10)
+    symmetric = wl.shape == wr.shape and np.allclose(wl[anti, diag], -wr[anti, diag])
+    slices = []
+    if symmetric:
+        slices.append(
+            (
+                wr[anti, diag],
+                {a: surfaces[a][anti, diag] for a in accels},
+                {a: None if no_root[a] is None else no_root[a][anti, diag] for a in accels},
+                r"$\omega_r = -\omega_l$ (rad/s)",
+                "(b) slice: turning in place",
+            )
+        )
+    # a fixed left wheel rate (about half the range, forward), the right wheel rate varying
+    col = int(np.argmin(np.abs(wl[0] - 0.5 * np.nanmax(wl))))
+    slices.append(
+        (
+            wr[:, col],
+            {a: surfaces[a][:, col] for a in accels},
+            {a: None if no_root[a] is None else no_root[a][:, col] for a in accels},
+            r"$\omega_r$ (rad/s)",
+            f"({'c' if symmetric else 'b'}) slice: " + r"$\omega_l$ = " + f"{wl[0, col]:.1f} rad/s",
+        )
+    )
+    any_nr = False
+    for k, (x, sl, nr, xlabel, sub) in enumerate(slices):
+        a2 = fig.add_subplot(gs[k, 1]) if len(slices) == 2 else fig.add_subplot(gs[:, 1])
+        for a in accels:
+            y = np.asarray(sl[a], float)
+            if nr[a] is not None and nr[a].any():
+                any_nr = True
+                a2.plot(x[nr[a]], y[nr[a]], "o", ms=3.5, mfc="none", color=colors[a], alpha=0.8)
+                y = np.where(nr[a], np.nan, y)
+            a2.plot(x, y, styles[a], color=colors[a], lw=2, label=lab[a])
+        a2.axhline(0, color="k", lw=0.5)
+        a2.axvline(0, color="k", lw=0.5)
+        a2.set_xlabel(xlabel, fontsize=9)
+        a2.set_ylabel(r"predicted $\omega_z$ (rad/s)", fontsize=9)
+        a2.tick_params(labelsize=8)
+        a2.grid(alpha=0.3)
+        if k == 0:
+            h, lb = a2.get_legend_handles_labels()
+            if any_nr:
+                h.append(Line2D([], [], ls="", marker="o", mfc="none", color="0.3", ms=4))
+                lb.append("no force-balance root\n(least-squares solution)")
+            a2.legend(h, lb, fontsize=7.5)
+        a2.set_title(sub, fontsize=10)
     fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.0, right=0.98, top=0.86, bottom=0.09)
     return _save(fig, path, dpi)
 
 
