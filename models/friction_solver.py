@@ -316,31 +316,37 @@ def solve(
     if restarts and todo.size:
         info["restarted"] = int(todo.size)
         sub = tuple(a[todo] for a in inp)
+        m_sub = mask[todo]
+        nt = todo.size
+        z = np.zeros(nt)
         # full slip (the wheels spin, the robot barely moves): where no root exists the least-squares
         # minimum often lies there, beyond the mu_x plateau a zero-slip start gets stuck on (F flat in s)
-        full = np.tile([0.999, 0.999, 0.0], (todo.size, 1))
-        starts = [low_slip_start(*sub, p, geo), full]
+        starts = [low_slip_start(*sub, p, geo), np.tile([0.999, 0.999, 0.0], (nt, 1))]
         if not zero_start:
-            starts.append(np.zeros((todo.size, 3)))
+            starts.append(np.zeros((nt, 3)))
+        # all starts in one batched LM call (the per-iteration cost is mostly fixed overhead), plus the
+        # zero-acceleration problem from zero slip for the continuation below
+        k = len(starts)
+        st_inp = tuple(np.concatenate([a] * k + [b]) for a, b in zip(sub, (sub[0], sub[1], z, z)))
+        st_mask = np.concatenate([m_sub] * (k + 1))
+        th_s = np.where(st_mask, np.concatenate(starts + [np.zeros((nt, 3))]), 0.0)
+        F_s = residual(th_s, *st_inp, p, geo)
+        c_s = 0.5 * np.sum(F_s * F_s, axis=1)
+        st_s, it_s = _lm(th_s, F_s, c_s, np.arange(th_s.shape[0]), st_inp, p, geo, st_mask,
+                         max_iter=max_iter, **opts)
+        n_iter += it_s
         # continuation over the acceleration: the zero-acceleration solution as the start
-        z = np.zeros(todo.size)
-        th_c = np.zeros((todo.size, 3))
-        F_c = residual(th_c, sub[0], sub[1], z, z, p, geo)
+        th_c = th_s[k * nt :].copy()
+        F_c = residual(th_c, *sub, p, geo)
         c_c = 0.5 * np.sum(F_c * F_c, axis=1)
-        _lm(th_c, F_c, c_c, np.arange(todo.size), (sub[0], sub[1], z, z), p, geo, mask[todo],
-            max_iter=max_iter, **opts)
-        starts.append(th_c)
-        for th_s in starts:
-            th_s = np.where(mask[todo], th_s, 0.0)
-            F_s = residual(th_s, *sub, p, geo)
-            c_s = 0.5 * np.sum(F_s * F_s, axis=1)
-            st_s, it_s = _lm(th_s, F_s, c_s, np.arange(todo.size), sub, p, geo, mask[todo],
-                             max_iter=max_iter, **opts)
-            n_iter += it_s
-            cur = status[todo]
-            better = (cur != 1) & ((st_s == 1) | (c_s < cost[todo]))
-            k = todo[better]
-            theta[k], F[k], cost[k], status[k] = th_s[better], F_s[better], c_s[better], st_s[better]
+        st_c, it_c = _lm(th_c, F_c, c_c, np.arange(nt), sub, p, geo, m_sub, max_iter=max_iter, **opts)
+        n_iter += it_c
+        cands = [(th_s[j * nt : (j + 1) * nt], F_s[j * nt : (j + 1) * nt], c_s[j * nt : (j + 1) * nt],
+                  st_s[j * nt : (j + 1) * nt]) for j in range(k)] + [(th_c, F_c, c_c, st_c)]
+        for th_j, F_j, c_j, st_j in cands:
+            better = (status[todo] != 1) & ((st_j == 1) | (c_j < cost[todo]))
+            kk = todo[better]
+            theta[kk], F[kk], cost[kk], status[kk] = th_j[better], F_j[better], c_j[better], st_j[better]
         # still descending: more iterations for these few only
         left = np.flatnonzero(status == 0)
         if left.size:
