@@ -138,7 +138,13 @@ def _alive(pid: int) -> bool:
         return False
     except PermissionError:
         return True
-    return True
+    # A killed writer whose parent died too may linger as a zombie (an init that does not reap, as in
+    # containers): it answers kill(0) but will never finish its write.
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
