@@ -32,7 +32,7 @@ DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.
 
 class FrictionBased(KinematicModel):
     name = "friction"
-    version = "1.0"
+    version = "1.1"  # 1.1: solver restarts and no-root/stationary status
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 
     def __init__(self, robot, params=None, **options):

@@ -157,7 +157,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     code = code_fingerprint()
     moments: dict[str, dict[str, float]] = {}
     todo: list[tuple[int, SequenceSpec, Path, Stamp, str]] = []
-    for index, spec in enumerate(specs):
+    only = set(cfg.get("only") or ())
+    unknown = sorted(only - {s.name for s in specs})
+    if unknown:
+        raise SimulateError(f"only={unknown}: no such sequence at scale {cfg.scale.name}")
+    # a subset keeps each sequence's plan index, hence its random streams and its bytes
+    selected = [(i, s) for i, s in enumerate(specs) if not only or s.name in only]
+    for index, spec in selected:
         final = bag_path(bags_dir, spec.name, fmt)
         stamp = Stamp(stamps_dir / f"{spec.name}.json", "simulate")
         key = stamp.key(
@@ -223,9 +229,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         _CONTEXT.clear()
 
     results = [
-        {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for s in specs
+        {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for _, s in selected
     ]
-    skipped = len(specs) - len(todo)
+    skipped = len(selected) - len(todo)
 
     manifest = Manifest(
         [
