@@ -111,3 +111,10 @@ def test_bad_format_is_a_one_line_error(tmp_path):
 
     with pytest.raises(SimulateError, match="format='ros3'"):
         simulate(tmp_path, "format=ros3")
+
+
+def test_a_subset_has_the_same_bytes_as_in_the_whole_dataset(ros1, tmp_path):
+    whole = ros1["layout"].raw / "bags" / "grass_cv_00.bag"
+    part = simulate(tmp_path, "only=[grass_cv_00]")
+    assert [s.name for s in Manifest.read(part["layout"].manifest).sequences] == ["grass_cv_00"]
+    assert (part["layout"].raw / "bags" / "grass_cv_00.bag").read_bytes() == whole.read_bytes()
