@@ -25,11 +25,13 @@ $(STAMP): pyproject.toml
 	@touch $@
 
 # `make reproduce`: the built-in simulated dataset. `make reproduce SOURCE=amrl_txt|bag|drive_df DATA=<dir>`:
-# the same benchmark on your data (no simulation). Every stage gets the same source arguments.
+# the same benchmark on your data (no simulation). Every stage gets the same source arguments, plus any
+# Hydra overrides in ARGS (e.g. ARGS="robot=husky source.file=husky_windows.parquet").
+ARGS ?=
 ifeq ($(SOURCE),sim)
-SRC_ARGS := scale=$(SCALE) seed=$(SEED)
+SRC_ARGS := scale=$(SCALE) seed=$(SEED) $(ARGS)
 else
-SRC_ARGS := source=$(SOURCE) source.root=$(abspath $(DATA))
+SRC_ARGS := source=$(SOURCE) source.root=$(abspath $(DATA)) $(ARGS)
 endif
 
 reproduce: setup
