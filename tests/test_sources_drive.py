@@ -18,14 +18,19 @@ def test_windows_chain_into_train_cv_ld_sequences(shared_real):
     df = pd.read_parquet(path)
     seqs = windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "husky")
     assert [s["category"] for s in seqs] == ["train", "cv", "ld"]
-    assert sum(len(s["tables"]["gt_pose"]) for s in seqs) == 40 * len(df)
+    # one 2 s slot per window, back to back (no holes); held ICP repeats are thinned out of gt_pose
+    assert sum(len(s["tables"]["enc_wheels"]) for s in seqs) == 40 * len(df)
+    assert sum(len(s["tables"]["gt_pose"]) for s in seqs) < 40 * len(df)
     gt = seqs[0]["tables"]["gt_pose"]
     # the second window starts where the first one ended (chaining in the start's body frame)
     first = df.sort_values("calib_step", kind="stable").iloc[:2]
     end0 = first[["icp_x_39", "icp_y_39", "icp_yaw_39"]].to_numpy()[0]
     rel1 = first[["icp_x_5", "icp_y_5", "icp_yaw_5"]].to_numpy()[1]
-    np.testing.assert_allclose(gt[["x", "y", "yaw"]].to_numpy()[45], se2_compose(end0, rel1), atol=1e-12)
+    row = gt[gt["stamp_ns"] == 45 * 50_000_000]
+    if len(row):  # sample 5 of window 1 may be a held ICP repeat (then it is not in gt_pose)
+        np.testing.assert_allclose(row[["x", "y", "yaw"]].to_numpy()[0], se2_compose(end0, rel1), atol=1e-12)
     assert np.all(np.diff(gt["stamp_ns"]) > 0)
+    assert np.all(np.abs(np.diff(gt["yaw"])) < 1.0)  # per-window yaw wraps are unwrapped
 
 
 def test_windows_pipeline_writes_splits_and_a_card(shared_real, tmp_path):

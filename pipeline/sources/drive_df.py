@@ -6,11 +6,26 @@ Window form (``*_windows.parquet``): each row is a 2 s window of 40 samples at 2
 ``cmd_right_k``: commanded wheel rates; ``left_wheel_vel_k``, ``right_wheel_vel_k``: measured;
 ``icp_x_k``, ``icp_y_k``, ``icp_yaw_k``: lidar-ICP pose relative to the window start, in the start's
 body frame); three consecutive windows share one 6 s ``calib_step``. Our choices:
-- Chaining. DRIVE runs its calibration steps back to back, so windows are chained in order: window w+1
-  starts at window w's last pose (the one 50 ms interval between them is not in the data; ICP holds its
-  value for about half of all samples anyway). Each step gets a slot of max(3, n_windows) x 2 s; a step
-  with fewer than 3 windows leaves a hole, which becomes a ground-truth gap (nothing interpolated across
-  it) and a command timeout (zero command).
+- Chaining. DRIVE cuts its windows back to back (the three windows of a step are the 6 s before the next
+  step's first sample), so windows are chained in file order, each in its own 2 s slot: window w+1
+  starts at window w's last pose (the one 50 ms interval between them is not in the data). A window's
+  ``calib_step`` is the step at its first sample, so a window that starts 1-2 samples before a step change
+  carries the previous step's label: a step "with 4 windows" followed by one "with 2" is not a hole, and
+  no slot is left empty for it. ``icp_yaw_k`` is the difference of two wrapped world yaws (jumps of
+  2 pi inside a window); it is unwrapped per window before chaining.
+- ICP runs at about 10 Hz and the 20 Hz rows repeat its last value: a repeated pose (x, y, yaw all equal
+  to the previous sample's) is dropped from ``gt_pose`` so the ground truth is interpolated between real
+  ICP updates instead of being a staircase (whose steps the differentiator turns into velocity spikes).
+- Commands. ``cmd_left_k``/``cmd_right_k`` are DRIVE's body commands (cmd_vel_x, cmd_vel_omega) converted
+  to wheel rates by DRIVE with *its* configured (r, B). ``source.cmd_kinematics`` (per robot, [r, B])
+  names that conversion; the commands are converted back to a body twist with it and written as
+  ``cmd_vel`` (the split stage maps the twist to the robot's wheel rates with robot.wheel_radius and
+  robot.track_width). For the published Husky file the commanded common-mode wheel rate is 1.81x the
+  measured one on unsaturated steady windows (0.3 / 0.165 = 1.82; the Warthog file: 0.99): the Husky
+  commands were converted with the Warthog's r = 0.3 m, B = 1.08 m. ``source.cmd_limits`` (per robot,
+  [v_max, w_max]) clips the body command as the robot's velocity controller does (the Husky's measured
+  yaw rate saturates at 1.89 rad/s, its speed at 1.0 m/s). The measured/commanded common-mode gain is
+  logged for every file so a mismatch shows.
 - Categories. DRIVE has no Train/CV/LD. Steps are ordered by ``calib_step`` and cut into three
   contiguous blocks by ``source.split_fractions`` (default 0.6/0.2/0.2): the first block is the
   sequence ``<label>_train_00``, then ``<label>_cv_00`` and ``<label>_ld_00``. Deterministic, and no
@@ -43,6 +58,7 @@ log = logging.getLogger(__name__)
 
 WINDOW = 40
 STEP_WINDOWS = 3
+HELD_KEEP = 4  # a held ICP value: keep every 4th repeat (0.2 s at 20 Hz)
 KNOWN_ROBOTS = ("husky", "warthog", "jackal")
 RAW_COLUMNS = ("ros_time", "cmd_vel_x", "cmd_vel_omega", "meas_left_vel", "meas_right_vel", "calib_step")
 
@@ -64,8 +80,64 @@ def _cols(df: pd.DataFrame, prefix: str, path: Path) -> np.ndarray:
     return df[names].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
 
 
-def windows_to_sequences(df: pd.DataFrame, path: Path, rate_hz: float, fractions, label: str) -> list[dict]:
-    """Window form -> ``[{"name", "category", "tables"}]`` (see the module docstring for the choices)."""
+def command_gain(cmd_l, cmd_r, meas_l, meas_r) -> tuple[float, float, int]:
+    """(common-mode, differential) gain of the measured over the commanded wheel rates, least squares on
+    windows whose command is constant and below 30% of the largest command (unsaturated), measured over
+    the last 30 samples (settled); and the number of windows used. NaN when none qualifies."""
+    const = np.all(np.abs(cmd_l - cmd_l[:, :1]) < 1e-9, axis=1) & np.all(np.abs(cmd_r - cmd_r[:, :1]) < 1e-9, axis=1)
+    cs, cd = (cmd_l[:, 0] + cmd_r[:, 0]) / 2, (cmd_r[:, 0] - cmd_l[:, 0]) / 2
+    ms = (np.nanmean(meas_l[:, 10:], axis=1) + np.nanmean(meas_r[:, 10:], axis=1)) / 2
+    md = (np.nanmean(meas_r[:, 10:], axis=1) - np.nanmean(meas_l[:, 10:], axis=1)) / 2
+    small = const & (np.abs(cs) < 0.3 * np.abs(cs).max(initial=0)) & (np.abs(cd) < 0.3 * np.abs(cd).max(initial=0))
+    small &= np.isfinite(ms) & np.isfinite(md)
+    if small.sum() < 5:
+        return float("nan"), float("nan"), int(small.sum())
+    g = lambda a, b: float(a[small] @ b[small] / max(a[small] @ a[small], 1e-12))  # noqa: E731
+    return g(cs, ms), g(cd, md), int(small.sum())
+
+
+def chain_windows(rel: np.ndarray) -> np.ndarray:
+    """(W, K, 3) poses relative to each window's start (x, y in the start's body frame, yaw possibly
+    wrapped) -> (W, K, 3) poses in the first window's start frame, yaw continuous. Window w+1 starts at
+    window w's last pose."""
+    rel = np.array(rel, dtype=float)
+    rel[..., 2] = np.unwrap(rel[..., 2], axis=1)
+    starts = np.zeros((len(rel), 3))
+    for w in range(1, len(rel)):
+        starts[w] = se2_compose(starts[w - 1], rel[w - 1, -1])
+    return se2_compose(starts[:, None, :], rel)
+
+
+def fresh_samples(rel: np.ndarray, keep_every: int = HELD_KEEP) -> np.ndarray:
+    """(W*K,) bool: the samples of (W, K, 3) window poses where ICP gave a new pose (or a window starts).
+    A value held longer (the robot stands still) keeps every ``keep_every``-th repeat, so a standstill
+    is no ground-truth gap."""
+    flat = rel.reshape(-1, 3)
+    new = np.ones(len(flat), dtype=bool)
+    new[1:] = np.any(np.diff(flat, axis=0) != 0, axis=1)
+    new[:: rel.shape[1]] = True  # each window's start
+    run_start = np.maximum.accumulate(np.where(new, np.arange(len(flat)), 0))
+    return new | ((np.arange(len(flat)) - run_start) % keep_every == 0)
+
+
+def _robot_entry(value, robot: str | None):
+    """``source.cmd_kinematics``/``cmd_limits``: None, a pair, or a mapping robot -> pair."""
+    if value is None:
+        return None
+    if hasattr(value, "keys"):
+        value = value.get(robot) if robot is not None else None
+    if value is None:
+        return None
+    return tuple(float(v) for v in value)
+
+
+def windows_to_sequences(
+    df: pd.DataFrame, path: Path, rate_hz: float, fractions, label: str, cmd_kinematics=None, cmd_limits=None
+) -> list[dict]:
+    """Window form -> ``[{"name", "category", "tables"}]`` (see the module docstring for the choices).
+    ``cmd_kinematics`` (r, B): the conversion DRIVE used for ``cmd_left/right``; when given the commands are
+    written as a body twist (``cmd_vel``), clipped to ``cmd_limits`` (v_max, w_max) if given; else as
+    ``cmd_wheels``."""
     if len(df) == 0:
         raise SourceError(f"{path}: empty sequence (no windows)")
     step = pd.to_numeric(df["calib_step"], errors="coerce").to_numpy()
@@ -77,37 +149,44 @@ def windows_to_sequences(df: pd.DataFrame, path: Path, rate_hz: float, fractions
         k: _cols(df, k, path)
         for k in ("cmd_left", "cmd_right", "left_wheel_vel", "right_wheel_vel", "icp_x", "icp_y", "icp_yaw")
     }
+    gs, gd, n_used = command_gain(arrays["cmd_left"], arrays["cmd_right"], arrays["left_wheel_vel"],
+                                  arrays["right_wheel_vel"])
+    log.info("%s: measured/commanded wheel-rate gain on %d unsaturated steady windows: common %.3g, "
+             "differential %.3g", path.name, n_used, gs, gd)
+    if np.isfinite(gs) and abs(gs - 1) > 0.25 and cmd_kinematics is None:
+        log.warning("%s: the measured common-mode wheel rate is %.2fx the commanded one: the commands were "
+                    "probably converted with another (r, B); set source.cmd_kinematics", path.name, gs)
     steps = list(dict.fromkeys(step.tolist()))
     cats = category_by_rank(steps, tuple(fractions))
     dt_ns = int(round(1e9 / rate_hz))
     out = []
     for cat in ("train", "cv", "ld"):
-        rows_t, rows_i = [], []
-        slot = 0  # in windows
-        for s in (s for s in steps if cats[s] == cat):
-            idx = np.flatnonzero(step == s)
-            for j, i in enumerate(idx):
-                rows_t.append(slot + j)
-                rows_i.append(i)
-            slot += max(STEP_WINDOWS, len(idx))
-        if not rows_i:
+        rows_i = np.flatnonzero(np.array([cats[s] == cat for s in step], dtype=bool))
+        if not rows_i.size:
             continue
-        rows_i = np.array(rows_i)
-        win_t = np.array(rows_t)
+        n_steps = len({step[i] for i in rows_i})
+        win_t = np.arange(len(rows_i))  # back to back: one 2 s slot per window, no holes
         stamps = ((win_t[:, None] * WINDOW + np.arange(WINDOW)[None, :]) * dt_ns).ravel()
         rel = np.stack([arrays["icp_x"][rows_i], arrays["icp_y"][rows_i], arrays["icp_yaw"][rows_i]], axis=-1)
-        # chain: each window starts at the previous window's last pose (a serial fold over windows)
-        starts = np.zeros((len(rows_i), 3))
-        for w in range(1, len(rows_i)):
-            starts[w] = se2_compose(starts[w - 1], rel[w - 1, -1])
-        poses = se2_compose(starts[:, None, :], rel).reshape(-1, 3)
+        poses = chain_windows(rel).reshape(-1, 3)
+        # ICP repeats its last value at 20 Hz: keep only the samples where the pose changed (and the first)
+        fresh = fresh_samples(rel)
         pick = {k: v[rows_i].ravel() for k, v in arrays.items()}
         tables = {
-            "cmd_wheels": stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"]),
             "enc_wheels": stamped(stamps, wl=pick["left_wheel_vel"], wr=pick["right_wheel_vel"]),
-            "gt_pose": stamped(stamps, x=poses[:, 0], y=poses[:, 1], yaw=poses[:, 2]),
+            "gt_pose": stamped(stamps[fresh], x=poses[fresh, 0], y=poses[fresh, 1], yaw=poses[fresh, 2]),
         }
-        out.append({"name": f"{label}_{cat}_00", "category": cat, "tables": tables, "steps": len(idx)})
+        if cmd_kinematics is None:
+            tables["cmd_wheels"] = stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"])
+        else:
+            r_c, b_c = cmd_kinematics
+            v = r_c * (pick["cmd_left"] + pick["cmd_right"]) / 2.0
+            w = r_c * (pick["cmd_right"] - pick["cmd_left"]) / b_c
+            if cmd_limits is not None:
+                v, w = np.clip(v, -cmd_limits[0], cmd_limits[0]), np.clip(w, -cmd_limits[1], cmd_limits[1])
+            z = np.zeros_like(v)
+            tables["cmd_vel"] = stamped(stamps, **dict(zip(TWIST_COLUMNS, [v, z, z, z, z, w], strict=True)))
+        out.append({"name": f"{label}_{cat}_00", "category": cat, "tables": tables, "steps": n_steps})
     return out
 
 
@@ -213,7 +292,11 @@ def extract_source(cfg, layout) -> list[dict]:
     label = str(src.get("label") or path.stem)
     fractions = tuple(float(f) for f in src.split_fractions)
     if form == "windows":
-        seqs = windows_to_sequences(df, path, float(src.rate_hz), fractions, label)
+        seqs = windows_to_sequences(
+            df, path, float(src.rate_hz), fractions, label,
+            cmd_kinematics=_robot_entry(src.get("cmd_kinematics"), robot),
+            cmd_limits=_robot_entry(src.get("cmd_limits"), robot),
+        )
     elif form == "raw":
         seqs = raw_to_sequences(df, path, fractions, label)
     else:
