@@ -19,6 +19,8 @@ Identifiability (what the data can and cannot pin down):
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
@@ -27,12 +29,14 @@ from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
 from .friction_solver import PARAM_NAMES, FrictionGeometry, SolveResult, body_velocity, solve
 
+log = logging.getLogger(__name__)
+
 DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.3}
 
 
 class FrictionBased(KinematicModel):
     name = "friction"
-    version = "1.1"  # 1.1: solver restarts and no-root/stationary status
+    version = "1.2"  # 1.1: solver restarts and no-root/stationary status; 1.2: robust fit (no-root steps out of the loss, soft_l1, log-space diff_step 1e-3)
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 
     def __init__(self, robot, params=None, **options):
@@ -65,7 +69,9 @@ class FrictionBased(KinematicModel):
             raise ModelError(f"model {self.name}: unknown fit_params {unknown} (known: {PARAM_NAMES})")
         base = dict(self.params)
         warm = {"theta": None}
-        n_rows = len(train)
+        loss = str(self.options.get("loss", "soft_l1"))
+        f_scale = float(self.options.get("f_scale", 0.1))  # m/s, rad/s: where soft_l1 turns linear
+        track = {"excluded": 0}
 
         def unpack(z):
             p = dict(base)
@@ -76,14 +82,25 @@ class FrictionBased(KinematicModel):
             v, sol = self.velocities(inp, unpack(z), theta0=warm["theta"])
             if warm["theta"] is None or np.all(sol.status > 0):
                 warm["theta"] = sol.theta  # warm start for the next evaluation
-            return ((v - y) / np.sqrt(n_rows)).ravel()
+            # a step without a root (status 2: no slip balances the forces) or not converged (0) has no
+            # model prediction, only a least-squares minimiser of F: it is left out of the loss (its
+            # residual is 0), so the loss does not jump when a step's status flips under a parameter change
+            bad = sol.status != 1
+            track["excluded"] = int(bad.sum())
+            r = v - y
+            r[bad] = 0.0
+            return r.ravel()
 
         z0 = np.log([float(base[n]) for n in names])
         res = least_squares(
             resid,
             z0,
             method="trf",
-            diff_step=1e-6,
+            loss=loss,
+            f_scale=f_scale,
+            # log-space step: large enough that the finite differences see the parameters, not the
+            # inner solver's tolerance (1e-6 left the fit at its start on real data)
+            diff_step=float(self.options.get("diff_step", 1e-3)),
             xtol=float(self.options.get("xtol", 1e-10)),
             ftol=float(self.options.get("ftol", 1e-12)),
             gtol=float(self.options.get("gtol", 1e-12)),
@@ -91,24 +108,38 @@ class FrictionBased(KinematicModel):
         )
         self.params = unpack(res.x)
         pred, sol = self.velocities(inp)
+        rooted = sol.status == 1
         # mu_x matters only where eq. (6) saturates; if nothing saturates, any mu_x above the largest
-        # lambda |s| fits equally well: keep the initial value (raised to that bound) and say so
-        lam_s = float(self.params["lambda"] * np.abs(sol.theta[:, :2]).max(initial=0.0))
-        mu_x_identified = bool(np.any(sol.saturated(inp[0], inp[1], self.params)))
+        # lambda |s| fits equally well: keep the initial value (raised to that bound) and say so. The bound
+        # is taken over the steps with a root only (a no-root step's theta is a least-squares minimiser,
+        # often at full slip, and says nothing about mu_x)
+        lam_s = float(self.params["lambda"] * np.abs(sol.theta[rooted, :2]).max(initial=0.0))
+        mu_x_identified = bool(np.any(sol.saturated(inp[0], inp[1], self.params) & rooted))
         if "mu_x" in names and not mu_x_identified:
             self.params["mu_x"] = max(float(base["mu_x"]), lam_s)
             pred, sol = self.velocities(inp)
+            rooted = sol.status == 1
         self.last_solve_ = sol
-        self.fit_loss_ = mse(pred, y)
+        self.fit_loss_ = mse(pred[rooted], y[rooted]) if rooted.any() else float("nan")
+        moved = bool(np.any(np.abs(res.x - z0) > 1e-6))
         self.fit_info_ = {
             "nfev": int(res.nfev),
             "optimizer_status": int(res.status),
+            "optimizer_message": str(res.message),
+            "moved_from_start": moved,
+            "loss": loss,
+            "f_scale": f_scale,
             "fitted": names,
+            "steps": int(len(rooted)),
             "steps_not_converged": sol.n_not_converged,
             "steps_without_root": int(np.sum(sol.status == 2)),
+            "steps_excluded_from_loss": int(np.sum(~rooted)),
+            "fit_loss_all_steps": mse(pred, y),
             "mu_x_identified": mu_x_identified,
             "mu_x_lower_bound": lam_s,
         }
+        if not moved:
+            log.warning("model %s: the fit did not move from its initial parameters (%s)", self.name, res.message)
         return self
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:
