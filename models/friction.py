@@ -36,7 +36,9 @@ DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.
 
 class FrictionBased(KinematicModel):
     name = "friction"
-    version = "1.2"  # 1.1: solver restarts and no-root/stationary status; 1.2: robust fit (no-root steps out of the loss, soft_l1, log-space diff_step 1e-3)
+    # 1.1: solver restarts and no-root/stationary status; 1.2: robust fit (soft_l1, log-space diff_step);
+    # 1.3: the scored steps are those with a root at the start (no escape into "no root")
+    version = "1.3"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 
     def __init__(self, robot, params=None, **options):
@@ -71,7 +73,7 @@ class FrictionBased(KinematicModel):
         warm = {"theta": None}
         loss = str(self.options.get("loss", "soft_l1"))
         f_scale = float(self.options.get("f_scale", 0.1))  # m/s, rad/s: where soft_l1 turns linear
-        track = {"excluded": 0}
+        track: dict = {"excluded": 0, "scored": None}
 
         def unpack(z):
             p = dict(base)
@@ -82,10 +84,14 @@ class FrictionBased(KinematicModel):
             v, sol = self.velocities(inp, unpack(z), theta0=warm["theta"])
             if warm["theta"] is None or np.all(sol.status > 0):
                 warm["theta"] = sol.theta  # warm start for the next evaluation
-            # a step without a root (status 2: no slip balances the forces) or not converged (0) has no
-            # model prediction, only a least-squares minimiser of F: it is left out of the loss (its
-            # residual is 0), so the loss does not jump when a step's status flips under a parameter change
-            bad = sol.status != 1
+            # The scored steps are fixed at the start: those with a root under the initial parameters.
+            # A step without one there (an acceleration friction cannot deliver) has only a least-squares
+            # slip, a poor, jumpy function of the parameters, and stays out; a scored step that loses its
+            # root later keeps its least-squares residual (what `predict` returns for it), so the
+            # optimizer cannot buy a lower loss by pushing steps into "no root".
+            if track.get("scored") is None:
+                track["scored"] = sol.status == 1
+            bad = ~track["scored"] | (sol.status == 0)
             track["excluded"] = int(bad.sum())
             r = v - y
             r[bad] = 0.0
@@ -109,18 +115,20 @@ class FrictionBased(KinematicModel):
         self.params = unpack(res.x)
         pred, sol = self.velocities(inp)
         rooted = sol.status == 1
+        scored = track["scored"] & (sol.status != 0)
         # mu_x matters only where eq. (6) saturates; if nothing saturates, any mu_x above the largest
         # lambda |s| fits equally well: keep the initial value (raised to that bound) and say so. The bound
-        # is taken over the steps with a root only (a no-root step's theta is a least-squares minimiser,
-        # often at full slip, and says nothing about mu_x)
-        lam_s = float(self.params["lambda"] * np.abs(sol.theta[rooted, :2]).max(initial=0.0))
-        mu_x_identified = bool(np.any(sol.saturated(inp[0], inp[1], self.params) & rooted))
+        # is taken over the scored steps that have a root (a no-root step's theta is a least-squares
+        # minimiser, often at full slip, and says nothing about mu_x)
+        used = rooted & track["scored"]
+        lam_s = float(self.params["lambda"] * np.abs(sol.theta[used, :2]).max(initial=0.0))
+        mu_x_identified = bool(np.any(sol.saturated(inp[0], inp[1], self.params) & used))
         if "mu_x" in names and not mu_x_identified:
             self.params["mu_x"] = max(float(base["mu_x"]), lam_s)
             pred, sol = self.velocities(inp)
-            rooted = sol.status == 1
+            rooted, scored = sol.status == 1, track["scored"] & (sol.status != 0)
         self.last_solve_ = sol
-        self.fit_loss_ = mse(pred[rooted], y[rooted]) if rooted.any() else float("nan")
+        self.fit_loss_ = mse(pred[scored], y[scored]) if scored.any() else float("nan")
         moved = bool(np.any(np.abs(res.x - z0) > 1e-6))
         self.fit_info_ = {
             "nfev": int(res.nfev),
@@ -133,13 +141,13 @@ class FrictionBased(KinematicModel):
             "steps": int(len(rooted)),
             "steps_not_converged": sol.n_not_converged,
             "steps_without_root": int(np.sum(sol.status == 2)),
-            "steps_excluded_from_loss": int(np.sum(~rooted)),
+            "steps_excluded_from_loss": int(np.sum(~scored)),
             "fit_loss_all_steps": mse(pred, y),
             "mu_x_identified": mu_x_identified,
             "mu_x_lower_bound": lam_s,
         }
         if not moved:
-            log.warning("model %s: the fit did not move from its initial parameters (%s)", self.name, res.message)
+            log.warning("model %s: the fit did not move from its start (%s)", self.name, res.message)
         return self
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:
