@@ -54,6 +54,11 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     files += sorted(p for m in cfg.models for p in (layout.fits / str(m)).glob("*.json"))
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
+    # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
+    from skidbench.models.registry import discover
+
+    plugins = discover()
+    conf["model_versions"] = {str(m): getattr(plugins.get(str(m)), "version", None) for m in cfg.models}
     return stamp.key(files, conf)
 
 
