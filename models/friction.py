@@ -31,14 +31,24 @@ from .friction_solver import PARAM_NAMES, FrictionGeometry, SolveResult, body_ve
 
 log = logging.getLogger(__name__)
 
+#: (low, high) of each parameter during a fit; `options.param_ranges` overrides
+PARAM_RANGES = {
+    "mu_r": (1e-4, 0.5),
+    "mu_x": (0.05, 3.0),
+    "mu_y": (0.05, 3.0),
+    "lambda": (0.5, 200.0),
+    "C": (0.01, 5.0),
+}
+
 DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.3}
 
 
 class FrictionBased(KinematicModel):
     name = "friction"
     # 1.1: solver restarts and no-root/stationary status; 1.2: robust fit (soft_l1, log-space diff_step);
-    # 1.3: the scored steps are those with a root at the start (no escape into "no root")
-    version = "1.3"
+    # 1.3: the scored steps are those with a root at the start (no escape into "no root");
+    # 1.4: unfinished steps stay scored; parameters bounded to physically plausible ranges
+    version = "1.4"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 
     def __init__(self, robot, params=None, **options):
@@ -89,18 +99,27 @@ class FrictionBased(KinematicModel):
             # slip, a poor, jumpy function of the parameters, and stays out; a scored step that loses its
             # root later keeps its least-squares residual (what `predict` returns for it), so the
             # optimizer cannot buy a lower loss by pushing steps into "no root".
+            # A scored step the solver has not finished (status 0) keeps its best iterate's residual too:
+            # dropping it would let the optimizer escape into parameters the solver cannot handle.
             if track.get("scored") is None:
                 track["scored"] = sol.status == 1
-            bad = ~track["scored"] | (sol.status == 0)
+            bad = ~track["scored"]
             track["excluded"] = int(bad.sum())
             r = v - y
             r[bad] = 0.0
             return r.ravel()
 
         z0 = np.log([float(base[n]) for n in names])
+        # physically plausible ranges (friction and rolling coefficients, slip stiffness, the lateral
+        # law's angle scale), so the fit cannot wander where the force balance means nothing
+        ranges = {**PARAM_RANGES, **(self.options.get("param_ranges") or {})}
+        lo = np.log([float(ranges[n][0]) for n in names])
+        hi = np.log([float(ranges[n][1]) for n in names])
+        z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
         res = least_squares(
             resid,
             z0,
+            bounds=(lo, hi),
             method="trf",
             loss=loss,
             f_scale=f_scale,
@@ -115,7 +134,7 @@ class FrictionBased(KinematicModel):
         self.params = unpack(res.x)
         pred, sol = self.velocities(inp)
         rooted = sol.status == 1
-        scored = track["scored"] & (sol.status != 0)
+        scored = track["scored"]
         # mu_x matters only where eq. (6) saturates; if nothing saturates, any mu_x above the largest
         # lambda |s| fits equally well: keep the initial value (raised to that bound) and say so. The bound
         # is taken over the scored steps that have a root (a no-root step's theta is a least-squares
@@ -126,7 +145,7 @@ class FrictionBased(KinematicModel):
         if "mu_x" in names and not mu_x_identified:
             self.params["mu_x"] = max(float(base["mu_x"]), lam_s)
             pred, sol = self.velocities(inp)
-            rooted, scored = sol.status == 1, track["scored"] & (sol.status != 0)
+            rooted = sol.status == 1
         self.last_solve_ = sol
         self.fit_loss_ = mse(pred[scored], y[scored]) if scored.any() else float("nan")
         moved = bool(np.any(np.abs(res.x - z0) > 1e-6))
