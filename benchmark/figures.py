@@ -206,11 +206,16 @@ def yaw_rate_surfaces(
         z = np.asarray(surfaces[a], float)
         if no_root[a] is not None:
             z = np.where(no_root[a], np.nan, z)  # NaN, not a masked array: plot_wireframe ignores masks
-            ax.scatter(wl[no_root[a]], wr[no_root[a]], surfaces[a][no_root[a]], color=colors[a], s=2,
-                       alpha=0.5, depthshade=False)
-        ax.plot_surface(
-            wl, wr, z, color=colors[a], alpha=0.45, linewidth=0, antialiased=True, shade=False
-        )
+            ax.scatter(
+                wl[no_root[a]],
+                wr[no_root[a]],
+                surfaces[a][no_root[a]],
+                color=colors[a],
+                s=2,
+                alpha=0.5,
+                depthshade=False,
+            )
+        ax.plot_surface(wl, wr, z, color=colors[a], alpha=0.45, linewidth=0, antialiased=True, shade=False)
         ax.plot_wireframe(wl, wr, z, color=colors[a], linewidth=0.6, rstride=stride, cstride=stride)
     ax.set_xlabel(r"$\omega_l$ (rad/s)", fontsize=9, labelpad=4)
     ax.set_ylabel(r"$\omega_r$ (rad/s)", fontsize=9, labelpad=4)

@@ -287,8 +287,8 @@ def solve(
     (``low_slip_start``), and by continuation over the acceleration (solve at zero commanded acceleration,
     then warm-start the real one) and from full slip; each step keeps the first root found, else the lowest
     F^T F. Steps still descending get a last pass with 4 x max_iter iterations, and if at most
-    ``fallback_max`` remain, a per-step scipy trf solve from their best point. Where the first pass finds a root it is kept, so
-    roots are the ones a zero-slip (or warm) start leads to, like the reference's.
+    ``fallback_max`` remain, a per-step scipy trf solve from their best point. Where the first pass
+    finds a root it is kept, so roots are the ones a zero-slip (or warm) start leads to, like the reference's.
     """
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
     inp = (wl, wr, dwl, dwr)
@@ -305,13 +305,16 @@ def solve(
     # standstill (both sides zero): eq. (8) gives zero velocity whatever theta; nothing to solve
     still = ~mask.any(axis=1)
     status[still] = 1
-    opts = dict(
-        ftol=ftol, gtol=gtol, fd_step=fd_step, stall_rtol=stall_rtol, stall_iter=stall_iter
-    )
+    opts = dict(ftol=ftol, gtol=gtol, fd_step=fd_step, stall_rtol=stall_rtol, stall_iter=stall_iter)
     idx = np.flatnonzero(~still)
     status[idx], n_iter = _lm(theta, F, cost, idx, inp, p, geo, mask, max_iter=max_iter, **opts)
-    info = {"ftol": ftol, "gtol": gtol, "first_pass_not_converged": int(np.sum(status == 0)),
-            "first_pass_no_root": int(np.sum(status == 2)), "restarted": 0}
+    info = {
+        "ftol": ftol,
+        "gtol": gtol,
+        "first_pass_not_converged": int(np.sum(status == 0)),
+        "first_pass_no_root": int(np.sum(status == 2)),
+        "restarted": 0,
+    }
     todo = np.flatnonzero(status != 1)
     if restarts and todo.size:
         info["restarted"] = int(todo.size)
@@ -327,13 +330,16 @@ def solve(
         # all starts in one batched LM call (the per-iteration cost is mostly fixed overhead), plus the
         # zero-acceleration problem from zero slip for the continuation below
         k = len(starts)
-        st_inp = tuple(np.concatenate([a] * k + [b]) for a, b in zip(sub, (sub[0], sub[1], z, z)))
+        st_inp = tuple(
+            np.concatenate([a] * k + [b]) for a, b in zip(sub, (sub[0], sub[1], z, z), strict=True)
+        )
         st_mask = np.concatenate([m_sub] * (k + 1))
         th_s = np.where(st_mask, np.concatenate(starts + [np.zeros((nt, 3))]), 0.0)
         F_s = residual(th_s, *st_inp, p, geo)
         c_s = 0.5 * np.sum(F_s * F_s, axis=1)
-        st_s, it_s = _lm(th_s, F_s, c_s, np.arange(th_s.shape[0]), st_inp, p, geo, st_mask,
-                         max_iter=max_iter, **opts)
+        st_s, it_s = _lm(
+            th_s, F_s, c_s, np.arange(th_s.shape[0]), st_inp, p, geo, st_mask, max_iter=max_iter, **opts
+        )
         n_iter += it_s
         # continuation over the acceleration: the zero-acceleration solution as the start
         th_c = th_s[k * nt :].copy()
@@ -341,8 +347,15 @@ def solve(
         c_c = 0.5 * np.sum(F_c * F_c, axis=1)
         st_c, it_c = _lm(th_c, F_c, c_c, np.arange(nt), sub, p, geo, m_sub, max_iter=max_iter, **opts)
         n_iter += it_c
-        cands = [(th_s[j * nt : (j + 1) * nt], F_s[j * nt : (j + 1) * nt], c_s[j * nt : (j + 1) * nt],
-                  st_s[j * nt : (j + 1) * nt]) for j in range(k)] + [(th_c, F_c, c_c, st_c)]
+        cands = [
+            (
+                th_s[j * nt : (j + 1) * nt],
+                F_s[j * nt : (j + 1) * nt],
+                c_s[j * nt : (j + 1) * nt],
+                st_s[j * nt : (j + 1) * nt],
+            )
+            for j in range(k)
+        ] + [(th_c, F_c, c_c, st_c)]
         for th_j, F_j, c_j, st_j in cands:
             better = (status[todo] != 1) & ((st_j == 1) | (c_j < cost[todo]))
             kk = todo[better]
@@ -373,8 +386,9 @@ def _fallback_trf(theta, F, cost, status, idx, inp, p, geo, mask, ftol, max_nfev
             th[0, free] = x
             return residual(th, *one, p, geo)[0]
 
-        res = least_squares(fun, theta[t, free], method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                            max_nfev=max_nfev)
+        res = least_squares(
+            fun, theta[t, free], method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_nfev
+        )
         if res.cost > cost[t]:  # trf never goes uphill; guard anyway
             continue
         theta[t, free], F[t], cost[t] = res.x, res.fun, res.cost

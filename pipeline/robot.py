@@ -83,3 +83,15 @@ def robot_from_hydra(cfg: Any) -> Robot:
     from omegaconf import OmegaConf
 
     return Robot.from_config(OmegaConf.to_container(cfg, resolve=True))
+
+
+def load_robot(name: str = "jackal") -> Robot:
+    """The robot of the packaged config ``conf/robot/<name>.yaml`` (jackal, husky, warthog)."""
+    from importlib.resources import files
+
+    from omegaconf import OmegaConf
+
+    path = files("skidbench.conf") / "robot" / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"robot {name!r}: no config conf/robot/{name}.yaml")
+    return Robot.from_config(OmegaConf.to_container(OmegaConf.create(path.read_text()), resolve=True))

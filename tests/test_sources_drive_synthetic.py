@@ -75,7 +75,9 @@ def test_windows_chain_back_exactly_with_yaw_wraps_and_no_holes(tmp_path):
     first = world[0]
     c, s = np.cos(first[2]), np.sin(first[2])
     d = world[:, :2] - first[:2]
-    exp = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], np.unwrap(world[:, 2]) - first[2]])
+    exp = np.column_stack(
+        [c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], np.unwrap(world[:, 2]) - first[2]]
+    )
     got = gt[["x", "y", "yaw"]].to_numpy()
     # window w+1 starts at window w's last pose: sample k of window w is world[k + w*(WINDOW-1)]
     n_win = len(got) // WINDOW  # the train block's windows (the first ones)
@@ -102,8 +104,15 @@ def test_command_convention_is_converted_back_to_body_twist(tmp_path):
     mr = df[[f"right_wheel_vel_{k}" for k in range(WINDOW)]].to_numpy()
     gs, gd, n = command_gain(cl, cr, ml, mr)
     assert n >= 5 and abs(gs - R_CMD / 0.165) < 1e-6  # the mismatch is measured
-    seqs = windows_to_sequences(df, tmp_path / "husky_windows.parquet", 20.0, (1.0, 0.0, 0.0), "husky",
-                                cmd_kinematics=(R_CMD, B_CMD), cmd_limits=(1.0, 1.6))
+    seqs = windows_to_sequences(
+        df,
+        tmp_path / "husky_windows.parquet",
+        20.0,
+        (1.0, 0.0, 0.0),
+        "husky",
+        cmd_kinematics=(R_CMD, B_CMD),
+        cmd_limits=(1.0, 1.6),
+    )
     assert all("cmd_wheels" not in q["tables"] for q in seqs)
     cmd = pd.concat([q["tables"]["cmd_vel"] for q in seqs])  # contiguous blocks, in order
     v = np.repeat([s[0] for s in steps], 3 * WINDOW)

@@ -18,17 +18,9 @@ from skidbench.models.friction_solver import FrictionGeometry, body_velocity, so
 
 
 def _jackal():
-    from skidbench.pipeline.robot import Robot
+    from skidbench.pipeline.robot import load_robot
 
-    return Robot(
-        name="jackal",
-        mass=16.0,
-        wheel_radius=0.098,
-        track_width=0.37559,
-        wheelbase=0.262,
-        body_length=0.508,
-        body_width=0.430,
-    )
+    return load_robot("jackal")
 
 
 def random_steps(robot, n: int, seed: int = 0):

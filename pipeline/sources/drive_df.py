@@ -84,11 +84,17 @@ def command_gain(cmd_l, cmd_r, meas_l, meas_r) -> tuple[float, float, int]:
     """(common-mode, differential) gain of the measured over the commanded wheel rates, least squares on
     windows whose command is constant and below 30% of the largest command (unsaturated), measured over
     the last 30 samples (settled); and the number of windows used. NaN when none qualifies."""
-    const = np.all(np.abs(cmd_l - cmd_l[:, :1]) < 1e-9, axis=1) & np.all(np.abs(cmd_r - cmd_r[:, :1]) < 1e-9, axis=1)
+    const = np.all(np.abs(cmd_l - cmd_l[:, :1]) < 1e-9, axis=1) & np.all(
+        np.abs(cmd_r - cmd_r[:, :1]) < 1e-9, axis=1
+    )
     cs, cd = (cmd_l[:, 0] + cmd_r[:, 0]) / 2, (cmd_r[:, 0] - cmd_l[:, 0]) / 2
     ms = (np.nanmean(meas_l[:, 10:], axis=1) + np.nanmean(meas_r[:, 10:], axis=1)) / 2
     md = (np.nanmean(meas_r[:, 10:], axis=1) - np.nanmean(meas_l[:, 10:], axis=1)) / 2
-    small = const & (np.abs(cs) < 0.3 * np.abs(cs).max(initial=0)) & (np.abs(cd) < 0.3 * np.abs(cd).max(initial=0))
+    small = (
+        const
+        & (np.abs(cs) < 0.3 * np.abs(cs).max(initial=0))
+        & (np.abs(cd) < 0.3 * np.abs(cd).max(initial=0))
+    )
     small &= np.isfinite(ms) & np.isfinite(md)
     if small.sum() < 5:
         return float("nan"), float("nan"), int(small.sum())
@@ -149,13 +155,24 @@ def windows_to_sequences(
         k: _cols(df, k, path)
         for k in ("cmd_left", "cmd_right", "left_wheel_vel", "right_wheel_vel", "icp_x", "icp_y", "icp_yaw")
     }
-    gs, gd, n_used = command_gain(arrays["cmd_left"], arrays["cmd_right"], arrays["left_wheel_vel"],
-                                  arrays["right_wheel_vel"])
-    log.info("%s: measured/commanded wheel-rate gain on %d unsaturated steady windows: common %.3g, "
-             "differential %.3g", path.name, n_used, gs, gd)
+    gs, gd, n_used = command_gain(
+        arrays["cmd_left"], arrays["cmd_right"], arrays["left_wheel_vel"], arrays["right_wheel_vel"]
+    )
+    log.info(
+        "%s: measured/commanded wheel-rate gain on %d unsaturated steady windows: common %.3g, "
+        "differential %.3g",
+        path.name,
+        n_used,
+        gs,
+        gd,
+    )
     if np.isfinite(gs) and abs(gs - 1) > 0.25 and cmd_kinematics is None:
-        log.warning("%s: the measured common-mode wheel rate is %.2fx the commanded one: the commands were "
-                    "probably converted with another (r, B); set source.cmd_kinematics", path.name, gs)
+        log.warning(
+            "%s: the measured common-mode wheel rate is %.2fx the commanded one: the commands were "
+            "probably converted with another (r, B); set source.cmd_kinematics",
+            path.name,
+            gs,
+        )
     steps = list(dict.fromkeys(step.tolist()))
     cats = category_by_rank(steps, tuple(fractions))
     dt_ns = int(round(1e9 / rate_hz))
@@ -293,7 +310,11 @@ def extract_source(cfg, layout) -> list[dict]:
     fractions = tuple(float(f) for f in src.split_fractions)
     if form == "windows":
         seqs = windows_to_sequences(
-            df, path, float(src.rate_hz), fractions, label,
+            df,
+            path,
+            float(src.rate_hz),
+            fractions,
+            label,
             cmd_kinematics=_robot_entry(src.get("cmd_kinematics"), robot),
             cmd_limits=_robot_entry(src.get("cmd_limits"), robot),
         )
