@@ -24,3 +24,13 @@ def jackal():
     from skidbench.pipeline.robot import load_robot
 
     return load_robot("jackal")
+
+
+@pytest.fixture(scope="session")
+def micro_root(tmp_path_factory) -> Path:
+    """An output root holding the micro simulated dataset through split (tests/reliability_data.py)."""
+    from reliability_data import build
+
+    root = tmp_path_factory.mktemp("micro")
+    build(root)
+    return root
