@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from skidbench.benchmark.horizon import naive_window_errors, window_errors
-from skidbench.pipeline.geometry import integrate_body_velocity
+from skidbench.pipeline.geometry import integrate_body_velocity, wrap_angle
 
 from . import register
 
@@ -30,10 +30,6 @@ def drive(duration_s: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.
     return t, gt, model
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 @register(
     "horizon",
     "6 s window errors: O(T) composition vs per-window integration, 1 h of 30 Hz data",
@@ -49,7 +45,7 @@ def horizon(quick: bool) -> dict[str, float]:
     naive_s = time.perf_counter() - start
     pred = fast[["pred_x", "pred_y", "pred_yaw"]].to_numpy()
     diff = np.abs(pred - naive)
-    diff[:, 2] = np.abs(_wrap(pred[:, 2] - naive[:, 2]))
+    diff[:, 2] = np.abs(wrap_angle(pred[:, 2] - naive[:, 2]))
     return {
         "windows": int(len(naive)),
         "fast_s": fast_s,

@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from ..cache import Stamp
 from ..cli import stage
 from ..errors import ConfigError, GroundTruthError
-from ..geometry import se2_relative, se3_from_xyz_rpy, wrap_angle
+from ..geometry import se3_from_xyz_rpy
 from ..io import fingerprint_file, write_json_atomic, write_text_atomic
 from ..layout import Layout, layout_from_cfg
 from ..manifest import Manifest, Sequence
@@ -141,45 +141,14 @@ def _extract_notes(ext: Path) -> str:
 
 
 def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[str, float] | None:
-    """The ground truth against the simulator's truth, both planar. The truth is sampled at the GT stamps
-    (linear interpolation) and both are expressed relative to their first common pose (SE(2)).
-    Absolute: RMS and max position error (m), RMS yaw error (rad). Relative: over every GT pose pair
-    ``horizon_s`` apart, RMS position error (m) and its ratio to the distance driven, RMS yaw error."""
-    tt, gt_t = truth.t, gt.t
-    inside = (gt_t >= tt[0]) & (gt_t <= tt[-1])
-    if inside.sum() < 2:
+    """The ground truth against the simulator's truth (:func:`.loop.evaluate_against_truth`: start-pose
+    aligned absolute error and ``horizon_s`` relative error); None when they do not overlap in time."""
+    from .loop import evaluate_against_truth
+
+    try:
+        return evaluate_against_truth(gt, truth, rpe_window_s=horizon_s)
+    except GroundTruthError:
         return None
-    g = gt.se2[inside]
-    ts = truth.se2
-    tr = np.column_stack([np.interp(gt_t[inside], tt, ts[:, i]) for i in range(3)])
-    g_rel, t_rel = se2_relative(g[0], g), se2_relative(tr[0], tr)
-    pos = np.linalg.norm(g_rel[:, :2] - t_rel[:, :2], axis=1)
-    out = {
-        "ate_rms_m": float(np.sqrt(np.mean(pos**2))),
-        "ate_max_m": float(pos.max()),
-        "ate_yaw_rms_rad": float(np.sqrt(np.mean(wrap_angle(g_rel[:, 2] - t_rel[:, 2]) ** 2))),
-    }
-    tg = gt_t[inside]
-    j = np.searchsorted(tg, tg + horizon_s)
-    ok = j < len(tg)
-    if ok.any():
-        i, j = np.flatnonzero(ok), j[ok]
-        dg, dtr = se2_relative(g[i], g[j]), se2_relative(tr[i], tr[j])
-        err = np.linalg.norm(dg[:, :2] - dtr[:, :2], axis=1)
-        steps = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(tr[:, :2], axis=0), axis=1))])
-        dist = steps[j] - steps[i]
-        moving = dist > 0.1
-        out.update(
-            {
-                "rpe_horizon_s": horizon_s,
-                "rpe_trans_rms_m": float(np.sqrt(np.mean(err**2))),
-                "rpe_trans_rel_rms": float(np.sqrt(np.mean((err[moving] / dist[moving]) ** 2)))
-                if moving.any()
-                else None,
-                "rpe_yaw_rms_rad": float(np.sqrt(np.mean(wrap_angle(dg[:, 2] - dtr[:, 2]) ** 2))),
-            }
-        )  # fmt: skip
-    return out
 
 
 def loop_closure(cfg: DictConfig, trajs: dict[str, Trajectory]) -> dict[str, Any]:

@@ -131,10 +131,11 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
         "n_poses": int(len(t)),
         "ate_mean_m": float(pos_err.mean()),
         "ate_std_m": float(pos_err.std()),
-        "ate_rmse_m": float(np.sqrt(np.mean(pos_err**2))),
+        "ate_rms_m": float(np.sqrt(np.mean(pos_err**2))),
         "ate_max_m": float(pos_err.max()),
         "ate_yaw_mean_rad": float(yaw_err.mean()),
         "ate_yaw_max_rad": float(yaw_err.max()),
+        "ate_yaw_rms_rad": float(np.sqrt(np.mean(yaw_err**2))),
     }
     ts = t.astype(float) * 1e-9
     j = np.searchsorted(ts, ts + rpe_window_s)
@@ -149,16 +150,25 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
         # error of the relative motion, expressed in the true start frame of the window
         dt = np.hypot(de[:, 0] - dg[:, 0], de[:, 1] - dg[:, 1])
         dr = np.abs(wrap_angle(de[:, 2] - dg[:, 2]))
+        # relative to the distance the truth drove in the window (windows under 0.1 m left out)
+        steps = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(g[:, :2], axis=0).T))])
+        dist = steps[j] - steps[i]
+        moving = dist > 0.1
         out.update(
             {
                 "rpe_window_s": rpe_window_s,
                 "rpe_n": int(i.size),
                 "rpe_trans_mean_m": float(dt.mean()),
                 "rpe_trans_std_m": float(dt.std()),
+                "rpe_trans_rms_m": float(np.sqrt(np.mean(dt**2))),
+                "rpe_trans_rel_rms": float(np.sqrt(np.mean((dt[moving] / dist[moving]) ** 2)))
+                if moving.any()
+                else None,
                 "rpe_rot_mean_rad": float(dr.mean()),
                 "rpe_rot_std_rad": float(dr.std()),
+                "rpe_yaw_rms_rad": float(np.sqrt(np.mean(dr**2))),
             }
-        )
+        )  # fmt: skip
     else:
         out.update({"rpe_window_s": rpe_window_s, "rpe_n": 0})
     return out
