@@ -20,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+import cv2
 import hydra
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -187,6 +188,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             todo.append((index, spec, final, stamp, key))
 
     if todo:
+        if jobs > 1 and len(todo) > 1:
+            # OpenCV single-threaded in the workers (set here, before the renderer is built and the
+            # workers fork: changing it inside a forked child hangs on the parent's thread pool). The
+            # workers already fill the cores, and OpenCV's idle pool threads spin, taking CPU time from
+            # the other workers: a stereo pair measured 6.5 CPU-ms with one thread, 10-14 with two.
+            cv2_threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
         _CONTEXT.update(
             robot=robot,
             terrains=terrains,
@@ -217,16 +225,20 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     finish(item, result)
             else:
                 # sequences are independent (own random streams), so any order gives the same bytes;
-                # fork shares the parent's renderer world instead of rebuilding it per worker
+                # fork shares the parent's renderer world instead of rebuilding it per worker; longest
+                # first, so that no worker is left alone with a long sequence at the end
                 ctx = multiprocessing.get_context("fork")
+                longest_first = sorted(todo, key=lambda t: -_planned_seconds(t[1]))
                 with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
-                    futures = {pool.submit(_simulate_one, t[0], t[1], t[2]): t for t in todo}
+                    futures = {pool.submit(_simulate_one, t[0], t[1], t[2]): t for t in longest_first}
                     for fut in as_completed(futures):
                         item = futures[fut]
                         finish(item, fut.result())
                         bar.set_postfix_str(item[1].name)
                         bar.update(_planned_seconds(item[1]))
         _CONTEXT.clear()
+        if jobs > 1 and len(todo) > 1:
+            cv2.setNumThreads(cv2_threads)
 
     results = [
         {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for _, s in selected

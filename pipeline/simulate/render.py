@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -279,49 +280,52 @@ class StereoRenderer:
         right = self._render_one(T_w_cr, boxes, self._noise[(k // 16) % 16])
         return left, right
 
-    def _visible_boxes(self, cam_xy: np.ndarray) -> list[tuple[float, float, Box]]:
-        """Box instances (of the 3 x 3 neighbouring periods) in range and not hiding the camera."""
+    def _instances(self) -> None:
+        """Arrays of the box instances of the 3 x 3 neighbouring periods (built once)."""
+        L = self.period
+        rows = [
+            (b.cx + i * L, b.cy + j * L, k)
+            for k, b in enumerate(self.boxes)
+            for i in (-1, 0, 1)
+            for j in (-1, 0, 1)
+        ]
+        self._inst = np.array(rows, dtype=float).reshape(-1, 3)
+        k = self._inst[:, 2].astype(int)
+        self._inst_h = np.array([[b.hx, b.hy] for b in self.boxes], dtype=float).reshape(-1, 2)[k]
+        self._inst_height = np.array([b.h for b in self.boxes], dtype=float)[k]
+        self._inst_tex = np.array([b.tex_off for b in self.boxes], dtype=np.int64).reshape(-1, 4, 2)[k]
+
+    def _visible_boxes(self, cam_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices (into the instance arrays) and fade alphas of the instances in range and not hiding
+        the camera, in instance order."""
         if self._inst is None:
-            L = self.period
-            rows = [
-                (b.cx + i * L, b.cy + j * L, k)
-                for k, b in enumerate(self.boxes)
-                for i in (-1, 0, 1)
-                for j in (-1, 0, 1)
-            ]
-            self._inst = np.array(rows, dtype=float).reshape(-1, 3)
-            self._inst_h = np.array(
-                [[self.boxes[int(k)].hx, self.boxes[int(k)].hy] for k in self._inst[:, 2]]
-            ).reshape(-1, 2)
+            self._instances()
         R = float(self.opts["max_range_m"])
         m = float(self.opts["hide_margin_m"])
         d = np.abs(self._inst[:, :2] - cam_xy)
         gap = np.max(d - self._inst_h, axis=1)  # distance of the camera from the footprint (Chebyshev)
-        keep = np.all(d < R + self._inst_h, axis=1) & (gap > m)
-        alpha = np.clip((gap - m) / max(float(self.opts["fade_m"]), 1e-6), 0.0, 1.0)
-        return [
-            (bx, by, self.boxes[int(k)], a)
-            for (bx, by, k), a in zip(self._inst[keep], alpha[keep], strict=True)
-        ]
+        keep = np.nonzero(np.all(d < R + self._inst_h, axis=1) & (gap > m))[0]
+        alpha = np.clip((gap[keep] - m) / max(float(self.opts["fade_m"]), 1e-6), 0.0, 1.0)
+        return keep, alpha
 
-    def _in_view(self, boxes, R_c_w, t_c_w):
-        """Frustum culling: keep boxes with a corner in front of the camera and not all off one side."""
-        if not boxes:
-            return boxes
+    def _in_view(self, idx: np.ndarray, R_c_w: np.ndarray, t_c_w: np.ndarray) -> np.ndarray:
+        """Frustum culling of instances ``idx``: keep those with a corner in front of the camera and not
+        all off one side (a boolean mask over ``idx``)."""
         K = self.K
-        out = []
-        for bx, by, b, a in boxes:
-            xs = (bx - b.hx, bx + b.hx)
-            ys = (by - b.hy, by + b.hy)
-            c = np.array([[x, y, z] for x in xs for y in ys for z in (0.0, b.h)]) @ R_c_w.T + t_c_w
-            if np.all(c[:, 2] < self.opts["near_m"]):
-                continue
-            u = c[:, 0] * K[0, 0] + c[:, 2] * (K[0, 2] + 0.5)
-            lim_r = c[:, 2] * (self.width - K[0, 2] + 0.5)
-            if np.all(u < 0) or np.all(c[:, 0] * K[0, 0] > lim_r):
-                continue
-            out.append((bx, by, b, a))
-        return out
+        c = self._inst[idx, :2]
+        h = self._inst_h[idx]
+        corners = np.empty((len(idx), 8, 3))
+        corners[:, :, 0] = c[:, None, 0] + h[:, None, 0] * _BOX_SIGNS[None, :, 0]
+        corners[:, :, 1] = c[:, None, 1] + h[:, None, 1] * _BOX_SIGNS[None, :, 1]
+        corners[:, :, 2] = self._inst_height[idx, None] * _BOX_SIGNS[None, :, 2]
+        pc = corners @ R_c_w.T + t_c_w
+        z = pc[..., 2]
+        u = pc[..., 0] * K[0, 0] + z * (K[0, 2] + 0.5)
+        lim_r = z * (self.width - K[0, 2] + 0.5)
+        behind = np.all(z < self.opts["near_m"], axis=1)
+        left = np.all(u < 0, axis=1)
+        right = np.all(pc[..., 0] * K[0, 0] > lim_r, axis=1)
+        return ~(behind | left | right)
 
     def _render_one(self, T_w_c: np.ndarray, boxes, noise: np.ndarray) -> np.ndarray:
         H, W = self.height, self.width
@@ -363,73 +367,100 @@ class StereoRenderer:
                 borderMode=cv2.BORDER_WRAP,
             )
             img[r0:r1] = band
-        # fog per row towards the sky grey
-        fog = np.exp(-np.where(np.isfinite(depth), depth, 1e9) / float(self.opts["fog_m"]))
-        gmask = np.isfinite(depth)
-        if gmask.any():
-            f = fog[gmask][:, None]
-            img[gmask] = (img[gmask] * f + 150.0 * (1 - f)).astype(np.uint8)
+        # fog per row towards the sky grey (rows without ground keep f = 1: unchanged)
+        fog = np.exp(-np.where(np.isfinite(depth), depth, 0.0) / float(self.opts["fog_m"]))[:, None]
+        img = (img * fog + 150.0 * (1 - fog)).astype(np.uint8)
         # ---- boxes: visible vertical faces, z-buffered
-        for bx, by, b, a in self._in_view(boxes, R_c_w, t_c_w):
-            self._draw_box(img, zbuf, bx, by, b, a, R_c_w, t_c_w, T_w_c[:3, 3])
+        self._draw_faces(img, zbuf, boxes, R_c_w, t_c_w, T_w_c[:3, 3])
         out = img.astype(np.int16) + noise
         return np.clip(out, 0, 255).astype(np.uint8)
 
-    def _draw_box(self, img, zbuf, bx, by, b: Box, alpha, R_c_w, t_c_w, cam):
+    def _draw_faces(self, img, zbuf, boxes, R_c_w, t_c_w, cam) -> None:
+        """Draw the visible vertical faces of the instances ``boxes`` = (indices, alphas), in instance
+        then face order, into ``img`` with the inverse-depth z-buffer ``zbuf``.
+
+        The geometry of every face (corners in the camera, projection, plane, texture axes) is computed
+        for all faces at once; only the pixel work (mask, depth test, texture warp) is per face.
+        """
+        idx, alphas = boxes
+        if len(idx) == 0:
+            return
+        keep = self._in_view(idx, R_c_w, t_c_w)
+        idx, alphas = idx[keep], alphas[keep]
+        if len(idx) == 0:
+            return
         H, W = self.height, self.width
         K = self.K
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         near = float(self.opts["near_m"])
-        # faces: (corner p0 on the ground, direction e along the face, outward normal n, length)
-        faces = (
-            ((bx - b.hx, by - b.hy), (1.0, 0.0), (0.0, -1.0), 2 * b.hx),
-            ((bx + b.hx, by - b.hy), (0.0, 1.0), (1.0, 0.0), 2 * b.hy),
-            ((bx + b.hx, by + b.hy), (-1.0, 0.0), (0.0, 1.0), 2 * b.hx),
-            ((bx - b.hx, by + b.hy), (0.0, -1.0), (-1.0, 0.0), 2 * b.hy),
-        )
-        for fi, (p0, e, nrm, length) in enumerate(faces):
-            if (cam[0] - p0[0]) * nrm[0] + (cam[1] - p0[1]) * nrm[1] <= 1e-6:
-                continue  # back face
-            P0 = np.array([p0[0], p0[1], b.h])
-            E = np.array([e[0], e[1], 0.0])
-            corners_w = np.array([P0, P0 + length * E, P0 + length * E - [0, 0, b.h], P0 - [0, 0, b.h]])
-            pc = corners_w @ R_c_w.T + t_c_w
-            poly = _clip_near(pc, near)
-            if len(poly) < 3:
-                continue
-            uv = poly[:, :2] / poly[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-            x0 = max(0, int(np.floor(uv[:, 0].min())))
-            x1 = min(W, int(np.ceil(uv[:, 0].max())) + 1)
-            y0 = max(0, int(np.floor(uv[:, 1].min())))
-            y1 = min(H, int(np.ceil(uv[:, 1].max())) + 1)
+        c = self._inst[idx, :2]
+        hxy = self._inst_h[idx]
+        height = self._inst_height[idx]
+        # faces (box-major): corner p0 on the ground, direction e along the face, outward normal n
+        p0 = c[:, None, :] + hxy[:, None, :] * _FACE_P0[None]  # (B, 4, 2)
+        length = 2.0 * hxy[:, _FACE_AXIS]  # (B, 4)
+        front = np.einsum("bfk,fk->bf", cam[None, None, :2] - p0, _FACE_N) > 1e-6  # not a back face
+        b_i, f_i = np.nonzero(front)
+        if len(b_i) == 0:
+            return
+        p0 = p0[b_i, f_i]
+        e2 = _FACE_E[f_i]
+        length = length[b_i, f_i]
+        h = height[b_i]
+        n_f = len(b_i)
+        corners = np.zeros((n_f, 4, 3))
+        corners[:, 0, :2] = p0
+        corners[:, 1, :2] = p0 + length[:, None] * e2
+        corners[:, 2, :2] = corners[:, 1, :2]
+        corners[:, 3, :2] = p0
+        corners[:, 0:2, 2] = h[:, None]
+        pc = corners @ R_c_w.T + t_c_w  # (F, 4, 3) camera coordinates; pc[:, 0] is the top of p0
+        in_front = np.all(pc[..., 2] >= near, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv_all = pc[..., :2] / pc[..., 2:3] * [fx, fy] + [cx, cy]
+        # plane in camera coordinates: n_c . X = d ; inverse depth = n_c . K^-1 (u, v, 1) / d
+        n_c = np.column_stack([_FACE_N[f_i], np.zeros(n_f)]) @ R_c_w.T
+        plane = (n_c @ self.Kinv) / np.einsum("fk,fk->f", n_c, pc[:, 0])[:, None]
+        # texture axes in the camera: along the face, and down
+        e_c = np.column_stack([e2, np.zeros(n_f)]) @ R_c_w.T
+        down_c = -R_c_w[:, 2]
+        tex_off = self._inst_tex[idx[b_i], f_i]
+        fog_m = float(self.opts["fog_m"])
+        n_lev = len(self.wall)
+        for j in range(n_f):
+            if in_front[j]:
+                uv = uv_all[j]
+            else:
+                poly = _clip_near(pc[j], near)
+                if len(poly) < 3:
+                    continue
+                uv = poly[:, :2] / poly[:, 2:3] * [fx, fy] + [cx, cy]
+            umin, vmin = uv.min(axis=0).tolist()
+            umax, vmax = uv.max(axis=0).tolist()
+            x0, x1 = max(0, math.floor(umin)), min(W, math.ceil(umax) + 1)
+            y0, y1 = max(0, math.floor(vmin)), min(H, math.ceil(vmax) + 1)
             if x1 <= x0 or y1 <= y0:
                 continue
-            # plane in camera coordinates: n_c . X = d ; inverse depth = n_c . K^-1 (u, v, 1) / d
-            n_c = R_c_w @ np.array([nrm[0], nrm[1], 0.0])
-            d = n_c @ (R_c_w @ P0 + t_c_w)
-            a = (n_c @ self.Kinv) / d
-            uu = self._uu[y0:y1, x0:x1]
-            vv = self._vv[y0:y1, x0:x1]
-            invz = (a[0] * uu + a[1] * vv + a[2]).astype(np.float32)
+            a = plane[j]  # float64 scalars: the products are float64, rounded to float32 once
+            invz = (a[0] * self._uu[y0:y1, x0:x1] + a[1] * self._vv[y0:y1, x0:x1] + a[2]).astype(np.float32)
             mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
             pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
             cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
-            sel = (mask > 0) & (invz > zbuf[y0:y1, x0:x1])
-            if not sel.any():
+            zsub = zbuf[y0:y1, x0:x1]
+            sel = (mask > 0) & (invz > zsub)
+            invz_sel = invz[sel]
+            if invz_sel.size == 0:
                 continue
             # texture: face coords (s along e, t down from the top) in texels of a mip level
-            dist = 1.0 / max(float(invz[sel].max()), 1e-6)
-            foot = dist / (K[0, 0] * self.wall_texel)
-            lev = int(np.clip(np.floor(np.log2(max(foot * 0.7, 1e-9))), 0, len(self.wall) - 1))
+            dist = 1.0 / max(float(invz_sel.max()), 1e-6)
+            foot = dist / (fx * self.wall_texel)
+            lev = min(max(math.floor(math.log2(max(foot * 0.7, 1e-9))), 0), n_lev - 1)
             s = self.wall_texel * (2**lev)
-            ou, ov = b.tex_off[fi]
             tex = self.wall[lev]
             n_t = tex.shape[0]
             # face texel (i, j) -> world: P0 + (i + ou) * s * E - (j + ov) * s * z ; offsets mod tile
-            ou, ov = ou % n_t, ov % n_t
-            Dn = np.array([0.0, 0.0, -1.0])
-            Mface = np.column_stack(
-                [R_c_w @ (E * s), R_c_w @ (Dn * s), R_c_w @ (P0 - ou * s * E - ov * s * Dn) + t_c_w]
-            )
+            ou, ov = int(tex_off[j, 0]) % n_t, int(tex_off[j, 1]) % n_t
+            Mface = np.column_stack([e_c[j] * s, down_c * s, pc[j, 0] - ou * s * e_c[j] - ov * s * down_c])
             Tr = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
             Minv = np.linalg.inv(Tr @ K @ Mface)
             patch = cv2.warpPerspective(
@@ -439,8 +470,9 @@ class StereoRenderer:
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                 borderMode=cv2.BORDER_WRAP,
             )
-            f = np.exp(-dist / float(self.opts["fog_m"]))
+            f = math.exp(-dist / fog_m)
             sub = img[y0:y1, x0:x1]
+            alpha = float(alphas[b_i[j]])
             if alpha >= 1.0:
                 sub[sel] = (patch[sel] * f + 150.0 * (1 - f)).astype(np.uint8)
             else:
@@ -448,7 +480,17 @@ class StereoRenderer:
                     np.uint8
                 )
             if alpha >= 0.5:
-                zbuf[y0:y1, x0:x1][sel] = invz[sel]
+                zsub[sel] = invz_sel
+
+
+# box corners (x, y, z) as signs of the half sizes and of the height, in the order of the face tests
+_BOX_SIGNS = np.array([[sx, sy, z] for sx in (-1, 1) for sy in (-1, 1) for z in (0, 1)], dtype=float)
+# the 4 vertical faces: ground corner p0 (signs of the half sizes), direction e, outward normal n, and
+# the half size (0: hx, 1: hy) their length is twice of
+_FACE_P0 = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+_FACE_E = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+_FACE_N = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+_FACE_AXIS = np.array([0, 1, 0, 1])
 
 
 def _clip_near(pc: np.ndarray, near: float) -> np.ndarray:
