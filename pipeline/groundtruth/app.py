@@ -45,6 +45,24 @@ def camera_extrinsic(cfg: DictConfig) -> np.ndarray:
     return se3_from_xyz_rpy(np.array(cam.xyz, dtype=float), np.array(cam.rpy, dtype=float))
 
 
+def _extracted_bytes(layout: Layout, seq: Sequence) -> int:
+    """Bytes of a sequence's extracted tables: the proxy for how long its ground truth takes."""
+    folder = layout.extracted / seq.name
+    return sum(p.stat().st_size for p in folder.glob("*") if p.is_file()) if folder.is_dir() else 0
+
+
+def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None):
+    """:func:`sequence_groundtruth` in a worker process: ``(name, Trajectory, report)``. ``threads``
+    limits OpenCV's own thread pool (one per worker when the workers already fill the cores: its idle
+    threads otherwise spin and take CPU time from the other worker)."""
+    if threads is not None:
+        import cv2
+
+        cv2.setNumThreads(threads)
+    traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
+    return seq.name, traj, report
+
+
 def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence):
     """One sequence's ground truth: ``(Trajectory, report)``; report lists the source files consumed."""
     gt = cfg.groundtruth
@@ -203,13 +221,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 loops[seq.name] = read_tum(tum)
         else:
             stale.append((seq, stamp, key))
-    # Sequences are independent: compute them in parallel processes (stereo VO is CPU-bound), then
-    # write the results in manifest order from this process.
+    # Sequences are independent: compute them in parallel processes (stereo VO is CPU-bound), longest
+    # first (by extracted bytes) so that no worker is left alone with a long one at the end; each result
+    # is written from this process as soon as it arrives (a stopped run keeps the finished sequences).
     jobs = int(gt_cfg.get("jobs", 1)) if len(stale) > 1 else 1
-    computed = Parallel(n_jobs=jobs, backend="loky")(
-        delayed(sequence_groundtruth)(cfg, layout, manifest, seq) for seq, _, _ in stale
+    by_name = {seq.name: (seq, stamp, key) for seq, stamp, key in stale}
+    order = sorted(stale, key=lambda item: -_extracted_bytes(layout, item[0]))
+    computed = Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
+        delayed(_sequence_worker)(cfg, layout, manifest, seq, 1 if jobs > 1 else None) for seq, _, _ in order
     )
-    for (seq, stamp, key), (traj, report) in zip(stale, computed, strict=True):
+    for name, traj, report in computed:
+        seq, stamp, key = by_name[name]
         tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
         if len(traj) < 2:
             raise GroundTruthError(f"{seq.name}: empty sequence ({len(traj)} pose)")
@@ -232,6 +254,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         log.info("%s: %d poses, %.1f s, %d gap(s)", seq.name, len(traj), dur, len(traj.gaps))
         if seq.category == "loop":
             loops[seq.name] = traj
+    # manifest order, whatever order the workers finished in (the dataset means are summed in it)
+    rank = {seq.name: i for i, seq in enumerate(manifest.sequences)}
+    loops = dict(sorted(loops.items(), key=lambda kv: rank[kv[0]]))
+    truth_scores = dict(sorted(truth_scores.items(), key=lambda kv: rank[kv[0]]))
     result = loop_closure(cfg, loops)
     result["method"] = str(gt_cfg.method)
     if truth_scores:
