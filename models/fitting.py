@@ -12,6 +12,8 @@ the model's class defaults are used.
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -63,12 +65,26 @@ def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
 
 
 def _compose_model_config(model_name: str) -> dict[str, Any] | None:
-    from hydra import compose, initialize_config_module
+    """``model/<name>.yaml`` composed on the current config search path (None: not on it). A compose
+    takes about 0.2 s, and an evaluate asks for each model's config twice per terrain, so it is kept per
+    (model, search path) for the life of the process; callers get their own copy."""
     from hydra.core.global_hydra import GlobalHydra
+
+    gh = GlobalHydra.instance()
+    if gh.is_initialized():
+        sources = tuple((s.provider, s.path) for s in gh.config_loader().get_sources())
+    else:
+        sources = None
+    return copy.deepcopy(_compose_cached(model_name, sources))
+
+
+@functools.lru_cache(maxsize=64)
+def _compose_cached(model_name: str, sources: tuple | None) -> dict[str, Any] | None:
+    from hydra import compose, initialize_config_module
     from omegaconf import OmegaConf
 
     try:
-        if GlobalHydra.instance().is_initialized():
+        if sources is not None:
             c = compose(config_name="fit", overrides=[f"model={model_name}", "terrain=_"])
         else:
             with initialize_config_module("skidbench.conf", version_base="1.3"):
