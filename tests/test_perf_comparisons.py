@@ -51,3 +51,14 @@ def test_scaling_reports_an_exponent_per_model_and_kind():
             assert len(m[f"{model}_{kind}_cpu_s"].split(" / ")) == 2
     assert m["max_exponent"] == max(v for k, v in m.items() if k.endswith("_exponent"))
     assert set(sc.builtin_models()) >= {"ideal", "edd", "full_linear", "roc", "enhanced", "friction"}
+
+
+def test_render_comparison_reports_both_thread_counts_and_identical_pixels():
+    from skidbench.benchmark.perf import render as render_bench
+
+    assert load_all()["render"].targets == {"max_pixel_diff": ("<=", 0)}
+    small = {"ground_texture_px": 1024, "wall_texture_px": 256, "n_boxes": 3, "n_posts": 2}
+    m = render_bench.measure(4, rounds=1, render_options=small)
+    assert m["pairs"] == 4 and m["max_pixel_diff"] == 0
+    assert m["cpu_ms_1thread"] > 0 and m["cpu_ms_2threads"] > 0
+    assert math.isclose(m["cpu_ratio"], m["cpu_ms_2threads"] / m["cpu_ms_1thread"])

@@ -183,3 +183,50 @@ def test_bag_without_right_images_is_one_line_error_naming_the_bag(tmp_path):
     with pytest.raises(GroundTruthError) as info:
         run_stereo_vo(cut, cfg)
     assert str(cut) in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "pose",  # seeing the -y and -x faces, then the +x and +y faces
+    [(0.5, 0.0, 0.0), (0.5, 0.0, 0.35), (0.5, 0.0, -0.25), (13.5, 2.9, np.pi), (13.5, 2.9, np.pi + 0.3)],
+)
+def test_box_faces_cover_exactly_their_pinhole_projection(camera_cfg, pose):
+    """One box, no noise: the pixels the box changes are the pinhole projection of its camera-facing
+    faces (closed form from K and the camera pose), and none outside it; without boxes the ground only."""
+    from skidbench.pipeline.simulate.render import Box
+
+    # the world is periodic (10.24 m with SMALL): a 9 m range keeps the box's copies out of the view
+    opts = dict(SMALL, n_boxes=0, n_posts=0, noise_std=0.0, max_range_m=9.0)
+    bare = StereoRenderer(camera_cfg, 5, **opts)
+    boxed = StereoRenderer(camera_cfg, 5, **opts)
+    box = Box(cx=7.0, cy=1.6, hx=0.6, hy=0.9, h=1.2, tex_off=((0, 0), (1, 2), (3, 4), (5, 6)))
+    boxed.boxes = [box]
+    boxed._inst = None  # rebuild the instance arrays from the new layout
+    for img_box, img_bare, T_w_c in zip(
+        boxed.render(*pose), bare.render(*pose), bare.camera_poses(*pose), strict=True
+    ):
+        changed = img_box != img_bare
+        K = bare.K
+        R_c_w, t_c_w = T_w_c[:3, :3].T, -T_w_c[:3, :3].T @ T_w_c[:3, 3]
+        expected = np.zeros_like(changed, dtype=np.uint8)
+        x0, x1, y0, y1 = box.cx - box.hx, box.cx + box.hx, box.cy - box.hy, box.cy + box.hy
+        faces = [  # (ground corners a -> b, outward normal)
+            ((x0, y0), (x1, y0), (0, -1)), ((x1, y0), (x1, y1), (1, 0)),
+            ((x1, y1), (x0, y1), (0, 1)), ((x0, y1), (x0, y0), (-1, 0)),
+        ]  # fmt: skip
+        cam = T_w_c[:3, 3]
+        n_front = 0
+        for a, b, n in faces:
+            if (cam[0] - a[0]) * n[0] + (cam[1] - a[1]) * n[1] <= 0:
+                continue
+            n_front += 1
+            corners = np.array([[*a, box.h], [*b, box.h], [*b, 0.0], [*a, 0.0]])
+            pc = corners @ R_c_w.T + t_c_w
+            assert np.all(pc[:, 2] > 0.5)  # well in front of the camera: no near-plane clipping here
+            uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
+            cv2.fillConvexPoly(expected, np.round(uv * 16).astype(np.int32), 1, shift=4)
+        assert n_front == 2
+        inside = cv2.erode(expected, np.ones((3, 3), np.uint8)).astype(bool)
+        outside = ~cv2.dilate(expected, np.ones((3, 3), np.uint8)).astype(bool)
+        assert inside.sum() > 2000
+        assert changed[inside].mean() > 0.95  # the face texture, fogged, differs from what it hides
+        assert not changed[outside].any()
