@@ -42,6 +42,23 @@ class Robot:
         a, b = self.wheelbase / 2.0, self.track_width / 2.0
         return np.array([[a, b], [-a, b], [a, -b], [-a, -b]])
 
+    @property
+    def max_wheel_rate(self) -> float | None:
+        """``max_wheel_rate`` (rad/s) from the config: the wheel rate the platform's motor controller
+        saturates at, whatever is commanded (None: no limit known). Commanded wheel rates beyond it are
+        clipped to it in the split (see ``pipeline/splits/build.py``)."""
+        value = self.extra.get("max_wheel_rate")
+        if value is None:
+            return None
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            value = float("nan")
+        if not np.isfinite(value) or value <= 0:
+            raw = self.extra["max_wheel_rate"]
+            raise ConfigError(f"robot {self.name}: max_wheel_rate={raw!r}: must be > 0 rad/s or null")
+        return value
+
     def wheel_rates_from_twist(self, v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ideal differential-drive inverse kinematics: body (v, w) -> wheel angular rates (wl, wr), rad/s."""
         v = np.asarray(v, dtype=float)
@@ -75,7 +92,9 @@ class Robot:
                 kwargs[k] = tuple(kwargs[k])
         kwargs.setdefault("body_length", kwargs["wheelbase"])
         kwargs.setdefault("body_width", kwargs["track_width"])
-        return cls(**kwargs, extra=cfg)
+        robot = cls(**kwargs, extra=cfg)
+        _ = robot.max_wheel_rate  # a bad value fails when the config is loaded, not mid-stage
+        return robot
 
 
 def robot_from_hydra(cfg: Any) -> Robot:

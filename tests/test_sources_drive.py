@@ -90,3 +90,33 @@ def test_raw_form_with_icp_poses_yields_a_gt_pose_table(shared_real):
     gt = seqs[0]["tables"]["gt_pose"]
     np.testing.assert_allclose(gt["yaw"], 0.2)
     assert gt["x"].is_monotonic_increasing
+
+
+def test_husky_wheel_commands_clipped_to_max_wheel_rate_match_the_saturated_encoders(shared_real, tmp_path):
+    """DRIVE's Husky is commanded beyond what its wheels turn; its encoders saturate at the config's
+    ``max_wheel_rate`` (1.0 m/s / r). After the split's clip, the steady-state encoder rate of a
+    saturated wheel is within 5 % of its clipped command (unclipped it was about 0.65-0.8 of it)."""
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline.api import prepare_splits
+
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        over = [
+            f"out_root={tmp_path}",
+            "source=drive_df",
+            "robot=husky",
+            f"source.root={shared_real / 'drive'}",
+        ]
+        cfg = compose("split", over)
+    splits = prepare_splits(cfg)
+    t = pd.read_parquet(splits / "unspecified" / "train" / "husky_train_00.parquet")
+    cmd, enc = t[["cmd_wl", "cmd_wr"]].to_numpy(), t[["enc_wl", "enc_wr"]].to_numpy()
+    assert np.abs(cmd).max() == pytest.approx(6.06)
+    steady = np.ones(len(t), bool)  # the command has not changed for 1.5 s
+    for k in range(1, 45):
+        steady[k:] &= np.all(cmd[k:] == cmd[:-k], axis=1)
+    steady[:45] = False
+    sat = steady[:, None] & np.isclose(np.abs(cmd), 6.06)
+    assert sat.sum() > 1000
+    ratio = np.median(np.abs(enc[sat]) / 6.06)
+    assert 0.95 < ratio < 1.02

@@ -76,3 +76,42 @@ def test_split_refuses_a_flagged_ground_truth_unless_allowed(tmp_path):
     with pytest.raises(SplitError, match="flagged.*split.allow_flagged=true"):
         check_flag(layout, False)
     check_flag(layout, True)
+
+
+def test_wheel_commands_are_clipped_to_the_robots_max_wheel_rate(jackal):
+    """With ``max_wheel_rate`` the wheel commands are clipped to it, cmd_v/cmd_w follow the clipped
+    wheels (ideal kinematics), the accelerations are those of the clipped commands; without, unchanged."""
+    import dataclasses
+
+    limited = dataclasses.replace(jackal, extra={**jackal.extra, "max_wheel_rate": 10.0})
+    t = np.arange(0, 4, 1 / 15)
+    gt_ns = (t * S).astype(np.int64)
+    cmd_ns = (np.arange(0, 4, 1 / 45) * S).astype(np.int64)
+    # 0.5 m/s straight, then a turn whose outer (right) wheel would be 13.1 rad/s
+    cmd = np.where((cmd_ns < 2 * S)[:, None], [0.5, 0.0], [1.0, 1.5])
+    free = build_split_table(jackal, gt_ns, arc(t), [], cmd_ns, cmd, "twist")
+    df = build_split_table(limited, gt_ns, arc(t), [], cmd_ns, cmd, "twist")
+    wl, wr = jackal.wheel_rates_from_twist(1.0, 1.5)
+    assert wr > 10.0 > wl  # only the outer wheel is over the limit
+    late = df["t"] > 2.2
+    np.testing.assert_allclose(df.loc[late, "cmd_wr"], 10.0)
+    np.testing.assert_allclose(df.loc[late, "cmd_wl"], wl)
+    v, w = jackal.twist_from_wheel_rates(wl, 10.0)
+    np.testing.assert_allclose(df.loc[late, ["cmd_v", "cmd_w"]].to_numpy(), [[v, w]] * int(late.sum()))
+    np.testing.assert_allclose(df["cmd_dwr"], np.gradient(df["cmd_wr"], 1 / 30))
+    assert df.attrs["clipped_rows"] == int((np.abs(free["cmd_wr"]) > 10.0).sum()) > 0
+    early = df["t"] < 1.8
+    np.testing.assert_array_equal(df.loc[early, "cmd_wr"], free.loc[early, "cmd_wr"])
+    assert free.attrs["clipped_rows"] == 0 and np.isclose(free["cmd_wr"].max(), wr)
+
+
+@pytest.mark.parametrize("bad", [0, -3.0, "fast", float("nan")])
+def test_a_bad_max_wheel_rate_fails_when_the_robot_is_loaded(bad):
+    from skidbench.pipeline.errors import ConfigError
+    from skidbench.pipeline.robot import Robot
+
+    base = {"name": "r", "mass": 10.0, "wheel_radius": 0.1, "track_width": 0.4, "wheelbase": 0.3}
+    assert Robot.from_config(base).max_wheel_rate is None
+    assert Robot.from_config({**base, "max_wheel_rate": 6}).max_wheel_rate == 6.0
+    with pytest.raises(ConfigError, match="max_wheel_rate"):
+        Robot.from_config({**base, "max_wheel_rate": bad})

@@ -125,9 +125,16 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
         "rate_hz": float(sp.rate_hz),
         "cmd_timeout_s": float(sp.cmd_timeout),
         "differentiator": {"kind": "savitzky_golay", "window": window, "order": order_},
+        "max_wheel_rate": robot.max_wheel_rate,
+        "clipped_rows": df.attrs.get("clipped_rows", 0),
     }
     write_split(df, path, meta)
     log.info("%s -> %s (%d rows, %.0f%% valid)", seq.name, path, len(df), 100 * df["valid"].mean())
+    if meta["clipped_rows"]:
+        log.info(
+            "%s: wheel commands clipped to +-%g rad/s (robot.max_wheel_rate) in %d of %d rows",
+            seq.name, robot.max_wheel_rate, meta["clipped_rows"], len(df),
+        )  # fmt: skip
     return path
 
 

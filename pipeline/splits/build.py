@@ -8,7 +8,11 @@ Commands: zero-order hold of the last command, as the robot's controller applies
 (``cmd_v``, ``cmd_w``) and wheel commands (``cmd_wl``, ``cmd_wr``, rad/s) are converted into each other
 with the robot's ideal kinematics (r, B). ``cmd_dwl``/``cmd_dwr``: central differences of the held wheel
 commands on the grid (a step command becomes a one-sample acceleration pulse, as the paper's commanded
-acceleration).
+acceleration). When the robot config sets ``max_wheel_rate`` (rad/s), the wheel commands are clipped to
++-max_wheel_rate, as the platform's motor controller does, and ``cmd_v``/``cmd_w`` are recomputed from
+the clipped wheel commands so the columns stay consistent: a wheel cannot be commanded faster than its
+motors turn, and a model given the unclipped rate would have to explain the shortfall as slip (DRIVE's
+Husky is commanded up to 9.2 rad/s and its encoders saturate at 5.9-6.1 rad/s = 1.0 m/s / r).
 
 Encoders: linear interpolation of the measured wheel rates; null outside their coverage or where two
 samples are over ``max_gap`` apart.
@@ -127,6 +131,11 @@ def build_split_table(
     else:
         wl, wr = held[:, 0], held[:, 1]
         v, w = robot.twist_from_wheel_rates(wl, wr)
+    limit = robot.max_wheel_rate
+    over = (np.abs(wl) > limit) | (np.abs(wr) > limit) if limit is not None else np.zeros(n, bool)
+    if over.any():
+        wl, wr = np.clip(wl, -limit, limit), np.clip(wr, -limit, limit)
+        v, w = robot.twist_from_wheel_rates(wl, wr)
     dt = 1.0 / rate_hz
     pose, valid = interp_with_gaps(gt_stamp_ns, gt_pose, grid, int(max_gap_s * 1e9), gt_gaps)
     if not valid.all() and valid.any():  # invalid rows hold the nearest valid pose (finite columns)
@@ -161,4 +170,5 @@ def build_split_table(
             "valid": valid,
         }
     )
+    df.attrs["clipped_rows"] = int(over.sum())  # rows whose wheel commands were over max_wheel_rate
     return df
