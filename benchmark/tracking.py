@@ -8,7 +8,10 @@ server is one clear line, not minutes of HTTP retries.
 Runs (SPEC.md "MLflow"): one *parent* run per ``skidbench evaluate`` invocation and one *child* run per
 (model, terrain), linked by the ``mlflow.parentRunId`` tag. Tags under ``skidbench.*`` say what a run is
 (``skidbench.role`` = parent | child, ``skidbench.model``, ``skidbench.terrain``, ...). A child whose
-model failed ends ``FAILED`` with ``skidbench.failure_reason``.
+model failed ends ``FAILED`` with ``skidbench.failure_reason``. Every run also records the process that
+started it (``skidbench.host``, ``skidbench.boot_id``, ``skidbench.pid``): a run left ``RUNNING`` by a
+process of this machine that is gone (killed, crashed) is marked ``KILLED``, with the reason, the next time
+a stage opens the store (:meth:`Tracker.reap_dead_runs`); runs of other machines are never touched.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import functools
 import logging
 import os
 import re
+import socket
 import subprocess
 import time
 import urllib.error
@@ -27,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.pipeline.errors import one_line
+from skidbench.pipeline.io import process_alive
 from skidbench.pipeline.layout import Layout
 
 from .horizon import EvaluationError
@@ -47,6 +52,23 @@ TAG_GIT = "skidbench.git_commit"
 TAG_STATUS = "skidbench.status"
 TAG_REASON = "skidbench.failure_reason"
 TAG_PARENT = "mlflow.parentRunId"
+TAG_HOST = "skidbench.host"
+TAG_BOOT = "skidbench.boot_id"
+TAG_PID = "skidbench.pid"
+
+
+@functools.cache
+def _boot_id() -> str:
+    """This machine's boot id (Linux), which tells two machines of one host name apart; '' elsewhere."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
+
+
+def process_tags() -> dict[str, str]:
+    """The tags that name the process starting a run."""
+    return {TAG_HOST: socket.gethostname(), TAG_BOOT: _boot_id(), TAG_PID: str(os.getpid())}
 
 
 def _quiet_mlflow_logs() -> None:
@@ -167,7 +189,7 @@ class Tracker:
 
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
-        t = {k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}
+        t = {**process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
         if parent_id:
             t[TAG_PARENT] = parent_id
         run = self.client.create_run(self.experiment_id, run_name=run_name, tags=t)
@@ -221,27 +243,75 @@ class Tracker:
         else:
             self.end(run_id, "FINISHED")
 
+    def reap_dead_runs(self) -> list[str]:
+        """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process,
+        on this machine (same host name and boot id), is gone; returns their ids. A run of another
+        machine, or of a live process (a concurrent sweep), is left alone."""
+        me = process_tags()
+        if not me[TAG_BOOT]:  # cannot tell this machine from another of the same name
+            return []
+        quote = me[TAG_HOST].replace("'", "")
+        runs = self.client.search_runs(
+            [self.experiment_id],
+            filter_string=(
+                f"attributes.status = 'RUNNING' AND tags.`{TAG_HOST}` = '{quote}' "
+                f"AND tags.`{TAG_BOOT}` = '{me[TAG_BOOT]}'"
+            ),
+            max_results=1000,
+        )
+        reaped = []
+        for run in runs:
+            pid = run.data.tags.get(TAG_PID, "")
+            if not pid.isdigit() or process_alive(int(pid)):
+                continue
+            reason = f"process {pid} on {me[TAG_HOST]} ended without closing the run (killed or crashed)"
+            self.log(run.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
+            self.end(run.info.run_id, "KILLED")
+            reaped.append(run.info.run_id)
+        if reaped:
+            log.warning(
+                "MLflow: %d run(s) left RUNNING by a process that is gone marked KILLED: %s",
+                len(reaped), ", ".join(reaped),
+            )  # fmt: skip
+        return reaped
+
     # -- queries ----------------------------------------------------------------------------------
     def latest_parent(self) -> str | None:
+        """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
+        a warning and passed over), else the newest parent of any status, else None."""
         runs = self.client.search_runs(
             [self.experiment_id],
             filter_string=f"tags.`{TAG_ROLE}` = 'parent'",
             order_by=["attributes.start_time DESC"],
-            max_results=1,
+            max_results=50,
         )
-        return runs[0].info.run_id if runs else None
+        if not runs:
+            return None
+        for k, run in enumerate(runs):
+            if run.info.status == "FINISHED":
+                if k:
+                    log.warning(
+                        "the newest evaluate run%s %s; using the newest finished one, %s",
+                        "s" if k > 1 else "",
+                        ", ".join(f"{r.info.run_id} is {r.info.status}" for r in runs[:k]),
+                        run.info.run_id,
+                    )
+                return run.info.run_id
+        return runs[0].info.run_id
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
     node = cfg.mlflow
     uri = resolve_tracking_uri(cfg, layout)
     try:
-        return Tracker(
+        tracker = Tracker(
             uri,
             str(node.experiment),
             artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
             timeout_s=float(node.get("timeout_s", 5.0)),
         )
+        tracker.reap_dead_runs()
+        return tracker
     except EvaluationError:
         raise
     except Exception as exc:  # a malformed URI, an unwritable store, ...

@@ -121,7 +121,7 @@ def remove_stale_tmp(final: str | os.PathLike) -> list[Path]:
         return removed
     for p in entries:
         pid = p.name[len(head) :].split(".", 1)[0]
-        if pid.isdigit() and _alive(int(pid)):
+        if pid.isdigit() and process_alive(int(pid)):
             continue
         with contextlib.suppress(FileNotFoundError, PermissionError, IsADirectoryError):
             p.unlink()
@@ -129,7 +129,8 @@ def remove_stale_tmp(final: str | os.PathLike) -> list[Path]:
     return removed
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this machine is running (a zombie is not: it will never finish)."""
     if pid == os.getpid():
         return True
     try:

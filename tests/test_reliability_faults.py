@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import signal
 
+import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-from reliability_data import DATASET, skidbench, snapshot, tmp_files
+from reliability_data import DATASET, STAGE_ARGS, skidbench, snapshot, tmp_files
 
 # stage -> (outputs deleted before the killed run, path fragment of the write that is killed, n-th write)
 KILLS = {
@@ -119,3 +120,58 @@ def test_a_changed_input_reruns_exactly_the_units_downstream_of_it(micro_root):
     tum.write_bytes(original)
     skidbench("split", micro_root)
     assert snapshot(micro_root) == before
+
+
+def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_completes(micro_root, tmp_path):
+    """SIGKILL during the second (model, terrain) of an evaluate: the next stage that opens the store marks
+    the runs the dead process left RUNNING as KILLED, with the reason; the re-run finishes every run, and
+    compare reads the finished evaluation, not the killed one."""
+    import shutil
+
+    from mlflow import MlflowClient
+
+    from skidbench.benchmark import tracking as trk
+
+    root = tmp_path / "out"
+    shutil.copytree(micro_root / DATASET / "splits", root / DATASET / "splits")
+    killed = skidbench("evaluate", root, env={"SKIDBENCH_FAULT": "kill@2:.params.json"}, check=False)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+    client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
+    (exp,) = [e for e in client.search_experiments() if e.name != "Default"]
+
+    def runs():
+        return {r.info.run_id: r for r in client.search_runs([exp.experiment_id])}
+
+    dead = runs()
+    assert sorted(r.info.status for r in dead.values()) == [
+        "FINISHED",
+        "RUNNING",
+        "RUNNING",
+    ]  # parent, 2 kids
+
+    skidbench("evaluate", root)
+    after = runs()
+    for run_id, run in dead.items():
+        if run.info.status == "RUNNING":
+            assert after[run_id].info.status == "KILLED"
+            assert "ended without closing the run" in after[run_id].data.tags[trk.TAG_REASON]
+    new = [r for k, r in after.items() if k not in dead]
+    assert sorted(r.info.status for r in new) == ["FINISHED"] * 3
+    assert tmp_files(root) == []
+
+    skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    board = pd.read_csv(root / DATASET / "reports" / "leaderboard.csv")
+    assert sorted(board["model"]) == ["edd", "ideal"] and (board["status"] == "FINISHED").all()
+    (parent,) = [r for r in new if r.data.tags[trk.TAG_ROLE] == "parent"]
+    assert f"parent run `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
+
+    # a newer evaluate killed after a finished one: compare marks its runs KILLED and reads the finished one
+    killed = skidbench(
+        "evaluate", root, "force=true", env={"SKIDBENCH_FAULT": "kill@1:.params.json"}, check=False
+    )
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+    proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    assert "is KILLED; using the newest finished one, " + parent.info.run_id in proc.stdout + proc.stderr
+    assert f"parent run `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
+    statuses = sorted(r.info.status for k, r in runs().items() if k not in after)
+    assert statuses == ["KILLED", "KILLED"]  # the parent and its first child
