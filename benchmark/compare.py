@@ -235,7 +235,7 @@ def figure6(
     wl, wr = np.meshgrid(g, g, indexing="xy")  # symmetric grid: the anti-diagonal is wr = -wl
     surfaces = {}
     no_root_cells = {}
-    masked = no_root = 0
+    masked = no_root = reduced = 0
     for a in accels:
         dwl, dwr = robot.wheel_rates_from_twist(0.0, float(a))  # pure angular acceleration
         v, w = robot.twist_from_wheel_rates(wl.ravel(), wr.ravel())
@@ -263,21 +263,26 @@ def figure6(
             }
         )
         wz = np.asarray(model.predict(table), float)[:, 2]
-        status = getattr(getattr(model, "last_solve_", None), "status", None)
+        sol = getattr(model, "last_solve_", None)
+        status = getattr(sol, "status", None)
         if status is not None and len(status) == m:  # the friction model's per-step solve status
             status = np.asarray(status)
-            wz[status == 0] = np.nan  # not converged: no prediction to show
-            masked += int(np.sum(status == 0))
-            no_root += int(np.sum(status == 2))
-            no_root_cells[float(a)] = (status == 2).reshape(wl.shape)
+            scale = getattr(sol, "accel_scale", None)
+            reduced_here = np.asarray(scale) < 1 if scale is not None else np.zeros(m, bool)
+            blank = (status == 0) & ~reduced_here  # not converged, no fallback: nothing to show
+            wz[blank] = np.nan
+            masked += int(np.sum(blank))
+            no_root += int(np.sum((status == 2) & ~reduced_here))
+            reduced += int(np.sum(reduced_here))
+            no_root_cells[float(a)] = ((status != 1) | reduced_here).reshape(wl.shape)
         surfaces[float(a)] = wz.reshape(wl.shape)
     title = (
         f"{figs.label(model_name)} model: predicted yaw rate at commanded angular accelerations ({terrain})"
     )
-    if masked or no_root:
+    if masked or no_root or reduced:
         title += (
-            f"\nof {wl.size * len(accels)} grid points: {no_root} without a force-balance root "
-            f"(least-squares solution shown), {masked} not converged (blank)"
+            f"\nof {wl.size * len(accels)} grid points, marked: {reduced} balanced only at a reduced "
+            f"acceleration (shown there), {no_root} with no root (least-squares), {masked} not converged"
         )
     return figs.yaw_rate_surfaces(wl, wr, surfaces, title, path, dpi, no_root=no_root_cells)
 

@@ -186,7 +186,8 @@ def yaw_rate_surfaces(
     spot-turn diagonal (w_r = -w_l) and (c) the slice at a fixed left wheel rate, where the surfaces'
     ordering (higher commanded angular acceleration -> lower yaw rate) reads off directly. NaN cells (no
     prediction) are left blank. ``no_root`` (bool grids, optional): cells where the force balance has no root
-    (the least-squares solution of eq. 12 is the prediction); the surfaces show roots only and these cells
+    at the commanded acceleration (the prediction there is the model's fallback: the solution at a reduced
+    acceleration, or the least-squares solution of eq. 12); the surfaces show roots only and these cells
     are drawn as dots, so a missing patch of surface reads as "no force balance", not as a solver failure."""
     accels = sorted(surfaces)
     no_root = {a: np.asarray(no_root[a], bool) if no_root and a in no_root else None for a in accels}

@@ -27,7 +27,7 @@ from scipy.optimize import least_squares
 
 from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
-from .friction_solver import PARAM_NAMES, FrictionGeometry, SolveResult, body_velocity, solve
+from .friction_solver import PARAM_NAMES, FrictionGeometry, SolveResult, body_velocity, free_mask, solve
 
 log = logging.getLogger(__name__)
 
@@ -42,13 +42,17 @@ PARAM_RANGES = {
 
 DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.3}
 
+#: fractions of the commanded accelerations tried, in order, for a step whose solve is not physical
+ACCEL_SCALES = (0.5, 0.25, 0.125, 0.0)
+
 
 class FrictionBased(KinematicModel):
     name = "friction"
     # 1.1: solver restarts and no-root/stationary status; 1.2: robust fit (soft_l1, log-space diff_step);
     # 1.3: the scored steps are those with a root at the start (no escape into "no root");
     # 1.4: unfinished steps stay scored; parameters bounded to physically plausible ranges
-    version = "1.4"
+    # 1.5: a step without a physical solution is predicted at a reduced acceleration (velocities)
+    version = "1.5"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 
     def __init__(self, robot, params=None, **options):
@@ -64,11 +68,44 @@ class FrictionBased(KinematicModel):
         return tuple(col(table, c) for c in ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"))
 
     def velocities(self, inputs, params=None, theta0=None) -> tuple[np.ndarray, SolveResult]:
-        """(T, 3) body velocities and the per-step solve (eq. 12 then eq. 8)."""
+        """(T, 3) body velocities and the per-step solve (eq. 12 then eq. 8).
+
+        A step whose solve is not physical (no root, not converged, or a slip ratio outside [-1, 1], i.e.
+        a wheel's ground speed outside 0..2 r omega; these are steps that command an acceleration
+        friction cannot deliver, such as a step change of the command) is solved again with its
+        commanded accelerations scaled by ``ACCEL_SCALES`` in turn, and predicted from the first
+        physical solution: the motion at the largest tried fraction of the commanded acceleration
+        that the forces can balance (``sol.accel_scale``; 0 is the steady state). Without it such a
+        step predicted body speeds of hundreds of m/s on DRIVE's command steps. ``sol.status`` stays
+        the status of the commanded problem. ``options.accel_fallback=false`` turns it off.
+        """
         p = self.params if params is None else params
-        sol = solve(*inputs, p, self.geometry, theta0=theta0)
-        wl, wr = inputs[0], inputs[1]
-        return body_velocity(sol.theta, wl, wr, self.geometry.r, self.geometry.B), sol
+        geo = self.geometry
+        sol = solve(*inputs, p, geo, theta0=theta0)
+        wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in inputs)
+        scale = np.ones(wl.size)
+        bad = ~self._physical(sol.theta, sol.status, wl, wr)
+        if bad.any() and self.options.get("accel_fallback", True):
+            theta = sol.theta.copy()
+            for k in ACCEL_SCALES:
+                idx = np.flatnonzero(bad)
+                sub = solve(wl[idx], wr[idx], k * dwl[idx], k * dwr[idx], p, geo)
+                ok = self._physical(sub.theta, sub.status, wl[idx], wr[idx])
+                theta[idx[ok]] = sub.theta[ok]
+                scale[idx[ok]] = k
+                bad[idx[ok]] = False
+                if not bad.any():
+                    break
+            sol = SolveResult(theta, sol.status, sol.cost, sol.n_iter, sol.info, scale)
+        else:
+            sol.accel_scale = scale
+        return body_velocity(sol.theta, wl, wr, geo.r, geo.B), sol
+
+    @staticmethod
+    def _physical(theta: np.ndarray, status: np.ndarray, wl: np.ndarray, wr: np.ndarray) -> np.ndarray:
+        """(T,) a root with both slip ratios in [-1, 1] (a side with no commanded rate has none)."""
+        free = free_mask(wl, wr)[:, :2]
+        return (status == 1) & ~np.any(free & (np.abs(theta[:, :2]) > 1.0), axis=1)
 
     def fit(self, table: pd.DataFrame) -> FrictionBased:
         self.check_columns(table, fitting=True)

@@ -143,6 +143,9 @@ class SolveResult:
     cost: np.ndarray  # (T,) 0.5 |F|^2 (normalised)
     n_iter: int
     info: dict = field(default_factory=dict)
+    #: (T,) the fraction of the commanded accelerations ``theta`` balances: 1 everywhere for ``solve``;
+    #: below 1 where the model fell back to a reduced acceleration (``FrictionBased.velocities``)
+    accel_scale: np.ndarray | None = None
 
     @property
     def converged(self) -> np.ndarray:

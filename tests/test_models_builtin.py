@@ -258,3 +258,37 @@ def test_friction_fit_with_some_no_root_steps_still_moves_and_recovers(jackal, t
     for k in ("mu_r", "mu_y", "lambda", "C"):
         assert fitted.params[k] == pytest.approx(TRUE_FRICTION[k], rel=0.05), k
     assert info["mu_x_lower_bound"] < 2.0  # from the rooted steps only
+
+
+def test_a_step_friction_cannot_deliver_is_predicted_at_the_largest_balanced_acceleration(jackal):
+    """A command step (a one-sample acceleration pulse of 300 rad/s^2, ~29 m/s^2 at the wheel) has no
+    physical force balance: the prediction is the solve at the first fraction of the commanded
+    acceleration (ACCEL_SCALES) that has a root with slip ratios in [-1, 1], so the body speed stays
+    within 0..2 r omega; without the fallback the same step is not physical."""
+    from skidbench.models.friction import ACCEL_SCALES
+
+    geo = FrictionGeometry.from_robot(jackal)
+    wl = np.array([6.0, 6.0, 6.0, -4.0])
+    wr = np.array([6.0, 6.0, 6.0, 8.0])
+    dwl = np.array([0.0, 300.0, 0.0, -300.0])
+    dwr = np.array([0.0, 300.0, 0.0, 300.0])
+    df = pd.DataFrame({"cmd_wl": wl, "cmd_wr": wr, "cmd_dwl": dwl, "cmd_dwr": dwr})
+    model = FrictionBased(jackal, TRUE_FRICTION)
+    pred = model.predict(df)
+    sol = model.last_solve_
+    raw = solve(wl, wr, dwl, dwr, TRUE_FRICTION, geo)
+    physical = (raw.status == 1) & np.all(np.abs(raw.theta[:, :2]) <= 1, axis=1)
+    assert physical[[0, 2]].all() and not physical[[1, 3]].any()  # the pulses are not physical
+    np.testing.assert_array_equal(sol.status, raw.status)  # the commanded problem's status is kept
+    assert sol.accel_scale[0] == sol.accel_scale[2] == 1.0
+    for i in (1, 3):
+        k = sol.accel_scale[i]
+        assert k in ACCEL_SCALES and k < 1
+        again = solve(wl[[i]], wr[[i]], k * dwl[[i]], k * dwr[[i]], TRUE_FRICTION, geo)
+        assert again.status[0] == 1 and np.all(np.abs(again.theta[0, :2]) <= 1)
+        np.testing.assert_allclose(pred[i], body_velocity(again.theta, wl[[i]], wr[[i]], geo.r, geo.B)[0])
+    r = jackal.wheel_radius
+    assert np.all(np.abs(pred[:, 0]) <= 2 * r * np.maximum(np.abs(wl), np.abs(wr)))
+    off = FrictionBased(jackal, TRUE_FRICTION, accel_fallback=False)
+    off.predict(df)
+    np.testing.assert_array_equal(off.last_solve_.theta, raw.theta)
