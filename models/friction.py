@@ -44,6 +44,9 @@ DEFAULT_PARAMS = {"mu_r": 0.03, "mu_x": 0.8, "mu_y": 0.6, "lambda": 8.0, "C": 0.
 
 #: fractions of the commanded accelerations tried, in order, for a step whose solve is not physical
 ACCEL_SCALES = (0.5, 0.25, 0.125, 0.0)
+#: LM iterations of those solves (a root converges in far fewer; a step still descending after them
+#: counts as not balanced at that fraction)
+FALLBACK_ITER = 30
 
 
 class FrictionBased(KinematicModel):
@@ -86,17 +89,22 @@ class FrictionBased(KinematicModel):
         scale = np.ones(wl.size)
         bad = ~self._physical(sol.theta, sol.status, wl, wr)
         if bad.any() and self.options.get("accel_fallback", True):
+            # every fraction of every such step in one batched solve (they are independent problems)
+            idx = np.flatnonzero(bad)
+            ks = np.repeat(np.asarray(ACCEL_SCALES, dtype=float), idx.size)
+            rep = np.tile(idx, len(ACCEL_SCALES))
+            sub = solve(
+                wl[rep], wr[rep], ks * dwl[rep], ks * dwr[rep], p, geo, restarts=False, max_iter=FALLBACK_ITER
+            )
+            ok = self._physical(sub.theta, sub.status, wl[rep], wr[rep]).reshape(len(ACCEL_SCALES), idx.size)
+            found = ok.any(axis=0)
+            first = np.argmax(ok, axis=0)  # the largest fraction with a physical solution
+            pick = first * idx.size + np.arange(idx.size)
             theta = sol.theta.copy()
-            for k in ACCEL_SCALES:
-                idx = np.flatnonzero(bad)
-                sub = solve(wl[idx], wr[idx], k * dwl[idx], k * dwr[idx], p, geo)
-                ok = self._physical(sub.theta, sub.status, wl[idx], wr[idx])
-                theta[idx[ok]] = sub.theta[ok]
-                scale[idx[ok]] = k
-                bad[idx[ok]] = False
-                if not bad.any():
-                    break
-            sol = SolveResult(theta, sol.status, sol.cost, sol.n_iter, sol.info, scale)
+            theta[idx[found]] = sub.theta[pick[found]]
+            scale[idx[found]] = np.asarray(ACCEL_SCALES)[first[found]]
+            info = {**sol.info, "commanded_theta": sol.theta}  # the commanded problem's (a warm start)
+            sol = SolveResult(theta, sol.status, sol.cost, sol.n_iter, info, scale)
         else:
             sol.accel_scale = scale
         return body_velocity(sol.theta, wl, wr, geo.r, geo.B), sol
@@ -130,7 +138,8 @@ class FrictionBased(KinematicModel):
         def resid(z):
             v, sol = self.velocities(inp, unpack(z), theta0=warm["theta"])
             if warm["theta"] is None or np.all(sol.status > 0):
-                warm["theta"] = sol.theta  # warm start for the next evaluation
+                # warm start for the next evaluation: the commanded problem's solution, not the fallback's
+                warm["theta"] = sol.info.get("commanded_theta", sol.theta)
             # The scored steps are fixed at the start: those with a root under the initial parameters.
             # A step without one there (an acceleration friction cannot deliver) has only a least-squares
             # slip, a poor, jumpy function of the parameters, and stays out; a scored step that loses its
