@@ -281,7 +281,7 @@ def yaw_rate_surfaces(
             h, lb = a2.get_legend_handles_labels()
             if any_nr:
                 h.append(Line2D([], [], ls="", marker="o", mfc="none", color="0.3", ms=4))
-                lb.append("no force-balance root\n(least-squares solution)")
+                lb.append("no root at the commanded\nacceleration (fallback shown)")
             a2.legend(h, lb, fontsize=7.5)
         a2.set_title(sub, fontsize=10)
     fig.suptitle(title, fontsize=11)
