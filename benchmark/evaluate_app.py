@@ -45,7 +45,8 @@ def main(cfg: DictConfig) -> None:
 
 
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
-    """Evaluate's inputs: every split file, every fit of the configured models, and the whole config."""
+    """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
+    each model's version and config."""
     from omegaconf import OmegaConf
 
     from skidbench.pipeline.schema import list_split_files
@@ -59,6 +60,10 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
     plugins = discover()
     conf["model_versions"] = {str(m): getattr(plugins.get(str(m)), "version", None) for m in cfg.models}
+    # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
+    from skidbench.models.fitting import model_config
+
+    conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
     return stamp.key(files, conf)
 
 

@@ -156,3 +156,28 @@ def test_metric_names_and_flatten():
     assert trk.metric_key("rotational", "ld", 2.5) == "rmsre_rotational_ld_2.5s"
     assert trk.flatten({"a": {"b": 1, "c": [1, 2]}, "d": None}) == {"a.b": "1", "a.c": "[1, 2]", "d": "null"}
     assert not math.isnan(0.0)
+
+
+def test_the_evaluate_stamp_changes_when_a_models_config_changes(tmp_path, monkeypatch):
+    """A changed conf/model/<name>.yaml (initial params, options) re-runs evaluate, like a new version."""
+    from hydra import compose, initialize_config_module
+
+    from skidbench.benchmark import evaluate_app
+    from skidbench.models import fitting
+    from skidbench.pipeline.cache import Stamp
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        cfg = compose("evaluate", [f"out_root={tmp_path}", "models=[edd,friction]"])
+        layout = layout_from_cfg(cfg)
+        stamp = Stamp(tmp_path / "evaluate.json", "evaluate")
+        key = evaluate_app._stamp_key(cfg, layout, stamp)
+        assert evaluate_app._stamp_key(cfg, layout, stamp) == key
+        real = fitting.model_config
+
+        def changed(c, name):
+            mc = real(c, name)
+            return {**mc, "options": {**mc["options"], "max_nfev": 1}} if name == "friction" else mc
+
+        monkeypatch.setattr(fitting, "model_config", changed)
+        assert evaluate_app._stamp_key(cfg, layout, stamp) != key
