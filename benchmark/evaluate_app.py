@@ -49,6 +49,8 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     each model's version and config."""
     from omegaconf import OmegaConf
 
+    from skidbench.models.fitting import model_config
+    from skidbench.models.registry import discover
     from skidbench.pipeline.schema import list_split_files
 
     files = list_split_files(layout.splits)
@@ -56,13 +58,9 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
     # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
-    from skidbench.models.registry import discover
-
     plugins = discover()
     conf["model_versions"] = {str(m): getattr(plugins.get(str(m)), "version", None) for m in cfg.models}
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
-    from skidbench.models.fitting import model_config
-
     conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
     return stamp.key(files, conf)
 

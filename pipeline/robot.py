@@ -68,10 +68,7 @@ class Robot:
 
     def twist_from_wheel_rates(self, wl: np.ndarray, wr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ideal differential-drive forward kinematics (eq. 1 with chi = 1): (wl, wr) -> (v, w)."""
-        r, B = self.wheel_radius, self.track_width
-        wl = np.asarray(wl, dtype=float)
-        wr = np.asarray(wr, dtype=float)
-        return r * (wl + wr) / 2.0, r * (wr - wl) / B
+        return twist_from_wheel_rates(wl, wr, self.wheel_radius, self.track_width)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -95,6 +92,15 @@ class Robot:
         robot = cls(**kwargs, extra=cfg)
         _ = robot.max_wheel_rate  # a bad value fails when the config is loaded, not mid-stage
         return robot
+
+
+def twist_from_wheel_rates(wl, wr, r: float, B: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal differential-drive forward kinematics with wheel radius ``r`` and track ``B``: (wl, wr) rad/s
+    -> (v m/s, w rad/s). ``Robot.twist_from_wheel_rates`` with the robot's own r and B; also for data
+    whose wheel rates were converted with other constants (DRIVE's Husky file)."""
+    wl = np.asarray(wl, dtype=float)
+    wr = np.asarray(wr, dtype=float)
+    return r * (wl + wr) / 2.0, r * (wr - wl) / B
 
 
 def robot_from_hydra(cfg: Any) -> Robot:

@@ -147,7 +147,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
         "FINISHED",
         "RUNNING",
         "RUNNING",
-    ]  # parent, 2 kids
+    ]  # the first child finished; the parent and the second child were left RUNNING
 
     skidbench("evaluate", root)
     after = runs()

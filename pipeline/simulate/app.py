@@ -192,7 +192,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             # OpenCV single-threaded in the workers (set here, before the renderer is built and the
             # workers fork: changing it inside a forked child hangs on the parent's thread pool). The
             # workers already fill the cores, and OpenCV's idle pool threads spin, taking CPU time from
-            # the other workers: a stereo pair measured 6.5 CPU-ms with one thread, 10-14 with two.
+            # the other workers (`make bench BENCH=render`: 8.2 CPU-ms a stereo pair with one thread,
+            # 18.4 with two).
             cv2_threads = cv2.getNumThreads()
             cv2.setNumThreads(1)
         _CONTEXT.update(

@@ -52,6 +52,7 @@ import pandas as pd
 from ..errors import ConfigError, SourceError
 from ..geometry import se2_compose, yaw_from_quaternion
 from ..manifest import Manifest, Sequence
+from ..robot import twist_from_wheel_rates
 from .common import TWIST_COLUMNS, category_by_rank, stamped, write_sequence
 
 log = logging.getLogger(__name__)
@@ -196,9 +197,7 @@ def windows_to_sequences(
         if cmd_kinematics is None:
             tables["cmd_wheels"] = stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"])
         else:
-            r_c, b_c = cmd_kinematics
-            v = r_c * (pick["cmd_left"] + pick["cmd_right"]) / 2.0
-            w = r_c * (pick["cmd_right"] - pick["cmd_left"]) / b_c
+            v, w = twist_from_wheel_rates(pick["cmd_left"], pick["cmd_right"], *cmd_kinematics)
             if cmd_limits is not None:
                 v, w = np.clip(v, -cmd_limits[0], cmd_limits[0]), np.clip(w, -cmd_limits[1], cmd_limits[1])
             z = np.zeros_like(v)
