@@ -175,3 +175,22 @@ def se3_to_se2(T: np.ndarray) -> np.ndarray:
     """Project transforms (..., 4, 4) to planar poses (..., 3): x, y and the yaw of the x axis."""
     T = np.asarray(T, dtype=float)
     return np.stack([T[..., 0, 3], T[..., 1, 3], np.arctan2(T[..., 1, 0], T[..., 0, 0])], axis=-1)
+
+
+def quaternion_slerp(q0: np.ndarray, q1: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """Spherical linear interpolation of unit quaternions (N, 4) (qx, qy, qz, qw) at fractions (N,)
+    (0 gives ``q0``, 1 gives ``q1``), along the shorter arc: ``q0 exp(frac log(q0^-1 q1))``.
+
+    Through scipy's rotation vectors, which are computed with ``atan2``: no precision is lost for the
+    small rotations between consecutive samples (``arccos`` of a dot product would lose half the digits).
+    """
+    from scipy.spatial.transform import Rotation
+
+    q0 = np.asarray(q0, dtype=float).reshape(-1, 4)
+    q1 = np.asarray(q1, dtype=float).reshape(-1, 4)
+    frac = np.asarray(frac, dtype=float).reshape(-1)
+    if len(q0) == 0:
+        return np.zeros((0, 4))
+    r0 = Rotation.from_quat(q0)
+    step = (r0.inv() * Rotation.from_quat(q1)).as_rotvec()
+    return (r0 * Rotation.from_rotvec(step * frac[:, None])).as_quat()
