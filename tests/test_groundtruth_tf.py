@@ -226,6 +226,11 @@ def test_an_unknown_frame_is_one_line_listing_the_frames(extracted):
     assert "\n" not in msg and "'base_lnk'" in msg and "groundtruth.pose_topic.child" in msg
     assert "frames: base_link, camera_link, map, odom, world" in msg
     assert (tum.read_bytes() if tum.exists() else None) == before  # nothing written or changed
+    with pytest.raises(GroundTruthError) as info:  # frames not set: the same listing, the keys to set
+        groundtruth(cfg("groundtruth", out, bag, *over))
+    msg = str(info.value)
+    assert "\n" not in msg and "frames: base_link, camera_link, map, odom, world" in msg
+    assert "groundtruth.pose_topic.parent and groundtruth.pose_topic.child" in msg
 
 
 def test_frames_in_separate_trees_or_unset_are_one_line_errors():
@@ -260,3 +265,18 @@ def test_edge_interpolation_is_slerp_and_lerp_without_extrapolation():
     angle = np.arccos((np.trace(rel) - 1) / 2)
     assert np.arccos(np.clip((np.trace(part) - 1) / 2, -1, 1)) == pytest.approx(angle / 4, abs=1e-9)
     assert np.allclose(matrix_to_quaternion(T[3, :3, :3]), matrix_to_quaternion(quaternion_to_matrix(q[1])))
+
+
+def test_slerp_matches_scipy_and_keeps_tiny_rotations_exact():
+    from scipy.spatial.transform import Rotation, Slerp
+
+    rng = np.random.default_rng(5)
+    q = Rotation.random(2, random_state=7).as_quat()
+    frac = rng.uniform(0, 1, 9)
+    ref = Slerp([0.0, 1.0], Rotation.from_quat(q))(frac).as_matrix()
+    got = quaternion_to_matrix(quaternion_slerp(np.tile(q[0], (9, 1)), np.tile(q[1], (9, 1)), frac))
+    assert np.abs(got - ref).max() < 1e-14
+    # 1e-9 rad about z between two samples: the midpoint is 0.5e-9 rad (arccos would return 0 or 2e-8)
+    tiny = np.array([[0.0, 0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, np.sin(0.5e-9), np.cos(0.5e-9)]])
+    mid = quaternion_slerp(*tiny, np.array([0.5]))[0]
+    assert 2 * np.arctan2(mid[2], mid[3]) == pytest.approx(0.5e-9, rel=1e-9)

@@ -1,5 +1,6 @@
 """Ground truth from a pose table: an extracted Odometry/Pose topic (``true_pose``, motion capture, an EKF
-odometry) or a raw source's ``gt_pose`` table (``x y yaw`` [+ ``z qx qy qz qw``]).
+odometry) or a raw source's ``gt_pose`` table (``x y yaw`` [+ ``z qx qy qz qw``]). A TF table (/tf,
+/tf_static) is composed into poses by :mod:`.tf`, which ends here too (:func:`clean_poses`).
 
 Also the one home of the rules every pose source obeys (:func:`clean_poses`), used by ORB-SLAM ingestion
 too. Documented repairs (each logged):

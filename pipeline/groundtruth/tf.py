@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
@@ -194,10 +195,8 @@ def compose_chain(
     columns and ``stamp``."""
     if stamp not in df.columns:
         raise GroundTruthError(f"{where}: no {stamp} column; set groundtruth.pose_topic.stamp")
-    df = df.assign(
-        _parent=df["parent"].map(frame_name, na_action="ignore"),
-        _child=df["child"].map(frame_name, na_action="ignore"),
-    )
+    names = {n: frame_name(n) for n in pd.unique(pd.concat([df["parent"], df["child"]]))}
+    df = df.assign(_parent=df["parent"].map(names), _child=df["child"].map(names))
     edge_gap_ns = int(round((max_gap_s if edge_gap_s is None else edge_gap_s) * 1e9))
     dynamic = [k for k, link in enumerate(links) if not link.static]
     if not dynamic:
@@ -271,7 +270,8 @@ def read_tf_trajectory(
     pairs: set[tuple[str, str, bool]] = set()
     for path in paths:
         for batch in pq.ParquetFile(path).iter_batches(_BATCH, columns=["parent", "child", "static"]):
-            pairs.update(batch.to_pandas().drop_duplicates().itertuples(index=False, name=None))
+            unique = pa.Table.from_batches([batch]).group_by(["parent", "child", "static"]).aggregate([])
+            pairs.update(zip(*(unique[c].to_pylist() for c in ("parent", "child", "static")), strict=True))
     tree = TFTree(pairs)
     if not parent or not child:
         raise GroundTruthError(
