@@ -97,6 +97,15 @@ def test_bayer_mosaics_of_a_flat_colour_demosaic_to_that_colour(pattern, bits):
     assert not np.array_equal(gray8(wrong), want)
 
 
+@pytest.mark.parametrize("encoding, luma_first", [("yuv422", False), ("yuv422_yuy2", True)])
+def test_packed_yuv_decodes_to_its_luma(encoding, luma_first):
+    """UYVY (ROS's yuv422) and YUY2: the grey image is the Y samples, whatever U and V hold."""
+    y = RNG.integers(0, 256, (H, W), dtype=np.uint8)
+    chroma = RNG.integers(0, 256, (H, W), dtype=np.uint8)
+    pairs = np.stack([y, chroma] if luma_first else [chroma, y], axis=2)  # (H, W, 2): 2 bytes a pixel
+    assert np.array_equal(gray8(image_msg(pairs, encoding, pad=4)), y)
+
+
 def test_undecodable_images_raise_naming_the_problem():
     pixels = np.zeros((H, W), np.uint8)
     with pytest.raises(ImageDecodeError, match="'32FC1' is not supported"):

@@ -100,10 +100,8 @@ def raw_pixels(msg: Any) -> np.ndarray:
         pixels = np.ascontiguousarray(rows).view(f"{order}u2").astype(np.uint16)
     else:
         pixels = np.ascontiguousarray(rows)
-    shape = (h, w) if enc.channels == 1 else (h, w, enc.channels)
-    if enc.channels == 2:  # packed YUV 4:2:2: OpenCV wants it as two 8-bit channels
-        shape = (h, w, 2)
-    return pixels.reshape(shape)
+    # packed YUV 4:2:2 too: OpenCV takes it as two 8-bit channels
+    return pixels.reshape((h, w) if enc.channels == 1 else (h, w, enc.channels))
 
 
 def _to8(img: np.ndarray) -> np.ndarray:

@@ -81,7 +81,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         pt = gt.pose_topic
         if is_tf_table(path):  # /tf (+ /tf_static): compose parent -> child through the tree
             static = ext / f"{pt.static_key}.parquet" if pt.get("static_key") else None
-            paths = [path] + ([static] if static is not None and static.is_file() else [])
+            paths = [path] + ([static] if static not in (None, path) and static.is_file() else [])
             traj = read_tf_trajectory(
                 paths, pt.get("parent"), pt.get("child"), max_gap, str(pt.stamp), float(pt.tf_max_gap)
             )

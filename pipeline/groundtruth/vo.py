@@ -18,7 +18,7 @@ Frame-to-keyframe tracking on a rectified stereo pair:
    tracking loss: the motion model bridges it and a ``gap`` is recorded in the trajectory.
 
 The core (:class:`StereoVO`) takes images directly; :func:`run_stereo_vo` streams a bag's compressed
-images with rosbags' AnyReader (never holding more than a few frames), pairs left/right by header
+or raw images with rosbags' AnyReader (never holding more than a few frames), pairs left/right by header
 stamp and returns the base-frame trajectory ``T_b0_bi = T_b_c T_c0_ci T_b_c^-1``.
 """
 
