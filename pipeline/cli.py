@@ -74,8 +74,20 @@ def main(argv: list[str] | None = None) -> None:
     except (ImportError, AttributeError) as exc:  # a stage that is not built yet says so plainly
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
+    _check_overrides(name, argv[1:])
     sys.argv = [f"skidbench {name}", *argv[1:]]
     fn()
+
+
+def _check_overrides(name: str, args: list[str]) -> None:
+    """An unknown or misspelt override -> one line naming it and the nearest valid keys, exit 2."""
+    from .overrides import check_overrides
+
+    try:
+        check_overrides(name, args)
+    except SkidbenchError as exc:
+        print(f"skidbench {name}: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
+        sys.exit(2)
 
 
 if __name__ == "__main__":
