@@ -19,6 +19,10 @@ from .errors import SkidbenchError, one_line
 STAGES: dict[str, tuple[str, str]] = {
     "simulate": ("skidbench.pipeline.simulate.app:main", "simulate the built-in default dataset (bags)"),
     "extract": ("skidbench.pipeline.extract.app:main", "bags and raw sources -> one Parquet table per topic"),
+    "inspect": (
+        "skidbench.pipeline.extract.inspect:main",
+        "a bag's topics, rates, gaps; its source.topics",
+    ),
     "groundtruth": ("skidbench.pipeline.groundtruth.app:main", "stereo VO / ORB-SLAM / pose topic -> TUM"),
     "split": ("skidbench.pipeline.splits.app:main", "Train/CV/LD Parquet splits per terrain"),
     "card": ("skidbench.pipeline.splits.app:card_main", "print the dataset card (the paper's Table I)"),
