@@ -165,3 +165,21 @@ def test_a_truncated_bare_file_is_one_line_and_leaves_no_folder(tmp_path, storag
     assert_one_line(exc, bag, "truncated or corrupt bag")
     assert_nothing_left(tmp_path, "t")
     assert not (tmp_path / "out" / "test" / "extracted" / "t").exists()
+
+
+def test_a_type_the_file_does_not_define_comes_from_the_default_typestore(tmp_path):
+    """A file defining some of its types (an empty MCAP schema): the rest come from extract.typestores."""
+    from skidbench.pipeline.extract.reader import _complete_types, open_bag
+
+    stores = {"ros1": "ros1_noetic", "ros2": "ros2_humble"}
+    bag = bare_file(write_bag(tmp_path / "x", "mcap", 0.3), tmp_path / "x.mcap")
+    with open_bag(bag, stores) as reader:
+        for name in ("sensor_msgs/msg/Imu", "geometry_msgs/msg/Quaternion"):  # as if the file lacked them
+            del reader.typestore.fielddefs[name], reader.typestore.types[name]
+        (conn,) = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/Imu"]
+        _, _, raw = next(iter(reader.messages([conn])))
+        with pytest.raises(KeyError):
+            reader.deserialize(raw, conn.msgtype)
+        _complete_types(reader, "ros2", stores)
+        msg = reader.deserialize(raw, conn.msgtype)
+    assert (msg.angular_velocity.x, msg.angular_velocity.y, msg.linear_acceleration.z) == (0.1, 0.2, 9.81)

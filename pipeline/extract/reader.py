@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import logging
 import os
 import sqlite3
 import struct
@@ -23,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import apsw
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.interfaces import Connection
 from rosbags.rosbag1 import ReaderError as Rosbag1Error
@@ -34,12 +32,22 @@ from ..errors import ConfigError, ExtractError
 from ..manifest import CATEGORIES, Manifest, Sequence
 from .convert import normalize_msgtype
 
-log = logging.getLogger("skidbench.extract")
-
 ROS1, ROS2 = "ros1", "ros2"
 ROS2_METADATA = "metadata.yaml"
 ROS2_STORAGE_SUFFIXES = (".mcap", ".db3")  # rosbag2's storage files, readable without metadata.yaml
 BAG_KINDS = "a ROS1 .bag file, a ROS2 .mcap or .db3 file, or a ROS2 bag folder with metadata.yaml"
+
+try:  # rosbags' SQLite backend (a dependency of rosbags): a damaged .db3 raises its errors
+    from apsw import Error as _SqliteError
+except ImportError:  # pragma: no cover - an older rosbags on the standard sqlite3 module
+    _SqliteError = sqlite3.Error
+try:  # rosbags' zstd (compressed MCAP chunks and rosbag2 files) on Python < 3.14
+    from backports.zstd import ZstdError as _ZstdError
+except ImportError:  # pragma: no cover - Python >= 3.14: compression.zstd
+    try:
+        from compression.zstd import ZstdError as _ZstdError
+    except ImportError:
+        _ZstdError = sqlite3.Error  # a member already in the tuple
 
 # What a damaged bag raises somewhere inside rosbags, its storage backends or the deserialiser.
 _BAG_ERRORS = (
@@ -47,8 +55,11 @@ _BAG_ERRORS = (
     Rosbag1Error,
     Rosbag2Error,
     sqlite3.Error,
-    apsw.Error,
+    _SqliteError,
+    _ZstdError,
     TypesysError,
+    RuntimeError,  # lz4.frame: a damaged LZ4 chunk
+    OverflowError,  # a damaged length field
     struct.error,
     EOFError,
     OSError,
