@@ -3,8 +3,9 @@ option that does not exist, is one line naming it and the nearest valid keys (``
 the tail of a Hydra traceback.
 
 The check composes the stage's config with Hydra's compose API and the same overrides. A sweep
-(``-m model=a,b``) is checked value by value (each sweep's first value with everything else, then every
-other value of each sweep on its own), so a misspelt option anywhere in a sweep is caught, and ``+key``
+(``-m model=a,b``) is composed with each sweep's first value, then with every other value of each sweep
+over a config group (only a group's choice can change which keys exist), so a misspelt option anywhere
+in a sweep is caught, and ``+key``
 additions, ``~key`` deletions and ``hydra.*`` settings are checked exactly as Hydra will apply them.
 """
 
@@ -43,39 +44,52 @@ def check_overrides(stage: str, argv: list[str]) -> None:
     overrides = list(args.overrides or [])
     if not overrides:
         return
-    runs = list(_runs(overrides)) if args.multirun else [overrides]
-    for run in runs:
-        problem = _compose_problem(stage, run)
-        if problem is not None:
-            raise ConfigError(_explain(stage, run, problem))
+    if not args.multirun:
+        _check(stage, overrides)
+        return
+    values = _sweep_values(overrides)
+    first = [vals[0] if vals else None for _, vals in values]
+    cfg = _check(stage, [f for f in first if f is not None])
+    groups = set(cfg.hydra.runtime.choices)  # only a group choice can change which keys exist
+    for i, (key, vals) in enumerate(values):
+        if key in groups:
+            for v in vals[1:]:
+                _check(stage, [v if j == i else f for j, f in enumerate(first) if f is not None or j == i])
 
 
-def _runs(overrides: list[str]) -> Iterator[list[str]]:
-    """The override lists that together cover every value of every sweep (sum, not product, of sizes)."""
+def _check(stage: str, overrides: list[str]) -> Any:
+    """The composed config, or ConfigError naming the override Hydra refuses."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        return _compose(stage, overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(_explain(stage, overrides, exc)) from None
+
+
+def _sweep_values(overrides: list[str]) -> list[tuple[str, list[str]]]:
+    """Per override line, its key and the single-valued override lines it stands for (a sweep's values;
+    none for a sweep only a sweeper can expand, such as ``interval`` or ``glob``)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
     except HydraException:  # bad grammar: composing the lines as given reports it
-        yield overrides
-        return
-    values: list[list[str]] = []
+        return [(_override_key(line), [line]) for line in overrides]
+    values = []
     for line, ov in zip(overrides, parsed, strict=True):
         if not ov.is_sweep_override():
-            values.append([line])
+            values.append((ov.key_or_group, [line]))
             continue
         try:
             choices = list(ov.sweep_string_iterator())
-        except Exception:  # noqa: BLE001 - a sweep only a sweeper can expand (interval, glob): not checked
+        except Exception:  # noqa: BLE001 - a sweep only a sweeper can expand: not checked
             choices = []
         prefix = {"ADD": "+", "FORCE_ADD": "++"}.get(ov.type.name, "")
-        values.append([f"{prefix}{ov.key_or_group}={v}" for v in choices])
-    first = [v[0] for v in values if v]
-    yield first
-    for i, vals in enumerate(values):
-        for v in vals[1:]:
-            yield [v if j == i else f for j, f in enumerate(first)]
+        values.append((ov.key_or_group, [f"{prefix}{ov.key_or_group}={v}" for v in choices]))
+    return values
 
 
 def _compose(stage: str, overrides: list[str]) -> Any:
@@ -83,17 +97,6 @@ def _compose(stage: str, overrides: list[str]) -> Any:
 
     with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3", job_name=stage):
         return compose(stage, overrides=overrides, return_hydra_config=True)
-
-
-def _compose_problem(stage: str, overrides: list[str]) -> Exception | None:
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    try:
-        _compose(stage, overrides)
-    except (HydraException, OmegaConfBaseException) as exc:
-        return exc
-    return None
 
 
 _KEY_PATTERNS = (

@@ -29,6 +29,8 @@ MISSPELT = [
      "'model=friction'? (options of 'model': edd, enhanced, friction, full_linear, ideal, roc)"),
     ("fit", ["hydra/launcher=joblib", "hydra.launcher.n_jbs=4"],
      "unknown config key 'hydra.launcher.n_jbs'; did you mean 'hydra.launcher.n_jobs'?"),
+    ("fit", ["-m", "model=edd,ideal", "terain=tile,grass"],
+     "unknown config key 'terain'; did you mean 'terrain'?"),
     ("simulate", ["sclae=tiny"], "unknown config key 'sclae'; did you mean 'scale'?"),
 ]  # fmt: skip
 
