@@ -362,7 +362,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         bags = []
         for path in args.paths:
-            path = path.expanduser().absolute()
+            path = path.expanduser()
             if not path.exists():
                 raise ExtractError(f"{path}: no such file or folder")
             found = [path] if path.is_file() or bag_format(path) else find_bags(path)
