@@ -78,6 +78,11 @@ def test_good_overrides_sweeps_and_additions_pass(overrides):
     check_overrides("fit", overrides)  # raises ConfigError on a refusal
 
 
+def test_source_topics_auto_and_a_nulled_topic_pass():
+    check_overrides("extract", ["source=bag", "source.root=x.mcap", "source.topics=auto"])
+    check_overrides("extract", ["source=bag", "source.root=x.mcap", "source.topics.joint_states=null"])
+
+
 def test_adding_a_key_that_exists_says_how_to_set_it():
     with pytest.raises(ConfigError, match=r"'seed' is already in the config: set it without '\+'"):
         check_overrides("fit", ["+seed=3"])

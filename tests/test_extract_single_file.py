@@ -117,7 +117,8 @@ def test_a_folder_tree_mixing_every_kind_of_bag_is_one_dataset(tmp_path):
     write_bag(root / "grass" / "train" / "a.bag", "ros1", 0.5)
     write_bag(root / "grass" / "train" / "b", "sqlite3", 0.5)  # a ROS2 folder: one bag, not two
     bare_file(write_bag(tmp_path / "c", "mcap", 0.5), root / "tile" / "cv" / "c.mcap")
-    bare_file(write_bag(tmp_path / "d", "sqlite3", 0.5), root / "tile" / "cv" / "d.db3")
+    (root / "tile" / "cv" / "day2").mkdir()
+    bare_file(write_bag(tmp_path / "d", "sqlite3", 0.5), root / "tile" / "cv" / "day2" / "d.db3")
     manifest, found = discover_sequences({"root": str(root)})
     assert not found
     got = [(s.name, s.terrain, s.category, s.path) for s in manifest.sequences]
@@ -125,7 +126,7 @@ def test_a_folder_tree_mixing_every_kind_of_bag_is_one_dataset(tmp_path):
         ("a", "grass", "train", "grass/train/a.bag"),
         ("b", "grass", "train", "grass/train/b"),
         ("c", "tile", "cv", "tile/cv/c.mcap"),
-        ("d", "tile", "cv", "tile/cv/d.db3"),
+        ("d", "tile", "cv", "tile/cv/day2/d.db3"),
     ]
     records = run(extract_cfg(tmp_path / "out", root))
     counts = {r["sequence"]: r["topics"]["cmd_vel"]["count"] for r in records}
@@ -150,8 +151,8 @@ def test_a_folder_of_bare_files_takes_terrain_and_category_from_the_config(tmp_p
 
 def test_a_bag_outside_the_layout_is_named(tmp_path):
     root = tmp_path / "data"
-    (root / "grass" / "train" / "extra").mkdir(parents=True)
-    bare_file(write_bag(tmp_path / "x", "mcap", 0.3), root / "grass" / "train" / "extra" / "x.mcap")
+    (root / "grass" / "extra").mkdir(parents=True)
+    bare_file(write_bag(tmp_path / "x", "mcap", 0.3), root / "grass" / "extra" / "x.mcap")
     with pytest.raises(ConfigError, match=r"extra/x\.mcap: bags go in <terrain>/<category>/"):
         discover_sequences({"root": str(root)})
 

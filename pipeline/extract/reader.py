@@ -248,9 +248,9 @@ def discover_sequences(source: Mapping[str, Any]) -> tuple[Manifest, bool]:
 
     ``source.root`` is one of: a folder with ``manifest.json``; a folder laid out
     ``<terrain>/<category>/<bags>``, where bags of every kind may sit side by side (``.bag``, ``.mcap``,
-    ``.db3`` files and ROS2 bag folders); a single bag of any kind, or a folder of bags with no
-    terrain/category folders, whose terrain and category come from ``source.terrain`` and
-    ``source.category``.
+    ``.db3`` files and ROS2 bag folders), also in sub-folders of a category; a single bag of any kind, or
+    a folder of bags with no terrain/category folders, whose terrain and category come from
+    ``source.terrain`` and ``source.category``.
     """
     root = Path(str(source["root"])).expanduser().absolute()
     if (root / "manifest.json").is_file():
@@ -276,8 +276,8 @@ def discover_sequences(source: Mapping[str, Any]) -> tuple[Manifest, bool]:
     for bag in find_bags(root):
         rel = bag.relative_to(root)
         parts = rel.parts[:-1]
-        if len(parts) == 2 and parts[1] in CATEGORIES:
-            where = parts
+        if len(parts) >= 2 and parts[1] in CATEGORIES:  # deeper folders (sessions, days) are kept together
+            where = parts[:2]
         elif not parts:
             where = given(bag)
         else:
