@@ -344,7 +344,8 @@ def _configured_keys() -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``skidbench inspect <bag or folder> ...``: print each bag's topics and the proposed mapping."""
+    """``skidbench inspect <bag or folder> ...`` (or ``source.root=<path>``): print each bag's topics and
+    the proposed mapping."""
     parser = argparse.ArgumentParser(
         prog="skidbench inspect",
         description="A bag's topics (type, count, rate, start/end, gaps) and the source.topics to extract. "
@@ -357,7 +358,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--typestore-ros2", default=DEFAULT_STORES["ros2"], help="for bags without definitions"
     )
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # `source.root=<path>` as the other stages take it
+    argv = [a.split("=", 1)[1] if a.startswith("source.root=") else a for a in argv]
+    args = parser.parse_args(argv)
     stores = {"ros1": args.typestore_ros1, "ros2": args.typestore_ros2}
     try:
         bags = []
