@@ -19,6 +19,10 @@ from .errors import SkidbenchError, one_line
 STAGES: dict[str, tuple[str, str]] = {
     "simulate": ("skidbench.pipeline.simulate.app:main", "simulate the built-in default dataset (bags)"),
     "extract": ("skidbench.pipeline.extract.app:main", "bags and raw sources -> one Parquet table per topic"),
+    "inspect": (
+        "skidbench.pipeline.extract.inspect:main",
+        "a bag's topics, rates, gaps; its source.topics",
+    ),
     "groundtruth": ("skidbench.pipeline.groundtruth.app:main", "stereo VO / ORB-SLAM / pose topic -> TUM"),
     "split": ("skidbench.pipeline.splits.app:main", "Train/CV/LD Parquet splits per terrain"),
     "card": ("skidbench.pipeline.splits.app:card_main", "print the dataset card (the paper's Table I)"),
@@ -74,8 +78,20 @@ def main(argv: list[str] | None = None) -> None:
     except (ImportError, AttributeError) as exc:  # a stage that is not built yet says so plainly
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
+    _check_overrides(name, argv[1:])
     sys.argv = [f"skidbench {name}", *argv[1:]]
     fn()
+
+
+def _check_overrides(name: str, args: list[str]) -> None:
+    """An unknown or misspelt override -> one line naming it and the nearest valid keys, exit 2."""
+    from .overrides import check_overrides
+
+    try:
+        check_overrides(name, args)
+    except SkidbenchError as exc:
+        print(f"skidbench {name}: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

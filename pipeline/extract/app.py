@@ -21,9 +21,11 @@ from ..errors import ConfigError
 from ..layout import Layout, layout_from_cfg
 from ..manifest import Manifest
 from .bag import ExtractOptions, extract_bag
+from .inspect import auto_specs
 from .reader import bag_format, discover_sequences, topic_specs
 
 log = logging.getLogger("skidbench.extract")
+AUTO = "auto"  # source.topics=auto: each bag's topics chosen by `skidbench inspect`'s proposal
 
 
 def options_from_cfg(cfg: DictConfig) -> ExtractOptions:
@@ -46,8 +48,12 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
     every source.
     """
     source = OmegaConf.to_container(cfg.source, resolve=True)
-    specs = topic_specs(source.get("topics") or {})
-    if not specs:
+    topics = source.get("topics") or {}
+    auto = topics == AUTO
+    if isinstance(topics, str) and not auto:
+        raise ConfigError(f"source.topics={topics!r}: expected {AUTO!r} or a mapping of topic keys")
+    specs = None if auto else topic_specs(topics)
+    if not auto and not specs:
         raise ConfigError("source.topics is empty: nothing to extract")
     opts = options_from_cfg(cfg)
     manifest, found = discover_sequences(source)
@@ -60,7 +66,9 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
     seqs = manifest.sequences
     for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):
         meta = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category}
-        info = extract_bag(manifest.resolve(seq), layout.extracted / seq.name, specs, opts, meta)
+        bag = manifest.resolve(seq)
+        seq_specs = auto_specs(bag, opts.typestores) if auto else specs
+        info = extract_bag(bag, layout.extracted / seq.name, seq_specs, opts, meta)
         verb = "up to date" if info.get("skipped") else "extracted"
         counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
         log.info("%s %s: %s", verb, seq.name, counts)
