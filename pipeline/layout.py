@@ -123,13 +123,14 @@ def split_terrains(manifest: Manifest) -> list[str]:
 
 
 def _remove(path: Path) -> None:
-    """Remove a file, or a folder atomically (renamed aside in one step, then deleted)."""
-    if path.is_dir() and not path.is_symlink():
-        aside = path.with_name(f".tmp-stale-{path.name}.{os.getpid()}")
-        os.replace(path, aside)
-        shutil.rmtree(aside, ignore_errors=True)
-    else:
-        with contextlib.suppress(FileNotFoundError):
+    """Remove a file, or a folder atomically (renamed aside in one step, then deleted). Gone already (a
+    concurrent stage of a sweep pruned it first) is fine."""
+    with contextlib.suppress(FileNotFoundError):
+        if path.is_dir() and not path.is_symlink():
+            aside = path.with_name(f".tmp-stale-{path.name}.{os.getpid()}")
+            os.replace(path, aside)
+            shutil.rmtree(aside, ignore_errors=True)
+        else:
             path.unlink()
 
 
