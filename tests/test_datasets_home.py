@@ -157,7 +157,7 @@ def _bag_folder(micro: Path, root: Path, terrain: str) -> Path:
 @pytest.mark.slow
 def test_two_bag_folders_run_one_after_the_other_keep_their_own_homes(tmp_path, micro_root):
     out = tmp_path / "out"
-    common = ["source=bag", "groundtruth.method=pose_topic", "extract.progress=false"]
+    common = ["source=bag", "+source.groundtruth_method=pose_topic"]
     root_a = _bag_folder(micro_root, tmp_path / "robot1", "tile")
     root_b = _bag_folder(micro_root, tmp_path / "robot2", "asphalt")
     a = ([*common, f"source.root={root_a}"], "tile")
