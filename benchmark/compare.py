@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
@@ -454,6 +455,7 @@ def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, no
         "Models fitted per terrain on Train, scored on the constant-velocity (CV) and long-distance (LD) "
         "test splits.",
         "",
+        f"- dataset: {identity_from_cfg(cfg).describe()[len('dataset ') :]}",
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"
         + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
