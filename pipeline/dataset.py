@@ -27,9 +27,7 @@ import contextlib
 import hashlib
 import json
 import logging
-import os
 import re
-import shutil
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,8 +36,8 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from .errors import ConfigError
-from .io import TMP_PREFIX, write_json_atomic
-from .layout import Layout, layout_from_cfg, prune_stale
+from .io import write_json_atomic
+from .layout import Layout, layout_from_cfg, prune_stale, remove_atomic
 from .manifest import Manifest
 
 log = logging.getLogger("skidbench.dataset")
@@ -166,7 +164,7 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
         log.warning(
             "source.replace=true: removing %s (%s %s)", layout.root, rec.get("source"), rec.get("root")
         )
-        remove_tree(layout.root)
+        remove_atomic(layout.root)
     record(layout, ident)
     if layout.manifest.is_file():
         prune_stale(layout, Manifest.read(layout.manifest))
@@ -184,16 +182,6 @@ def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:
     if read_record(layout) != doc:
         write_json_atomic(layout.dataset_json, doc)
     return doc
-
-
-def remove_tree(path: Path) -> None:
-    """Remove a folder atomically: renamed aside (one rename: it is there whole or gone), then deleted."""
-    path = Path(path)
-    if not path.exists():
-        return
-    aside = path.with_name(f"{TMP_PREFIX}removed-{path.name}.{os.getpid()}")
-    os.replace(path, aside)
-    shutil.rmtree(aside, ignore_errors=True)
 
 
 # -- `skidbench datasets` --------------------------------------------------------------------------

@@ -122,7 +122,7 @@ def split_terrains(manifest: Manifest) -> list[str]:
     return sorted({s.terrain for s in manifest.sequences if s.category in SPLITS})
 
 
-def _remove(path: Path) -> None:
+def remove_atomic(path: Path) -> None:
     """Remove a file, or a folder atomically (renamed aside in one step, then deleted). Gone already (a
     concurrent stage of a sweep pruned it first) is fine."""
     with contextlib.suppress(FileNotFoundError):
@@ -171,7 +171,7 @@ def prune_stale(layout: Layout, manifest: Manifest) -> list[Path]:
             if p.name.split(".")[0] not in terrains and not p.name.startswith(("_", "."))
         ]  # fmt: skip
     for p in removed:
-        _remove(p)
+        remove_atomic(p)
     _remove_empty_dirs(layout.splits)
     _remove_empty_dirs(layout.fits)
     return removed
