@@ -28,7 +28,6 @@ import hashlib
 import json
 import logging
 import re
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -152,7 +151,8 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
             raise cause from None
         raise
     layout = Layout(Path(str(cfg.out_root)), ident.name)
-    print(f"skidbench {stage}: {ident.describe()} -> {layout.root}", file=sys.stderr, flush=True)
+    # stdout: stderr is kept for the one-line error a stage may end with
+    print(f"skidbench {stage}: {ident.describe()} -> {layout.root}", flush=True)
     rec = read_record(layout)
     if rec is not None and rec.get("fingerprint") != ident.fingerprint:
         if not bool(cfg.source.get("replace", False)):

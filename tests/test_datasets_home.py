@@ -215,7 +215,7 @@ def test_two_roots_at_one_explicit_name_are_one_line_error_unless_replace(tmp_pa
         env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 2
-    assert f"skidbench split: dataset lab (amrl_txt {roots[1]}, fingerprint " in proc.stderr  # printed first
+    assert f"skidbench split: dataset lab (amrl_txt {roots[1]}, fingerprint " in proc.stdout  # printed first
     errors = [ln for ln in proc.stderr.splitlines() if "error" in ln]
     assert len(errors) == 1 and str(roots[0]) in errors[0] and str(roots[1]) in errors[0]
     assert (lab / "extracted" / "tile_train_01" / "cmd_vel.parquet").is_file()
