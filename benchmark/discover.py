@@ -64,7 +64,8 @@ from skidbench.benchmark.horizon import rmsre, window_errors
 from skidbench.models.base import KinematicModel
 from skidbench.pipeline.errors import SkidbenchError
 from skidbench.pipeline.robot import Robot
-from skidbench.pipeline.schema import load_split_tables
+from skidbench.pipeline.schema import load_split_tables as _load_split_tables
+from skidbench.pipeline.schema import read_split
 
 log = logging.getLogger("skidbench.discover")
 
@@ -170,10 +171,22 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
     )
 
 
-def load_pool(splits_root: Path, terrain: str, settings: DiscoverSettings) -> Pool:
+def load_pool(
+    splits_root: Path,
+    terrain: str,
+    settings: DiscoverSettings,
+    files_of: Callable[[str, str], list[Path]] | None = None,
+) -> Pool:
     """The held-out pool of a terrain: the ``settings.splits`` sequences (default Train). When they give
     fewer than ``min_units`` held-out units (a significance test over fewer units cannot reject at
-    alpha), the terrain's other splits (CV, LD) are added, and ``pool.note`` says so."""
+    alpha), the terrain's other splits (CV, LD) are added, and ``pool.note`` says so. ``files_of(terrain,
+    split)``: the split files to read (the current manifest's); default every file under ``splits_root``."""
+
+    def load_split_tables(root: Path, terrain: str, split: str) -> list[tuple[pd.DataFrame, dict]]:
+        if files_of is None:
+            return _load_split_tables(root, terrain, split)
+        return [read_split(p) for p in files_of(terrain, split)]
+
     tables = []
     for s in settings.splits:
         tables += load_split_tables(Path(splits_root), terrain, s)

@@ -24,8 +24,9 @@ import pandas as pd
 
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import fingerprint_obj, write_json_atomic, write_parquet_atomic
-from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.schema import list_split_files, read_split
+from skidbench.pipeline.layout import Layout, layout_from_cfg, split_terrains
+from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.schema import read_split
 
 from . import tracking as trk
 from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
@@ -51,22 +52,45 @@ class TestSequence:
         return float(t[-1] - t[0]) if len(t) > 1 else 0.0
 
 
-def find_terrains(layout: Layout) -> list[str]:
-    """Terrains with at least one split file, sorted."""
-    if not layout.splits.is_dir():
-        raise EvaluationError(f"{layout.splits}: no splits; run `skidbench split` first")
-    terrains = sorted({p.parents[1].name for p in list_split_files(layout.splits)})
-    if not terrains:
+def current_manifest(layout: Layout) -> Manifest:
+    """The dataset's current manifest: the one source of its terrains and sequences."""
+    if not layout.manifest.is_file():
         raise EvaluationError(
-            f"{layout.splits}: no split files (*/<train|cv|ld>/*.parquet); run `skidbench split`"
+            f"{layout.splits}: no splits; run `skidbench split` first ({layout.manifest} is absent)"
         )
+    try:
+        return Manifest.read(layout.manifest)
+    except SkidbenchError as exc:
+        raise EvaluationError(one_line(str(exc))) from None
+
+
+def split_files(
+    layout: Layout, terrain: str, split: str | None, manifest: Manifest | None = None
+) -> list[Path]:
+    """The split files of the manifest's ``terrain``/``split`` sequences; EvaluationError if one is
+    missing."""
+    files = layout.split_files(manifest or current_manifest(layout), terrain, split)
+    missing = [p for p in files if not p.is_file()]
+    if missing:
+        raise EvaluationError(
+            f"{missing[0]}: no split file for sequence {missing[0].stem} of {layout.manifest}"
+            f"{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}; run `skidbench split`"
+        )
+    return files
+
+
+def find_terrains(layout: Layout) -> list[str]:
+    """The manifest's terrains with train/cv/ld sequences, sorted."""
+    terrains = split_terrains(current_manifest(layout))
+    if not terrains:
+        raise EvaluationError(f"{layout.manifest}: no train/cv/ld sequences; nothing to evaluate")
     return terrains
 
 
 def load_test_split(layout: Layout, terrain: str, split: str) -> list[TestSequence]:
     """The sequences of one test split; EvaluationError when there are none or all are empty."""
     where = layout.splits / terrain / split
-    files = list_split_files(layout.splits, terrain, split)
+    files = split_files(layout, terrain, split)
     if not files:
         raise EvaluationError(
             f"{where}: empty {split} split (no sequences) for terrain {terrain}; re-run `skidbench split`, "
@@ -284,11 +308,11 @@ def run_benchmark(
         terrains = found
     missing = [t for t in terrains if t not in found]
     if missing:
-        raise EvaluationError(f"{layout.splits}: no splits for terrain(s) {missing}; found {found}")
+        raise EvaluationError(f"{layout.manifest}: no sequences of terrain(s) {missing}; it has {found}")
     tests: dict[str, dict[str, list[TestSequence]]] = {}
     files_of: dict[str, list[Path]] = {}
     for terrain in terrains:
-        train_files = list_split_files(layout.splits, terrain, TRAIN)
+        train_files = split_files(layout, terrain, TRAIN)
         if not train_files:
             raise EvaluationError(
                 f"{layout.splits / terrain / TRAIN}: empty train split for terrain {terrain}"

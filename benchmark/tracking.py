@@ -47,7 +47,8 @@ TAG_MODEL_VERSION = "skidbench.model_version"
 TAG_PLUGIN = "skidbench.plugin_package"
 TAG_TERRAIN = "skidbench.terrain"
 TAG_DATASET = "skidbench.dataset"
-TAG_FINGERPRINT = "skidbench.dataset_fingerprint"
+TAG_FINGERPRINT = "skidbench.dataset_fingerprint"  # content of the split files a run read
+TAG_DATASET_ID = "skidbench.dataset_id"  # the dataset's identity (pipeline/dataset.py): runs never mix
 TAG_GIT = "skidbench.git_commit"
 TAG_STATUS = "skidbench.status"
 TAG_REASON = "skidbench.failure_reason"
@@ -150,8 +151,18 @@ def _safe_name(name: str) -> str:
 class Tracker:
     """An MLflow client bound to one store and one experiment (created if absent)."""
 
-    def __init__(self, uri: str, experiment: str, artifact_root: Path | None = None, timeout_s: float = 5.0):
+    def __init__(
+        self,
+        uri: str,
+        experiment: str,
+        artifact_root: Path | None = None,
+        timeout_s: float = 5.0,
+        dataset_id: str | None = None,
+    ):
+        """``dataset_id``: the dataset's fingerprint; every run started here is tagged with it and
+        :meth:`latest_parent` and compare's searches only see runs that carry it."""
         _quiet_mlflow_logs()
+        self.dataset_id = dataset_id
         from mlflow.tracking import MlflowClient
 
         self.uri = uri
@@ -190,6 +201,8 @@ class Tracker:
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
         t = {**process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
+        if self.dataset_id:
+            t[TAG_DATASET_ID] = self.dataset_id
         if parent_id:
             t[TAG_PARENT] = parent_id
         run = self.client.create_run(self.experiment_id, run_name=run_name, tags=t)
@@ -243,6 +256,10 @@ class Tracker:
         else:
             self.end(run_id, "FINISHED")
 
+    def dataset_filter(self) -> list[str]:
+        """The search clause that keeps this dataset's runs only (none without a dataset id)."""
+        return [f"tags.`{TAG_DATASET_ID}` = '{self.dataset_id}'"] if self.dataset_id else []
+
     def reap_dead_runs(self) -> list[str]:
         """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process,
         on this machine (same host name and boot id), is gone; returns their ids. A run of another
@@ -281,7 +298,7 @@ class Tracker:
         a warning and passed over), else the newest parent of any status, else None."""
         runs = self.client.search_runs(
             [self.experiment_id],
-            filter_string=f"tags.`{TAG_ROLE}` = 'parent'",
+            filter_string=" AND ".join([f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]),
             order_by=["attributes.start_time DESC"],
             max_results=50,
         )
@@ -303,12 +320,18 @@ class Tracker:
 def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
     node = cfg.mlflow
     uri = resolve_tracking_uri(cfg, layout)
+    dataset_id = None
+    if cfg.get("source") is not None:
+        from skidbench.pipeline.dataset import identity_from_cfg
+
+        dataset_id = identity_from_cfg(cfg).fingerprint
     try:
         tracker = Tracker(
             uri,
             str(node.experiment),
             artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
             timeout_s=float(node.get("timeout_s", 5.0)),
+            dataset_id=dataset_id,
         )
         tracker.reap_dead_runs()
         return tracker

@@ -23,8 +23,9 @@ from typing import Any
 
 from skidbench.pipeline.io import fingerprint_file, fingerprint_obj, write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
+from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.robot import Robot, robot_from_hydra
-from skidbench.pipeline.schema import list_split_files, read_split
+from skidbench.pipeline.schema import read_split
 
 from .base import KinematicModel, ModelError, concat_sequences
 from .registry import discover, get_model_class
@@ -108,12 +109,25 @@ def build_model(cfg: Any, model_name: str, robot: Robot | None = None) -> Kinema
 
 
 def _training_files(cfg: Any, model_name: str, terrain: str, split: str) -> list[Path]:
-    root = layout_from_cfg(cfg).splits
-    files = list_split_files(root, terrain, split)
+    """The split files of the current manifest's ``terrain``/``split`` sequences (pipeline/layout.py)."""
+    layout = layout_from_cfg(cfg)
+    root = layout.splits
+    if not layout.manifest.is_file():
+        raise ModelError(
+            f"model {model_name}: no manifest {layout.manifest}; run `skidbench extract` and `split`"
+        )
+    manifest = Manifest.read(layout.manifest)
+    files = layout.split_files(manifest, terrain, split)
     if not files:
         raise ModelError(
-            f"model {model_name}: no split files in {root / terrain / split} (run `skidbench split` or "
-            f"check terrain={terrain})"
+            f"model {model_name}: no {split} sequences of terrain {terrain} in {layout.manifest} "
+            f"(terrains: {', '.join(manifest.terrains)}); check terrain={terrain}"
+        )
+    missing = [p for p in files if not p.is_file()]
+    if missing:
+        raise ModelError(
+            f"model {model_name}: no split files in {root / terrain / split} for {missing[0].stem}; "
+            "run `skidbench split`"
         )
     return files
 

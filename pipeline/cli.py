@@ -31,18 +31,26 @@ STAGES: dict[str, tuple[str, str]] = {
     "evaluate": ("skidbench.benchmark.evaluate_app:main", "6 s horizon benchmark, logged to MLflow"),
     "compare": ("skidbench.benchmark.compare_app:main", "leaderboard and the paper's figures"),
     "discover": ("skidbench.benchmark.discover_app:main", "find the missing physical effect"),
+    "datasets": ("skidbench.pipeline.datasets_app:main", "list the datasets the output root holds"),
 }
 
 log = logging.getLogger("skidbench")
 
 
-def stage(name: str) -> Callable:
-    """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2."""
+def stage(name: str, home: bool = True) -> Callable:
+    """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2. With ``home``
+    (a config with a ``source``), the dataset's identity is printed and its folder checked first
+    (:func:`skidbench.pipeline.dataset.open_home`)."""
 
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
             try:
+                cfg = args[0] if args else None
+                if home and hasattr(cfg, "get") and cfg.get("source") is not None and "dataset" in cfg:
+                    from .dataset import open_home
+
+                    open_home(cfg, name)
                 return fn(*args, **kwargs)
             except SkidbenchError as exc:
                 print(f"skidbench {name}: error: {one_line(str(exc))}", file=sys.stderr, flush=True)

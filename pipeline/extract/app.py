@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from ..cli import stage
 from ..errors import ConfigError
-from ..layout import Layout, layout_from_cfg
+from ..layout import Layout, layout_from_cfg, prune_stale
 from ..manifest import Manifest
 from .bag import ExtractOptions, extract_bag
 from .inspect import auto_specs
@@ -62,6 +62,9 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
         formats = {bag_format(Path(s.path)) for s in seqs}
         fmt = formats.pop() if len(formats) == 1 else "mixed"
         Manifest(seqs, format=fmt or "ros1", base=layout.raw).write(layout.manifest)
+    elif manifest.base.resolve() != layout.raw.resolve():  # a user's manifest.json: the current one is ours
+        seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
+        Manifest(seqs, manifest.robot, manifest.format, base=layout.raw).write(layout.manifest)
     records = []
     seqs = manifest.sequences
     for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):
@@ -84,12 +87,22 @@ def run(cfg: DictConfig) -> Any:
     layout = layout_from_cfg(cfg)
     kind = str(cfg.source.get("kind", "bag"))
     if kind == "bag":
-        return extract_bags(cfg, layout)
-    try:
-        module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
-    except ImportError as exc:
-        raise ConfigError(f"source.kind={kind!r}: no reader for this kind of source ({exc})") from exc
-    return module.extract_source(cfg, layout)
+        records = extract_bags(cfg, layout)
+    else:
+        try:
+            module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
+        except ImportError as exc:
+            raise ConfigError(f"source.kind={kind!r}: no reader for this kind of source ({exc})") from exc
+        records = module.extract_source(cfg, layout)
+    # the manifest just written is the current one: outputs of sequences it lacks go, and the identity
+    # record (pipeline/dataset.py) lists its terrains
+    from ..dataset import identity_from_cfg, record
+
+    removed = prune_stale(layout, Manifest.read(layout.manifest))
+    if removed:
+        log.info("extract: removed %d output(s) of sequences no longer in %s", len(removed), layout.manifest)
+    record(layout, identity_from_cfg(cfg))
+    return records
 
 
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="extract")
