@@ -143,6 +143,30 @@ def test_clearpath_ros2_namespaced_names_and_a_stereo_pair():
     }
 
 
+def test_tf_and_a_raw_image_stereo_pair_are_proposed():
+    raw = "sensor_msgs/msg/Image"
+    topics = {
+        "/cmd_vel": TWIST,
+        "/tf": "tf2_msgs/msg/TFMessage",
+        "/tf_static": "tf2_msgs/msg/TFMessage",
+        "/zed/left/image_raw": raw,
+        "/zed/right/image_raw": raw,
+        "/zed/left/image_rect": raw,
+        "/zed/right/image_rect": raw,
+        "/zed/left/camera_info": INFO,
+        "/zed/right/camera_info": INFO,
+    }
+    assert _chosen(topics) == {
+        "cmd_vel": "/cmd_vel",
+        "tf": "/tf",
+        "tf_static": "/tf_static",
+        "left_image": "/zed/left/image_rect",  # rectified before raw
+        "right_image": "/zed/right/image_rect",
+        "left_info": "/zed/left/camera_info",
+        "right_info": "/zed/right/camera_info",
+    }
+
+
 def test_two_robots_commands_are_ambiguous_and_auto_refuses_in_one_line(tmp_path):
     topics = {"/robot1/cmd_vel": (TWIST, 45.0), "/robot2/cmd_vel": (TWIST, 45.0), "/imu/data": (IMU, 75.0)}
     assert propose({t: m for t, (m, _) in topics.items()}).ambiguous == {
