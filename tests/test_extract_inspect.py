@@ -228,3 +228,32 @@ def test_inspect_of_a_folder_reports_every_bag(tmp_path, capsys):
     assert f"{tmp_path / 'a.bag'}: ROS1 bag, 7 topics" in out
     assert f"{tmp_path / 'sub' / 'b.mcap'}: ROS2 bag (mcap), 7 topics" in out
     assert out.count("cmd_vel      /cmd_vel  [geometry_msgs/msg/Twist]") == 2
+
+
+def test_vo_reads_the_stereo_topics_that_auto_chose_for_the_bag(tmp_path):
+    """With source.topics=auto, VO takes the stereo pair extract chose (its _extract.json), not the
+    Jackal defaults; with explicit topics it takes those."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from skidbench.pipeline.groundtruth.vo import source_image_topics
+
+    chosen = {
+        "left_image": "/cam/left/image_raw",
+        "right_image": "/cam/right/image_raw",
+        "left_info": "/cam/left/camera_info",
+        "right_info": "/cam/right/camera_info",
+        "cmd_vel": "/cmd_vel",
+    }
+    topics = {k: {"topic": t, "type": "x", "count": 1} for k, t in chosen.items()}
+    (tmp_path / "_extract.json").write_text(json.dumps({"topics": topics}))
+    auto = OmegaConf.create({"source": {"topics": "auto"}})
+    assert source_image_topics(auto, tmp_path) == {
+        "left_topic": "/cam/left/image_raw",
+        "right_topic": "/cam/right/image_raw",
+        "left_info_topic": "/cam/left/camera_info",
+        "right_info_topic": "/cam/right/camera_info",
+    }
+    explicit = OmegaConf.create({"source": {"topics": {"left_image": {"topic": "/a"}}}})
+    assert source_image_topics(explicit, tmp_path) == {"left_topic": "/a"}

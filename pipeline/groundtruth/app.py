@@ -117,7 +117,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         except ImportError as exc:
             raise GroundTruthError(f"groundtruth.method=vo is not available ({exc}); use pose_topic") from exc
         bag = manifest.resolve(seq)
-        traj = vo.run_stereo_vo(bag, cfg)
+        traj = vo.run_stereo_vo(bag, cfg, extracted=ext)
         fp = fingerprint_file(bag) if bag.is_file() else None
         return traj, {"files": {str(bag): fp}}
     raise ConfigError(f"groundtruth.method={method!r}: expected vo, orbslam or pose_topic")
@@ -142,6 +142,7 @@ def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Se
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
         files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in ("vo.py", "app.py"))]
+        files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
     return [f for f in files if f.exists()]
 

@@ -793,7 +793,9 @@ def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[i
         )
 
 
-def _vo_config(cfg: Any, vo: VOConfig | Mapping[str, Any] | None) -> VOConfig:
+def _vo_config(
+    cfg: Any, vo: VOConfig | Mapping[str, Any] | None, extracted: str | Path | None = None
+) -> VOConfig:
     if isinstance(vo, VOConfig):
         return vo
     if vo is None:
@@ -808,7 +810,7 @@ def _vo_config(cfg: Any, vo: VOConfig | Mapping[str, Any] | None) -> VOConfig:
                     vo = OmegaConf.to_container(vo, resolve=True)
             except ImportError:  # pragma: no cover
                 pass
-    return VOConfig.from_mapping({**source_image_topics(cfg), **dict(vo or {})})
+    return VOConfig.from_mapping({**source_image_topics(cfg, extracted), **dict(vo or {})})
 
 
 # VOConfig option <- the extraction's topic key: VO reads the topics extract was configured with
@@ -820,10 +822,13 @@ _SOURCE_TOPICS = {
 }
 
 
-def source_image_topics(cfg: Any) -> dict[str, str]:
+def source_image_topics(cfg: Any, extracted: str | Path | None = None) -> dict[str, str]:
     """``source.topics.{left,right}_{image,info}.topic`` as VO options (``left_topic`` ...): a bag whose
     stereo pair is on other topics (raw ``image_raw`` included) is set once, for extract and VO alike;
-    ``groundtruth.vo.*`` still overrides."""
+    ``groundtruth.vo.*`` still overrides. With ``source.topics=auto`` the topics are those extract chose
+    for this bag, read from ``extracted`` (the sequence's folder, its ``_extract.json``)."""
+    if _get(cfg, "source.topics") == "auto":
+        return extracted_image_topics(extracted) if extracted is not None else {}
     out = {}
     for option, key in _SOURCE_TOPICS.items():
         topic = _get(cfg, f"source.topics.{key}.topic")
@@ -832,17 +837,34 @@ def source_image_topics(cfg: Any) -> dict[str, str]:
     return out
 
 
+def extracted_image_topics(extracted: str | Path) -> dict[str, str]:
+    """The stereo topics ``skidbench extract`` recorded in ``<extracted>/_extract.json``, as VO options."""
+    info_path = Path(extracted) / "_extract.json"
+    if not info_path.is_file():
+        return {}
+    import json
+
+    topics = json.loads(info_path.read_text()).get("topics", {})
+    return {opt: str(topics[key]["topic"]) for opt, key in _SOURCE_TOPICS.items() if key in topics}
+
+
 def run_stereo_vo(
-    bag_path: str | Path, cfg: Any, vo: VOConfig | Mapping[str, Any] | None = None, stats: dict | None = None
+    bag_path: str | Path,
+    cfg: Any,
+    vo: VOConfig | Mapping[str, Any] | None = None,
+    stats: dict | None = None,
+    extracted: str | Path | None = None,
 ) -> Trajectory:
     """Stereo VO over a bag's images -> base-frame trajectory (first pose = identity), header stamps.
 
     ``cfg``: the stage config (reads ``robot.camera`` for the extrinsic, ``groundtruth.vo`` for options
     unless ``vo`` is given, ``extract.typestores`` if present). ``stats``, if given, receives the run's
-    counters (frames, keyframes, lost frames, frames/s). Every bag problem is one GroundTruthError.
+    counters (frames, keyframes, lost frames, frames/s). ``extracted``: the sequence's extracted folder,
+    whose ``_extract.json`` names the stereo topics when ``source.topics=auto``. Every bag problem is one
+    GroundTruthError.
     """
     bag_path = Path(bag_path)
-    vocfg = _vo_config(cfg, vo)
+    vocfg = _vo_config(cfg, vo, extracted)
     camera_cfg = _get(cfg, "robot.camera")
     if camera_cfg is None:
         raise GroundTruthError(f"{bag_path}: robot.camera (the stereo extrinsic) is not configured")
