@@ -307,7 +307,7 @@ class FrictionBased(KinematicModel):
             "straight_rows": int(straight.sum()),
             "turning_rows": int(turning.sum()),
         }
-        if straight.sum() < 20 or turning.sum() < 20:
+        if straight.sum() < 10 or turning.sum() < 10:
             return info
         s0 = float(np.median(1.0 - y[straight, 0] / v_w[straight]))
         k = float(np.median(y[turning, 2] / w_w[turning]))
