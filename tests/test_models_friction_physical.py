@@ -162,3 +162,14 @@ def test_drive_husky_fit_keeps_every_parameter_off_its_bounds(shared_real, tmp_p
     assert info["actuator"]["source"] == "encoders"
     assert 0.1 < m.params["actuator_delay_s"] < 0.6 and 0.1 < m.params["actuator_tau_s"] < 1.5
     assert min(info["param_bound_margin"].values()) > 0.01, info["param_bound_margin"]
+
+
+def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
+    from types import SimpleNamespace
+
+    from skidbench.benchmark.evaluate import fit_quality_metrics
+
+    info = {"param_bound_margin": {"mu_r": 0.3}, "param_stderr": {"mu_r": 0.01, "C": float("nan")}}
+    fit = SimpleNamespace(model=SimpleNamespace(fit_info_=info), path=None)
+    assert fit_quality_metrics(fit) == {"param_bound_margin.mu_r": 0.3, "param_stderr.mu_r": 0.01}
+    assert fit_quality_metrics(SimpleNamespace(model=object(), path=None)) == {}
