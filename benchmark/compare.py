@@ -264,8 +264,16 @@ def figure6(
                 "sequence": "grid",
             }
         )
-        wz = np.asarray(model.predict(table), float)[:, 2]
-        sol = getattr(model, "last_solve_", None)
+        if hasattr(model, "velocities"):
+            # the force balance at these wheel rates and accelerations themselves: the grid's rows are
+            # independent points, not a time series a model's actuator (dead time, lag) could run over
+            vel, sol = model.velocities(
+                (wl.ravel(), wr.ravel(), table["cmd_dwl"].to_numpy(), table["cmd_dwr"].to_numpy())
+            )
+            wz = np.asarray(vel, float)[:, 2]
+        else:
+            wz = np.asarray(model.predict(table), float)[:, 2]
+            sol = getattr(model, "last_solve_", None)
         status = getattr(sol, "status", None)
         if status is not None and len(status) == m:  # the friction model's per-step solve status
             status = np.asarray(status)

@@ -11,6 +11,7 @@ predict gets its child run marked FAILED with the reason, and the others carry o
 from __future__ import annotations
 
 import importlib.metadata as md
+import json
 import logging
 import time
 import traceback
@@ -416,6 +417,9 @@ def _run_child(
                 trk.TAG_PLUGIN: plugin_package(model_name, model),
             },
         )
+        bound_metrics = fit_quality_metrics(fit)
+        if bound_metrics:
+            tracker.log(run_id, metrics=bound_metrics)
         out_dir = layout.eval / model_name
         params_json = out_dir / f"{terrain}.params.json"
         write_json_atomic(params_json, model.to_json())
@@ -481,6 +485,30 @@ def _run_child(
         log.debug("%s", traceback.format_exc())
         tracker.fail(run_id, reason)
         return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason)
+
+
+#: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins
+#: and Jacobian standard errors); each is logged as the metric ``<key>.<parameter>``
+FIT_QUALITY_KEYS = ("param_bound_margin", "param_bound_margin_linear", "param_stderr")
+
+
+def fit_quality_metrics(fit: Any) -> dict[str, float]:
+    """``{"param_bound_margin.mu_r": ...}`` from the fit's ``fit_info`` (the model's, or the saved fit
+    JSON's when the fit was reused); empty for models that report none."""
+    info = getattr(getattr(fit, "model", None), "fit_info_", None) or {}
+    path = getattr(fit, "path", None)
+    if not any(k in info for k in FIT_QUALITY_KEYS) and path is not None and Path(path).is_file():
+        try:
+            info = json.loads(Path(path).read_text()).get("fit_info") or {}
+        except (OSError, ValueError):
+            info = {}
+    out = {}
+    for key in FIT_QUALITY_KEYS:
+        for name, value in (info.get(key) or {}).items():
+            v = _num(value)
+            if v is not None and np.isfinite(v):
+                out[f"{key}.{name}"] = v
+    return out
 
 
 def _num(v: Any) -> float | None:
