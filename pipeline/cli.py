@@ -31,6 +31,15 @@ STAGES: dict[str, tuple[str, str]] = {
 
 log = logging.getLogger("skidbench")
 
+_current_stage = ""  # the stage `main` dispatched to (named by errors raised outside a stage's task)
+
+
+def exit_with_error(message: str, name: str | None = None) -> None:
+    """Print ``skidbench <stage>: error: <message>`` as one line on stderr and exit with status 2."""
+    prog = f"skidbench {name or _current_stage}".strip()
+    print(f"{prog}: error: {one_line(message)}", file=sys.stderr, flush=True)
+    sys.exit(2)
+
 
 def stage(name: str) -> Callable:
     """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2."""
@@ -41,8 +50,7 @@ def stage(name: str) -> Callable:
             try:
                 return fn(*args, **kwargs)
             except SkidbenchError as exc:
-                print(f"skidbench {name}: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
-                sys.exit(2)
+                exit_with_error(str(exc), name)
 
         return wrapper
 
@@ -58,6 +66,18 @@ def _usage() -> str:
     )
 
 
+def register_launchers() -> None:
+    """Register skidbench's Hydra launcher (``hydra/launcher=ray``) with Hydra. Hydra finds plugins by
+    listing the ``hydra_plugins`` namespace package, which an editable install (``make setup``) cannot
+    list; a regular install is found either way (registering twice is a no-op)."""
+    try:
+        from hydra.core.plugins import Plugins
+        from hydra_plugins.skidbench_ray_launcher.ray_launcher import RayLauncher
+    except ImportError:  # pragma: no cover (installed with the package)
+        return
+    Plugins.instance().register(RayLauncher)
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
@@ -68,6 +88,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench: error: unknown stage {name!r}\n\n{_usage()}", file=sys.stderr)
         sys.exit(2)
     target, _ = STAGES[name]
+    global _current_stage
+    _current_stage = name
     module, func = target.split(":")
     try:
         fn = getattr(importlib.import_module(module), func)
@@ -75,6 +97,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
     sys.argv = [f"skidbench {name}", *argv[1:]]
+    register_launchers()
     fn()
 
 

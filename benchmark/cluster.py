@@ -1,0 +1,236 @@
+"""Ray: a Hydra sweep's jobs as Ray tasks on a Ray cluster (the one home for Ray in skidbench).
+
+``skidbench <stage> -m <sweep> hydra/launcher=ray`` (``conf/hydra/launcher/ray.yaml``; the launcher class
+is the thin plugin ``hydra_plugins/skidbench_ray_launcher``) runs every job of the sweep as one Ray task:
+
+- **where**: ``hydra.launcher.address``: null starts a private local Ray instance for the sweep and stops
+  it at the end (unless ``RAY_ADDRESS`` is set, Ray's own variable, which is then used); ``auto`` joins
+  the cluster this machine is part of (``ray start``); ``ray://<head>:10001`` connects through Ray Client;
+  ``<head>:6379`` connects a node of the cluster to its head directly. A ``host:port`` address is first
+  checked with a TCP connection (``connect_timeout_s``), so an unreachable cluster is one line at once
+  rather than Ray's 30 s of retries and a traceback.
+- **retries**: a job whose worker process or node dies is re-run by Ray (``max_retries``). Jobs key their
+  MLflow runs (``skidbench.run_key``, :func:`skidbench.benchmark.sweep.run_key`): a retried job closes the
+  run its dead attempt left open as KILLED, and logs nothing if that attempt had finished. So a sweep of
+  N jobs yields N finished runs, each once.
+- **environment**: the driver's environment variables that start with one of ``forward_env`` (the
+  MLflow server ``MLFLOW_TRACKING_URI`` and its credentials, ``SKIDBENCH_OUT``) are set in every job, and
+  a job runs in the driver's working directory when that exists on its node; on a cluster of several
+  machines ``out_root`` must be a folder every node sees (the splits are read from it, fits written to it).
+
+Ray is optional (``pip install 'skidbench[cluster]'``); it is imported only when a sweep uses it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from skidbench.pipeline.errors import ClusterError, one_line
+
+log = logging.getLogger(__name__)
+
+INSTALL_HINT = "pip install 'skidbench[cluster]' (Ray with its client)"
+
+
+@dataclass
+class RaySettings:
+    """``hydra.launcher`` of ``conf/hydra/launcher/ray.yaml`` (see there for each key)."""
+
+    address: str | None = None
+    connect_timeout_s: float = 10.0
+    num_cpus_per_job: float = 1.0
+    max_retries: int = 3
+    forward_env: Sequence[str] = ("MLFLOW_", "SKIDBENCH_")
+    local: Mapping[str, Any] = field(default_factory=dict)
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError as exc:
+        raise ClusterError(f"hydra/launcher=ray needs Ray, which is not installed ({exc}); {INSTALL_HINT}") from None
+    return ray
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """``ray://host:port`` or ``host:port`` -> (host, port); None for ``auto``/``local``."""
+    rest = address[len("ray://") :] if address.startswith("ray://") else address
+    host, sep, port = rest.rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def check_reachable(address: str, timeout_s: float) -> None:
+    """Raise ClusterError (one line) when ``address``'s host:port does not accept a TCP connection."""
+    hp = _host_port(address)
+    if hp is None:
+        return
+    try:
+        with socket.create_connection(hp, timeout=timeout_s):
+            pass
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
+        raise ClusterError(
+            f"cannot reach the Ray cluster at {address} ({reason} after {timeout_s:g} s); start it "
+            "(ray start --head) or set hydra.launcher.address (auto, ray://<head>:10001, <head>:6379)"
+        ) from None
+
+
+def resolve_address(address: str | None) -> str:
+    """The address to connect to: the configured one, else ``RAY_ADDRESS``, else ``local`` (a new local
+    instance; never another user's cluster that happens to run on this machine)."""
+    if address not in (None, "", "null"):
+        return str(address)
+    return os.environ.get("RAY_ADDRESS") or "local"
+
+
+def connect(settings: RaySettings) -> tuple[Any, bool]:
+    """``ray.init`` for a sweep; returns (ray, whether this call started a local instance)."""
+    ray = import_ray()
+    address = resolve_address(settings.address)
+    if ray.is_initialized():
+        return ray, False
+    check_reachable(address, settings.connect_timeout_s)
+    kwargs: dict[str, Any] = {"address": address, "logging_level": logging.WARNING, "log_to_driver": True}
+    local = address == "local"
+    if local:
+        kwargs.update({k: v for k, v in dict(settings.local).items() if v is not None})
+        kwargs.setdefault("include_dashboard", False)
+    started = time.perf_counter()
+    try:
+        ray.init(**kwargs)
+    except Exception as exc:  # ConnectionError, a bad address, a version mismatch, ...
+        raise ClusterError(f"cannot reach the Ray cluster at {address} ({type(exc).__name__}: "
+                           f"{one_line(str(exc))[:300]})") from None  # fmt: skip
+    log.info(
+        "Ray: %s in %.1f s (%s CPUs)",
+        "started a local instance" if local else f"connected to {address}",
+        time.perf_counter() - started,
+        ray.cluster_resources().get("CPU", "?"),
+    )
+    return ray, local
+
+
+def forwarded_env(prefixes: Sequence[str], environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The driver's environment variables whose names start with one of ``prefixes``."""
+    env = os.environ if environ is None else environ
+    return {k: v for k, v in env.items() if any(k.startswith(p) for p in prefixes)}
+
+
+# -- the task (runs on a Ray worker) ---------------------------------------------------------------
+def execute_job(
+    hydra_context: Any,
+    sweep_config: Any,
+    task_function: Any,
+    singleton_state: dict[Any, Any],
+    env: Mapping[str, str],
+    cwd: str,
+) -> Any:
+    """One Hydra job on a Ray worker: Hydra's ``run_job`` with the driver's environment and working
+    directory. A stage's one-line error (``SystemExit``) comes back as ``("exit", code)``."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.singleton import Singleton
+    from hydra.core.utils import run_job, setup_globals
+
+    os.environ.update(env)
+    if cwd and Path(cwd).is_dir():
+        os.chdir(cwd)
+    setup_globals()
+    Singleton.set_state(singleton_state)
+    HydraConfig.instance().set_config(sweep_config)
+    try:
+        return run_job(
+            hydra_context=hydra_context,
+            task_function=task_function,
+            config=sweep_config,
+            job_dir_key="hydra.sweep.dir",
+            job_subdir_key="hydra.sweep.subdir",
+        )
+    except SystemExit as exc:  # the stage printed its error (forwarded to the driver's stderr)
+        return ("exit", exc.code)
+
+
+# -- the driver ------------------------------------------------------------------------------------
+def launch(
+    settings: RaySettings,
+    hydra_context: Any,
+    task_function: Any,
+    config: Any,
+    job_overrides: Sequence[Sequence[str]],
+    initial_job_idx: int,
+) -> list[Any]:
+    """Run the jobs as Ray tasks; their ``JobReturn`` in order. A job that failed outright (the stage's
+    one-line error, or lost after ``max_retries``) is a :class:`ClusterError` naming every such job."""
+    from hydra.core.singleton import Singleton
+    from hydra.core.utils import JobReturn, configure_log, filter_overrides, setup_globals
+    from omegaconf import open_dict
+
+    setup_globals()
+    configure_log(config.hydra.hydra_logging, config.hydra.verbose)
+    sweep_dir = Path(str(config.hydra.sweep.dir))
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    ray, started_local = connect(settings)
+    refs: list[Any] = []
+    try:
+        remote = ray.remote(execute_job)
+        options = {"num_cpus": settings.num_cpus_per_job, "max_retries": int(settings.max_retries)}
+        env = forwarded_env(settings.forward_env)
+        log.info("Ray: launching %d jobs (%g CPU each, up to %d retries), sweep output dir %s",
+                 len(job_overrides), settings.num_cpus_per_job, settings.max_retries, sweep_dir)  # fmt: skip
+        state = Singleton.get_state()
+        names: list[str] = []
+        for k, overrides in enumerate(job_overrides):
+            idx = initial_job_idx + k
+            name = " ".join(filter_overrides(overrides))
+            log.info("\t#%d : %s", idx, name)
+            sweep_config = hydra_context.config_loader.load_sweep_config(config, list(overrides))
+            with open_dict(sweep_config):
+                sweep_config.hydra.job.id = f"{sweep_config.hydra.job.name}_{idx}"
+                sweep_config.hydra.job.num = idx
+            ref = remote.options(name=f"skidbench job {idx}", **options).remote(
+                hydra_context, sweep_config, task_function, state, env, os.getcwd()
+            )
+            refs.append(ref)
+            names.append(f"#{idx} ({name})")
+        results = _gather(ray, refs, names)
+    except KeyboardInterrupt:
+        for ref in refs:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        ray.shutdown()  # a local instance this sweep started stops with it
+        if started_local:
+            log.info("Ray: local instance stopped")
+    failed = [f"{n}: {r}" for n, r in zip(names, results, strict=True) if not isinstance(r, JobReturn)]
+    if failed:
+        raise ClusterError(f"{len(failed)} of {len(results)} jobs failed: " + "; ".join(failed))
+    return results
+
+
+def _gather(ray: Any, refs: list[Any], names: list[str]) -> list[Any]:
+    """Every job's JobReturn (or why it failed, as a string), logging each as it ends."""
+    from ray.exceptions import RayError
+
+    out: dict[Any, Any] = {}
+    pending = list(refs)
+    while pending:
+        ready, pending = ray.wait(pending, num_returns=1)
+        ref = ready[0]
+        try:
+            res = ray.get(ref)
+            if isinstance(res, tuple) and res[:1] == ("exit",):
+                res = f"exit status {res[1]} (its error is printed above)"
+        except RayError as exc:  # lost after max_retries, cancelled, ...
+            res = f"{type(exc).__name__}: {one_line(str(exc))[:300]}"
+        out[ref] = res
+        log.info("Ray: job %s done (%d/%d)", names[refs.index(ref)], len(out), len(refs))
+    return [out[r] for r in refs]
+
