@@ -68,8 +68,8 @@ bench: setup
 	$(BIN)/python -m skidbench.benchmark.perf $(BENCH)
 
 lint: setup
-	$(BIN)/ruff check pipeline models benchmark tests examples
-	$(BIN)/ruff format --check pipeline models benchmark tests examples
+	$(BIN)/ruff check pipeline models benchmark hydra_plugins tests examples
+	$(BIN)/ruff format --check pipeline models benchmark hydra_plugins tests examples
 
 clean:
 	rm -rf $(OUT) .pytest_cache .ruff_cache build *.egg-info

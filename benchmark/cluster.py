@@ -27,6 +27,7 @@ import logging
 import os
 import socket
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,7 +56,7 @@ def import_ray():
     try:
         import ray
     except ImportError as exc:
-        raise ClusterError(f"hydra/launcher=ray needs Ray, which is not installed ({exc}); {INSTALL_HINT}") from None
+        raise ClusterError(f"hydra/launcher=ray needs Ray, not installed ({exc}); {INSTALL_HINT}") from None
     return ray
 
 
@@ -106,7 +107,9 @@ def connect(settings: RaySettings) -> tuple[Any, bool]:
         kwargs.setdefault("include_dashboard", False)
     started = time.perf_counter()
     try:
-        ray.init(**kwargs)
+        with warnings.catch_warnings():  # Ray Client's timeout warning: the error below says it in one line
+            warnings.simplefilter("ignore", UserWarning)
+            ray.init(**kwargs)
     except Exception as exc:  # ConnectionError, a bad address, a version mismatch, ...
         raise ClusterError(f"cannot reach the Ray cluster at {address} ({type(exc).__name__}: "
                            f"{one_line(str(exc))[:300]})") from None  # fmt: skip
@@ -233,4 +236,3 @@ def _gather(ray: Any, refs: list[Any], names: list[str]) -> list[Any]:
         out[ref] = res
         log.info("Ray: job %s done (%d/%d)", names[refs.index(ref)], len(out), len(refs))
     return [out[r] for r in refs]
-

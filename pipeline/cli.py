@@ -31,12 +31,13 @@ STAGES: dict[str, tuple[str, str]] = {
 
 log = logging.getLogger("skidbench")
 
-_current_stage = ""  # the stage `main` dispatched to (named by errors raised outside a stage's task)
-
 
 def exit_with_error(message: str, name: str | None = None) -> None:
-    """Print ``skidbench <stage>: error: <message>`` as one line on stderr and exit with status 2."""
-    prog = f"skidbench {name or _current_stage}".strip()
+    """Print ``skidbench <stage>: error: <message>`` as one line on stderr and exit with status 2. Without
+    ``name``, the stage :func:`main` dispatched to (it sets ``sys.argv[0]`` to ``skidbench <stage>``)."""
+    prog = f"skidbench {name}" if name else sys.argv[0]
+    if not prog.startswith("skidbench"):
+        prog = "skidbench"
     print(f"{prog}: error: {one_line(message)}", file=sys.stderr, flush=True)
     sys.exit(2)
 
@@ -72,6 +73,7 @@ def register_launchers() -> None:
     list; a regular install is found either way (registering twice is a no-op)."""
     try:
         from hydra.core.plugins import Plugins
+
         from hydra_plugins.skidbench_ray_launcher.ray_launcher import RayLauncher
     except ImportError:  # pragma: no cover (installed with the package)
         return
@@ -88,8 +90,6 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench: error: unknown stage {name!r}\n\n{_usage()}", file=sys.stderr)
         sys.exit(2)
     target, _ = STAGES[name]
-    global _current_stage
-    _current_stage = name
     module, func = target.split(":")
     try:
         fn = getattr(importlib.import_module(module), func)

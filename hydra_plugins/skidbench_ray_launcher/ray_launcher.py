@@ -31,11 +31,10 @@ class RayLauncher(Launcher):
         from skidbench.pipeline.cli import exit_with_error
         from skidbench.pipeline.errors import ClusterError
 
-        assert self.config is not None and self.hydra_context is not None and self.task_function is not None
+        ctx, fn, cfg = self.hydra_context, self.task_function, self.config
+        assert ctx is not None and fn is not None and cfg is not None
         try:
-            return launch(
-                self.settings, self.hydra_context, self.task_function, self.config, job_overrides, initial_job_idx
-            )
+            return launch(self.settings, ctx, fn, cfg, job_overrides, initial_job_idx)
         except ClusterError as exc:  # one line, exit status 2, like every stage's errors
             exit_with_error(str(exc))
             raise  # not reached
