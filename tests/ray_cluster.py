@@ -59,16 +59,29 @@ def running_ray_cluster(num_cpus: int = 2, timeout_s: float = 180.0) -> Iterator
             time.sleep(0.5)
         yield f"127.0.0.1:{port}"
     finally:
-        # `ray start --block` stops the processes it started when terminated; they share its session
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            pass
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)  # stragglers of the session (workers), by their group
+        # every process of the cluster (GCS, raylet, agents, workers) is in the process group of
+        # `ray start`: terminate the group, then kill what is left of it after a grace period
+        for sig, grace_s in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 10.0)):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, sig)
+            deadline = time.monotonic() + grace_s
+            while time.monotonic() < deadline and _group_alive(proc.pid):
+                proc.poll()  # reap `ray start` itself
+                time.sleep(0.2)
+        proc.wait(timeout=10)
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether a process of group ``pgid`` other than a zombie is still running."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":  # fields: state, ppid, pgrp, ...
+            return True
+    return False
 
 
 class KillOnce(Callback):
