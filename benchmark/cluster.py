@@ -23,12 +23,18 @@ Ray is optional (``pip install 'skidbench[cluster]'``); it is imported only when
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import shutil
+import signal
 import socket
+import subprocess
+import sys
+import tempfile
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,9 +84,9 @@ def check_reachable(address: str, timeout_s: float) -> None:
         with socket.create_connection(hp, timeout=timeout_s):
             pass
     except OSError as exc:
-        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
+        reason = f"no answer in {timeout_s:g} s" if isinstance(exc, TimeoutError) else exc.strerror
         raise ClusterError(
-            f"cannot reach the Ray cluster at {address} ({reason} after {timeout_s:g} s); start it "
+            f"cannot reach the Ray cluster at {address} ({reason or type(exc).__name__}); start it "
             "(ray start --head) or set hydra.launcher.address (auto, ray://<head>:10001, <head>:6379)"
         ) from None
 
@@ -236,3 +242,72 @@ def _gather(ray: Any, refs: list[Any], names: list[str]) -> list[Any]:
         out[ref] = res
         log.info("Ray: job %s done (%d/%d)", names[refs.index(ref)], len(out), len(refs))
     return [out[r] for r in refs]
+
+
+# -- a throwaway local cluster ---------------------------------------------------------------------
+@contextlib.contextmanager
+def local_cluster(
+    num_cpus: int = 2,
+    object_store_mb: int = 100,
+    env: Mapping[str, str] | None = None,
+    timeout_s: float = 180.0,
+) -> Iterator[str]:
+    """A throwaway one-node Ray cluster on 127.0.0.1 (tests, ``make bench``): ``ray start --head`` with
+    ``num_cpus`` CPUs, an ``object_store_mb`` object store, no dashboard, in a temporary folder and the
+    environment ``env``; yields its address (``127.0.0.1:<port>``) and stops every process it started
+    (never ``ray stop``, which stops every Ray process of the user)."""
+    # Ray's Unix sockets live under the temp dir: keep its path short (pytest's tmp_path is too long)
+    tmp = Path(tempfile.mkdtemp(prefix="skbray-"))
+    port = _free_port()
+    cmd = [
+        str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
+        "--node-ip-address=127.0.0.1", f"--port={port}", f"--num-cpus={num_cpus}",
+        f"--object-store-memory={object_store_mb * 1_000_000}", "--include-dashboard=false",
+        "--disable-usage-stats",
+        f"--ray-client-server-port={_free_port()}", f"--dashboard-agent-listen-port={_free_port()}",
+        f"--temp-dir={tmp}",
+    ]  # fmt: skip
+    log_path = tmp / "ray-start.log"
+    with open(log_path, "wb") as log:
+        environ = dict(os.environ if env is None else env)
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=environ, start_new_session=True, cwd=tmp
+        )
+    try:
+        deadline = time.monotonic() + timeout_s
+        while b"Ray runtime started" not in log_path.read_bytes():
+            if proc.poll() is not None or time.monotonic() > deadline:
+                tail = one_line(log_path.read_text()[-500:])
+                raise ClusterError(f"ray start --head did not start a cluster: {tail}")
+            time.sleep(0.5)
+        yield f"127.0.0.1:{port}"
+    finally:
+        # every process of the cluster (GCS, raylet, agents, workers) is in the process group of
+        # `ray start`: terminate the group, then kill what is left of it after a grace period
+        for sig, grace_s in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 10.0)):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, sig)
+            deadline = time.monotonic() + grace_s
+            while time.monotonic() < deadline and _group_alive(proc.pid):
+                proc.poll()  # reap `ray start` itself
+                time.sleep(0.2)
+        proc.wait(timeout=10)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether a process of group ``pgid`` other than a zombie is still running."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":  # fields: state, ppid, pgrp, ...
+            return True
+    return False
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -178,3 +178,28 @@ def test_a_retried_job_closes_its_dead_attempts_runs_and_logs_once(tmp_path):
         pass
     assert tracker.claim_key(key) == second  # a third attempt finds the finished run: logs nothing
     assert tracker.client.get_run(dead).info.status == "KILLED"
+
+
+def test_a_retried_evaluate_job_whose_first_attempt_finished_logs_nothing_again(tmp_path, monkeypatch):
+    from _bench_data import compose, fit_fn
+    from _bench_data import write_splits as write_chi_splits
+
+    from skidbench.benchmark import sweep
+    from skidbench.benchmark.evaluate import run_benchmark
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    write_chi_splits(tmp_path / "sim-mini")
+    cfg = compose("evaluate", tmp_path, ["models=[chi,ideal_t]"])
+    monkeypatch.setattr(sweep, "run_key", lambda: "20261123-120000-000000/0")  # both: one job's attempts
+    first = run_benchmark(cfg, fit_fn=fit_fn, log_figures=False)
+    again = run_benchmark(cfg, fit_fn=fit_fn, log_figures=False)
+    assert again.parent_run_id == first.parent_run_id
+
+    def scores(res):
+        return sorted((c.model, c.terrain, c.run_id, c.status, c.metrics["rmsre_translational_cv_6s"])
+                      for c in res.children)  # fmt: skip
+
+    assert scores(again) == scores(first) and len(first.children) == 4
+    store = trk.Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", "skidbench-sim-mini")
+    runs = store.client.search_runs([store.experiment_id])
+    assert len(runs) == 5  # one parent and its four children, logged once

@@ -42,8 +42,10 @@ def builtin_models() -> list[str]:
     return [n for n, i in discover().items() if i.ok and i.package == BUILTIN_PACKAGE]
 
 
-def write_splits(root: Path, robot, dataset: str, n_seq: int, seq_rows: int, seed: int = 0) -> None:
-    """Train and CV split files (``n_seq`` sequences each) of one terrain ``tile``."""
+def write_splits(
+    root: Path, robot, dataset: str, n_seq: int, seq_rows: int, seed: int = 0, terrain: str = "tile"
+) -> None:
+    """Train and CV split files (``n_seq`` sequences each) of one terrain."""
     from skidbench.models.linear import ExtendedDifferentialDrive
     from skidbench.models.synthetic import command_table, label_with
     from skidbench.pipeline.schema import write_split
@@ -58,16 +60,16 @@ def write_splits(root: Path, robot, dataset: str, n_seq: int, seq_rows: int, see
             vel[:, 0] += rng.normal(0, 0.02, len(tab))
             vel[:, 2] += rng.normal(0, 0.02, len(tab))
             tab = label_with(tab, vel)
-            seq = f"tile_{split}_{i:02d}"
+            seq = f"{terrain}_{split}_{i:02d}"
             meta = {
                 "sequence": seq,
-                "terrain": "tile",
+                "terrain": terrain,
                 "split": split,
                 "robot": robot.name,
                 "sources": {},
                 "rate_hz": 30.0,
             }
-            write_split(tab, root / dataset / "splits" / "tile" / split / f"{seq}.parquet", meta)
+            write_split(tab, root / dataset / "splits" / terrain / split / f"{seq}.parquet", meta)
 
 
 def _compose(out_root: Path, dataset: str):
