@@ -245,17 +245,28 @@ def _gather(ray: Any, refs: list[Any], names: list[str]) -> list[Any]:
 
 
 # -- a throwaway local cluster ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class LocalCluster:
+    address: str  # 127.0.0.1:<port>, for hydra.launcher.address
+    pgid: int  # the process group of every process of the cluster
+
+    def cpu_ticks(self) -> dict[tuple[int, int], int]:
+        """(pid, start time) -> utime + stime in clock ticks of every live process of the cluster:
+        ``ray start``'s whole process tree (workers run in process groups of their own; Linux)."""
+        return {(pid, int(f[19])): int(f[11]) + int(f[12]) for pid, f in _tree_stats(self.pgid)}
+
+
 @contextlib.contextmanager
 def local_cluster(
     num_cpus: int = 2,
     object_store_mb: int = 100,
     env: Mapping[str, str] | None = None,
     timeout_s: float = 180.0,
-) -> Iterator[str]:
+) -> Iterator[LocalCluster]:
     """A throwaway one-node Ray cluster on 127.0.0.1 (tests, ``make bench``): ``ray start --head`` with
     ``num_cpus`` CPUs, an ``object_store_mb`` object store, no dashboard, in a temporary folder and the
-    environment ``env``; yields its address (``127.0.0.1:<port>``) and stops every process it started
-    (never ``ray stop``, which stops every Ray process of the user)."""
+    environment ``env``; yields it (its address) and stops every process it started (never ``ray stop``,
+    which stops every Ray process of the user)."""
     # Ray's Unix sockets live under the temp dir: keep its path short (pytest's tmp_path is too long)
     tmp = Path(tempfile.mkdtemp(prefix="skbray-"))
     port = _free_port()
@@ -280,7 +291,7 @@ def local_cluster(
                 tail = one_line(log_path.read_text()[-500:])
                 raise ClusterError(f"ray start --head did not start a cluster: {tail}")
             time.sleep(0.5)
-        yield f"127.0.0.1:{port}"
+        yield LocalCluster(f"127.0.0.1:{port}", proc.pid)
     finally:
         # every process of the cluster (GCS, raylet, agents, workers) is in the process group of
         # `ray start`: terminate the group, then kill what is left of it after a grace period
@@ -295,16 +306,32 @@ def local_cluster(
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _group_alive(pgid: int) -> bool:
-    """Whether a process of group ``pgid`` other than a zombie is still running."""
+def _proc_stats() -> Iterator[tuple[int, list[str]]]:
+    """(pid, the ``/proc/<pid>/stat`` fields after the command name: state, ppid, pgrp, ...)."""
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
+            yield int(stat.parent.name), stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError, ValueError):
             continue
-        if int(fields[2]) == pgid and fields[0] != "Z":  # fields: state, ppid, pgrp, ...
-            return True
-    return False
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether a process of group ``pgid`` other than a zombie is still running."""
+    return any(int(f[2]) == pgid and f[0] != "Z" for _, f in _proc_stats())
+
+
+def _tree_stats(root: int) -> Iterator[tuple[int, list[str]]]:
+    """The ``/proc`` stat fields of process ``root`` and of all its descendants."""
+    stats = dict(_proc_stats())
+    children: dict[int, list[int]] = {}
+    for pid, f in stats.items():
+        children.setdefault(int(f[1]), []).append(pid)
+    todo = [root]
+    while todo:
+        pid = todo.pop()
+        if pid in stats:
+            yield pid, stats[pid]
+        todo.extend(children.get(pid, []))
 
 
 def _free_port() -> int:

@@ -4,8 +4,10 @@ worker process once, mid-task (fault injection for the Ray sweeps)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+from collections.abc import Iterator
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
@@ -13,11 +15,14 @@ from hydra.experimental.callback import Callback
 TESTS = Path(__file__).resolve().parent
 
 
-def running_ray_cluster(num_cpus: int = 2):
-    """A one-node cluster on 127.0.0.1 whose workers can import this folder (see :func:`ray_env`)."""
+@contextlib.contextmanager
+def running_ray_cluster(num_cpus: int = 2) -> Iterator[str]:
+    """A one-node cluster on 127.0.0.1 whose workers can import this folder (see :func:`ray_env`); yields
+    its address."""
     from skidbench.benchmark.cluster import local_cluster
 
-    return local_cluster(num_cpus=num_cpus, env=ray_env())
+    with local_cluster(num_cpus=num_cpus, env=ray_env()) as cluster:
+        yield cluster.address
 
 
 def ray_env(extra: dict | None = None) -> dict[str, str]:
