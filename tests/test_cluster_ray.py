@@ -73,6 +73,7 @@ def _fit_results(runs) -> dict[tuple[str, str], tuple]:
 
 
 @needs_ray
+@pytest.mark.slow
 def test_a_ray_sweep_survives_a_killed_worker_and_logs_each_fit_once_with_the_joblib_metrics(
     out_root, ray_address, mlflow_uri, tmp_path
 ):
@@ -108,6 +109,7 @@ def test_a_ray_sweep_survives_a_killed_worker_and_logs_each_fit_once_with_the_jo
 
 
 @needs_ray
+@pytest.mark.slow
 def test_evaluate_runs_one_ray_task_per_dataset_into_one_mlflow_server(out_root, ray_address, mlflow_uri):
     skidbench(
         "evaluate", out_root, "-m", f"dataset={','.join(DATASETS)}", "models=[edd,roc]", "log_figures=false",

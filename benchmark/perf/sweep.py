@@ -15,8 +15,9 @@ MLflow; composing the config; one MLflow run), which is where a launcher's overh
 (12-job wall - 6-job wall) / 6 for each launcher (what one more job costs once the sweep is running).
 Wall times carry the machine's load (the 1-minute load average at the end is reported): the launchers
 alternate, 6 then 12 jobs. CPU seconds do not: the driver and every process it waited for (joblib's
-workers; a local instance's processes, when reaped), plus, for the running cluster, the CPU its
-processes (GCS, raylet, workers) used during the sweep, sampled from ``/proc`` (``_ClusterCPU``).
+workers), plus, for the running cluster, the CPU its processes (GCS, raylet, workers) used during the
+sweep, sampled from ``/proc`` (``_ClusterCPU``). ``ray_local_cpu_s`` is a lower bound: Ray reaps the
+workers of a local instance without accounting their CPU to anyone.
 """
 
 from __future__ import annotations
