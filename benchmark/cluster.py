@@ -240,7 +240,8 @@ def _gather(ray: Any, refs: list[Any], names: list[str]) -> list[Any]:
         except RayError as exc:  # lost after max_retries, cancelled, ...
             res = f"{type(exc).__name__}: {one_line(str(exc))[:300]}"
         out[ref] = res
-        log.info("Ray: job %s done (%d/%d)", names[refs.index(ref)], len(out), len(refs))
+        what = "failed" if isinstance(res, str) else "done"
+        log.info("Ray: job %s %s (%d/%d)", names[refs.index(ref)], what, len(out), len(refs))
     return [out[r] for r in refs]
 
 
