@@ -339,11 +339,19 @@ def run_benchmark(
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
+    from .sweep import run_key
+
+    job_key = run_key()
     try:
+        done = tracker.claim_key(job_key) if job_key else None
+        if done:  # a retried job whose earlier attempt finished: its runs are the result
+            return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
+                                                       _logged_children(tracker, done)))  # fmt: skip
         with tracker.run(
             f"evaluate {cfg.dataset}",
             {
                 **common_tags,
+                **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
                 trk.TAG_ROLE: "parent",
                 trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
                 "skidbench.models": ",".join(models),
@@ -367,17 +375,38 @@ def run_benchmark(
             )
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
-    result = BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children)
+    return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children))
+
+
+def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
     write_json_atomic(
         layout.eval / "last_evaluate.json",
         {
             "tracking_uri": result.tracking_uri,
             "experiment": result.experiment,
-            "parent_run_id": parent_id,
-            "children": [c.__dict__ for c in children],
+            "parent_run_id": result.parent_run_id,
+            "children": [c.__dict__ for c in result.children],
         },
     )
     return result
+
+
+def _logged_children(tracker, parent_id: str) -> list[ChildResult]:
+    """The child runs of a finished parent run, as results (a retried job that had already finished)."""
+    runs = tracker.client.search_runs(
+        [tracker.experiment_id], filter_string=f"tags.`{trk.TAG_PARENT}` = '{parent_id}'", max_results=10000
+    )
+    return [
+        ChildResult(
+            r.data.tags.get(trk.TAG_MODEL, "?"),
+            r.data.tags.get(trk.TAG_TERRAIN, "?"),
+            r.info.run_id,
+            r.info.status,
+            dict(r.data.metrics),
+            r.data.tags.get(trk.TAG_REASON, ""),
+        )
+        for r in sorted(runs, key=lambda r: r.info.start_time)
+    ]
 
 
 def _run_child(

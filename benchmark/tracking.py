@@ -12,6 +12,11 @@ model failed ends ``FAILED`` with ``skidbench.failure_reason``. Every run also r
 started it (``skidbench.host``, ``skidbench.boot_id``, ``skidbench.pid``): a run left ``RUNNING`` by a
 process of this machine that is gone (killed, crashed) is marked ``KILLED``, with the reason, the next time
 a stage opens the store (:meth:`Tracker.reap_dead_runs`); runs of other machines are never touched.
+
+A job of a sweep tags its run with a key (``skidbench.run_key`` = ``<sweep id>/<job number>``, the same
+for every attempt of the job): :meth:`Tracker.claim_key`, called before the run starts, returns the run of
+an attempt that already FINISHED (log nothing more) and marks ``KILLED`` the runs a dead attempt left open,
+on any machine; so a job a cluster retried still yields exactly one FINISHED run.
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ TAG_PARENT = "mlflow.parentRunId"
 TAG_HOST = "skidbench.host"
 TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
+TAG_RUN_KEY = "skidbench.run_key"
 
 
 @functools.cache
@@ -291,6 +297,36 @@ class Tracker:
                 len(reaped), ", ".join(reaped),
             )  # fmt: skip
         return reaped
+
+    def claim_key(self, key: str) -> str | None:
+        """Before starting the run of one job of a sweep (``key``, the same for every attempt of it): the
+        id of a run of ``key`` that FINISHED (an earlier attempt completed: the job has nothing more to
+        log), else None, after marking ``KILLED`` each run of ``key`` left open and its open children (an
+        attempt whose worker or node died; the cluster retried the job). Open means RUNNING or SCHEDULED."""
+        quoted = key.replace("'", "")
+        runs = self.client.search_runs(
+            [self.experiment_id], filter_string=f"tags.`{TAG_RUN_KEY}` = '{quoted}'", max_results=100
+        )
+        done = [r for r in runs if r.info.status == "FINISHED"]
+        if done:
+            run_id = done[0].info.run_id
+            log.info("MLflow: job %s already has the finished run %s; not logged again", key, run_id)
+            return run_id
+        reason = f"superseded: job {key} was retried (this attempt's worker or node died)"
+        for run in runs:
+            if run.info.status not in ("RUNNING", "SCHEDULED"):
+                continue
+            children = self.client.search_runs(
+                [self.experiment_id],
+                filter_string=f"tags.`{TAG_PARENT}` = '{run.info.run_id}' AND attributes.status = 'RUNNING'",
+                max_results=1000,
+            )
+            for r in [*children, run]:
+                self.log(r.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
+                self.end(r.info.run_id, "KILLED")
+            log.warning("MLflow: run %s of job %s, left open by a dead attempt, marked KILLED",
+                        run.info.run_id, key)  # fmt: skip
+        return None
 
     # -- queries ----------------------------------------------------------------------------------
     def latest_parent(self) -> str | None:

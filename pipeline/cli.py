@@ -37,6 +37,16 @@ STAGES: dict[str, tuple[str, str]] = {
 log = logging.getLogger("skidbench")
 
 
+def exit_with_error(message: str, name: str | None = None) -> None:
+    """Print ``skidbench <stage>: error: <message>`` as one line on stderr and exit with status 2. Without
+    ``name``, the stage :func:`main` dispatched to (it sets ``sys.argv[0]`` to ``skidbench <stage>``)."""
+    prog = f"skidbench {name}" if name else sys.argv[0]
+    if not prog.startswith("skidbench"):
+        prog = "skidbench"
+    print(f"{prog}: error: {one_line(message)}", file=sys.stderr, flush=True)
+    sys.exit(2)
+
+
 def stage(name: str, home: bool = True) -> Callable:
     """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2. With ``home``
     (a config with a ``source``), the dataset's identity is printed and its folder checked first
@@ -53,8 +63,7 @@ def stage(name: str, home: bool = True) -> Callable:
                     open_home(cfg, name)
                 return fn(*args, **kwargs)
             except SkidbenchError as exc:
-                print(f"skidbench {name}: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
-                sys.exit(2)
+                exit_with_error(str(exc), name)
 
         return wrapper
 
@@ -68,6 +77,19 @@ def _usage() -> str:
         "usage: skidbench <stage> [key=value ...] [-m] [--cfg job] [--help]\n\n"
         f"stages:\n{rows}\n\nEach stage is a Hydra app: `skidbench <stage> --help` shows its config."
     )
+
+
+def register_launchers() -> None:
+    """Register skidbench's Hydra launcher (``hydra/launcher=ray``) with Hydra. Hydra finds plugins by
+    listing the ``hydra_plugins`` namespace package, which an editable install (``make setup``) cannot
+    list; a regular install is found either way (registering twice is a no-op)."""
+    try:
+        from hydra.core.plugins import Plugins
+
+        from hydra_plugins.skidbench_ray_launcher.ray_launcher import RayLauncher
+    except ImportError:  # pragma: no cover (installed with the package)
+        return
+    Plugins.instance().register(RayLauncher)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -88,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     _check_overrides(name, argv[1:])
     sys.argv = [f"skidbench {name}", *argv[1:]]
+    register_launchers()
     fn()
 
 

@@ -42,9 +42,11 @@ def builtin_models() -> list[str]:
     return [n for n, i in discover().items() if i.ok and i.package == BUILTIN_PACKAGE]
 
 
-def write_splits(root: Path, robot, dataset: str, n_seq: int, seq_rows: int, seed: int = 0) -> None:
-    """Train and CV split files (``n_seq`` sequences each) of one terrain ``tile``, and the manifest that
-    lists them (stages read their sequences from it)."""
+def write_splits(
+    root: Path, robot, dataset: str, n_seq: int, seq_rows: int, seed: int = 0, terrain: str = "tile"
+) -> None:
+    """Train and CV split files (``n_seq`` sequences each) of one terrain, and the manifest that lists
+    them with any other terrain already written there (stages read their sequences from it)."""
     from skidbench.models.linear import ExtendedDifferentialDrive
     from skidbench.models.synthetic import command_table, label_with
     from skidbench.pipeline.manifest import Manifest, Sequence
@@ -61,20 +63,21 @@ def write_splits(root: Path, robot, dataset: str, n_seq: int, seq_rows: int, see
             vel[:, 0] += rng.normal(0, 0.02, len(tab))
             vel[:, 2] += rng.normal(0, 0.02, len(tab))
             tab = label_with(tab, vel)
-            seq = f"tile_{split}_{i:02d}"
+            seq = f"{terrain}_{split}_{i:02d}"
             meta = {
                 "sequence": seq,
-                "terrain": "tile",
+                "terrain": terrain,
                 "split": split,
                 "robot": robot.name,
                 "sources": {},
                 "rate_hz": 30.0,
             }
-            write_split(tab, root / dataset / "splits" / "tile" / split / f"{seq}.parquet", meta)
-            seqs.append(Sequence(seq, "tile", split, f"{seq}.bag"))
-    Manifest(seqs, robot=robot.name, base=root / dataset / "raw").write(
-        root / dataset / "raw" / "manifest.json"
-    )
+            write_split(tab, root / dataset / "splits" / terrain / split / f"{seq}.parquet", meta)
+            seqs.append(Sequence(seq, terrain, split, f"{seq}.bag"))
+    manifest_path = root / dataset / "raw" / "manifest.json"
+    if manifest_path.is_file():  # other terrains written before into the same dataset stay listed
+        seqs = [s for s in Manifest.read(manifest_path).sequences if s.terrain != terrain] + seqs
+    Manifest(seqs, robot=robot.name, base=root / dataset / "raw").write(manifest_path)
 
 
 def _compose(out_root: Path, dataset: str):
