@@ -55,11 +55,16 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
     files = list_split_files(layout.splits)
     files += sorted(p for m in cfg.models for p in (layout.fits / str(m)).glob("*.json"))
+    files += sorted(layout.calibration.glob("*.json"))  # a changed calibration refits and re-scores
+    if "discovered" in [str(m) for m in cfg.models] and (layout.discovery / "discovery.json").is_file():
+        files.append(layout.discovery / "discovery.json")
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
     # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
     plugins = discover()
-    conf["model_versions"] = {str(m): getattr(plugins.get(str(m)), "version", None) for m in cfg.models}
+    conf["model_versions"] = {
+        str(m): getattr(plugins.get(str(m).split("+")[0]), "version", None) for m in cfg.models
+    }
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
     conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
     return stamp.key(files, conf)

@@ -6,6 +6,7 @@
     <out_root>/<dataset>/extracted/<seq>/        extract output: <topic_key>.parquet, manifest
     <out_root>/<dataset>/groundtruth/            <seq>.tum, <seq>.json, loop_closure.json
     <out_root>/<dataset>/splits/<terrain>/<split>/<seq>.parquet, card.md
+    <out_root>/<dataset>/calibration/<terrain>.json   calibrate output: effective wheel radius, track width
     <out_root>/<dataset>/fits/<model>/<terrain>.json
     <out_root>/<dataset>/eval/, reports/, discovery/
 """
@@ -60,6 +61,10 @@ class Layout:
         return self.root / "fits"
 
     @property
+    def calibration(self) -> Path:
+        return self.root / "calibration"
+
+    @property
     def eval(self) -> Path:
         return self.root / "eval"
 
@@ -84,6 +89,9 @@ class Layout:
 
     def fit_file(self, model: str, terrain: str) -> Path:
         return self.fits / model / f"{terrain}.json"
+
+    def calibration_file(self, terrain: str) -> Path:
+        return self.calibration / f"{terrain}.json"
 
 
 def layout_from_cfg(cfg) -> Layout:
