@@ -62,7 +62,7 @@ class CalibrationError(SkidbenchError):
 @dataclasses.dataclass(frozen=True)
 class CalibrationSettings:
     min_wheel_rate: float = 0.5  # rad/s: slower rows say nothing about the radius
-    straight_ratio: float = 0.05  # |wr - wl| <= this * |mean wheel rate|: a straight row
+    straight_ratio: float = 0.2  # |wr - wl| <= this * |mean wheel rate|: near-straight (R >= 5 B)
     min_turn_rate: float = 1.0  # rad/s: |wr - wl| at least this: a turning row
     settle_s: float = 0.5  # s since the wheel commands last changed
     command_change: float = 0.5  # rad/s^2: |cmd_dwl| or |cmd_dwr| above this is a command change
