@@ -10,7 +10,6 @@ be fitted with the calibrated constants it takes, or with the spec sheet's under
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -147,14 +146,21 @@ def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(cali
     assert err_cal < 0.2 * err_spec, (err_cal, err_spec)
 
 
-def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlflow(calib_root, jackal):
-    exe = Path(sys.executable).with_name("skidbench")
-    args = [str(exe), "calibrate", f"out_root={calib_root}", "dataset=calib", "force=true"]
-    out = subprocess.run(args, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
+@pytest.mark.slow
+def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlflow(
+    calib_root, jackal, capsys
+):
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline import calibrate_app
+
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        cfg = compose("calibrate", [f"out_root={calib_root}", "dataset=calib", "force=true"])
+    calibrate_app.run(cfg)
+    out = capsys.readouterr().out
     doc = json.loads((calib_root / "calib" / "calibration" / "tile.json").read_text())
     assert doc["wheel_radius"]["value"] == pytest.approx(R_TRUE, rel=0.01)
-    line = next(x for x in out.stdout.splitlines() if x.startswith("tile") and "track_width" in x)
+    line = next(x for x in out.splitlines() if x.startswith("tile") and "track_width" in x)
     assert f"{jackal.track_width:.4f}" in line and f"{doc['track_width']['value']:.4f}" in line
     import mlflow
 
@@ -163,10 +169,12 @@ def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlf
     runs = client.search_runs([exp.experiment_id], "tags.`skidbench.role` = 'calibration'")
     assert len(runs) >= 1
     assert runs[0].data.metrics["track_width_tile"] == pytest.approx(doc["track_width"]["value"])
-    again = subprocess.run(args[:-1], capture_output=True, text=True, timeout=300)
-    assert again.returncode == 0 and "up to date, skipped" in again.stdout
+    cfg.force = False
+    calibrate_app.run(cfg)
+    assert "up to date, skipped" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_drive_fixtures_run_through_calibrate(shared_real, tmp_path):
     from hydra import compose, initialize_config_module
 

@@ -51,6 +51,7 @@ def test_model_spec_parses_base_and_effects_and_rejects_unknown_effects():
         get_model_class("nosuch+actuator_lag")
 
 
+@pytest.mark.slow
 def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderboard(hidden_root):
     import mlflow
 
