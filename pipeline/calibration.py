@@ -65,7 +65,7 @@ class CalibrationSettings:
     straight_ratio: float = 0.2  # |wr - wl| <= this * |mean wheel rate|: near-straight (R >= 5 B)
     min_turn_rate: float = 1.0  # rad/s: |wr - wl| at least this: a turning row
     settle_s: float = 0.5  # s since the wheel commands last changed
-    command_change: float = 0.5  # rad/s^2: |cmd_dwl| or |cmd_dwr| above this is a command change
+    command_change: float = 2.0  # rad/s^2: |cmd_dwl| or |cmd_dwr| above this is a command step
     min_rows: int = 60  # fewer rows: not identified
     block_s: float = 10.0  # s, bootstrap blocks
     bootstrap: int = 400
