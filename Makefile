@@ -43,18 +43,26 @@ endif
 	$(SKB) extract $(SRC_ARGS)
 	$(SKB) groundtruth $(SRC_ARGS)
 	$(SKB) split $(SRC_ARGS)
+	$(SKB) calibrate $(SRC_ARGS)
 	$(SKB) evaluate $(SRC_ARGS)
 	$(SKB) compare $(SRC_ARGS)
 
 # `make discover`: discrepancy discovery from the extended differential drive (model=edd) on the same data
-# (default: the simulated mini dataset) -> $(OUT)/<dataset>/discovery/{discovery.json,discovery.png}.
+# (default: the simulated mini dataset) -> $(OUT)/<dataset>/discovery/{discovery.json,discovery.png}; then
+# the benchmark scores the base and the discovered model (fitted on Train, scored on CV/LD) side by side.
 discover: setup
 ifeq ($(SOURCE),sim)
 	$(SKB) simulate $(SRC_ARGS)
 else
 	@test -n "$(DATA)" || { echo "make discover SOURCE=$(SOURCE) needs DATA=<folder with the data>"; exit 2; }
 endif
+	$(SKB) extract $(SRC_ARGS)
+	$(SKB) groundtruth $(SRC_ARGS)
+	$(SKB) split $(SRC_ARGS)
+	$(SKB) calibrate $(SRC_ARGS)
 	$(SKB) discover $(SRC_ARGS) model=edd
+	$(SKB) evaluate $(SRC_ARGS) 'models=[edd,discovered]'
+	$(SKB) compare $(SRC_ARGS) figures.enabled=false
 
 # The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set).
 mlflow-ui: setup

@@ -38,6 +38,7 @@ Among the candidates that pass, the one with the largest penalised gain is added
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -384,6 +385,41 @@ def _bounded_least_squares(resid, x, lo, hi, max_nfev: int) -> np.ndarray:
     )
     log.debug("effect fit: %s (nfev %d)", res.message, res.nfev)
     return res.x
+
+
+def fit_effects(
+    table: pd.DataFrame,
+    factory: ModelFactory,
+    robot: Robot,
+    effects: list[str],
+    settings: DiscoverSettings | None = None,
+) -> FitState:
+    """Fit base model + ``effects`` on every valid row of a training table (sequences in its ``sequence``
+    column), the way discovery fits its final model: the base alone first (which sets the channel
+    weights), then the effects added one at a time in the given order, each fit warm-started from the
+    last. What an augmented model (``skidbench.models.augmented``) calls on Train."""
+    unknown = [e for e in effects if e not in CATALOGUE]
+    if unknown:
+        raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})")
+    s = settings or DiscoverSettings()
+    if "sequence" in table.columns:
+        tables = [
+            (g.drop(columns="sequence").reset_index(drop=True), {"sequence": str(name)})
+            for name, g in table.groupby("sequence", sort=False)
+        ]
+    else:
+        tables = [(table.reset_index(drop=True), {"sequence": "0"})]
+    pool = build_pool(tables, dataclasses.replace(s, min_units=1))  # whole sequences, never cut
+    aug = Augmenter(pool, factory, robot, s)
+    units = np.arange(pool.n_units)
+    state = aug.fit([], units)
+    res = (state.pred - pool.target)[pool.valid]
+    aug.weights = 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
+    warm: dict[str, np.ndarray] = {}
+    for i in range(len(effects)):
+        state = aug.fit(list(effects[: i + 1]), units, warm)
+        warm = dict(state.params)
+    return state
 
 
 # -- held-out evaluation ------------------------------------------------------------------------

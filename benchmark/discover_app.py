@@ -137,12 +137,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     results: list[TerrainDiscovery] = []
     dataset = _dataset_of(root)
     files_of = _files_of(dataset)
+    from skidbench.models.registry import get_model_class
+    from skidbench.pipeline.calibration import robot_for_model
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    own_splits = root.resolve() == layout_from_cfg(cfg).splits.resolve()
     for terrain in _terrains(root, cfg, settings.splits, dataset):
         pool = load_pool(root, terrain, settings, files_of)
+        # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
+        robot_t = robot_for_model(cfg, get_model_class(base_name), terrain)[0] if own_splits else robot
         res = discover_terrain(
             pool,
-            lambda: build_model(cfg, base_name, robot),
-            robot,
+            lambda r=robot_t: build_model(cfg, base_name, r),
+            robot_t,
             settings,
             terrain,
             base_name,

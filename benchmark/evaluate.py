@@ -295,8 +295,13 @@ def run_benchmark(
     if log_figures is None:
         log_figures = bool(cfg.get("log_figures", True))
     if fit_fn is None:
+        from skidbench.models.registry import get_model_class, is_model_spec
+
         known = installed_models()
-        unknown = [m for m in models if known and m not in known]
+        for m in models:  # an augmented spec "base+effect+..." must name a known base and known effects
+            if "+" in m:
+                get_model_class(m)
+        unknown = [m for m in models if known and m not in known and not is_model_spec(m)]
         if unknown:
             raise EvaluationError(
                 f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
@@ -449,6 +454,16 @@ def _run_child(
         bound_metrics = fit_quality_metrics(fit)
         if bound_metrics:
             tracker.log(run_id, metrics=bound_metrics)
+        # what the model is beyond its config: the robot constants it was fitted with (calibrated or the
+        # spec sheet's), and an augmented model's base, effects and their fitted values
+        described = {}
+        for c, rec in (_fit_json(fit).get("robot_constants") or {}).items():
+            described[f"robot_used.{c}"] = rec.get("value")
+            described[f"robot_used.{c}.source"] = rec.get("source")
+        if callable(getattr(model, "tracking_params", None)):
+            described.update(model.tracking_params())
+        if described:
+            tracker.log(run_id, params=described)
         out_dir = layout.eval / model_name
         params_json = out_dir / f"{terrain}.params.json"
         write_json_atomic(params_json, model.to_json())
@@ -538,6 +553,17 @@ def fit_quality_metrics(fit: Any) -> dict[str, float]:
             if v is not None and np.isfinite(v):
                 out[f"{key}.{name}"] = v
     return out
+
+
+def _fit_json(fit: Any) -> dict[str, Any]:
+    """The fit's saved JSON (FitResult.path), or {} when there is none."""
+    import json
+
+    path = getattr(fit, "path", None)
+    try:
+        return json.loads(Path(path).read_text()) if path else {}
+    except (OSError, ValueError):
+        return {}
 
 
 def _num(v: Any) -> float | None:

@@ -61,16 +61,22 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     from skidbench.pipeline.layout import split_terrains
     from skidbench.pipeline.manifest import Manifest
 
-    # the current manifest's split files and fits, never whatever else lies in the folders
+    # the current manifest's split files, fits and calibrations, never whatever else lies in the folders
     manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
     files = [p for p in layout.split_files(manifest) if p.is_file()]
-    files += [layout.fit_file(str(m), t) for m in cfg.models for t in split_terrains(manifest)]
+    terrains = split_terrains(manifest)
+    files += [layout.fit_file(str(m), t) for m in cfg.models for t in terrains]
+    files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
+    if "discovered" in [str(m) for m in cfg.models]:
+        files.append(layout.discovery / "discovery.json")
     files = [p for p in files if p.is_file()]
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
     # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
     plugins = discover()
-    conf["model_versions"] = {str(m): getattr(plugins.get(str(m)), "version", None) for m in cfg.models}
+    conf["model_versions"] = {
+        str(m): getattr(plugins.get(str(m).split("+")[0]), "version", None) for m in cfg.models
+    }
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
     conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
     return stamp.key(files, conf)

@@ -42,6 +42,10 @@ def main(cfg: DictConfig) -> None:
     split = str(cfg.split)
     layout = layout_from_cfg(cfg)
     # the stamp (skidbench.pipeline.cache): the split files fitted on, the model's config and version, robot
+    # and its calibration on this terrain (made now if missing or stale: a changed calibration refits)
+    from skidbench.pipeline.calibration import load_calibration
+
+    calibration = load_calibration(cfg, terrain)
     stamp = Stamp(layout.root / ".stamps" / "fit" / name / f"{terrain}.json", "fit")
     key = stamp.key(
         list_split_files(layout.splits, terrain, split),
@@ -51,6 +55,9 @@ def main(cfg: DictConfig) -> None:
             "robot": OmegaConf.to_container(cfg.robot, resolve=True),
             "terrain": terrain,
             "split": split,
+            "calibration": {
+                c: (calibration or {}).get(c, {}).get("value") for c in ("wheel_radius", "track_width")
+            },
         },
     )
     if bool(cfg.get("reuse", True)) and stamp.is_fresh(key):

@@ -26,6 +26,7 @@ STAGES: dict[str, tuple[str, str]] = {
     "groundtruth": ("skidbench.pipeline.groundtruth.app:main", "stereo VO / ORB-SLAM / pose topic -> TUM"),
     "split": ("skidbench.pipeline.splits.app:main", "Train/CV/LD Parquet splits per terrain"),
     "card": ("skidbench.pipeline.splits.app:card_main", "print the dataset card (the paper's Table I)"),
+    "calibrate": ("skidbench.pipeline.calibrate_app:main", "effective wheel radius, track width from Train"),
     "fit": ("skidbench.models.app:main", "fit a model on a terrain's Train split"),
     "models": ("skidbench.models.registry:list_main", "list the installed models (plugins)"),
     "evaluate": ("skidbench.benchmark.evaluate_app:main", "6 s horizon benchmark, logged to MLflow"),

@@ -7,6 +7,7 @@
     <out_root>/<dataset>/extracted/<seq>/        extract output: <topic_key>.parquet, manifest
     <out_root>/<dataset>/groundtruth/            <seq>.tum, <seq>.json, loop_closure.json
     <out_root>/<dataset>/splits/<terrain>/<split>/<seq>.parquet, card.md
+    <out_root>/<dataset>/calibration/<terrain>.json   calibrate output: effective wheel radius, track width
     <out_root>/<dataset>/fits/<model>/<terrain>.json
     <out_root>/<dataset>/eval/, reports/, discovery/
 
@@ -76,6 +77,10 @@ class Layout:
         return self.root / "fits"
 
     @property
+    def calibration(self) -> Path:
+        return self.root / "calibration"
+
+    @property
     def eval(self) -> Path:
         return self.root / "eval"
 
@@ -100,6 +105,9 @@ class Layout:
 
     def fit_file(self, model: str, terrain: str) -> Path:
         return self.fits / model / f"{terrain}.json"
+
+    def calibration_file(self, terrain: str) -> Path:
+        return self.calibration / f"{terrain}.json"
 
     def split_files(
         self, manifest: Manifest, terrain: str | None = None, split: str | None = None
@@ -170,6 +178,8 @@ def prune_stale(layout: Layout, manifest: Manifest) -> list[Path]:
             p for p in layout.fits.glob("*/*.json")
             if p.name.split(".")[0] not in terrains and not p.name.startswith(("_", "."))
         ]  # fmt: skip
+    if layout.calibration.is_dir():
+        removed += [p for p in layout.calibration.glob("*.json") if p.stem not in terrains]
     for p in removed:
         remove_atomic(p)
     _remove_empty_dirs(layout.splits)
