@@ -226,12 +226,19 @@ def split_tables(raw) -> list[tuple[pd.DataFrame, dict]]:
 
 
 def write_splits(raw, root: Path, terrain: str = "tile") -> Path:
-    """Write split Parquet files (``<root>/<terrain>/<split>/<seq>.parquet``); returns root."""
+    """Write split Parquet files (``<root>/<terrain>/<split>/<seq>.parquet``) and, for ``root`` a dataset's
+    ``splits`` folder, the manifest that lists them (``<root>/../raw/manifest.json``, other terrains kept:
+    stages take their sequences from it); returns root."""
+    from skidbench.pipeline.manifest import Manifest, Sequence
     from skidbench.pipeline.schema import write_split
 
+    manifest_path = Path(root).parent / "raw" / "manifest.json"
+    listed = Manifest.read(manifest_path).sequences if manifest_path.is_file() else []
+    listed = [s for s in listed if s.terrain != terrain]
     for cat, seqs in raw.items():
         for i, (c, lo) in enumerate(seqs):
             name = f"{terrain}_{cat}_{i:02d}"
+            listed.append(Sequence(name, terrain, cat, f"{name}.bag"))
             meta = {
                 "sequence": name,
                 "terrain": terrain,
@@ -241,6 +248,7 @@ def write_splits(raw, root: Path, terrain: str = "tile") -> Path:
                 "rate_hz": 30.0,
             }
             write_split(to_split(c, lo), Path(root) / terrain / cat / f"{name}.parquet", meta)
+    Manifest(listed, base=manifest_path.parent).write(manifest_path)
     return Path(root)
 
 

@@ -55,8 +55,11 @@ def _sequence(rng, duration: float, kind: str = "train"):
 @pytest.fixture(scope="module")
 def calib_root(tmp_path_factory) -> Path:
     """An output root with dataset ``calib``: splits of one terrain (6 Train sequences, one CV, one LD)."""
+    from skidbench.pipeline.manifest import Manifest, Sequence
+
     root = tmp_path_factory.mktemp("calib")
     rng = np.random.default_rng(5)
+    seqs = []
     for split, n, dur in (("train", 6, 40.0), ("cv", 1, 30.0), ("ld", 1, 40.0)):
         for i in range(n):
             name = f"tile_{split}_{i:02d}"
@@ -64,6 +67,9 @@ def calib_root(tmp_path_factory) -> Path:
                     "rate_hz": 30.0}  # fmt: skip
             df = _sequence(rng, dur, "cv" if split == "cv" else "train")
             write_split(df, root / "calib" / "splits" / "tile" / split / f"{name}.parquet", meta)
+            seqs.append(Sequence(name, "tile", split, f"{name}.bag"))
+    # stages take their sequences from the manifest (pipeline/layout.py)
+    Manifest(seqs, base=root / "calib" / "raw").write(root / "calib" / "raw" / "manifest.json")
     return root
 
 

@@ -47,8 +47,9 @@ def test_a_misspelt_override_is_one_line_naming_the_nearest_key(capsys, stage, o
 def test_a_key_like_no_other_lists_the_valid_keys_where_it_was_meant():
     with pytest.raises(ConfigError) as exc:
         check_overrides("evaluate", ["zzz=1", "source=bag", "source.topics.imu.zzz=2"])
-    assert str(exc.value).startswith("unknown config key 'zzz'; valid keys at the top level: dataset, ")
-    assert ", models, " in str(exc.value) and "hydra" not in str(exc.value)
+    assert str(exc.value).startswith("unknown config key 'zzz'; valid keys at the top level: ")
+    assert ", dataset, " in str(exc.value) and ", models, " in str(exc.value)
+    assert "hydra" not in str(exc.value)
     with pytest.raises(ConfigError) as exc:
         check_overrides("evaluate", ["source.topics.imu.qqqqqq=2"])
     assert str(exc.value) == (
