@@ -27,7 +27,15 @@ from scipy.optimize import least_squares
 
 from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
-from .friction_solver import PARAM_NAMES, FrictionGeometry, SolveResult, body_velocity, free_mask, solve
+from .friction_solver import (
+    PARAM_NAMES,
+    FrictionGeometry,
+    SolveResult,
+    body_velocity,
+    free_mask,
+    solve,
+    velocity_sensitivity,
+)
 
 log = logging.getLogger(__name__)
 
@@ -129,14 +137,20 @@ class FrictionBased(KinematicModel):
         loss = str(self.options.get("loss", "soft_l1"))
         f_scale = float(self.options.get("f_scale", 0.1))  # m/s, rad/s: where soft_l1 turns linear
         track: dict = {"excluded": 0, "scored": None}
+        last: dict = {}
+        geo = self.geometry
 
         def unpack(z):
             p = dict(base)
             p.update({n: float(np.exp(v)) for n, v in zip(names, z, strict=True)})
             return p
 
-        def resid(z):
-            v, sol = self.velocities(inp, unpack(z), theta0=warm["theta"])
+        def evaluate(z):
+            """The solve at z (cached: scipy asks for the residual and then the Jacobian at the same z)."""
+            if last.get("z") is not None and np.array_equal(last["z"], z):
+                return last
+            p = unpack(z)
+            v, sol = self.velocities(inp, p, theta0=warm["theta"])
             if warm["theta"] is None or np.all(sol.status > 0):
                 # warm start for the next evaluation: the commanded problem's solution, not the fallback's
                 warm["theta"] = sol.info.get("commanded_theta", sol.theta)
@@ -153,7 +167,24 @@ class FrictionBased(KinematicModel):
             track["excluded"] = int(bad.sum())
             r = v - y
             r[bad] = 0.0
-            return r.ravel()
+            last.clear()
+            last.update(z=np.array(z, copy=True), p=p, sol=sol, r=r.ravel())
+            return last
+
+        def resid(z):
+            return evaluate(z)["r"]
+
+        def jac(z):
+            # d residual / d log p: the implicit-function derivative of the solved slips (one 3x3 solve per
+            # step at the converged Jacobian), not 5 more solves of every step
+            e = evaluate(z)
+            sol, p = e["sol"], e["p"]
+            k = np.ones(len(y)) if sol.accel_scale is None else sol.accel_scale
+            S = velocity_sensitivity(sol.theta, sol.status, inp[0], inp[1], k * inp[2], k * inp[3], p, geo)
+            cols = [PARAM_NAMES.index(n) for n in names]
+            Jz = S[:, :, cols] * np.array([p[n] for n in names])
+            Jz[~track["scored"]] = 0.0
+            return Jz.reshape(-1, len(names))
 
         z0 = np.log([float(base[n]) for n in names])
         # physically plausible ranges (friction and rolling coefficients, slip stiffness, the lateral
@@ -165,13 +196,11 @@ class FrictionBased(KinematicModel):
         res = least_squares(
             resid,
             z0,
+            jac=jac,
             bounds=(lo, hi),
             method="trf",
             loss=loss,
             f_scale=f_scale,
-            # log-space step: large enough that the finite differences see the parameters, not the
-            # inner solver's tolerance (1e-6 left the fit at its start on real data)
-            diff_step=float(self.options.get("diff_step", 1e-3)),
             xtol=float(self.options.get("xtol", 1e-10)),
             ftol=float(self.options.get("ftol", 1e-12)),
             gtol=float(self.options.get("gtol", 1e-12)),

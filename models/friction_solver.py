@@ -79,6 +79,126 @@ def body_velocity(theta: np.ndarray, wl: np.ndarray, wr: np.ndarray, r: float, B
     return np.stack([(el + er) / 2.0, -theta[..., 2] * wz, wz], axis=-1)
 
 
+@dataclass(frozen=True)
+class _Steps:
+    """Per-step inputs of the force balance, component-major (each (n,)): r omega and sgn(omega) of each
+    side, the commanded body accelerations (dv_x, dw), and the free-variable mask (3, n) as floats."""
+
+    rwl: np.ndarray
+    rwr: np.ndarray
+    sgl: np.ndarray
+    sgr: np.ndarray
+    dvx: np.ndarray
+    dw: np.ndarray
+    free: np.ndarray
+
+    @classmethod
+    def of(cls, wl, wr, dwl, dwr, geo: FrictionGeometry, mask: np.ndarray | None = None) -> _Steps:
+        r, B = geo.r, geo.B
+        m = free_mask(wl, wr) if mask is None else mask
+        # the commanded accelerations (the paper's zero-order approximation)
+        return cls(
+            r * wl, r * wr, np.sign(wl), np.sign(wr), r * (dwr + dwl) / 2.0, r * (dwr - dwl) / B, m.T * 1.0
+        )
+
+    def take(self, k) -> _Steps:
+        return _Steps(
+            *(a[..., k] for a in (self.rwl, self.rwr, self.sgl, self.sgr, self.dvx, self.dw, self.free))
+        )
+
+
+def _balance(
+    th: np.ndarray, st: _Steps, p: np.ndarray, geo: FrictionGeometry, jac: bool = False, pjac: bool = False
+):
+    """The normalised force balance F (eqs. 9-11) of steps ``st`` at ``th`` (3, n), component-major: F (3, n),
+    and on request its Jacobian dF/dtheta (3, 3, n; columns of pinned variables zero) and its derivative with
+    respect to the parameters dF/d(mu_r, mu_x, mu_y, lambda, C) (3, 5, n). The derivatives are those of the
+    smooth piece the step lies on: sgn() has none, and clip() of eq. (6) has lambda inside the plateau and 0
+    on it (so F is flat in a saturated side's slip ratio there)."""
+    mu_r, mu_x, mu_y, lam, C = (float(v) for v in p)
+    B, M = geo.B, geo.mass
+    x_cg, y_cg = (float(v) for v in geo.cg)
+    sl, sr, xi = th
+    el = (1.0 - sl) * st.rwl  # ground speed of the left wheel centres, V_wx (eq. 8)
+    er = (1.0 - sr) * st.rwr
+    vx = 0.5 * (el + er)
+    wz = (er - el) / B
+    vy = -xi * wz
+    n = vx.size
+    F = np.zeros((3, n))
+    J = np.zeros((3, 3, n)) if jac else None
+    P = np.zeros((3, 5, n)) if pjac else None
+    if jac:
+        # d(vx, wz, vy) / d(s_l, s_r); d/dx_ICR: vy only (-wz)
+        dvx = (-0.5 * st.rwl, -0.5 * st.rwr)
+        dwz = (st.rwl / B, -st.rwr / B)
+        dvy = (-xi * dwz[0], -xi * dwz[1])
+    for i in range(4):
+        X, Y, N = (float(v) for v in (geo.wheel_xy[i, 0], geo.wheel_xy[i, 1], geo.normal[i]))
+        side = 0 if i < 2 else 1
+        s, sg = (sl, st.sgl) if side == 0 else (sr, st.sgr)
+        lx, ly = X - x_cg, Y - y_cg  # lever arms about the CG
+        ls = lam * s
+        fx = sg * np.clip(ls, -mu_x, mu_x) * N  # eq. (6)
+        vwx = vx - wz * Y
+        vwy = vy + wz * X
+        avx, avy = np.abs(vwx), np.abs(vwy)
+        alpha = np.arctan2(avy, avx)  # |alpha|, eq. (4)
+        E = np.exp(-alpha / C)
+        sy, sx = np.sign(vwy), np.sign(vwx)
+        fy = -sy * mu_y * (1.0 - E) * N  # eq. (7)
+        Fx = fx - mu_r * N * sx  # eq. (5): rolling resistance against the wheel's own V_wx
+        F[0] += Fx
+        F[1] += fy
+        F[2] += lx * fy - ly * Fx
+        inside = np.abs(ls) < mu_x
+        if jac:
+            q = vwx * vwx + vwy * vwy
+            k = np.divide((mu_y * N / C) * E, q, out=np.zeros(n), where=q > 0)
+            gx = k * vwy * sx  # d fy / d V_wx  (smooth through V_wy = 0)
+            gy = -k * avx  # d fy / d V_wy
+            for j in (0, 1):
+                dfy = gx * (dvx[j] - Y * dwz[j]) + gy * (dvy[j] + X * dwz[j])
+                J[1, j] += dfy
+                J[2, j] += lx * dfy
+            dfy = -gy * wz  # d/dx_ICR through vy
+            J[1, 2] += dfy
+            J[2, 2] += lx * dfy
+            dfx = np.where(inside, sg * (lam * N), 0.0)  # d fx / d s (own side only)
+            J[0, side] += dfx
+            J[2, side] -= ly * dfx
+        if pjac:
+            dR = -N * sx  # d Fx / d mu_r
+            dmx = np.where(inside, 0.0, sg * np.sign(ls) * N)  # d fx / d mu_x (on the plateau)
+            dlam = np.where(inside, sg * s * N, 0.0)  # d fx / d lambda
+            dmy = -sy * (1.0 - E) * N  # d fy / d mu_y
+            dC = sy * (mu_y * N / (C * C)) * E * alpha  # d fy / d C
+            for j, d in ((0, dR), (1, dmx), (3, dlam)):
+                P[0, j] += d
+                P[2, j] -= ly * d
+            for j, d in ((2, dmy), (4, dC)):
+                P[1, j] += d
+                P[2, j] += lx * d
+    # rigid-body transport: a = dv/dt + w x v at the CG
+    vcgx = vx - y_cg * wz
+    vcgy = vy + x_cg * wz
+    F[0] -= M * (st.dvx - wz * vcgy)  # eq. (9)
+    F[1] -= M * (wz * vcgx)  # eq. (10)
+    F[2] -= geo.I_z * st.dw  # eq. (11)
+    scale = geo.force_scale
+    F /= scale[:, None]
+    if jac:
+        for j in (0, 1):
+            J[0, j] += M * (dwz[j] * vcgy + wz * (dvy[j] + x_cg * dwz[j]))
+            J[1, j] -= M * (dwz[j] * vcgx + wz * (dvx[j] - y_cg * dwz[j]))
+        J[0, 2] += M * wz * (-wz)
+        J /= scale[:, None, None]
+        J *= st.free[None]
+    if pjac:
+        P /= scale[:, None, None]
+    return F, J, P
+
+
 def residual(
     theta: np.ndarray,
     wl: np.ndarray,
@@ -89,34 +209,70 @@ def residual(
     geo: FrictionGeometry,
 ) -> np.ndarray:
     """Normalised F(theta) (eqs. 9-11) for every step: theta (T, 3), inputs (T,) -> (T, 3)."""
-    mu_r, mu_x, mu_y, lam, C = _param_vector(params)
+    wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    th = np.asarray(theta, dtype=float).reshape(-1, 3).T
+    return _balance(th, _Steps.of(wl, wr, dwl, dwr, geo), _param_vector(params), geo)[0].T
+
+
+def balance_jacobians(
+    theta: np.ndarray,
+    wl: np.ndarray,
+    wr: np.ndarray,
+    dwl: np.ndarray,
+    dwr: np.ndarray,
+    params: dict | np.ndarray,
+    geo: FrictionGeometry,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """F (T, 3) as ``residual``, its analytic Jacobian dF/dtheta (T, 3, 3; columns of a step's pinned
+    variables zero) and dF/dp (T, 3, 5) with respect to (mu_r, mu_x, mu_y, lambda, C)."""
+    wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    th = np.asarray(theta, dtype=float).reshape(-1, 3).T
+    F, J, P = _balance(th, _Steps.of(wl, wr, dwl, dwr, geo), _param_vector(params), geo, jac=True, pjac=True)
+    return F.T, np.moveaxis(J, -1, 0), np.moveaxis(P, -1, 0)
+
+
+def velocity_sensitivity(
+    theta: np.ndarray,
+    status: np.ndarray,
+    wl: np.ndarray,
+    wr: np.ndarray,
+    dwl: np.ndarray,
+    dwr: np.ndarray,
+    params: dict | np.ndarray,
+    geo: FrictionGeometry,
+) -> np.ndarray:
+    """(T, 3, 5) derivative of the body velocities (vx, vy, wz) (eq. 8 at the solved theta) with respect to
+    (mu_r, mu_x, mu_y, lambda, C), by the implicit function theorem instead of re-solving.
+
+    At a root F(theta, p) = 0 the slips move with the parameters as J dtheta = -dF/dp dp (J = dF/dtheta,
+    the Jacobian the solver converged with); elsewhere (a stationary point of F^T F, an unfinished step, a
+    step with a pinned variable, or a singular J such as a saturated side with no other grip on its slip)
+    the least-squares solution -pinv(J) dF/dp (the Gauss-Newton sensitivity of the minimiser). These are
+    the derivatives of the smooth piece a step is on; a step that changes piece (gains or loses its root,
+    enters the mu_x plateau) is a jump no derivative describes."""
+    wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    theta = np.asarray(theta, dtype=float).reshape(-1, 3)
+    _, J, P = balance_jacobians(theta, wl, wr, dwl, dwr, params, geo)
+    mask = free_mask(wl, wr)
+    dth = np.zeros_like(P)
+    # a regular root (every variable free, J well conditioned): one 3x3 solve per step
+    cols = np.linalg.norm(J, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel_det = np.abs(np.linalg.det(J)) / np.prod(cols, axis=1)
+    regular = (np.asarray(status) == 1) & mask.all(axis=1) & (rel_det > 1e-10)
+    if regular.any():
+        dth[regular] = -np.linalg.solve(J[regular], P[regular])
+    rest = ~regular & mask.any(axis=1)
+    if rest.any():
+        dth[rest] = -np.linalg.pinv(J[rest], rcond=1e-12) @ P[rest]
+    # eq. (8): d(vx, vy, wz) / d(s_l, s_r, x_ICR)
     r, B = geo.r, geo.B
-    v = body_velocity(theta, wl, wr, r, B)
-    vx, vy, wz = v[..., 0], v[..., 1], v[..., 2]
-    x_i, y_i = geo.wheel_xy[:, 0], geo.wheel_xy[:, 1]
-    N = geo.normal
-    # per-wheel quantities, shape (T, 4): FL, RL, FR, RR
-    s = np.stack([theta[..., 0], theta[..., 0], theta[..., 1], theta[..., 1]], axis=-1)
-    omega = np.stack([wl, wl, wr, wr], axis=-1)
-    vwx = vx[..., None] - wz[..., None] * y_i
-    vwy = vy[..., None] + wz[..., None] * x_i
-    fx = np.sign(omega) * np.clip(lam * s, -mu_x, mu_x) * N  # eq. (6)
-    alpha = np.arctan2(np.abs(vwy), np.abs(vwx))  # |alpha|, eq. (4)
-    fy = -np.sign(vwy) * mu_y * (1.0 - np.exp(-alpha / C)) * N  # eq. (7)
-    R = mu_r * N * np.sign(vwx)  # eq. (5), against the wheel's own longitudinal velocity
-    Fx = fx - R
-    # commanded accelerations (the paper's zero-order approximation)
-    dvx = r * (dwr + dwl) / 2.0
-    dw = r * (dwr - dwl) / B
-    x_cg, y_cg = geo.cg
-    vcgx = vx - y_cg * wz
-    vcgy = vy + x_cg * wz
-    ax = dvx - wz * vcgy  # rigid-body transport: a = dv/dt + w x v
-    ay = wz * vcgx
-    F1 = Fx.sum(-1) - geo.mass * ax  # eq. (9)
-    F2 = fy.sum(-1) - geo.mass * ay  # eq. (10)
-    F3 = ((x_i - x_cg) * fy - (y_i - y_cg) * Fx).sum(-1) - geo.I_z * dw  # eq. (11)
-    return np.stack([F1, F2, F3], axis=-1) / geo.force_scale
+    wz = body_velocity(theta, wl, wr, r, B)[:, 2]
+    dv = np.zeros((wl.size, 3, 3))
+    dv[:, 0, 0], dv[:, 0, 1] = -r * wl / 2.0, -r * wr / 2.0
+    dv[:, 2, 0], dv[:, 2, 1] = r * wl / B, -r * wr / B
+    dv[:, 1, 0], dv[:, 1, 1], dv[:, 1, 2] = -theta[:, 2] * dv[:, 2, 0], -theta[:, 2] * dv[:, 2, 1], -wz
+    return dv @ dth
 
 
 def _param_vector(params: dict | np.ndarray) -> np.ndarray:
@@ -163,55 +319,79 @@ class SolveResult:
         return np.any(m & (lam * np.abs(self.theta[:, :2]) >= mu_x), axis=1)
 
 
-def _lm(theta, F, cost, idx, inp, p, geo, mask, *, ftol, gtol, max_iter, fd_step, stall_rtol, stall_iter):
+def _solve_spd3(a00, a01, a02, a11, a12, a22, b):
+    """x (3, n) with A x = b for symmetric positive definite 3x3 A given by its upper triangle (each (n,)),
+    by an explicit Cholesky factorisation (vectorised; NaN where A is not numerically positive definite)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l00 = np.sqrt(a00)
+        l10, l20 = a01 / l00, a02 / l00
+        l11 = np.sqrt(a11 - l10 * l10)
+        l21 = (a12 - l20 * l10) / l11
+        l22 = np.sqrt(a22 - l20 * l20 - l21 * l21)
+        y0 = b[0] / l00
+        y1 = (b[1] - l10 * y0) / l11
+        y2 = (b[2] - l20 * y0 - l21 * y1) / l22
+        x2 = y2 / l22
+        x1 = (y1 - l21 * x2) / l11
+        x0 = (y0 - l10 * x1 - l20 * x2) / l00
+    return np.stack([x0, x1, x2])
+
+
+def _lm(theta, F, cost, idx, inp, p, geo, mask, *, ftol, gtol, max_iter, stall_rtol, stall_iter):
     """Levenberg-Marquardt on the steps ``idx`` (in place on theta/F/cost rows); returns (status, n_iter)
-    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged."""
+    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged.
+
+    Works component-major on the still-active steps only, with the analytic Jacobian of ``_balance``
+    (evaluated with F at each trial point, so an iteration costs one balance evaluation), and a
+    vectorised Cholesky solve of the damped 3x3 normal equations."""
     wl, wr, dwl, dwr = inp
     n = idx.size
+    th = theta[idx].T.copy()
+    f = F[idx].T.copy()
+    c = cost[idx].copy()
     status = np.zeros(n, dtype=np.int8)
-    status[np.max(np.abs(F[idx]), axis=1) < ftol] = 1
+    status[np.max(np.abs(f), axis=0) < ftol] = 1
     mu = np.full(n, 1e-3)
-    hist = np.tile(cost[idx][:, None], (1, stall_iter))  # cost over the last stall_iter iterations
+    hist = np.tile(c[:, None], (1, stall_iter))  # cost over the last stall_iter iterations
     loc = np.flatnonzero(status == 0)  # positions in idx still iterating
-    eye = np.eye(3)
+    steps = _Steps.of(wl[idx[loc]], wr[idx[loc]], dwl[idx[loc]], dwr[idx[loc]], geo, mask[idx[loc]])
+    J = _balance(th[:, loc], steps, p, geo, jac=True)[1] if loc.size else None
     it = 0
     while loc.size and it < max_iter:
         it += 1
-        active = idx[loc]
-        th, Fa, m = theta[active], F[active], mask[active]
-        a = (wl[active], wr[active], dwl[active], dwr[active])
-        J = np.empty((active.size, 3, 3))
-        for k in range(3):
-            h = fd_step * np.maximum(1.0, np.abs(th[:, k]))
-            tk = th.copy()
-            tk[:, k] += h
-            J[:, :, k] = (residual(tk, *a, p, geo) - Fa) / h[:, None]
-        J *= m[:, None, :]  # pinned variables have no column
-        g = np.einsum("tij,ti->tj", J, Fa)
-        JTJ = np.einsum("tij,tik->tjk", J, J)
-        d = np.maximum(np.diagonal(JTJ, axis1=1, axis2=2), 1e-12)
+        t, fa, m = th[:, loc], f[:, loc], steps.free
+        g = np.einsum("ijt,it->jt", J, fa)
+        a00, a11, a22 = (np.einsum("it,it->t", J[:, j], J[:, j]) for j in range(3))
+        a01 = np.einsum("it,it->t", J[:, 0], J[:, 1])
+        a02 = np.einsum("it,it->t", J[:, 0], J[:, 2])
+        a12 = np.einsum("it,it->t", J[:, 1], J[:, 2])
+        d = np.maximum(np.stack([a00, a11, a22]), 1e-12)
         mua = mu[loc]
-        stat = np.max(np.abs(g) / np.sqrt(d), axis=1) < gtol  # smooth stationary point, not a root
-        A = JTJ + mua[:, None, None] * (d[:, :, None] * eye)
-        delta = -np.linalg.solve(A, g[..., None])[..., 0] * m
-        tn = th + delta
-        Fn = residual(tn, *a, p, geo)
-        cn = 0.5 * np.sum(Fn * Fn, axis=1)
-        ok = cn < cost[active]
-        acc = active[ok]
-        theta[acc], F[acc], cost[acc] = tn[ok], Fn[ok], cn[ok]
+        stat = np.max(np.abs(g) / np.sqrt(d), axis=0) < gtol  # smooth stationary point, not a root
+        delta = -_solve_spd3(a00 + mua * d[0], a01, a02, a11 + mua * d[1], a12, a22 + mua * d[2], g) * m
+        tn = t + np.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        Fn, Jn, _ = _balance(tn, steps, p, geo, jac=True)
+        cn = 0.5 * np.sum(Fn * Fn, axis=0)
+        ok = cn < c[loc]
+        acc = loc[ok]
+        th[:, acc], f[:, acc], c[acc] = tn[:, ok], Fn[:, ok], cn[ok]
+        J[..., ok] = Jn[..., ok]
         mu[loc] = np.where(ok, np.maximum(mua / 3.0, 1e-12), mua * 4.0)
         # stalled: over the last stall_iter iterations the cost fell by less than stall_rtol of itself.
         # Where no root exists the infimum of F^T F often sits on a kink or jump of F (sgn(V_wy) at zero
         # yaw rate, the mu_x plateau of eq. 6): no smooth stationary point, the gradient test never fires
         # and LM creeps along the kink; stalling is the non-smooth stationarity test.
         oldest = hist[loc, it % stall_iter]
-        stalled = (it >= stall_iter) & (oldest - cost[active] <= stall_rtol * oldest)
-        hist[loc, it % stall_iter] = cost[active]
-        done_root = np.max(np.abs(F[active]), axis=1) < ftol
+        cl = c[loc]
+        stalled = (it >= stall_iter) & (oldest - cl <= stall_rtol * oldest)
+        hist[loc, it % stall_iter] = cl
+        done_root = np.max(np.abs(f[:, loc]), axis=0) < ftol
         st = np.where(done_root, 1, np.where(stat | stalled | (mua > 1e10), 2, 0)).astype(np.int8)
         status[loc] = st
-        loc = loc[st == 0]
+        go = st == 0
+        if not go.all():
+            loc, J, steps = loc[go], J[..., go], steps.take(go)
+    theta[idx], F[idx], cost[idx] = th.T, f.T, c
     return status, it
 
 
@@ -264,7 +444,6 @@ def solve(
     ftol: float = 1e-12,
     gtol: float = 1e-13,
     max_iter: int = 100,
-    fd_step: float = 1e-7,
     stall_rtol: float = 1e-10,
     stall_iter: int = 8,
     restarts: bool = True,
@@ -308,7 +487,7 @@ def solve(
     # standstill (both sides zero): eq. (8) gives zero velocity whatever theta; nothing to solve
     still = ~mask.any(axis=1)
     status[still] = 1
-    opts = dict(ftol=ftol, gtol=gtol, fd_step=fd_step, stall_rtol=stall_rtol, stall_iter=stall_iter)
+    opts = dict(ftol=ftol, gtol=gtol, stall_rtol=stall_rtol, stall_iter=stall_iter)
     idx = np.flatnonzero(~still)
     status[idx], n_iter = _lm(theta, F, cost, idx, inp, p, geo, mask, max_iter=max_iter, **opts)
     info = {
