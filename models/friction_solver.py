@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 G = 9.80665  # m/s^2
 PARAM_NAMES = ("mu_r", "mu_x", "mu_y", "lambda", "C")
@@ -79,124 +80,290 @@ def body_velocity(theta: np.ndarray, wl: np.ndarray, wr: np.ndarray, r: float, B
     return np.stack([(el + er) / 2.0, -theta[..., 2] * wz, wz], axis=-1)
 
 
-@dataclass(frozen=True)
-class _Steps:
-    """Per-step inputs of the force balance, component-major (each (n,)): r omega and sgn(omega) of each
-    side, the commanded body accelerations (dv_x, dw), and the free-variable mask (3, n) as floats."""
-
-    rwl: np.ndarray
-    rwr: np.ndarray
-    sgl: np.ndarray
-    sgr: np.ndarray
-    dvx: np.ndarray
-    dw: np.ndarray
-    free: np.ndarray
-
-    @classmethod
-    def of(cls, wl, wr, dwl, dwr, geo: FrictionGeometry, mask: np.ndarray | None = None) -> _Steps:
-        r, B = geo.r, geo.B
-        m = free_mask(wl, wr) if mask is None else mask
-        # the commanded accelerations (the paper's zero-order approximation)
-        return cls(
-            r * wl, r * wr, np.sign(wl), np.sign(wr), r * (dwr + dwl) / 2.0, r * (dwr - dwl) / B, m.T * 1.0
-        )
-
-    def take(self, k) -> _Steps:
-        return _Steps(
-            *(a[..., k] for a in (self.rwl, self.rwr, self.sgl, self.sgr, self.dvx, self.dw, self.free))
-        )
+# ---- the force balance of one step, compiled (numba): the one home of eqs. (4)-(11) in code ----
+# geometry vector layout (``_geo_vector``): r, B, M, I_z, x_CG, y_CG, X[4], Y[4], N[4], scale[3]
+_GX, _GY, _GN, _GS = 6, 10, 14, 18
 
 
-def _balance(
-    th: np.ndarray, st: _Steps, p: np.ndarray, geo: FrictionGeometry, jac: bool = False, pjac: bool = False
-):
-    """The normalised force balance F (eqs. 9-11) of steps ``st`` at ``th`` (3, n), component-major: F (3, n),
-    and on request its Jacobian dF/dtheta (3, 3, n; columns of pinned variables zero) and its derivative with
-    respect to the parameters dF/d(mu_r, mu_x, mu_y, lambda, C) (3, 5, n). The derivatives are those of the
-    smooth piece the step lies on: sgn() has none, and clip() of eq. (6) has lambda inside the plateau and 0
-    on it (so F is flat in a saturated side's slip ratio there)."""
-    mu_r, mu_x, mu_y, lam, C = (float(v) for v in p)
-    B, M = geo.B, geo.mass
-    x_cg, y_cg = (float(v) for v in geo.cg)
-    sl, sr, xi = th
-    el = (1.0 - sl) * st.rwl  # ground speed of the left wheel centres, V_wx (eq. 8)
-    er = (1.0 - sr) * st.rwr
+def _geo_vector(geo: FrictionGeometry) -> np.ndarray:
+    return np.concatenate(
+        [
+            [geo.r, geo.B, geo.mass, geo.I_z, float(geo.cg[0]), float(geo.cg[1])],
+            geo.wheel_xy[:, 0],
+            geo.wheel_xy[:, 1],
+            geo.normal,
+            geo.force_scale,
+        ]
+    ).astype(float)
+
+
+@njit(cache=True, fastmath=False)
+def _step_balance(th, rw, sg, dvx_c, dw_c, free, p, gv, F, J, P, want_j, want_p):
+    """F (3,) of one step at th = (s_l, s_r, x_ICR), and on request J = dF/dtheta (3, 3; a pinned variable's
+    column zero) and P = dF/d(mu_r, mu_x, mu_y, lambda, C) (3, 5). rw, sg: r omega and sgn(omega) per side;
+    dvx_c, dw_c: the commanded body accelerations (the paper's zero-order approximation). Derivatives are
+    those of the smooth piece the step is on: sgn() has none; clip() of eq. (6) has lambda off the mu_x
+    plateau and 0 on it."""
+    mu_r, mu_x, mu_y, lam, C = p[0], p[1], p[2], p[3], p[4]
+    B, M, Iz, xcg, ycg = gv[1], gv[2], gv[3], gv[4], gv[5]
+    el = (1.0 - th[0]) * rw[0]  # ground speed of the left wheel centres, V_wx (eq. 8)
+    er = (1.0 - th[1]) * rw[1]
     vx = 0.5 * (el + er)
     wz = (er - el) / B
-    vy = -xi * wz
-    n = vx.size
-    F = np.zeros((3, n))
-    J = np.zeros((3, 3, n)) if jac else None
-    P = np.zeros((3, 5, n)) if pjac else None
-    if jac:
-        # d(vx, wz, vy) / d(s_l, s_r); d/dx_ICR: vy only (-wz)
-        dvx = (-0.5 * st.rwl, -0.5 * st.rwr)
-        dwz = (st.rwl / B, -st.rwr / B)
-        dvy = (-xi * dwz[0], -xi * dwz[1])
+    vy = -th[2] * wz
+    # d(vx, wz, vy) / d(s_l, s_r); d/dx_ICR: vy only (-wz)
+    dvx0, dvx1 = -0.5 * rw[0], -0.5 * rw[1]
+    dwz0, dwz1 = rw[0] / B, -rw[1] / B
+    dvy0, dvy1 = -th[2] * dwz0, -th[2] * dwz1
+    F[0] = F[1] = F[2] = 0.0
+    if want_j:
+        J[:, :] = 0.0
+    if want_p:
+        P[:, :] = 0.0
     for i in range(4):
-        X, Y, N = (float(v) for v in (geo.wheel_xy[i, 0], geo.wheel_xy[i, 1], geo.normal[i]))
+        X, Y, N = gv[_GX + i], gv[_GY + i], gv[_GN + i]
         side = 0 if i < 2 else 1
-        s, sg = (sl, st.sgl) if side == 0 else (sr, st.sgr)
-        lx, ly = X - x_cg, Y - y_cg  # lever arms about the CG
+        s, sgn_w = th[side], sg[side]
+        lx, ly = X - xcg, Y - ycg  # lever arms about the CG
         ls = lam * s
-        fx = sg * np.clip(ls, -mu_x, mu_x) * N  # eq. (6)
+        fx = sgn_w * min(max(ls, -mu_x), mu_x) * N  # eq. (6)
         vwx = vx - wz * Y
         vwy = vy + wz * X
-        avx, avy = np.abs(vwx), np.abs(vwy)
+        avx, avy = abs(vwx), abs(vwy)
         alpha = np.arctan2(avy, avx)  # |alpha|, eq. (4)
         E = np.exp(-alpha / C)
-        sy, sx = np.sign(vwy), np.sign(vwx)
+        sy = np.sign(vwy)
+        sx = np.sign(vwx)
         fy = -sy * mu_y * (1.0 - E) * N  # eq. (7)
         Fx = fx - mu_r * N * sx  # eq. (5): rolling resistance against the wheel's own V_wx
         F[0] += Fx
         F[1] += fy
         F[2] += lx * fy - ly * Fx
-        inside = np.abs(ls) < mu_x
-        if jac:
+        inside = abs(ls) < mu_x
+        if want_j:
             q = vwx * vwx + vwy * vwy
-            k = np.divide((mu_y * N / C) * E, q, out=np.zeros(n), where=q > 0)
-            gx = k * vwy * sx  # d fy / d V_wx  (smooth through V_wy = 0)
+            k = (mu_y * N / C) * E / q if q > 0.0 else 0.0
+            gx = k * vwy * sx  # d fy / d V_wx (smooth through V_wy = 0)
             gy = -k * avx  # d fy / d V_wy
-            for j in (0, 1):
-                dfy = gx * (dvx[j] - Y * dwz[j]) + gy * (dvy[j] + X * dwz[j])
-                J[1, j] += dfy
-                J[2, j] += lx * dfy
-            dfy = -gy * wz  # d/dx_ICR through vy
-            J[1, 2] += dfy
-            J[2, 2] += lx * dfy
-            dfx = np.where(inside, sg * (lam * N), 0.0)  # d fx / d s (own side only)
-            J[0, side] += dfx
-            J[2, side] -= ly * dfx
-        if pjac:
+            d0 = gx * (dvx0 - Y * dwz0) + gy * (dvy0 + X * dwz0)
+            d1 = gx * (dvx1 - Y * dwz1) + gy * (dvy1 + X * dwz1)
+            d2 = -gy * wz
+            J[1, 0] += d0
+            J[1, 1] += d1
+            J[1, 2] += d2
+            J[2, 0] += lx * d0
+            J[2, 1] += lx * d1
+            J[2, 2] += lx * d2
+            if inside:
+                dfx = sgn_w * lam * N  # d fx / d s (own side only)
+                J[0, side] += dfx
+                J[2, side] -= ly * dfx
+        if want_p:
             dR = -N * sx  # d Fx / d mu_r
-            dmx = np.where(inside, 0.0, sg * np.sign(ls) * N)  # d fx / d mu_x (on the plateau)
-            dlam = np.where(inside, sg * s * N, 0.0)  # d fx / d lambda
+            dmx = 0.0 if inside else sgn_w * np.sign(ls) * N  # d fx / d mu_x (on the plateau)
+            dlam = sgn_w * s * N if inside else 0.0  # d fx / d lambda
             dmy = -sy * (1.0 - E) * N  # d fy / d mu_y
             dC = sy * (mu_y * N / (C * C)) * E * alpha  # d fy / d C
-            for j, d in ((0, dR), (1, dmx), (3, dlam)):
-                P[0, j] += d
-                P[2, j] -= ly * d
-            for j, d in ((2, dmy), (4, dC)):
-                P[1, j] += d
-                P[2, j] += lx * d
+            P[0, 0] += dR
+            P[2, 0] -= ly * dR
+            P[0, 1] += dmx
+            P[2, 1] -= ly * dmx
+            P[0, 3] += dlam
+            P[2, 3] -= ly * dlam
+            P[1, 2] += dmy
+            P[2, 2] += lx * dmy
+            P[1, 4] += dC
+            P[2, 4] += lx * dC
     # rigid-body transport: a = dv/dt + w x v at the CG
-    vcgx = vx - y_cg * wz
-    vcgy = vy + x_cg * wz
-    F[0] -= M * (st.dvx - wz * vcgy)  # eq. (9)
+    vcgx = vx - ycg * wz
+    vcgy = vy + xcg * wz
+    F[0] -= M * (dvx_c - wz * vcgy)  # eq. (9)
     F[1] -= M * (wz * vcgx)  # eq. (10)
-    F[2] -= geo.I_z * st.dw  # eq. (11)
-    scale = geo.force_scale
-    F /= scale[:, None]
-    if jac:
-        for j in (0, 1):
-            J[0, j] += M * (dwz[j] * vcgy + wz * (dvy[j] + x_cg * dwz[j]))
-            J[1, j] -= M * (dwz[j] * vcgx + wz * (dvx[j] - y_cg * dwz[j]))
-        J[0, 2] += M * wz * (-wz)
-        J /= scale[:, None, None]
-        J *= st.free[None]
-    if pjac:
-        P /= scale[:, None, None]
+    F[2] -= Iz * dw_c  # eq. (11)
+    for a in range(3):
+        F[a] /= gv[_GS + a]
+    if want_j:
+        J[0, 0] += M * (dwz0 * vcgy + wz * (dvy0 + xcg * dwz0))
+        J[0, 1] += M * (dwz1 * vcgy + wz * (dvy1 + xcg * dwz1))
+        J[0, 2] -= M * wz * wz
+        J[1, 0] -= M * (dwz0 * vcgx + wz * (dvx0 - ycg * dwz0))
+        J[1, 1] -= M * (dwz1 * vcgx + wz * (dvx1 - ycg * dwz1))
+        for a in range(3):
+            for b in range(3):
+                J[a, b] = J[a, b] / gv[_GS + a] * free[b]
+    if want_p:
+        for a in range(3):
+            for b in range(5):
+                P[a, b] /= gv[_GS + a]
+
+
+@njit(cache=True)
+def _balance_all(theta, rw, sg, dvx_c, dw_c, free, p, gv, want_j, want_p):
+    """``_step_balance`` for every step: theta (T, 3), rw/sg/free (T, 2)/(T, 2)/(T, 3) -> F (T, 3),
+    J (T, 3, 3), P (T, 3, 5) (zeros where not asked for)."""
+    T = theta.shape[0]
+    F = np.zeros((T, 3))
+    J = np.zeros((T, 3, 3) if want_j else (1, 3, 3))
+    P = np.zeros((T, 3, 5) if want_p else (1, 3, 5))
+    for t in range(T):
+        jt = t if want_j else 0
+        pt = t if want_p else 0
+        _step_balance(
+            theta[t], rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, F[t], J[jt], P[pt], want_j, want_p
+        )
     return F, J, P
+
+
+@njit(cache=True)
+def _solve_spd3(A, b, x):
+    """x = A^-1 b for a symmetric positive definite 3x3 A (Cholesky); False where A is not numerically
+    positive definite (x untouched)."""
+    a00 = A[0, 0]
+    if not a00 > 0.0:
+        return False
+    l00 = np.sqrt(a00)
+    l10, l20 = A[0, 1] / l00, A[0, 2] / l00
+    a11 = A[1, 1] - l10 * l10
+    if not a11 > 0.0:
+        return False
+    l11 = np.sqrt(a11)
+    l21 = (A[1, 2] - l20 * l10) / l11
+    a22 = A[2, 2] - l20 * l20 - l21 * l21
+    if not a22 > 0.0:
+        return False
+    l22 = np.sqrt(a22)
+    y0 = b[0] / l00
+    y1 = (b[1] - l10 * y0) / l11
+    y2 = (b[2] - l20 * y0 - l21 * y1) / l22
+    x[2] = y2 / l22
+    x[1] = (y1 - l21 * x[2]) / l11
+    x[0] = (y0 - l10 * x[1] - l20 * x[2]) / l00
+    return True
+
+
+@njit(cache=True)
+def _lm_steps(
+    theta, F, cost, idx, rw, sg, dvx_c, dw_c, free, p, gv, ftol, gtol, max_iter, stall_rtol, stall_iter
+):
+    """Levenberg-Marquardt, one step at a time, on the steps ``idx`` (in place on theta/F/cost rows):
+    (status (n,), iterations of the longest) with status 1 root, 2 stationary point of F^T F, 0 not
+    converged. Steps are independent problems; each iterates exactly as the batched form would."""
+    n = idx.size
+    status = np.zeros(n, dtype=np.int8)
+    hist = np.empty(stall_iter)
+    J = np.zeros((3, 3))
+    Jn = np.zeros((3, 3))
+    Fn = np.zeros(3)
+    tn = np.zeros(3)
+    g = np.zeros(3)
+    A = np.zeros((3, 3))
+    d = np.zeros(3)
+    delta = np.zeros(3)
+    dummy = np.zeros((3, 5))
+    longest = 0
+    for q in range(n):
+        t = idx[q]
+        th, f = theta[t], F[t]
+        if max(abs(f[0]), abs(f[1]), abs(f[2])) < ftol:
+            status[q] = 1
+            continue
+        c = cost[t]
+        mu = 1e-3
+        hist[:] = c
+        _step_balance(th, rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, Fn, J, dummy, True, False)
+        it = 0
+        st = 0
+        while it < max_iter:
+            it += 1
+            stat_v = 0.0
+            for a in range(3):
+                g[a] = J[0, a] * f[0] + J[1, a] * f[1] + J[2, a] * f[2]
+                for b in range(3):
+                    A[a, b] = J[0, a] * J[0, b] + J[1, a] * J[1, b] + J[2, a] * J[2, b]
+                d[a] = max(A[a, a], 1e-12)
+                stat_v = max(stat_v, abs(g[a]) / np.sqrt(d[a]))
+            stat = stat_v < gtol  # smooth stationary point, not a root
+            for a in range(3):
+                A[a, a] += mu * d[a]
+            if not _solve_spd3(A, g, delta):
+                delta[:] = 0.0
+            for a in range(3):
+                tn[a] = th[a] - delta[a] * free[t, a]
+            _step_balance(tn, rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, Fn, Jn, dummy, True, False)
+            cn = 0.5 * (Fn[0] * Fn[0] + Fn[1] * Fn[1] + Fn[2] * Fn[2])
+            mua = mu
+            if cn < c:
+                th[:] = tn
+                f[:] = Fn
+                c = cn
+                J[:, :] = Jn
+                mu = max(mua / 3.0, 1e-12)
+            else:
+                mu = mua * 4.0
+            # stalled: over the last stall_iter iterations the cost fell by less than stall_rtol of itself.
+            # Where no root exists the infimum of F^T F often sits on a kink or jump of F (sgn(V_wy) at zero
+            # yaw rate, the mu_x plateau of eq. 6): no smooth stationary point, the gradient test never
+            # fires and LM creeps along the kink; stalling is the non-smooth stationarity test.
+            oldest = hist[it % stall_iter]
+            stalled = (it >= stall_iter) and (oldest - c <= stall_rtol * oldest)
+            hist[it % stall_iter] = c
+            if max(abs(f[0]), abs(f[1]), abs(f[2])) < ftol:
+                st = 1
+                break
+            if stat or stalled or mua > 1e10:
+                st = 2
+                break
+        cost[t] = c
+        status[q] = st
+        longest = max(longest, it)
+    return status, longest
+
+
+def _step_inputs(wl, wr, dwl, dwr, geo: FrictionGeometry, mask: np.ndarray | None = None):
+    """Per-step inputs of the compiled balance: r omega and sgn(omega) per side (T, 2), the commanded body
+    accelerations dv_x, dw (T,) (the paper's zero-order approximation), the free variables (T, 3) as 0/1."""
+    r, B = geo.r, geo.B
+    m = free_mask(wl, wr) if mask is None else mask
+    rw = np.ascontiguousarray(np.column_stack([r * wl, r * wr]))
+    sg = np.ascontiguousarray(np.column_stack([np.sign(wl), np.sign(wr)]))
+    return rw, sg, r * (dwr + dwl) / 2.0, r * (dwr - dwl) / B, np.ascontiguousarray(m, dtype=float)
+
+
+@njit(cache=True)
+def _root_sensitivity(theta, status, rw, sg, dvx_c, dw_c, free, p, gv):
+    """dtheta/dp = -J^-1 dF/dp (T, 3, 5) at the regular roots (status 1, every variable free, |det J| above
+    1e-10 of the product of its column norms), and which steps those are (T,); zeros elsewhere."""
+    T = theta.shape[0]
+    out = np.zeros((T, 3, 5))
+    regular = np.zeros(T, dtype=np.bool_)
+    F = np.zeros(3)
+    J = np.zeros((3, 3))
+    P = np.zeros((3, 5))
+    adj = np.zeros((3, 3))
+    for t in range(T):
+        if status[t] != 1 or free[t, 0] == 0.0 or free[t, 1] == 0.0 or free[t, 2] == 0.0:
+            continue
+        _step_balance(theta[t], rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, F, J, P, True, True)
+        adj[0, 0] = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
+        adj[0, 1] = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
+        adj[0, 2] = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
+        adj[1, 0] = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
+        adj[1, 1] = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+        adj[1, 2] = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
+        adj[2, 0] = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
+        adj[2, 1] = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
+        adj[2, 2] = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+        det = J[0, 0] * adj[0, 0] + J[0, 1] * adj[1, 0] + J[0, 2] * adj[2, 0]
+        norms = 1.0
+        for b in range(3):
+            norms *= np.sqrt(J[0, b] * J[0, b] + J[1, b] * J[1, b] + J[2, b] * J[2, b])
+        if not abs(det) > 1e-10 * norms:
+            continue
+        regular[t] = True
+        for a in range(3):
+            for k in range(5):
+                out[t, a, k] = -(adj[a, 0] * P[0, k] + adj[a, 1] * P[1, k] + adj[a, 2] * P[2, k]) / det
+    return out, regular
 
 
 def residual(
@@ -210,8 +377,9 @@ def residual(
 ) -> np.ndarray:
     """Normalised F(theta) (eqs. 9-11) for every step: theta (T, 3), inputs (T,) -> (T, 3)."""
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
-    th = np.asarray(theta, dtype=float).reshape(-1, 3).T
-    return _balance(th, _Steps.of(wl, wr, dwl, dwr, geo), _param_vector(params), geo)[0].T
+    th = np.ascontiguousarray(np.asarray(theta, dtype=float).reshape(-1, 3))
+    args = _step_inputs(wl, wr, dwl, dwr, geo)
+    return _balance_all(th, *args, _param_vector(params), _geo_vector(geo), False, False)[0]
 
 
 def balance_jacobians(
@@ -226,9 +394,9 @@ def balance_jacobians(
     """F (T, 3) as ``residual``, its analytic Jacobian dF/dtheta (T, 3, 3; columns of a step's pinned
     variables zero) and dF/dp (T, 3, 5) with respect to (mu_r, mu_x, mu_y, lambda, C)."""
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
-    th = np.asarray(theta, dtype=float).reshape(-1, 3).T
-    F, J, P = _balance(th, _Steps.of(wl, wr, dwl, dwr, geo), _param_vector(params), geo, jac=True, pjac=True)
-    return F.T, np.moveaxis(J, -1, 0), np.moveaxis(P, -1, 0)
+    th = np.ascontiguousarray(np.asarray(theta, dtype=float).reshape(-1, 3))
+    args = _step_inputs(wl, wr, dwl, dwr, geo)
+    return _balance_all(th, *args, _param_vector(params), _geo_vector(geo), True, True)
 
 
 def velocity_sensitivity(
@@ -252,19 +420,18 @@ def velocity_sensitivity(
     enters the mu_x plateau) is a jump no derivative describes."""
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
     theta = np.asarray(theta, dtype=float).reshape(-1, 3)
-    _, J, P = balance_jacobians(theta, wl, wr, dwl, dwr, params, geo)
     mask = free_mask(wl, wr)
-    dth = np.zeros_like(P)
-    # a regular root (every variable free, J well conditioned): one 3x3 solve per step
-    cols = np.linalg.norm(J, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel_det = np.abs(np.linalg.det(J)) / np.prod(cols, axis=1)
-    regular = (np.asarray(status) == 1) & mask.all(axis=1) & (rel_det > 1e-10)
-    if regular.any():
-        dth[regular] = -np.linalg.solve(J[regular], P[regular])
+    args = _step_inputs(wl, wr, dwl, dwr, geo, mask)
+    p = _param_vector(params)
+    status = np.ascontiguousarray(status, dtype=np.int8)
+    # a regular root: one 3x3 solve per step at the root's Jacobian (compiled)
+    dth, regular = _root_sensitivity(np.ascontiguousarray(theta), status, *args, p, _geo_vector(geo))
     rest = ~regular & mask.any(axis=1)
     if rest.any():
-        dth[rest] = -np.linalg.pinv(J[rest], rcond=1e-12) @ P[rest]
+        _, J, P = _balance_all(
+            np.ascontiguousarray(theta[rest]), *(a[rest] for a in args), p, _geo_vector(geo), True, True
+        )
+        dth[rest] = -np.linalg.pinv(J, rcond=1e-12) @ P
     # eq. (8): d(vx, vy, wz) / d(s_l, s_r, x_ICR)
     r, B = geo.r, geo.B
     wz = body_velocity(theta, wl, wr, r, B)[:, 2]
@@ -319,80 +486,27 @@ class SolveResult:
         return np.any(m & (lam * np.abs(self.theta[:, :2]) >= mu_x), axis=1)
 
 
-def _solve_spd3(a00, a01, a02, a11, a12, a22, b):
-    """x (3, n) with A x = b for symmetric positive definite 3x3 A given by its upper triangle (each (n,)),
-    by an explicit Cholesky factorisation (vectorised; NaN where A is not numerically positive definite)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        l00 = np.sqrt(a00)
-        l10, l20 = a01 / l00, a02 / l00
-        l11 = np.sqrt(a11 - l10 * l10)
-        l21 = (a12 - l20 * l10) / l11
-        l22 = np.sqrt(a22 - l20 * l20 - l21 * l21)
-        y0 = b[0] / l00
-        y1 = (b[1] - l10 * y0) / l11
-        y2 = (b[2] - l20 * y0 - l21 * y1) / l22
-        x2 = y2 / l22
-        x1 = (y1 - l21 * x2) / l11
-        x0 = (y0 - l10 * x1 - l20 * x2) / l00
-    return np.stack([x0, x1, x2])
-
-
 def _lm(theta, F, cost, idx, inp, p, geo, mask, *, ftol, gtol, max_iter, stall_rtol, stall_iter):
     """Levenberg-Marquardt on the steps ``idx`` (in place on theta/F/cost rows); returns (status, n_iter)
-    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged.
-
-    Works component-major on the still-active steps only, with the analytic Jacobian of ``_balance``
-    (evaluated with F at each trial point, so an iteration costs one balance evaluation), and a
-    vectorised Cholesky solve of the damped 3x3 normal equations."""
-    wl, wr, dwl, dwr = inp
-    n = idx.size
-    th = theta[idx].T.copy()
-    f = F[idx].T.copy()
-    c = cost[idx].copy()
-    status = np.zeros(n, dtype=np.int8)
-    status[np.max(np.abs(f), axis=0) < ftol] = 1
-    mu = np.full(n, 1e-3)
-    hist = np.tile(c[:, None], (1, stall_iter))  # cost over the last stall_iter iterations
-    loc = np.flatnonzero(status == 0)  # positions in idx still iterating
-    steps = _Steps.of(wl[idx[loc]], wr[idx[loc]], dwl[idx[loc]], dwr[idx[loc]], geo, mask[idx[loc]])
-    J = _balance(th[:, loc], steps, p, geo, jac=True)[1] if loc.size else None
-    it = 0
-    while loc.size and it < max_iter:
-        it += 1
-        t, fa, m = th[:, loc], f[:, loc], steps.free
-        g = np.einsum("ijt,it->jt", J, fa)
-        a00, a11, a22 = (np.einsum("it,it->t", J[:, j], J[:, j]) for j in range(3))
-        a01 = np.einsum("it,it->t", J[:, 0], J[:, 1])
-        a02 = np.einsum("it,it->t", J[:, 0], J[:, 2])
-        a12 = np.einsum("it,it->t", J[:, 1], J[:, 2])
-        d = np.maximum(np.stack([a00, a11, a22]), 1e-12)
-        mua = mu[loc]
-        stat = np.max(np.abs(g) / np.sqrt(d), axis=0) < gtol  # smooth stationary point, not a root
-        delta = -_solve_spd3(a00 + mua * d[0], a01, a02, a11 + mua * d[1], a12, a22 + mua * d[2], g) * m
-        tn = t + np.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
-        Fn, Jn, _ = _balance(tn, steps, p, geo, jac=True)
-        cn = 0.5 * np.sum(Fn * Fn, axis=0)
-        ok = cn < c[loc]
-        acc = loc[ok]
-        th[:, acc], f[:, acc], c[acc] = tn[:, ok], Fn[:, ok], cn[ok]
-        J[..., ok] = Jn[..., ok]
-        mu[loc] = np.where(ok, np.maximum(mua / 3.0, 1e-12), mua * 4.0)
-        # stalled: over the last stall_iter iterations the cost fell by less than stall_rtol of itself.
-        # Where no root exists the infimum of F^T F often sits on a kink or jump of F (sgn(V_wy) at zero
-        # yaw rate, the mu_x plateau of eq. 6): no smooth stationary point, the gradient test never fires
-        # and LM creeps along the kink; stalling is the non-smooth stationarity test.
-        oldest = hist[loc, it % stall_iter]
-        cl = c[loc]
-        stalled = (it >= stall_iter) & (oldest - cl <= stall_rtol * oldest)
-        hist[loc, it % stall_iter] = cl
-        done_root = np.max(np.abs(f[:, loc]), axis=0) < ftol
-        st = np.where(done_root, 1, np.where(stat | stalled | (mua > 1e10), 2, 0)).astype(np.int8)
-        status[loc] = st
-        go = st == 0
-        if not go.all():
-            loc, J, steps = loc[go], J[..., go], steps.take(go)
-    theta[idx], F[idx], cost[idx] = th.T, f.T, c
-    return status, it
+    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged. Each step iterates
+    in compiled code (``_lm_steps``) with the analytic Jacobian: one balance evaluation per iteration."""
+    args = _step_inputs(*inp, geo, mask)
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    p = np.asarray(p, dtype=float)
+    return _lm_steps(
+        theta,
+        F,
+        cost,
+        idx,
+        *args,
+        p,
+        _geo_vector(geo),
+        ftol,
+        gtol,
+        int(max_iter),
+        stall_rtol,
+        int(stall_iter),
+    )
 
 
 def low_slip_start(wl, wr, dwl, dwr, params, geo: FrictionGeometry) -> np.ndarray:
