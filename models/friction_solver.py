@@ -3,8 +3,14 @@
 At each time step t the unknowns are theta_t = (s_l, s_r, x_ICR) (left/right slip ratio, ICR offset, m);
 the inputs are the commanded wheel rates (wl, wr, rad/s) and their derivatives (dwl, dwr, rad/s^2).
 ``residual`` evaluates the force/torque balance F(theta) (eqs. 9-11) for all steps at once; ``solve``
-finds F(theta) = 0 for all steps by a vectorised Levenberg-Marquardt iteration (eq. 12), and
-``solve_reference`` does the paper's per-step scipy trust-region solve, used to check it.
+finds F(theta) = 0 for all steps by Levenberg-Marquardt (eq. 12), and ``solve_reference`` does the paper's
+per-step scipy trust-region solve, used to check it. ``balance_jacobians`` gives the analytic dF/dtheta and
+dF/dp, and ``velocity_sensitivity`` the derivative of the solved motion with respect to the parameters by
+the implicit function theorem (what the fit's Jacobian is made of).
+
+The physics lives once, in the compiled ``_step_balance`` (numba): every step is a 3-unknown problem with
+its own iteration count, which compiled per-step loops do without the per-iteration Python overhead a
+vectorised batch paid while a few stragglers iterated (issue 14; ``make bench BENCH=friction_fit``).
 
 Conventions (SPEC.md "Models", notes on the friction model):
 - F is normalised: F1, F2 by M g and F3 by M g b (b = half track) so that one tolerance fits all three;
@@ -566,8 +572,9 @@ def solve(
     """Batched Levenberg-Marquardt on all steps at once (eq. 12), with restarts for the steps it leaves
     without a root.
 
-    Each LM iteration forms a forward-difference Jacobian (3 extra batched residual evaluations), solves the
-    damped normal equations (J^T J + mu D) delta = -J^T F for every still-active step, and accepts a step
+    Each LM iteration (per step, compiled: ``_lm_steps``) evaluates F and its analytic Jacobian J at the
+    trial point (one balance evaluation), solves the damped normal equations (J^T J + mu D) delta = -J^T F
+    by a 3x3 Cholesky factorisation, and accepts a step
     only where it lowers F^T F (per-step damping mu up/down): a trust-region-like globalisation with F^T F as
     merit function, which tolerates the kinks of sgn/clip. ``theta0`` warm-starts (default: zero slip,
     x_ICR = 0, the reference's start).
