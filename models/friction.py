@@ -197,9 +197,7 @@ class FrictionBased(KinematicModel):
         lo = np.log([float(ranges[n][0]) for n in names])
         hi = np.log([float(ranges[n][1]) for n in names])
         z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
-        res = least_squares(
-            resid,
-            z0,
+        opts = dict(
             jac=jac if self.options.get("jacobian", "analytic") == "analytic" else "2-point",
             diff_step=float(self.options.get("diff_step", 1e-3)),
             bounds=(lo, hi),
@@ -210,7 +208,19 @@ class FrictionBased(KinematicModel):
             ftol=float(self.options.get("ftol", 1e-12)),
             gtol=float(self.options.get("gtol", 1e-12)),
             max_nfev=int(self.options.get("max_nfev", 200)),
+            x_scale=self.options.get("x_scale", 1.0),
         )
+        res = least_squares(resid, z0, **opts)
+        # the objective has jumps (steps gaining or losing a root): trf's trust region can collapse on one
+        # and stop on xtol short of the minimum; a fresh trust region from its end point goes on
+        nfev = int(res.nfev)
+        for _ in range(int(self.options.get("outer_restarts", 0))):
+            again = least_squares(resid, res.x, **opts)
+            nfev += int(again.nfev)
+            if not again.cost < res.cost * (1.0 - 1e-9):
+                break
+            res = again
+        res.nfev = nfev
         self.params = unpack(res.x)
         pred, sol = self.velocities(inp)
         rooted = sol.status == 1
