@@ -18,13 +18,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.schema import list_split_files, read_split
+from skidbench.pipeline.schema import read_split
 
 from . import figures as figs
 from . import tracking as trk
+from .evaluate import split_files
 from .horizon import EvaluationError, horizon_steps, window_errors, window_trajectory
 
 log = logging.getLogger(__name__)
@@ -53,7 +55,7 @@ def select_runs(
                 f"no `skidbench evaluate` run in experiment {tracker.experiment_name!r} at {tracker.uri}; "
                 "run `skidbench evaluate` first (or set mlflow.experiment)"
             )
-    clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'"]
+    clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
     if parent:
         clauses.append(f"tags.`{trk.TAG_PARENT}` = '{parent}'")
     if filter_string:
@@ -200,7 +202,7 @@ def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path,
     from skidbench.models.base import concat_sequences
 
     model = _load_model(cfg, model_name, terrain)
-    files = list_split_files(layout.splits, terrain, "ld") or list_split_files(layout.splits, terrain)
+    files = split_files(layout, terrain, "ld") or split_files(layout, terrain, None)
     tables = [read_split(p) for p in files]
     table = concat_sequences(tables)
     acc = np.concatenate(
@@ -225,7 +227,7 @@ def figure6(
 ) -> Path:
     model = _load_model(cfg, model_name, terrain)
     robot = model.robot
-    files = list_split_files(layout.splits, terrain, "train")
+    files = split_files(layout, terrain, "train")
     lim = 10.0
     if files:
         df, _ = read_split(files[0])
@@ -262,8 +264,16 @@ def figure6(
                 "sequence": "grid",
             }
         )
-        wz = np.asarray(model.predict(table), float)[:, 2]
-        sol = getattr(model, "last_solve_", None)
+        if hasattr(model, "velocities"):
+            # the force balance at these wheel rates and accelerations themselves: the grid's rows are
+            # independent points, not a time series a model's actuator (dead time, lag) could run over
+            vel, sol = model.velocities(
+                (wl.ravel(), wr.ravel(), table["cmd_dwl"].to_numpy(), table["cmd_dwr"].to_numpy())
+            )
+            wz = np.asarray(vel, float)[:, 2]
+        else:
+            wz = np.asarray(model.predict(table), float)[:, 2]
+            sol = getattr(model, "last_solve_", None)
         status = getattr(sol, "status", None)
         if status is not None and len(status) == m:  # the friction model's per-step solve status
             status = np.asarray(status)
@@ -309,7 +319,7 @@ def figure7(
         raise CompareError(f"no fitted model for terrain {terrain}")
     samples = []
     for split in SPLITS:
-        files = list_split_files(layout.splits, terrain, split)
+        files = split_files(layout, terrain, split)
         cands = []
         for p in files:
             df, meta = read_split(p)
@@ -453,6 +463,7 @@ def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, no
         "Models fitted per terrain on Train, scored on the constant-velocity (CV) and long-distance (LD) "
         "test splits.",
         "",
+        f"- dataset: {identity_from_cfg(cfg).describe()[len('dataset ') :]}",
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"
         + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",

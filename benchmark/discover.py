@@ -38,6 +38,7 @@ Among the candidates that pass, the one with the largest penalised gain is added
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -64,7 +65,8 @@ from skidbench.benchmark.horizon import rmsre, window_errors
 from skidbench.models.base import KinematicModel
 from skidbench.pipeline.errors import SkidbenchError
 from skidbench.pipeline.robot import Robot
-from skidbench.pipeline.schema import load_split_tables
+from skidbench.pipeline.schema import load_split_tables as _load_split_tables
+from skidbench.pipeline.schema import read_split
 
 log = logging.getLogger("skidbench.discover")
 
@@ -170,10 +172,22 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
     )
 
 
-def load_pool(splits_root: Path, terrain: str, settings: DiscoverSettings) -> Pool:
+def load_pool(
+    splits_root: Path,
+    terrain: str,
+    settings: DiscoverSettings,
+    files_of: Callable[[str, str], list[Path]] | None = None,
+) -> Pool:
     """The held-out pool of a terrain: the ``settings.splits`` sequences (default Train). When they give
     fewer than ``min_units`` held-out units (a significance test over fewer units cannot reject at
-    alpha), the terrain's other splits (CV, LD) are added, and ``pool.note`` says so."""
+    alpha), the terrain's other splits (CV, LD) are added, and ``pool.note`` says so. ``files_of(terrain,
+    split)``: the split files to read (the current manifest's); default every file under ``splits_root``."""
+
+    def load_split_tables(root: Path, terrain: str, split: str) -> list[tuple[pd.DataFrame, dict]]:
+        if files_of is None:
+            return _load_split_tables(root, terrain, split)
+        return [read_split(p) for p in files_of(terrain, split)]
+
     tables = []
     for s in settings.splits:
         tables += load_split_tables(Path(splits_root), terrain, s)
@@ -371,6 +385,41 @@ def _bounded_least_squares(resid, x, lo, hi, max_nfev: int) -> np.ndarray:
     )
     log.debug("effect fit: %s (nfev %d)", res.message, res.nfev)
     return res.x
+
+
+def fit_effects(
+    table: pd.DataFrame,
+    factory: ModelFactory,
+    robot: Robot,
+    effects: list[str],
+    settings: DiscoverSettings | None = None,
+) -> FitState:
+    """Fit base model + ``effects`` on every valid row of a training table (sequences in its ``sequence``
+    column), the way discovery fits its final model: the base alone first (which sets the channel
+    weights), then the effects added one at a time in the given order, each fit warm-started from the
+    last. What an augmented model (``skidbench.models.augmented``) calls on Train."""
+    unknown = [e for e in effects if e not in CATALOGUE]
+    if unknown:
+        raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})")
+    s = settings or DiscoverSettings()
+    if "sequence" in table.columns:
+        tables = [
+            (g.drop(columns="sequence").reset_index(drop=True), {"sequence": str(name)})
+            for name, g in table.groupby("sequence", sort=False)
+        ]
+    else:
+        tables = [(table.reset_index(drop=True), {"sequence": "0"})]
+    pool = build_pool(tables, dataclasses.replace(s, min_units=1))  # whole sequences, never cut
+    aug = Augmenter(pool, factory, robot, s)
+    units = np.arange(pool.n_units)
+    state = aug.fit([], units)
+    res = (state.pred - pool.target)[pool.valid]
+    aug.weights = 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
+    warm: dict[str, np.ndarray] = {}
+    for i in range(len(effects)):
+        state = aug.fit(list(effects[: i + 1]), units, warm)
+        warm = dict(state.params)
+    return state
 
 
 # -- held-out evaluation ------------------------------------------------------------------------

@@ -30,6 +30,8 @@ from skidbench.benchmark.discover import (
 from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
 from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
+from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.robot import robot_from_hydra
 
 log = logging.getLogger("skidbench.discover")
@@ -63,10 +65,42 @@ def _splits_root(cfg: DictConfig) -> Path:
     return Path(prepare_splits(cfg))
 
 
-def _terrains(root: Path, cfg: DictConfig, use: tuple[str, ...]) -> list[str]:
+def _dataset_of(root: Path) -> tuple[Layout, Manifest] | None:
+    """The dataset whose ``splits`` folder ``root`` is, with its current manifest (None for a bare folder)."""
+    layout = Layout(root.parent.parent, root.parent.name)
+    if root.resolve() != layout.splits.resolve() or not layout.manifest.is_file():
+        return None
+    return layout, Manifest.read(layout.manifest)
+
+
+def _files_of(dataset: tuple[Layout, Manifest] | None):
+    """``(terrain, split) -> split files``: the manifest's sequences, each required to be split."""
+    if dataset is None:
+        return None
+    layout, manifest = dataset
+
+    def files(terrain: str, split: str) -> list[Path]:
+        out = layout.split_files(manifest, terrain, split)
+        missing = [p for p in out if not p.is_file()]
+        if missing:
+            raise DiscoverError(
+                f"{missing[0]}: no split file for a sequence of {layout.manifest}; run `skidbench split`"
+            )
+        return out
+
+    return files
+
+
+def _terrains(root: Path, cfg: DictConfig, use: tuple[str, ...], dataset=None) -> list[str]:
     if cfg.get("terrain"):
         return [str(cfg.terrain)]
-    found = sorted(
+    if dataset is not None:  # the current manifest's terrains, never the folders that happen to exist
+        layout, manifest = dataset
+        found = sorted({s.terrain for s in manifest.sequences if s.category in use})
+        if not found:
+            raise DiscoverError(f"{layout.manifest}: no {'/'.join(use)} sequences")
+        return found
+    found = sorted(  # a bare splits folder named by discover.splits: what it holds is the dataset
         p.name for p in root.iterdir() if p.is_dir() and any((p / s).glob("*.parquet") for s in use)
     )
     if not found:
@@ -101,12 +135,21 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     print(f"skidbench discover: base model {base_name}; splits {root}")
     print("significance rule: " + settings.rule())
     results: list[TerrainDiscovery] = []
-    for terrain in _terrains(root, cfg, settings.splits):
-        pool = load_pool(root, terrain, settings)
+    dataset = _dataset_of(root)
+    files_of = _files_of(dataset)
+    from skidbench.models.registry import get_model_class
+    from skidbench.pipeline.calibration import robot_for_model
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    own_splits = root.resolve() == layout_from_cfg(cfg).splits.resolve()
+    for terrain in _terrains(root, cfg, settings.splits, dataset):
+        pool = load_pool(root, terrain, settings, files_of)
+        # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
+        robot_t = robot_for_model(cfg, get_model_class(base_name), terrain)[0] if own_splits else robot
         res = discover_terrain(
             pool,
-            lambda: build_model(cfg, base_name, robot),
-            robot,
+            lambda r=robot_t: build_model(cfg, base_name, r),
+            robot_t,
             settings,
             terrain,
             base_name,

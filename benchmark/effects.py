@@ -290,3 +290,25 @@ def revealing_feature(eid: str, feats: dict[str, np.ndarray], pred: np.ndarray) 
     if eid == "speed_dependent_turn_slip":
         return np.abs(feats["v"]) * pred[:, 2]
     raise KeyError(eid)
+
+
+def augmented_prediction(
+    table: pd.DataFrame,
+    base_model,
+    params: dict[str, np.ndarray],
+    wheel_radius: float,
+    track_width: float,
+) -> np.ndarray:
+    """The prediction of a fitted augmented model (base model + effects with ``params``, as discovery
+    fits them) on any table: the commands through the lag of ``actuator_lag`` (restarted at each
+    ``sequence``), the base model on them, then the corrections (:func:`apply_effects`)."""
+    groups = (
+        pd.factorize(table["sequence"])[0] if "sequence" in table.columns else np.zeros(len(table), np.int64)
+    )
+    inputs = table
+    if "actuator_lag" in params:
+        inputs = lag_filter(table, float(np.asarray(params["actuator_lag"])[0]), groups)
+    base_pred = np.asarray(base_model.predict(inputs), dtype=float)
+    corr = {e: np.asarray(p, dtype=float) for e, p in params.items() if CATALOGUE[e].kind != "input"}
+    feats = command_features(inputs, wheel_radius, track_width)
+    return apply_effects(base_pred, feats, corr)

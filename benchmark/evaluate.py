@@ -11,6 +11,7 @@ predict gets its child run marked FAILED with the reason, and the others carry o
 from __future__ import annotations
 
 import importlib.metadata as md
+import json
 import logging
 import time
 import traceback
@@ -24,8 +25,9 @@ import pandas as pd
 
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import fingerprint_obj, write_json_atomic, write_parquet_atomic
-from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.schema import list_split_files, read_split
+from skidbench.pipeline.layout import Layout, layout_from_cfg, split_terrains
+from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.schema import read_split
 
 from . import tracking as trk
 from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
@@ -51,22 +53,45 @@ class TestSequence:
         return float(t[-1] - t[0]) if len(t) > 1 else 0.0
 
 
-def find_terrains(layout: Layout) -> list[str]:
-    """Terrains with at least one split file, sorted."""
-    if not layout.splits.is_dir():
-        raise EvaluationError(f"{layout.splits}: no splits; run `skidbench split` first")
-    terrains = sorted({p.parents[1].name for p in list_split_files(layout.splits)})
-    if not terrains:
+def current_manifest(layout: Layout) -> Manifest:
+    """The dataset's current manifest: the one source of its terrains and sequences."""
+    if not layout.manifest.is_file():
         raise EvaluationError(
-            f"{layout.splits}: no split files (*/<train|cv|ld>/*.parquet); run `skidbench split`"
+            f"{layout.splits}: no splits; run `skidbench split` first ({layout.manifest} is absent)"
         )
+    try:
+        return Manifest.read(layout.manifest)
+    except SkidbenchError as exc:
+        raise EvaluationError(one_line(str(exc))) from None
+
+
+def split_files(
+    layout: Layout, terrain: str, split: str | None, manifest: Manifest | None = None
+) -> list[Path]:
+    """The split files of the manifest's ``terrain``/``split`` sequences; EvaluationError if one is
+    missing."""
+    files = layout.split_files(manifest or current_manifest(layout), terrain, split)
+    missing = [p for p in files if not p.is_file()]
+    if missing:
+        raise EvaluationError(
+            f"{missing[0]}: no split file for sequence {missing[0].stem} of {layout.manifest}"
+            f"{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}; run `skidbench split`"
+        )
+    return files
+
+
+def find_terrains(layout: Layout) -> list[str]:
+    """The manifest's terrains with train/cv/ld sequences, sorted."""
+    terrains = split_terrains(current_manifest(layout))
+    if not terrains:
+        raise EvaluationError(f"{layout.manifest}: no train/cv/ld sequences; nothing to evaluate")
     return terrains
 
 
 def load_test_split(layout: Layout, terrain: str, split: str) -> list[TestSequence]:
     """The sequences of one test split; EvaluationError when there are none or all are empty."""
     where = layout.splits / terrain / split
-    files = list_split_files(layout.splits, terrain, split)
+    files = split_files(layout, terrain, split)
     if not files:
         raise EvaluationError(
             f"{where}: empty {split} split (no sequences) for terrain {terrain}; re-run `skidbench split`, "
@@ -270,8 +295,13 @@ def run_benchmark(
     if log_figures is None:
         log_figures = bool(cfg.get("log_figures", True))
     if fit_fn is None:
+        from skidbench.models.registry import get_model_class, is_model_spec
+
         known = installed_models()
-        unknown = [m for m in models if known and m not in known]
+        for m in models:  # an augmented spec "base+effect+..." must name a known base and known effects
+            if "+" in m:
+                get_model_class(m)
+        unknown = [m for m in models if known and m not in known and not is_model_spec(m)]
         if unknown:
             raise EvaluationError(
                 f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
@@ -284,11 +314,11 @@ def run_benchmark(
         terrains = found
     missing = [t for t in terrains if t not in found]
     if missing:
-        raise EvaluationError(f"{layout.splits}: no splits for terrain(s) {missing}; found {found}")
+        raise EvaluationError(f"{layout.manifest}: no sequences of terrain(s) {missing}; it has {found}")
     tests: dict[str, dict[str, list[TestSequence]]] = {}
     files_of: dict[str, list[Path]] = {}
     for terrain in terrains:
-        train_files = list_split_files(layout.splits, terrain, TRAIN)
+        train_files = split_files(layout, terrain, TRAIN)
         if not train_files:
             raise EvaluationError(
                 f"{layout.splits / terrain / TRAIN}: empty train split for terrain {terrain}"
@@ -314,11 +344,19 @@ def run_benchmark(
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
+    from .sweep import run_key
+
+    job_key = run_key()
     try:
+        done = tracker.claim_key(job_key) if job_key else None
+        if done:  # a retried job whose earlier attempt finished: its runs are the result
+            return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
+                                                       _logged_children(tracker, done)))  # fmt: skip
         with tracker.run(
             f"evaluate {cfg.dataset}",
             {
                 **common_tags,
+                **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
                 trk.TAG_ROLE: "parent",
                 trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
                 "skidbench.models": ",".join(models),
@@ -342,17 +380,38 @@ def run_benchmark(
             )
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
-    result = BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children)
+    return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children))
+
+
+def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
     write_json_atomic(
         layout.eval / "last_evaluate.json",
         {
             "tracking_uri": result.tracking_uri,
             "experiment": result.experiment,
-            "parent_run_id": parent_id,
-            "children": [c.__dict__ for c in children],
+            "parent_run_id": result.parent_run_id,
+            "children": [c.__dict__ for c in result.children],
         },
     )
     return result
+
+
+def _logged_children(tracker, parent_id: str) -> list[ChildResult]:
+    """The child runs of a finished parent run, as results (a retried job that had already finished)."""
+    runs = tracker.client.search_runs(
+        [tracker.experiment_id], filter_string=f"tags.`{trk.TAG_PARENT}` = '{parent_id}'", max_results=10000
+    )
+    return [
+        ChildResult(
+            r.data.tags.get(trk.TAG_MODEL, "?"),
+            r.data.tags.get(trk.TAG_TERRAIN, "?"),
+            r.info.run_id,
+            r.info.status,
+            dict(r.data.metrics),
+            r.data.tags.get(trk.TAG_REASON, ""),
+        )
+        for r in sorted(runs, key=lambda r: r.info.start_time)
+    ]
 
 
 def _run_child(
@@ -392,6 +451,19 @@ def _run_child(
                 trk.TAG_PLUGIN: plugin_package(model_name, model),
             },
         )
+        bound_metrics = fit_quality_metrics(fit)
+        if bound_metrics:
+            tracker.log(run_id, metrics=bound_metrics)
+        # what the model is beyond its config: the robot constants it was fitted with (calibrated or the
+        # spec sheet's), and an augmented model's base, effects and their fitted values
+        described = {}
+        for c, rec in (_fit_json(fit).get("robot_constants") or {}).items():
+            described[f"robot_used.{c}"] = rec.get("value")
+            described[f"robot_used.{c}.source"] = rec.get("source")
+        if callable(getattr(model, "tracking_params", None)):
+            described.update(model.tracking_params())
+        if described:
+            tracker.log(run_id, params=described)
         out_dir = layout.eval / model_name
         params_json = out_dir / f"{terrain}.params.json"
         write_json_atomic(params_json, model.to_json())
@@ -457,6 +529,41 @@ def _run_child(
         log.debug("%s", traceback.format_exc())
         tracker.fail(run_id, reason)
         return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason)
+
+
+#: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins
+#: and Jacobian standard errors); each is logged as the metric ``<key>.<parameter>``
+FIT_QUALITY_KEYS = ("param_bound_margin", "param_bound_margin_linear", "param_stderr")
+
+
+def fit_quality_metrics(fit: Any) -> dict[str, float]:
+    """``{"param_bound_margin.mu_r": ...}`` from the fit's ``fit_info`` (the model's, or the saved fit
+    JSON's when the fit was reused); empty for models that report none."""
+    info = getattr(getattr(fit, "model", None), "fit_info_", None) or {}
+    path = getattr(fit, "path", None)
+    if not any(k in info for k in FIT_QUALITY_KEYS) and path is not None and Path(path).is_file():
+        try:
+            info = json.loads(Path(path).read_text()).get("fit_info") or {}
+        except (OSError, ValueError):
+            info = {}
+    out = {}
+    for key in FIT_QUALITY_KEYS:
+        for name, value in (info.get(key) or {}).items():
+            v = _num(value)
+            if v is not None and np.isfinite(v):
+                out[f"{key}.{name}"] = v
+    return out
+
+
+def _fit_json(fit: Any) -> dict[str, Any]:
+    """The fit's saved JSON (FitResult.path), or {} when there is none."""
+    import json
+
+    path = getattr(fit, "path", None)
+    try:
+        return json.loads(Path(path).read_text()) if path else {}
+    except (OSError, ValueError):
+        return {}
 
 
 def _num(v: Any) -> float | None:

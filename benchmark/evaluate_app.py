@@ -15,6 +15,12 @@ log = logging.getLogger(__name__)
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="evaluate")
 @stage("evaluate")
 def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+def run(cfg: DictConfig):
+    """The stage: skipped (the cached result) when its stamp is fresh and its parent run exists, else
+    :func:`run_benchmark`. Returns ``(result, skipped)``."""
     from skidbench.pipeline.cache import Stamp
     from skidbench.pipeline.layout import layout_from_cfg
 
@@ -31,7 +37,7 @@ def main(cfg: DictConfig) -> None:
                 f"{cached.parent_run_id} exists; skipped (force=true re-runs)",
                 flush=True,
             )
-            return
+            return cached, True
     result = run_benchmark(cfg)
     print(format_result(result), flush=True)
     if result.failed:
@@ -42,6 +48,7 @@ def main(cfg: DictConfig) -> None:
         )
     else:  # the key is taken after the run: the fits it (re)wrote are part of it
         stamp.record(_stamp_key(cfg, layout, stamp), [layout.eval / "last_evaluate.json"])
+    return result, False
 
 
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
@@ -51,15 +58,25 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
     from skidbench.models.fitting import model_config
     from skidbench.models.registry import discover
-    from skidbench.pipeline.schema import list_split_files
+    from skidbench.pipeline.layout import split_terrains
+    from skidbench.pipeline.manifest import Manifest
 
-    files = list_split_files(layout.splits)
-    files += sorted(p for m in cfg.models for p in (layout.fits / str(m)).glob("*.json"))
+    # the current manifest's split files, fits and calibrations, never whatever else lies in the folders
+    manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
+    files = [p for p in layout.split_files(manifest) if p.is_file()]
+    terrains = split_terrains(manifest)
+    files += [layout.fit_file(str(m), t) for m in cfg.models for t in terrains]
+    files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
+    if "discovered" in [str(m) for m in cfg.models]:
+        files.append(layout.discovery / "discovery.json")
+    files = [p for p in files if p.is_file()]
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
     # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
     plugins = discover()
-    conf["model_versions"] = {str(m): getattr(plugins.get(str(m)), "version", None) for m in cfg.models}
+    conf["model_versions"] = {
+        str(m): getattr(plugins.get(str(m).split("+")[0]), "version", None) for m in cfg.models
+    }
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
     conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
     return stamp.key(files, conf)
@@ -80,6 +97,8 @@ def _cached_result(cfg: DictConfig, layout, stamp):
         run = tracker.client.get_run(last["parent_run_id"])
         if run.info.lifecycle_stage != "active" or run.info.experiment_id != tracker.experiment_id:
             return None
+        if tracker.dataset_id and run.data.tags.get(trk.TAG_DATASET_ID) != tracker.dataset_id:
+            return None  # a run of another dataset at this name (source.replace=true), or an older one
     except Exception as exc:  # no such run / store: evaluate again
         log.info("evaluate: cached result not usable (%s); re-running", type(exc).__name__)
         return None

@@ -2,8 +2,9 @@
 
 ``conf/fit.yaml`` registers :class:`CreateExperiment` under ``hydra.callbacks``; with
 ``skidbench fit -m model=a,b terrain=x,y hydra/launcher=joblib`` (or ``parallel``, ``cluster_slurm``,
-``cluster_ray``) every job then logs one run into the existing experiment, tagged with its model, terrain
-and the sweep id (the sweep folder's name), so concurrent jobs never race to create it.
+``ray``) every job then logs one run into the existing experiment, tagged with its model, terrain,
+the sweep id (the sweep folder's name) and its run key (:func:`run_key`), so concurrent jobs never race
+to create it and a retried job is logged once.
 """
 
 from __future__ import annotations
@@ -44,3 +45,16 @@ def sweep_id() -> str:
     if hc.mode is not None and hc.mode.name == "MULTIRUN":
         return Path(str(hc.sweep.dir)).name
     return Path(str(hc.run.dir)).name
+
+
+def run_key() -> str | None:
+    """The MLflow key of the current Hydra job: ``<sweep id>/<job number>``, the same for every attempt of
+    the job (a cluster's retry) and different for every other job; None outside a Hydra app."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        hc = HydraConfig.get()
+    except ValueError:
+        return None
+    num = hc.job.get("num") if hc.mode is not None and hc.mode.name == "MULTIRUN" else 0
+    return f"{sweep_id()}/{num if num is not None else 0}"

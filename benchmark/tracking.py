@@ -12,6 +12,11 @@ model failed ends ``FAILED`` with ``skidbench.failure_reason``. Every run also r
 started it (``skidbench.host``, ``skidbench.boot_id``, ``skidbench.pid``): a run left ``RUNNING`` by a
 process of this machine that is gone (killed, crashed) is marked ``KILLED``, with the reason, the next time
 a stage opens the store (:meth:`Tracker.reap_dead_runs`); runs of other machines are never touched.
+
+A job of a sweep tags its run with a key (``skidbench.run_key`` = ``<sweep id>/<job number>``, the same
+for every attempt of the job): :meth:`Tracker.claim_key`, called before the run starts, returns the run of
+an attempt that already FINISHED (log nothing more) and marks ``KILLED`` the runs a dead attempt left open,
+on any machine; so a job a cluster retried still yields exactly one FINISHED run.
 """
 
 from __future__ import annotations
@@ -47,7 +52,8 @@ TAG_MODEL_VERSION = "skidbench.model_version"
 TAG_PLUGIN = "skidbench.plugin_package"
 TAG_TERRAIN = "skidbench.terrain"
 TAG_DATASET = "skidbench.dataset"
-TAG_FINGERPRINT = "skidbench.dataset_fingerprint"
+TAG_FINGERPRINT = "skidbench.dataset_fingerprint"  # content of the split files a run read
+TAG_DATASET_ID = "skidbench.dataset_id"  # the dataset's identity (pipeline/dataset.py): runs never mix
 TAG_GIT = "skidbench.git_commit"
 TAG_STATUS = "skidbench.status"
 TAG_REASON = "skidbench.failure_reason"
@@ -55,6 +61,7 @@ TAG_PARENT = "mlflow.parentRunId"
 TAG_HOST = "skidbench.host"
 TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
+TAG_RUN_KEY = "skidbench.run_key"
 
 
 @functools.cache
@@ -150,8 +157,18 @@ def _safe_name(name: str) -> str:
 class Tracker:
     """An MLflow client bound to one store and one experiment (created if absent)."""
 
-    def __init__(self, uri: str, experiment: str, artifact_root: Path | None = None, timeout_s: float = 5.0):
+    def __init__(
+        self,
+        uri: str,
+        experiment: str,
+        artifact_root: Path | None = None,
+        timeout_s: float = 5.0,
+        dataset_id: str | None = None,
+    ):
+        """``dataset_id``: the dataset's fingerprint; every run started here is tagged with it and
+        :meth:`latest_parent` and compare's searches only see runs that carry it."""
         _quiet_mlflow_logs()
+        self.dataset_id = dataset_id
         from mlflow.tracking import MlflowClient
 
         self.uri = uri
@@ -190,6 +207,8 @@ class Tracker:
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
         t = {**process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
+        if self.dataset_id:
+            t[TAG_DATASET_ID] = self.dataset_id
         if parent_id:
             t[TAG_PARENT] = parent_id
         run = self.client.create_run(self.experiment_id, run_name=run_name, tags=t)
@@ -243,6 +262,10 @@ class Tracker:
         else:
             self.end(run_id, "FINISHED")
 
+    def dataset_filter(self) -> list[str]:
+        """The search clause that keeps this dataset's runs only (none without a dataset id)."""
+        return [f"tags.`{TAG_DATASET_ID}` = '{self.dataset_id}'"] if self.dataset_id else []
+
     def reap_dead_runs(self) -> list[str]:
         """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process,
         on this machine (same host name and boot id), is gone; returns their ids. A run of another
@@ -275,13 +298,43 @@ class Tracker:
             )  # fmt: skip
         return reaped
 
+    def claim_key(self, key: str) -> str | None:
+        """Before starting the run of one job of a sweep (``key``, the same for every attempt of it): the
+        id of a run of ``key`` that FINISHED (an earlier attempt completed: the job has nothing more to
+        log), else None, after marking ``KILLED`` each run of ``key`` left open and its open children (an
+        attempt whose worker or node died; the cluster retried the job). Open means RUNNING or SCHEDULED."""
+        quoted = key.replace("'", "")
+        runs = self.client.search_runs(
+            [self.experiment_id], filter_string=f"tags.`{TAG_RUN_KEY}` = '{quoted}'", max_results=100
+        )
+        done = [r for r in runs if r.info.status == "FINISHED"]
+        if done:
+            run_id = done[0].info.run_id
+            log.info("MLflow: job %s already has the finished run %s; not logged again", key, run_id)
+            return run_id
+        reason = f"superseded: job {key} was retried (this attempt's worker or node died)"
+        for run in runs:
+            if run.info.status not in ("RUNNING", "SCHEDULED"):
+                continue
+            children = self.client.search_runs(
+                [self.experiment_id],
+                filter_string=f"tags.`{TAG_PARENT}` = '{run.info.run_id}' AND attributes.status = 'RUNNING'",
+                max_results=1000,
+            )
+            for r in [*children, run]:
+                self.log(r.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
+                self.end(r.info.run_id, "KILLED")
+            log.warning("MLflow: run %s of job %s, left open by a dead attempt, marked KILLED",
+                        run.info.run_id, key)  # fmt: skip
+        return None
+
     # -- queries ----------------------------------------------------------------------------------
     def latest_parent(self) -> str | None:
         """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
         a warning and passed over), else the newest parent of any status, else None."""
         runs = self.client.search_runs(
             [self.experiment_id],
-            filter_string=f"tags.`{TAG_ROLE}` = 'parent'",
+            filter_string=" AND ".join([f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]),
             order_by=["attributes.start_time DESC"],
             max_results=50,
         )
@@ -303,12 +356,18 @@ class Tracker:
 def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
     node = cfg.mlflow
     uri = resolve_tracking_uri(cfg, layout)
+    dataset_id = None
+    if cfg.get("source") is not None:
+        from skidbench.pipeline.dataset import identity_from_cfg
+
+        dataset_id = identity_from_cfg(cfg).fingerprint
     try:
         tracker = Tracker(
             uri,
             str(node.experiment),
             artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
             timeout_s=float(node.get("timeout_s", 5.0)),
+            dataset_id=dataset_id,
         )
         tracker.reap_dead_runs()
         return tracker

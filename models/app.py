@@ -42,6 +42,10 @@ def main(cfg: DictConfig) -> None:
     split = str(cfg.split)
     layout = layout_from_cfg(cfg)
     # the stamp (skidbench.pipeline.cache): the split files fitted on, the model's config and version, robot
+    # and its calibration on this terrain (made now if missing or stale: a changed calibration refits)
+    from skidbench.pipeline.calibration import load_calibration
+
+    calibration = load_calibration(cfg, terrain)
     stamp = Stamp(layout.root / ".stamps" / "fit" / name / f"{terrain}.json", "fit")
     key = stamp.key(
         list_split_files(layout.splits, terrain, split),
@@ -51,13 +55,15 @@ def main(cfg: DictConfig) -> None:
             "robot": OmegaConf.to_container(cfg.robot, resolve=True),
             "terrain": terrain,
             "split": split,
+            "calibration": {
+                c: (calibration or {}).get(c, {}).get("value") for c in ("wheel_radius", "track_width")
+            },
         },
     )
     if bool(cfg.get("reuse", True)) and stamp.is_fresh(key):
         print(f"fit: {name}/{terrain} up to date, skipped ({layout.fit_file(name, terrain)})", flush=True)
         return
     res = fit_model(cfg, name, terrain, reuse=False, split=split)
-    stamp.record(key, [res.path])
     msg = (
         f"fit {name} on {terrain}: {res.n_train} rows, loss {res.fit_loss:.6g}, {res.fit_time_s:.2f} s, "
         f"params {res.model.params} -> {res.path}"
@@ -65,14 +71,21 @@ def main(cfg: DictConfig) -> None:
     log.info(msg)
     if bool(cfg.get("track", True)):
         log_fit_run(cfg, layout, name, terrain, res)
+    # recorded last: a job killed before its run finished is not "up to date" when retried
+    stamp.record(key, [res.path])
 
 
 def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
-    """One MLflow run for this fit (benchmark/tracking.py), tagged with model, terrain and the sweep id."""
+    """One MLflow run for this fit (benchmark/tracking.py), tagged with model, terrain, the sweep id and
+    the job's run key; a job retried after its run finished logs nothing more (returns that run's id)."""
     from skidbench.benchmark import tracking as trk
-    from skidbench.benchmark.sweep import TAG_SWEEP, sweep_id
+    from skidbench.benchmark.sweep import TAG_SWEEP, run_key, sweep_id
 
     tracker = trk.tracker_from_cfg(cfg, layout)
+    job_key = run_key()
+    done = tracker.claim_key(job_key) if job_key else None
+    if done:
+        return done
     tags = {
         trk.TAG_ROLE: "fit",
         trk.TAG_MODEL: name,
@@ -81,6 +94,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         trk.TAG_MODEL_VERSION: str(getattr(res.model, "version", "unknown")),
         TAG_SWEEP: sweep_id(),
         trk.TAG_GIT: trk.git_commit(),
+        **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
     }
     with tracker.run(f"fit {name}/{terrain}", tags) as run_id:
         params = {"model": name, "terrain": terrain, "split": str(cfg.split)}

@@ -41,6 +41,11 @@ class KinematicModel(ABC):
     version: ClassVar[str] = "1.0"
     #: split columns ``fit`` and ``predict`` read (``valid``, ``vx``, ``vy``, ``wz`` are implied for fit)
     required_columns: ClassVar[tuple[str, ...]] = ("cmd_wl", "cmd_wr")
+    #: the robot constants this model takes from the ``calibrate`` stage (effective values identified on
+    #: the terrain's Train split, ``skidbench.pipeline.calibration``); the others stay the spec sheet's,
+    #: because the model's own parameters absorb them. Default: the effective wheel radius only (what r
+    #: means in any kinematic model); a model whose geometry is the physical track keeps it.
+    calibrated_constants: ClassVar[tuple[str, ...]] = ("wheel_radius",)
 
     def __init__(self, robot: Robot, params: dict[str, Any] | None = None, **options: Any):
         self.robot = robot

@@ -23,11 +23,12 @@ from typing import Any
 
 from skidbench.pipeline.io import fingerprint_file, fingerprint_obj, write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
+from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.robot import Robot, robot_from_hydra
-from skidbench.pipeline.schema import list_split_files, read_split
+from skidbench.pipeline.schema import read_split
 
 from .base import KinematicModel, ModelError, concat_sequences
-from .registry import discover, get_model_class
+from .registry import DISCOVERED, discover, get_model_class
 
 FIT_SCHEMA = 1
 
@@ -48,8 +49,19 @@ FIT_HOOKS: list[Callable[[FitResult, Any, str, str], None]] = []
 
 
 def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
-    """``{"name", "params", "options"}`` for ``model_name`` (see module docstring)."""
+    """``{"name", "params", "options"}`` for ``model_name`` (see module docstring). An augmented spec
+    ``base+effect+...`` gets its base model's params and options as ``base_params``/``base_options``."""
     from omegaconf import OmegaConf
+
+    if model_name == DISCOVERED:
+        return {"name": model_name, "params": {}, "options": {}}
+    if "+" in model_name:
+        base = model_config(cfg, model_name.split("+")[0].strip())
+        return {
+            "name": model_name,
+            "params": {},
+            "options": {"base_params": base["params"], "base_options": base["options"]},
+        }
 
     node = cfg.get("model") if hasattr(cfg, "get") else None
     if node is not None and node.get("name") == model_name:
@@ -108,14 +120,50 @@ def build_model(cfg: Any, model_name: str, robot: Robot | None = None) -> Kinema
 
 
 def _training_files(cfg: Any, model_name: str, terrain: str, split: str) -> list[Path]:
-    root = layout_from_cfg(cfg).splits
-    files = list_split_files(root, terrain, split)
+    """The split files of the current manifest's ``terrain``/``split`` sequences (pipeline/layout.py)."""
+    layout = layout_from_cfg(cfg)
+    root = layout.splits
+    if not layout.manifest.is_file():
+        raise ModelError(
+            f"model {model_name}: no manifest {layout.manifest}; run `skidbench extract` and `split`"
+        )
+    manifest = Manifest.read(layout.manifest)
+    files = layout.split_files(manifest, terrain, split)
     if not files:
         raise ModelError(
-            f"model {model_name}: no split files in {root / terrain / split} (run `skidbench split` or "
-            f"check terrain={terrain})"
+            f"model {model_name}: no {split} sequences of terrain {terrain} in {layout.manifest} "
+            f"(terrains: {', '.join(manifest.terrains)}); check terrain={terrain}"
+        )
+    missing = [p for p in files if not p.is_file()]
+    if missing:
+        raise ModelError(
+            f"model {model_name}: no split files in {root / terrain / split} for {missing[0].stem}; "
+            "run `skidbench split`"
         )
     return files
+
+
+def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, dict[str, Any]]:
+    """The model spec a name stands for on ``terrain``: itself, except ``discovered``, which is the base
+    model and effects ``skidbench discover`` found for the terrain (``<ds>/discovery/discovery.json``;
+    the base model alone when it found none). Returns (spec, what the discovery said)."""
+    if model_name != DISCOVERED:
+        return model_name, {}
+    path = layout_from_cfg(cfg).discovery / "discovery.json"
+    if not path.is_file():
+        raise ModelError(
+            f"model {DISCOVERED}: {path} not found; run `skidbench discover` on this dataset first"
+        )
+    try:
+        doc = json.loads(path.read_text())
+        entry = doc["terrains"][terrain]
+        base, effects = str(entry["base_model"]), [str(e) for e in entry["effects"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ModelError(
+            f"model {DISCOVERED}: {path} has no discovery for terrain {terrain} ({type(exc).__name__}: {exc})"
+        ) from None
+    spec = "+".join([base, *effects])
+    return spec, {"discovery": str(path), "spec": spec, "message": entry.get("message", "")}
 
 
 def _fingerprint(cfg: Any, model_name: str, files: list[Path], robot: Robot, cls: type) -> str:
@@ -140,17 +188,20 @@ def fit_model(
 ) -> FitResult:
     """Fit ``model_name`` on ``terrain``'s Train split and write its JSON atomically. With ``reuse`` an
     existing fit whose inputs (split files, model config and version, robot) are unchanged is loaded."""
+    from skidbench.pipeline.calibration import robot_for_model
+
     layout = layout_from_cfg(cfg)
-    robot = robot_from_hydra(cfg.robot)
-    cls = get_model_class(model_name)
+    spec, resolved = resolve_model_spec(cfg, model_name, terrain)
+    cls = get_model_class(spec)
     files = _training_files(cfg, model_name, terrain, split)
-    fp = _fingerprint(cfg, model_name, files, robot, cls)
+    robot, constants = robot_for_model(cfg, cls, terrain)  # the calibrated constants the model takes
+    fp = _fingerprint(cfg, spec, files, robot, cls)
     path = layout.fit_file(model_name, terrain)
     if reuse and path.is_file():
         try:
             saved = json.loads(path.read_text())
             if saved.get("inputs_fingerprint") == fp:
-                model = _from_saved(cls, robot, saved, model_name)
+                model = _from_saved(cls, robot, saved, spec)
                 return FitResult(
                     model,
                     path,
@@ -162,7 +213,7 @@ def fit_model(
         except (OSError, ValueError, ModelError):
             pass  # unreadable or stale: refit
     table = concat_sequences([read_split(p) for p in files])
-    model = build_model(cfg, model_name, robot)
+    model = build_model(cfg, spec, robot)
     n_train = int(table["valid"].sum()) if "valid" in table else 0
     t0 = time.perf_counter()
     try:
@@ -175,7 +226,7 @@ def fit_model(
         ) from exc
     fit_time = time.perf_counter() - t0
     data = model.to_json() if hasattr(model, "to_json") else {"model": model_name, "params": model.params}
-    info = discover().get(model_name)
+    info = discover().get(spec.split("+")[0])
     data.update(
         {
             "schema": FIT_SCHEMA,
@@ -187,6 +238,8 @@ def fit_model(
             "n_train": n_train,
             "fit_time_s": fit_time,
             "fit_info": getattr(model, "fit_info_", {}),
+            "robot_constants": constants,
+            **({"resolved": resolved} if resolved else {}),
             "package": info.package if info else "?",
             "inputs_fingerprint": fp,
         }
@@ -221,4 +274,9 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
         saved = json.loads(path.read_text())
     except ValueError as exc:
         raise ModelError(f"model {model_name}: unreadable fit {path} ({exc})") from exc
-    return _from_saved(get_model_class(model_name), robot_from_hydra(cfg.robot), saved, model_name)
+    from skidbench.pipeline.calibration import robot_for_model
+
+    spec = str((saved.get("resolved") or {}).get("spec") or model_name)
+    cls = get_model_class(spec)
+    robot, _ = robot_for_model(cfg, cls, terrain)
+    return _from_saved(cls, robot, saved, spec)

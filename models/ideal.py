@@ -16,6 +16,7 @@ class IdealDifferentialDrive(KinematicModel):
     name = "ideal"
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
+    calibrated_constants = ("wheel_radius", "track_width")  # the calibrated kinematics, nothing fitted
 
     def fit(self, table: pd.DataFrame) -> IdealDifferentialDrive:
         self.check_columns(table, fitting=True)

@@ -17,6 +17,8 @@ class ExtendedDifferentialDrive(KinematicModel):
     name = "edd"
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
+    #: chi absorbs the track width (chi = B_eff / B_spec): the spec sheet's track keeps chi's meaning
+    calibrated_constants = ("wheel_radius",)
 
     def fit(self, table: pd.DataFrame) -> ExtendedDifferentialDrive:
         self.check_columns(table, fitting=True)
@@ -46,6 +48,7 @@ class FullLinear(KinematicModel):
     name = "full_linear"
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
+    calibrated_constants = ()  # A absorbs radius and track width (they only enter its unfitted default)
 
     def ideal_matrix(self) -> np.ndarray:
         r, B = self.robot.wheel_radius, self.robot.track_width

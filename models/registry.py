@@ -100,8 +100,28 @@ def available() -> list[str]:
     return [n for n, i in discover().items() if i.ok]
 
 
+#: the model name that stands, per terrain, for what ``skidbench discover`` found (base + effects in the
+#: dataset's discovery.json); resolved by ``skidbench.models.fitting.resolve_model_spec``
+DISCOVERED = "discovered"
+
+
+def is_model_spec(name: str) -> bool:
+    """True for an augmented-model spec ``base+effect+...`` or ``discovered`` (not entry points)."""
+    return name == DISCOVERED or "+" in str(name)
+
+
 def get_model_class(name: str) -> type[KinematicModel]:
-    """The model class registered as ``name``; ModelError (one line) if absent or broken."""
+    """The model class registered as ``name``, or the augmented model of a spec ``base+effect+...``
+    (``skidbench.models.augmented``); ModelError (one line) if absent or broken."""
+    if "+" in str(name):
+        from .augmented import augmented_class
+
+        return augmented_class(str(name))
+    if name == DISCOVERED:
+        raise ModelError(
+            f"model {DISCOVERED}: stands for a terrain's discovery result; it is resolved per terrain by "
+            "fit_model (run `skidbench discover` first)"
+        )
     infos = discover()
     info = infos.get(name)
     if info is None:

@@ -21,6 +21,7 @@ class RocBased(KinematicModel):
     name = "roc"
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
+    calibrated_constants = ("wheel_radius",)  # chi(R) absorbs the track width, as edd's chi
 
     def chi(self, wl: np.ndarray, wr: np.ndarray, b1: float, b2: float) -> np.ndarray:
         num = np.abs(self.robot.track_width / 2.0 * (wr + wl))

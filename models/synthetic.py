@@ -79,14 +79,17 @@ def write_train_splits(
     root, robot, terrains=("tile", "grass"), n: int = 600, chi: float = 1.5, dataset="sim-mini"
 ):
     """Write ``<root>/<dataset>/splits/<terrain>/train/<terrain>_train_0{0,1}.parquet`` (two sequences per
-    terrain, labelled by an extended differential drive with ``chi``). Returns ``root``."""
+    terrain, labelled by an extended differential drive with ``chi``) and the manifest that lists them
+    (``<root>/<dataset>/raw/manifest.json``: stages read their sequences from it). Returns ``root``."""
     from pathlib import Path
 
+    from skidbench.pipeline.manifest import Manifest, Sequence
     from skidbench.pipeline.schema import write_split
 
     from .linear import ExtendedDifferentialDrive
 
     root = Path(root)
+    seqs = []
     for k, terrain in enumerate(terrains):
         for i in range(2):
             tab = command_table(robot, n, seed=10 * k + i)
@@ -101,4 +104,7 @@ def write_train_splits(
                 "rate_hz": 30.0,
             }
             write_split(tab, root / dataset / "splits" / terrain / "train" / f"{seq}.parquet", meta)
+            seqs.append(Sequence(seq, terrain, "train", f"{seq}.bag"))
+    raw = root / dataset / "raw"
+    Manifest(seqs, robot=robot.name, base=raw).write(raw / "manifest.json")
     return root

@@ -36,6 +36,10 @@ class SourceError(SkidbenchError):
     """A raw source (amrl_txt, drive_df, ...) that cannot be read."""
 
 
+class ClusterError(SkidbenchError):
+    """A sweep that cannot run on its cluster (Ray not installed, the cluster unreachable, a job lost)."""
+
+
 def one_line(message: str) -> str:
     """Collapse a message to a single line (errors are printed as one line)."""
     return " ".join(str(message).split())

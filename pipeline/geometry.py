@@ -175,3 +175,39 @@ def se3_to_se2(T: np.ndarray) -> np.ndarray:
     """Project transforms (..., 4, 4) to planar poses (..., 3): x, y and the yaw of the x axis."""
     T = np.asarray(T, dtype=float)
     return np.stack([T[..., 0, 3], T[..., 1, 3], np.arctan2(T[..., 1, 0], T[..., 0, 0])], axis=-1)
+
+
+def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products ``a b`` of quaternions (..., 4) in (qx, qy, qz, qw) order (rotation ``b`` first,
+    then ``a``, as for matrices). Broadcasts."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
+def quaternion_slerp(q0: np.ndarray, q1: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """Spherical linear interpolation of unit quaternions (..., 4) (qx, qy, qz, qw) at fractions (...)
+    (0 gives ``q0``, 1 gives ``q1``), along the shorter arc: ``q0 exp(frac log(q0^-1 q1))``.
+
+    The relative rotation's half angle comes from ``atan2``: no precision is lost for the small
+    rotations between consecutive samples (``arccos`` of a dot product would lose half the digits)."""
+    q0 = np.asarray(q0, dtype=float)
+    frac = np.asarray(frac, dtype=float)
+    conj = q0 * np.array([-1.0, -1.0, -1.0, 1.0])
+    rel = quaternion_multiply(conj, q1)
+    rel = np.where(rel[..., 3:4] < 0, -rel, rel)  # the shorter arc
+    s = np.linalg.norm(rel[..., :3], axis=-1)
+    half = np.arctan2(s, rel[..., 3])
+    scale = np.where(s > 0, np.sin(frac * half) / np.where(s > 0, s, 1.0), frac)
+    step = np.concatenate([rel[..., :3] * scale[..., None], np.cos(frac * half)[..., None]], axis=-1)
+    return quaternion_multiply(q0, step)

@@ -2,19 +2,32 @@
 ``SKIDBENCH_OUT``), one folder per dataset under it, one subfolder per stage.
 
     <out_root>/mlflow.db, mlartifacts/           MLflow tracking store (shared by all datasets)
+    <out_root>/<dataset>/dataset.json            the dataset's identity (pipeline/dataset.py)
     <out_root>/<dataset>/raw/                    simulate output: manifest.json, bags/
     <out_root>/<dataset>/extracted/<seq>/        extract output: <topic_key>.parquet, manifest
     <out_root>/<dataset>/groundtruth/            <seq>.tum, <seq>.json, loop_closure.json
     <out_root>/<dataset>/splits/<terrain>/<split>/<seq>.parquet, card.md
+    <out_root>/<dataset>/calibration/<terrain>.json   calibrate output: effective wheel radius, track width
     <out_root>/<dataset>/fits/<model>/<terrain>.json
     <out_root>/<dataset>/eval/, reports/, discovery/
+
+Which terrains and sequences a stage works on comes from the current manifest (``raw/manifest.json``),
+never from the folders that happen to exist: :meth:`Layout.split_files` lists the split files of the
+manifest's sequences, and :func:`prune_stale` removes every output of a sequence (or terrain) the
+manifest no longer holds.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .manifest import Manifest
 
 DEFAULT_OUT_ROOT = "outputs"
 
@@ -34,6 +47,10 @@ class Layout:
     @property
     def root(self) -> Path:
         return self.out_root / self.dataset
+
+    @property
+    def dataset_json(self) -> Path:
+        return self.root / "dataset.json"
 
     @property
     def raw(self) -> Path:
@@ -58,6 +75,10 @@ class Layout:
     @property
     def fits(self) -> Path:
         return self.root / "fits"
+
+    @property
+    def calibration(self) -> Path:
+        return self.root / "calibration"
 
     @property
     def eval(self) -> Path:
@@ -85,6 +106,113 @@ class Layout:
     def fit_file(self, model: str, terrain: str) -> Path:
         return self.fits / model / f"{terrain}.json"
 
+    def calibration_file(self, terrain: str) -> Path:
+        return self.calibration / f"{terrain}.json"
+
+    def split_files(
+        self, manifest: Manifest, terrain: str | None = None, split: str | None = None
+    ) -> list[Path]:
+        """The split files of the manifest's train/cv/ld sequences (optionally one terrain and/or split),
+        sorted, whether written yet or not (callers check)."""
+        from .manifest import SPLITS
+
+        return sorted(
+            self.split_file(s.terrain, s.category, s.name)
+            for s in manifest.sequences
+            if s.category in SPLITS and terrain in (None, s.terrain) and split in (None, s.category)
+        )
+
+
+def split_terrains(manifest: Manifest) -> list[str]:
+    """The terrains with at least one train/cv/ld sequence in the manifest, sorted."""
+    from .manifest import SPLITS
+
+    return sorted({s.terrain for s in manifest.sequences if s.category in SPLITS})
+
+
+def remove_atomic(path: Path) -> None:
+    """Remove a file, or a folder atomically (renamed aside in one step, then deleted). Gone already (a
+    concurrent stage of a sweep pruned it first) is fine."""
+    with contextlib.suppress(FileNotFoundError):
+        if path.is_dir() and not path.is_symlink():
+            aside = path.with_name(f".tmp-stale-{path.name}.{os.getpid()}")
+            os.replace(path, aside)
+            shutil.rmtree(aside, ignore_errors=True)
+        else:
+            path.unlink()
+
+
+def _remove_empty_dirs(top: Path) -> None:
+    """Remove the empty folders under ``top`` (deepest first); ``top`` itself is kept."""
+    if not top.is_dir():
+        return
+    for d in sorted((p for p in top.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only succeeds when empty
+
+
+def prune_stale(layout: Layout, manifest: Manifest) -> list[Path]:
+    """Remove the outputs of ``layout``'s dataset that belong to no sequence of ``manifest``: extracted
+    folders, ground-truth files, split files (and the folders left empty), fits of terrains it lacks.
+    Each removal is atomic (a file unlink or a folder rename); returns what was removed. Only this
+    dataset's folder is touched."""
+    names = {s.name for s in manifest.sequences}
+    removed: list[Path] = []
+    if layout.extracted.is_dir():
+        for d in layout.extracted.iterdir():
+            if d.is_dir() and (d.name not in names or d.name.startswith(".tmp-stale-")):
+                removed.append(d)
+    if layout.groundtruth.is_dir():
+        for tum in layout.groundtruth.glob("*.tum"):
+            if tum.stem not in names:
+                removed += [tum, *[p for p in [tum.with_suffix(".json")] if p.is_file()]]
+    keep = set(layout.split_files(manifest))
+    if layout.splits.is_dir():
+        removed += [
+            p for p in layout.splits.glob("*/*/*.parquet") if p not in keep and not p.name.startswith(".")
+        ]
+    terrains = set(split_terrains(manifest))
+    if layout.fits.is_dir():
+        # fits/<model>/<terrain>[.<suffix>].json; names starting with "_" or "." are not per terrain
+        removed += [
+            p for p in layout.fits.glob("*/*.json")
+            if p.name.split(".")[0] not in terrains and not p.name.startswith(("_", "."))
+        ]  # fmt: skip
+    if layout.calibration.is_dir():
+        removed += [p for p in layout.calibration.glob("*.json") if p.stem not in terrains]
+    for p in removed:
+        remove_atomic(p)
+    _remove_empty_dirs(layout.splits)
+    _remove_empty_dirs(layout.fits)
+    return removed
+
 
 def layout_from_cfg(cfg) -> Layout:
     return Layout(Path(cfg.out_root), str(cfg.dataset))
+
+
+def _dataset_name(prefix, _root_):
+    from .dataset import auto_name
+
+    return auto_name(str(prefix), _root_.source)
+
+
+def _sim_dataset_name(scale, seed):
+    from .dataset import sim_name
+
+    return sim_name(str(scale), seed)
+
+
+def register_resolvers() -> None:
+    """The config's dataset names (conf/source/*.yaml): ``${skidbench.dataset:<prefix>}`` and
+    ``${skidbench.sim_dataset:<scale>,<seed>}`` (pipeline/dataset.py). Registered on import: every module
+    that reads ``cfg.dataset`` imports this one."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("skidbench.dataset"):
+        OmegaConf.register_new_resolver("skidbench.dataset", _dataset_name)
+    if not OmegaConf.has_resolver("skidbench.sim_dataset"):
+        OmegaConf.register_new_resolver("skidbench.sim_dataset", _sim_dataset_name)
+
+
+register_resolvers()

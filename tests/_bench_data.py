@@ -55,9 +55,13 @@ def write_splits(
     counts=None,
     duration_s: float = 30.0,
 ) -> None:
-    """<ds_root>/splits/<terrain>/<split>/<seq>.parquet with a few synthetic sequences."""
+    """<ds_root>/splits/<terrain>/<split>/<seq>.parquet with a few synthetic sequences, and the manifest
+    that lists them (<ds_root>/raw/manifest.json: stages take their sequences from it)."""
+    from skidbench.pipeline.manifest import Manifest, Sequence
+
     counts = counts or {"train": 2, "cv": 1, "ld": 1}
     seed = 0
+    seqs = []
     for terrain in terrains:
         for split, n in counts.items():
             for k in range(n):
@@ -73,6 +77,8 @@ def write_splits(
                     "rate_hz": 30.0,
                 }
                 write_split(df, ds_root / "splits" / terrain / split / f"{name}.parquet", meta)
+                seqs.append(Sequence(name, terrain, split, f"bags/{name}.bag"))
+    Manifest(seqs, base=ds_root / "raw").write(ds_root / "raw" / "manifest.json")
 
 
 class ChiModel(KinematicModel):

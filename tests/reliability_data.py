@@ -54,6 +54,15 @@ def skidbench(
     return proc
 
 
+def copy_splits(micro_root: Path, root: Path) -> None:
+    """The micro dataset's split files and its manifest (which lists them) into another output root."""
+    import shutil
+
+    shutil.copytree(micro_root / DATASET / "splits", root / DATASET / "splits")
+    (root / DATASET / "raw").mkdir(parents=True)
+    shutil.copy(micro_root / DATASET / "raw" / "manifest.json", root / DATASET / "raw" / "manifest.json")
+
+
 def build(out_root: Path, stages=PIPELINE) -> Path:
     for s in stages:
         skidbench(s, out_root)

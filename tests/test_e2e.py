@@ -1,5 +1,6 @@
 """End to end through the real CLI on a tiny simulated dataset: simulate -> extract -> groundtruth ->
-split -> evaluate -> compare in a tmp output root; the MLflow runs and metrics exist and are finite."""
+split -> calibrate -> evaluate -> compare in a tmp output root; the MLflow runs and metrics exist and are
+finite."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ def _skidbench(out: Path, *args: str) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory):
     out = tmp_path_factory.mktemp("e2e")
-    for stage in ("simulate", "extract", "groundtruth", "split"):
+    for stage in ("simulate", "extract", "groundtruth", "split", "calibrate"):
         _skidbench(out, stage, "scale=tiny")
     ev = _skidbench(out, "evaluate", "scale=tiny", f"terrains=[{TERRAIN}]")
     cmp_ = _skidbench(out, "compare", "scale=tiny", "figures.fig7_windows=2")
@@ -64,6 +65,23 @@ def test_every_model_has_a_finished_run_with_finite_metrics(pipeline):
             assert math.isfinite(run.data.metrics[key]), (name, key)
         assert run.data.tags["skidbench.plugin_package"].startswith("skidbench")
     assert parent.info.run_id in ev.stdout
+
+
+def test_models_are_fitted_with_the_calibration_of_their_terrain(pipeline):
+    import json
+
+    out, _, _ = pipeline
+    doc = json.loads((out / "sim-tiny" / "calibration" / f"{TERRAIN}.json").read_text())
+    assert doc["source"] == "encoders" and doc["wheel_radius"]["identified"]
+    ideal = json.loads((out / "sim-tiny" / "fits" / "ideal" / f"{TERRAIN}.json").read_text())
+    friction = json.loads((out / "sim-tiny" / "fits" / "friction" / f"{TERRAIN}.json").read_text())
+    for c in ("wheel_radius", "track_width"):
+        if doc[c]["identified"]:
+            assert ideal["robot_constants"][c] == {
+                "value": doc[c]["value"], "spec": doc["spec"][c], "source": "calibrated"
+            }  # fmt: skip
+    # the friction model's wheel positions are physical: it keeps the spec sheet's track width
+    assert friction["robot_constants"]["track_width"]["value"] == doc["spec"]["track_width"]
 
 
 def test_compare_writes_the_report_with_figures_and_prints_the_leaderboard(pipeline):

@@ -141,6 +141,6 @@ def test_the_cli_prints_one_line_and_exits_2(tmp_path):
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert lines == [
-        f"skidbench extract: error: {path}: not a bag (expected a ROS1 .bag file or a ROS2 "
-        "bag folder with metadata.yaml)"
+        f"skidbench extract: error: {path}: not a bag (expected a ROS1 .bag file, a ROS2 .mcap or .db3 "
+        "file, or a ROS2 bag folder with metadata.yaml)"
     ]

@@ -121,7 +121,7 @@ def test_every_value_of_every_topic_survives_extraction(tmp_path, fmt, cmd_type)
     assert info["topics"]["cmd_vel"]["type"] == cmd_type
     assert info["topics"]["imu"]["count"] == len(expected["/imu/data"])
     assert info["terrain"] == "tile" and info["category"] == "train"
-    assert sorted(info["absent"]) == ["right_image", "right_info"]
+    assert sorted(info["absent"]) == ["right_image", "right_info", "tf", "tf_static"]
     assert not list(seq.glob(".tmp-*"))
 
 

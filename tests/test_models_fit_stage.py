@@ -47,7 +47,7 @@ def test_fit_on_a_split_without_the_needed_columns_names_the_model(tmp_path, jac
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     cfg = compose(tmp_path, ["terrain=tile"])
-    with pytest.raises(ModelError, match="model edd: no split files"):
+    with pytest.raises(ModelError, match="no train sequences of terrain sand"):
         fit_model(cfg, "edd", "sand")
     with pytest.raises(ModelError, match="model nope: not installed"):
         fit_model(cfg, "nope", "tile")

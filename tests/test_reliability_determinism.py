@@ -3,11 +3,9 @@ runs again in a fresh output root (fits recomputed, a new MLflow store)."""
 
 from __future__ import annotations
 
-import shutil
-
 from hydra import compose, initialize_config_module
 from mlflow.tracking import MlflowClient
-from reliability_data import DATASET, SCALE
+from reliability_data import SCALE, copy_splits
 
 TIMINGS = {"fit_time_s", "predict_time_s"}  # wall-clock: the only metrics allowed to differ
 
@@ -15,7 +13,7 @@ TIMINGS = {"fit_time_s", "predict_time_s"}  # wall-clock: the only metrics allow
 def _evaluate(micro_root, root):
     from skidbench.benchmark.evaluate import run_benchmark
 
-    shutil.copytree(micro_root / DATASET / "splits", root / DATASET / "splits")
+    copy_splits(micro_root, root)
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose(
             "evaluate", overrides=[f"out_root={root}", *SCALE, "models=[ideal,edd]", "log_figures=false"]
@@ -41,7 +39,7 @@ def test_evaluate_twice_in_fresh_roots_gives_identical_mlflow_metrics(micro_root
 def test_evaluate_again_with_nothing_changed_is_skipped_and_reprints(micro_root, tmp_path):
     from reliability_data import skidbench
 
-    shutil.copytree(micro_root / DATASET / "splits", tmp_path / DATASET / "splits")
+    copy_splits(micro_root, tmp_path)
     first = skidbench("evaluate", tmp_path)
     assert "skipped" not in first.stdout
     again = skidbench("evaluate", tmp_path)

@@ -13,7 +13,7 @@ import signal
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-from reliability_data import DATASET, STAGE_ARGS, skidbench, snapshot, tmp_files
+from reliability_data import DATASET, STAGE_ARGS, copy_splits, skidbench, snapshot, tmp_files
 
 # stage -> (outputs deleted before the killed run, path fragment of the write that is killed, n-th write)
 KILLS = {
@@ -126,14 +126,13 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
     """SIGKILL during the second (model, terrain) of an evaluate: the next stage that opens the store marks
     the runs the dead process left RUNNING as KILLED, with the reason; the re-run finishes every run, and
     compare reads the finished evaluation, not the killed one."""
-    import shutil
 
     from mlflow import MlflowClient
 
     from skidbench.benchmark import tracking as trk
 
     root = tmp_path / "out"
-    shutil.copytree(micro_root / DATASET / "splits", root / DATASET / "splits")
+    copy_splits(micro_root, root)
     killed = skidbench("evaluate", root, env={"SKIDBENCH_FAULT": "kill@2:.params.json"}, check=False)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
     client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")

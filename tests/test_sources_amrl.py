@@ -23,6 +23,13 @@ def config(stage: str, out: Path, root: Path, *extra: str):
         return compose(stage, [f"out_root={out}", "source=amrl_txt", f"source.root={root}", *extra])
 
 
+def home(out: Path, root: Path) -> Path:
+    """The dataset's folder: named from the root (pipeline/dataset.py)."""
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    return layout_from_cfg(config("split", out, root)).root
+
+
 def run_pipeline(out: Path, root: Path):
     from skidbench.pipeline.extract.app import run as extract
     from skidbench.pipeline.groundtruth.app import run as groundtruth
@@ -36,10 +43,10 @@ def run_pipeline(out: Path, root: Path):
 def test_amrl_fixture_goes_to_split_files_with_the_true_body_velocities(tmp_path):
     files = run_pipeline(tmp_path, FIXTURE)
     assert len(files) == 6
-    assert sorted(p.relative_to(tmp_path / "amrl" / "splits").parts[:2] for p in files) == sorted(
+    assert sorted(p.relative_to(home(tmp_path, FIXTURE) / "splits").parts[:2] for p in files) == sorted(
         (t, s) for t in ("grass", "tile") for s in ("cv", "ld", "train")
     )
-    df, meta = read_split(tmp_path / "amrl" / "splits" / "tile" / "train" / "tile_train_01.parquet")
+    df, meta = read_split(home(tmp_path, FIXTURE) / "splits" / "tile" / "train" / "tile_train_01.parquet")
     assert list(df.columns) == list(SPLIT_COLUMNS)
     assert meta["terrain"] == "tile" and meta["split"] == "train" and meta["robot"]["name"] == "jackal"
     assert set(meta["sources"]) == {"groundtruth", "cmd"} and all(
@@ -54,7 +61,7 @@ def test_amrl_fixture_goes_to_split_files_with_the_true_body_velocities(tmp_path
     np.testing.assert_allclose(inner[["cmd_wl", "cmd_wr"]].to_numpy(), [[wl, wr]] * len(inner))
     assert df["enc_wl"].isna().all()
     assert np.allclose(np.diff(df["t"]), 1 / 30)
-    card = (tmp_path / "amrl" / "splits" / "card.md").read_text()
+    card = (home(tmp_path, FIXTURE) / "splits" / "card.md").read_text()
     assert "Train1" in card and "| train | tile |" in card
 
 
@@ -67,7 +74,7 @@ def test_loc_shorter_than_cmd_is_kept_and_logged_split_uses_the_overlap(tmp_path
     with caplog.at_level(logging.WARNING):
         run_pipeline(tmp_path / "out", root)
     assert "is shorter than" in caplog.text
-    df, _ = read_split(list_split_files(tmp_path / "out" / "amrl" / "splits", "tile", "train")[0])
+    df, _ = read_split(list_split_files(home(tmp_path / "out", root) / "splits", "tile", "train")[0])
     assert df["t"].iloc[-1] < 4.1
 
 

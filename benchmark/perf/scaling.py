@@ -42,12 +42,17 @@ def builtin_models() -> list[str]:
     return [n for n, i in discover().items() if i.ok and i.package == BUILTIN_PACKAGE]
 
 
-def write_splits(root: Path, robot, dataset: str, n_seq: int, seq_rows: int, seed: int = 0) -> None:
-    """Train and CV split files (``n_seq`` sequences each) of one terrain ``tile``."""
+def write_splits(
+    root: Path, robot, dataset: str, n_seq: int, seq_rows: int, seed: int = 0, terrain: str = "tile"
+) -> None:
+    """Train and CV split files (``n_seq`` sequences each) of one terrain, and the manifest that lists
+    them with any other terrain already written there (stages read their sequences from it)."""
     from skidbench.models.linear import ExtendedDifferentialDrive
     from skidbench.models.synthetic import command_table, label_with
+    from skidbench.pipeline.manifest import Manifest, Sequence
     from skidbench.pipeline.schema import write_split
 
+    seqs = []
     truth = ExtendedDifferentialDrive(robot, {"chi": 1.5})
     rng = np.random.default_rng(seed)
     for split in ("train", "cv"):
@@ -58,16 +63,21 @@ def write_splits(root: Path, robot, dataset: str, n_seq: int, seq_rows: int, see
             vel[:, 0] += rng.normal(0, 0.02, len(tab))
             vel[:, 2] += rng.normal(0, 0.02, len(tab))
             tab = label_with(tab, vel)
-            seq = f"tile_{split}_{i:02d}"
+            seq = f"{terrain}_{split}_{i:02d}"
             meta = {
                 "sequence": seq,
-                "terrain": "tile",
+                "terrain": terrain,
                 "split": split,
                 "robot": robot.name,
                 "sources": {},
                 "rate_hz": 30.0,
             }
-            write_split(tab, root / dataset / "splits" / "tile" / split / f"{seq}.parquet", meta)
+            write_split(tab, root / dataset / "splits" / terrain / split / f"{seq}.parquet", meta)
+            seqs.append(Sequence(seq, terrain, split, f"{seq}.bag"))
+    manifest_path = root / dataset / "raw" / "manifest.json"
+    if manifest_path.is_file():  # other terrains written before into the same dataset stay listed
+        seqs = [s for s in Manifest.read(manifest_path).sequences if s.terrain != terrain] + seqs
+    Manifest(seqs, robot=robot.name, base=root / dataset / "raw").write(manifest_path)
 
 
 def _compose(out_root: Path, dataset: str):
@@ -80,15 +90,15 @@ def time_model(cfg, name: str, repeats: int, eval_params: dict | None = None) ->
     """Best-of CPU and wall seconds of fit (``model.fit`` on the Train table, as ``fit_model`` calls it)
     and evaluation (predict + score the CV split) of the model ``eval_params`` (a ``to_json()``; default
     the model just fitted); ``"fitted"``: the fitted model's ``to_json()``."""
-    from skidbench.benchmark.evaluate import load_test_split, predict_split, score_split
+    from skidbench.benchmark.evaluate import load_test_split, predict_split, score_split, split_files
     from skidbench.benchmark.horizon import HorizonConfig
     from skidbench.models.base import concat_sequences
     from skidbench.models.fitting import build_model
     from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.schema import list_split_files, read_split
+    from skidbench.pipeline.schema import read_split
 
     layout = layout_from_cfg(cfg)
-    train = concat_sequences([read_split(p) for p in list_split_files(layout.splits, "tile", "train")])
+    train = concat_sequences([read_split(p) for p in split_files(layout, "tile", "train")])
     seqs = load_test_split(layout, "tile", "cv")
     best: dict[str, Any] = {"fit_cpu": np.inf, "fit_wall": np.inf, "eval_cpu": np.inf, "eval_wall": np.inf}
     for _ in range(repeats):

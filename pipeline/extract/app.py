@@ -18,12 +18,14 @@ from tqdm import tqdm
 
 from ..cli import stage
 from ..errors import ConfigError
-from ..layout import Layout, layout_from_cfg
+from ..layout import Layout, layout_from_cfg, prune_stale
 from ..manifest import Manifest
 from .bag import ExtractOptions, extract_bag
+from .inspect import auto_specs
 from .reader import bag_format, discover_sequences, topic_specs
 
 log = logging.getLogger("skidbench.extract")
+AUTO = "auto"  # source.topics=auto: each bag's topics chosen by `skidbench inspect`'s proposal
 
 
 def options_from_cfg(cfg: DictConfig) -> ExtractOptions:
@@ -46,8 +48,12 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
     every source.
     """
     source = OmegaConf.to_container(cfg.source, resolve=True)
-    specs = topic_specs(source.get("topics") or {})
-    if not specs:
+    topics = source.get("topics") or {}
+    auto = topics == AUTO
+    if isinstance(topics, str) and not auto:
+        raise ConfigError(f"source.topics={topics!r}: expected {AUTO!r} or a mapping of topic keys")
+    specs = None if auto else topic_specs(topics)
+    if not auto and not specs:
         raise ConfigError("source.topics is empty: nothing to extract")
     opts = options_from_cfg(cfg)
     manifest, found = discover_sequences(source)
@@ -56,11 +62,16 @@ def extract_bags(cfg: DictConfig, layout: Layout) -> list[dict[str, Any]]:
         formats = {bag_format(Path(s.path)) for s in seqs}
         fmt = formats.pop() if len(formats) == 1 else "mixed"
         Manifest(seqs, format=fmt or "ros1", base=layout.raw).write(layout.manifest)
+    elif manifest.base.resolve() != layout.raw.resolve():  # a user's manifest.json: the current one is ours
+        seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
+        Manifest(seqs, manifest.robot, manifest.format, base=layout.raw).write(layout.manifest)
     records = []
     seqs = manifest.sequences
     for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):
         meta = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category}
-        info = extract_bag(manifest.resolve(seq), layout.extracted / seq.name, specs, opts, meta)
+        bag = manifest.resolve(seq)
+        seq_specs = auto_specs(bag, opts.typestores) if auto else specs
+        info = extract_bag(bag, layout.extracted / seq.name, seq_specs, opts, meta)
         verb = "up to date" if info.get("skipped") else "extracted"
         counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
         log.info("%s %s: %s", verb, seq.name, counts)
@@ -76,12 +87,22 @@ def run(cfg: DictConfig) -> Any:
     layout = layout_from_cfg(cfg)
     kind = str(cfg.source.get("kind", "bag"))
     if kind == "bag":
-        return extract_bags(cfg, layout)
-    try:
-        module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
-    except ImportError as exc:
-        raise ConfigError(f"source.kind={kind!r}: no reader for this kind of source ({exc})") from exc
-    return module.extract_source(cfg, layout)
+        records = extract_bags(cfg, layout)
+    else:
+        try:
+            module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
+        except ImportError as exc:
+            raise ConfigError(f"source.kind={kind!r}: no reader for this kind of source ({exc})") from exc
+        records = module.extract_source(cfg, layout)
+    # the manifest just written is the current one: outputs of sequences it lacks go, and the identity
+    # record (pipeline/dataset.py) lists its terrains
+    from ..dataset import identity_from_cfg, record
+
+    removed = prune_stale(layout, Manifest.read(layout.manifest))
+    if removed:
+        log.info("extract: removed %d output(s) of sequences no longer in %s", len(removed), layout.manifest)
+    record(layout, identity_from_cfg(cfg))
+    return records
 
 
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="extract")

@@ -21,7 +21,16 @@ from tqdm import tqdm
 from ..cache import Stamp
 from ..errors import ConfigError
 from ..io import write_json_atomic
-from .convert import CONVERTERS, IMAGE_MODES, image_row, image_suffix, schema_for
+from .convert import (
+    CONVERTERS,
+    IMAGE_MODES,
+    TF_MESSAGE,
+    image_file,
+    image_row,
+    is_static_tf_topic,
+    schema_for,
+    tf_rows,
+)
 from .reader import TopicSpec, iter_messages, open_bag, select_connections
 from .writer import SequenceWriter, TableSink
 
@@ -70,10 +79,19 @@ def _gc_paused() -> Iterator[None]:
 
 
 def _handler(
-    sink: TableSink, msgtype: str, key: str, out: SequenceWriter, images: str
+    sink: TableSink, msgtype: str, key: str, out: SequenceWriter, images: str, topic: str = ""
 ) -> Callable[[Any, int], None]:
     """``handle(msg, bag_time_ns)``: the hot loop's per-message work for one topic, lookups hoisted."""
     buffer, limit, flush = sink.buffer, sink.batch_rows, sink.flush
+    if msgtype == TF_MESSAGE:  # several rows per message (one per transform)
+        static = is_static_tf_topic(topic)
+
+        def handle_tf(msg: Any, bag_time_ns: int) -> None:
+            buffer.extend(tf_rows(msg, bag_time_ns, static))
+            if len(buffer) >= limit:
+                flush()
+
+        return handle_tf
     if msgtype in CONVERTERS:
         convert = CONVERTERS[msgtype].row
 
@@ -89,7 +107,8 @@ def _handler(
         index = next(count)
         sink.append(image_row(msg, bag_time_ns, index, images), nbytes=len(msg.data))
         if images == "files":
-            out.image_path(key, f"{index:06d}{image_suffix(msg.format)}").write_bytes(msg.data)
+            suffix, data = image_file(msg)
+            out.image_path(key, f"{index:06d}{suffix}").write_bytes(data)
 
     return handle_image
 
@@ -124,7 +143,8 @@ def extract_bag(
         with SequenceWriter(out_dir, opts.batch_rows, opts.batch_bytes) as out:
             sinks = {key: out.table(key, schemas[key]) for key in selected}
             handlers = {
-                key: _handler(sinks[key], spec_of[key].msgtype, key, out, opts.images) for key in selected
+                key: _handler(sinks[key], spec_of[key].msgtype, key, out, opts.images, spec_of[key].topic)
+                for key in selected
             }
             with tqdm(
                 total=total, unit="msg", desc=out_dir.name, leave=False, disable=not opts.progress

@@ -196,20 +196,40 @@ CONVERTERS: dict[str, Converter] = {
 }
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+RAW_IMAGE = "sensor_msgs/msg/Image"
+IMAGE_TYPES = (COMPRESSED_IMAGE, RAW_IMAGE)
 _IMAGE_SCHEMA = _schema(("frame_id", STR), ("format", STR), ("index", pa.int64()), ("nbytes", pa.int64()))
+# sensor_msgs/Image: the pixel layout (``step`` bytes per row, maybe padded; byte order of 16-bit data)
+_RAW_IMAGE_SCHEMA = _schema(
+    ("frame_id", STR),
+    ("encoding", STR),
+    ("width", pa.int64()),
+    ("height", pa.int64()),
+    ("step", pa.int64()),
+    ("is_bigendian", pa.bool_()),
+    ("index", pa.int64()),
+    ("nbytes", pa.int64()),
+)
 
 
-def image_schema(mode: str) -> pa.Schema:
-    """CompressedImage columns; ``inline`` adds the image bytes as a ``data`` (binary) column."""
+def image_schema(mode: str, msgtype: str = COMPRESSED_IMAGE) -> pa.Schema:
+    """CompressedImage or Image columns; ``inline`` adds the message's bytes as a ``data`` (binary)
+    column (an Image's raw pixel rows, ``step`` bytes each)."""
+    schema = _RAW_IMAGE_SCHEMA if msgtype == RAW_IMAGE else _IMAGE_SCHEMA
     if mode == "inline":
-        return _IMAGE_SCHEMA.append(pa.field("data", pa.binary()))
-    return _IMAGE_SCHEMA
+        return schema.append(pa.field("data", pa.binary()))
+    return schema
 
 
 def image_row(msg: Any, bag_time_ns: int, index: int, mode: str) -> tuple:
-    """One CompressedImage row; ``index`` is the message's ordinal on its topic."""
+    """One CompressedImage or Image row; ``index`` is the message's ordinal on its topic."""
     data = msg.data
-    row = (_stamp(msg, bag_time_ns), bag_time_ns, msg.header.frame_id, msg.format, index, len(data))
+    head = (_stamp(msg, bag_time_ns), bag_time_ns, msg.header.frame_id)
+    if hasattr(msg, "format"):
+        row = (*head, msg.format, index, len(data))
+    else:
+        layout = (msg.encoding, msg.width, msg.height, msg.step, bool(msg.is_bigendian))
+        row = (*head, *layout, index, len(data))
     return (*row, data.tobytes()) if mode == "inline" else row
 
 
@@ -218,13 +238,57 @@ def image_suffix(fmt: str) -> str:
     return ".png" if "png" in fmt.lower() else ".jpg"
 
 
-SUPPORTED = sorted([*CONVERTERS, COMPRESSED_IMAGE])
+def image_file(msg: Any) -> tuple[str, bytes]:
+    """``(suffix, bytes)`` of the file ``extract.images=files`` writes for one image message: a
+    CompressedImage's own bytes; an Image losslessly as PNG when its encoding is one
+    :mod:`.images` decodes (colour as a viewable colour PNG, mono and Bayer as one channel, 16-bit
+    as 16-bit), else its raw pixel rows (``.raw``; the table's encoding, width, height and step
+    describe them)."""
+    if hasattr(msg, "format"):
+        return image_suffix(msg.format), msg.data.tobytes()
+    from .images import png_bytes  # OpenCV only where images are written as files
+
+    png = png_bytes(msg)
+    return (".png", png) if png is not None else (".raw", msg.data.tobytes())
+
+
+# tf2_msgs/TFMessage: one row per transform (an edge of the TF tree); ``static`` is True on the
+# /tf_static topic (latched transforms that hold at every time), see :func:`tf_rows`.
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_SCHEMA = _schema(("parent", STR), ("child", STR), *_floats_named(POSE), ("static", pa.bool_()))
+
+
+def is_static_tf_topic(topic: str) -> bool:
+    """tf2's convention: static transforms are published on ``/tf_static`` (or ``<ns>/tf_static``)."""
+    return topic.rstrip("/").rsplit("/", 1)[-1] == "tf_static"
+
+
+def tf_rows(msg: Any, bag_time_ns: int, static: bool) -> list[tuple]:
+    """One TFMessage -> a row per TransformStamped (stamp = its header stamp, or the bag time when
+    zero, as static transforms often carry). Frame names are kept as published."""
+    return [
+        (
+            _stamp(tf, bag_time_ns),
+            bag_time_ns,
+            tf.header.frame_id,
+            tf.child_frame_id,
+            *_vec(tf.transform.translation),
+            *_quat(tf.transform.rotation),
+            static,
+        )
+        for tf in msg.transforms
+    ]
+
+
+SUPPORTED = sorted([*CONVERTERS, *IMAGE_TYPES, TF_MESSAGE])
 
 
 def schema_for(msgtype: str, images: str = "ref") -> pa.Schema:
     """The table schema of a (normalised) message type; ExtractError for a type we cannot tabulate."""
-    if msgtype == COMPRESSED_IMAGE:
-        return image_schema(images)
+    if msgtype in IMAGE_TYPES:
+        return image_schema(images, msgtype)
+    if msgtype == TF_MESSAGE:
+        return TF_SCHEMA
     try:
         return CONVERTERS[msgtype].schema
     except KeyError:

@@ -1,13 +1,20 @@
 """Finding bags and reading them: rosbags' AnyReader, topics and message types from config.
 
-The rosbags way: open (a context manager), filter connections, iterate, deserialise. Every failure of a
-bag (not a bag, truncated, a configured topic missing, a type that does not match) becomes one
-:class:`ExtractError` that names the file, the problem and, where it helps, the config key to set.
+The rosbags way: open (a context manager), filter connections, iterate, deserialise. A bag is a ROS1
+``.bag`` file, a ROS2 bag folder (``metadata.yaml``), or a bare ROS2 storage file (``.mcap`` or ``.db3``
+without its folder, as Nav2, Foxglove and most datasets hand them out): rosbags' rosbag2 ``Reader`` opens
+a storage file directly, and AnyReader builds its types from the definitions the file carries (MCAP
+schemas, the ``message_definitions`` table of rosbag2 >= Iron), custom types included; types without
+one come from ``extract.typestores``. Every failure of a bag (not a bag, truncated, a configured topic
+missing, a type that does not match) becomes one :class:`ExtractError` that names the file, the problem
+and, where it helps, the config key to set.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import os
 import sqlite3
 import struct
 from collections.abc import Iterator, Mapping
@@ -19,14 +26,28 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.interfaces import Connection
 from rosbags.rosbag1 import ReaderError as Rosbag1Error
 from rosbags.rosbag2 import ReaderError as Rosbag2Error
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from ..errors import ConfigError, ExtractError
-from ..manifest import Manifest, Sequence
+from ..manifest import CATEGORIES, Manifest, Sequence
 from .convert import normalize_msgtype
 
 ROS1, ROS2 = "ros1", "ros2"
 ROS2_METADATA = "metadata.yaml"
+ROS2_STORAGE_SUFFIXES = (".mcap", ".db3")  # rosbag2's storage files, readable without metadata.yaml
+BAG_KINDS = "a ROS1 .bag file, a ROS2 .mcap or .db3 file, or a ROS2 bag folder with metadata.yaml"
+
+try:  # rosbags' SQLite backend (a dependency of rosbags): a damaged .db3 raises its errors
+    from apsw import Error as _SqliteError
+except ImportError:  # pragma: no cover - an older rosbags on the standard sqlite3 module
+    _SqliteError = sqlite3.Error
+try:  # rosbags' zstd (compressed MCAP chunks and rosbag2 files) on Python < 3.14
+    from backports.zstd import ZstdError as _ZstdError
+except ImportError:  # pragma: no cover - Python >= 3.14: compression.zstd
+    try:
+        from compression.zstd import ZstdError as _ZstdError
+    except ImportError:
+        _ZstdError = sqlite3.Error  # a member already in the tuple
 
 # What a damaged bag raises somewhere inside rosbags, its storage backends or the deserialiser.
 _BAG_ERRORS = (
@@ -34,6 +55,11 @@ _BAG_ERRORS = (
     Rosbag1Error,
     Rosbag2Error,
     sqlite3.Error,
+    _SqliteError,
+    _ZstdError,
+    TypesysError,
+    RuntimeError,  # lz4.frame: a damaged LZ4 chunk
+    OverflowError,  # a damaged length field
     struct.error,
     EOFError,
     OSError,
@@ -75,9 +101,12 @@ def topic_specs(topics: Mapping[str, Any]) -> list[TopicSpec]:
 
 
 def bag_format(path: Path) -> str | None:
-    """``ros1`` for a ``.bag`` file, ``ros2`` for a folder with ``metadata.yaml``, else None."""
+    """``ros1`` for a ``.bag`` file; ``ros2`` for a folder with ``metadata.yaml`` or a bare ``.mcap`` /
+    ``.db3`` storage file; else None."""
     if path.is_file() and path.suffix == ".bag":
         return ROS1
+    if path.is_file() and path.suffix in ROS2_STORAGE_SUFFIXES:
+        return ROS2
     if path.is_dir() and (path / ROS2_METADATA).is_file():
         return ROS2
     return None
@@ -96,7 +125,25 @@ def default_typestore(fmt: str, stores: Mapping[str, str]):
 
 def _bag_error(path: Path, exc: BaseException) -> ExtractError:
     detail = " ".join(str(exc).split()) or type(exc).__name__
+    if "Profile is not ros2" in detail:  # rosbags reads MCAP files of the ros2 profile only
+        return ExtractError(
+            f"{path}: an MCAP file whose profile is not ros2 (a ROS1 recording?); rosbags reads ROS2 MCAP "
+            "files only: give the original .bag, or convert it (`rosbags-convert --src <x.bag> --dst <dir>`)"
+        )
     return ExtractError(f"{path}: truncated or corrupt bag ({detail})")
+
+
+def _complete_types(reader: AnyReader, fmt: str, stores: Mapping[str, str]) -> None:
+    """Register, from the default typestore, the types of connections whose file carries no definition.
+
+    AnyReader takes every type from the file as soon as one connection carries a definition; a rosbag2
+    file can carry some and not others (an empty MCAP schema, a type rosbag2 did not find at recording
+    time). Types the file does define are kept: the file knows its own messages best."""
+    have = reader.typestore.fielddefs
+    if all(c.msgtype in have for c in reader.connections):
+        return
+    default = default_typestore(fmt, stores)
+    reader.typestore.register({k: v for k, v in default.fielddefs.items() if k not in have})
 
 
 @contextlib.contextmanager
@@ -107,13 +154,16 @@ def open_bag(path: Path, stores: Mapping[str, str]) -> Iterator[AnyReader]:
         raise ExtractError(f"{path}: no such bag")
     fmt = bag_format(path)
     if fmt is None:
-        raise ExtractError(
-            f"{path}: not a bag (expected a ROS1 .bag file or a ROS2 bag folder with {ROS2_METADATA})"
-        )
+        raise ExtractError(f"{path}: not a bag (expected {BAG_KINDS})")
     try:
         reader = AnyReader([path], default_typestore=default_typestore(fmt, stores))
         reader.open()
     except _BAG_ERRORS as exc:
+        raise _bag_error(path, exc) from exc
+    try:
+        _complete_types(reader, fmt, stores)
+    except _BAG_ERRORS as exc:
+        _close_quietly(reader)
         raise _bag_error(path, exc) from exc
     with contextlib.ExitStack() as stack:
         stack.callback(_close_quietly, reader)
@@ -169,13 +219,38 @@ def iter_messages(
         raise _bag_error(path, exc) from exc
 
 
+def find_bags(root: Path) -> list[Path]:
+    """Every bag under the folder ``root``, sorted: ``.bag``, ``.mcap`` and ``.db3`` files and ROS2 bag
+    folders (whose storage files are that bag's, not bags of their own); hidden folders are skipped."""
+    bags: list[Path] = []
+    for folder, dirs, files in os.walk(root):
+        here = Path(folder)
+        keep = []
+        for d in sorted(dirs):
+            if d.startswith("."):
+                continue
+            if bag_format(here / d) == ROS2:
+                bags.append(here / d)
+            else:
+                keep.append(d)
+        dirs[:] = keep
+        bags.extend(here / f for f in files if not f.startswith(".") and bag_format(here / f))
+    return sorted(bags)
+
+
+def _sequence_name(bag: Path) -> str:
+    return bag.stem if bag.is_file() else bag.name
+
+
 def discover_sequences(source: Mapping[str, Any]) -> tuple[Manifest, bool]:
     """The sequences of a bag source: ``(manifest, found)`` where ``found`` is False when the manifest
     was built here (from a folder tree or a single bag) rather than read from ``manifest.json``.
 
     ``source.root`` is one of: a folder with ``manifest.json``; a folder laid out
-    ``<terrain>/<category>/<bags>`` (``*.bag`` files or ROS2 bag folders); a single bag, whose terrain and
-    category come from ``source.terrain`` and ``source.category``.
+    ``<terrain>/<category>/<bags>``, where bags of every kind may sit side by side (``.bag``, ``.mcap``,
+    ``.db3`` files and ROS2 bag folders), also in sub-folders of a category; a single bag of any kind, or
+    a folder of bags with no terrain/category folders, whose terrain and category come from
+    ``source.terrain`` and ``source.category``.
     """
     root = Path(str(source["root"])).expanduser().absolute()
     if (root / "manifest.json").is_file():
@@ -185,26 +260,46 @@ def discover_sequences(source: Mapping[str, Any]) -> tuple[Manifest, bool]:
             f"{root}: no such file or folder; run `skidbench simulate` first for the simulated dataset, "
             "or give your bags with source=bag source.root=<folder or bag>"
         )
-    if root.is_file() or bag_format(root) == ROS2:
-        terrain, category = source.get("terrain"), source.get("category")
+    terrain, category = source.get("terrain"), source.get("category")
+
+    def given(bag: Path) -> tuple[str, str]:
         if not terrain or not category:
+            what = "a single bag" if bag == root else "a bag not under <terrain>/<category>/"
             raise ConfigError(
-                f"{root}: a single bag needs its terrain and category; set source.terrain and source.category"
+                f"{bag}: {what} needs its terrain and category; set source.terrain and source.category"
             )
-        name = root.stem if root.is_file() else root.name
-        return Manifest([Sequence(name, str(terrain), str(category), str(root))], base=root.parent), False
+        return str(terrain), str(category)
+
+    if root.is_file() or bag_format(root) == ROS2:
+        return Manifest([Sequence(_sequence_name(root), *given(root), str(root))], base=root.parent), False
     seqs: list[Sequence] = []
-    for terrain_dir in sorted(p for p in root.iterdir() if p.is_dir()):
-        for cat_dir in sorted(p for p in terrain_dir.iterdir() if p.is_dir()):
-            for bag in sorted(cat_dir.iterdir()):
-                if bag_format(bag):
-                    name = bag.stem if bag.is_file() else bag.name
-                    seqs.append(Sequence(name, terrain_dir.name, cat_dir.name, str(bag.relative_to(root))))
+    for bag in find_bags(root):
+        rel = bag.relative_to(root)
+        parts = rel.parts[:-1]
+        if len(parts) >= 2 and parts[1] in CATEGORIES:  # deeper folders (sessions, days) are kept together
+            where = parts[:2]
+        elif not parts:
+            where = given(bag)
+        else:
+            raise ConfigError(
+                f"{bag}: bags go in <terrain>/<category>/ under {root} (category one of "
+                f"{', '.join(CATEGORIES)}), or directly in it with source.terrain and source.category"
+            )
+        seqs.append(Sequence(_sequence_name(bag), where[0], where[1], str(rel)))
     if not seqs:
         raise ConfigError(
-            f"{root}: no bags found (expected manifest.json or <terrain>/<category>/*.bag); set source.root"
+            f"{root}: no bags found (expected manifest.json or <terrain>/<category>/ with .bag, .mcap, "
+            ".db3 files or ROS2 bag folders); set source.root"
         )
     names = [s.name for s in seqs]
     if len(set(names)) != len(names):  # same file name under two terrains: qualify every name
-        seqs = [Sequence(f"{s.terrain}_{s.category}_{s.name}", s.terrain, s.category, s.path) for s in seqs]
+        seqs = [dataclasses.replace(s, name=f"{s.terrain}_{s.category}_{s.name}") for s in seqs]
+    names = [s.name for s in seqs]
+    if len(set(names)) != len(names):  # x.bag next to x.mcap: the suffix tells them apart
+        seqs = [
+            dataclasses.replace(s, name=f"{s.name}_{Path(s.path).suffix.lstrip('.') or 'ros2'}")
+            if names.count(s.name) > 1
+            else s
+            for s in seqs
+        ]
     return Manifest(seqs, base=root), False

@@ -30,6 +30,7 @@ from ..layout import Layout, layout_from_cfg
 from ..manifest import Manifest, Sequence
 from .orbslam import read_orbslam
 from .pose_topic import read_pose_table
+from .tf import is_tf_table, read_tf_trajectory
 from .trajectory import Trajectory, read_tum, write_tum
 
 log = logging.getLogger("skidbench.groundtruth")
@@ -77,7 +78,16 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
                 f"{path}: pose table not found{' (' + why + ')' if why else ''}; "
                 "set groundtruth.pose_topic.key or run `skidbench extract`"
             )
-        traj = read_pose_table(path, max_gap, str(gt.pose_topic.stamp))
+        pt = gt.pose_topic
+        if is_tf_table(path):  # /tf (+ /tf_static): compose parent -> child through the tree
+            static = ext / f"{pt.static_key}.parquet" if pt.get("static_key") else None
+            paths = [path] + ([static] if static not in (None, path) and static.is_file() else [])
+            traj = read_tf_trajectory(
+                paths, pt.get("parent"), pt.get("child"), max_gap, str(pt.stamp), float(pt.tf_max_gap)
+            )
+            frames = {"parent": pt.get("parent"), "child": pt.get("child")}
+            return traj, {"files": {str(p): fingerprint_file(p) for p in paths}, "tf": frames}
+        traj = read_pose_table(path, max_gap, str(pt.stamp))
         return traj, {"files": {str(path): fingerprint_file(path)}}
     if method == "orbslam":
         o = gt.orbslam
@@ -107,7 +117,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         except ImportError as exc:
             raise GroundTruthError(f"groundtruth.method=vo is not available ({exc}); use pose_topic") from exc
         bag = manifest.resolve(seq)
-        traj = vo.run_stereo_vo(bag, cfg)
+        traj = vo.run_stereo_vo(bag, cfg, extracted=ext)
         fp = fingerprint_file(bag) if bag.is_file() else None
         return traj, {"files": {str(bag): fp}}
     raise ConfigError(f"groundtruth.method={method!r}: expected vo, orbslam or pose_topic")
@@ -122,6 +132,8 @@ def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Se
     files: list[Path] = []
     if method == "pose_topic":
         files.append(ext / f"{gt.pose_topic.key}.parquet")
+        if gt.pose_topic.get("static_key"):  # read with a TF table
+            files.append(ext / f"{gt.pose_topic.static_key}.parquet")
     elif method == "orbslam":
         o = gt.orbslam
         d = Path(str(o.dir))
@@ -130,6 +142,7 @@ def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Se
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
         files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in ("vo.py", "app.py"))]
+        files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
     return [f for f in files if f.exists()]
 
@@ -138,7 +151,12 @@ def stage_config(cfg: DictConfig) -> dict[str, Any]:
     """The config sections ground truth reads (its stamps' config)."""
     gt = OmegaConf.to_container(cfg.groundtruth, resolve=True)
     gt.pop("jobs", None)  # how many processes compute it does not change the result
-    return {"groundtruth": gt, "robot": OmegaConf.to_container(cfg.robot, resolve=True)}
+    out = {"groundtruth": gt, "robot": OmegaConf.to_container(cfg.robot, resolve=True)}
+    if gt.get("method") == "vo":  # VO reads the stereo topics of source.topics
+        from .vo import source_image_topics
+
+        out["vo_topics"] = source_image_topics(cfg)
+    return out
 
 
 def _write_if_changed(path: Path, obj: Any) -> None:

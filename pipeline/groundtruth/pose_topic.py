@@ -1,5 +1,6 @@
 """Ground truth from a pose table: an extracted Odometry/Pose topic (``true_pose``, motion capture, an EKF
-odometry) or a raw source's ``gt_pose`` table (``x y yaw`` [+ ``z qx qy qz qw``]).
+odometry) or a raw source's ``gt_pose`` table (``x y yaw`` [+ ``z qx qy qz qw``]). A TF table (/tf,
+/tf_static) is composed into poses by :mod:`.tf`, which ends here too (:func:`clean_poses`).
 
 Also the one home of the rules every pose source obeys (:func:`clean_poses`), used by ORB-SLAM ingestion
 too. Documented repairs (each logged):
@@ -41,12 +42,18 @@ def find_gaps(
 
 
 def clean_poses(
-    stamp_ns: np.ndarray, xyz: np.ndarray, quat: np.ndarray, where: str, max_gap_s: float
+    stamp_ns: np.ndarray,
+    xyz: np.ndarray,
+    quat: np.ndarray,
+    where: str,
+    max_gap_s: float,
+    breaks: np.ndarray | None = None,
 ) -> Trajectory:
     """Apply the documented repairs (module docstring) and return a Trajectory with its gaps.
 
     ``stamp_ns`` (N,) int64, ``xyz`` (N, 3), ``quat`` (N, 4) (qx, qy, qz, qw). ``where`` names the file
-    in messages."""
+    in messages. ``breaks`` (N,) bool, optional: pose i starts a new segment (nothing is known between
+    i-1 and i, e.g. poses the caller dropped), a gap whatever the time between them."""
     stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
     xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
     quat = np.asarray(quat, dtype=float).reshape(-1, 4)
@@ -63,12 +70,12 @@ def clean_poses(
     qnorm = np.linalg.norm(np.where(np.isfinite(quat), quat, 0.0), axis=1)
     finite &= qnorm > 1e-6
     # a dropped row breaks the trajectory at the next kept row
-    breaks = np.zeros(len(stamp_ns), dtype=bool)
+    breaks = np.zeros(len(stamp_ns), dtype=bool) if breaks is None else np.array(breaks, dtype=bool)
     if not finite.all():
         n_bad = int((~finite).sum())
         log.warning("%s: dropped %d pose(s) with NaN/inf values; recorded as gaps", where, n_bad)
         # the kept row right after a run of dropped rows starts a new segment
-        breaks = finite & np.concatenate([[False], ~finite[:-1]])
+        breaks |= finite & np.concatenate([[False], ~finite[:-1]])
     keep = finite.copy()
     dup = np.concatenate([[False], np.diff(stamp_ns) == 0])
     if dup.any():

@@ -55,11 +55,17 @@ class Trajectory:
         return T
 
 
+def _seconds(ns: int) -> str:
+    """Nanoseconds as exact decimal seconds (a float product would round epoch stamps to ~0.1 us)."""
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return f"{sec}.{nsec:09d}"
+
+
 def write_tum(traj: Trajectory, path: Path, header: str = "") -> None:
     """Write a TUM file atomically (nanosecond-exact stamps: 9 decimals)."""
     lines = [f"# {h}" for h in header.splitlines() if h] if header else []
     lines.append("# timestamp tx ty tz qx qy qz qw")
-    lines += [f"# gap {a * 1e-9:.9f} {b * 1e-9:.9f}" for a, b in traj.gaps]
+    lines += [f"# gap {_seconds(a)} {_seconds(b)}" for a, b in traj.gaps]
     sec, nsec = np.divmod(traj.stamp_ns, 1_000_000_000)
     for s, ns, p, q in zip(sec, nsec, traj.xyz, traj.quat, strict=True):
         lines.append(

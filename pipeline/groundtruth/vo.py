@@ -18,7 +18,7 @@ Frame-to-keyframe tracking on a rectified stereo pair:
    tracking loss: the motion model bridges it and a ``gap`` is recorded in the trajectory.
 
 The core (:class:`StereoVO`) takes images directly; :func:`run_stereo_vo` streams a bag's compressed
-images with rosbags' AnyReader (never holding more than a few frames), pairs left/right by header
+or raw images with rosbags' AnyReader (never holding more than a few frames), pairs left/right by header
 stamp and returns the base-frame trajectory ``T_b0_bi = T_b_c T_c0_ci T_b_c^-1``.
 """
 
@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from ..errors import GroundTruthError, SkidbenchError, one_line
+from ..extract.images import ImageDecodeError, gray8
 from ..geometry import matrix_to_quaternion, se3_from_xyz_rpy, se3_inverse
 from .orbslam import base_to_camera, camera_to_base
 from .trajectory import Trajectory
@@ -737,7 +738,10 @@ def _check_image_topics(reader, bag_path: Path, vo: VOConfig) -> None:
 
 
 def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """Stream decoded (stamp_ns, left, right) pairs in stamp order; left/right paired by header stamp."""
+    """Stream decoded (stamp_ns, left, right) pairs in stamp order; left/right paired by header stamp.
+
+    The topics may carry ``sensor_msgs/CompressedImage`` or raw ``sensor_msgs/Image`` (any encoding of
+    :mod:`skidbench.pipeline.extract.images`: mono, RGB/BGR, Bayer, 16-bit), decoded to 8-bit grey."""
     _check_image_topics(reader, bag_path, vo)
     conns = [c for c in reader.connections if c.topic in (vo.left_topic, vo.right_topic)]
     pending: dict[str, dict[int, Any]] = {vo.left_topic: {}, vo.right_topic: {}}
@@ -758,25 +762,29 @@ def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[i
             if abs(near - st) <= tol:
                 match = near
         if match is None:
-            mine[st] = msg.data
+            mine[st] = msg
             # drop stale unpaired images (a lost partner) to keep memory bounded
             for s in [s for s in mine if s < st - 2_000_000_000]:
                 del mine[s]
             continue
-        data_other = theirs.pop(match)
+        msg_other = theirs.pop(match)
         for s in [s for s in theirs if s < match]:
             del theirs[s]
-        if conn.topic == vo.left_topic:
-            l_data, r_data = msg.data, data_other
-        else:
-            l_data, r_data = data_other, msg.data
+        l_msg, r_msg = (msg, msg_other) if conn.topic == vo.left_topic else (msg_other, msg)
         n_pair += 1
         if (n_pair - 1) % max(1, vo.stride):
             continue
-        left = cv2.imdecode(np.frombuffer(l_data, np.uint8), cv2.IMREAD_GRAYSCALE)
-        right = cv2.imdecode(np.frombuffer(r_data, np.uint8), cv2.IMREAD_GRAYSCALE)
-        if left is None or right is None:
-            raise GroundTruthError(f"{bag_path}: undecodable image at stamp {st} ns on {conn.topic}")
+        try:
+            left, right = gray8(l_msg), gray8(r_msg)
+        except ImageDecodeError as exc:
+            raise GroundTruthError(
+                f"{bag_path}: undecodable image at stamp {st} ns on {conn.topic} ({one_line(exc)})"
+            ) from exc
+        if left.shape != right.shape:
+            raise GroundTruthError(
+                f"{bag_path}: left and right images differ in size ({left.shape[1]}x{left.shape[0]} and "
+                f"{right.shape[1]}x{right.shape[0]}) at stamp {st} ns"
+            )
         yield min(st, match), left, right
     if n_pair == 0:
         raise GroundTruthError(
@@ -785,7 +793,9 @@ def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[i
         )
 
 
-def _vo_config(cfg: Any, vo: VOConfig | Mapping[str, Any] | None) -> VOConfig:
+def _vo_config(
+    cfg: Any, vo: VOConfig | Mapping[str, Any] | None, extracted: str | Path | None = None
+) -> VOConfig:
     if isinstance(vo, VOConfig):
         return vo
     if vo is None:
@@ -800,20 +810,61 @@ def _vo_config(cfg: Any, vo: VOConfig | Mapping[str, Any] | None) -> VOConfig:
                     vo = OmegaConf.to_container(vo, resolve=True)
             except ImportError:  # pragma: no cover
                 pass
-    return VOConfig.from_mapping(vo)
+    return VOConfig.from_mapping({**source_image_topics(cfg, extracted), **dict(vo or {})})
+
+
+# VOConfig option <- the extraction's topic key: VO reads the topics extract was configured with
+_SOURCE_TOPICS = {
+    "left_topic": "left_image",
+    "right_topic": "right_image",
+    "left_info_topic": "left_info",
+    "right_info_topic": "right_info",
+}
+
+
+def source_image_topics(cfg: Any, extracted: str | Path | None = None) -> dict[str, str]:
+    """``source.topics.{left,right}_{image,info}.topic`` as VO options (``left_topic`` ...): a bag whose
+    stereo pair is on other topics (raw ``image_raw`` included) is set once, for extract and VO alike;
+    ``groundtruth.vo.*`` still overrides. With ``source.topics=auto`` the topics are those extract chose
+    for this bag, read from ``extracted`` (the sequence's folder, its ``_extract.json``)."""
+    if _get(cfg, "source.topics") == "auto":
+        return extracted_image_topics(extracted) if extracted is not None else {}
+    out = {}
+    for option, key in _SOURCE_TOPICS.items():
+        topic = _get(cfg, f"source.topics.{key}.topic")
+        if topic:
+            out[option] = str(topic)
+    return out
+
+
+def extracted_image_topics(extracted: str | Path) -> dict[str, str]:
+    """The stereo topics ``skidbench extract`` recorded in ``<extracted>/_extract.json``, as VO options."""
+    info_path = Path(extracted) / "_extract.json"
+    if not info_path.is_file():
+        return {}
+    import json
+
+    topics = json.loads(info_path.read_text()).get("topics", {})
+    return {opt: str(topics[key]["topic"]) for opt, key in _SOURCE_TOPICS.items() if key in topics}
 
 
 def run_stereo_vo(
-    bag_path: str | Path, cfg: Any, vo: VOConfig | Mapping[str, Any] | None = None, stats: dict | None = None
+    bag_path: str | Path,
+    cfg: Any,
+    vo: VOConfig | Mapping[str, Any] | None = None,
+    stats: dict | None = None,
+    extracted: str | Path | None = None,
 ) -> Trajectory:
     """Stereo VO over a bag's images -> base-frame trajectory (first pose = identity), header stamps.
 
     ``cfg``: the stage config (reads ``robot.camera`` for the extrinsic, ``groundtruth.vo`` for options
     unless ``vo`` is given, ``extract.typestores`` if present). ``stats``, if given, receives the run's
-    counters (frames, keyframes, lost frames, frames/s). Every bag problem is one GroundTruthError.
+    counters (frames, keyframes, lost frames, frames/s). ``extracted``: the sequence's extracted folder,
+    whose ``_extract.json`` names the stereo topics when ``source.topics=auto``. Every bag problem is one
+    GroundTruthError.
     """
     bag_path = Path(bag_path)
-    vocfg = _vo_config(cfg, vo)
+    vocfg = _vo_config(cfg, vo, extracted)
     camera_cfg = _get(cfg, "robot.camera")
     if camera_cfg is None:
         raise GroundTruthError(f"{bag_path}: robot.camera (the stereo extrinsic) is not configured")

@@ -305,7 +305,7 @@ def extract_source(cfg, layout) -> list[dict]:
     form = str(src.get("form", "auto"))
     if form == "auto":
         form = "windows" if "cmd_left_0" in df.columns else "raw"
-    label = str(src.get("label") or path.stem)
+    label = str(src.get("label") or robot)
     fractions = tuple(float(f) for f in src.split_fractions)
     if form == "windows":
         seqs = windows_to_sequences(

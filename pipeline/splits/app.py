@@ -24,7 +24,7 @@ from ..cli import stage
 from ..errors import SplitError
 from ..groundtruth.trajectory import read_tum
 from ..io import fingerprint_file, write_text_atomic
-from ..layout import Layout, layout_from_cfg
+from ..layout import Layout, layout_from_cfg, prune_stale
 from ..manifest import SPLITS, Manifest, Sequence
 from ..robot import Robot, robot_from_hydra
 from ..schema import write_split
@@ -161,10 +161,7 @@ def run(cfg: DictConfig) -> list[Path]:
             path = split_sequence(cfg, layout, robot, s)
             stamp.record(key, [path])
         written.append(path)
-    keep = set(written)
-    for stale in layout.splits.glob("*/*/*.parquet"):  # sequences no longer in the manifest
-        if stale not in keep and not stale.name.startswith("."):
-            stale.unlink()
+    prune_stale(layout, manifest)  # sequences no longer in the manifest, and the folders left empty
     card_stamp = Stamp(layout.root / ".stamps" / "split" / "_card.json", "card")
     card_key = card_stamp.key(written, {"robot": conf["robot"], "card": _card_conf(cfg)})
     if not card_stamp.is_fresh(card_key):
@@ -194,7 +191,8 @@ def _card_conf(cfg: DictConfig) -> Any:
 
 def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
     card_cfg: Any = cfg.get("card") or {}
-    text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)))
+    files = [p for p in layout.split_files(Manifest.read(layout.manifest)) if p.is_file()]
+    text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)), files)
     write_text_atomic(layout.splits / "card.md", text)
     return text
 

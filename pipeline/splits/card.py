@@ -65,11 +65,12 @@ def table_stats(frames: list[pd.DataFrame], robot: Robot, rate_hz: float) -> dic
     )
 
 
-def dataset_card(splits_root: Path, robot: Robot, paper: bool = True) -> str:
-    """Markdown: our Table I per terrain and split, and the paper's rows."""
+def dataset_card(splits_root: Path, robot: Robot, paper: bool = True, files: list[Path] | None = None) -> str:
+    """Markdown: our Table I per terrain and split, and the paper's rows. ``files``: the split files (the
+    current manifest's, :meth:`Layout.split_files`); default every split file under ``splits_root``."""
     groups: dict[tuple[str, str], list[pd.DataFrame]] = {}
     rate = 30.0
-    for path in list_split_files(splits_root):
+    for path in list_split_files(splits_root) if files is None else files:
         df, meta = read_split(path)
         rate = float(meta.get("rate_hz", rate))
         groups.setdefault(

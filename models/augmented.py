@@ -1,0 +1,156 @@
+"""Augmented models: any model plus named physical effects of the discovery catalogue, a first-class model.
+
+    skidbench evaluate models=[edd,friction,edd+actuator_lag+angular_acceleration_slip,discovered]
+
+A model spec ``base+effect+effect`` (ids of :mod:`skidbench.benchmark.effects`) names the base model
+(any installed model, ``friction`` too) and the effects added to it; ``discovered`` is, per terrain, the
+base model and effects that ``skidbench discover`` wrote to the dataset's ``discovery.json``
+(:func:`skidbench.models.fitting.resolve_model_spec`). The augmented model is fitted on the Train split
+exactly as discovery fits its final model (:func:`skidbench.benchmark.discover.fit_effects`: the base
+model and the effect parameters by alternation, the lag time constant by a grid and a parabola) and
+predicts with :func:`skidbench.benchmark.effects.augmented_prediction`. It takes the robot constants its
+base model takes (``calibrated_constants``).
+
+The cost of a fit is that of several base-model fits (about 6 alternations, 30 with ``actuator_lag``'s
+grid): cheap for the linear models, minutes for ``friction`` on real data.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, ClassVar
+
+import numpy as np
+import pandas as pd
+
+from ._util import mse, targets
+from .base import KinematicModel, ModelError
+
+SEP = "+"
+EFFECT_COLUMNS = ("t", "cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
+
+
+class AugmentedModel(KinematicModel):
+    """Base model + effects. Subclasses made by :func:`augmented_class` set ``base_name`` and ``effects``."""
+
+    name: ClassVar[str] = "augmented"
+    version: ClassVar[str] = "1.0"
+    base_name: ClassVar[str] = ""
+    effects: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(
+        self,
+        robot,
+        params: dict[str, Any] | None = None,
+        base_params: dict[str, Any] | None = None,
+        base_options: dict[str, Any] | None = None,
+        **options: Any,
+    ):
+        super().__init__(
+            robot,
+            params,
+            base_params=dict(base_params or {}),
+            base_options=dict(base_options or {}),
+            **options,
+        )
+        self.base_model: KinematicModel | None = None
+        if self.params.get("base"):
+            from .fitting import _from_saved
+            from .registry import get_model_class
+
+            self.base_model = _from_saved(
+                get_model_class(self.base_name), robot, self.params["base"], self.base_name
+            )
+
+    def _new_base(self) -> KinematicModel:
+        from .registry import get_model_class
+
+        cls = get_model_class(self.base_name)
+        return cls(self.robot, dict(self.options["base_params"]) or None, **self.options["base_options"])
+
+    def _effect_params(self) -> dict[str, np.ndarray]:
+        from skidbench.benchmark.effects import CATALOGUE
+
+        out = {}
+        for e in self.effects:
+            values = self.params.get("effects", {}).get(e, {})
+            out[e] = np.array([float(values[p]) for p in CATALOGUE[e].param_names])
+        return out
+
+    def fit(self, table: pd.DataFrame) -> AugmentedModel:
+        from skidbench.benchmark.discover import DiscoverError, _jsonable_params, fit_effects
+
+        self.check_columns(table, fitting=True)
+        missing = [c for c in ("x", "y", "yaw") if c not in table.columns]
+        if missing:
+            raise ModelError(f"model {self.name}: training table lacks column(s) {missing}")
+        try:
+            state = fit_effects(table, self._new_base, self.robot, list(self.effects))
+        except DiscoverError as exc:
+            raise ModelError(f"model {self.name}: {exc}") from None
+        self.base_model = state.base
+        base_json = state.base.to_json() if hasattr(state.base, "to_json") else {"params": state.base.params}
+        self.params = {"base": base_json, "effects": _jsonable_params(state.params)}
+        valid = table["valid"].to_numpy(bool)
+        self.fit_loss_ = mse(self.predict(table)[valid], targets(table)[valid])
+        return self
+
+    def predict(self, table: pd.DataFrame) -> np.ndarray:
+        from skidbench.benchmark.effects import augmented_prediction
+
+        self.check_columns(table)
+        if self.base_model is None:
+            raise ModelError(f"model {self.name}: not fitted")
+        return augmented_prediction(
+            table, self.base_model, self._effect_params(), self.robot.wheel_radius, self.robot.track_width
+        )
+
+    def tracking_params(self) -> dict[str, str]:
+        """What MLflow records of this model beyond the config: base, effects and their fitted values."""
+        out = {"augmented.base": self.base_name, "augmented.effects": ",".join(self.effects)}
+        for e, values in self.params.get("effects", {}).items():
+            for p, v in values.items():
+                out[f"effect.{e}.{p}"] = f"{float(v):.6g}"
+        return out
+
+
+def parse_spec(spec: str) -> tuple[str, tuple[str, ...]]:
+    """``"edd+actuator_lag+angular_acceleration_slip"`` -> ("edd", ("actuator_lag", ...)); ModelError
+    naming the spec for an unknown or repeated effect."""
+    from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
+
+    parts = [p.strip() for p in str(spec).split(SEP)]
+    base, effects = parts[0], tuple(parts[1:])
+    if not base or any(not e for e in effects):
+        raise ModelError(f"model {spec}: empty part in the spec (write base+effect+effect)")
+    unknown = [e for e in effects if e not in CATALOGUE]
+    if unknown:
+        raise ModelError(f"model {spec}: unknown effect(s) {unknown} (catalogue: {', '.join(EFFECT_IDS)})")
+    if len(set(effects)) != len(effects):
+        raise ModelError(f"model {spec}: an effect is named twice")
+    return base, effects
+
+
+@functools.lru_cache(maxsize=128)
+def augmented_class(spec: str) -> type[AugmentedModel]:
+    """The model class of a spec ``base+effect+...`` (the base must be an installed model)."""
+    from .registry import get_model_class
+
+    base, effects = parse_spec(spec)
+    if SEP in base:
+        raise ModelError(f"model {spec}: bad spec")
+    base_cls = get_model_class(base)
+    required = tuple(dict.fromkeys((*getattr(base_cls, "required_columns", ()), *EFFECT_COLUMNS)))
+    return type(
+        "Augmented_" + "_".join((base, *effects)),
+        (AugmentedModel,),
+        {
+            "name": spec,
+            "version": f"{AugmentedModel.version}+{getattr(base_cls, 'version', '?')}",
+            "base_name": base,
+            "effects": effects,
+            "required_columns": required,
+            "calibrated_constants": tuple(getattr(base_cls, "calibrated_constants", ("wheel_radius",))),
+            "__module__": __name__,
+        },
+    )

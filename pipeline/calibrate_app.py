@@ -1,0 +1,139 @@
+"""``skidbench calibrate``: the robot's effective wheel radius and track width per terrain, from the Train
+split (between ``split`` and ``evaluate``; :mod:`skidbench.pipeline.calibration` documents the method).
+
+Writes ``<ds>/calibration/<terrain>.json`` (skipped when its stamp is up to date), prints the calibrated
+values next to the spec sheet's, and logs one MLflow run (``skidbench.role`` = calibration) when anything
+was recomputed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from .calibration import (
+    CONSTANTS,
+    MODEL_USAGE,
+    calibrate_terrain,
+    settings_from_cfg,
+    train_files,
+    use_calibration,
+)
+from .cli import stage
+from .layout import layout_from_cfg
+from .robot import robot_from_hydra
+
+log = logging.getLogger("skidbench.calibrate")
+
+
+def _fmt(x: float, digits: int = 4) -> str:
+    return "-" if x is None or not math.isfinite(float(x)) else f"{float(x):.{digits}f}"
+
+
+def format_table(docs: dict[str, dict[str, Any]]) -> str:
+    """Calibrated values next to the spec sheet's, one line per (terrain, constant)."""
+    rows = [("terrain", "constant", "spec", "calibrated", "95% CI", "ratio", "rows", "from / why not")]
+    for terrain, doc in docs.items():
+        for c in CONSTANTS:
+            d = doc[c]
+            spec = doc["spec"][c]
+            if d["identified"]:
+                lo, hi = d.get("ci", [math.nan, math.nan])
+                level = doc["settings"].get("ci", 0.95)
+                ci = f"[{_fmt(lo)}, {_fmt(hi)}]" + ("" if level == 0.95 else f" ({level:g})")
+                rows.append(
+                    (terrain, c, _fmt(spec), _fmt(d["value"]), ci, _fmt(d["ratio_to_spec"], 3),
+                     str(d["n_rows"]), doc["source"])
+                )  # fmt: skip
+            else:
+                rows.append((terrain, c, _fmt(spec), "not identified", "-", "-", str(d.get("n_rows", "-")),
+                             d["reason"]))  # fmt: skip
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    return "\n".join(
+        "  ".join(v.ljust(w) for v, w in zip(r[:-1], widths, strict=True)) + "  " + r[-1] for r in rows
+    )
+
+
+def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
+    layout = layout_from_cfg(cfg)
+    spec = robot_from_hydra(cfg.robot)
+    s = settings_from_cfg(cfg)
+    terrains = sorted({p.parents[1].name for p in train_files(layout)})
+    if not terrains:
+        from .calibration import CalibrationError
+
+        raise CalibrationError(
+            f"{layout.splits}: no Train split files to calibrate from; run `skidbench split`"
+        )
+    if bool(cfg.get("force", False)):
+        import shutil
+
+        shutil.rmtree(layout.root / ".stamps" / "calibrate", ignore_errors=True)
+    docs, recomputed = {}, []
+    for terrain in terrains:
+        docs[terrain], fresh = calibrate_terrain(layout, terrain, spec, s, str(cfg.dataset))
+        if fresh:
+            recomputed.append(terrain)
+    print(
+        f"calibrate: robot {spec.name} (spec sheet conf/robot/{spec.name}.yaml), Train split of {cfg.dataset}"
+    )
+    print(format_table(docs))
+    if not use_calibration(cfg):
+        print("calibrate.use=false: every model is fitted with the spec sheet's constants")
+    else:
+        print("models take: " + "; ".join(f"{m}: {u}" for m, u in MODEL_USAGE.items()))
+    print(f"written: {layout.calibration}/<terrain>.json" + ("" if recomputed else " (up to date, skipped)"))
+    if recomputed and bool(cfg.get("track", True)):
+        log_run(cfg, layout, docs, spec.name)
+    return docs
+
+
+def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str) -> str:
+    """One MLflow run for the calibration (benchmark/tracking.py): per terrain and constant the value, the
+    interval and the ratio to the spec sheet as metrics, the JSON documents as artifacts."""
+    from skidbench.benchmark import tracking as trk
+
+    tracker = trk.tracker_from_cfg(cfg, layout)
+    tags = {
+        trk.TAG_ROLE: "calibration",
+        trk.TAG_DATASET: str(cfg.dataset),
+        trk.TAG_GIT: trk.git_commit(),
+        "skidbench.robot": robot,
+    }
+    with tracker.run(f"calibrate {cfg.dataset}", tags) as run_id:
+        params = {
+            "robot": robot,
+            **trk.flatten({"calibrate": OmegaConf.to_container(cfg.calibrate, resolve=True)}),
+        }
+        metrics: dict[str, float] = {}
+        for terrain, doc in docs.items():
+            params[f"{terrain}.source"] = doc["source"]
+            for c in CONSTANTS:
+                d = doc[c]
+                params[f"{terrain}.{c}.identified"] = str(d["identified"])
+                metrics[f"{c}_spec"] = float(doc["spec"][c])
+                if d["identified"]:
+                    metrics[f"{c}_{terrain}"] = float(d["value"])
+                    metrics[f"{c}_{terrain}_ci_lo"] = float(d["ci"][0])
+                    metrics[f"{c}_{terrain}_ci_hi"] = float(d["ci"][1])
+                    metrics[f"{c}_{terrain}_ratio"] = float(d["ratio_to_spec"])
+                else:
+                    params[f"{terrain}.{c}.reason"] = d["reason"]
+        tracker.log(run_id, params=params, metrics={k: v for k, v in metrics.items() if math.isfinite(v)})
+        tracker.artifact(run_id, layout.calibration, "calibration")
+    return run_id
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="calibrate")
+@stage("calibrate")
+def main(cfg: DictConfig) -> None:
+    logging.getLogger("skidbench").setLevel(logging.INFO)
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

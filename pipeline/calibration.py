@@ -1,0 +1,376 @@
+"""Robot calibration from its own data: the effective wheel radius and the effective track width (ICR
+spread) a terrain's Train split implies, with confidence intervals (the ``calibrate`` stage; the one home
+of the concept).
+
+Identification, per terrain, on the Train split's valid, *settled* rows (the wheel commands unchanged for
+``settle_s``, so the velocity controller and the smoothed ground-truth velocities have caught up):
+
+* **radius** (straight rows: ``|wr - wl| <= straight_ratio * |wl + wr| / 2``, mean wheel rate above
+  ``min_wheel_rate``): the regression through the origin of the ground-truth ``vx`` on ``(wl + wr) / 2``;
+  its slope is ``r_eff``;
+* **track width** (turning rows: ``|wr - wl| >= min_turn_rate``): the regression through the origin of
+  the ground-truth ``wz`` on ``r_eff (wr - wl)``; its slope is ``1 / B_eff``. ``B_eff`` is the effective
+  track of the skid-steer literature (Mandow et al. 2007: the ICR spread), larger than the physical track
+  because the wheels skid in a turn.
+
+``wl, wr`` are the encoders' wheel rates (``enc_wl``, ``enc_wr``). Data without encoders (``amrl_txt``)
+uses the commanded rates on settled straight rows for the radius, which is identifiable there because a
+velocity controller holds a straight-line command with light motor load; its track width is *not*
+identified (in a turn the motors carry the skid torque, and without encoders a wheel that falls short of
+its command cannot be told from a wider effective track; the ICR coefficient of ``edd``/``roc`` carries
+it) and the document says so. A quantity with fewer than ``min_rows`` rows is not identified either.
+
+Confidence intervals: a block bootstrap over contiguous ``block_s`` pieces of the Train sequences (rows
+within a few seconds are correlated, so a per-row standard error would be far too small); the percentile
+interval at ``ci`` and the bootstrap standard error.
+
+How the models take the constants (:func:`robot_for_model`): a model class lists the constants it takes
+from the calibration in ``calibrated_constants`` (``models/base.py``: the radius by default), and keeps
+the spec sheet's value of the others, which its own parameters absorb (chi of ``edd``/``roc`` is the
+ratio of the effective to the physical track, ``full_linear``'s A absorbs both, the friction model's wheel
+positions are physical). ``calibrate.use=false``: every model gets the spec sheet's robot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from .cache import Fingerprints, Stamp
+from .errors import SkidbenchError
+from .io import fingerprint_obj, write_json_atomic
+from .layout import Layout, layout_from_cfg
+from .robot import Robot, robot_from_hydra
+from .schema import read_split
+
+log = logging.getLogger("skidbench.calibrate")
+
+CALIBRATION_SCHEMA = 1
+CONSTANTS = ("wheel_radius", "track_width")
+
+
+class CalibrationError(SkidbenchError):
+    pass
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationSettings:
+    min_wheel_rate: float = 0.5  # rad/s: slower rows say nothing about the radius
+    straight_ratio: float = 0.2  # |wr - wl| <= this * |mean wheel rate|: near-straight (R >= 5 B)
+    min_turn_rate: float = 1.0  # rad/s: |wr - wl| at least this: a turning row
+    settle_s: float = 0.5  # s since the wheel commands last changed
+    command_change: float = 2.0  # rad/s^2: |cmd_dwl| or |cmd_dwr| above this is a command step
+    min_rows: int = 60  # fewer rows: not identified
+    block_s: float = 10.0  # s, bootstrap blocks
+    bootstrap: int = 400
+    ci: float = 0.95
+    seed: int = 0
+
+    @classmethod
+    def from_cfg(cls, node: Any) -> CalibrationSettings:
+        node = dict(node or {})
+        fields = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in node.items() if k in fields})
+
+
+# -- identification -------------------------------------------------------------------------------------
+def _settled(t: np.ndarray, seq: np.ndarray, changing: np.ndarray, settle_s: float) -> np.ndarray:
+    """True where the last command change of the row's sequence is at least ``settle_s`` ago (rows
+    before the first change of a sequence count from its start)."""
+    out = np.zeros(len(t), bool)
+    starts = np.flatnonzero(np.r_[True, seq[1:] != seq[:-1]])
+    ends = np.r_[starts[1:], len(t)]
+    for a, b in zip(starts, ends, strict=True):
+        tt = t[a:b]
+        idx = np.where(changing[a:b], np.arange(b - a), -1)
+        last = np.maximum.accumulate(idx)
+        since = np.where(last >= 0, tt - tt[np.maximum(last, 0)], tt - tt[0])
+        out[a:b] = since >= settle_s
+    return out
+
+
+def _blocks(t: np.ndarray, seq: np.ndarray, block_s: float) -> np.ndarray:
+    """Contiguous block id of every row (``block_s`` pieces of each sequence)."""
+    out = np.zeros(len(t), np.int64)
+    starts = np.flatnonzero(np.r_[True, seq[1:] != seq[:-1]])
+    ends = np.r_[starts[1:], len(t)]
+    nxt = 0
+    for a, b in zip(starts, ends, strict=True):
+        k = np.floor((t[a:b] - t[a]) / max(block_s, 1e-9)).astype(np.int64)
+        out[a:b] = nxt + k
+        nxt += int(k.max()) + 1 if b > a else 0
+    return out
+
+
+def _slope_with_ci(
+    x: np.ndarray, y: np.ndarray, blocks: np.ndarray, s: CalibrationSettings
+) -> dict[str, Any]:
+    """Slope of y = k x through the origin, with a block-bootstrap percentile interval and s.e."""
+    k = float(x @ y / (x @ x))
+    ub, inv = np.unique(blocks, return_inverse=True)
+    sxy = np.bincount(inv, x * y, len(ub))
+    sxx = np.bincount(inv, x * x, len(ub))
+    rng = np.random.default_rng(s.seed)
+    if len(ub) >= 2:
+        draws = rng.integers(0, len(ub), size=(s.bootstrap, len(ub)))
+        ks = sxy[draws].sum(axis=1) / np.maximum(sxx[draws].sum(axis=1), 1e-300)
+        a = (1.0 - s.ci) / 2.0
+        lo, hi = np.quantile(ks, [a, 1.0 - a])
+        se = float(np.std(ks, ddof=1))
+    else:
+        lo = hi = se = float("nan")
+    resid = y - k * x
+    return {
+        "slope": k,
+        "ci": [float(lo), float(hi)],
+        "se": se,
+        "n_rows": len(x),
+        "n_blocks": len(ub),
+        "residual_rms": float(np.sqrt(np.mean(resid**2))),
+    }
+
+
+def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
+    """The calibration document of one terrain from its concatenated Train table (``sequence`` column as
+    :func:`skidbench.models.base.concat_sequences` adds). See the module docstring."""
+    need = ["t", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr", "enc_wl", "enc_wr", "vx", "wz", "valid"]
+    missing = [c for c in need if c not in table.columns]
+    if missing:
+        raise CalibrationError(f"calibration: the Train table lacks column(s) {missing}")
+    seq = pd.factorize(table["sequence"])[0] if "sequence" in table else np.zeros(len(table), np.int64)
+    t = table["t"].to_numpy(float)
+    enc = table[["enc_wl", "enc_wr"]].to_numpy(float, na_value=np.nan)
+    cmd = table[["cmd_wl", "cmd_wr"]].to_numpy(float)
+    # encoders where (nearly) every valid row has them; else the commanded rates
+    valid = table["valid"].to_numpy(bool)
+    has_enc = valid.any() and np.mean(np.all(np.isfinite(enc[valid]), axis=1)) >= 0.9
+    wheels = enc if has_enc else cmd
+    source = "encoders" if has_enc else "commands"
+    target = table[["vx", "wz"]].to_numpy(float)
+    changing = np.any(np.abs(table[["cmd_dwl", "cmd_dwr"]].to_numpy(float)) > s.command_change, axis=1)
+    ok = valid & np.all(np.isfinite(wheels), axis=1) & np.all(np.isfinite(target), axis=1)
+    ok &= _settled(t, seq, changing, s.settle_s)
+    wl, wr = wheels[:, 0], wheels[:, 1]
+    mean_rate = (wl + wr) / 2.0
+    diff = wr - wl
+    blocks = _blocks(t, seq, s.block_s)
+    straight = (
+        ok & (np.abs(mean_rate) >= s.min_wheel_rate) & (np.abs(diff) <= s.straight_ratio * np.abs(mean_rate))
+    )
+    turning = ok & (np.abs(diff) >= s.min_turn_rate)
+
+    doc: dict[str, Any] = {
+        "schema": CALIBRATION_SCHEMA,
+        "source": source,
+        "spec": {"wheel_radius": spec.wheel_radius, "track_width": spec.track_width},
+        "settings": dataclasses.asdict(s),
+        "n_rows": int(valid.sum()),
+    }
+    # radius
+    r_eff = spec.wheel_radius
+    if straight.sum() >= s.min_rows:
+        fit = _slope_with_ci(mean_rate[straight], target[straight, 0], blocks[straight], s)
+        r_eff = fit["slope"]
+        doc["wheel_radius"] = {
+            "value": r_eff,
+            "identified": True,
+            **{k: v for k, v in fit.items() if k != "slope"},
+            "ratio_to_spec": r_eff / spec.wheel_radius,
+            "method": f"straight settled rows: vx = r (wl + wr) / 2 through the origin; wheels: {source}",
+        }
+        if source == "commands":
+            doc["wheel_radius"]["note"] = (
+                "from commanded wheel rates (no encoders): includes the velocity controller's steady-state "
+                "tracking error and the longitudinal slip of straight driving"
+            )
+    else:
+        doc["wheel_radius"] = {
+            "value": spec.wheel_radius,
+            "identified": False,
+            "n_rows": int(straight.sum()),
+            "reason": f"{int(straight.sum())} settled straight rows (< min_rows {s.min_rows}); spec kept",
+        }
+    # track width
+    if source != "encoders":
+        doc["track_width"] = {
+            "value": spec.track_width,
+            "identified": False,
+            "reason": (
+                "no wheel encoders: in a turn the motors carry the skid torque, and a wheel that falls short "
+                "of its command cannot be told from a wider effective track; spec sheet value kept (the ICR "
+                "coefficient of edd/roc absorbs the difference)"
+            ),
+        }
+    elif turning.sum() >= s.min_rows:
+        fit = _slope_with_ci(r_eff * diff[turning], target[turning, 1], blocks[turning], s)
+        k = fit["slope"]
+        if not k > 0:
+            doc["track_width"] = {
+                "value": spec.track_width,
+                "identified": False,
+                "reason": f"yaw rate against wheel-rate difference has slope {k:.3g} <= 0; spec value kept",
+            }
+        else:
+            lo, hi = fit["ci"]
+            doc["track_width"] = {
+                "value": 1.0 / k,
+                "identified": True,
+                "ci": [1.0 / hi if hi > 0 else float("nan"), 1.0 / lo if lo > 0 else float("inf")],
+                "se": fit["se"] / k**2,
+                "n_rows": fit["n_rows"],
+                "n_blocks": fit["n_blocks"],
+                "residual_rms": fit["residual_rms"],
+                "ratio_to_spec": (1.0 / k) / spec.track_width,
+                "method": "turning settled rows: wz = r_eff (wr - wl) / B through the origin (encoders)",
+            }
+    else:
+        doc["track_width"] = {
+            "value": spec.track_width,
+            "identified": False,
+            "n_rows": int(turning.sum()),
+            "reason": f"{int(turning.sum())} settled turning rows (< min_rows {s.min_rows}); spec value kept",
+        }
+    doc["not_identified"] = [c for c in CONSTANTS if not doc[c]["identified"]]
+    return doc
+
+
+# -- the stage's files ----------------------------------------------------------------------------------
+def settings_from_cfg(cfg: Any) -> CalibrationSettings:
+    node = cfg.get("calibrate") if hasattr(cfg, "get") else None
+    if node is None:
+        return CalibrationSettings()
+    from omegaconf import OmegaConf
+
+    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
+    return CalibrationSettings.from_cfg(data)
+
+
+def use_calibration(cfg: Any) -> bool:
+    node = cfg.get("calibrate") if hasattr(cfg, "get") else None
+    return bool(node.get("use", True)) if node is not None else True
+
+
+def _inputs_fingerprint(files: Sequence[Path], spec: Robot) -> str:
+    fp = Fingerprints()
+    return fingerprint_obj({"files": [fp(p) for p in files], "robot": spec.to_dict()})
+
+
+def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
+    """The Train split files of the current manifest's sequences (one terrain, or all), that exist."""
+    from .manifest import Manifest
+
+    if not layout.manifest.is_file():
+        return []
+    return [p for p in layout.split_files(Manifest.read(layout.manifest), terrain, "train") if p.is_file()]
+
+
+def calibrate_terrain(
+    layout: Layout, terrain: str, spec: Robot, s: CalibrationSettings, dataset: str = ""
+) -> tuple[dict[str, Any], bool]:
+    """The calibration of ``terrain`` (``<ds>/calibration/<terrain>.json``), recomputed only when its
+    stamp (Train split files, robot spec, settings) is stale. Returns (document, recomputed)."""
+    from skidbench.models.base import concat_sequences
+
+    files = train_files(layout, terrain)
+    if not files:
+        raise CalibrationError(
+            f"{layout.splits / terrain / 'train'}: no Train split files to calibrate; run `skidbench split`"
+        )
+    path = layout.calibration_file(terrain)
+    stamp = Stamp(layout.root / ".stamps" / "calibrate" / f"{terrain}.json", "calibrate")
+    key = stamp.key(files, {"robot": spec.to_dict(), "settings": dataclasses.asdict(s)})
+    if stamp.is_fresh(key):
+        import json
+
+        return json.loads(path.read_text()), False
+    tables = [read_split(p) for p in files]
+    table = concat_sequences(tables)
+    doc = calibrate_table(table, spec, s)
+    doc.update(
+        {
+            "terrain": terrain,
+            "dataset": dataset,
+            "robot": spec.name,
+            "split": "train",
+            "sequences": [p.stem for p in files],
+            "inputs_fingerprint": _inputs_fingerprint(files, spec),
+            "model_usage": MODEL_USAGE,
+        }
+    )
+    write_json_atomic(path, doc)
+    stamp.record(key, [path])
+    return doc, True
+
+
+#: how the built-in models take the calibrated constants (the class attribute
+#: ``calibrated_constants`` is the contract; this text is what the JSON and the README say)
+MODEL_USAGE = {
+    "ideal": "calibrated radius and track width (the ideal model is the calibrated kinematics)",
+    "edd": "calibrated radius; spec-sheet track: chi absorbs the track width (chi = B_eff / B_spec)",
+    "roc": "calibrated radius; spec-sheet track: chi(R) absorbs the track width",
+    "full_linear": "neither: its matrix A absorbs radius and track width",
+    "enhanced": "calibrated radius and track width (p1..p6 are slips beyond the calibrated kinematics)",
+    "friction": "calibrated radius only: its wheel positions are the physical track, skid is its physics",
+}
+
+
+def load_calibration(cfg: Any, terrain: str) -> dict[str, Any] | None:
+    """The terrain's calibration for a fit: the saved one when it was made from the current Train files
+    and robot spec (whatever its settings), else computed now with ``cfg``'s settings; None when
+    ``calibrate.use`` is false."""
+    import json
+
+    if not use_calibration(cfg):
+        return None
+    layout = layout_from_cfg(cfg)
+    spec = robot_from_hydra(cfg.robot)
+    path = layout.calibration_file(terrain)
+    files = train_files(layout, terrain)
+    if not files:
+        return None
+    if path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+            if doc.get("inputs_fingerprint") == _inputs_fingerprint(files, spec):
+                return doc
+        except (OSError, ValueError):
+            pass
+    doc, _ = calibrate_terrain(layout, terrain, spec, settings_from_cfg(cfg), str(cfg.dataset))
+    return doc
+
+
+def calibrated_robot(spec: Robot, doc: Mapping[str, Any] | None, constants: Sequence[str]) -> Robot:
+    """``spec`` with the identified constants of ``doc`` among ``constants`` replaced."""
+    if not doc:
+        return spec
+    changes = {
+        c: float(doc[c]["value"]) for c in constants if c in CONSTANTS and doc.get(c, {}).get("identified")
+    }
+    return dataclasses.replace(spec, **changes) if changes else spec
+
+
+def robot_for_model(cfg: Any, model_cls: type, terrain: str) -> tuple[Robot, dict[str, Any]]:
+    """The robot a model of class ``model_cls`` is built with on ``terrain``, and a record of where each
+    constant came from (for the fit JSON and MLflow)."""
+    spec = robot_from_hydra(cfg.robot)
+    constants = tuple(getattr(model_cls, "calibrated_constants", ("wheel_radius",)))
+    doc = load_calibration(cfg, terrain)
+    robot = calibrated_robot(spec, doc, constants)
+    record: dict[str, Any] = {}
+    for c in CONSTANTS:
+        if doc is None:
+            src = "spec (calibrate.use=false)" if not use_calibration(cfg) else "spec (no calibration)"
+        elif c not in constants:
+            src = "spec (absorbed by the model's own parameters)"
+        elif not doc[c]["identified"]:
+            src = "spec (not identified)"
+        else:
+            src = "calibrated"
+        record[c] = {"value": float(getattr(robot, c)), "spec": float(getattr(spec, c)), "source": src}
+    return robot, record

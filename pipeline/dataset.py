@@ -1,0 +1,234 @@
+"""A dataset's identity: which data an output folder ``<out_root>/<dataset>`` holds.
+
+Name (the output folder and the MLflow experiment ``skidbench-<name>``):
+- ``source.dataset`` when the user sets it (or, for ``drive_df``, ``source.label``: ``drive-<label>``);
+- the simulated source: ``sim-<scale>``, ``sim-<scale>-seed<N>`` for a seed other than 0 (scale and seed
+  are its identity: the same pair gives the same bytes);
+- any other source: ``<prefix>-<root name>-<fingerprint[:6]>``, e.g. ``amrl-grass_day2-3f9c1a``, where the
+  fingerprint hashes the source kind and the resolved absolute path of ``source.root`` (plus
+  ``source.file`` for ``drive_df``).
+
+Why the path and not the listing of the root: a dataset's home must survive edits of its files (a
+sequence added, a file repaired): the stages' stamps already notice changed content and re-run exactly
+what depends on it, and pruning removes the outputs of sequences that are gone; a listing in the
+fingerprint would instead move the whole dataset to a new folder (and a new MLflow experiment) at every
+edit, orphaning its fits and runs. Moving or copying the folder elsewhere makes a new dataset (it is
+re-extracted there), which is the safe side: two different roots never share a folder.
+
+Each stage records the identity in ``<ds>/dataset.json`` (schema 1: name, source, root, fingerprint,
+terrains, sequences; written atomically) and refuses a folder recorded for another root, in one line
+naming both roots, unless ``source.replace=true`` (the old folder is then removed; its MLflow runs stay,
+but carry the old fingerprint in ``skidbench.dataset_id``, so compare never mixes them in).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from .errors import ConfigError
+from .io import write_json_atomic
+from .layout import Layout, layout_from_cfg, prune_stale, remove_atomic
+from .manifest import Manifest
+
+log = logging.getLogger("skidbench.dataset")
+
+RECORD_SCHEMA = 1
+NAME_FP_LEN = 6
+
+
+class DatasetError(ConfigError):
+    """Two datasets that would share one output folder."""
+
+
+@dataclass(frozen=True)
+class DatasetIdentity:
+    name: str
+    source: str  # source.name: sim | bag | amrl_txt | drive_df | ...
+    root: str  # the resolved data path (sim: the raw folder it simulates into)
+    fingerprint: str  # sha256 of the identity key, 12 hex digits
+
+    def describe(self) -> str:
+        return f"dataset {self.name} ({self.source} {self.root}, fingerprint {self.fingerprint})"
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_.") or "root"
+
+
+def fingerprint_of(key: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def data_path(source: Any) -> Path:
+    """The resolved absolute path of a source's data: ``source.root`` (+ ``source.file`` when set)."""
+    if OmegaConf.is_config(source) and OmegaConf.is_missing(source, "root"):
+        raise ConfigError(
+            f"source.root is not set for source={source.get('name')}: give source.root=<folder>, or "
+            "dataset=<name> of a dataset already under out_root (`skidbench datasets` lists them)"
+        )
+    path = Path(str(source.get("root"))).expanduser().resolve()
+    if source.get("file"):
+        path = path / str(source.get("file"))
+    return path
+
+
+def is_sim(source: Any) -> bool:
+    return str(source.get("name")) == "sim"
+
+
+def _data_key(source: Any) -> dict[str, str]:
+    return {"source": str(source.get("name")), "root": str(data_path(source))}
+
+
+def auto_name(prefix: str, source: Any) -> str:
+    """``<prefix>-<root name>-<fingerprint[:6]>`` (``<prefix>-<label>`` when ``source.label`` is set)."""
+    if source.get("label"):
+        return f"{prefix}-{_safe(str(source.get('label')))}"
+    path = data_path(source)
+    stem = path.stem if path.is_file() else path.name
+    return f"{prefix}-{_safe(stem)}-{fingerprint_of(_data_key(source))[:NAME_FP_LEN]}"
+
+
+def sim_name(scale: str, seed: Any) -> str:
+    seed = int(seed or 0)
+    return f"sim-{scale}" + (f"-seed{seed}" if seed else "")
+
+
+def read_record(layout: Layout) -> dict[str, Any] | None:
+    try:
+        return json.loads(layout.dataset_json.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def identity_from_cfg(cfg: Any) -> DatasetIdentity:
+    """The identity of the configured dataset. A source whose ``root`` is not given (``dataset=<name>``
+    alone, e.g. for ``compare``) takes the identity recorded in that dataset's folder."""
+    layout = layout_from_cfg(cfg)
+    source = cfg.source
+    if is_sim(source):
+        key = {"source": "sim", "scale": str(cfg.scale.name), "seed": int(cfg.get("seed") or 0)}
+        return DatasetIdentity(layout.dataset, "sim", str(layout.raw), fingerprint_of(key))
+    if OmegaConf.is_config(source) and OmegaConf.is_missing(source, "root"):
+        rec = read_record(layout)
+        if rec and rec.get("fingerprint"):
+            return DatasetIdentity(
+                layout.dataset, str(rec["source"]), str(rec["root"]), str(rec["fingerprint"])
+            )
+        data_path(source)  # the one-line error
+    key = _data_key(source)
+    return DatasetIdentity(layout.dataset, key["source"], key["root"], fingerprint_of(key))
+
+
+def _unwrap(exc: BaseException) -> BaseException:
+    """The ConfigError behind an OmegaConf interpolation error (a resolver's one-line message)."""
+    seen = exc
+    while seen is not None and not isinstance(seen, ConfigError):
+        seen = seen.__cause__ or seen.__context__
+    return seen or exc
+
+
+def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
+    """At the start of a stage: the dataset's identity, printed; its folder checked against the recorded
+    identity (DatasetError naming both roots unless ``source.replace=true``); ``dataset.json`` written;
+    outputs of sequences that are no longer in the manifest pruned."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        ident = identity_from_cfg(cfg)
+    except OmegaConfBaseException as exc:
+        cause = _unwrap(exc)
+        if isinstance(cause, ConfigError):
+            raise cause from None
+        raise
+    layout = Layout(Path(str(cfg.out_root)), ident.name)
+    # stdout: stderr is kept for the one-line error a stage may end with
+    print(f"skidbench {stage}: {ident.describe()} -> {layout.root}", flush=True)
+    rec = read_record(layout)
+    if rec is not None and rec.get("fingerprint") != ident.fingerprint:
+        if not bool(cfg.source.get("replace", False)):
+            raise DatasetError(
+                f"{layout.root}: dataset {ident.name!r} already holds {rec.get('source')} {rec.get('root')}; "
+                f"{ident.source} {ident.root} cannot share it: name it with source.dataset=<another name>, "
+                "or set source.replace=true to replace it"
+            )
+        log.warning(
+            "source.replace=true: removing %s (%s %s)", layout.root, rec.get("source"), rec.get("root")
+        )
+        remove_atomic(layout.root)
+    record(layout, ident)
+    if layout.manifest.is_file():
+        prune_stale(layout, Manifest.read(layout.manifest))
+    return layout, ident
+
+
+def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:
+    """Write ``<ds>/dataset.json`` (only when its content changes): the identity and the manifest's
+    terrains and sequence count."""
+    doc: dict[str, Any] = {"schema": RECORD_SCHEMA, **asdict(ident), "terrains": [], "sequences": 0}
+    if layout.manifest.is_file():
+        with contextlib.suppress(ConfigError):
+            m = Manifest.read(layout.manifest)
+            doc.update(terrains=m.terrains, sequences=len(m.sequences))
+    if read_record(layout) != doc:
+        write_json_atomic(layout.dataset_json, doc)
+    return doc
+
+
+# -- `skidbench datasets` --------------------------------------------------------------------------
+def list_datasets(out_root: Path) -> list[dict[str, Any]]:
+    """One row per dataset folder under ``out_root`` (a folder with ``dataset.json`` or a manifest):
+    name, source, root, terrains, fingerprint, last evaluate (UTC time and parent run id)."""
+    import datetime as dt
+
+    rows = []
+    root = Path(out_root)
+    if not root.is_dir():
+        return rows
+    for d in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        layout = Layout(root, d.name)
+        rec = read_record(layout)
+        if rec is None and not layout.manifest.is_file():
+            continue
+        rec = rec or {"source": "?", "root": "?", "fingerprint": "?"}
+        terrains = rec.get("terrains") or []
+        if not terrains and layout.manifest.is_file():
+            with contextlib.suppress(ConfigError):
+                terrains = Manifest.read(layout.manifest).terrains
+        last = "-"
+        ev = layout.eval / "last_evaluate.json"
+        with contextlib.suppress(OSError, ValueError):
+            run = json.loads(ev.read_text()).get("parent_run_id", "?")
+            when = dt.datetime.fromtimestamp(ev.stat().st_mtime, dt.UTC).strftime("%Y-%m-%d %H:%M")
+            last = f"{when} UTC (run {run})"
+        rows.append(
+            {
+                "name": d.name,
+                "source": rec.get("source", "?"),
+                "root": rec.get("root", "?"),
+                "terrains": ",".join(terrains) or "-",
+                "fingerprint": rec.get("fingerprint", "?"),
+                "last_evaluate": last,
+            }
+        )
+    return rows
+
+
+def format_datasets(rows: list[dict[str, Any]], out_root: Path) -> str:
+    if not rows:
+        return f"{out_root}: no datasets"
+    cols = ["name", "source", "root", "terrains", "last_evaluate"]
+    head = {c: c.replace("_", " ") for c in cols}
+    width = {c: max(len(head[c]), *(len(str(r[c])) for r in rows)) for c in cols}
+    lines = ["  ".join(head[c].ljust(width[c]) for c in cols).rstrip()]
+    lines += ["  ".join(str(r[c]).ljust(width[c]) for c in cols).rstrip() for r in rows]
+    return "\n".join(lines)

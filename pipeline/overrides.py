@@ -1,0 +1,195 @@
+"""Command-line overrides checked before a stage runs: an unknown or misspelt key, or a config group
+option that does not exist, is one line naming it and the nearest valid keys (``difflib``), instead of
+the tail of a Hydra traceback.
+
+The check composes the stage's config with Hydra's compose API and the same overrides. A sweep
+(``-m model=a,b``) is composed with each sweep's first value, then with every other value of each sweep
+over a config group (only a group's choice can change which keys exist), so a misspelt option anywhere
+in a sweep is caught, and ``+key``
+additions, ``~key`` deletions and ``hydra.*`` settings are checked exactly as Hydra will apply them.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from collections.abc import Iterator
+from importlib import resources
+from typing import Any
+
+from .errors import ConfigError
+
+CONFIG_MODULE = "skidbench.conf"
+# Hydra flags that take no override check: help, shell completion, another config, a rerun
+_SKIP_FLAGS = ("help", "hydra_help", "shell_completion", "info", "config_path", "config_dir", "config_name")
+
+
+def is_hydra_stage(stage: str) -> bool:
+    """A stage whose primary config is ``conf/<stage>.yaml`` (every Hydra app here)."""
+    return resources.files(CONFIG_MODULE).joinpath(f"{stage}.yaml").is_file()
+
+
+def check_overrides(stage: str, argv: list[str]) -> None:
+    """Raise :class:`ConfigError` (one line) for the first override of ``argv`` that Hydra would refuse."""
+    from hydra._internal.utils import get_args_parser  # Hydra's own command-line parser
+
+    if not is_hydra_stage(stage):
+        return
+    try:
+        args = get_args_parser().parse_args(argv)
+    except SystemExit:  # an unknown flag: Hydra reports it itself
+        return
+    if any(getattr(args, flag, None) for flag in _SKIP_FLAGS) or getattr(args, "experimental_rerun", None):
+        return
+    overrides = list(args.overrides or [])
+    if not overrides:
+        return
+    if not args.multirun:
+        _check(stage, overrides)
+        return
+    values = _sweep_values(overrides)
+    first = [vals[0] if vals else None for _, vals in values]
+    cfg = _check(stage, [f for f in first if f is not None])
+    groups = set(cfg.hydra.runtime.choices)  # only a group choice can change which keys exist
+    for i, (key, vals) in enumerate(values):
+        if key in groups:
+            for v in vals[1:]:
+                _check(stage, [v if j == i else f for j, f in enumerate(first) if f is not None or j == i])
+
+
+def _check(stage: str, overrides: list[str]) -> Any:
+    """The composed config, or ConfigError naming the override Hydra refuses."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        return _compose(stage, overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(_explain(stage, overrides, exc)) from None
+
+
+def _sweep_values(overrides: list[str]) -> list[tuple[str, list[str]]]:
+    """Per override line, its key and the single-valued override lines it stands for (a sweep's values;
+    none for a sweep only a sweeper can expand, such as ``interval`` or ``glob``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except HydraException:  # bad grammar: composing the lines as given reports it
+        return [(_override_key(line), [line]) for line in overrides]
+    values = []
+    for line, ov in zip(overrides, parsed, strict=True):
+        if not ov.is_sweep_override():
+            values.append((ov.key_or_group, [line]))
+            continue
+        try:
+            choices = list(ov.sweep_string_iterator())
+        except Exception:  # noqa: BLE001 - a sweep only a sweeper can expand: not checked
+            choices = []
+        prefix = {"ADD": "+", "FORCE_ADD": "++"}.get(ov.type.name, "")
+        values.append((ov.key_or_group, [f"{prefix}{ov.key_or_group}={v}" for v in choices]))
+    return values
+
+
+def _compose(stage: str, overrides: list[str]) -> Any:
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3", job_name=stage):
+        return compose(stage, overrides=overrides, return_hydra_config=True)
+
+
+_KEY_PATTERNS = (
+    r"Could not override '([^']+)'",
+    r"Could not delete from config\. '([^']+)' does not exist",
+    r"Could not delete from config\. The value of '([^']+)'",
+)
+
+
+def _explain(stage: str, overrides: list[str], exc: Exception) -> str:
+    from hydra.errors import MissingConfigException
+
+    if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and exc.options is not None:
+        group, _, value = str(exc.missing_cfg_file).rpartition("/")
+        options = sorted(exc.options)
+        near = difflib.get_close_matches(value, options, n=3, cutoff=0.5)
+        hint = f"; did you mean {_alternatives([f'{group}={o}' for o in near])}?" if near else ""
+        return f"unknown option '{group}={value}'{hint} (options of '{group}': {', '.join(options)})"
+    text = " ".join(str(exc).split())
+    for pattern in _KEY_PATTERNS:
+        if m := re.search(pattern, text):
+            key = m.group(1)
+            rest = [o for o in overrides if _override_key(o) != key]
+            keys = _valid_keys(stage, rest, hydra=key.startswith("hydra."))
+            return f"unknown config key '{key}'{_nearest(key, keys)}"
+    if m := re.search(r"Could not append to config\. An item is already at '([^']+)'", text):
+        return f"'{m.group(1)}' is already in the config: set it without '+' ('++' adds or overrides)"
+    if "Ambiguous value for argument" in text:
+        return text.split(" 1. ", 1)[0] + ": a sweep needs -m (--multirun); a list is key=[a,b]"
+    return f"bad override ({text})"
+
+
+def _override_key(line: str) -> str:
+    return line.lstrip("+~").split("=", 1)[0]
+
+
+def _alternatives(names: list[str]) -> str:
+    quoted = [f"'{n}'" for n in names]
+    return quoted[0] if len(quoted) == 1 else ", ".join(quoted[:-1]) + f" or {quoted[-1]}"
+
+
+def _nearest(key: str, keys: list[str]) -> str:
+    """``; did you mean 'a'?`` (the closest key, and any nearly as close): among the siblings when the
+    parent exists, else among the keys of the same depth; failing that, the valid keys under the deepest
+    parent that exists."""
+    keys = [k for k in keys if not k.rpartition(".")[2].startswith("_")]  # _target_ & co. are not typos
+    parent, _, leaf = key.rpartition(".")
+    if not parent or parent in keys:
+        prefix = f"{parent}." if parent else ""
+        peers = {k[len(prefix) :]: k for k in keys if k.startswith(prefix) and "." not in k[len(prefix) :]}
+        word = leaf
+    else:
+        peers = {k: k for k in keys if k.count(".") == key.count(".")}
+        word = key
+    scored = sorted(
+        ((difflib.SequenceMatcher(None, word, p).ratio(), k) for p, k in peers.items()), reverse=True
+    )
+    near = [k for r, k in scored[:3] if r >= 0.6 and r >= scored[0][0] - 0.05]
+    if near:
+        return f"; did you mean {_alternatives(near)}?"
+    while parent and parent not in keys:
+        parent = parent.rpartition(".")[0]
+    prefix = f"{parent}." if parent else ""
+    children = sorted({k[len(prefix) :].split(".")[0] for k in keys if k.startswith(prefix) and k != parent})
+    where = f"under '{parent}'" if parent else "at the top level"
+    if not children:
+        return f"; '{parent}' has no keys to set"
+    return f"; valid keys {where}: {', '.join(children)}"
+
+
+def _valid_keys(stage: str, overrides: list[str], hydra: bool = False) -> list[str]:
+    """Every dotted key of the composed config (and the config group names), ``hydra.*`` only if asked."""
+    from omegaconf import OmegaConf
+
+    for attempt in (overrides, []):
+        try:
+            cfg = _compose(stage, attempt)
+            break
+        except Exception:  # noqa: BLE001 - another bad override: fall back to the defaults
+            continue
+    else:
+        return []
+    groups = list(cfg.hydra.runtime.choices.keys())
+    data = OmegaConf.to_container(cfg, resolve=False)
+    if not hydra:
+        data.pop("hydra", None)
+        groups = [g for g in groups if not g.startswith("hydra/")]
+    return sorted({*_flatten(data), *groups})
+
+
+def _flatten(node: Any, prefix: str = "") -> Iterator[str]:
+    if isinstance(node, dict):
+        for k, v in node.items():
+            key = f"{prefix}{k}"
+            yield key
+            yield from _flatten(v, f"{key}.")

@@ -1,0 +1,69 @@
+"""A real local Ray cluster for tests (:func:`skidbench.benchmark.cluster.local_cluster`: ``ray start
+--head`` on 127.0.0.1, small resources) in the tests' environment, and a Hydra callback that kills its own
+worker process once, mid-task (fault injection for the Ray sweeps)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+
+TESTS = Path(__file__).resolve().parent
+
+
+@contextlib.contextmanager
+def running_ray_cluster(num_cpus: int = 2) -> Iterator[str]:
+    """A one-node cluster on 127.0.0.1 whose workers can import this folder (see :func:`ray_env`); yields
+    its address."""
+    from skidbench.benchmark.cluster import local_cluster
+
+    with local_cluster(num_cpus=num_cpus, env=ray_env()) as cluster:
+        yield cluster.address
+
+
+def ray_env(extra: dict | None = None) -> dict[str, str]:
+    """Environment of the cluster and of its drivers: this folder importable (the callback below runs on
+    the workers), token authentication off (a loopback-only test cluster; Ray would otherwise write a
+    token under ~/.ray), no usage reporting."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS), env.get("PYTHONPATH", "")) if p)
+    env.update({"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"})
+    env.update(extra or {})
+    return env
+
+
+class KillOnce(Callback):
+    """``+hydra.callbacks.chaos._target_=ray_cluster.KillOnce +hydra.callbacks.chaos.marker=<file>``: the
+    first job (across all processes: the marker is created exclusively) to finish its MLflow run kills
+    its own process with SIGKILL just before closing the run, leaving it RUNNING: a worker dying mid-task.
+    The marker records ``<pid> <run id>``."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def on_job_start(self, config, **kwargs) -> None:
+        from skidbench.benchmark import tracking
+
+        original = tracking.Tracker.end
+        if getattr(original, "chaos", False):
+            return
+        marker = self.marker
+
+        def end(tracker, run_id: str, status: str = "FINISHED") -> None:
+            if status == "FINISHED":
+                try:
+                    fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                except FileExistsError:
+                    pass
+                else:
+                    os.write(fd, f"{os.getpid()} {run_id}".encode())
+                    os.close(fd)
+                    os.kill(os.getpid(), signal.SIGKILL)
+            return original(tracker, run_id, status)
+
+        end.chaos = True  # type: ignore[attr-defined]
+        tracking.Tracker.end = end  # type: ignore[method-assign]

@@ -1,0 +1,201 @@
+"""``skidbench calibrate``: effective wheel radius and track width from the Train split (closed-form data).
+
+The simulated robot's wheels follow their commands with a 3 % steady tracking error (the encoders see
+it), and the body moves by an effective radius and an effective track width unlike the spec sheet's:
+calibration must recover both from the encoders and the ground truth to 1 %, fall back to the commanded
+rates for the radius (and say it cannot identify the track width) without encoders, and every model must
+be fitted with the calibrated constants it takes, or with the spec sheet's under ``calibrate.use=false``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import discover_data as dd  # noqa: E402
+
+from skidbench.models.base import concat_sequences  # noqa: E402
+from skidbench.pipeline.calibration import CalibrationSettings, calibrate_table  # noqa: E402
+from skidbench.pipeline.schema import write_split  # noqa: E402
+
+R_TRUE = dd.R_WHEEL * 1.06  # effective radius, 6 % over the spec sheet (dd.R_WHEEL = the Jackal's)
+B_TRUE = dd.TRACK * 1.45  # effective track (ICR spread), 45 % over the spec sheet
+TRACKING = 0.97  # the wheels hold 97 % of their commanded rate
+
+
+def _sequence(rng, duration: float, kind: str = "train"):
+    """Split table of one sequence: commands converted to wheel rates with the spec constants, wheels at
+    TRACKING x command (encoders: that plus 0.05 rad/s noise), body by R_TRUE / B_TRUE, VO-like poses."""
+    dt = 1.0 / 180.0
+    t, v, w = dd.joystick(rng, duration, dt, kind)
+    step = 4  # 45 Hz commands, held
+    hold = (np.arange(len(t)) // step) * step
+    wl = TRACKING * (v[hold] - w[hold] * dd.TRACK / 2) / dd.R_WHEEL
+    wr = TRACKING * (v[hold] + w[hold] * dd.TRACK / 2) / dd.R_WHEEL
+    vx = R_TRUE * (wl + wr) / 2
+    wz = R_TRUE * (wr - wl) / B_TRUE
+    pose = dd.integrate(t, vx, np.zeros_like(vx), wz)
+    tl, loc = dd.vo_poses(rng, t, pose)
+    import pandas as pd
+
+    cmd = pd.DataFrame({"t": t[::step], "v": v[::step], "w": w[::step]})
+    df = dd.to_split(cmd, pd.DataFrame({"t": tl, "x": loc[:, 0], "y": loc[:, 1], "yaw": loc[:, 2]}))
+    t_grid = df["t"].to_numpy() + max(cmd.t.iloc[0], tl[0])
+    idx = np.clip(np.searchsorted(t, t_grid, side="right") - 1, 0, len(t) - 1)
+    df["enc_wl"] = wl[idx] + rng.normal(0, 0.05, len(df))
+    df["enc_wr"] = wr[idx] + rng.normal(0, 0.05, len(df))
+    return df
+
+
+@pytest.fixture(scope="module")
+def calib_root(tmp_path_factory) -> Path:
+    """An output root with dataset ``calib``: splits of one terrain (6 Train sequences, one CV, one LD)."""
+    root = tmp_path_factory.mktemp("calib")
+    rng = np.random.default_rng(5)
+    for split, n, dur in (("train", 6, 40.0), ("cv", 1, 30.0), ("ld", 1, 40.0)):
+        for i in range(n):
+            name = f"tile_{split}_{i:02d}"
+            meta = {"sequence": name, "terrain": "tile", "split": split, "robot": "jackal", "sources": {},
+                    "rate_hz": 30.0}  # fmt: skip
+            df = _sequence(rng, dur, "cv" if split == "cv" else "train")
+            write_split(df, root / "calib" / "splits" / "tile" / split / f"{name}.parquet", meta)
+    return root
+
+
+def _train_table(root: Path, encoders: bool = True):
+    from skidbench.pipeline.schema import load_split_tables
+
+    tables = load_split_tables(root / "calib" / "splits", "tile", "train")
+    table = concat_sequences(tables)
+    if not encoders:
+        table["enc_wl"] = np.nan
+        table["enc_wr"] = np.nan
+    return table
+
+
+def test_calibration_recovers_injected_radius_and_track_width_to_one_percent(calib_root, jackal):
+    doc = calibrate_table(_train_table(calib_root), jackal, CalibrationSettings())
+    assert doc["source"] == "encoders"
+    r, B = doc["wheel_radius"], doc["track_width"]
+    assert r["identified"] and B["identified"]
+    assert r["value"] == pytest.approx(R_TRUE, rel=0.01), r
+    assert B["value"] == pytest.approx(B_TRUE, rel=0.01), B
+    # the spec sheet's values are far outside the intervals; the intervals are honest (not zero width)
+    assert r["ci"][0] < r["value"] < r["ci"][1] and r["ci"][1] < 1.02 * R_TRUE
+    assert B["ci"][0] < B["value"] < B["ci"][1] and B["ci"][1] - B["ci"][0] < 0.05 * B_TRUE
+    assert not (r["ci"][0] <= jackal.wheel_radius <= r["ci"][1])
+    assert doc["not_identified"] == []
+
+
+def test_without_encoders_radius_comes_from_commands_and_track_width_is_not_identified(calib_root, jackal):
+    doc = calibrate_table(_train_table(calib_root, encoders=False), jackal, CalibrationSettings())
+    assert doc["source"] == "commands"
+    # the commanded rates are 1/TRACKING of the real ones: the radius from commands carries the tracking error
+    assert doc["wheel_radius"]["identified"]
+    assert doc["wheel_radius"]["value"] == pytest.approx(R_TRUE * TRACKING, rel=0.01)
+    assert "commanded" in doc["wheel_radius"]["note"]
+    tw = doc["track_width"]
+    assert not tw["identified"] and tw["value"] == jackal.track_width
+    assert "no wheel encoders" in tw["reason"]
+    assert doc["not_identified"] == ["track_width"]
+
+
+def _cfg(root: Path, *over: str):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        return compose("evaluate", [f"out_root={root}", "dataset=calib", *over])
+
+
+def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(calib_root, jackal):
+    from skidbench.models.fitting import fit_model
+
+    cfg = _cfg(calib_root)
+    ideal = fit_model(cfg, "ideal", "tile")
+    assert ideal.model.robot.wheel_radius == pytest.approx(R_TRUE, rel=0.01)
+    assert ideal.model.robot.track_width == pytest.approx(B_TRUE, rel=0.01)
+    saved = json.loads(ideal.path.read_text())
+    assert saved["robot_constants"]["track_width"]["source"] == "calibrated"
+    # edd: chi absorbs the track width, so it keeps the spec sheet's and chi is the calibrated ratio
+    # (from commanded rates, so it also absorbs the wheels' 3 % tracking error)
+    edd = fit_model(cfg, "edd", "tile")
+    assert edd.model.robot.track_width == jackal.track_width
+    assert edd.model.robot.wheel_radius == pytest.approx(R_TRUE, rel=0.01)
+    assert edd.model.params["chi"] == pytest.approx(B_TRUE / (TRACKING * jackal.track_width), rel=0.01)
+    assert "absorbed" in json.loads(edd.path.read_text())["robot_constants"]["track_width"]["source"]
+    # calibrate.use=false: the spec sheet, and the fit is redone (its stamp includes the constants)
+    off = fit_model(_cfg(calib_root, "calibrate.use=false"), "ideal", "tile")
+    assert not off.reused
+    assert (off.model.robot.wheel_radius, off.model.robot.track_width) == (
+        jackal.wheel_radius,
+        jackal.track_width,
+    )
+    assert json.loads(off.path.read_text())["robot_constants"]["wheel_radius"]["source"].startswith("spec")
+    # the ideal model's yaw rate with the calibrated track is close to the truth (off by the 3 % tracking
+    # error of the commanded rates it predicts from), with the spec sheet's 45 % off
+    table = _train_table(calib_root)
+    ok = table["valid"].to_numpy(bool)
+    true = table["wz"].to_numpy()[ok]
+    err_cal = np.abs(ideal.model.predict(table)[ok, 2] - true).mean()
+    err_spec = np.abs(off.model.predict(table)[ok, 2] - true).mean()
+    assert err_cal < 0.2 * err_spec, (err_cal, err_spec)
+
+
+@pytest.mark.slow
+def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlflow(
+    calib_root, jackal, capsys
+):
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline import calibrate_app
+
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        cfg = compose("calibrate", [f"out_root={calib_root}", "dataset=calib", "force=true"])
+    calibrate_app.run(cfg)
+    out = capsys.readouterr().out
+    doc = json.loads((calib_root / "calib" / "calibration" / "tile.json").read_text())
+    assert doc["wheel_radius"]["value"] == pytest.approx(R_TRUE, rel=0.01)
+    line = next(x for x in out.splitlines() if x.startswith("tile") and "track_width" in x)
+    assert f"{jackal.track_width:.4f}" in line and f"{doc['track_width']['value']:.4f}" in line
+    import mlflow
+
+    client = mlflow.MlflowClient(f"sqlite:///{calib_root}/mlflow.db")
+    exp = client.get_experiment_by_name("skidbench-calib")
+    runs = client.search_runs([exp.experiment_id], "tags.`skidbench.role` = 'calibration'")
+    assert len(runs) >= 1
+    assert runs[0].data.metrics["track_width_tile"] == pytest.approx(doc["track_width"]["value"])
+    cfg.force = False
+    calibrate_app.run(cfg)
+    assert "up to date, skipped" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_drive_fixtures_run_through_calibrate(shared_real, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline import calibrate_app
+    from skidbench.pipeline.api import prepare_splits
+
+    for robot in ("husky", "warthog"):
+        with initialize_config_module("skidbench.conf", version_base="1.3"):
+            cfg = compose(
+                "calibrate",
+                [f"out_root={tmp_path}", "source=drive_df", f"robot={robot}",
+                 f"source.root={shared_real / 'drive'}", f"source.file={robot}_windows.parquet"],
+            )  # fmt: skip
+        prepare_splits(cfg)
+        docs = calibrate_app.run(cfg)
+        doc = docs["unspecified"]
+        assert doc["source"] == "encoders"
+        for c in ("wheel_radius", "track_width"):
+            d = doc[c]
+            assert d["identified"], (robot, c, d)
+            assert d["ci"][0] <= d["value"] <= d["ci"][1]
+            assert 0.3 < d["ratio_to_spec"] < 4.0
+        # skid-steer: the effective track is wider than the physical one
+        assert doc["track_width"]["value"] > doc["spec"]["track_width"]
