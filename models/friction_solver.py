@@ -3,8 +3,14 @@
 At each time step t the unknowns are theta_t = (s_l, s_r, x_ICR) (left/right slip ratio, ICR offset, m);
 the inputs are the commanded wheel rates (wl, wr, rad/s) and their derivatives (dwl, dwr, rad/s^2).
 ``residual`` evaluates the force/torque balance F(theta) (eqs. 9-11) for all steps at once; ``solve``
-finds F(theta) = 0 for all steps by a vectorised Levenberg-Marquardt iteration (eq. 12), and
-``solve_reference`` does the paper's per-step scipy trust-region solve, used to check it.
+finds F(theta) = 0 for all steps by Levenberg-Marquardt (eq. 12), and ``solve_reference`` does the paper's
+per-step scipy trust-region solve, used to check it. ``balance_jacobians`` gives the analytic dF/dtheta and
+dF/dp, and ``velocity_sensitivity`` the derivative of the solved motion with respect to the parameters by
+the implicit function theorem (what the fit's Jacobian is made of).
+
+The physics lives once, in the compiled ``_step_balance`` (numba): every step is a 3-unknown problem with
+its own iteration count, which compiled per-step loops do without the per-iteration Python overhead a
+vectorised batch paid while a few stragglers iterated (issue 14; ``make bench BENCH=friction_fit``).
 
 Conventions (SPEC.md "Models", notes on the friction model):
 - F is normalised: F1, F2 by M g and F3 by M g b (b = half track) so that one tolerance fits all three;
@@ -25,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 G = 9.80665  # m/s^2
 PARAM_NAMES = ("mu_r", "mu_x", "mu_y", "lambda", "C")
@@ -79,6 +86,292 @@ def body_velocity(theta: np.ndarray, wl: np.ndarray, wr: np.ndarray, r: float, B
     return np.stack([(el + er) / 2.0, -theta[..., 2] * wz, wz], axis=-1)
 
 
+# ---- the force balance of one step, compiled (numba): the one home of eqs. (4)-(11) in code ----
+# geometry vector layout (``_geo_vector``): r, B, M, I_z, x_CG, y_CG, X[4], Y[4], N[4], scale[3]
+_GX, _GY, _GN, _GS = 6, 10, 14, 18
+
+
+def _geo_vector(geo: FrictionGeometry) -> np.ndarray:
+    return np.concatenate(
+        [
+            [geo.r, geo.B, geo.mass, geo.I_z, float(geo.cg[0]), float(geo.cg[1])],
+            geo.wheel_xy[:, 0],
+            geo.wheel_xy[:, 1],
+            geo.normal,
+            geo.force_scale,
+        ]
+    ).astype(float)
+
+
+@njit(cache=True, fastmath=False)
+def _step_balance(th, rw, sg, dvx_c, dw_c, free, p, gv, F, J, P, want_j, want_p):
+    """F (3,) of one step at th = (s_l, s_r, x_ICR), and on request J = dF/dtheta (3, 3; a pinned variable's
+    column zero) and P = dF/d(mu_r, mu_x, mu_y, lambda, C) (3, 5). rw, sg: r omega and sgn(omega) per side;
+    dvx_c, dw_c: the commanded body accelerations (the paper's zero-order approximation). Derivatives are
+    those of the smooth piece the step is on: sgn() has none; clip() of eq. (6) has lambda off the mu_x
+    plateau and 0 on it."""
+    mu_r, mu_x, mu_y, lam, C = p[0], p[1], p[2], p[3], p[4]
+    B, M, Iz, xcg, ycg = gv[1], gv[2], gv[3], gv[4], gv[5]
+    el = (1.0 - th[0]) * rw[0]  # ground speed of the left wheel centres, V_wx (eq. 8)
+    er = (1.0 - th[1]) * rw[1]
+    vx = 0.5 * (el + er)
+    wz = (er - el) / B
+    vy = -th[2] * wz
+    # d(vx, wz, vy) / d(s_l, s_r); d/dx_ICR: vy only (-wz)
+    dvx0, dvx1 = -0.5 * rw[0], -0.5 * rw[1]
+    dwz0, dwz1 = rw[0] / B, -rw[1] / B
+    dvy0, dvy1 = -th[2] * dwz0, -th[2] * dwz1
+    F[0] = F[1] = F[2] = 0.0
+    if want_j:
+        J[:, :] = 0.0
+    if want_p:
+        P[:, :] = 0.0
+    for i in range(4):
+        X, Y, N = gv[_GX + i], gv[_GY + i], gv[_GN + i]
+        side = 0 if i < 2 else 1
+        s, sgn_w = th[side], sg[side]
+        lx, ly = X - xcg, Y - ycg  # lever arms about the CG
+        ls = lam * s
+        fx = sgn_w * min(max(ls, -mu_x), mu_x) * N  # eq. (6)
+        vwx = vx - wz * Y
+        vwy = vy + wz * X
+        avx, avy = abs(vwx), abs(vwy)
+        alpha = np.arctan2(avy, avx)  # |alpha|, eq. (4)
+        E = np.exp(-alpha / C)
+        sy = np.sign(vwy)
+        sx = np.sign(vwx)
+        fy = -sy * mu_y * (1.0 - E) * N  # eq. (7)
+        Fx = fx - mu_r * N * sx  # eq. (5): rolling resistance against the wheel's own V_wx
+        F[0] += Fx
+        F[1] += fy
+        F[2] += lx * fy - ly * Fx
+        inside = abs(ls) < mu_x
+        if want_j:
+            q = vwx * vwx + vwy * vwy
+            k = (mu_y * N / C) * E / q if q > 0.0 else 0.0
+            gx = k * vwy * sx  # d fy / d V_wx (smooth through V_wy = 0)
+            gy = -k * avx  # d fy / d V_wy
+            d0 = gx * (dvx0 - Y * dwz0) + gy * (dvy0 + X * dwz0)
+            d1 = gx * (dvx1 - Y * dwz1) + gy * (dvy1 + X * dwz1)
+            d2 = -gy * wz
+            J[1, 0] += d0
+            J[1, 1] += d1
+            J[1, 2] += d2
+            J[2, 0] += lx * d0
+            J[2, 1] += lx * d1
+            J[2, 2] += lx * d2
+            if inside:
+                dfx = sgn_w * lam * N  # d fx / d s (own side only)
+                J[0, side] += dfx
+                J[2, side] -= ly * dfx
+        if want_p:
+            dR = -N * sx  # d Fx / d mu_r
+            dmx = 0.0 if inside else sgn_w * np.sign(ls) * N  # d fx / d mu_x (on the plateau)
+            dlam = sgn_w * s * N if inside else 0.0  # d fx / d lambda
+            dmy = -sy * (1.0 - E) * N  # d fy / d mu_y
+            dC = sy * (mu_y * N / (C * C)) * E * alpha  # d fy / d C
+            P[0, 0] += dR
+            P[2, 0] -= ly * dR
+            P[0, 1] += dmx
+            P[2, 1] -= ly * dmx
+            P[0, 3] += dlam
+            P[2, 3] -= ly * dlam
+            P[1, 2] += dmy
+            P[2, 2] += lx * dmy
+            P[1, 4] += dC
+            P[2, 4] += lx * dC
+    # rigid-body transport: a = dv/dt + w x v at the CG
+    vcgx = vx - ycg * wz
+    vcgy = vy + xcg * wz
+    F[0] -= M * (dvx_c - wz * vcgy)  # eq. (9)
+    F[1] -= M * (wz * vcgx)  # eq. (10)
+    F[2] -= Iz * dw_c  # eq. (11)
+    for a in range(3):
+        F[a] /= gv[_GS + a]
+    if want_j:
+        J[0, 0] += M * (dwz0 * vcgy + wz * (dvy0 + xcg * dwz0))
+        J[0, 1] += M * (dwz1 * vcgy + wz * (dvy1 + xcg * dwz1))
+        J[0, 2] -= M * wz * wz
+        J[1, 0] -= M * (dwz0 * vcgx + wz * (dvx0 - ycg * dwz0))
+        J[1, 1] -= M * (dwz1 * vcgx + wz * (dvx1 - ycg * dwz1))
+        for a in range(3):
+            for b in range(3):
+                J[a, b] = J[a, b] / gv[_GS + a] * free[b]
+    if want_p:
+        for a in range(3):
+            for b in range(5):
+                P[a, b] /= gv[_GS + a]
+
+
+@njit(cache=True)
+def _balance_all(theta, rw, sg, dvx_c, dw_c, free, p, gv, want_j, want_p):
+    """``_step_balance`` for every step: theta (T, 3), rw/sg/free (T, 2)/(T, 2)/(T, 3) -> F (T, 3),
+    J (T, 3, 3), P (T, 3, 5) (zeros where not asked for)."""
+    T = theta.shape[0]
+    F = np.zeros((T, 3))
+    J = np.zeros((T, 3, 3) if want_j else (1, 3, 3))
+    P = np.zeros((T, 3, 5) if want_p else (1, 3, 5))
+    for t in range(T):
+        jt = t if want_j else 0
+        pt = t if want_p else 0
+        _step_balance(
+            theta[t], rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, F[t], J[jt], P[pt], want_j, want_p
+        )
+    return F, J, P
+
+
+@njit(cache=True)
+def _solve_spd3(A, b, x):
+    """x = A^-1 b for a symmetric positive definite 3x3 A (Cholesky); False where A is not numerically
+    positive definite (x untouched)."""
+    a00 = A[0, 0]
+    if not a00 > 0.0:
+        return False
+    l00 = np.sqrt(a00)
+    l10, l20 = A[0, 1] / l00, A[0, 2] / l00
+    a11 = A[1, 1] - l10 * l10
+    if not a11 > 0.0:
+        return False
+    l11 = np.sqrt(a11)
+    l21 = (A[1, 2] - l20 * l10) / l11
+    a22 = A[2, 2] - l20 * l20 - l21 * l21
+    if not a22 > 0.0:
+        return False
+    l22 = np.sqrt(a22)
+    y0 = b[0] / l00
+    y1 = (b[1] - l10 * y0) / l11
+    y2 = (b[2] - l20 * y0 - l21 * y1) / l22
+    x[2] = y2 / l22
+    x[1] = (y1 - l21 * x[2]) / l11
+    x[0] = (y0 - l10 * x[1] - l20 * x[2]) / l00
+    return True
+
+
+@njit(cache=True)
+def _lm_steps(
+    theta, F, cost, idx, rw, sg, dvx_c, dw_c, free, p, gv, ftol, gtol, max_iter, stall_rtol, stall_iter
+):
+    """Levenberg-Marquardt, one step at a time, on the steps ``idx`` (in place on theta/F/cost rows):
+    (status (n,), iterations of the longest) with status 1 root, 2 stationary point of F^T F, 0 not
+    converged. Steps are independent problems; each iterates exactly as the batched form would."""
+    n = idx.size
+    status = np.zeros(n, dtype=np.int8)
+    hist = np.empty(stall_iter)
+    J = np.zeros((3, 3))
+    Jn = np.zeros((3, 3))
+    Fn = np.zeros(3)
+    tn = np.zeros(3)
+    g = np.zeros(3)
+    A = np.zeros((3, 3))
+    d = np.zeros(3)
+    delta = np.zeros(3)
+    dummy = np.zeros((3, 5))
+    longest = 0
+    for q in range(n):
+        t = idx[q]
+        th, f = theta[t], F[t]
+        if max(abs(f[0]), abs(f[1]), abs(f[2])) < ftol:
+            status[q] = 1
+            continue
+        c = cost[t]
+        mu = 1e-3
+        hist[:] = c
+        _step_balance(th, rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, Fn, J, dummy, True, False)
+        it = 0
+        st = 0
+        while it < max_iter:
+            it += 1
+            stat_v = 0.0
+            for a in range(3):
+                g[a] = J[0, a] * f[0] + J[1, a] * f[1] + J[2, a] * f[2]
+                for b in range(3):
+                    A[a, b] = J[0, a] * J[0, b] + J[1, a] * J[1, b] + J[2, a] * J[2, b]
+                d[a] = max(A[a, a], 1e-12)
+                stat_v = max(stat_v, abs(g[a]) / np.sqrt(d[a]))
+            stat = stat_v < gtol  # smooth stationary point, not a root
+            for a in range(3):
+                A[a, a] += mu * d[a]
+            if not _solve_spd3(A, g, delta):
+                delta[:] = 0.0
+            for a in range(3):
+                tn[a] = th[a] - delta[a] * free[t, a]
+            _step_balance(tn, rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, Fn, Jn, dummy, True, False)
+            cn = 0.5 * (Fn[0] * Fn[0] + Fn[1] * Fn[1] + Fn[2] * Fn[2])
+            mua = mu
+            if cn < c:
+                th[:] = tn
+                f[:] = Fn
+                c = cn
+                J[:, :] = Jn
+                mu = max(mua / 3.0, 1e-12)
+            else:
+                mu = mua * 4.0
+            # stalled: over the last stall_iter iterations the cost fell by less than stall_rtol of itself.
+            # Where no root exists the infimum of F^T F often sits on a kink or jump of F (sgn(V_wy) at zero
+            # yaw rate, the mu_x plateau of eq. 6): no smooth stationary point, the gradient test never
+            # fires and LM creeps along the kink; stalling is the non-smooth stationarity test.
+            oldest = hist[it % stall_iter]
+            stalled = (it >= stall_iter) and (oldest - c <= stall_rtol * oldest)
+            hist[it % stall_iter] = c
+            if max(abs(f[0]), abs(f[1]), abs(f[2])) < ftol:
+                st = 1
+                break
+            if stat or stalled or mua > 1e10:
+                st = 2
+                break
+        cost[t] = c
+        status[q] = st
+        longest = max(longest, it)
+    return status, longest
+
+
+def _step_inputs(wl, wr, dwl, dwr, geo: FrictionGeometry, mask: np.ndarray | None = None):
+    """Per-step inputs of the compiled balance: r omega and sgn(omega) per side (T, 2), the commanded body
+    accelerations dv_x, dw (T,) (the paper's zero-order approximation), the free variables (T, 3) as 0/1."""
+    r, B = geo.r, geo.B
+    m = free_mask(wl, wr) if mask is None else mask
+    rw = np.ascontiguousarray(np.column_stack([r * wl, r * wr]))
+    sg = np.ascontiguousarray(np.column_stack([np.sign(wl), np.sign(wr)]))
+    return rw, sg, r * (dwr + dwl) / 2.0, r * (dwr - dwl) / B, np.ascontiguousarray(m, dtype=float)
+
+
+@njit(cache=True)
+def _root_sensitivity(theta, status, rw, sg, dvx_c, dw_c, free, p, gv):
+    """dtheta/dp = -J^-1 dF/dp (T, 3, 5) at the regular roots (status 1, every variable free, |det J| above
+    1e-10 of the product of its column norms), and which steps those are (T,); zeros elsewhere."""
+    T = theta.shape[0]
+    out = np.zeros((T, 3, 5))
+    regular = np.zeros(T, dtype=np.bool_)
+    F = np.zeros(3)
+    J = np.zeros((3, 3))
+    P = np.zeros((3, 5))
+    adj = np.zeros((3, 3))
+    for t in range(T):
+        if status[t] != 1 or free[t, 0] == 0.0 or free[t, 1] == 0.0 or free[t, 2] == 0.0:
+            continue
+        _step_balance(theta[t], rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, F, J, P, True, True)
+        adj[0, 0] = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
+        adj[0, 1] = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
+        adj[0, 2] = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
+        adj[1, 0] = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
+        adj[1, 1] = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+        adj[1, 2] = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
+        adj[2, 0] = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
+        adj[2, 1] = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
+        adj[2, 2] = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+        det = J[0, 0] * adj[0, 0] + J[0, 1] * adj[1, 0] + J[0, 2] * adj[2, 0]
+        norms = 1.0
+        for b in range(3):
+            norms *= np.sqrt(J[0, b] * J[0, b] + J[1, b] * J[1, b] + J[2, b] * J[2, b])
+        if not abs(det) > 1e-10 * norms:
+            continue
+        regular[t] = True
+        for a in range(3):
+            for k in range(5):
+                out[t, a, k] = -(adj[a, 0] * P[0, k] + adj[a, 1] * P[1, k] + adj[a, 2] * P[2, k]) / det
+    return out, regular
+
+
 def residual(
     theta: np.ndarray,
     wl: np.ndarray,
@@ -89,34 +382,70 @@ def residual(
     geo: FrictionGeometry,
 ) -> np.ndarray:
     """Normalised F(theta) (eqs. 9-11) for every step: theta (T, 3), inputs (T,) -> (T, 3)."""
-    mu_r, mu_x, mu_y, lam, C = _param_vector(params)
+    wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    th = np.ascontiguousarray(np.asarray(theta, dtype=float).reshape(-1, 3))
+    args = _step_inputs(wl, wr, dwl, dwr, geo)
+    return _balance_all(th, *args, _param_vector(params), _geo_vector(geo), False, False)[0]
+
+
+def balance_jacobians(
+    theta: np.ndarray,
+    wl: np.ndarray,
+    wr: np.ndarray,
+    dwl: np.ndarray,
+    dwr: np.ndarray,
+    params: dict | np.ndarray,
+    geo: FrictionGeometry,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """F (T, 3) as ``residual``, its analytic Jacobian dF/dtheta (T, 3, 3; columns of a step's pinned
+    variables zero) and dF/dp (T, 3, 5) with respect to (mu_r, mu_x, mu_y, lambda, C)."""
+    wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    th = np.ascontiguousarray(np.asarray(theta, dtype=float).reshape(-1, 3))
+    args = _step_inputs(wl, wr, dwl, dwr, geo)
+    return _balance_all(th, *args, _param_vector(params), _geo_vector(geo), True, True)
+
+
+def velocity_sensitivity(
+    theta: np.ndarray,
+    status: np.ndarray,
+    wl: np.ndarray,
+    wr: np.ndarray,
+    dwl: np.ndarray,
+    dwr: np.ndarray,
+    params: dict | np.ndarray,
+    geo: FrictionGeometry,
+) -> np.ndarray:
+    """(T, 3, 5) derivative of the body velocities (vx, vy, wz) (eq. 8 at the solved theta) with respect to
+    (mu_r, mu_x, mu_y, lambda, C), by the implicit function theorem instead of re-solving.
+
+    At a root F(theta, p) = 0 the slips move with the parameters as J dtheta = -dF/dp dp (J = dF/dtheta,
+    the Jacobian the solver converged with); elsewhere (a stationary point of F^T F, an unfinished step, a
+    step with a pinned variable, or a singular J such as a saturated side with no other grip on its slip)
+    the least-squares solution -pinv(J) dF/dp (the Gauss-Newton sensitivity of the minimiser). These are
+    the derivatives of the smooth piece a step is on; a step that changes piece (gains or loses its root,
+    enters the mu_x plateau) is a jump no derivative describes."""
+    wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
+    theta = np.asarray(theta, dtype=float).reshape(-1, 3)
+    mask = free_mask(wl, wr)
+    args = _step_inputs(wl, wr, dwl, dwr, geo, mask)
+    p = _param_vector(params)
+    status = np.ascontiguousarray(status, dtype=np.int8)
+    # a regular root: one 3x3 solve per step at the root's Jacobian (compiled)
+    dth, regular = _root_sensitivity(np.ascontiguousarray(theta), status, *args, p, _geo_vector(geo))
+    rest = ~regular & mask.any(axis=1)
+    if rest.any():
+        _, J, P = _balance_all(
+            np.ascontiguousarray(theta[rest]), *(a[rest] for a in args), p, _geo_vector(geo), True, True
+        )
+        dth[rest] = -np.linalg.pinv(J, rcond=1e-12) @ P
+    # eq. (8): d(vx, vy, wz) / d(s_l, s_r, x_ICR)
     r, B = geo.r, geo.B
-    v = body_velocity(theta, wl, wr, r, B)
-    vx, vy, wz = v[..., 0], v[..., 1], v[..., 2]
-    x_i, y_i = geo.wheel_xy[:, 0], geo.wheel_xy[:, 1]
-    N = geo.normal
-    # per-wheel quantities, shape (T, 4): FL, RL, FR, RR
-    s = np.stack([theta[..., 0], theta[..., 0], theta[..., 1], theta[..., 1]], axis=-1)
-    omega = np.stack([wl, wl, wr, wr], axis=-1)
-    vwx = vx[..., None] - wz[..., None] * y_i
-    vwy = vy[..., None] + wz[..., None] * x_i
-    fx = np.sign(omega) * np.clip(lam * s, -mu_x, mu_x) * N  # eq. (6)
-    alpha = np.arctan2(np.abs(vwy), np.abs(vwx))  # |alpha|, eq. (4)
-    fy = -np.sign(vwy) * mu_y * (1.0 - np.exp(-alpha / C)) * N  # eq. (7)
-    R = mu_r * N * np.sign(vwx)  # eq. (5), against the wheel's own longitudinal velocity
-    Fx = fx - R
-    # commanded accelerations (the paper's zero-order approximation)
-    dvx = r * (dwr + dwl) / 2.0
-    dw = r * (dwr - dwl) / B
-    x_cg, y_cg = geo.cg
-    vcgx = vx - y_cg * wz
-    vcgy = vy + x_cg * wz
-    ax = dvx - wz * vcgy  # rigid-body transport: a = dv/dt + w x v
-    ay = wz * vcgx
-    F1 = Fx.sum(-1) - geo.mass * ax  # eq. (9)
-    F2 = fy.sum(-1) - geo.mass * ay  # eq. (10)
-    F3 = ((x_i - x_cg) * fy - (y_i - y_cg) * Fx).sum(-1) - geo.I_z * dw  # eq. (11)
-    return np.stack([F1, F2, F3], axis=-1) / geo.force_scale
+    wz = body_velocity(theta, wl, wr, r, B)[:, 2]
+    dv = np.zeros((wl.size, 3, 3))
+    dv[:, 0, 0], dv[:, 0, 1] = -r * wl / 2.0, -r * wr / 2.0
+    dv[:, 2, 0], dv[:, 2, 1] = r * wl / B, -r * wr / B
+    dv[:, 1, 0], dv[:, 1, 1], dv[:, 1, 2] = -theta[:, 2] * dv[:, 2, 0], -theta[:, 2] * dv[:, 2, 1], -wz
+    return dv @ dth
 
 
 def _param_vector(params: dict | np.ndarray) -> np.ndarray:
@@ -163,56 +492,27 @@ class SolveResult:
         return np.any(m & (lam * np.abs(self.theta[:, :2]) >= mu_x), axis=1)
 
 
-def _lm(theta, F, cost, idx, inp, p, geo, mask, *, ftol, gtol, max_iter, fd_step, stall_rtol, stall_iter):
+def _lm(theta, F, cost, idx, inp, p, geo, mask, *, ftol, gtol, max_iter, stall_rtol, stall_iter):
     """Levenberg-Marquardt on the steps ``idx`` (in place on theta/F/cost rows); returns (status, n_iter)
-    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged."""
-    wl, wr, dwl, dwr = inp
-    n = idx.size
-    status = np.zeros(n, dtype=np.int8)
-    status[np.max(np.abs(F[idx]), axis=1) < ftol] = 1
-    mu = np.full(n, 1e-3)
-    hist = np.tile(cost[idx][:, None], (1, stall_iter))  # cost over the last stall_iter iterations
-    loc = np.flatnonzero(status == 0)  # positions in idx still iterating
-    eye = np.eye(3)
-    it = 0
-    while loc.size and it < max_iter:
-        it += 1
-        active = idx[loc]
-        th, Fa, m = theta[active], F[active], mask[active]
-        a = (wl[active], wr[active], dwl[active], dwr[active])
-        J = np.empty((active.size, 3, 3))
-        for k in range(3):
-            h = fd_step * np.maximum(1.0, np.abs(th[:, k]))
-            tk = th.copy()
-            tk[:, k] += h
-            J[:, :, k] = (residual(tk, *a, p, geo) - Fa) / h[:, None]
-        J *= m[:, None, :]  # pinned variables have no column
-        g = np.einsum("tij,ti->tj", J, Fa)
-        JTJ = np.einsum("tij,tik->tjk", J, J)
-        d = np.maximum(np.diagonal(JTJ, axis1=1, axis2=2), 1e-12)
-        mua = mu[loc]
-        stat = np.max(np.abs(g) / np.sqrt(d), axis=1) < gtol  # smooth stationary point, not a root
-        A = JTJ + mua[:, None, None] * (d[:, :, None] * eye)
-        delta = -np.linalg.solve(A, g[..., None])[..., 0] * m
-        tn = th + delta
-        Fn = residual(tn, *a, p, geo)
-        cn = 0.5 * np.sum(Fn * Fn, axis=1)
-        ok = cn < cost[active]
-        acc = active[ok]
-        theta[acc], F[acc], cost[acc] = tn[ok], Fn[ok], cn[ok]
-        mu[loc] = np.where(ok, np.maximum(mua / 3.0, 1e-12), mua * 4.0)
-        # stalled: over the last stall_iter iterations the cost fell by less than stall_rtol of itself.
-        # Where no root exists the infimum of F^T F often sits on a kink or jump of F (sgn(V_wy) at zero
-        # yaw rate, the mu_x plateau of eq. 6): no smooth stationary point, the gradient test never fires
-        # and LM creeps along the kink; stalling is the non-smooth stationarity test.
-        oldest = hist[loc, it % stall_iter]
-        stalled = (it >= stall_iter) & (oldest - cost[active] <= stall_rtol * oldest)
-        hist[loc, it % stall_iter] = cost[active]
-        done_root = np.max(np.abs(F[active]), axis=1) < ftol
-        st = np.where(done_root, 1, np.where(stat | stalled | (mua > 1e10), 2, 0)).astype(np.int8)
-        status[loc] = st
-        loc = loc[st == 0]
-    return status, it
+    for those steps: 1 root, 2 stationary point of F^T F (not a root), 0 not converged. Each step iterates
+    in compiled code (``_lm_steps``) with the analytic Jacobian: one balance evaluation per iteration."""
+    args = _step_inputs(*inp, geo, mask)
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    p = np.asarray(p, dtype=float)
+    return _lm_steps(
+        theta,
+        F,
+        cost,
+        idx,
+        *args,
+        p,
+        _geo_vector(geo),
+        ftol,
+        gtol,
+        int(max_iter),
+        stall_rtol,
+        int(stall_iter),
+    )
 
 
 def low_slip_start(wl, wr, dwl, dwr, params, geo: FrictionGeometry) -> np.ndarray:
@@ -264,7 +564,6 @@ def solve(
     ftol: float = 1e-12,
     gtol: float = 1e-13,
     max_iter: int = 100,
-    fd_step: float = 1e-7,
     stall_rtol: float = 1e-10,
     stall_iter: int = 8,
     restarts: bool = True,
@@ -273,8 +572,9 @@ def solve(
     """Batched Levenberg-Marquardt on all steps at once (eq. 12), with restarts for the steps it leaves
     without a root.
 
-    Each LM iteration forms a forward-difference Jacobian (3 extra batched residual evaluations), solves the
-    damped normal equations (J^T J + mu D) delta = -J^T F for every still-active step, and accepts a step
+    Each LM iteration (per step, compiled: ``_lm_steps``) evaluates F and its analytic Jacobian J at the
+    trial point (one balance evaluation), solves the damped normal equations (J^T J + mu D) delta = -J^T F
+    by a 3x3 Cholesky factorisation, and accepts a step
     only where it lowers F^T F (per-step damping mu up/down): a trust-region-like globalisation with F^T F as
     merit function, which tolerates the kinks of sgn/clip. ``theta0`` warm-starts (default: zero slip,
     x_ICR = 0, the reference's start).
@@ -308,7 +608,7 @@ def solve(
     # standstill (both sides zero): eq. (8) gives zero velocity whatever theta; nothing to solve
     still = ~mask.any(axis=1)
     status[still] = 1
-    opts = dict(ftol=ftol, gtol=gtol, fd_step=fd_step, stall_rtol=stall_rtol, stall_iter=stall_iter)
+    opts = dict(ftol=ftol, gtol=gtol, stall_rtol=stall_rtol, stall_iter=stall_iter)
     idx = np.flatnonzero(~still)
     status[idx], n_iter = _lm(theta, F, cost, idx, inp, p, geo, mask, max_iter=max_iter, **opts)
     info = {

@@ -27,8 +27,9 @@ interval at ``ci`` and the bootstrap standard error.
 How the models take the constants (:func:`robot_for_model`): a model class lists the constants it takes
 from the calibration in ``calibrated_constants`` (``models/base.py``: the radius by default), and keeps
 the spec sheet's value of the others, which its own parameters absorb (chi of ``edd``/``roc`` is the
-ratio of the effective to the physical track, ``full_linear``'s A absorbs both, the friction model's wheel
-positions are physical). ``calibrate.use=false``: every model gets the spec sheet's robot.
+ratio of the effective to the physical track, ``full_linear``'s A absorbs both, the friction model's slip
+ratios absorb the effective radius and its wheel positions are physical). ``calibrate.use=false``: every
+model gets the spec sheet's robot.
 """
 
 from __future__ import annotations
@@ -316,7 +317,7 @@ MODEL_USAGE = {
     "roc": "calibrated radius; spec-sheet track: chi(R) absorbs the track width",
     "full_linear": "neither: its matrix A absorbs radius and track width",
     "enhanced": "calibrated radius and track width (p1..p6 are slips beyond the calibrated kinematics)",
-    "friction": "calibrated radius only: its wheel positions are the physical track, skid is its physics",
+    "friction": "neither: its slip ratios absorb the effective radius, its wheel positions are physical",
 }
 
 
