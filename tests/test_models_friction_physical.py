@@ -141,22 +141,12 @@ def test_bound_report_margins_and_gauss_newton_stderr():
 @pytest.fixture(scope="module")
 def drive_husky_fit(shared_real, tmp_path_factory):
     """The friction model fitted on the first 120 s of the DRIVE Husky's Train split (real data)."""
-    from hydra import compose, initialize_config_module
+    from drive_data import drive_splits
 
     from skidbench.models.base import concat_sequences
-    from skidbench.pipeline.api import prepare_splits
     from skidbench.pipeline.schema import read_split
 
-    tmp_path = tmp_path_factory.mktemp("drive")
-    with initialize_config_module("skidbench.conf", version_base="1.3"):
-        over = [
-            f"out_root={tmp_path}",
-            "source=drive_df",
-            "robot=husky",
-            f"source.root={shared_real / 'drive'}",
-        ]
-        cfg = compose("split", over)
-    splits = prepare_splits(cfg)
+    splits = drive_splits(shared_real / "drive", tmp_path_factory.mktemp("drive"), "husky")
     table, _ = read_split(splits / "unspecified" / "train" / "husky_train_00.parquet")
     return FrictionBased(load_robot("husky"), max_nfev=40).fit(concat_sequences([table.iloc[:3600]]))
 

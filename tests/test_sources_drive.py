@@ -96,19 +96,9 @@ def test_husky_wheel_commands_clipped_to_max_wheel_rate_match_the_saturated_enco
     """DRIVE's Husky is commanded beyond what its wheels turn; its encoders saturate at the config's
     ``max_wheel_rate`` (1.0 m/s / r). After the split's clip, the steady-state encoder rate of a
     saturated wheel is within 5 % of its clipped command (unclipped it was about 0.65-0.8 of it)."""
-    from hydra import compose, initialize_config_module
+    from drive_data import drive_splits
 
-    from skidbench.pipeline.api import prepare_splits
-
-    with initialize_config_module("skidbench.conf", version_base="1.3"):
-        over = [
-            f"out_root={tmp_path}",
-            "source=drive_df",
-            "robot=husky",
-            f"source.root={shared_real / 'drive'}",
-        ]
-        cfg = compose("split", over)
-    splits = prepare_splits(cfg)
+    splits = drive_splits(shared_real / "drive", tmp_path, "husky")
     t = pd.read_parquet(splits / "unspecified" / "train" / "husky_train_00.parquet")
     cmd, enc = t[["cmd_wl", "cmd_wr"]].to_numpy(), t[["enc_wl", "enc_wr"]].to_numpy()
     assert np.abs(cmd).max() == pytest.approx(6.06)
