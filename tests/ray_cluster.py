@@ -30,6 +30,7 @@ def ray_env(extra: dict | None = None) -> dict[str, str]:
     the workers), token authentication off (a loopback-only test cluster; Ray would otherwise write a
     token under ~/.ray), no usage reporting."""
     env = dict(os.environ)
+    env.pop("SKIDBENCH_OUT", None)  # `make test` exports the project's own: each test sets its out_root
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS), env.get("PYTHONPATH", "")) if p)
     env.update({"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"})
     env.update(extra or {})

@@ -52,8 +52,13 @@ def test_model_spec_parses_base_and_effects_and_rejects_unknown_effects():
 
 
 @pytest.mark.slow
-def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderboard(hidden_root):
+def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderboard(
+    hidden_root, monkeypatch
+):
     import mlflow
+
+    # an earlier compare in this process exported its store (mlflow.set_tracking_uri): use this root's
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
 
     from skidbench.benchmark.compare import run_compare
     from skidbench.benchmark.evaluate import run_benchmark
