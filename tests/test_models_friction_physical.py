@@ -162,12 +162,6 @@ def test_drive_husky_fit_identifies_the_actuator_and_keeps_mu_r_lambda_c_off_the
     assert min(margins[n] for n in ("mu_r", "mu_x", "lambda", "C")) > 0.01, margins
 
 
-@pytest.mark.xfail(reason="open (issue 13): on the DRIVE Husky mu_y reaches its upper bound", strict=True)
-def test_drive_husky_fit_keeps_every_parameter_off_its_bounds(drive_husky_fit):
-    margins = drive_husky_fit.fit_info_["param_bound_margin"]
-    assert min(margins.values()) > 0.01, margins
-
-
 def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
     from types import SimpleNamespace
 
