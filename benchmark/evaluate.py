@@ -540,12 +540,8 @@ def fit_quality_metrics(fit: Any) -> dict[str, float]:
     """``{"param_bound_margin.mu_r": ...}`` from the fit's ``fit_info`` (the model's, or the saved fit
     JSON's when the fit was reused); empty for models that report none."""
     info = getattr(getattr(fit, "model", None), "fit_info_", None) or {}
-    path = getattr(fit, "path", None)
-    if not any(k in info for k in FIT_QUALITY_KEYS) and path is not None and Path(path).is_file():
-        try:
-            info = json.loads(Path(path).read_text()).get("fit_info") or {}
-        except (OSError, ValueError):
-            info = {}
+    if not any(k in info for k in FIT_QUALITY_KEYS):
+        info = _fit_json(fit).get("fit_info") or {}
     out = {}
     for key in FIT_QUALITY_KEYS:
         for name, value in (info.get(key) or {}).items():
@@ -557,8 +553,6 @@ def fit_quality_metrics(fit: Any) -> dict[str, float]:
 
 def _fit_json(fit: Any) -> dict[str, Any]:
     """The fit's saved JSON (FitResult.path), or {} when there is none."""
-    import json
-
     path = getattr(fit, "path", None)
     try:
         return json.loads(Path(path).read_text()) if path else {}

@@ -27,9 +27,8 @@ def main(cfg: DictConfig) -> None:
 
     from skidbench.pipeline.cache import Stamp
     from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.schema import list_split_files
 
-    from .fitting import fit_model, model_config
+    from .fitting import _training_files, fit_model, model_config
     from .registry import get_model_class
 
     try:
@@ -48,7 +47,7 @@ def main(cfg: DictConfig) -> None:
     calibration = load_calibration(cfg, terrain)
     stamp = Stamp(layout.root / ".stamps" / "fit" / name / f"{terrain}.json", "fit")
     key = stamp.key(
-        list_split_files(layout.splits, terrain, split),
+        _training_files(cfg, name, terrain, split),  # the manifest's files, exactly those fitted on
         {
             "model": model_config(cfg, name),
             "version": getattr(get_model_class(name), "version", "?"),

@@ -286,16 +286,6 @@ class FrictionBased(KinematicModel):
             x_scale=self.options.get("x_scale", 1.0),
         )
         res = least_squares(resid, z0, **opts)
-        # the objective has jumps (steps gaining or losing a root): trf's trust region can collapse on one
-        # and stop on xtol short of the minimum; a fresh trust region from its end point goes on
-        nfev = int(res.nfev)
-        for _ in range(int(self.options.get("outer_restarts", 0))):
-            again = least_squares(resid, res.x, **opts)
-            nfev += int(again.nfev)
-            if not again.cost < res.cost * (1.0 - 1e-9):
-                break
-            res = again
-        res.nfev = nfev
         self.params = unpack(res.x)
         pred, sol = self.velocities(inp)
         rooted = sol.status == 1

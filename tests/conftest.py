@@ -36,3 +36,10 @@ def micro_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("micro")
     build(root)
     return root
+
+
+@pytest.fixture(autouse=True)
+def _no_inherited_mlflow_store(monkeypatch):
+    """Each test starts without MLFLOW_TRACKING_URI: compare's ``mlflow.set_tracking_uri`` exports it for
+    the rest of the process, and `make` or a user may have it set; a test that wants a store sets it."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
