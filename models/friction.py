@@ -443,7 +443,7 @@ class FrictionBased(KinematicModel):
         cl = mu_y * np.exp(-LATERAL_CL_Z * se_mu) if np.isfinite(se_mu) else 0.0
         lo, hi = (float(x) for x in ranges["mu_y"])
         cap = hi * np.exp(-START_MARGIN * np.log(hi / lo))
-        held, rule = cl, "95 % lower confidence limit"
+        held, rule = cl, "one-sided 95 % lower confidence limit of the free fit"
         if f_hi > held:
             held, rule = f_hi, "largest lateral coefficient of the fitted law at the p95 slip angle"
         if held > cap:
