@@ -118,6 +118,13 @@ def bound_report(params: dict, names: list[str], ranges: dict, res, held: list[s
     return {"param_bound_margin": margin, "param_bound_margin_linear": margin_lin, "param_stderr": stderr}
 
 
+def lateral_var_k(cov: np.ndarray, names: list[str]) -> float:
+    """Variance of log(mu_y / C) = log mu_y - log C from the covariance of the fitted log p (both fitted)."""
+    i, j = names.index("mu_y"), names.index("C")
+    v = float(cov[i, i] + cov[j, j] - 2.0 * cov[i, j])
+    return v if np.isfinite(v) else float("nan")
+
+
 def wheel_slip_angles(v: np.ndarray, geo: FrictionGeometry) -> np.ndarray:
     """(T, 4) |alpha| of each wheel (eq. 4: atan2(|V_wy|, |V_wx|)) from body velocities v (T, 3)."""
     X, Y = geo.wheel_xy[:, 0], geo.wheel_xy[:, 1]
@@ -342,6 +349,14 @@ class FrictionBased(KinematicModel):
             lateral["robust_cost_free"] = float(free_res.cost)
             lateral["robust_cost_held"] = float(res.cost)
             lateral["nfev_held"] = int(res.nfev)
+        if "C" in names and "mu_y" in names:
+            # the identified lateral quantity, k_y = mu_y / C, and its standard error at the final fit
+            i_c = cur["names"].index("C")
+            cov = log_covariance(res)
+            var_k = cov[i_c, i_c] if "mu_y" not in cur["names"] else lateral_var_k(cov, cur["names"])
+            k_y = self.params["mu_y"] / self.params["C"]
+            lateral["lateral_stiffness"] = k_y
+            lateral["lateral_stiffness_stderr"] = float(k_y * np.sqrt(var_k)) if var_k >= 0 else None
         pred, sol = self.velocities(inp)
         rooted = sol.status == 1
         scored = track["scored"]
@@ -417,9 +432,9 @@ class FrictionBased(KinematicModel):
         alpha = wheel_slip_angles(v[used], self.geometry)
         a_hi = float(np.quantile(alpha, SLIP_ANGLE_QUANTILE)) if alpha.size else float("nan")
         cov = log_covariance(res)
-        i, j = names.index("mu_y"), names.index("C")
+        i = names.index("mu_y")
         se_mu = float(np.sqrt(cov[i, i])) if np.isfinite(cov[i, i]) and cov[i, i] >= 0 else float("nan")
-        var_k = cov[i, i] + cov[j, j] - 2.0 * cov[i, j]
+        var_k = lateral_var_k(cov, names)
         k_y = mu_y / C
         upper = {}
         for n, val in (("mu_y", mu_y), ("C", C)):
