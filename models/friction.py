@@ -12,8 +12,11 @@ solves of every step for finite differences.
 Identifiability (what the data can and cannot pin down):
 - mu_x only matters where a tractive force saturates (lambda |s| >= mu_x in eq. 6); on data where the min()
   never saturates it has no effect and is not identifiable (kept at its initial value).
-- C and mu_y enter eq. (7) as mu_y (1 - exp(-|alpha|/C)); at small slip angles this is mu_y |alpha| / C, so
-  only mu_y / C is identifiable unless slip angles reach a sizeable fraction of C.
+- C and mu_y enter eq. (7) as mu_y (1 - exp(-|alpha|/C)): an initial lateral stiffness k_y = mu_y / C and a
+  saturation level mu_y. Where the data's lateral resistance grows in proportion to the slip angle over all
+  the slip angles they reach, only k_y is identifiable: the fit runs along mu_y / C towards the linear law
+  until a bound stops it. Then mu_y is held (not identified, bounded below; ``_lateral_identifiability``)
+  and the rest refitted, as mu_x is when eq. (6) never saturates.
 - mu_r and lambda: straight driving fixes the slip mu_r / lambda; their scale relative to the inertial
   terms M a needs accelerations and turns. All friction coefficients scale together with M a otherwise.
 - Zero slip: mu_r = 0 and no accelerations (steady straight driving) give s = 0, i.e. the ideal model;
