@@ -73,6 +73,9 @@ FALLBACK_ITER = 30
 RIDGE_EDGE = 0.01
 #: where the slip angles the data reach are read: this quantile of the scored steps' wheel slip angles
 SLIP_ANGLE_QUANTILE = 0.95
+#: eq. (7) counts as in its linear part over the data while that slip angle is under this many C (at 1 C
+#: the law is at 63 % of mu_y; a fit at a bound with the data beyond it is a saturated law, not a ridge)
+LINEAR_REACH = 1.0
 #: z of the one-sided lower confidence limit (95 %) a not-identified mu_y is held at
 LATERAL_CL_Z = 1.645
 #: a start, or a held value, stays inside its bounds by this fraction of the log range (on a bound it has
@@ -420,9 +423,10 @@ class FrictionBased(KinematicModel):
         Eq. (7), mu_y (1 - exp(-|alpha|/C)), has an initial stiffness k_y = mu_y / C (per rad) and a
         saturation level mu_y. If the data's lateral resistance grows in proportion to the slip angle over
         every slip angle they reach, the fit runs along mu_y / C = k_y towards the linear law (mu_y and C
-        both growing) until mu_y or C meets its upper bound (``RIDGE_EDGE``): then k_y is identified and
-        mu_y only bounded below. mu_y is then held at the free fit's one-sided 95 % lower confidence limit
-        (Gauss-Newton, ``LATERAL_CL_Z``), but never below the largest lateral coefficient the fitted law
+        both growing) until mu_y or C meets its upper bound (``RIDGE_EDGE``), the data's slip angles still
+        in the law's initial part (``LINEAR_REACH``): then k_y is identified and mu_y only bounded below.
+        mu_y is then held at the free fit's one-sided 95 % lower confidence limit (Gauss-Newton,
+        ``LATERAL_CL_Z``), but never below the largest lateral coefficient the fitted law
         exerts at the data's slip angles (``SLIP_ANGLE_QUANTILE``) nor nearer its upper bound than
         ``START_MARGIN``; ``fit`` then refits the other parameters with it held. Returns what was found,
         for ``fit_info_["lateral"]``."""
@@ -455,7 +459,7 @@ class FrictionBased(KinematicModel):
             "slip_angle_p95": a_hi,
             "lateral_reach": a_hi / C,
         }
-        if min(upper.values()) >= RIDGE_EDGE:
+        if min(upper.values()) >= RIDGE_EDGE or not a_hi / C < LINEAR_REACH:
             return info
         f_hi = mu_y * (1.0 - np.exp(-a_hi / C)) if np.isfinite(a_hi) else 0.0
         cl = mu_y * np.exp(-LATERAL_CL_Z * se_mu) if np.isfinite(se_mu) else 0.0
@@ -468,8 +472,8 @@ class FrictionBased(KinematicModel):
             held, rule = cap, "upper bound less START_MARGIN of the log range"
         info.update(
             mu_y_identified=False,
-            reason="the fit ran along mu_y / C to the upper end of the range: the lateral law is linear over "
-            "the data's slip angles, so only mu_y / C is identified and mu_y is bounded below",
+            reason="the fit ran along mu_y / C to the upper end of the range with the data's slip angles "
+            "under C: the lateral law is linear over them; only mu_y / C is identified, mu_y bounded below",
             mu_y_held=float(held),
             mu_y_hold_rule=rule,
             mu_y_lower_bound=float(f_hi),
