@@ -239,7 +239,15 @@ def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
 
     from skidbench.benchmark.evaluate import fit_quality_metrics
 
-    info = {"param_bound_margin": {"mu_r": 0.3}, "param_stderr": {"mu_r": 0.01, "C": float("nan")}}
+    info = {
+        "param_bound_margin": {"mu_r": 0.3},
+        "param_stderr": {"mu_r": 0.01, "C": float("nan")},
+        "param_identified": {"mu_y": 0.0},
+    }
     fit = SimpleNamespace(model=SimpleNamespace(fit_info_=info), path=None)
-    assert fit_quality_metrics(fit) == {"param_bound_margin.mu_r": 0.3, "param_stderr.mu_r": 0.01}
+    assert fit_quality_metrics(fit) == {
+        "param_bound_margin.mu_r": 0.3,
+        "param_stderr.mu_r": 0.01,
+        "param_identified.mu_y": 0.0,
+    }
     assert fit_quality_metrics(SimpleNamespace(model=object(), path=None)) == {}
