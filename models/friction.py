@@ -343,8 +343,8 @@ class FrictionBased(KinematicModel):
         free_res, free_params = res, dict(self.params)
         lateral = self._lateral_identifiability(inp, names, ranges, res, track["scored"])
         if not lateral["mu_y_identified"]:
-            # the saturation level is only bounded below: hold it (``lateral_hold``) and refit the rest from
-            # the end point with the same lateral stiffness mu_y / C
+            # the saturation level is only bounded below: hold it (``_lateral_identifiability``) and refit
+            # the rest from the end point with the same lateral stiffness mu_y / C
             k_y = self.params["mu_y"] / self.params["C"]
             held = lateral["mu_y_held"]
             start = {**self.params, "mu_y": held, "C": held / k_y}
@@ -465,11 +465,14 @@ class FrictionBased(KinematicModel):
         cl = mu_y * np.exp(-LATERAL_CL_Z * se_mu) if np.isfinite(se_mu) else 0.0
         lo, hi = (float(x) for x in ranges["mu_y"])
         cap = hi * np.exp(-START_MARGIN * np.log(hi / lo))
+        floor = lo * np.exp(START_MARGIN * np.log(hi / lo))
         held, rule = cl, "one-sided 95 % lower confidence limit of the free fit"
         if f_hi > held:
             held, rule = f_hi, "largest lateral coefficient of the fitted law at the p95 slip angle"
         if held > cap:
             held, rule = cap, "upper bound less START_MARGIN of the log range"
+        elif held < floor:
+            held, rule = floor, "lower bound plus START_MARGIN of the log range"
         info.update(
             mu_y_identified=False,
             reason="the fit ran along mu_y / C to the upper end of the range with the data's slip angles "
