@@ -531,9 +531,9 @@ def _run_child(
         return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason)
 
 
-#: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins
-#: and Jacobian standard errors); each is logged as the metric ``<key>.<parameter>``
-FIT_QUALITY_KEYS = ("param_bound_margin", "param_bound_margin_linear", "param_stderr")
+#: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins,
+#: Jacobian standard errors, identified 1 / held 0); each is logged as the metric ``<key>.<parameter>``
+FIT_QUALITY_KEYS = ("param_bound_margin", "param_bound_margin_linear", "param_stderr", "param_identified")
 
 
 def fit_quality_metrics(fit: Any) -> dict[str, float]:

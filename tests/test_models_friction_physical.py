@@ -124,6 +124,66 @@ def test_friction_fit_on_husky_geometry_recovers_known_parameters_inside_the_bou
         assert 0 <= fitted.fit_info_["param_stderr"][k] < 0.1 * fitted.params[k], k
 
 
+def _wide_turns(robot, n=500, seed=3):
+    """Forward driving (0.3-0.9 m/s) with yaw rates under 0.4 rad/s: turn radii of 0.75 m and more, so the
+    wheels' slip angles stay small (under about 0.2 rad)."""
+    table = command_table(robot, n, seed=seed, v_max=0.3, w_max=0.4)
+    v = table["cmd_v"].to_numpy() + 0.6
+    wl, wr = robot.wheel_rates_from_twist(v, table["cmd_w"].to_numpy())
+    return table.assign(cmd_v=v, cmd_wl=wl, cmd_wr=wr)
+
+
+def test_friction_fit_in_the_linear_lateral_regime_holds_mu_y_and_recovers_the_lateral_stiffness(husky):
+    """Data from a lateral law that never saturates (C = 40 rad against slip angles under 0.2 rad: eq. (7)
+    is mu_y / C |alpha| = 1.0 |alpha|): the free fit runs along mu_y / C to mu_y's upper bound, so mu_y is
+    reported as not identified and held inside its range, the refit keeps every parameter more than 1 %
+    of its (log) range from its bounds, and recovers the lateral stiffness mu_y / C, mu_r and lambda."""
+    truth_p = {"mu_r": 0.06, "mu_x": 2.5, "mu_y": 40.0, "lambda": 2.5, "C": 40.0}
+    table = _wide_turns(husky)
+    truth = FrictionBased(husky, truth_p, actuator="none")
+    data = label_with(table, truth.predict(table))
+    start = {"mu_r": 0.08, "mu_x": 2.5, "mu_y": 0.8, "lambda": 3.2, "C": 0.4}
+    names = ["mu_r", "mu_x", "mu_y", "lambda", "C"]
+    fitted = FrictionBased(husky, start, actuator="none", start="config", fit_params=names).fit(data)
+    info, p = fitted.fit_info_, fitted.params
+    lateral = info["lateral"]
+    assert lateral["mu_y_identified"] is False
+    assert lateral["upper_bound_margin_free_fit"]["mu_y"] < 0.01  # where the free fit went
+    assert info["param_identified"]["mu_y"] == 0.0 and info["param_identified"]["C"] == 1.0
+    assert lateral["slip_angle_p95"] < 0.25 and lateral["lateral_reach"] < 0.1  # the law's linear part
+    assert p["mu_y"] == pytest.approx(lateral["mu_y_held"])
+    assert lateral["mu_y_lower_bound"] <= p["mu_y"] < PARAM_RANGES["mu_y"][1]
+    assert min(info["param_bound_margin"].values()) > 0.01, info["param_bound_margin"]
+    assert p["mu_y"] / p["C"] == pytest.approx(1.0, rel=0.05)
+    assert p["mu_r"] == pytest.approx(0.06, rel=0.03)
+    assert p["lambda"] == pytest.approx(2.5, rel=0.03)
+    # a held parameter has no standard error of its own; the fitted ones keep theirs
+    assert np.isnan(info["param_stderr"]["mu_y"]) and info["param_stderr"]["C"] > 0
+    assert info["param_stderr_free_fit"]["mu_y"] > 0
+    # holding mu_y costs little: the data cannot tell the held law from the free fit's
+    assert lateral["robust_cost_held"] < 2.0 * lateral["robust_cost_free"] + 1e-6
+
+
+def test_friction_fit_in_the_saturating_regime_recovers_all_five_and_identifies_mu_y(husky):
+    """Data from a law that saturates in both directions (slip angles beyond C = 0.3 in the turns, and
+    lambda |s| reaching mu_x = 0.5 on some steps): all five parameters recovered from 30 % away, each
+    identified, with small standard errors."""
+    truth_p = {"mu_r": 0.06, "mu_x": 0.5, "mu_y": 0.7, "lambda": 2.5, "C": 0.3}
+    table = command_table(husky, 500, seed=3, v_max=0.9, w_max=1.2)
+    truth = FrictionBased(husky, truth_p, actuator="none")
+    data = label_with(table, truth.predict(table))
+    assert truth.last_solve_.saturated(table["cmd_wl"], table["cmd_wr"], truth_p).sum() > 50
+    start = {k: v * 1.3 for k, v in truth_p.items()}
+    fitted = FrictionBased(husky, start, actuator="none", start="config", fit_params=list(truth_p)).fit(data)
+    info = fitted.fit_info_
+    assert info["lateral"]["mu_y_identified"] is True and info["lateral"]["lateral_reach"] > 1.0
+    for k, v in truth_p.items():
+        assert fitted.params[k] == pytest.approx(v, rel=0.02), k
+        assert info["param_identified"][k] == 1.0, k
+        assert info["param_bound_margin"][k] > 0.01, k
+        assert 0 < info["param_stderr"][k] < 0.1 * v, k
+
+
 def test_bound_report_margins_and_gauss_newton_stderr():
     """Margins in log space (0 on a bound, 0.5 in the middle); the standard error of a linear problem in
     z = log p is sigma sqrt((J^T J)^-1), turned into p by p * se."""
@@ -136,6 +196,10 @@ def test_bound_report_margins_and_gauss_newton_stderr():
     assert out["param_bound_margin"]["C"] == pytest.approx(0.0, abs=1e-12)
     cov = np.linalg.inv(J.T @ J)
     assert out["param_stderr"]["mu_y"] == pytest.approx(mid * np.sqrt(cov[0, 0]))
+    # a held parameter: its margin is reported, its standard error is not (the fit did not move it)
+    held = bound_report({"mu_y": mid, "C": 0.1, "mu_r": 0.5}, ["mu_y", "C"], PARAM_RANGES, res, held=["mu_r"])
+    assert held["param_bound_margin"]["mu_r"] == pytest.approx(0.0, abs=1e-12)
+    assert np.isnan(held["param_stderr"]["mu_r"])
 
 
 @pytest.fixture(scope="module")
@@ -151,15 +215,23 @@ def drive_husky_fit(shared_real, tmp_path_factory):
     return FrictionBased(load_robot("husky"), max_nfev=40).fit(concat_sequences([table.iloc[:3600]]))
 
 
-def test_drive_husky_fit_identifies_the_actuator_and_keeps_mu_r_lambda_c_off_their_bounds(drive_husky_fit):
-    """Real data: the wheels' dead time and lag come from the encoders, and the parameters 1.5 pressed
-    against a bound (mu_r at 0.499 of 0.5) lie more than 1 % of their (log) range inside."""
+def test_drive_husky_fit_identifies_the_actuator_and_keeps_every_parameter_off_its_bounds(drive_husky_fit):
+    """Real data: the wheels' dead time and lag come from the encoders, and every parameter lies more than
+    1 % of its (log) range inside its bounds: those 1.5 pressed against one (mu_r at 0.499 of 0.5) and
+    mu_y, which 1.6 ran to 3.0 of 3.0 along mu_y / C (the Husky's lateral law is linear over its slip
+    angles: 1.7 holds mu_y, reported as not identified, and fits the lateral stiffness mu_y / C)."""
     m = drive_husky_fit
     info = m.fit_info_
     assert info["actuator"]["source"] == "encoders"
     assert 0.1 < m.params["actuator_delay_s"] < 0.6 and 0.1 < m.params["actuator_tau_s"] < 1.5
     margins = info["param_bound_margin"]
-    assert min(margins[n] for n in ("mu_r", "mu_x", "lambda", "C")) > 0.01, margins
+    assert set(margins) == {"mu_r", "mu_x", "mu_y", "lambda", "C"}
+    assert min(margins.values()) > 0.01, margins
+    lateral = info["lateral"]
+    assert lateral["mu_y_identified"] is False and info["param_identified"]["mu_y"] == 0.0
+    assert m.params["mu_y"] == pytest.approx(lateral["mu_y_held"])
+    # the identified quantity: the lateral stiffness, pinned to better than 25 % (Gauss-Newton)
+    assert 0 < lateral["lateral_stiffness_stderr"] < 0.25 * lateral["lateral_stiffness"]
 
 
 def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
@@ -167,7 +239,15 @@ def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
 
     from skidbench.benchmark.evaluate import fit_quality_metrics
 
-    info = {"param_bound_margin": {"mu_r": 0.3}, "param_stderr": {"mu_r": 0.01, "C": float("nan")}}
+    info = {
+        "param_bound_margin": {"mu_r": 0.3},
+        "param_stderr": {"mu_r": 0.01, "C": float("nan")},
+        "param_identified": {"mu_y": 0.0},
+    }
     fit = SimpleNamespace(model=SimpleNamespace(fit_info_=info), path=None)
-    assert fit_quality_metrics(fit) == {"param_bound_margin.mu_r": 0.3, "param_stderr.mu_r": 0.01}
+    assert fit_quality_metrics(fit) == {
+        "param_bound_margin.mu_r": 0.3,
+        "param_stderr.mu_r": 0.01,
+        "param_identified.mu_y": 0.0,
+    }
     assert fit_quality_metrics(SimpleNamespace(model=object(), path=None)) == {}
