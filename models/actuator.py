@@ -436,7 +436,7 @@ def _fit_structure(
 
 
 def identify_response(
-    table: pd.DataFrame, candidates: tuple[str, ...] | None = None, max_nfev: int = 30, fold_nfev: int = 10
+    table: pd.DataFrame, candidates: tuple[str, ...] | None = None, max_nfev: int = 30, fold_nfev: int = 8
 ) -> ResponseFit | None:
     """The wheel response of ``table``'s encoders (``enc_wl``, ``enc_wr``; Train), or None without
     ``MIN_ROWS`` rows of readings. Each candidate structure (``CANDIDATES``, simplest first) is fitted by
