@@ -397,7 +397,7 @@ def _with(base: WheelResponse, names: tuple[str, ...], z: np.ndarray) -> WheelRe
 class ResponseFit:
     response: WheelResponse  # the selected structure refitted on all Train rows
     structure: str  # its name in CANDIDATES
-    candidates: dict  # name -> {"train_rmse", "heldout_rmse", "params"}
+    candidates: dict  # name -> {"train_rmse", "heldout_rmse" (None: not held out), "params"}
     rmse_command: float  # rad/s: encoders against the raw commands
     rmse_response: float  # rad/s: encoders against the selected response
     n_rows: int
@@ -446,7 +446,9 @@ def identify_response(
     delay + lag model asks for). The structure is chosen on Train only: each of ``N_BLOCKS`` contiguous
     blocks of the encoder rows is held out in turn (refitted from the candidate's fit on the others), and
     the simplest structure whose pooled held-out RMSE is within ``SELECT_TOL`` of the best wins (a robot
-    whose wheels follow their commands through a lag keeps the delay + lag model)."""
+    whose wheels follow their commands through a lag keeps the delay + lag model). A structure whose
+    Train RMSE is not ``SELECT_TOL`` below the best simpler one's is not held out (``heldout_rmse``
+    None: it cannot win)."""
     base = identify(table)
     if base is None:
         return None
@@ -477,20 +479,25 @@ def identify_response(
         if "accel_d" not in names and "accel_s" in names:
             guess["accel_d"] = full.accel_s
         fitted[name] = full
+        e = wheel_response(table, full, groups)[rows, :2] - enc[rows]
+        train_rmse = float(np.sqrt(np.mean(e**2)))
+        cands[name] = {"train_rmse": train_rmse, "params": {n: float(getattr(full, n)) for n in names}}
+        # a structure that does not beat the best simpler one by SELECT_TOL on the rows it was fitted to is
+        # taken not to beat it on held-out rows either: it is not held out (saves its refits)
+        simpler = [c["train_rmse"] for c in cands.values() if c.get("heldout_rmse") is not None]
+        if simpler and train_rmse > (1.0 - SELECT_TOL) * min(simpler):
+            cands[name]["heldout_rmse"] = None
+            continue
         sq, count = 0.0, 0
         for i, held in enumerate(blocks):
             fit_rows = np.concatenate([b for j, b in enumerate(blocks) if j != i])
             r = _fit_structure(table, groups, enc, fit_rows, names, full, fold_nfev)
             e = wheel_response(table, r, groups)[held, :2] - enc[held]
             sq, count = sq + float(np.sum(e**2)), count + e.size
-        e = wheel_response(table, full, groups)[rows, :2] - enc[rows]
-        cands[name] = {
-            "train_rmse": float(np.sqrt(np.mean(e**2))),
-            "heldout_rmse": float(np.sqrt(sq / count)),
-            "params": {n: float(getattr(full, n)) for n in names},
-        }
-    best = min(c["heldout_rmse"] for c in cands.values())
-    chosen = next(n for n in names_all if cands[n]["heldout_rmse"] <= (1.0 + SELECT_TOL) * best)
+        cands[name]["heldout_rmse"] = float(np.sqrt(sq / count))
+    scored = [n for n in names_all if cands[n]["heldout_rmse"] is not None]
+    best = min(cands[n]["heldout_rmse"] for n in scored)
+    chosen = next(n for n in scored if cands[n]["heldout_rmse"] <= (1.0 + SELECT_TOL) * best)
     return ResponseFit(
         fitted[chosen], chosen, cands, base.rmse_command, cands[chosen]["train_rmse"], int(rows.size)
     )
