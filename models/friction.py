@@ -146,7 +146,7 @@ class FrictionBased(KinematicModel):
             info = {"source": "config", **resp.to_params()}
         elif opt in (None, "none", False):
             info = {"source": "none"}
-        elif opt == "auto" or opt in actuator.CANDIDATES:
+        elif isinstance(opt, str) and (opt == "auto" or opt in actuator.CANDIDATES):
             fit = actuator.identify_response(table, None if opt == "auto" else (opt,))
             if fit is None:
                 info = {"source": "none (no encoder readings in Train)"}

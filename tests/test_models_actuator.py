@@ -159,8 +159,17 @@ def test_friction_model_reads_the_structure_from_its_options():
     assert np.abs((dwl + dwr) / 2).max() <= 5.0 + 1e-9
     with pytest.raises(ModelError, match="unknown keys"):
         FrictionBased(husky, actuator={"delay": 0.1}).identify_actuator(table)
-    with pytest.raises(ModelError, match="expected auto"):
-        FrictionBased(husky, actuator="nonsense").identify_actuator(table)
+    for bad in ("nonsense", ["delay+lag"]):
+        with pytest.raises(ModelError, match="expected auto"):
+            FrictionBased(husky, actuator=bad).identify_actuator(table)
+    # a structure by name: only that one is identified (no encoders here: nothing is)
+    m = FrictionBased(husky, actuator="delay+lag")
+    assert m.identify_actuator(table)["source"].startswith("none")
+    assert actuator.WheelResponse.from_params(m.params).is_identity
+    enc = _reference(table, TRUTH)
+    info = m.identify_actuator(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
+    assert info["structure"] == "delay+lag" and list(info["candidates"]) == ["delay+lag"]
+    assert m.params["actuator_accel_s"] == 0.0 and m.params["actuator_delay_s"] > 0
 
 
 def test_drive_warthog_response_beats_the_delay_lag_model(shared_real, tmp_path):
