@@ -1,4 +1,7 @@
-"""The wheels' response to their commands: a dead time and a first-order lag, identified from encoders.
+"""The wheels' response to their commands, identified from encoders: a dead time and a first-order lag
+(:func:`apply`, :func:`identify`), and the general response built on them (:class:`WheelResponse`,
+:func:`respond`, :func:`identify_response`: per sum/difference mode a gain, a saturation, a lag and a slew
+limit, and the wheels' rate limit, its structure chosen on held-out blocks of the Train rows).
 
 A real robot's wheels do not turn at the commanded rate the instant it is commanded: the command reaches
 the motor controller late (dead time ``delay_s``) and the speed loop follows it through a lag (time
@@ -12,7 +15,8 @@ function of the commands only, so it still predicts on data without encoders; th
 only to identify ``(delay_s, tau_s)`` on the Train split.
 
 The lag itself is :func:`skidbench.benchmark.effects.lag_filter` (the one home of the first-order command
-lag, restarted at each sequence start); this module adds the dead time and the identification.
+lag, restarted at each sequence start); this module adds the dead time and the identification. The
+general response's recursion reduces to it exactly with unit gains and no limits.
 """
 
 from __future__ import annotations
