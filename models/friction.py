@@ -149,7 +149,9 @@ class FrictionBased(KinematicModel):
     # uses analytic (implicit-function) parameter Jacobians (issue 14: how it is computed, not the model)
     # 1.7: mu_y held (not identified) when the fit runs along mu_y / C to the end of the range (eq. 7 linear
     # over the data's slip angles); fit_info reports every parameter's identification
-    version = "1.7"
+    # 1.8: driven by the general wheel response (models/actuator.py: per sum/difference mode lag, slew limit,
+    # gain and saturation, and the wheels' rate limit, its structure chosen on held-out Train blocks)
+    version = "1.8"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
     # the spec sheet's radius and track: the slip ratios (eq. 4) are what the radius an effective-radius
     # calibration measures absorbs, and the wheel positions are physical; taking the calibrated radius
@@ -165,35 +167,43 @@ class FrictionBased(KinematicModel):
 
     def inputs(self, table: pd.DataFrame) -> tuple[np.ndarray, ...]:
         """(wl, wr, dwl, dwr) (each (T,)): the wheel rates (rad/s) and their derivatives (rad/s^2) the force
-        balance is driven by: the commanded ones through the actuator (``actuator_delay_s``,
-        ``actuator_tau_s`` in ``params``; ``models/actuator.py``), or the commanded ones as they are when
-        the actuator is off or was not identified (no encoders in Train)."""
-        d = float(self.params.get("actuator_delay_s") or 0.0)
-        tau = float(self.params.get("actuator_tau_s") or 0.0)
-        if d > 0 or tau > 0:
-            table = actuator.apply(table, d, tau)
+        balance is driven by: the commanded ones through the wheel response (the ``actuator_*`` entries of
+        ``params``: dead time, lags, slew limits, gains and saturations; ``models/actuator.py``), or the
+        commanded ones as they are when the actuator is off or was not identified (no encoders in Train)."""
+        table = actuator.respond(table, actuator.WheelResponse.from_params(self.params))
         return tuple(col(table, c) for c in ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"))
 
     def identify_actuator(self, table: pd.DataFrame) -> dict:
-        """``options.actuator``: ``auto`` (default) identifies the actuator from the table's encoders
-        (Train), ``none`` drives the model by the raw commands, ``{delay_s, tau_s}`` sets it. Sets
-        ``params['actuator_delay_s']``/``['actuator_tau_s']``; returns what was done (for ``fit_info_``)."""
+        """``options.actuator``: ``auto`` (default) identifies the wheel response from the table's encoders
+        (Train), choosing its structure among ``actuator.CANDIDATES`` on held-out Train blocks; a structure
+        name (e.g. ``delay+lag``, the 1.6 model) identifies that structure only; ``none`` drives the model
+        by the raw commands; a mapping (``{delay_s, tau_s, ...}``, the fields of ``actuator.WheelResponse``)
+        sets it. Sets the ``actuator_*`` entries of ``params``; returns what was done (for ``fit_info_``)."""
         opt = self.options.get("actuator", "auto")
+        resp = actuator.WheelResponse()
+        fields = list(actuator.WheelResponse.__dataclass_fields__)
         if isinstance(opt, dict):
-            d, tau, info = float(opt.get("delay_s", 0.0)), float(opt.get("tau_s", 0.0)), {"source": "config"}
+            unknown = sorted(set(opt) - set(fields))
+            if unknown:
+                raise ModelError(
+                    f"model {self.name}: options.actuator: unknown keys {unknown} (known: {fields})"
+                )
+            resp = actuator.WheelResponse.from_params({f"actuator_{k}": float(v) for k, v in opt.items()})
+            info = {"source": "config", **resp.to_params()}
         elif opt in (None, "none", False):
-            d, tau, info = 0.0, 0.0, {"source": "none"}
-        elif opt == "auto":
-            fit = actuator.identify(table)
+            info = {"source": "none"}
+        elif isinstance(opt, str) and (opt == "auto" or opt in actuator.CANDIDATES):
+            fit = actuator.identify_response(table, None if opt == "auto" else (opt,))
             if fit is None:
-                d, tau, info = 0.0, 0.0, {"source": "none (no encoder readings in Train)"}
+                info = {"source": "none (no encoder readings in Train)"}
             else:
-                d, tau, info = fit.delay_s, fit.tau_s, {"source": "encoders", **fit.to_dict()}
+                resp, info = fit.response, {"source": "encoders", **fit.to_dict()}
         else:
             raise ModelError(
-                f"model {self.name}: options.actuator={opt!r}: expected auto, none or {{delay_s, tau_s}}"
+                f"model {self.name}: options.actuator={opt!r}: expected auto, none, one of "
+                f"{list(actuator.CANDIDATES)} or a mapping of {fields}"
             )
-        self.params["actuator_delay_s"], self.params["actuator_tau_s"] = d, tau
+        self.params.update(resp.to_params())
         return info
 
     def velocities(self, inputs, params=None, theta0=None) -> tuple[np.ndarray, SolveResult]:
