@@ -175,13 +175,10 @@ def test_friction_model_reads_the_structure_from_its_options():
 def test_drive_warthog_response_beats_the_delay_lag_model(shared_real, tmp_path):
     """Real data: on the first 200 s of the DRIVE Warthog's Train split the identified response's encoder
     RMSE is below the delay + lag model's (its wheels saturate and turn at a fraction of the command)."""
-    from drive_data import drive_splits
-
-    from skidbench.pipeline.schema import read_split
+    from drive_data import drive_splits, split_table
 
     splits = drive_splits(shared_real / "drive", tmp_path, "warthog", "source.file=warthog_windows.parquet")
-    table, _ = read_split(splits / "unspecified" / "train" / "warthog_train_00.parquet")
-    fit = actuator.identify_response(table.iloc[:6000].reset_index(drop=True))
+    fit = actuator.identify_response(split_table(splits, rows=6000))
     lag = fit.candidates["delay+lag"]
     assert fit.structure != "delay+lag"
     assert fit.rmse_response < 0.8 * lag["train_rmse"] < fit.rmse_command

@@ -13,6 +13,14 @@ body frame); three consecutive windows share one 6 s ``calib_step``. Our choices
   carries the previous step's label: a step "with 4 windows" followed by one "with 2" is not a hole, and
   no slot is left empty for it. ``icp_yaw_k`` is the difference of two wrapped world yaws (jumps of
   2 pi inside a window); it is unwrapped per window before chaining.
+- Breaks. Not every pair of consecutive windows is back to back: at some step changes a wheel's measured
+  rate differs between one window's last sample and the next window's first by more than a wheel ever
+  changes between two samples inside any window of the file (the Husky file: 9 of 602 boundaries, 5.4-6.8
+  rad/s against at most 2.1 inside a window; the Warthog's: 13 of 359, against 6.9), and the ICP speed
+  confirms it (e.g. 2.05 m/s at one window's end, 0.02 m/s 50 ms later: the robot had been stopped
+  between them). Chaining across such a boundary would invent a motion that never happened, so the
+  windows after it start a new sequence (``<label>_<category>_01``, ...); ``source.break_at_jumps=false``
+  chains every window as before.
 - ICP runs at about 10 Hz and the 20 Hz rows repeat its last value: a repeated pose (x, y, yaw all equal
   to the previous sample's) is dropped from ``gt_pose`` so the ground truth is interpolated between real
   ICP updates instead of being a staircase (whose steps the differentiator turns into velocity spikes).
@@ -115,6 +123,24 @@ def chain_windows(rel: np.ndarray) -> np.ndarray:
     return se2_compose(starts[:, None, :], rel)
 
 
+def window_breaks(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """(W-1,) bool: the boundaries between consecutive (W, K) windows of measured wheel rates that are not
+    back to back: a wheel's rate changes from one window's last sample to the next window's first by more
+    than either wheel changes between two samples anywhere inside a window of the file (the largest change
+    the wheels are seen to make in one sampling interval). NaN readings never make a break. Parameter-free
+    on purpose: the threshold is the file's own."""
+    left, right = np.asarray(left, dtype=float), np.asarray(right, dtype=float)
+    if len(left) < 2:
+        return np.zeros(0, dtype=bool)
+    inside = np.concatenate([np.abs(np.diff(left, axis=1)).ravel(), np.abs(np.diff(right, axis=1)).ravel()])
+    inside = inside[np.isfinite(inside)]
+    if not inside.size:
+        return np.zeros(len(left) - 1, dtype=bool)
+    limit = float(inside.max())
+    jump = np.fmax(np.abs(left[1:, 0] - left[:-1, -1]), np.abs(right[1:, 0] - right[:-1, -1]))
+    return np.nan_to_num(jump, nan=0.0) > limit
+
+
 def fresh_samples(rel: np.ndarray, keep_every: int = HELD_KEEP) -> np.ndarray:
     """(W*K,) bool: the samples of (W, K, 3) window poses where ICP gave a new pose (or a window starts).
     A value held longer (the robot stands still) keeps every ``keep_every``-th repeat, so a standstill
@@ -139,12 +165,20 @@ def _robot_entry(value, robot: str | None):
 
 
 def windows_to_sequences(
-    df: pd.DataFrame, path: Path, rate_hz: float, fractions, label: str, cmd_kinematics=None, cmd_limits=None
+    df: pd.DataFrame,
+    path: Path,
+    rate_hz: float,
+    fractions,
+    label: str,
+    cmd_kinematics=None,
+    cmd_limits=None,
+    break_at_jumps: bool = True,
 ) -> list[dict]:
     """Window form -> ``[{"name", "category", "tables"}]`` (see the module docstring for the choices).
     ``cmd_kinematics`` (r, B): the conversion DRIVE used for ``cmd_left/right``; when given the commands are
     written as a body twist (``cmd_vel``), clipped to ``cmd_limits`` (v_max, w_max) if given; else as
-    ``cmd_wheels``."""
+    ``cmd_wheels``. ``break_at_jumps``: a boundary that is not back to back (:func:`window_breaks`) starts
+    a new sequence of the category."""
     if len(df) == 0:
         raise SourceError(f"{path}: empty sequence (no windows)")
     step = pd.to_numeric(df["calib_step"], errors="coerce").to_numpy()
@@ -177,33 +211,52 @@ def windows_to_sequences(
     steps = list(dict.fromkeys(step.tolist()))
     cats = category_by_rank(steps, tuple(fractions))
     dt_ns = int(round(1e9 / rate_hz))
+    breaks = np.zeros(max(len(df) - 1, 0), dtype=bool)
+    if break_at_jumps:
+        breaks = window_breaks(arrays["left_wheel_vel"], arrays["right_wheel_vel"])
+        log.info(
+            "%s: %d of %d window boundaries are not back to back (a wheel rate jumps by more than any "
+            "change inside a window); each starts a new sequence",
+            path.name,
+            int(breaks.sum()),
+            breaks.size,
+        )
     out = []
     for cat in ("train", "cv", "ld"):
-        rows_i = np.flatnonzero(np.array([cats[s] == cat for s in step], dtype=bool))
-        if not rows_i.size:
+        cat_i = np.flatnonzero(np.array([cats[s] == cat for s in step], dtype=bool))
+        if not cat_i.size:
             continue
-        n_steps = len({step[i] for i in rows_i})
-        win_t = np.arange(len(rows_i))  # back to back: one 2 s slot per window, no holes
-        stamps = ((win_t[:, None] * WINDOW + np.arange(WINDOW)[None, :]) * dt_ns).ravel()
-        rel = np.stack([arrays["icp_x"][rows_i], arrays["icp_y"][rows_i], arrays["icp_yaw"][rows_i]], axis=-1)
-        poses = chain_windows(rel).reshape(-1, 3)
-        # ICP repeats its last value at 20 Hz: keep only the samples where the pose changed (and the first)
-        fresh = fresh_samples(rel)
-        pick = {k: v[rows_i].ravel() for k, v in arrays.items()}
-        tables = {
-            "enc_wheels": stamped(stamps, wl=pick["left_wheel_vel"], wr=pick["right_wheel_vel"]),
-            "gt_pose": stamped(stamps[fresh], x=poses[fresh, 0], y=poses[fresh, 1], yaw=poses[fresh, 2]),
-        }
-        if cmd_kinematics is None:
-            tables["cmd_wheels"] = stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"])
-        else:
-            v, w = twist_from_wheel_rates(pick["cmd_left"], pick["cmd_right"], *cmd_kinematics)
-            if cmd_limits is not None:
-                v, w = np.clip(v, -cmd_limits[0], cmd_limits[0]), np.clip(w, -cmd_limits[1], cmd_limits[1])
-            z = np.zeros_like(v)
-            tables["cmd_vel"] = stamped(stamps, **dict(zip(TWIST_COLUMNS, [v, z, z, z, z, w], strict=True)))
-        out.append({"name": f"{label}_{cat}_00", "category": cat, "tables": tables, "steps": n_steps})
+        # the category's windows, cut at its breaks (a break at the boundary into the category is moot)
+        cuts = [k for k in range(1, cat_i.size) if breaks[cat_i[k] - 1]]
+        for part, rows_i in enumerate(np.split(cat_i, cuts)):
+            out.append(_window_sequence(arrays, step, rows_i, f"{label}_{cat}_{part:02d}", cat, dt_ns,
+                                        cmd_kinematics, cmd_limits))  # fmt: skip
     return out
+
+
+def _window_sequence(arrays, step, rows_i, name, cat, dt_ns, cmd_kinematics, cmd_limits) -> dict:
+    """One sequence of back-to-back windows ``rows_i`` (see :func:`windows_to_sequences`)."""
+    n_steps = len({step[i] for i in rows_i})
+    win_t = np.arange(len(rows_i))  # back to back: one 2 s slot per window, no holes
+    stamps = ((win_t[:, None] * WINDOW + np.arange(WINDOW)[None, :]) * dt_ns).ravel()
+    rel = np.stack([arrays["icp_x"][rows_i], arrays["icp_y"][rows_i], arrays["icp_yaw"][rows_i]], axis=-1)
+    poses = chain_windows(rel).reshape(-1, 3)
+    # ICP repeats its last value at 20 Hz: keep only the samples where the pose changed (and the first)
+    fresh = fresh_samples(rel)
+    pick = {k: v[rows_i].ravel() for k, v in arrays.items()}
+    tables = {
+        "enc_wheels": stamped(stamps, wl=pick["left_wheel_vel"], wr=pick["right_wheel_vel"]),
+        "gt_pose": stamped(stamps[fresh], x=poses[fresh, 0], y=poses[fresh, 1], yaw=poses[fresh, 2]),
+    }
+    if cmd_kinematics is None:
+        tables["cmd_wheels"] = stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"])
+    else:
+        v, w = twist_from_wheel_rates(pick["cmd_left"], pick["cmd_right"], *cmd_kinematics)
+        if cmd_limits is not None:
+            v, w = np.clip(v, -cmd_limits[0], cmd_limits[0]), np.clip(w, -cmd_limits[1], cmd_limits[1])
+        z = np.zeros_like(v)
+        tables["cmd_vel"] = stamped(stamps, **dict(zip(TWIST_COLUMNS, [v, z, z, z, z, w], strict=True)))
+    return {"name": name, "category": cat, "tables": tables, "steps": n_steps}
 
 
 def _numeric(df: pd.DataFrame, cols: list[str], path: Path) -> pd.DataFrame:
@@ -316,6 +369,7 @@ def extract_source(cfg, layout) -> list[dict]:
             label,
             cmd_kinematics=_robot_entry(src.get("cmd_kinematics"), robot),
             cmd_limits=_robot_entry(src.get("cmd_limits"), robot),
+            break_at_jumps=bool(src.get("break_at_jumps", True)),
         )
     elif form == "raw":
         seqs = raw_to_sequences(df, path, fractions, label)
