@@ -21,11 +21,11 @@ general response's recursion reduces to it exactly with unit gains and no limits
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
 import pandas as pd
+from numba import njit
 from scipy.optimize import minimize_scalar
 
 #: dead times tried by :func:`identify` (s): 0 .. 0.6 s on the split clock
@@ -224,59 +224,41 @@ class WheelResponse:
         return self.is_delay_lag and self.delay_s <= 0 and self.tau_s <= 0
 
 
+@njit(cache=True)
+def _slew_lag_loop(u: np.ndarray, alpha: np.ndarray, lim: np.ndarray) -> np.ndarray:
+    """The recursion of :func:`_slew_lag`, compiled."""
+    n, m = u.shape
+    y = np.empty((n, m))
+    for c in range(m):
+        prev = u[0, c]
+        y[0, c] = prev
+        for k in range(1, n):
+            step = alpha[k - 1, c] * (u[k, c] - prev)
+            if step > lim[k - 1, c]:
+                step = lim[k - 1, c]
+            elif step < -lim[k - 1, c]:
+                step = -lim[k - 1, c]
+            prev = prev + step
+            y[k, c] = prev
+    return y
+
+
 def _slew_lag(t: np.ndarray, u: np.ndarray, tau: np.ndarray, accel: np.ndarray) -> np.ndarray:
     """(n, m) for each column j of ``u`` (n, m): y_0 = u_0, y_k = y_k-1 + clip(alpha_k (u_k - y_k-1),
     -accel_j dt_k, accel_j dt_k), alpha_k = 1 - exp(-dt_k / tau_j): a first-order lag whose rate is
-    limited (accel_j <= 0: none; tau_j <= 0: instant). On a uniform clock each run of a constant target
-    is solved in closed form (a ramp while the limit binds, then a geometric decay), which is what makes
-    the identification affordable; otherwise a plain loop."""
+    limited (accel_j <= 0: none; tau_j <= 0: instant). The recursion itself is compiled (numba): the
+    identification evaluates it some thousand times (a Python loop over the rows of a command that changes
+    every row, as the simulated ones do, took 26 ms per call on 1,801 rows)."""
+    u = np.ascontiguousarray(u, dtype=float)
     n, m = u.shape
-    y = np.empty((n, m))
-    if n == 0:
-        return y
-    y[0] = u[0]
     if n < 2:
-        return y
+        return u.copy()
     tau, accel = np.asarray(tau, float), np.asarray(accel, float)
-    dt = np.diff(t)
+    dt = np.diff(np.asarray(t, float))
     with np.errstate(divide="ignore"):
         alpha = np.where(tau > 0, 1.0 - np.exp(-dt[:, None] / np.where(tau > 0, tau, 1.0)), 1.0)  # (n-1, m)
     lim = np.where(accel > 0, accel * dt[:, None], np.inf)  # (n-1, m)
-    change = np.flatnonzero(np.any(u[2:] != u[1:-1], axis=1)) + 2  # run starts among rows 1..n-1
-    starts = np.r_[1, change]
-    if np.allclose(dt, dt[0]) and len(starts) <= n // 4:
-        ends = np.r_[starts[1:], n]
-        e0 = np.empty((len(starts), m))  # each run's error at its start
-        k = np.zeros((len(starts), m))  # each run's steps on the ramp
-        for c in range(m):  # the runs' ends in closed form, one after the other (scalar arithmetic)
-            a, s = float(alpha[0, c]), float(lim[0, c])
-            prev = float(u[0, c])
-            for i, (p, q) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
-                e = float(u[p, c]) - prev
-                ramp = s < np.inf and a * abs(e) > s
-                kr = float(math.ceil((abs(e) - s / a) / s)) if ramp else 0.0
-                e0[i, c], k[i, c] = e, kr
-                j = q - p
-                mag = (
-                    abs(e) - j * s
-                    if j <= kr
-                    else (abs(e) - kr * (s if ramp else 0.0)) * (1.0 - a) ** (j - kr)
-                )
-                prev = float(u[p, c]) - math.copysign(mag, e)
-        # every row at once from its run's start
-        run = np.repeat(np.arange(len(starts)), ends - starts)
-        j = (np.arange(1, n) - starts[run] + 1).astype(float)[:, None]
-        e, kr = e0[run], k[run]
-        s = np.where(kr > 0, lim[0], 0.0)
-        mag0 = np.abs(e)
-        mag = np.where(j <= kr, mag0 - j * s, (mag0 - kr * s) * (1.0 - alpha[0]) ** np.maximum(j - kr, 0.0))
-        y[1:] = u[1:] - np.sign(e) * mag
-        return y
-    prev = u[0].astype(float)
-    for k in range(1, n):
-        prev = prev + np.clip(alpha[k - 1] * (u[k] - prev), -lim[k - 1], lim[k - 1])
-        y[k] = prev
-    return y
+    return _slew_lag_loop(u, np.ascontiguousarray(alpha), np.ascontiguousarray(lim))
 
 
 def _shape(m: np.ndarray, gain: float, sat: float) -> np.ndarray:
