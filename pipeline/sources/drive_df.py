@@ -227,10 +227,10 @@ def windows_to_sequences(
         if not cat_i.size:
             continue
         # the category's windows, cut at its breaks (a break at the boundary into the category is moot)
-        cuts = [k for k in range(1, cat_i.size) if breaks[cat_i[k] - 1]]
+        cuts = np.flatnonzero(breaks[cat_i[1:] - 1]) + 1
         for part, rows_i in enumerate(np.split(cat_i, cuts)):
-            out.append(_window_sequence(arrays, step, rows_i, f"{label}_{cat}_{part:02d}", cat, dt_ns,
-                                        cmd_kinematics, cmd_limits))  # fmt: skip
+            name = f"{label}_{cat}_{part:02d}"
+            out.append(_window_sequence(arrays, step, rows_i, name, cat, dt_ns, cmd_kinematics, cmd_limits))
     return out
 
 
