@@ -36,6 +36,7 @@ import numpy as np
 
 from ..errors import GroundTruthError, SkidbenchError, one_line
 from ..extract.images import ImageDecodeError, gray8
+from ..extract.reader import DEFAULT_STORES, open_bag
 from ..geometry import matrix_to_quaternion, se3_from_xyz_rpy, se3_inverse
 from .orbslam import base_to_camera, camera_to_base
 from .trajectory import Trajectory
@@ -686,9 +687,7 @@ def _get(cfg: Any, path: str, default: Any = None) -> Any:
 
 
 def _open(bag_path: Path, cfg: Any):
-    from ..extract.reader import open_bag
-
-    stores = _get(cfg, "extract.typestores", None) or {"ros1": "ros1_noetic", "ros2": "ros2_humble"}
+    stores = _get(cfg, "extract.typestores", None) or DEFAULT_STORES
     return open_bag(bag_path, stores)
 
 
