@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import GroundTruthError
+from ..extract.convert import header_stamp_ns
 from ..geometry import se2_relative, wrap_angle
 from .trajectory import Trajectory
 
@@ -176,7 +177,7 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
 
 def read_true_pose(bag_path: str | Path, cfg: Any = None, topic: str = "/skidbench/true_pose") -> Trajectory:
     """The simulator's truth (nav_msgs/Odometry) from a bag, header-stamped, streamed."""
-    from .vo import _open, _stamp_ns
+    from .vo import _open
 
     bag_path = Path(bag_path)
     stamps, xyz, quat = [], [], []
@@ -189,7 +190,7 @@ def read_true_pose(bag_path: str | Path, cfg: Any = None, topic: str = "/skidben
             for conn, bag_ns, raw in reader.messages(connections=conns):
                 msg = reader.deserialize(raw, conn.msgtype)
                 p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                stamps.append(_stamp_ns(msg, bag_ns))
+                stamps.append(header_stamp_ns(msg, bag_ns))
                 xyz.append((p.x, p.y, p.z))
                 quat.append((q.x, q.y, q.z, q.w))
     except GroundTruthError:

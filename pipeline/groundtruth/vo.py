@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from ..errors import GroundTruthError, SkidbenchError, one_line
+from ..extract.convert import header_stamp_ns
 from ..extract.images import ImageDecodeError, gray8
 from ..extract.reader import DEFAULT_STORES, open_bag
 from ..geometry import matrix_to_quaternion, se3_from_xyz_rpy, se3_inverse
@@ -691,12 +692,6 @@ def _open(bag_path: Path, cfg: Any):
     return open_bag(bag_path, stores)
 
 
-def _stamp_ns(msg: Any, bag_ns: int) -> int:
-    st = msg.header.stamp
-    ns = int(st.sec) * 1_000_000_000 + int(getattr(st, "nanosec", getattr(st, "nsec", 0)))
-    return ns if ns > 0 else int(bag_ns)
-
-
 def read_stereo_camera(reader, bag_path: Path, vo: VOConfig) -> StereoCamera:
     infos = {}
     conns = {c.topic: c for c in reader.connections if c.topic in (vo.left_info_topic, vo.right_info_topic)}
@@ -751,7 +746,7 @@ def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[i
     for conn, bag_ns, raw in reader.messages(connections=conns):
         n_seen += 1
         msg = reader.deserialize(raw, conn.msgtype)
-        st = _stamp_ns(msg, bag_ns)
+        st = header_stamp_ns(msg, bag_ns)
         mine, theirs = pending[conn.topic], pending[other[conn.topic]]
         match = None
         if st in theirs:
