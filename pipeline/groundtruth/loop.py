@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import GroundTruthError
 from ..extract.convert import header_stamp_ns
 from ..geometry import se2_relative, wrap_angle
+from ..timesync import interp_se2
 from .trajectory import Trajectory
 
 PAPER_TRANS_BOUND = 0.004  # 0.4 %
@@ -107,13 +108,6 @@ def summarize_loops(
 # accuracy against the simulator's truth
 
 
-def _interp_se2(t_ref: np.ndarray, se2: np.ndarray, t: np.ndarray) -> np.ndarray:
-    yaw = np.unwrap(se2[:, 2])
-    return np.column_stack(
-        [np.interp(t, t_ref, se2[:, 0]), np.interp(t, t_ref, se2[:, 1]), np.interp(t, t_ref, yaw)]
-    )
-
-
 def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: float = 6.0) -> dict[str, Any]:
     """ATE (start-pose aligned) and ``rpe_window_s`` relative pose error of ``est`` against ``truth``."""
     t_true = truth.stamp_ns
@@ -122,7 +116,7 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
         raise GroundTruthError("estimate and truth do not overlap in time")
     t = est.stamp_ns[inside]
     e = est.se2[inside]
-    g = _interp_se2(t_true.astype(float), truth.se2, t.astype(float))
+    g = interp_se2(t_true.astype(float), truth.se2, t.astype(float))
     # start-pose alignment: both relative to their first pose
     e_rel = se2_relative(e[0], e)
     g_rel = se2_relative(g[0], g)

@@ -39,6 +39,7 @@ from ..extract.convert import header_stamp_ns
 from ..extract.images import ImageDecodeError, gray8
 from ..extract.reader import DEFAULT_STORES, open_bag
 from ..geometry import matrix_to_quaternion, se3_from_xyz_rpy, se3_inverse
+from ..timesync import nearest
 from .orbslam import base_to_camera, camera_to_base
 from .trajectory import Trajectory
 
@@ -749,12 +750,11 @@ def iter_stereo_frames(reader, bag_path: Path, vo: VOConfig) -> Iterator[tuple[i
         st = header_stamp_ns(msg, bag_ns)
         mine, theirs = pending[conn.topic], pending[other[conn.topic]]
         match = None
-        if st in theirs:
-            match = st
-        elif theirs:
-            near = min(theirs, key=lambda s: abs(s - st))
-            if abs(near - st) <= tol:
-                match = near
+        if theirs:  # timesync's nearest rule on the pending partner stamps (a tie: the earlier stamp)
+            ref = np.fromiter(sorted(theirs), np.int64, len(theirs))
+            (i,), (ok,) = nearest(np.array([st], np.int64), ref, tol)
+            if ok:
+                match = int(ref[i])
         if match is None:
             mine[st] = msg
             # drop stale unpaired images (a lost partner) to keep memory bounded
