@@ -204,7 +204,7 @@ def detect_form(df: pd.DataFrame, path: Path) -> tuple[str, str]:
 
 
 #: robot checks: measured/commanded body-speed gain and ICP-implied/spec wheel radius must lie in these
-GAIN_RANGE = (0.6, 1.45)
+GAIN_RANGE = (0.6, 1.3)
 RADIUS_RANGE = (0.65, 1.35)
 WHEEL_LIMIT_MARGIN = 1.2  # measured wheel rates up to 1.2x the robot's limit (encoder noise, overshoot)
 
