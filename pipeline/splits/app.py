@@ -117,14 +117,20 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
         robot, gt.stamp_ns, gt.se2, gt.gaps, cmd_t, cmd, kind, enc_t, enc, float(sp.rate_hz),
         float(sp.cmd_timeout), float(sp.max_gap), window, order_,
     )  # fmt: skip
-    if len(df) == 0 or not df["valid"].any():
+    if len(df) == 0 or not df["valid"].any():  # (checked before the gate, which may drop every row)
         raise SplitError(
             f"{tum}: empty sequence: no valid ground truth overlapping the commands of {cmd_path}"
         )
     gate = consistency(df, robot.wheel_radius, robot.track_width, GateConfig.from_cfg(sp.get("consistency")))
     if gate["flagged"]:
         log.warning("ground truth consistency gate FLAGGED %s", describe(seq.name, gate))
-        if not bool(sp.allow_flagged):
+        if bool(sp.get("drop_flagged", False)) and not bool(sp.allow_flagged):
+            gate["dropped"] = True  # kept in the manifest's layout, but no row of it is scored or fitted
+            df["valid"] = False
+            log.warning("%s: dropped (split.drop_flagged=true): every row valid=false", seq.name)
+        elif not bool(sp.allow_flagged):
+            stale = layout.split_file(seq.terrain, seq.category, seq.name)
+            stale.unlink(missing_ok=True)  # an earlier allowed run's file must not be scored now
             return None, gate
     path = layout.split_file(seq.terrain, seq.category, seq.name)
     meta = {
@@ -181,7 +187,7 @@ def run(cfg: DictConfig) -> list[Path]:
             f"{layout.splits}: {len(refused)} of {len(seqs)} sequence(s) flagged by the ground-truth "
             f"consistency gate: {refused[0]}"
             + (f" (and {len(refused) - 1} more; the log lists them)" if len(refused) > 1 else "")
-            + "; set split.allow_flagged=true to use them anyway"
+            + "; set split.drop_flagged=true to leave them out, or split.allow_flagged=true to use them"
         )
     prune_stale(layout, manifest)  # sequences no longer in the manifest, and the folders left empty
     card_stamp = Stamp(layout.root / ".stamps" / "split" / "_card.json", "card")
@@ -237,7 +243,7 @@ def gate_section(files: list[Path]) -> str:
             f"| {p.stem} | {rep.get('wheels')} | {f(rep.get('sign_agreement'), '.2f')} | "
             f"{f(_plus0(rep.get('heading_offset_deg')), '.0f')} | {f(rep.get('corr_v'), '.2f')} | "
             f"{f(rep.get('corr_w'), '.2f')} | {f(rep.get('uncommanded_s'), '.1f')} | "
-            f"{'FLAGGED: ' + '; '.join(rep.get('reasons', [])) if rep.get('flagged') else 'ok'} |"
+            f"{_verdict(rep)} |"
         )
     if not rows:
         return ""
@@ -303,3 +309,9 @@ def card_main(cfg: DictConfig) -> None:
 def _plus0(v):
     """-0.4 prints as "-0" with .0f: add 0.0 after rounding so a zero offset reads "0"."""
     return None if v is None else round(float(v)) + 0.0
+
+
+def _verdict(rep: dict) -> str:
+    if not rep.get("flagged"):
+        return "ok"
+    return ("DROPPED" if rep.get("dropped") else "FLAGGED (used)") + ": " + "; ".join(rep.get("reasons", []))
