@@ -31,6 +31,7 @@ from skidbench.pipeline.schema import read_split
 
 from . import tracking as trk
 from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
+from .transfer import training_layout
 
 log = logging.getLogger(__name__)
 
@@ -307,6 +308,8 @@ def run_benchmark(
                 f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
             )
         fit_fn = default_fit_fn()
+    # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags (benchmark/transfer.py)
+    cfg, fit_fn, transfer_tags = training_layout(cfg, fit_fn)
 
     # 1. the data, checked before anything is logged
     found = find_terrains(layout)
@@ -340,6 +343,7 @@ def run_benchmark(
         trk.TAG_DATASET: str(cfg.dataset),
         trk.TAG_GIT: commit,
         "mlflow.source.git.commit": commit.split("+")[0],
+        **transfer_tags,
     }
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
