@@ -30,7 +30,7 @@ from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.schema import read_split
 
 from . import tracking as trk
-from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
+from .horizon import EvaluationError, HorizonConfig, count_windows, horizon_steps, rmsre, window_errors
 from .transfer import training_layout
 
 log = logging.getLogger(__name__)
@@ -330,6 +330,10 @@ def run_benchmark(
         for split in splits:
             seqs = load_test_split(layout, terrain, split)
             check_horizons(terrain, split, seqs, horizons)
+            for h in horizons:  # short sequences: say how many windows each horizon has (compare shows n)
+                n_win, n_seq, short = count_windows([s.table for s in seqs], h)
+                log.info("%s/%s: %g s horizon: %d windows from %d sequence(s), %d shorter than it",
+                         terrain, split, h, n_win, n_seq, short)  # fmt: skip
             tests[terrain][split] = seqs
         files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
 
