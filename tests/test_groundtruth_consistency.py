@@ -54,7 +54,8 @@ def test_a_ground_truth_whose_heading_is_flipped_by_pi_is_flagged(jackal):
 def test_motion_under_zero_commands_is_flagged_as_driven_by_something_else(jackal):
     rep = consistency(drive(jackal, zero_cmd_from=14.0), jackal.wheel_radius, jackal.track_width)
     assert rep["flagged"]
-    assert rep["uncommanded_s"] == pytest.approx(6.0, abs=0.3)  # 14-20 s (the hold timeout is 0.25 s)
+    # 14-20 s, less the 1.5 s after the stop in which the robot may still be braking (and 0.25 s timeout)
+    assert rep["uncommanded_s"] == pytest.approx(6.0 - 1.5, abs=0.3)
     assert any("zero commands" in r for r in rep["reasons"])
 
 

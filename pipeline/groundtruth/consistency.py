@@ -14,9 +14,10 @@ encoder rates when the split has them, else the commanded ones), on the valid ro
   truth's, ``atan2(sum v vy, sum v vx)`` (0 for a consistent ground truth, +-180 for one flipped by pi, a
   constant in between for a yaw offset between the pose's frame and the body);
 - ``corr_v``, ``corr_w``: Pearson correlations of vx with v and wz with w (NaN without variance);
-- ``uncommanded_s``: seconds in which the commanded wheel rates are zero while a wheel turns faster than
-  ``moving_wheel`` rad/s or the ground truth moves faster than ``min_speed`` m/s: driven by something other
-  than the recorded commands.
+- ``uncommanded_s``: seconds in which the commanded wheel rates have been zero for over ``settle_s`` s
+  while a wheel turns faster than ``moving_wheel`` rad/s or the ground truth moves faster than
+  ``min_speed`` m/s: driven by something other than the recorded commands (the first ``settle_s`` s after a
+  stop command are the robot braking, which a model must predict).
 
 A sequence is flagged when, over at least ``min_rows`` moving rows, the sign agreement is under
 ``min_sign_agreement``, ``|heading_offset_deg|`` over ``max_heading_offset_deg``, or ``corr_v`` under
@@ -43,6 +44,7 @@ class GateConfig:
     max_heading_offset_deg: float = 45.0
     min_corr_v: float = -0.2
     max_uncommanded_frac: float = 0.1
+    settle_s: float = 1.5  # s after a zero command in which the robot may still be braking
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> GateConfig:
@@ -97,7 +99,10 @@ def consistency(df: pd.DataFrame, wheel_radius: float, track_width: float, cfg: 
     out["corr_w"] = _corr(wz[moving], w[moving])
     cmd_zero = (np.abs(df["cmd_wl"].to_numpy(float)) < 1e-9) & (np.abs(df["cmd_wr"].to_numpy(float)) < 1e-9)
     turning = np.fmax(np.abs(np.nan_to_num(enc[:, 0])), np.abs(np.nan_to_num(enc[:, 1]))) > cfg.moving_wheel
-    uncommanded = valid & cmd_zero & (turning | (np.hypot(vx, vy) > cfg.min_speed))
+    # rows since the command last was non-zero (a run of zero commands longer than settle_s)
+    last_cmd = np.maximum.accumulate(np.where(~cmd_zero, np.arange(len(t)), -(10**9)))
+    settled = (np.arange(len(t)) - last_cmd) * dt > cfg.settle_s
+    uncommanded = valid & cmd_zero & settled & (turning | (np.hypot(vx, vy) > cfg.min_speed))
     out["uncommanded_s"] = float(uncommanded.sum() * dt)
     out["valid_s"] = float(valid.sum() * dt)
     reasons = []
