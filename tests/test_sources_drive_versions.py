@@ -20,6 +20,7 @@ from skidbench.pipeline.sources.drive_df import (
     classify_rows,
     detect_form,
     raw_to_sequences,
+    window_segments,
     windows_to_sequences,
 )
 
@@ -49,6 +50,16 @@ def test_slip_version_reads_into_the_same_tables_as_the_578_column_version():
         assert sa["tables"].keys() == sb["tables"].keys()
         for k in sa["tables"]:
             pd.testing.assert_frame_equal(sa["tables"][k], sb["tables"][k])
+
+
+def test_window_samples_under_a_zero_command_while_moving_are_reported():
+    df, _, _ = drive_like_frame([(0.6, 0.0), (0.5, 0.2), (0.4, -0.3)])
+    assert {s["class"] for s in window_segments(df, Path("w.parquet"))} == {COMMAND}
+    cmd = [c for c in df.columns if c.startswith("cmd_")]
+    df.loc[3:5, cmd] = 0.0  # step 1: zero commands, the wheels still turn (something else drives it)
+    segs = window_segments(df, Path("w.parquet"))
+    other = [s for s in segs if s["class"] == "other"]
+    assert len(other) == 1 and other[0]["rows"] == 3 * WINDOW
 
 
 def test_a_window_file_without_calib_step_is_one_clear_line():

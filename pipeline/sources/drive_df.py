@@ -599,6 +599,18 @@ def raw_to_sequences(
     return out
 
 
+def window_segments(df: pd.DataFrame, path: Path) -> list[dict]:
+    """The window form's samples in file order, classified without a state column (:func:`classify_rows`:
+    non-zero command, or zero command and moving / idle), as :func:`segments_of` records on a 20 Hz sample
+    clock from 0 (windows have no absolute time). For the card: DRIVE's window files hold command steps
+    only (the shared ones: no 1 s of motion under a zero command); a sequence that did would be flagged by
+    the split's consistency gate (``uncommanded_s``)."""
+    cl, cr = _cols(df, "cmd_left", path).ravel(), _cols(df, "cmd_right", path).ravel()
+    ml, mr = _cols(df, "left_wheel_vel", path).ravel(), _cols(df, "right_wheel_vel", path).ravel()
+    classes, reasons = classify_rows(None, (cl + cr) / 2, (cr - cl) / 2, ml, mr)
+    return segments_of(classes, reasons, np.arange(len(cl), dtype=np.int64) * 50_000_000)
+
+
 def _file_list(src) -> list[str]:
     """``source.file``: one name, or a list of names (one terrain each, ``source.terrain`` a list too)."""
     f = src.file
@@ -679,6 +691,7 @@ def extract_source(cfg, layout) -> list[dict]:
                 robot=robot,
                 checks=checks,
             )
+            segs = window_segments(df, path)
         else:
             seqs = raw_to_sequences(df, path, fractions, file_label, segments=segs)
             checks = _raw_robot_checks(df, path, robot, segs)
