@@ -594,6 +594,8 @@ def raw_to_sequences(
             if seg["class"] == COMMAND and ts[0] <= seg["start_ns"] <= ts[-1]:
                 seg.setdefault("sequences", []).append(name)
                 seg["category"] = cat
+    for seg in segs:
+        seg["excluded"] = seg["class"] != COMMAND
     if segments is not None:
         segments.extend(segs)
     return out
@@ -608,7 +610,15 @@ def window_segments(df: pd.DataFrame, path: Path) -> list[dict]:
     cl, cr = _cols(df, "cmd_left", path).ravel(), _cols(df, "cmd_right", path).ravel()
     ml, mr = _cols(df, "left_wheel_vel", path).ravel(), _cols(df, "right_wheel_vel", path).ravel()
     classes, reasons = classify_rows(None, (cl + cr) / 2, (cr - cl) / 2, ml, mr)
-    return segments_of(classes, reasons, np.arange(len(cl), dtype=np.int64) * 50_000_000)
+    segs = segments_of(classes, reasons, np.arange(len(cl), dtype=np.int64) * 50_000_000)
+    for seg in segs:  # reported, not cut: every window stays in its sequence
+        seg["excluded"] = False
+    return segs
+
+
+#: bumped when the reader's output changes for the same file and config (3: rows classified, only
+#: command-driven runs are sequences): an extraction stamped by an older reader is redone, not reused
+READER_VERSION = 3
 
 
 def _file_list(src) -> list[str]:
@@ -656,7 +666,8 @@ def extract_source(cfg, layout) -> list[dict]:
     paths = [root / f for f in files]
     robot_name = str(cfg.robot.name)
     robot = robot_from_hydra(cfg.robot)
-    conf = {"source": OmegaConf.to_container(src, resolve=True), "robot": OmegaConf.to_container(cfg.robot)}
+    conf = {"source": OmegaConf.to_container(src, resolve=True), "robot": OmegaConf.to_container(cfg.robot),
+            "reader": READER_VERSION}  # fmt: skip
     unit = paths[0].name if len(paths) == 1 else "+".join(p.stem for p in paths)
     stamp, key, cached = source_stamp(layout, unit, paths, conf)
     if cached is not None and layout.manifest.is_file():

@@ -191,7 +191,8 @@ def run(cfg: DictConfig) -> list[Path]:
         )
     prune_stale(layout, manifest)  # sequences no longer in the manifest, and the folders left empty
     card_stamp = Stamp(layout.root / ".stamps" / "split" / "_card.json", "card")
-    card_key = card_stamp.key(written, {"robot": conf["robot"], "card": _card_conf(cfg)})
+    segments = [p for p in [layout.extracted / "segments.json"] if p.is_file()]  # the card lists them too
+    card_key = card_stamp.key(written + segments, {"robot": conf["robot"], "card": _card_conf(cfg)})
     if not card_stamp.is_fresh(card_key):
         write_card(cfg, layout, robot)
         card_stamp.record(card_key, [layout.splits / "card.md"])
@@ -261,6 +262,12 @@ def gate_section(files: list[Path]) -> str:
 MOVED = "moving, not driven by the recorded commands"
 
 
+def _metres(segs: list[dict]) -> str:
+    """Ground-truth path length of segments ("-" when the source has no absolute pose for them)."""
+    vals = [s["metres"] for s in segs if s.get("metres") is not None]
+    return f"{sum(vals):.1f}" if vals else "-"
+
+
 def segments_section(layout: Layout) -> str:
     """Markdown: per source file, the segments left out of Train/CV/LD (``extracted/segments.json``,
     written by sources that classify their rows: seconds, metres, why) and the seconds kept."""
@@ -268,7 +275,7 @@ def segments_section(layout: Layout) -> str:
     if not path.is_file():
         return ""
     data = json.loads(path.read_text())
-    out = ["", "## Segments left out (not driven by the recorded commands)", ""]
+    out = ["", "## Segments not driven by the recorded commands (left out unless marked kept)", ""]
     out += [
         "| file | terrain | class | segments | seconds | metres | why |",
         "|---|---|---|---:|---:|---:|---|",
@@ -279,16 +286,16 @@ def segments_section(layout: Layout) -> str:
         groups: dict[tuple[str, str], list[dict]] = {}
         for s in segs:
             if s["class"] != "command":
-                groups.setdefault((s["class"], s["why"].split(":")[0]), []).append(s)
+                key = (s["class"] + ("" if s.get("excluded", True) else " (kept)"), s["why"].split(":")[0])
+                groups.setdefault(key, []).append(s)
         for (cls, why), g in groups.items():
-            metres = sum(s["metres"] or 0.0 for s in g)
             out.append(
                 f"| {name} | {rec.get('terrain')} | {cls} | {len(g)} | {sum(s['seconds'] for s in g):.1f} | "
-                f"{metres:.1f} | {why}: {MOVED if cls == 'other' else 'not moving'} |"
+                f"{_metres(g)} | {why}: {MOVED if cls.startswith('other') else 'not moving'} |"
             )
         out.append(
             f"| {name} | {rec.get('terrain')} | kept (command-driven) | {len(kept)} | "
-            f"{sum(s['seconds'] for s in kept):.1f} | {sum(s['metres'] or 0.0 for s in kept):.1f} | scored |"
+            f"{sum(s['seconds'] for s in kept):.1f} | {_metres(kept)} | scored |"
         )
     return "\n".join(out) + "\n"
 
