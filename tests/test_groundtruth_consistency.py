@@ -94,9 +94,7 @@ def test_split_refuses_a_flipped_sequence_unless_allowed(jackal, tmp_path):
         allowed = compose("split", [f"out_root={tmp_path}", "dataset=ds", "split.allow_flagged=true"])
     path, gate = split_sequence(cfg, layout, jackal, seq)
     assert path is None and gate["flagged"]
-    with pytest.raises(
-        SplitError, match=r"1 of 1 sequence.*flip_train_00: sign agreement 0\.0.*allow"
-    ):
+    with pytest.raises(SplitError, match=r"1 of 1 sequence.*flip_train_00: sign agreement 0\.0.*allow"):
         split_run(cfg)
     assert not layout.split_file("lab", "train", seq.name).exists()  # nothing written for it
     (path,) = split_run(allowed)
