@@ -76,8 +76,11 @@ def data_path(source: Any) -> Path:
             "dataset=<name> of a dataset already under out_root (`skidbench datasets` lists them)"
         )
     path = Path(str(source.get("root"))).expanduser().resolve()
-    if source.get("file"):
-        path = path / str(source.get("file"))
+    file = source.get("file")
+    if file and not isinstance(file, str) and hasattr(file, "__len__"):  # several files: one dataset
+        return path / "+".join(Path(str(f)).stem for f in file)
+    if file:
+        path = path / str(file)
     return path
 
 
