@@ -181,6 +181,8 @@ def windows_to_sequences(
     a new sequence of the category."""
     if len(df) == 0:
         raise SourceError(f"{path}: empty sequence (no windows)")
+    if "calib_step" not in df.columns:  # the windows' order and categories come from it
+        raise SourceError(f"{path}: window form lacks the calib_step column (DRIVE's step of each window)")
     step = pd.to_numeric(df["calib_step"], errors="coerce").to_numpy()
     if not np.isfinite(step).all():
         raise SourceError(f"{path}: calib_step holds non-numeric values")
