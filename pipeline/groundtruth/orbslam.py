@@ -147,7 +147,8 @@ def read_camera_poses(
     if fmt == "kitti":
         if times is None:
             raise GroundTruthError(
-                f"{path}: a KITTI file needs its times file; set groundtruth.orbslam.times_pattern (default {seq}.times.txt)"
+                f"{path}: a KITTI file needs its times file (none found); "
+                "set groundtruth.orbslam.times_pattern (default {seq}.times.txt)"
             )
         stamps = read_times(times)
         if len(stamps) != len(values):
