@@ -185,13 +185,16 @@ def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:
 
 
 def holds_data(root: Path) -> bool:
-    """True when a dataset folder holds any file besides its identity (``dataset.json``) and the
-    stages' failure markers: a folder without data is what a command that failed first leaves."""
+    """True when a dataset folder holds any file besides its identity (``dataset.json``), the manifest
+    ``extract`` derives from a user's source before reading it, stamps and temporary files: a folder
+    without data is what a command that failed first leaves."""
     for path in Path(root).rglob("*"):
         if not path.is_file():
             continue
         rel = path.relative_to(root)
-        if rel == Path("dataset.json") or (rel.parts[0] == ".stamps" and path.name.endswith(".failed.json")):
+        if rel in (Path("dataset.json"), Path("raw/manifest.json")) or rel.parts[0] == ".stamps":
+            continue
+        if path.name.startswith(".tmp-"):
             continue
         return True
     return False

@@ -189,9 +189,14 @@ def _explain(stage: str, overrides: list[str], exc: Exception) -> str:
             key = m.group(1)
             rest = [o for o in overrides if _override_key(o) != key]
             keys = _valid_keys(stage, rest, hydra=key.startswith("hydra."))
-            if not key.startswith("hydra."):  # a misspelt setting of another stage: its nearest keys too
-                keys = sorted({*keys, *_every_stage_key()})
-            return f"unknown config key '{key}'{_nearest(key, keys)}"
+            hint = _nearest(key, keys)
+            parent = key.rpartition(".")[0]
+            foreign_parent = bool(parent) and parent not in keys and is_other_stage_key(parent)
+            if not key.startswith("hydra.") and ("did you mean" not in hint or foreign_parent):
+                # a misspelt setting of another stage (ARGS of make reproduce): its nearest keys
+                wider = _nearest(key, sorted({*keys, *_every_stage_key()}))
+                hint = wider if "did you mean" in wider else hint
+            return f"unknown config key '{key}'{hint}"
     if m := re.search(r"Could not append to config\. An item is already at '([^']+)'", text):
         return f"'{m.group(1)}' is already in the config: set it without '+' ('++' adds or overrides)"
     if "Ambiguous value for argument" in text:
