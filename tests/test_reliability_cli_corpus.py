@@ -106,6 +106,9 @@ CASES = [
                                           "robot=husky", NEW], ["husky_windows.parquet", "calib_step"]),
     ("DRIVE file of another robot", ["extract", "source=drive_df", "source.root={c}/drive_ok",
                                      "robot=warthog", NEW], ["husky_windows.parquet", "robot=husky"]),
+    ("DRIVE file renamed, another robot's", ["extract", "source=drive_df", "source.root={c}/drive_renamed",
+                                             "source.file=data.parquet", "robot=warthog", NEW],
+     ["data.parquet", "robot=warthog", "wheel_radius"]),
     ("DRIVE truncated Parquet", ["extract", "source=drive_df", "source.root={c}",
                                  "source.file=drive_truncated_raw.parquet", "out_root={fresh}"],
      ["drive_truncated_raw.parquet", "not a readable Parquet"]),
@@ -146,6 +149,8 @@ def _write_corpus(c: Path) -> None:
     for name, df in (("drive_ok", frame), ("drive_nostep", frame.drop(columns=["calib_step"]))):
         (c / name).mkdir()
         df.to_parquet(c / name / "husky_windows.parquet")
+    (c / "drive_renamed").mkdir()  # Husky windows under a name that says nothing: the content tells
+    frame.to_parquet(c / "drive_renamed" / "data.parquet")
 
 
 @pytest.fixture(scope="module")

@@ -339,6 +339,42 @@ def raw_to_sequences(df: pd.DataFrame, path: Path, fractions, label: str) -> lis
     return out
 
 
+# the data's effective wheel radius over the robot's (median of straight windows): DRIVE's own files give
+# 0.955 (Husky, 35 windows) and 0.95 (Warthog, 32); another robot's file gives 0.53 (Husky data as a
+# Warthog) or 1.73 (Warthog data as a Husky) (measured 2026-11-23 on ../shared/data/real/drive)
+RADIUS_RATIO_BOUNDS = (0.7, 1.4)
+MIN_STRAIGHT_WINDOWS = 5
+
+
+def check_wheel_radius(df: pd.DataFrame, path: Path, robot: str, wheel_radius: float, rate_hz: float) -> None:
+    """ConfigError when a window file's motion says it is another robot's: on straight windows (mean
+    encoder rate > 1 rad/s, |wl - wr| < 0.2 of it) the ICP distance over the encoder rates gives the
+    effective wheel radius (m); its median outside ``RADIUS_RATIO_BOUNDS`` of ``robot.wheel_radius`` is
+    refused (the file name may say nothing: the check goes by content). Fewer straight windows: no check."""
+    names = [
+        f"{p}_{k}" for p in ("left_wheel_vel", "right_wheel_vel", "icp_x", "icp_y") for k in (0, WINDOW - 1)
+    ]
+    if any(n not in df.columns for n in names):
+        return
+    left, right = _cols(df, "left_wheel_vel", path), _cols(df, "right_wheel_vel", path)
+    x, y = _cols(df, "icp_x", path), _cols(df, "icp_y", path)
+    mean = np.abs((left + right) / 2).mean(axis=1)
+    diff = np.abs(left - right).mean(axis=1)
+    dist = np.hypot(x[:, -1] - x[:, 0], y[:, -1] - y[:, 0])
+    ok = (mean > 1.0) & (diff < 0.2 * mean) & np.isfinite(dist)
+    if ok.sum() < MIN_STRAIGHT_WINDOWS:
+        log.info("%s: %d straight window(s): the robot is not checked against the data", path, int(ok.sum()))
+        return
+    r_eff = float(np.median(dist[ok] / (mean[ok] * (WINDOW - 1) / rate_hz)))
+    ratio = r_eff / wheel_radius
+    if not RADIUS_RATIO_BOUNDS[0] <= ratio <= RADIUS_RATIO_BOUNDS[1]:
+        raise ConfigError(
+            f"{path}: its straight windows drive {r_eff:.3f} m per wheel radian (ICP distance over "
+            f"encoder rates, {int(ok.sum())} windows), but robot={robot} has wheel_radius "
+            f"{wheel_radius:g} m: is this another robot's file? set robot=<its robot> (husky, warthog)"
+        )
+
+
 def extract_source(cfg, layout) -> list[dict]:
     """Extract ``source.root/source.file`` into ``<ds>/extracted`` and write the manifest."""
     src = cfg.source
@@ -363,6 +399,7 @@ def extract_source(cfg, layout) -> list[dict]:
     label = str(src.get("label") or robot)
     fractions = tuple(float(f) for f in src.split_fractions)
     if form == "windows":
+        check_wheel_radius(df, path, robot, float(cfg.robot.wheel_radius), float(src.rate_hz))
         seqs = windows_to_sequences(
             df,
             path,
