@@ -82,6 +82,10 @@ def stage(name: str, home: bool = True) -> Callable:
             except SkidbenchError as exc:
                 _after_failure(root, name, str(exc))
                 exit_with_error(str(exc), name)
+            except SystemExit as exc:  # a stage that exits by itself: a failure unless its status is 0
+                if exc.code not in (0, None):
+                    _after_failure(root, name, f"exit status {exc.code}")
+                raise
             except BaseException as exc:  # a bug or an interrupt: what was written may be partial too
                 _after_failure(root, name, f"{type(exc).__name__}: {exc}")
                 raise
