@@ -325,3 +325,38 @@ def test_the_orbslam_overlap_check_accepts_the_right_times(prepared, tmp_path):
     t = np.loadtxt(tum, comments="#")[:, 0]
     assert 1000.0 <= t[0] < t[-1] <= 1008.0
     assert pd.notna(t).all()
+
+
+UT_BAG = "ut_automata_ikd_2023-03-23-10-44-04.bag"
+UT_TOPICS = (
+    "source.terrain=lab", "source.category=train",
+    "source.topics.cmd_vel.topic=/vesc_drive", "source.topics.cmd_vel.type=geometry_msgs/msg/TwistStamped",
+    "source.topics.odom.topic=/odom", "source.topics.imu.topic=/vectornav/IMU",
+    "source.topics.joint_states.required=false",
+)  # fmt: skip
+
+
+@pytest.mark.shared
+def test_the_real_bag_copied_and_damaged(shared_real, tmp_path):
+    """The UT AUTOmata bag (../shared): an ORB-SLAM file of another clock is refused at groundtruth; the
+    bag damaged in place makes extract fail, and groundtruth then names extract to re-run."""
+    data, out, orb = tmp_path / "data", tmp_path / "out", tmp_path / "orb"
+    data.mkdir()
+    orb.mkdir()
+    bag = data / UT_BAG
+    shutil.copy(shared_real / "bags" / UT_BAG, bag)
+    args = ["source=bag", f"source.root={bag}", f"out_root={out}", *UT_TOPICS]
+    assert _run(["extract", *args])[0] == 0
+    (orb / f"{bag.stem}.txt").write_text("\n".join(_orb_rows(0.0, n=100)) + "\n")  # relative times
+    before = snapshot(out)
+    code, err = _run(["groundtruth", *args, "groundtruth.method=orbslam", f"groundtruth.orbslam.dir={orb}"])
+    (line,) = [ln for ln in err.splitlines() if ": error: " in ln]
+    assert code == 2 and f"{orb}/{bag.stem}.txt" in line and "never overlap" in line, err
+    _clear_markers(out)
+    assert snapshot(out) == before
+    bag.write_bytes(bag.read_bytes()[: bag.stat().st_size // 3])  # damaged in place
+    code, err = _run(["extract", *args])
+    assert code == 2 and UT_BAG in err, err
+    code, err = _run(["groundtruth", *args, "groundtruth.method=orbslam", f"groundtruth.orbslam.dir={orb}"])
+    (line,) = [ln for ln in err.splitlines() if ": error: " in ln]
+    assert code == 2 and "re-run skidbench extract" in line, err
