@@ -63,7 +63,7 @@ def select_runs(
     mlflow.set_tracking_uri(tracker.uri)
     try:
         runs = mlflow.search_runs(
-            experiment_ids=[tracker.experiment_id],
+            experiment_ids=tracker.search_ids() or [tracker.experiment_id],
             filter_string=" AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
             output_format="pandas",

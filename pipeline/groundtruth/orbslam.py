@@ -45,13 +45,21 @@ NS_SPACING = 1e3
 RELATIVE_TIME_S = 1e6
 
 
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def _read_rows(path: Path) -> tuple[list[str], np.ndarray]:
     """The file's numeric rows as strings (first column kept as text for exact stamps) and floats."""
     try:
         text = path.read_text()
     except OSError as exc:
         raise GroundTruthError(f"{path}: cannot read ({exc.strerror})") from exc
-    tokens, ncols = [], None
+    tokens, linenos, ncols = [], [], None
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -68,11 +76,16 @@ def _read_rows(path: Path) -> tuple[list[str], np.ndarray]:
                 f"{path}:{lineno}: wrong column count {len(parts)}, earlier rows have {ncols}"
             )
         tokens.append(parts)
+        linenos.append(lineno)
     if not tokens:
         raise GroundTruthError(f"{path}: empty sequence (no poses)")
     try:
         values = np.array(tokens, dtype=float)
-    except ValueError as exc:
+    except ValueError as exc:  # name the first row that holds a non-number
+        for lineno, parts in zip(linenos, tokens, strict=True):
+            bad = next((p for p in parts if not _is_number(p)), None)
+            if bad is not None:
+                raise GroundTruthError(f"{path}:{lineno}: non-numeric value {bad!r}") from exc
         raise GroundTruthError(f"{path}: non-numeric value ({exc})") from exc
     return [t[0] for t in tokens], values
 
@@ -135,7 +148,8 @@ def read_camera_poses(
     if fmt == "kitti":
         if times is None:
             raise GroundTruthError(
-                f"{path}: a KITTI file needs its times file; set groundtruth.orbslam.times"
+                f"{path}: a KITTI file needs its times file (none found); "
+                "set groundtruth.orbslam.times_pattern (default {seq}.times.txt)"
             )
         stamps = read_times(times)
         if len(stamps) != len(values):

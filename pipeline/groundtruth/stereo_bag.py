@@ -36,7 +36,7 @@ def read_stereo_camera(reader, bag_path: Path, vo: VOConfig) -> StereoCamera:
         if topic not in conns:
             raise GroundTruthError(
                 f"{bag_path}: camera_info topic {topic} not found; "
-                "set groundtruth.vo.left_info_topic/right_info_topic"
+                "set source.topics.left_info.topic and source.topics.right_info.topic"
             )
     for conn, _, raw in reader.messages(connections=list(conns.values())):
         if conn.topic in infos:
@@ -64,7 +64,7 @@ def check_image_topics(reader, bag_path: Path, vo: VOConfig) -> None:
         if topic not in topics:
             raise GroundTruthError(
                 f"{bag_path}: image topic {topic} not found (topics: {', '.join(sorted(topics))}); "
-                f"set groundtruth.vo.{key}"
+                f"set source.topics.{key.removesuffix('_topic')}_image.topic"
             )
 
 
