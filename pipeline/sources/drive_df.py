@@ -279,7 +279,8 @@ def window_motion(arrays: dict) -> tuple[np.ndarray, np.ndarray]:
     common = np.abs(np.nansum((arrays["left_wheel_vel"] + arrays["right_wheel_vel"]) / 2, axis=1) * dt)
     diff = np.abs(np.nansum((arrays["right_wheel_vel"] - arrays["left_wheel_vel"]) / 2, axis=1) * dt)
     # displacement within the window (a window's ICP may or may not start at its own origin)
-    dist = np.hypot(arrays["icp_x"][:, -1] - arrays["icp_x"][:, 0], arrays["icp_y"][:, -1] - arrays["icp_y"][:, 0])
+    x, y = arrays["icp_x"], arrays["icp_y"]
+    dist = np.hypot(x[:, -1] - x[:, 0], y[:, -1] - y[:, 0])
     return np.where(diff < 0.2 * common, dist, np.nan), common
 
 
