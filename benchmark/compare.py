@@ -22,6 +22,7 @@ from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
+from skidbench.pipeline.protocol import INPUT_COLUMNS, model_inputs
 from skidbench.pipeline.schema import read_split
 
 from . import figures as figs
@@ -198,6 +199,14 @@ def _load_model(cfg: Any, name: str, terrain: str):
     return load_fitted(cfg, name, terrain)
 
 
+def _predict(cfg: Any, model: Any, table: pd.DataFrame, terrain: str) -> np.ndarray:
+    """(T, 3) the model's prediction from ONLY the inputs of the run's protocol (``cfg.inputs``)."""
+    from skidbench.models.fitting import protocol_inputs
+
+    protocol, robot, response = protocol_inputs(cfg, terrain)
+    return np.asarray(model.predict(model_inputs(table, protocol, robot, response)), float)
+
+
 def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path, dpi: int) -> Path:
     from skidbench.models.base import concat_sequences
 
@@ -208,7 +217,7 @@ def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path,
     acc = np.concatenate(
         [_smoothed_derivative(df["t"].to_numpy(float), df["wz"].to_numpy(float)) for df, _ in tables]
     )
-    pred = np.asarray(model.predict(table), float)[:, 2]
+    pred = _predict(cfg, model, table, terrain)[:, 2]
     ok = table["valid"].to_numpy(bool)
     split = files[0].parent.name if files else "?"
     return figs.residual_vs_acceleration(
@@ -272,7 +281,7 @@ def figure6(
             )
             wz = np.asarray(vel, float)[:, 2]
         else:
-            wz = np.asarray(model.predict(table), float)[:, 2]
+            wz = np.asarray(model.predict(table[list(INPUT_COLUMNS)]), float)[:, 2]
             sol = getattr(model, "last_solve_", None)
         status = getattr(sol, "status", None)
         if status is not None and len(status) == m:  # the friction model's per-step solve status
@@ -342,7 +351,7 @@ def figure7(
             p, df, meta, _ = cands[fi]
             if fi not in preds:
                 table = concat_sequences([(df, meta)])
-                preds[fi] = {m: np.asarray(mod.predict(table), float) for m, mod in loaded.items()}
+                preds[fi] = {m: _predict(cfg, mod, table, terrain) for m, mod in loaded.items()}
             t = df["t"].to_numpy(float)
             gt = df[["x", "y", "yaw"]].to_numpy(float)
             s0 = int(row["start"])
