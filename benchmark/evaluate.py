@@ -42,6 +42,12 @@ TRAIN = "train"
 KINDS = {"translational": "rel_trans", "rotational": "rel_rot"}
 
 
+class ProtocolSkipped(EvaluationError):
+    """No terrain of the dataset can be driven by the input protocol (e.g. ``measured`` without encoders):
+    the protocol is skipped for the dataset, which is not an error of the run (``skidbench evaluate``
+    prints the line and exits 0)."""
+
+
 # -- data -------------------------------------------------------------------------------------------
 @dataclass
 class TestSequence:
@@ -368,9 +374,7 @@ def run_benchmark(
         print(line, flush=True)
     terrains = [t for t in terrains if t in inputs_of and tests[t]]
     if not terrains:
-        raise EvaluationError(
-            f"inputs={protocol}: no terrain of {layout.manifest} can be evaluated: {skipped[0]}"
-        )
+        raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
 
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)

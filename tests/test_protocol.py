@@ -211,3 +211,25 @@ def test_fit_table_keeps_targets_and_replaces_inputs():
 def test_unknown_protocol_is_one_line():
     with pytest.raises(ProtocolError, match=r"inputs='oracle': unknown input protocol; expected one of"):
         check_protocol("oracle")
+
+
+def test_measured_skips_a_split_without_encoders_in_one_line_and_a_dataset_without_any(tmp_path, plugins):
+    from skidbench.benchmark.evaluate import ProtocolSkipped
+    from skidbench.pipeline.schema import read_split, write_split
+
+    write_splits(tmp_path / DS, terrains=("tile",))
+    cv = next((tmp_path / DS / "splits" / "tile" / "cv").glob("*.parquet"))
+    df, meta = read_split(cv)
+    write_split(df.assign(enc_wl=np.nan, enc_wr=np.nan), cv, meta)
+    over = ["models=[ideal]", "horizons=[2.0]", "inputs=measured", "calibrate.use=false"]
+    res = run_benchmark(compose("evaluate", tmp_path, over), log_figures=False)
+    assert len(res.skipped) == 1 and "tile/cv: no wheel encoders in tile_cv_00" in res.skipped[0]
+    assert "split skipped under this protocol" in res.skipped[0]
+    metrics = res.children[0].metrics
+    assert "rmsre_translational_ld_2s" in metrics and "rmsre_translational_cv_2s" not in metrics
+    # no encoders in Train: the protocol is skipped for the whole dataset (not a failed run)
+    for p in (tmp_path / DS / "splits" / "tile" / "train").glob("*.parquet"):
+        df, meta = read_split(p)
+        write_split(df.assign(enc_wl=np.nan, enc_wr=np.nan), p, meta)
+    with pytest.raises(ProtocolSkipped, match=r"inputs=measured: nothing to evaluate .* no wheel encoders"):
+        run_benchmark(compose("evaluate", tmp_path, over), log_figures=False)
