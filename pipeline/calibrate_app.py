@@ -156,7 +156,8 @@ def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str
                     metrics[f"wheel_response_{terrain}_{k}_se"] = float(v)
                 for name, cand in wr["candidates"].items():
                     if cand.get("heldout_rmse") is not None:
-                        metrics[f"wheel_response_{terrain}_heldout_rmse.{name}"] = float(cand["heldout_rmse"])
+                        key = name.replace("+", "_")  # MLflow names take no "+"
+                        metrics[f"wheel_response_{terrain}_heldout_rmse.{key}"] = float(cand["heldout_rmse"])
                 metrics[f"wheel_response_{terrain}_rmse_command"] = float(wr["rmse_command"])
                 metrics[f"wheel_response_{terrain}_rmse_response"] = float(wr["rmse_response"])
             else:

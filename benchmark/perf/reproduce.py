@@ -48,6 +48,7 @@ STEPS = (
 )
 STAGES = tuple(label for label, _, _ in STEPS)
 SCALE_ENV = "SKIDBENCH_BENCH_SCALE"
+KEEP_ENV = "SKIDBENCH_BENCH_KEEP"  # a folder: the run's out root and stage logs are kept there (its numbers)
 BUDGET_ENV = "SKIDBENCH_BENCH_MAX_MIN"  # stop starting stages after this many minutes (a loaded machine)
 
 
@@ -169,7 +170,10 @@ def metrics(run: dict[str, Any]) -> dict[str, Any]:
 def reproduce_bench(quick: bool) -> dict[str, Any]:
     scale = os.environ.get(SCALE_ENV) or ("tiny" if quick else "mini")
     budget = os.environ.get(BUDGET_ENV)
-    out = metrics(reproduce(scale, budget_min=float(budget) if budget else None))
+    keep = os.environ.get(KEEP_ENV)
+    out = metrics(
+        reproduce(scale, Path(keep) if keep else None, budget_min=float(budget) if budget else None)
+    )
     out.update(extraction_mini_vs_full())
     return out
 
