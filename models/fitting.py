@@ -166,6 +166,12 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
         raise ModelError(
             f"model {DISCOVERED}: {path} has no discovery for terrain {terrain} ({type(exc).__name__}: {exc})"
         ) from None
+    found_under, inputs = str(doc.get("inputs", "commanded")), protocol_of(cfg)
+    if found_under != inputs:  # what is missing depends on the inputs the search was given
+        raise ModelError(
+            f"model {DISCOVERED}: {path} was found under inputs={found_under}, this run is inputs={inputs}; "
+            f"run `skidbench discover inputs={inputs}` (or evaluate it under inputs={found_under})"
+        )
     spec = "+".join([base, *effects])
     return spec, {"discovery": str(path), "spec": spec, "message": entry.get("message", "")}
 
