@@ -608,7 +608,8 @@ def run_compare(cfg: Any) -> CompareResult:
         run_id = parent
         if run_id is None:
             run_id = tracker.start(
-                f"compare {cfg.dataset}", {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset)}
+                f"compare {cfg.dataset}",
+                {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset), trk.TAG_INPUTS: protocol},
             )
             tracker.end(run_id)
         for f in files:
