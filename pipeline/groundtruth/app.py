@@ -141,7 +141,8 @@ def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Se
         if o.associate_to:
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
-        files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in ("vo.py", "app.py"))]
+        vo_code = ("vo.py", "stereo_vo.py", "stereo_bag.py", "app.py")
+        files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in vo_code)]
         files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
     return [f for f in files if f.exists()]

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import GroundTruthError
 from ..geometry import matrix_to_quaternion, se3_inverse, se3_matrix
+from ..timesync import nearest
 from .pose_topic import clean_poses
 from .trajectory import Trajectory
 
@@ -176,20 +177,6 @@ def base_to_camera(T_b0_bi: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
     return se3_inverse(T_b_c) @ T_b0_bi @ T_b_c
 
 
-def associate(stamps_ns: np.ndarray, ref_ns: np.ndarray, max_diff_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest reference stamp for each stamp (vectorised): ``(index into ref, matched mask)``."""
-    ref_ns = np.asarray(ref_ns, dtype=np.int64)
-    i = (
-        np.clip(np.searchsorted(ref_ns, stamps_ns), 1, len(ref_ns) - 1)
-        if len(ref_ns) > 1
-        else np.zeros(len(stamps_ns), dtype=np.int64)
-    )
-    if len(ref_ns) > 1:
-        left_closer = np.abs(stamps_ns - ref_ns[i - 1]) <= np.abs(ref_ns[i] - stamps_ns)
-        i = np.where(left_closer, i - 1, i)
-    return i, np.abs(ref_ns[i] - stamps_ns) <= max_diff_ns
-
-
 def read_orbslam(
     path: Path,
     T_b_c: np.ndarray,
@@ -218,7 +205,7 @@ def read_orbslam(
             report["relative_times_shifted_to_ns"] = int(ref_stamp_ns[0])
             log.info("%s: stamps are relative; shifted to the first image stamp", path)
         order = np.argsort(ref_stamp_ns, kind="stable")
-        idx, ok = associate(stamps, ref_stamp_ns[order], int(round(max_diff_s * 1e9)))
+        idx, ok = nearest(stamps, ref_stamp_ns[order], int(round(max_diff_s * 1e9)))
         if not ok.any():
             raise GroundTruthError(
                 f"{path}: no pose within {max_diff_s} s of an image stamp (poses {stamps[0] * 1e-9:.3f}.."
