@@ -657,6 +657,14 @@ def _report_md(
     parts += [
         "## The paper's claim (friction-based best on LD, comparable on CV)",
         "",
+        *(
+            []
+            if protocol == "commanded"
+            else [
+                f"(These runs are under inputs={protocol}; the paper's own check is the `commanded` one.)",
+                "",
+            ]
+        ),
         *paper_claim(board, horizon),
         "",
     ]
