@@ -62,6 +62,7 @@ TAG_HOST = "skidbench.host"
 TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
 TAG_RUN_KEY = "skidbench.run_key"
+TAG_INPUTS = "skidbench.inputs"  # the input protocol that drove every model of the run (pipeline/protocol.py)
 
 
 @functools.cache
@@ -363,14 +364,18 @@ class Tracker:
         return None
 
     # -- queries ----------------------------------------------------------------------------------
-    def latest_parent(self) -> str | None:
+    def latest_parent(self, inputs: str | None = None) -> str | None:
         """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
-        a warning and passed over), else the newest parent of any status, else None."""
+        a warning and passed over), else the newest parent of any status, else None. ``inputs``: only
+        parents of that input protocol (tag ``skidbench.inputs``)."""
         if not self.search_ids():
             return None
+        clauses = [f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]
+        if inputs:
+            clauses.append(f"tags.`{TAG_INPUTS}` = '{inputs}'")
         runs = self.client.search_runs(
             self.search_ids(),
-            filter_string=" AND ".join([f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]),
+            filter_string=" AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
             max_results=50,
         )
