@@ -32,8 +32,8 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from . import actuator
-from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
+from .columns import col, mse, targets, training_rows
 from .friction_solver import (
     PARAM_NAMES,
     FrictionGeometry,
