@@ -22,6 +22,7 @@ from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
+from skidbench.pipeline.protocol import INPUT_COLUMNS, model_inputs
 from skidbench.pipeline.schema import read_split
 
 from . import figures as figs
@@ -229,6 +230,14 @@ def _load_model(cfg: Any, name: str, terrain: str):
     return load_fitted(cfg, name, terrain)
 
 
+def _predict(cfg: Any, model: Any, table: pd.DataFrame, terrain: str) -> np.ndarray:
+    """(T, 3) the model's prediction from ONLY the inputs of the run's protocol (``cfg.inputs``)."""
+    from skidbench.models.fitting import protocol_inputs
+
+    protocol, robot, response = protocol_inputs(cfg, terrain)
+    return np.asarray(model.predict(model_inputs(table, protocol, robot, response)), float)
+
+
 def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path, dpi: int) -> Path:
     from skidbench.models.base import concat_sequences
 
@@ -239,7 +248,7 @@ def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path,
     acc = np.concatenate(
         [_smoothed_derivative(df["t"].to_numpy(float), df["wz"].to_numpy(float)) for df, _ in tables]
     )
-    pred = np.asarray(model.predict(table), float)[:, 2]
+    pred = _predict(cfg, model, table, terrain)[:, 2]
     ok = table["valid"].to_numpy(bool)
     split = files[0].parent.name if files else "?"
     return figs.residual_vs_acceleration(
@@ -303,7 +312,7 @@ def figure6(
             )
             wz = np.asarray(vel, float)[:, 2]
         else:
-            wz = np.asarray(model.predict(table), float)[:, 2]
+            wz = np.asarray(model.predict(table[list(INPUT_COLUMNS)]), float)[:, 2]
             sol = getattr(model, "last_solve_", None)
         status = getattr(sol, "status", None)
         if status is not None and len(status) == m:  # the friction model's per-step solve status
@@ -373,7 +382,7 @@ def figure7(
             p, df, meta, _ = cands[fi]
             if fi not in preds:
                 table = concat_sequences([(df, meta)])
-                preds[fi] = {m: np.asarray(mod.predict(table), float) for m, mod in loaded.items()}
+                preds[fi] = {m: _predict(cfg, mod, table, terrain) for m, mod in loaded.items()}
             t = df["t"].to_numpy(float)
             gt = df[["x", "y", "yaw"]].to_numpy(float)
             s0 = int(row["start"])
@@ -402,14 +411,17 @@ class CompareResult:
     notes: list[str] = field(default_factory=list)
 
 
-def calibration_windows(layout: Layout, finished: pd.DataFrame) -> dict[str, pd.DataFrame]:
+def calibration_windows(
+    layout: Layout, finished: pd.DataFrame, inputs: str = "commanded"
+) -> dict[str, pd.DataFrame]:
     """Per model with a predictive covariance: its per-window uncertainty columns over every terrain
-    (``<ds>/eval/<model>/<terrain>.windows.parquet`` written by evaluate)."""
+    (``<ds>/eval/<model>/<terrain>[.<inputs>].windows.parquet`` written by evaluate)."""
     out: dict[str, pd.DataFrame] = {}
     for model, g in finished.groupby("model", sort=False):
         frames = []
         for terrain in g["terrain"]:
-            path = layout.eval / str(model) / f"{terrain}.windows.parquet"
+            stem = layout.eval_stem(str(model), str(terrain), inputs)
+            path = stem.with_name(stem.name + ".windows.parquet")
             try:
                 w = pd.read_parquet(path)
             except (OSError, ValueError):
@@ -477,7 +489,7 @@ def run_compare(cfg: Any) -> CompareResult:
                  f"Fig. 7: true and predicted {horizon:g} s trajectories ({terrain})",
                  lambda p: figure7(cfg, layout, terrain, models, horizon, int(fc.fig7_windows), p, dpi)),
             ]  # fmt: skip
-        calib = calibration_windows(layout, finished)
+        calib = calibration_windows(layout, finished, str(cfg.get("inputs") or "commanded"))
         if calib:
             jobs.append(
                 ("calibration.png",

@@ -62,6 +62,7 @@ TAG_HOST = "skidbench.host"
 TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
 TAG_RUN_KEY = "skidbench.run_key"
+TAG_INPUTS = "skidbench.inputs"  # the input protocol that drove every model of the run (pipeline/protocol.py)
 
 
 @functools.cache
