@@ -81,6 +81,12 @@ def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
         "options": dict(data.get("options") or {}),
     }
     over = model_overrides(cfg, model_name)
+    unknown = sorted(set(over.get("options") or {}) - set(out["options"]))
+    if unknown and data:  # the model's config lists its options: an unknown one would be ignored
+        raise ModelError(
+            f"model.options.{unknown[0]}: model {model_name} has no such option "
+            f"(its options: {', '.join(sorted(out['options'])) or 'none'})"
+        )
     out["params"].update(over.get("params") or {})
     out["options"].update(over.get("options") or {})
     return out

@@ -127,6 +127,9 @@ def test_evaluate_model_options_apply_to_the_named_model_or_are_refused():
     cfg.model.name = "roc"
     with pytest.raises(ModelError, match="not among models"):
         model_config(cfg, "edd")
+    cfg = OmegaConf.create({"models": ["drive_blr"], "model": {"options": {"train_row": "steady"}}})
+    with pytest.raises(ModelError, match="has no such option"):  # a misspelt option is refused
+        model_config(cfg, "drive_blr")
 
 
 def test_unknown_options_of_the_learned_models_are_refused(jackal):
