@@ -67,7 +67,7 @@ def test_gp_residual_recovers_a_smooth_residual_of_edd_and_beats_it(jackal):
     assert std == pytest.approx([0.01, 0.01, 0.01], rel=0.25)  # noise, plus little posterior variance
 
 
-def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal):
+def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal, monkeypatch):
     write_train_splits(tmp_path, jackal, terrains=("tile",), n=800)
     cfg = compose_fit(
         tmp_path,
@@ -87,6 +87,15 @@ def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal
     assert fit_model(cfg, "gp_residual", "tile").reused
     npz.unlink()  # the cache treats the arrays like the JSON: missing arrays refit
     assert not fit_model(cfg, "gp_residual", "tile").reused and npz.is_file()
+
+    import dataclasses
+
+    import skidbench.models.fitting as fitting
+
+    infos = fitting.discover()
+    bumped = {**infos, "gp_residual": dataclasses.replace(infos["gp_residual"], package_version="9.9")}
+    monkeypatch.setattr(fitting, "discover", lambda: bumped)
+    assert not fit_model(cfg, "gp_residual", "tile").reused  # a new package release refits
 
 
 def test_fitted_arrays_round_trip_through_mlflow_artifacts_exactly(tmp_path):
