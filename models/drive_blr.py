@@ -101,7 +101,7 @@ class DriveBLR(KinematicModel):
         use = table["valid"].to_numpy(bool)
         if o["train_rows"] == "steady":
             acc = np.maximum(np.abs(col(table, "cmd_dwl")), np.abs(col(table, "cmd_dwr")))
-            use &= acc <= float(o["steady_accel_max"])
+            use = use & (acc <= float(o["steady_accel_max"]))
         if use.sum() < 10:
             n = int(use.sum())
             raise ModelError(f"model {self.name}: {n} training rows (train_rows={o['train_rows']})")

@@ -45,6 +45,8 @@ def test_drive_blr_recovers_a_known_slip_law_and_its_noise(jackal):
     assert std.mean(0) == pytest.approx(NOISE, rel=0.03)  # predictive variance = injected noise
     rho = m.error_autocorrelation_
     assert rho[0] == pytest.approx(1.0) and np.all(np.abs(rho[1:20]) < 0.05)  # white noise
+    steady = DriveBLR(jackal, train_rows="steady", steady_accel_max=5.0).fit(table)  # DRIVE's row choice
+    assert steady.params["x"]["weights"]["v"] == pytest.approx(0.1, abs=3e-3)
 
 
 def test_gp_residual_recovers_a_smooth_residual_of_edd_and_beats_it(jackal):
