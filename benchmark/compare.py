@@ -114,6 +114,8 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             df[n_key] = pd.to_numeric(_col(runs, f"metrics.{n_key}"), errors="coerce")
     for m in ("fit_loss", "fit_time_s", "predict_time_s"):
         df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
+    for key in uncertainty_keys(horizon_s):  # models with a predictive covariance only
+        df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
     df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
     df = df.sort_values("start_time", ascending=False)
     df = df.drop_duplicates(["model", "inputs", "terrain"], keep="first")
@@ -147,6 +149,28 @@ def check_one_protocol(board: pd.DataFrame) -> str:
     return found[0] if found else "unknown"
 
 
+#: the uncertainty metrics of evaluate (benchmark/evaluate.py summarise) and their column labels
+UNCERTAINTY_LABELS = {
+    "coverage95_position": "cov95 pos",
+    "coverage95_yaw": "cov95 yaw",
+    "nll_position": "NLL pos",
+}
+
+
+def uncertainty_keys(horizon_s: float) -> dict[str, str]:
+    """``{"coverage95_position_cv_6s": "cov95 pos CV %", ...}``."""
+    return {
+        f"{m}_{split}_{horizon_s:g}s": f"{lab} {split.upper()}" + (" %" if m.startswith("coverage") else "")
+        for m, lab in UNCERTAINTY_LABELS.items()
+        for split in SPLITS
+    }
+
+
+def _uncertainty_cells(values: pd.Series, percent: bool) -> pd.Series:
+    """Uncertainty cells: empty for a deterministic model (no metric), else the number."""
+    return values.map(lambda v: "" if not np.isfinite(v) else f"{(100 * v if percent else v):.1f}")
+
+
 def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
     """Per model: the mean over terrains of each RMSRE (%), terrains scored, failures; ranked by
     ``rank_by`` (a metric prefix such as ``rmsre_translational_ld``). CompareError when the board mixes
@@ -165,6 +189,9 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
                 row[f"{SHORT[kind]} {split.upper()} n"] = _windows(
                     ok[window_count_key(kind, split, horizon_s)]
                 )
+        for key, lab in uncertainty_keys(horizon_s).items():
+            vals = ok[key].to_numpy(float) if key in ok else np.array([])
+            row[lab] = np.nanmean(vals) if np.isfinite(vals).any() else np.nan
         row["terrains"] = f"{len(ok)}/{len(g)}"
         bad = g[g["status"] != "FINISHED"]
         row["failed"] = (
@@ -174,6 +201,8 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
     out.insert(0, "rank", np.arange(1, len(out) + 1))
+    for lab in uncertainty_keys(horizon_s).values():
+        out[lab] = _uncertainty_cells(out[lab].astype(float), lab.endswith("%"))
     return out.drop(columns="_key").reset_index(drop=True)
 
 
@@ -186,6 +215,8 @@ def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             out[f"{SHORT[kind]} {split.upper()} n"] = [
                 _windows(pd.Series([v])) for v in board[window_count_key(kind, split, horizon_s)]
             ]
+    for key, lab in uncertainty_keys(horizon_s).items():
+        out[lab] = _uncertainty_cells(board[key].astype(float), lab.endswith("%"))
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]
@@ -526,6 +557,28 @@ def _with_inputs(cfg: Any, protocol: str) -> Any:
     return out
 
 
+def calibration_windows(
+    layout: Layout, finished: pd.DataFrame, inputs: str = "commanded"
+) -> dict[str, pd.DataFrame]:
+    """Per model with a predictive covariance: its per-window uncertainty columns over every terrain
+    (``<ds>/eval/<model>/<terrain>[.<inputs>].windows.parquet`` written by evaluate)."""
+    out: dict[str, pd.DataFrame] = {}
+    for model, g in finished.groupby("model", sort=False):
+        frames = []
+        for terrain in g["terrain"]:
+            stem = layout.eval_stem(str(model), str(terrain), inputs)
+            path = stem.with_name(stem.name + ".windows.parquet")
+            try:
+                w = pd.read_parquet(path)
+            except (OSError, ValueError):
+                continue
+            if "pos_d2" in w:
+                frames.append(w)
+        if frames:
+            out[str(model)] = pd.concat(frames, ignore_index=True)
+    return out
+
+
 def run_compare(cfg: Any) -> CompareResult:
     layout = layout_from_cfg(cfg)
     tracker = trk.tracker_from_cfg(cfg, layout)
@@ -608,6 +661,13 @@ def run_compare(cfg: Any) -> CompareResult:
                  f"Fig. 7: true and predicted {horizon:g} s trajectories ({terrain})",
                  lambda p: figure7(cfg, layout, terrain, models, horizon, int(fc.fig7_windows), p, dpi)),
             ]  # fmt: skip
+        calib = calibration_windows(layout, finished, str(cfg.get("inputs") or "commanded"))
+        if calib:
+            jobs.append(
+                ("calibration.png",
+                 f"Calibration of the {horizon:g} s pose uncertainty: nominal vs empirical coverage",
+                 lambda p: figs.calibration_curves(calib, horizon, p, dpi)),
+            )  # fmt: skip
         for name, caption, draw in jobs:
             try:
                 files.append(draw(out / name))

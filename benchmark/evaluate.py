@@ -33,7 +33,16 @@ from skidbench.pipeline.schema import read_split
 from skidbench.pipeline.wheel_response import WheelResponse
 
 from . import tracking as trk
-from .horizon import EvaluationError, HorizonConfig, count_windows, horizon_steps, rmsre, window_errors
+from .horizon import (
+    CHI2_95_1DOF,
+    CHI2_95_2DOF,
+    EvaluationError,
+    HorizonConfig,
+    count_windows,
+    horizon_steps,
+    rmsre,
+    window_errors,
+)
 from .transfer import training_layout
 
 log = logging.getLogger(__name__)
@@ -185,9 +194,11 @@ class Inputs:
 
 
 def predict_split(
-    model: Any, seqs: Sequence[TestSequence], inputs: Inputs | None = None
-) -> tuple[list[np.ndarray], float]:
-    """Predict every sequence of a split in one batched call; returns per-sequence (T, 3) and seconds.
+    model: Any, seqs: Sequence[TestSequence], inputs: Inputs | None = None, with_cov: bool = False
+) -> tuple[list[np.ndarray], float] | tuple[list[np.ndarray], float, list[np.ndarray] | None]:
+    """Predict every sequence of a split in one batched call; returns per-sequence (T, 3) and seconds
+    (and with ``with_cov`` the per-sequence (T, 3, 3) predictive covariances of a model that has
+    ``predict_cov``, else None; its time is included).
     The model gets ONLY the protocol's input columns (:func:`skidbench.pipeline.protocol.model_inputs`:
     time, sequence and the protocol's wheel rates), never the pose, the targets or the encoders."""
     from skidbench.models.base import concat_sequences
@@ -199,19 +210,32 @@ def predict_split(
     if robot is None:
         robot = getattr(model, "robot", None)
     table = model_inputs(full, inputs.protocol, robot, inputs.response)
+    name = getattr(model, "name", type(model).__name__)
     t0 = time.perf_counter()
     vel = np.asarray(model.predict(table), dtype=float)
+    cov = None
+    if with_cov and callable(getattr(model, "predict_cov", None)):
+        cov = np.asarray(model.predict_cov(table), dtype=float)
+        if cov.shape != (len(table), 3, 3):
+            raise EvaluationError(
+                f"model {name}: predict_cov returned shape {cov.shape}, expected ({len(table)}, 3, 3)"
+            )
+        if not np.all(np.isfinite(cov)):
+            raise EvaluationError(f"model {name}: predict_cov returned non-finite value(s)")
     dt = time.perf_counter() - t0
-    name = getattr(model, "name", type(model).__name__)
     if vel.shape != (len(table), 3):
         raise EvaluationError(f"model {name}: predict returned shape {vel.shape}, expected ({len(table)}, 3)")
     bad = int(np.sum(~np.isfinite(vel)))
     if bad:
         raise EvaluationError(f"model {name}: predict returned {bad} non-finite value(s)")
-    out, i = [], 0
+    out, covs, i = [], [], 0
     for s in seqs:
         out.append(vel[i : i + len(s.table)])
+        if cov is not None:
+            covs.append(cov[i : i + len(s.table)])
         i += len(s.table)
+    if with_cov:
+        return out, dt, (covs if cov is not None else None)
     return out, dt
 
 
@@ -220,16 +244,22 @@ def score_split(
     velocities: Sequence[np.ndarray],
     horizons: Sequence[float],
     hcfg: HorizonConfig,
+    covariances: Sequence[np.ndarray] | None = None,
+    autocorr: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """Per-window errors of every sequence and horizon (columns: horizon_s, sequence, window columns,
-    and the true end pose gt_x, gt_y, gt_yaw)."""
+    and the true end pose gt_x, gt_y, gt_yaw; with ``covariances`` (per sequence (T, 3, 3)) the
+    uncertainty columns of :data:`~skidbench.benchmark.horizon.UNCERTAINTY_COLUMNS`)."""
     frames = []
+    covs = list(covariances) if covariances is not None else [None] * len(seqs)
     for h in horizons:
         cfg_h = HorizonConfig(h, hcfg.min_distance_m, hcfg.min_rotation_rad)
-        for s, vel in zip(seqs, velocities, strict=True):
+        for s, vel, cov in zip(seqs, velocities, covs, strict=True):
             df = s.table
             gt = df[["x", "y", "yaw"]].to_numpy(dtype=float)
-            w = window_errors(df["t"].to_numpy(float), gt, vel, h, df["valid"].to_numpy(bool), cfg_h)
+            w = window_errors(
+                df["t"].to_numpy(float), gt, vel, h, df["valid"].to_numpy(bool), cfg_h, cov, autocorr
+            )
             if len(w) == 0:
                 continue
             end = w["end"].to_numpy(int)
@@ -251,6 +281,10 @@ def summarise(windows: pd.DataFrame, split: str, horizons: Sequence[float]) -> d
             vals = w[col].to_numpy(float) if len(w) else np.array([])
             out[trk.metric_key(kind, split, h)] = rmsre(vals)
             out[f"n_windows_{kind}_{split}_{h:g}s"] = float(np.isfinite(vals).sum())
+        if len(w) and "pos_d2" in w:
+            out[f"coverage95_position_{split}_{h:g}s"] = float(np.mean(w["pos_d2"] <= CHI2_95_2DOF))
+            out[f"coverage95_yaw_{split}_{h:g}s"] = float(np.mean(w["yaw_z2"] <= CHI2_95_1DOF))
+            out[f"nll_position_{split}_{h:g}s"] = float(np.mean(w["nll_pos"]))
     return out
 
 
@@ -575,6 +609,8 @@ def _run_child(
         for c, rec in (_fit_json(fit).get("robot_constants") or {}).items():
             described[f"robot_used.{c}"] = rec.get("value")
             described[f"robot_used.{c}.source"] = rec.get("source")
+        for k, v in trk.flatten(dict(getattr(model, "options", None) or {}), "model_options.").items():
+            described[k] = v  # the options the model was built with (config and +model.options.*)
         if callable(getattr(model, "tracking_params", None)):
             described.update(model.tracking_params())
         if inputs.response is not None:  # the calibration's wheel response that drove every model
@@ -585,15 +621,23 @@ def _run_child(
         params_json = stem.with_name(stem.name + ".params.json")
         write_json_atomic(params_json, model.to_json())
         tracker.artifact(run_id, params_json, "fit")
+        arrays = dict(getattr(model, "arrays", None) or {})
+        if arrays:  # a learned model's fitted arrays, as the fit stage saved them
+            from skidbench.models.fitting import save_arrays
+
+            arrays_npz = stem.with_name(stem.name + ".arrays.npz")
+            save_arrays(arrays_npz, arrays)
+            tracker.artifact(run_id, arrays_npz, "fit")
         stage = "predict"
         metrics: dict[str, float] = {}
         frames = []
         predict_time = 0.0
+        autocorr = getattr(model, "error_autocorrelation_", None)
         for split, seqs in tests.items():
-            vel, dt = predict_split(model, seqs, inputs)
+            vel, dt, cov = predict_split(model, seqs, inputs, with_cov=True)
             predict_time += dt
             stage = f"score {split}"
-            w = score_split(seqs, vel, horizons, hcfg)
+            w = score_split(seqs, vel, horizons, hcfg, cov, autocorr)
             if len(w):
                 w.insert(0, "split", split)
                 frames.append(w)

@@ -64,7 +64,7 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     each model's version and config."""
     from omegaconf import OmegaConf
 
-    from skidbench.models.fitting import model_config
+    from skidbench.models.fitting import arrays_file, model_config
     from skidbench.models.registry import discover
     from skidbench.pipeline.layout import split_terrains
     from skidbench.pipeline.manifest import Manifest
@@ -77,6 +77,7 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
     inputs = protocol_of(cfg)
     files += [layout.fit_file(str(m), t, inputs) for m in cfg.models for t in terrains]
+    files += [arrays_file(layout.fit_file(str(m), t, inputs)) for m in cfg.models for t in terrains]
     files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
     if "discovered" in [str(m) for m in cfg.models]:
         files.append(layout.discovery / "discovery.json")
@@ -86,7 +87,9 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
     plugins = discover()
     conf["model_versions"] = {
-        str(m): getattr(plugins.get(str(m).split("+")[0]), "version", None) for m in cfg.models
+        str(m): [getattr(info, "version", None), getattr(info, "package_version", None)]
+        for m in cfg.models
+        for info in [plugins.get(str(m).split("+")[0])]
     }
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
     conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}

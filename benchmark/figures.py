@@ -426,3 +426,37 @@ def wheel_response_steps(
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path, dpi)
+
+
+def calibration_curves(
+    windows: Mapping[str, pd.DataFrame], horizon_s: float, path: Path, dpi: int = 130
+) -> Path:
+    """Nominal vs empirical coverage of the predicted h-second end position (2-dof Gaussian region,
+    left) and yaw (right), one line per model and test split (solid CV, dashed LD). A calibrated model
+    follows the diagonal; below it, over-confident. ``windows``: model -> windows with ``horizon_s``,
+    ``split``, ``pos_d2``, ``yaw_z2`` columns (benchmark/horizon.py)."""
+    from scipy.stats import chi2
+
+    nominal = np.linspace(0.01, 0.99, 50)
+    models = order_models(list(windows))
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 4.4), sharey=True)
+    for ax, col, dof, what in ((axes[0], "pos_d2", 2, "position"), (axes[1], "yaw_z2", 1, "yaw")):
+        ax.plot([0, 1], [0, 1], color="0.6", lw=1)
+        q = chi2.ppf(nominal, dof)
+        for m in models:
+            w = windows[m]
+            w = w[np.isclose(w["horizon_s"], horizon_s)] if "horizon_s" in w else w
+            for split, ls in (("cv", "-"), ("ld", "--")):
+                d = np.sort(w.loc[w["split"] == split, col].to_numpy(float)) if "split" in w else np.array([])
+                if not len(d):
+                    continue
+                emp = np.searchsorted(d, q, side="right") / len(d)
+                ax.plot(nominal, emp, ls, color=model_color(m, models), label=f"{label(m)} {split.upper()}")
+        ax.axvline(0.95, color="0.85", lw=0.8)
+        ax.set_xlabel("nominal coverage")
+        ax.set_title(f"{what} at {horizon_s:g} s")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+    axes[0].set_ylabel("empirical coverage")
+    axes[1].legend(fontsize=7, loc="lower right")
+    return _save(fig, path, dpi)

@@ -3,6 +3,12 @@
 A model's velocities depend only on the inputs, so one dead-reckoned trajectory D (from the identity)
 serves every window: the prediction for the window [i, i+n] is ``gt[i] (+) (D[i]^-1 (+) D[i+n])``,
 which equals integrating the same velocities from gt[i] (exact SE(2) steps, left-point rule).
+
+A model that returns a predictive covariance of its velocities (``predict_cov``) also gets its pose
+uncertainty scored: :func:`window_pose_covariance` propagates the velocity covariance along every window
+(first-order SE(2) propagation, O(T) by prefix sums like the mean), and :func:`uncertainty_scores`
+gives the coverage of the 95 % region of the end position and yaw and the position's negative
+log-likelihood.
 """
 
 from __future__ import annotations
@@ -59,6 +65,8 @@ def window_errors(
     horizon_s: float,
     valid: np.ndarray | None = None,
     cfg: HorizonConfig | None = None,
+    velocity_cov: np.ndarray | None = None,
+    autocorr: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """Errors of every window with a full horizon in one sequence.
 
@@ -68,6 +76,8 @@ def window_errors(
     ``rotation`` (rad turned, absolute), ``trans_err`` (m), ``rot_err`` (rad, signed: true - predicted),
     ``rel_trans``, ``rel_rot`` (NaN where the window is under the minimum distance / rotation), then the
     details: ``end`` (index), ``pred_x``, ``pred_y``, ``pred_yaw`` (predicted pose at the window's end).
+    With ``velocity_cov`` (T, 3, 3), the model's predictive covariance of (vx, vy, wz), and optionally
+    its error ``autocorr`` (L, 3), the columns of :data:`UNCERTAINTY_COLUMNS` follow.
     """
     cfg = cfg or HorizonConfig(horizon_s=horizon_s)
     t = np.asarray(t, dtype=float)
@@ -114,7 +124,103 @@ def window_errors(
             "pred_yaw": pred[:, 2],
         }
     )
+    if velocity_cov is not None:
+        cov = window_pose_covariance(dead, dt, velocity_cov, starts, ends, autocorr)
+        err_xy = gt_pose[ends, :2] - pred[:, :2]
+        scores = uncertainty_scores(err_xy, rot_err, cov, gt_pose[starts, 2] - dead[starts, 2])
+        for k in UNCERTAINTY_COLUMNS:
+            out[k] = scores[k]
     return out[keep].reset_index(drop=True)
+
+
+#: chi-square quantiles of the 95 % region: 2 dof (position), 1 dof (yaw)
+CHI2_95_2DOF = float(-2.0 * np.log(0.05))  # = 5.991, closed form for 2 dof
+CHI2_95_1DOF = 3.841458820694124  # 1.959964^2
+#: per-window uncertainty columns added by :func:`window_errors` when a velocity covariance is given
+UNCERTAINTY_COLUMNS = ("cov_xx", "cov_xy", "cov_yy", "var_yaw", "pos_d2", "yaw_z2", "nll_pos")
+
+
+def correlation_inflation(autocorr: np.ndarray | None, n: int) -> np.ndarray:
+    """(3,) variance factor of a sum of ``n`` correlated steps relative to ``n`` independent ones:
+    f = 1 + 2 sum_{k=1}^{n-1} (1 - k/n) rho_k (exact for a stationary error with autocorrelation rho;
+    rho beyond the given lags is taken as 0). ``autocorr``: (L, 3), lag 0 first; None: white (f = 1)."""
+    if autocorr is None:
+        return np.ones(3)
+    rho = np.asarray(autocorr, dtype=float).reshape(len(autocorr), -1)[:n]
+    k = np.arange(len(rho))[:, None]
+    f = 1.0 + 2.0 * np.sum(((1.0 - k / n) * rho)[1:], axis=0)
+    return np.clip(f, 1.0 / n, None) * np.ones(3)
+
+
+def window_pose_covariance(
+    dead: np.ndarray,
+    dt: np.ndarray,
+    vel_cov: np.ndarray,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    autocorr: np.ndarray | None = None,
+) -> np.ndarray:
+    """Covariance (W, 3, 3) of the end pose (x, y, yaw) of each window relative to its start, in the
+    frame of the dead-reckoned trajectory ``dead`` (T, 3).
+
+    First-order propagation: a body-velocity error du_k over step k (length dt_k, pose p_k, heading
+    th_k) moves the end pose by G_k du_k with G_k = dt_k [[R(th_k), J (p_e - p_k)], [0 0 1]]
+    (J = rotation by +90 deg). G_k = B_k + c_e d_k^T is affine in the end position, so the sum over a
+    window of G_k Q_k G_k^T is three prefix-sum differences: O(T) for all windows. Q_k is ``vel_cov``
+    (T, 3, 3) scaled by :func:`correlation_inflation` (white errors when ``autocorr`` is None).
+    """
+    T = len(dead)
+    n = int(np.median(ends - starts)) if len(starts) else 1
+    f = np.sqrt(correlation_inflation(autocorr, max(n, 1)))
+    Q = np.asarray(vel_cov, dtype=float)[: T - 1] * (f[:, None] * f[None, :])
+    c, s = np.cos(dead[:-1, 2]), np.sin(dead[:-1, 2])
+    B = np.zeros((T - 1, 3, 3))
+    B[:, 0, 0], B[:, 0, 1], B[:, 0, 2] = c, -s, dead[:-1, 1]
+    B[:, 1, 0], B[:, 1, 1], B[:, 1, 2] = s, c, -dead[:-1, 0]
+    B[:, 2, 2] = 1.0
+    B *= dt[:, None, None]
+    BQ = B @ Q
+    m1 = np.einsum("kij,klj->kil", BQ, B)  # B Q B^T
+    m2 = BQ[:, :, 2] * dt[:, None]  # B Q d, d = dt e3
+    m3 = Q[:, 2, 2] * dt**2  # d^T Q d
+
+    def window_sum(a: np.ndarray) -> np.ndarray:
+        cum = np.concatenate([np.zeros((1, *a.shape[1:])), np.cumsum(a, axis=0)])
+        return cum[ends] - cum[starts]
+
+    M1, M2, M3 = window_sum(m1), window_sum(m2), window_sum(m3)
+    ce = np.zeros((len(ends), 3))
+    ce[:, 0], ce[:, 1] = -dead[ends, 1], dead[ends, 0]  # J p_e
+    cov = M1 + ce[:, :, None] * M2[:, None, :] + M2[:, :, None] * ce[:, None, :]
+    cov += M3[:, None, None] * ce[:, :, None] * ce[:, None, :]
+    return 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+
+
+def uncertainty_scores(
+    err_xy: np.ndarray, err_yaw: np.ndarray, cov: np.ndarray, rotate: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Per-window calibration scores. err_xy (W, 2) m and err_yaw (W,) rad: true - predicted end pose
+    in the world frame; cov (W, 3, 3) from :func:`window_pose_covariance` (dead-reckoned frame);
+    rotate (W,) rad: the dead-reckoned frame's heading in the world frame at each window's start.
+    Returns the columns of :data:`UNCERTAINTY_COLUMNS`: the world-frame position covariance, the yaw
+    variance, the squared Mahalanobis distances (position: 2 dof, yaw: 1 dof) and the position's
+    Gaussian negative log-likelihood (nats)."""
+    c, s = np.cos(rotate), np.sin(rotate)
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    P = R @ cov[:, :2, :2] @ np.transpose(R, (0, 2, 1)) + 1e-12 * np.eye(2)  # jitter: rank-0 models
+    det = P[:, 0, 0] * P[:, 1, 1] - P[:, 0, 1] ** 2
+    ex, ey = err_xy[:, 0], err_xy[:, 1]
+    d2 = (P[:, 1, 1] * ex**2 - 2 * P[:, 0, 1] * ex * ey + P[:, 0, 0] * ey**2) / det
+    var_yaw = cov[:, 2, 2] + 1e-12
+    return {
+        "cov_xx": P[:, 0, 0],
+        "cov_xy": P[:, 0, 1],
+        "cov_yy": P[:, 1, 1],
+        "var_yaw": var_yaw,
+        "pos_d2": d2,
+        "yaw_z2": err_yaw**2 / var_yaw,
+        "nll_pos": 0.5 * d2 + 0.5 * np.log((2 * np.pi) ** 2 * det),
+    }
 
 
 def naive_window_errors(

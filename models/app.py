@@ -89,6 +89,8 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
     from skidbench.benchmark import tracking as trk
     from skidbench.benchmark.sweep import TAG_SWEEP, run_key, sweep_id
 
+    from .fitting import arrays_file
+
     tracker = trk.tracker_from_cfg(cfg, layout)
     job_key = run_key()
     done = tracker.claim_key(job_key) if job_key else None
@@ -113,11 +115,14 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
             "inputs": str(cfg.get("inputs")),
         }
         params.update({f"param.{k}": v for k, v in trk.flatten(dict(res.model.params or {})).items()})
+        params.update(trk.flatten(dict(getattr(res.model, "options", None) or {}), "model_options."))
         metrics = {"fit_time_s": res.fit_time_s, "n_train": res.n_train}
         if res.fit_loss is not None:
             metrics["fit_loss"] = res.fit_loss
         tracker.log(run_id, params=params, metrics=metrics)
         tracker.artifact(run_id, res.path, "fit")
+        if arrays_file(res.path).is_file():  # a learned model's fitted arrays
+            tracker.artifact(run_id, arrays_file(res.path), "fit")
     return run_id
 
 

@@ -23,8 +23,8 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from ._util import mse, targets
 from .base import KinematicModel, ModelError
+from .columns import mse, targets
 
 SEP = "+"
 EFFECT_COLUMNS = ("t", "cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")

@@ -2,8 +2,17 @@
 
 A model predicts body velocities (vx, vy, wz) from the columns of a split table (see
 ``skidbench.pipeline.schema.SPLIT_COLUMNS``). It is fitted per terrain on the Train split, and its
-parameters are plain JSON data. Built-in models and third-party plugins register the same way: an
-entry point in the group ``skidbench.models`` (``name = "package.module:Class"``).
+parameters are plain JSON data (``params``) plus, for a learned model, named numpy arrays (``arrays``:
+saved beside the JSON as ``.npz``, logged to MLflow, reloaded by ``evaluate``). Built-in models and
+third-party plugins register the same way: an entry point in the group ``skidbench.models``
+(``name = "package.module:Class"``). The whole contract: docs/plugins.md.
+
+``predict``'s table holds several sequences concatenated (``sequence`` column, ``t`` restarting at 0 in
+each) and only the input protocol's columns (``skidbench.pipeline.protocol.INPUT_COLUMNS``: ``t sequence
+cmd_v cmd_w cmd_wl cmd_wr cmd_dwl cmd_dwr``). A model may also define ``predict_cov(table) -> (T, 3, 3)``,
+the predictive covariance of (vx, vy, wz) per row; the horizon evaluation then scores its pose
+uncertainty. ``error_autocorrelation_`` (optional, (L, 3), lag 0 = 1, lags of the table's clock) says how
+the model's velocity errors are correlated in time (white noise when absent).
 
 Minimal plugin::
 
@@ -52,6 +61,8 @@ class KinematicModel(ABC):
         self.params: dict[str, Any] = dict(params or {})
         self.options: dict[str, Any] = dict(options)
         self.fit_loss_: float | None = None  # mean squared velocity error on the training table
+        #: fitted arrays (name -> numpy array), saved as ``<terrain>.arrays.npz`` beside the fit JSON
+        self.arrays: dict[str, np.ndarray] = {}
 
     # -- the two methods a plugin implements --------------------------------------------------
     @abstractmethod
@@ -82,7 +93,22 @@ class KinematicModel(ABC):
                 raise ModelError(f"model {self.name}: column {c} holds {bad} non-finite value(s)")
 
     def get_params(self) -> dict[str, Any]:
-        return json.loads(json.dumps(self.params))
+        """``params`` as plain JSON data (numpy scalars become numbers). A numpy array is refused with a
+        ModelError naming the key: fitted arrays belong in ``self.arrays``."""
+        for where, value in _walk(self.params, "params"):
+            if isinstance(value, np.ndarray):
+                raise ModelError(
+                    f"model {self.name}: {where} is a numpy array {value.shape}; put fitted arrays in "
+                    "self.arrays (saved as .npz with the fit), params hold JSON data only"
+                )
+        try:
+            return json.loads(json.dumps(self.params, default=_json_scalar))
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"model {self.name}: params are not JSON data ({exc})") from None
+
+    def set_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        """Called with the arrays a saved fit holds (after ``from_json``); override to unpack them."""
+        self.arrays = {k: np.asarray(v) for k, v in arrays.items()}
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -103,6 +129,24 @@ class KinematicModel(ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, version={self.version!r}, params={self.params})"
+
+
+def _walk(obj: Any, where: str):
+    """(path, leaf) pairs of a nested dict/list."""
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _walk(v, f"{where}[{k!r}]")
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _walk(v, f"{where}[{i}]")
+    else:
+        yield where, obj
+
+
+def _json_scalar(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    raise TypeError(f"{type(v).__name__} is not JSON data")
 
 
 def concat_sequences(tables: list[tuple[pd.DataFrame, dict]] | list[pd.DataFrame]) -> pd.DataFrame:

@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ._util import col, mse, targets, training_rows
 from .base import KinematicModel
+from .columns import col, mse, targets, training_rows
 from .friction_solver import G
 
 PARAMS = ("p1", "p2", "p3", "p4", "p5", "p6")

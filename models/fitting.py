@@ -22,8 +22,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from skidbench.pipeline.calibration import response_for, robot_for_model
-from skidbench.pipeline.io import fingerprint_file, fingerprint_obj, write_json_atomic
+from skidbench.pipeline.io import atomic_path, fingerprint_file, fingerprint_obj, write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
@@ -68,16 +70,66 @@ def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
         }
 
     node = cfg.get("model") if hasattr(cfg, "get") else None
-    if node is not None and node.get("name") == model_name:
+    if node is not None and node.get("name") == model_name and not _is_override_node(cfg):
         data = OmegaConf.to_container(node, resolve=True)
     else:
         data = _compose_model_config(model_name)
     data = dict(data or {})
-    return {
+    out = {
         "name": model_name,
         "params": dict(data.get("params") or {}),
         "options": dict(data.get("options") or {}),
     }
+    over = model_overrides(cfg, model_name)
+    unknown = sorted(set(over.get("options") or {}) - set(out["options"]))
+    if unknown and data:  # the model's config lists its options: an unknown one would be ignored
+        raise ModelError(
+            f"model.options.{unknown[0]}: model {model_name} has no such option "
+            f"(its options: {', '.join(sorted(out['options'])) or 'none'})"
+        )
+    out["params"].update(over.get("params") or {})
+    out["options"].update(over.get("options") or {})
+    return out
+
+
+def _is_override_node(cfg: Any) -> bool:
+    """True when ``cfg.model`` is a command-line override on a stage that evaluates a list of models
+    (``skidbench evaluate +model.options.x=...``), not the model config group of ``fit``."""
+    return hasattr(cfg, "get") and cfg.get("models") is not None
+
+
+def model_overrides(cfg: Any, model_name: str) -> dict[str, Any]:
+    """``{"params", "options"}`` set on the command line of a multi-model stage (``evaluate``):
+    ``+model.options.x=1`` (one model evaluated, or ``+model.name=<m>`` says which one). Anything else
+    under ``model`` is refused (ModelError), never silently ignored."""
+    from omegaconf import OmegaConf
+
+    if not _is_override_node(cfg) or cfg.get("model") is None:
+        return {}
+    node = OmegaConf.to_container(cfg.model, resolve=True) or {}
+    if not isinstance(node, dict):
+        raise ModelError(f"model={node!r}: on evaluate, set models=[...] and +model.options.<key>=<value>")
+    unknown = sorted(set(node) - {"name", "params", "options"})
+    if unknown:
+        raise ModelError(
+            f"model.{unknown[0]}: unknown key; evaluate takes +model.options.* and +model.params.*"
+        )
+    models = [str(m) for m in cfg.get("models") or []]
+    target = node.get("name")
+    if target is None:
+        if len(models) != 1:
+            raise ModelError(
+                f"+model.options/params apply to one model, and models={models}; add +model.name=<model>"
+            )
+        target = models[0]
+    elif str(target) not in models:
+        raise ModelError(f"model.name={target}: not among models={models}")
+    if str(target) != model_name:
+        return {}
+    for key in ("params", "options"):
+        if node.get(key) is not None and not isinstance(node[key], dict):
+            raise ModelError(f"model.{key}: must be a mapping (+model.{key}.<key>=<value>)")
+    return {"params": node.get("params") or {}, "options": node.get("options") or {}}
 
 
 def _compose_model_config(model_name: str) -> dict[str, Any] | None:
@@ -180,10 +232,13 @@ def _fingerprint(
     cfg: Any, model_name: str, files: list[Path], robot: Robot, cls: type, inputs: str,
     response: WheelResponse | None,
 ) -> str:  # fmt: skip
+    info = discover().get(model_name.split("+")[0])
     return fingerprint_obj(
         {
             "model": model_config(cfg, model_name),
             "version": getattr(cls, "version", "?"),
+            # a plugin release that forgets to bump its class version still invalidates its old fits
+            "package": [info.package, info.package_version] if info else None,
             "robot": robot.to_dict(),
             "files": [fingerprint_file(p) for p in files],
             "inputs": inputs,  # a fit under one protocol is never reused under another
@@ -248,7 +303,7 @@ def fit_model(
         try:
             saved = json.loads(path.read_text())
             if saved.get("inputs_fingerprint") == fp:
-                model = _from_saved(cls, robot, saved, spec)
+                model = _from_saved(cls, robot, saved, spec, path)
                 return FitResult(
                     model,
                     path,
@@ -274,6 +329,7 @@ def fit_model(
         ) from exc
     fit_time = time.perf_counter() - t0
     data = model.to_json() if hasattr(model, "to_json") else {"model": model_name, "params": model.params}
+    arrays = _model_arrays(model, model_name)
     info = discover().get(spec.split("+")[0])
     data.update(
         {
@@ -294,21 +350,77 @@ def fit_model(
             "inputs_fingerprint": fp,
         }
     )
+    apath = arrays_file(path)
+    if arrays:
+        fp_arrays = save_arrays(apath, arrays)
+        data["arrays"] = {"file": apath.name, "fingerprint": fp_arrays, "names": sorted(arrays)}
     try:
-        write_json_atomic(path, data)
+        write_json_atomic(path, data)  # after the arrays: a JSON on disk always has its arrays
     except TypeError as exc:
         raise ModelError(f"model {model_name}: parameters are not JSON-serialisable ({exc})") from exc
+    if not arrays and apath.is_file():
+        apath.unlink()  # a refit without arrays leaves no stale file
     result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train)
     for hook in (*FIT_HOOKS, *hooks):
         hook(result, cfg, model_name, terrain)
     return result
 
 
-def _from_saved(cls: type, robot: Robot, saved: dict, model_name: str) -> KinematicModel:
+def arrays_file(fit_json: Path) -> Path:
+    """``fits/<model>/<terrain>.arrays.npz``: the fitted arrays of the fit ``fit_json``."""
+    return fit_json.with_name(fit_json.name.removesuffix(".json") + ".arrays.npz")
+
+
+def save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write ``arrays`` (name -> array) atomically as an uncompressed .npz; returns its fingerprint."""
+    with atomic_path(path, ".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    return fingerprint_file(path)
+
+
+def load_arrays(path: Path, fingerprint: str | None = None) -> dict[str, np.ndarray]:
+    """The arrays of :func:`save_arrays` (ModelError if absent, unreadable or not the recorded file)."""
+    if not path.is_file():
+        raise ModelError(f"{path}: fitted arrays missing; refit (skidbench fit)")
+    if fingerprint is not None and fingerprint_file(path) != fingerprint:
+        raise ModelError(f"{path}: fitted arrays changed since the fit JSON was written; refit")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise ModelError(f"{path}: unreadable fitted arrays ({exc})") from None
+
+
+def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:
+    arrays = dict(getattr(model, "arrays", None) or {})
+    for k, v in arrays.items():
+        if not isinstance(k, str) or not k.isidentifier():
+            raise ModelError(f"model {model_name}: arrays key {k!r} must be a Python identifier")
+        a = np.asarray(v)
+        if a.dtype == object:
+            raise ModelError(f"model {model_name}: arrays[{k!r}] is not numeric (dtype object)")
+        arrays[k] = a
+    return arrays
+
+
+def _from_saved(
+    cls: type, robot: Robot, saved: dict, model_name: str, path: Path | None = None
+) -> KinematicModel:
     if hasattr(cls, "from_json"):
-        return cls.from_json(robot, saved)
-    m = cls(robot, saved.get("params") or {}, **(saved.get("options") or {}))
-    m.fit_loss_ = saved.get("fit_loss")
+        m = cls.from_json(robot, saved)
+    else:
+        m = cls(robot, saved.get("params") or {}, **(saved.get("options") or {}))
+        m.fit_loss_ = saved.get("fit_loss")
+    rec = saved.get("arrays")
+    if rec:
+        if path is None:
+            raise ModelError(f"model {model_name}: a fit with arrays needs its file's folder")
+        arrays = load_arrays(path.parent / rec["file"], rec.get("fingerprint"))
+        if hasattr(m, "set_arrays"):
+            m.set_arrays(arrays)
+        else:
+            m.arrays = arrays
     return m
 
 
@@ -329,4 +441,4 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)
     robot, _ = robot_for_model(cfg, cls, terrain)
-    return _from_saved(cls, robot, saved, spec)
+    return _from_saved(cls, robot, saved, spec, path)

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ._util import col, mse, targets, training_rows
 from .base import KinematicModel
+from .columns import col, mse, targets, training_rows
 
 
 class IdealDifferentialDrive(KinematicModel):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
+from .columns import col, mse, targets, training_rows
 
 
 class ExtendedDifferentialDrive(KinematicModel):

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
+from .columns import col, mse, targets, training_rows
 
 
 class RocBased(KinematicModel):

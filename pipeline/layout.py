@@ -182,9 +182,10 @@ def prune_stale(layout: Layout, manifest: Manifest) -> list[Path]:
         ]
     terrains = set(split_terrains(manifest))
     if layout.fits.is_dir():
-        # fits/<model>/<terrain>[.<suffix>].json; names starting with "_" or "." are not per terrain
+        # fits/<model>/<terrain>[.<suffix>].json (and a learned model's <terrain>.arrays.npz); names
+        # starting with "_" or "." are not per terrain
         removed += [
-            p for p in layout.fits.glob("*/*.json")
+            p for p in [*layout.fits.glob("*/*.json"), *layout.fits.glob("*/*.npz")]
             if p.name.split(".")[0] not in terrains and not p.name.startswith(("_", "."))
         ]  # fmt: skip
     if layout.calibration.is_dir():

@@ -14,7 +14,7 @@ import pytest
 
 pytestmark = pytest.mark.slow
 
-MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction")
+MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual")
 TERRAIN = "grass"  # one terrain keeps evaluate/compare short; the split stage still builds all three
 
 
@@ -64,6 +64,10 @@ def test_every_model_has_a_finished_run_with_finite_metrics(pipeline):
         ):
             assert math.isfinite(run.data.metrics[key]), (name, key)
         assert run.data.tags["skidbench.plugin_package"].startswith("skidbench")
+        learned = name in ("drive_blr", "gp_residual")  # predictive covariance: uncertainty scored
+        assert ("coverage95_position_cv_6s" in run.data.metrics) == learned, name
+        if learned:
+            assert 0 <= run.data.metrics["coverage95_position_ld_6s"] <= 1
     assert parent.info.run_id in ev.stdout
 
 

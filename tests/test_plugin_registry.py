@@ -12,7 +12,7 @@ import pytest
 from skidbench.models import registry
 from skidbench.models.base import ModelError
 
-BUILTINS = {"ideal", "edd", "full_linear", "roc", "enhanced", "friction"}
+BUILTINS = {"ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual"}
 
 
 class NotAModel:

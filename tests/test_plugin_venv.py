@@ -79,3 +79,48 @@ def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_p
             [sys.executable, "-m", "skidbench.pipeline.cli", "models"], capture_output=True, text=True
         ).stdout
     )
+
+
+SLIPGRID = REPO / "examples" / "skidbench-slipgrid"
+
+
+def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(tmp_path, jackal):
+    """The learned example (fitted arrays, predictive covariance) works from a fresh venv: listed, fitted
+    by the fit stage with its arrays in ``<terrain>.arrays.npz``, reloaded and predicting with variance."""
+    venv = tmp_path / "venv"
+    run([sys.executable, "-m", "venv", "--without-pip", str(venv)])
+    py = venv / "bin" / "python"
+    site_dir = run(
+        [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"]
+    ).stdout.strip()
+    parent = sysconfig.get_paths()["purelib"]
+    Path(site_dir, "_skidbench_parent.pth").write_text(f"import site; site.addsitedir({parent!r})\n")
+    isolation = ["--no-build-isolation"] if importlib.util.find_spec("wheel") else []
+    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-deps", *isolation]
+    run([*pip, str(SLIPGRID)])
+
+    env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
+    cli = [str(py), "-m", "skidbench.pipeline.cli"]
+    listing = run([*cli, "models"], env=env).stdout
+    assert "skidbench-slipgrid" in {line.split()[0]: line for line in listing.splitlines()[1:]}["slipgrid"]
+
+    write_train_splits(tmp_path / "out", jackal, terrains=("tile",))
+    run([*cli, "fit", "model=slipgrid", "terrain=tile", "track=false"], env=env, cwd=tmp_path)
+    fits = tmp_path / "out" / "sim-mini" / "fits" / "slipgrid"
+    import json
+
+    saved = json.loads((fits / "tile.json").read_text())
+    assert saved["package"] == "skidbench-slipgrid" and saved["arrays"]["file"] == "tile.arrays.npz"
+    assert {"mean", "var", "v_edges", "w_edges"} <= set(saved["arrays"]["names"])
+    check = (
+        "import numpy as np; from pathlib import Path; from omegaconf import OmegaConf;"
+        "from skidbench.models.fitting import load_fitted;"
+        "from skidbench.models.synthetic import command_table;"
+        f"cfg = OmegaConf.create({{'out_root': {str(tmp_path / 'out')!r}, 'dataset': 'sim-mini',"
+        "'robot': OmegaConf.load(__import__('importlib.resources').resources.files('skidbench.conf')"
+        ".joinpath('robot/jackal.yaml')), 'calibrate': {'use': False}});"
+        "m = load_fitted(cfg, 'slipgrid', 'tile'); tab = command_table(m.robot, 50);"
+        "c = m.predict_cov(tab); assert m.predict(tab).shape == (50, 3) and c.shape == (50, 3, 3);"
+        "assert np.all(c[:, [0, 1, 2], [0, 1, 2]] > 0); print('ok')"
+    )
+    assert run([str(py), "-c", check], env=env, cwd=tmp_path).stdout.strip() == "ok"

@@ -61,7 +61,7 @@ def training_table(n_seq: int, seq_rows: int = SEQ_ROWS):
 def robust_cost(model, table, params: dict) -> float:
     """The fit's objective at ``params``: soft_l1 (scale ``f_scale``) of the velocity error over the steps
     with a root under the model's initial parameters (the scored steps), by the current solve."""
-    from skidbench.models._util import targets, training_rows
+    from skidbench.models.columns import targets, training_rows
 
     train = training_rows(table)
     inp = model.inputs(train)

@@ -16,8 +16,8 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from skidbench.models._util import mse, targets, training_rows
 from skidbench.models.base import ModelError
+from skidbench.models.columns import mse, targets, training_rows
 from skidbench.models.friction import ACCEL_SCALES, FALLBACK_ITER, PARAM_RANGES, FrictionBased
 from skidbench.models.friction_solver import (
     PARAM_NAMES,

@@ -1,0 +1,159 @@
+"""Learned models: DRIVE's slip BLR and the residual GP recover what generated the data, their fitted
+arrays round-trip through files and MLflow artifacts exactly, and the plugin contract's edges (arrays in
+params, options on evaluate) are clear errors or work."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from skidbench.models.base import ModelError, concat_sequences
+from skidbench.models.drive_blr import DriveBLR
+from skidbench.models.fitting import fit_model, load_arrays, load_fitted, model_config, save_arrays
+from skidbench.models.gp_residual import GPResidual
+from skidbench.models.ideal import IdealDifferentialDrive
+from skidbench.models.linear import ExtendedDifferentialDrive
+from skidbench.models.synthetic import command_table, label_with, write_train_splits
+
+NOISE = np.array([0.05, 0.02, 0.04])  # injected velocity noise std (vx m/s, vy m/s, wz rad/s)
+
+
+def slip_law_table(robot, n_seq=4, n=2500, seed=1):
+    """DRIVE's slip law with known weights plus white Gaussian noise of std NOISE."""
+    rng = np.random.default_rng(seed)
+    tabs = []
+    for i in range(n_seq):
+        tab = command_table(robot, n, seed=i)
+        v, w = robot.twist_from_wheel_rates(tab.cmd_wl.to_numpy(), tab.cmd_wr.to_numpy())
+        slip = np.column_stack([0.1 * v, 0.05 * v * w, 0.02 * v * w + 0.03 * v + 0.2 * w])
+        vel = np.column_stack([v, np.zeros_like(v), w]) - slip + rng.normal(size=(n, 3)) * NOISE
+        tabs.append(label_with(tab, vel))
+    return concat_sequences(tabs)
+
+
+def test_drive_blr_recovers_a_known_slip_law_and_its_noise(jackal):
+    table = slip_law_table(jackal)
+    m = DriveBLR(jackal).fit(table)
+    assert m.params["x"]["weights"]["v"] == pytest.approx(0.1, abs=2e-3)
+    assert m.params["y"]["weights"]["v_w"] == pytest.approx(0.05, abs=2e-3)
+    yaw = m.params["yaw"]["weights"]
+    assert [yaw["v_w"], yaw["v"], yaw["w"]] == pytest.approx([0.02, 0.03, 0.2], abs=4e-3)
+    std = np.sqrt(np.diagonal(m.predict_cov(table), axis1=1, axis2=2))
+    assert std.mean(0) == pytest.approx(NOISE, rel=0.03)  # predictive variance = injected noise
+    rho = m.error_autocorrelation_
+    assert rho[0] == pytest.approx(1.0) and np.all(np.abs(rho[1:20]) < 0.05)  # white noise
+    steady = DriveBLR(jackal, train_rows="steady", steady_accel_max=5.0).fit(table)  # DRIVE's row choice
+    assert steady.params["x"]["weights"]["v"] == pytest.approx(0.1, abs=3e-3)
+
+
+def test_gp_residual_recovers_a_smooth_residual_of_edd_and_beats_it(jackal):
+    rng = np.random.default_rng(2)
+    tabs, truth = [], []
+    for i in range(4):
+        tab = command_table(jackal, 2500, seed=20 + i)
+        base = ExtendedDifferentialDrive(jackal, {"chi": 1.5}).predict(tab)
+        v, w = tab.cmd_v.to_numpy(), tab.cmd_w.to_numpy()
+        res = np.column_stack([0.1 * np.sin(2 * v), 0.05 * np.tanh(v * w), 0.2 * np.sin(w) * np.cos(v)])
+        truth.append(base + res)
+        tabs.append(label_with(tab, base + res + rng.normal(size=base.shape) * 0.01))
+    table, truth = concat_sequences(tabs), np.concatenate(truth)
+    gp = GPResidual(jackal, n_inducing=120, max_opt_iter=60).fit(table)
+    edd = ExtendedDifferentialDrive(jackal).fit(table)
+    err_gp = np.sqrt(np.mean((gp.predict(table) - truth) ** 2, 0))
+    err_edd = np.sqrt(np.mean((edd.predict(table) - truth) ** 2, 0))
+    assert np.all(err_gp < 0.01) and np.all(err_gp < 0.3 * err_edd)  # the residual is recovered
+    std = np.sqrt(np.diagonal(gp.predict_cov(table), axis1=1, axis2=2)).mean(0)
+    assert std == pytest.approx([0.01, 0.01, 0.01], rel=0.25)  # noise, plus little posterior variance
+
+
+def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal, monkeypatch):
+    write_train_splits(tmp_path, jackal, terrains=("tile",), n=800)
+    cfg = compose_fit(
+        tmp_path,
+        ["model=gp_residual", "terrain=tile", "model.options.n_inducing=40", "model.options.max_opt_iter=20"],
+    )
+    res = fit_model(cfg, "gp_residual", "tile")
+    saved = json.loads(res.path.read_text())
+    npz = res.path.with_name("tile.arrays.npz")
+    assert saved["arrays"]["file"] == npz.name and npz.is_file()
+    again = load_fitted(cfg, "gp_residual", "tile")
+    assert set(again.arrays) == set(res.model.arrays)
+    for k, a in res.model.arrays.items():
+        assert np.array_equal(again.arrays[k], a) and again.arrays[k].dtype == a.dtype
+    tab = command_table(jackal, 300, seed=5)
+    assert np.array_equal(again.predict(tab), res.model.predict(tab))
+    assert np.array_equal(again.predict_cov(tab), res.model.predict_cov(tab))
+    assert fit_model(cfg, "gp_residual", "tile").reused
+    npz.unlink()  # the cache treats the arrays like the JSON: missing arrays refit
+    assert not fit_model(cfg, "gp_residual", "tile").reused and npz.is_file()
+
+    import dataclasses
+
+    import skidbench.models.fitting as fitting
+
+    infos = fitting.discover()
+    bumped = {**infos, "gp_residual": dataclasses.replace(infos["gp_residual"], package_version="9.9")}
+    monkeypatch.setattr(fitting, "discover", lambda: bumped)
+    assert not fit_model(cfg, "gp_residual", "tile").reused  # a new package release refits
+
+
+def test_fitted_arrays_round_trip_through_mlflow_artifacts_exactly(tmp_path):
+    from skidbench.benchmark.tracking import Tracker
+
+    arrays = {"w": np.random.default_rng(0).normal(size=(7, 3)), "idx": np.arange(5, dtype=np.int32)}
+    path = tmp_path / "tile.arrays.npz"
+    fp = save_arrays(path, arrays)
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", "t", tmp_path / "artifacts")
+    run_id = tracker.start("r", {})
+    tracker.artifact(run_id, path, "fit")
+    tracker.end(run_id)
+    local = tracker.client.download_artifacts(run_id, "fit/tile.arrays.npz", str(tmp_path / "dl"))
+    back = load_arrays(__import__("pathlib").Path(local), fp)
+    assert set(back) == set(arrays)
+    for k in arrays:
+        assert np.array_equal(back[k], arrays[k]) and back[k].dtype == arrays[k].dtype
+
+
+def test_a_numpy_array_in_params_is_a_clear_model_error(jackal):
+    m = IdealDifferentialDrive(jackal)
+    m.params = {"coef": np.zeros(3), "k": np.float64(2.0)}
+    with pytest.raises(ModelError, match=r"params\['coef'\] is a numpy array.*self.arrays"):
+        m.to_json()
+    m.params = {"k": np.float64(2.0)}
+    assert m.to_json()["params"] == {"k": 2.0}  # numpy scalars are plain numbers
+
+
+def test_evaluate_model_options_apply_to_the_named_model_or_are_refused():
+    cfg = OmegaConf.create({"models": ["drive_blr"], "model": {"options": {"train_rows": "steady"}}})
+    assert model_config(cfg, "drive_blr")["options"]["train_rows"] == "steady"
+    cfg = OmegaConf.create({"models": ["edd", "drive_blr"], "model": {"options": {"train_rows": "steady"}}})
+    with pytest.raises(ModelError, match=r"\+model.name"):
+        model_config(cfg, "drive_blr")
+    cfg.model.name = "drive_blr"
+    assert model_config(cfg, "drive_blr")["options"]["train_rows"] == "steady"
+    assert "train_rows" not in model_config(cfg, "edd")["options"]
+    cfg.model.name = "roc"
+    with pytest.raises(ModelError, match="not among models"):
+        model_config(cfg, "edd")
+    cfg = OmegaConf.create({"models": ["drive_blr"], "model": {"options": {"train_row": "steady"}}})
+    with pytest.raises(ModelError, match="has no such option"):  # a misspelt option is refused
+        model_config(cfg, "drive_blr")
+
+
+def test_unknown_options_of_the_learned_models_are_refused(jackal):
+    with pytest.raises(ModelError, match="unknown option"):
+        DriveBLR(jackal, train_row="steady")
+    with pytest.raises(ModelError, match="unknown option"):
+        GPResidual(jackal, inducing=10)
+
+
+def compose_fit(out_root, overrides=()):
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        return compose("fit", overrides=[f"out_root={out_root}", *overrides])
