@@ -214,14 +214,14 @@ def score_split(
 
 
 def summarise(windows: pd.DataFrame, split: str, horizons: Sequence[float]) -> dict[str, float]:
-    """RMSRE metrics (names from :func:`tracking.metric_key`) and window counts of one split."""
+    """RMSRE metrics in % (names from :func:`tracking.metric_key`) and window counts of one split."""
     out: dict[str, float] = {}
     for h in horizons:
         w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
         for kind, col in KINDS.items():
             vals = w[col].to_numpy(float) if len(w) else np.array([])
-            out[trk.metric_key(kind, split, h)] = rmsre(vals)
-            out[f"n_windows_{kind}_{split}_{h:g}s"] = float(np.isfinite(vals).sum())
+            out[trk.metric_key(kind, split, h)] = 100.0 * rmsre(vals)  # percent, as every table shows it
+            out[trk.windows_key(kind, split, h)] = float(np.isfinite(vals).sum())
     return out
 
 
@@ -333,14 +333,10 @@ def run_benchmark(
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)
     conf = _as_container(cfg)
-    params = trk.flatten(conf)
+    params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     all_files = [p for fs in files_of.values() for p in fs]
-    common_tags = {
-        trk.TAG_DATASET: str(cfg.dataset),
-        trk.TAG_GIT: commit,
-        "mlflow.source.git.commit": commit.split("+")[0],
-    }
+    common_tags = {trk.TAG_DATASET: str(cfg.dataset), trk.TAG_GIT: commit}
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
@@ -352,8 +348,9 @@ def run_benchmark(
         if done:  # a retried job whose earlier attempt finished: its runs are the result
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done)))  # fmt: skip
+        inputs = str(cfg.get("inputs", "commanded"))
         with tracker.run(
-            f"evaluate {cfg.dataset}",
+            trk.parent_run_name("evaluate", str(cfg.dataset), inputs),
             {
                 **common_tags,
                 **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
@@ -361,15 +358,19 @@ def run_benchmark(
                 trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
                 "skidbench.models": ",".join(models),
                 "skidbench.terrains": ",".join(terrains),
+                trk.TAG_NOTE: _describe(cfg, models, terrains, splits, horizons),
             },
         ) as parent_id:
             tracker.log(parent_id, params=params)
+            inputs_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
+            tracker.log_datasets(parent_id, [d for t in terrains for d in inputs_of[t]])
             for terrain in terrains:
                 fp = split_fingerprint(files_of[terrain], layout.splits)
                 for model_name in models:
                     child = _run_child(
                         cfg, tracker, parent_id, layout, model_name, terrain, tests[terrain], horizons, hcfg,
-                        fit_fn, params, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
+                        fit_fn, conf, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
+                        inputs_of[terrain],
                     )  # fmt: skip
                     children.append(child)
             n_failed = sum(c.status != "FINISHED" for c in children)
@@ -378,6 +379,7 @@ def run_benchmark(
                 metrics={"n_children": len(children), "n_failed": n_failed},
                 tags={trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED"},
             )
+            save_views(tracker, parent_id, splits, horizons)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children))
@@ -425,16 +427,20 @@ def _run_child(
     horizons,
     hcfg,
     fit_fn,
-    params,
+    conf,
     tags,
     log_figures,
+    datasets=(),
 ) -> ChildResult:
     run_id = tracker.start(
         f"{model_name}/{terrain}",
-        {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain},
+        {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain,
+         trk.TAG_NOTE: _describe(cfg, [model_name], [terrain], list(tests), horizons)},
         parent_id,
-    )
+    )  # fmt: skip
+    params = trk.config_params(conf, _model_config(cfg, model_name))  # this model's config, no other's
     tracker.log(run_id, params={**params, "model": model_name, "terrain": terrain})
+    tracker.log_datasets(run_id, datasets)
     stage = "fit"
     try:
         fit = fit_fn(cfg, model_name, terrain)
@@ -462,12 +468,15 @@ def _run_child(
             described[f"robot_used.{c}.source"] = rec.get("source")
         if callable(getattr(model, "tracking_params", None)):
             described.update(model.tracking_params())
+        described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
         if described:
             tracker.log(run_id, params=described)
         out_dir = layout.eval / model_name
         params_json = out_dir / f"{terrain}.params.json"
         write_json_atomic(params_json, model.to_json())
         tracker.artifact(run_id, params_json, "fit")
+        stage = "logging the model"
+        _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir)
         stage = "predict"
         metrics: dict[str, float] = {}
         frames = []
@@ -500,7 +509,7 @@ def _run_child(
             fig_path = out_dir / f"{terrain}.errors.png"
             window_error_figure(windows, f"{model_name} on {terrain}", fig_path)
             tracker.artifact(run_id, fig_path, "figures")
-        nan_metrics = [k for k, v in metrics.items() if k.startswith("rmsre_") and not np.isfinite(v)]
+        nan_metrics = [k for k, v in metrics.items() if k.endswith("_rmsre_pct") and not np.isfinite(v)]
         tracker.log(
             run_id,
             metrics=metrics,
@@ -529,6 +538,91 @@ def _run_child(
         log.debug("%s", traceback.format_exc())
         tracker.fail(run_id, reason)
         return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason)
+
+
+# -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
+def _describe(cfg, models, terrains, splits, horizons) -> str:
+    """The description of an evaluate run (parent: every model and terrain; child: one of each)."""
+    one = len(models) == 1 and len(terrains) == 1
+    cmd = trk.reproduce_command(
+        "evaluate", [f"models=[{','.join(models)}]", f"terrains=[{','.join(terrains)}]"] if one else [],
+        drop=("force",),
+    )  # fmt: skip
+    if one:
+        cmd = trk.reproduce_command("fit", [f"model={models[0]}", f"terrain={terrains[0]}"],
+                                    drop=("models", "terrains", "force")) + "\n" + cmd  # fmt: skip
+    title = (f"**{models[0]}** on **{terrains[0]}**, fitted on Train, scored on {'/'.join(splits).upper()}"
+             if one else f"Benchmark of {len(models)} models on {len(terrains)} terrains")  # fmt: skip
+    facts = {
+        "dataset": f"`{cfg.dataset}` ({layout_from_cfg(cfg).root})",
+        "input protocol": f"`{cfg.get('inputs', 'commanded')}` (what a model is given at predict time)",
+        "horizon": ", ".join(f"{h:g} s" for h in horizons),
+        "models": None if one else ", ".join(models),
+        "terrains": None if one else ", ".join(terrains),
+        "metrics": "`<split>_<horizon>_<trans|rot>_rmsre_pct`: RMSRE of the relative translational / "
+        "rotational error over every window of the horizon, in %, lower is better",
+    }
+    return trk.describe(title, facts, cmd)
+
+
+def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
+    """The Train split and the test splits of one terrain as MLflow dataset inputs."""
+    from skidbench.models.base import concat_sequences
+
+    out = []
+    for split in [TRAIN, *tests]:
+        fs = [p for p in files if p.parent.name == split]
+        tables = (
+            [(s.table, {"sequence": s.name}) for s in tests[split]]
+            if split in tests
+            else [read_split(p) for p in fs]
+        )
+        out.append(trk.SplitData(f"{cfg.dataset}/{terrain}/{split}", split, layout.splits / terrain / split,
+                                 split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
+    return out
+
+
+def _model_config(cfg, model_name: str) -> dict[str, Any] | None:
+    try:
+        from skidbench.models.fitting import model_config
+    except ImportError:  # pragma: no cover
+        return None
+    return model_config(cfg, model_name)
+
+
+def _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir) -> None:
+    """The fitted model as an MLflow Model of the run (tag ``skidbench.logged_model``: its id, or why not:
+    a model object that is no installed skidbench model cannot be rebuilt outside this process)."""
+    from skidbench.models.base import ModelError
+    from skidbench.models.registry import get_model_class
+
+    from .mlflow_model import write_model_record
+
+    model = fit.model
+    spec = str((_fit_json(fit).get("resolved") or {}).get("spec") or model_name)
+    try:
+        if get_model_class(spec) is not type(model) or not hasattr(model, "robot"):
+            raise ModelError(f"{type(model).__name__} is not the installed model {spec}")
+    except ModelError as exc:
+        tracker.log(run_id, tags={"skidbench.logged_model": f"not logged: {one_line(str(exc))}"})
+        return
+    record = write_model_record(out_dir / f"{terrain}.mlflow_model.json", spec, model.to_json(), model.robot,
+                                str(cfg.get("inputs", "commanded")))  # fmt: skip
+    model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record)
+    tracker.log(run_id, tags={"skidbench.logged_model": model_id})
+
+
+def save_views(tracker, parent_id: str, splits, horizons) -> str:
+    """The UI's saved views of an evaluate (``latest`` and ``evaluate-<run id>``): its child runs with the
+    RMSRE columns of the first horizon (LD first), best LD translational first. Returns the URL."""
+    h = horizons[0]
+    order = sorted(splits, key=lambda s: s != "ld")
+    cols = [trk.metric_key(k, s, h) for s in order for k in ("translational", "rotational")]
+    name = tracker.client.get_run(parent_id).info.run_name
+    url = ""
+    for key, title in ((f"evaluate-{parent_id[:8]}", name), ("latest", f"latest: {name}")):
+        url = tracker.save_view(key, title, parent_id, cols, cols[0])
+    return url
 
 
 #: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins,
@@ -568,22 +662,17 @@ def _num(v: Any) -> float | None:
 
 
 def _brief(metrics: dict[str, float]) -> str:
-    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if k.startswith("rmsre_"))
+    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if k.endswith("_rmsre_pct"))
 
 
 def format_result(result: BenchmarkResult) -> str:
     """A short text summary for the console: RMSRE in % per (model, terrain) at each horizon."""
     df = result.table()
     cols = {}
-    short = {"translational": "trans", "rotational": "rot"}
-    for c in sorted(
-        (c for c in df.columns if c.startswith("rmsre_")), key=lambda c: c.startswith("rmsre_rot")
-    ):
-        _, kind, split, h = c.split("_", 3)
-        cols[c] = f"{short[kind]} {split.upper()} {h} %"
+    for c in sorted((c for c in df.columns if c.endswith("_rmsre_pct")), key=lambda c: "_rot_" in c):
+        split, h, kind, _ = c.split("_", 3)
+        cols[c] = f"{kind} {split.upper()} {h} %"
     show = df[["model", "terrain", "status", *cols]].rename(columns=cols)
-    for c in cols.values():
-        show[c] = 100 * show[c]
     lines = [
         f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
         show.to_string(index=False, float_format=lambda x: f"{x:.2f}", na_rep="-"),
