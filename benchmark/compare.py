@@ -83,7 +83,7 @@ def _col(runs: pd.DataFrame, name: str) -> pd.Series:
 # -- the leaderboard --------------------------------------------------------------------------------
 def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     """One row per (model, terrain), the latest run of each: model, terrain, status, reason, the four
-    RMSRE metrics at ``horizon_s`` (fractions), fit/predict numbers, run_id."""
+    RMSRE metrics at ``horizon_s`` (%), fit/predict numbers, run_id."""
     df = pd.DataFrame(
         {
             "model": _col(runs, f"tags.{trk.TAG_MODEL}"),
@@ -111,7 +111,8 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
 
 def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
     """Per model: the mean over terrains of each RMSRE (%), terrains scored, failures; ranked by
-    ``rank_by`` (a metric prefix such as ``rmsre_translational_ld``)."""
+    ``rank_by`` (``<split>_<trans|rot>``, e.g. ``ld_trans``: :func:`tracking.rank_key`)."""
+    key = trk.rank_key(rank_by, horizon_s)
     rows = []
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
@@ -120,14 +121,14 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
             for split in SPLITS:
                 vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
                 row[f"{SHORT[kind]} {split.upper()} %"] = (
-                    100 * np.nanmean(vals) if np.isfinite(vals).any() else np.nan
+                    np.nanmean(vals) if np.isfinite(vals).any() else np.nan
                 )
         row["terrains"] = f"{len(ok)}/{len(g)}"
         bad = g[g["status"] != "FINISHED"]
         row["failed"] = (
             ", ".join(f"{t} ({s})" for t, s in zip(bad["terrain"], bad["status"], strict=True)) or ""
         )
-        row["_key"] = np.nanmean(ok[f"{rank_by}_{horizon_s:g}s"].to_numpy(float)) if len(ok) else np.nan
+        row["_key"] = np.nanmean(ok[key].to_numpy(float)) if len(ok) and key in ok else np.nan
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
     out.insert(0, "rank", np.arange(1, len(out) + 1))
@@ -138,7 +139,7 @@ def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     out = pd.DataFrame({"model": board["model"], "terrain": board["terrain"], "status": board["status"]})
     for kind in KINDS:
         for split in SPLITS:
-            out[f"{SHORT[kind]} {split.upper()} %"] = 100 * board[trk.metric_key(kind, split, horizon_s)]
+            out[f"{SHORT[kind]} {split.upper()} %"] = board[trk.metric_key(kind, split, horizon_s)]
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]
@@ -179,7 +180,7 @@ def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
             best, fr = means.iloc[0], means["friction"]
             lines.append(
                 f"- {kind} RMSRE on {split.upper()} (mean over terrains): friction-based ranks {rank} of "
-                f"{len(means)} ({100 * fr:.2f} % vs best {means.index[0]} {100 * best:.2f} %)"
+                f"{len(means)} ({fr:.2f} % vs best {means.index[0]} {best:.2f} %)"
             )
     return lines
 
@@ -369,6 +370,7 @@ class CompareResult:
     parent_run_id: str | None
     files: list[Path] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    links: dict[str, str] = field(default_factory=dict)  # what -> MLflow UI URL
 
 
 def run_compare(cfg: Any) -> CompareResult:
@@ -389,6 +391,7 @@ def run_compare(cfg: Any) -> CompareResult:
             f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
         )
     summary = summary_table(board, horizon, str(cfg.rank_by))
+    links = ui_links(cfg, tracker, parent, board, horizon)
     detail = detail_table(board, horizon)
     out = layout.reports
     out.mkdir(parents=True, exist_ok=True)
@@ -438,7 +441,7 @@ def run_compare(cfg: Any) -> CompareResult:
 
     report = out / "report.md"
     write_text_atomic(
-        report, _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes)
+        report, _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, links)
     )
     files.append(report)
     if cfg.get("log_to_mlflow", True):
@@ -450,10 +453,27 @@ def run_compare(cfg: Any) -> CompareResult:
             tracker.end(run_id)
         for f in files:
             tracker.artifact(run_id, f, "report")
-    return CompareResult(report, lb_md, parent, files, notes)
+    return CompareResult(report, lb_md, parent, files, notes, links)
 
 
-def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes) -> str:
+def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
+    """MLflow UI links: the parent run, the compare-runs page of the selected child runs, and (with a
+    parent) a saved view of the runs table showing its children with the RMSRE columns."""
+    ui = (cfg.get("mlflow") or {}).get("ui_url")
+    links = {}
+    if parent:
+        links["parent run"] = tracker.run_url(parent, ui)
+    links["compare its model runs"] = tracker.compare_url(board["run_id"].tolist(), ui)
+    if parent:
+        cols = [trk.metric_key(k, s, horizon) for s in ("ld", "cv") for k in KINDS]
+        name = tracker.client.get_run(parent).info.run_name
+        links["runs table (saved view)"] = tracker.save_view(
+            f"evaluate-{parent[:8]}", name, parent, cols, trk.rank_key(str(cfg.rank_by), horizon), ui
+        )
+    return links
+
+
+def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, links) -> str:
     failed = board[board["status"] != "FINISHED"]
     parts = [
         f"# skidbench report: {cfg.dataset}",
@@ -467,7 +487,8 @@ def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, no
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"
         + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
-        f"- ranked by the mean over terrains of `{cfg.rank_by}_{horizon:g}s`",
+        *[f"- MLflow UI, {what}: <{url}>" for what, url in links.items()],
+        f"- ranked by the mean over terrains of `{trk.rank_key(str(cfg.rank_by), horizon)}`",
         "",
         "## Leaderboard (mean over terrains)",
         "",
@@ -514,5 +535,6 @@ def format_console(result: CompareResult) -> str:
         "",
         f"report: {result.report}",
     ]
+    lines += [f"MLflow {what}: {url}" for what, url in result.links.items()]
     lines += [f"note: {n}" for n in result.notes]
     return "\n".join(lines)

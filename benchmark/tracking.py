@@ -38,6 +38,7 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -263,10 +264,12 @@ class SplitData:
     def entity(self):
         import mlflow.data
 
-        ds = mlflow.data.from_pandas(
-            self.table, source=str(self.source), name=self.name, digest=self.fingerprint[:36]
-        )
-        return ds._to_mlflow_entity()
+        with warnings.catch_warnings():  # MLflow's hints on a local path source and integer columns
+            warnings.simplefilter("ignore", UserWarning)
+            ds = mlflow.data.from_pandas(
+                self.table, source=str(self.source), name=self.name, digest=self.fingerprint[:36]
+            )
+            return ds._to_mlflow_entity()
 
 
 @functools.lru_cache(maxsize=1)
