@@ -350,7 +350,7 @@ def run_benchmark(
                                                        _logged_children(tracker, done)))  # fmt: skip
         inputs = str(cfg.get("inputs", "commanded"))
         with tracker.run(
-            trk.parent_run_name("evaluate", str(cfg.dataset), inputs),
+            tracker.unique_run_name(trk.parent_run_name("evaluate", str(cfg.dataset), inputs)),
             {
                 **common_tags,
                 **({trk.TAG_RUN_KEY: job_key} if job_key else {}),

@@ -413,6 +413,22 @@ class Tracker:
         else:
             self.end(run_id, "FINISHED")
 
+    def unique_run_name(self, name: str) -> str:
+        """``name``, or ``name #2``, ``#3``, ... when a run of this experiment already has it (two runs
+        started within one second)."""
+        quoted = name.replace("'", "")
+        taken = {
+            r.info.run_name
+            for r in self.client.search_runs(
+                [self.experiment_id], f"attributes.run_name LIKE '{quoted}%'", max_results=1000
+            )
+        }
+        k, out = 1, name
+        while out in taken:
+            k += 1
+            out = f"{name} #{k}"
+        return out
+
     # -- what a run read and what it made ----------------------------------------------------------
     def log_datasets(self, run_id: str, datasets: Sequence[SplitData]) -> None:
         """The split tables a run read as MLflow dataset inputs (``mlflow.data.from_pandas``: name, source
