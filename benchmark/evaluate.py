@@ -476,7 +476,7 @@ def _run_child(
         write_json_atomic(params_json, model.to_json())
         tracker.artifact(run_id, params_json, "fit")
         stage = "logging the model"
-        _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir)
+        _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir, next(iter(tests.values()))[0])
         stage = "predict"
         metrics: dict[str, float] = {}
         frames = []
@@ -590,13 +590,13 @@ def _model_config(cfg, model_name: str) -> dict[str, Any] | None:
     return model_config(cfg, model_name)
 
 
-def _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir) -> None:
+def _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir, seq: TestSequence) -> None:
     """The fitted model as an MLflow Model of the run (tag ``skidbench.logged_model``: its id, or why not:
     a model object that is no installed skidbench model cannot be rebuilt outside this process)."""
     from skidbench.models.base import ModelError
     from skidbench.models.registry import get_model_class
 
-    from .mlflow_model import write_model_record
+    from .mlflow_model import INPUT_COLUMNS, write_model_record
 
     model = fit.model
     spec = str((_fit_json(fit).get("resolved") or {}).get("spec") or model_name)
@@ -608,7 +608,8 @@ def _log_model(cfg, tracker, run_id, fit, model_name, terrain, out_dir) -> None:
         return
     record = write_model_record(out_dir / f"{terrain}.mlflow_model.json", spec, model.to_json(), model.robot,
                                 str(cfg.get("inputs", "commanded")))  # fmt: skip
-    model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record)
+    example = seq.table.head(30).assign(sequence=seq.name)[list(INPUT_COLUMNS)]  # 1 s of a test sequence
+    model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example)
     tracker.log(run_id, tags={"skidbench.logged_model": model_id})
 
 

@@ -272,6 +272,21 @@ class SplitData:
             return ds._to_mlflow_entity()
 
 
+@contextlib.contextmanager
+def _env(**values: str) -> Iterator[None]:
+    """Environment variables set for the duration of a block (restored after)."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 @functools.lru_cache(maxsize=1)
 def _requirements() -> list[str]:
     """What a logged model needs to load: skidbench and MLflow at their installed versions."""
@@ -449,26 +464,31 @@ class Tracker:
             inputs.append(DatasetInput(self._datasets[key], tags=tags))
         self.client.log_inputs(run_id, datasets=inputs)
 
-    def log_model(self, run_id: str, name: str, record: Path) -> str:
+    def log_model(self, run_id: str, name: str, record: Path, example: Any = None) -> str:
         """Log a fitted model as an MLflow Model of ``run_id`` (pyfunc flavour with the protocol's
-        signature, :mod:`skidbench.benchmark.mlflow_model`; ``record`` its JSON); returns its model id.
+        signature, :mod:`skidbench.benchmark.mlflow_model`; ``record`` its JSON; ``example`` a few input
+        rows, which MLflow stores and checks the model with); returns its model id.
         Requirements are given, not inferred (inference loads the model in a subprocess: seconds)."""
         import mlflow
         from mlflow.models import Model
 
         from . import mlflow_model as mm
 
-        mlflow.set_tracking_uri(self.uri)  # Model.log talks to the current tracking URI
-        info = Model.log(
-            artifact_path=None,
-            name=_safe_name(name)[:100],
-            flavor=mlflow.pyfunc,
-            run_id=run_id,
-            python_model=mm.SkidbenchModel(),
-            artifacts={mm.ARTIFACT: str(record)},
-            signature=mm.signature(),
-            pip_requirements=_requirements(),
-        )
+        # Model.log talks to the current tracking URI, and creates the model in the current experiment
+        mlflow.set_tracking_uri(self.uri)
+        mlflow.set_experiment(experiment_id=self.experiment_id)
+        with _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"):  # a bar per model clutters the log
+            info = Model.log(
+                artifact_path=None,
+                name=_safe_name(name)[:100],
+                flavor=mlflow.pyfunc,
+                run_id=run_id,
+                python_model=str(Path(mm.__file__).with_name("mlflow_model_code.py")),  # models from code
+                artifacts={mm.ARTIFACT: str(record)},
+                signature=mm.signature(),
+                input_example=example,
+                pip_requirements=_requirements(),
+            )
         return info.model_id
 
     # -- links to the UI ------------------------------------------------------------------------

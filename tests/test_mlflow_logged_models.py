@@ -45,7 +45,7 @@ def test_a_logged_model_loads_and_predicts_in_a_plain_python_process(real_models
     assert run.info.status == "FINISHED"
     model_id = run.data.tags["skidbench.logged_model"]
     model = client.get_logged_model(model_id)
-    assert model.source_run_id == run.info.run_id
+    assert model.source_run_id == run.info.run_id and model.experiment_id == run.info.experiment_id
     table = sequence_table(seed=42, duration_s=5.0)
     table["sequence"] = "s0"
     table[list(INPUT_COLUMNS)].to_parquet(tmp_path / "inputs.parquet")
