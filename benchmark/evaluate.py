@@ -220,7 +220,8 @@ def summarise(windows: pd.DataFrame, split: str, horizons: Sequence[float]) -> d
         w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
         for kind, col in KINDS.items():
             vals = w[col].to_numpy(float) if len(w) else np.array([])
-            out[trk.metric_key(kind, split, h)] = 100.0 * rmsre(vals)  # percent, as every table shows it
+            # percent, as every table shows it; to 0.001 % so that the UI's columns read as numbers
+            out[trk.metric_key(kind, split, h)] = round(100.0 * rmsre(vals), 3)
             out[trk.windows_key(kind, split, h)] = float(np.isfinite(vals).sum())
     return out
 

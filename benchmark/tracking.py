@@ -503,7 +503,10 @@ class Tracker:
     def compare_url(self, run_ids: Sequence[str], ui: str | None = None) -> str:
         """The UI's compare-runs page of ``run_ids`` (params, metrics and charts side by side)."""
         q = urllib.parse.urlencode(
-            {"runs": json.dumps(list(run_ids)), "experiments": json.dumps([self.experiment_id])}
+            {
+                "runs": json.dumps(list(run_ids), separators=(",", ":")),
+                "experiments": json.dumps([self.experiment_id], separators=(",", ":")),
+            }
         )
         return f"{self.ui_url(ui)}/#/compare-runs?{q}"
 
@@ -516,23 +519,36 @@ class Tracker:
         order_by: str,
         ui: str | None = None,
     ) -> str:
-        """Save a view of the runs table as an experiment tag (the UI's "Saved views"; MLflow 3.17 reads
-        ``mlflow.sharedViewState.<key>``, opened by ``?viewStateShareKey=<key>``): ``parent_id`` expanded
-        so that its child runs show, the metric ``columns`` visible in that order, rows sorted by
-        ``order_by`` ascending. Returns its URL."""
-        selected = ["attributes.`Dataset`", "attributes.`Models`"] + [f"metrics.`{c}`" for c in columns]
+        """Save a view of the runs table as an experiment tag (the UI's "Views" menu; MLflow 3.17 reads
+        ``mlflow.sharedViewState.<key>`` when the runs page is opened with ``?viewStateShareKey=<key>``):
+        the child runs of ``parent_id`` grouped by terrain (a group's row: the best, i.e. smallest, value),
+        the metric ``columns`` and the logged models visible, rows sorted by ``order_by`` ascending (the
+        best model of each terrain first). Returns its URL."""
+        metrics = [f"metrics.`{c}`" for c in columns]
         state = {
-            "searchFilter": "",
+            "searchFilter": f"tags.`{TAG_PARENT}` = '{parent_id}'",
             "orderByKey": f"metrics.`{order_by}`",
             "orderByAsc": True,
-            "selectedColumns": selected,
-            "runsExpanded": {parent_id: True},
-            "runsPinned": [parent_id],
+            "selectedColumns": [*metrics, "attributes.`Models`"],
+            # the metrics right after the run name, wide enough for their names (the UI's column ids)
+            "columnOrder": [
+                "attributes.`Run Name`",
+                *metrics,
+                "attributes.`Models`",
+                "runDateAndNestInfo",
+                "duration",
+            ],
+            "columnWidths": {m: 8 * len(c) + 24 for m, c in zip(metrics, columns, strict=True)},
+            "groupBy": {
+                "aggregateFunction": "min",
+                "groupByKeys": [{"mode": "tag", "groupByData": TAG_TERRAIN}],
+            },
         }
         now = int(time.time() * 1000)
         envelope = {"name": title, "createdAt": now, "updatedAt": now, "state": json.dumps(state)}
         self.client.set_experiment_tag(self.experiment_id, TAG_SAVED_VIEW + key, json.dumps(envelope))
-        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}?viewStateShareKey={key}"
+        q = urllib.parse.urlencode({"viewStateShareKey": key, "workflowType": "machine_learning"})
+        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs?{q}"
 
     def dataset_filter(self) -> list[str]:
         """The search clause that keeps this dataset's runs only (none without a dataset id)."""
@@ -623,6 +639,23 @@ class Tracker:
                     )
                 return run.info.run_id
         return runs[0].info.run_id
+
+
+def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
+    """For ``make mlflow-ui``: per skidbench experiment of the store, the URL of the saved view of its latest
+    evaluate (the runs table with the RMSRE columns) and of its runs page."""
+    from mlflow.tracking import MlflowClient
+
+    _quiet_mlflow_logs()
+    if uri.startswith("sqlite:///") and not Path(uri[len("sqlite:///") :]).is_file():
+        print(f"no MLflow store at {uri} yet: run `make reproduce` (or `skidbench evaluate`) first")
+        return
+    for exp in MlflowClient(uri).search_experiments(filter_string="name LIKE 'skidbench-%'"):
+        base = f"{ui.rstrip('/')}/#/experiments/{exp.experiment_id}"
+        if TAG_SAVED_VIEW + "latest" in exp.tags:
+            print(f"{exp.name}: {base}/runs?viewStateShareKey=latest&workflowType=machine_learning")
+        else:
+            print(f"{exp.name}: {base}/runs?workflowType=machine_learning")
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
