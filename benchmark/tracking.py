@@ -189,11 +189,11 @@ def source_tags() -> dict[str, str]:
         user = getpass.getuser()
     except (KeyError, OSError):
         user = "unknown"
-    argv = [Path(sys.argv[0]).name, *sys.argv[1:]] if sys.argv and sys.argv[0] else ["python"]
+    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"  # e.g. "skidbench evaluate"
     tags = {
         "mlflow.user": user,
         "mlflow.source.type": "LOCAL",
-        "mlflow.source.name": shlex.join(argv)[:MAX_TAG_LEN],
+        "mlflow.source.name": " ".join([prog, shlex.join(sys.argv[1:])]).strip()[:MAX_TAG_LEN],
     }
     commit = git_commit()
     if commit != "unknown":
