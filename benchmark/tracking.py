@@ -96,7 +96,9 @@ def process_tags() -> dict[str, str]:
 
 def _quiet_mlflow_logs() -> None:
     # a fresh SQLite store runs its schema migrations through alembic, which is chatty at INFO
-    for name in ("alembic", "alembic.runtime.migration", "mlflow.store.db.utils"):
+    # and logging a model says at INFO that it validated the input example against the signature
+    quiet = ("alembic", "alembic.runtime.migration", "mlflow.store.db.utils", "mlflow.pyfunc", "mlflow.models")
+    for name in quiet:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 

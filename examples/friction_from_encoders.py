@@ -20,6 +20,7 @@ import numpy as np
 
 from skidbench.benchmark.evaluate import TestSequence, score_split, summarise
 from skidbench.benchmark.horizon import HorizonConfig
+from skidbench.benchmark.tracking import metric_key
 from skidbench.models.friction import FrictionBased
 from skidbench.pipeline.robot import load_robot
 from skidbench.pipeline.schema import list_split_files, read_split
@@ -51,7 +52,7 @@ def main() -> None:
                 vel = [model.velocities(inputs(s.table))[0] for s in seqs]
                 res = summarise(score_split(seqs, vel, [6.0], HorizonConfig()), split, [6.0])
                 row[name] = " / ".join(
-                    f"{100 * res[f'rmsre_{k}_{split}_6s']:.2f}" for k in ("translational", "rotational")
+                    f"{res[metric_key(k, split, 6.0)]:.2f}" for k in ("translational", "rotational")
                 )
             err = np.concatenate(
                 [

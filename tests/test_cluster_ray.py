@@ -128,7 +128,7 @@ def test_evaluate_runs_one_ray_task_per_dataset_into_one_mlflow_server(out_root,
         assert {c.info.status for c in children} == {"FINISHED"}
         scores[ds] = {
             (c.data.tags[trk.TAG_MODEL], c.data.tags[trk.TAG_TERRAIN]): c.data.metrics[
-                "rmsre_translational_cv_6s"
+                "cv_6s_trans_rmsre_pct"
             ]
             for c in children
         }
@@ -198,7 +198,7 @@ def test_a_retried_evaluate_job_whose_first_attempt_finished_logs_nothing_again(
     assert again.parent_run_id == first.parent_run_id
 
     def scores(res):
-        return sorted((c.model, c.terrain, c.run_id, c.status, c.metrics["rmsre_translational_cv_6s"])
+        return sorted((c.model, c.terrain, c.run_id, c.status, c.metrics["cv_6s_trans_rmsre_pct"])
                       for c in res.children)  # fmt: skip
 
     assert scores(again) == scores(first) and len(first.children) == 4
