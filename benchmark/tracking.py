@@ -97,7 +97,8 @@ def process_tags() -> dict[str, str]:
 def _quiet_mlflow_logs() -> None:
     # a fresh SQLite store runs its schema migrations through alembic, which is chatty at INFO
     # and logging a model says at INFO that it validated the input example against the signature
-    quiet = ("alembic", "alembic.runtime.migration", "mlflow.store.db.utils", "mlflow.pyfunc", "mlflow.models")
+    quiet = ["alembic", "alembic.runtime.migration", "mlflow.store.db.utils"]
+    quiet += ["mlflow.pyfunc", "mlflow.models"]
     for name in quiet:
         logging.getLogger(name).setLevel(logging.WARNING)
 
