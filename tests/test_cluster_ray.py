@@ -67,7 +67,7 @@ def _fit_results(runs) -> dict[tuple[str, str], tuple]:
             continue
         key = (r.data.tags[trk.TAG_MODEL], r.data.tags[trk.TAG_TERRAIN])
         assert key not in out, f"two finished runs of {key}"
-        params = {k: v for k, v in r.data.params.items() if k.startswith("param.")}
+        params = {k: v for k, v in r.data.params.items() if k.startswith("fitted.")}
         out[key] = (r.data.metrics["fit_loss"], r.data.metrics["n_train"], params)
     return out
 
