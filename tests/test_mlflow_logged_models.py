@@ -129,3 +129,18 @@ def test_pyfunc_signature_rejects_a_table_without_the_protocols_columns(real_mod
         m.predict(table[[c for c in INPUT_COLUMNS if c != "cmd_dwl"]])
     pred = m.predict(pd.concat([table, pd.DataFrame({"cmd_dwl": np.zeros(len(table))})], axis=1))
     assert list(pred.columns) == ["vx", "vy", "wz"] and len(pred) == len(table)
+
+
+def test_a_fit_runs_model_is_logged_too(real_models):
+    from skidbench.models.app import log_fit_run
+    from skidbench.models.fitting import fit_model
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    out, _, _, client, runs = real_models
+    cfg = compose("fit", out, ["model=roc", "terrain=tile", "calibrate.use=false"])
+    res = fit_model(cfg, "roc", "tile")  # the evaluate's fit, reused
+    run = client.get_run(log_fit_run(cfg, layout_from_cfg(cfg), "roc", "tile", res))
+    assert run.data.params["fitted.b1"] == runs["roc"].data.params["fitted.b1"]
+    model = client.get_logged_model(run.data.tags["skidbench.logged_model"])
+    assert model.source_run_id == run.info.run_id
+    assert "skidbench fit model=roc terrain=tile" in run.data.tags[trk.TAG_NOTE]
