@@ -542,6 +542,9 @@ class Tracker:
                 "duration",
             ],
             "columnWidths": {m: 8 * len(c) + 24 for m, c in zip(metrics, columns, strict=True)},
+            # the chart view plots every run, not the first 10 (the UI's default) nor the groups' minima
+            "runsHiddenMode": "SHOW_ALL",
+            "useGroupedValuesInCharts": False,
             "groupBy": {
                 "aggregateFunction": "min",
                 "groupByKeys": [{"mode": "tag", "groupByData": TAG_TERRAIN}],
