@@ -290,6 +290,31 @@ def _env(**values: str) -> Iterator[None]:
                 os.environ[k] = v
 
 
+@contextlib.contextmanager
+def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
+    """MLflow's current tracking URI and experiment set for a block, then restored with the environment
+    variables ``mlflow.set_tracking_uri``/``set_experiment`` export (the config reads
+    MLFLOW_TRACKING_URI: left set, a stage's cache key would change after its run)."""
+    import mlflow
+    from mlflow.tracking import fluent
+    from mlflow.tracking._tracking_service import utils as tracking_utils
+
+    names = ("MLFLOW_TRACKING_URI", "MLFLOW_EXPERIMENT_ID")
+    env = {k: os.environ.get(k) for k in names}
+    saved = (tracking_utils._tracking_uri, fluent._active_experiment_id)
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_experiment(experiment_id=experiment_id)
+    try:
+        yield
+    finally:
+        tracking_utils._tracking_uri, fluent._active_experiment_id = saved
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 @functools.lru_cache(maxsize=1)
 def _requirements() -> list[str]:
     """What a logged model needs to load: skidbench and MLflow at their installed versions."""
@@ -477,10 +502,12 @@ class Tracker:
 
         from . import mlflow_model as mm
 
-        # Model.log talks to the current tracking URI, and creates the model in the current experiment
-        mlflow.set_tracking_uri(self.uri)
-        mlflow.set_experiment(experiment_id=self.experiment_id)
-        with _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"):  # a bar per model clutters the log
+        # Model.log talks to the current tracking URI and creates the model in the current experiment:
+        # both set for the call only (they are process-wide, and MLFLOW_TRACKING_URI is part of the config)
+        with (
+            _mlflow_current(self.uri, self.experiment_id),
+            _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"),
+        ):
             info = Model.log(
                 artifact_path=None,
                 name=_safe_name(name)[:100],
