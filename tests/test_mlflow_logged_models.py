@@ -122,6 +122,7 @@ def test_parent_runs_are_unique_and_searchable(real_models):
 
 def test_pyfunc_signature_rejects_a_table_without_the_protocols_columns(real_models):
     out, cfg, res, client, runs = real_models
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
     m = mlflow.pyfunc.load_model(f"models:/{runs['ideal'].data.tags['skidbench.logged_model']}")
     table = sequence_table(seed=1, duration_s=2.0).drop(columns=["cmd_dwl"])
     table["sequence"] = "s0"
