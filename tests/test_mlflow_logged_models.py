@@ -21,6 +21,7 @@ from skidbench.benchmark.mlflow_model import INPUT_COLUMNS
 from skidbench.models.fitting import load_fitted
 
 DS = "sim-mini"
+pytestmark = pytest.mark.slow  # real fits, 18 s of logging and a fresh interpreter importing MLflow
 
 
 @pytest.fixture(scope="module")
