@@ -63,7 +63,7 @@ def select_runs(
     mlflow.set_tracking_uri(tracker.uri)
     try:
         runs = mlflow.search_runs(
-            experiment_ids=[tracker.experiment_id],
+            experiment_ids=tracker.search_ids() or [tracker.experiment_id],
             filter_string=" AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
             output_format="pandas",
@@ -100,6 +100,8 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
         for split in SPLITS:
             key = trk.metric_key(kind, split, horizon_s)
             df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
+            n_key = window_count_key(kind, split, horizon_s)  # windows behind the RMSRE
+            df[n_key] = pd.to_numeric(_col(runs, f"metrics.{n_key}"), errors="coerce")
     for m in ("fit_loss", "fit_time_s", "predict_time_s"):
         df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
     df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
@@ -107,6 +109,18 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     order = {m: i for i, m in enumerate(figs.order_models(df["model"].dropna().unique().tolist()))}
     df = df.assign(_o=df["model"].map(order)).sort_values(["_o", "terrain"]).drop(columns="_o")
     return df.reset_index(drop=True)
+
+
+def window_count_key(kind: str, split: str, horizon_s: float) -> str:
+    """The metric evaluate logs with the number of windows behind an RMSRE (:func:`tracking.windows_key`,
+    ``ld_6s_trans_windows``)."""
+    return trk.windows_key(kind, split, horizon_s)
+
+
+def _windows(counts: pd.Series) -> str:
+    """The windows behind an RMSRE, summed over terrains, as text ("?" when the runs did not log it)."""
+    vals = pd.to_numeric(counts, errors="coerce").to_numpy(float)
+    return str(int(np.nansum(vals))) if np.isfinite(vals).any() else "?"
 
 
 def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
@@ -122,6 +136,9 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
                 vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
                 row[f"{SHORT[kind]} {split.upper()} %"] = (
                     np.nanmean(vals) if np.isfinite(vals).any() else np.nan
+                )
+                row[f"{SHORT[kind]} {split.upper()} n"] = _windows(
+                    ok[window_count_key(kind, split, horizon_s)]
                 )
         row["terrains"] = f"{len(ok)}/{len(g)}"
         bad = g[g["status"] != "FINISHED"]
@@ -140,6 +157,9 @@ def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     for kind in KINDS:
         for split in SPLITS:
             out[f"{SHORT[kind]} {split.upper()} %"] = board[trk.metric_key(kind, split, horizon_s)]
+            out[f"{SHORT[kind]} {split.upper()} n"] = [
+                _windows(pd.Series([v])) for v in board[window_count_key(kind, split, horizon_s)]
+            ]
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]

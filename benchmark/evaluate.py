@@ -30,7 +30,8 @@ from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.schema import read_split
 
 from . import tracking as trk
-from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
+from .horizon import EvaluationError, HorizonConfig, count_windows, horizon_steps, rmsre, window_errors
+from .transfer import training_layout
 
 log = logging.getLogger(__name__)
 
@@ -308,6 +309,8 @@ def run_benchmark(
                 f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
             )
         fit_fn = default_fit_fn()
+    # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags (benchmark/transfer.py)
+    cfg, fit_fn, transfer_tags = training_layout(cfg, fit_fn)
 
     # 1. the data, checked before anything is logged
     found = find_terrains(layout)
@@ -328,6 +331,10 @@ def run_benchmark(
         for split in splits:
             seqs = load_test_split(layout, terrain, split)
             check_horizons(terrain, split, seqs, horizons)
+            for h in horizons:  # short sequences: say how many windows each horizon has (compare shows n)
+                n_win, n_seq, short = count_windows([s.table for s in seqs], h)
+                log.info("%s/%s: %g s horizon: %d windows from %d sequence(s), %d shorter than it",
+                         terrain, split, h, n_win, n_seq, short)  # fmt: skip
             tests[terrain][split] = seqs
         files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
 
@@ -337,7 +344,7 @@ def run_benchmark(
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     all_files = [p for fs in files_of.values() for p in fs]
-    common_tags = {trk.TAG_DATASET: str(cfg.dataset), trk.TAG_GIT: commit}
+    common_tags = {trk.TAG_DATASET: str(cfg.dataset), trk.TAG_GIT: commit, **transfer_tags}
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
