@@ -67,8 +67,11 @@ endif
 	$(SKB) evaluate $(SRC_ARGS) 'models=[edd,discovered]'
 	$(SKB) compare $(SRC_ARGS) figures.enabled=false
 
-# The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set).
+# The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set). First
+# prints, per dataset, the page to open: the runs of its latest evaluate with the RMSRE columns.
 mlflow-ui: setup
+	@$(BIN)/python -c 'from skidbench.benchmark.tracking import print_ui_links as p; \
+		p("sqlite:///$(SKIDBENCH_OUT)/mlflow.db", "http://127.0.0.1:5000")'
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(SKIDBENCH_OUT)/mlflow.db --port 5000
 
 # The Ray tests need the optional `cluster` extra: installed best-effort, once per pyproject.toml change;

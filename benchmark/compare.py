@@ -92,7 +92,7 @@ def _col(runs: pd.DataFrame, name: str) -> pd.Series:
 # -- the leaderboard --------------------------------------------------------------------------------
 def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     """One row per (model, terrain), the latest run of each: model, terrain, status, reason, the four
-    RMSRE metrics at ``horizon_s`` (fractions), fit/predict numbers, run_id."""
+    RMSRE metrics at ``horizon_s`` (%), fit/predict numbers, run_id."""
     df = pd.DataFrame(
         {
             "model": _col(runs, f"tags.{trk.TAG_MODEL}"),
@@ -125,9 +125,8 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
 
 
 def window_count_key(kind: str, split: str, horizon_s: float) -> str:
-    """The metric evaluate logs with the number of windows behind an RMSRE:
-    ``n_windows_<kind>_<split>_<h>s``."""
-    return f"n_windows_{kind}_{split}_{horizon_s:g}s"
+    """The metric evaluate logs with the number of windows behind an RMSRE (:func:`tracking.windows_key`)."""
+    return trk.windows_key(kind, split, horizon_s)
 
 
 def _windows(counts: pd.Series) -> str:
@@ -173,9 +172,10 @@ def _uncertainty_cells(values: pd.Series, percent: bool) -> pd.Series:
 
 def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
     """Per model: the mean over terrains of each RMSRE (%), terrains scored, failures; ranked by
-    ``rank_by`` (a metric prefix such as ``rmsre_translational_ld``). CompareError when the board mixes
-    input protocols (:func:`check_one_protocol`)."""
+    ``rank_by`` (``<split>_<trans|rot>``, e.g. ``ld_trans``: :func:`tracking.rank_key`). CompareError when
+    the board mixes input protocols (:func:`check_one_protocol`)."""
     check_one_protocol(board)
+    key = trk.rank_key(rank_by, horizon_s)
     rows = []
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
@@ -184,7 +184,7 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
             for split in SPLITS:
                 vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
                 row[f"{SHORT[kind]} {split.upper()} %"] = (
-                    100 * np.nanmean(vals) if np.isfinite(vals).any() else np.nan
+                    np.nanmean(vals) if np.isfinite(vals).any() else np.nan
                 )
                 row[f"{SHORT[kind]} {split.upper()} n"] = _windows(
                     ok[window_count_key(kind, split, horizon_s)]
@@ -197,7 +197,7 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
         row["failed"] = (
             ", ".join(f"{t} ({s})" for t, s in zip(bad["terrain"], bad["status"], strict=True)) or ""
         )
-        row["_key"] = np.nanmean(ok[f"{rank_by}_{horizon_s:g}s"].to_numpy(float)) if len(ok) else np.nan
+        row["_key"] = np.nanmean(ok[key].to_numpy(float)) if len(ok) and key in ok else np.nan
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
     out.insert(0, "rank", np.arange(1, len(out) + 1))
@@ -211,7 +211,7 @@ def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
                         "status": board["status"]})  # fmt: skip
     for kind in KINDS:
         for split in SPLITS:
-            out[f"{SHORT[kind]} {split.upper()} %"] = 100 * board[trk.metric_key(kind, split, horizon_s)]
+            out[f"{SHORT[kind]} {split.upper()} %"] = board[trk.metric_key(kind, split, horizon_s)]
             out[f"{SHORT[kind]} {split.upper()} n"] = [
                 _windows(pd.Series([v])) for v in board[window_count_key(kind, split, horizon_s)]
             ]
@@ -257,7 +257,7 @@ def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
             best, fr = means.iloc[0], means["friction"]
             lines.append(
                 f"- {kind} RMSRE on {split.upper()} (mean over terrains): friction-based ranks {rank} of "
-                f"{len(means)} ({100 * fr:.2f} % vs best {means.index[0]} {100 * best:.2f} %)"
+                f"{len(means)} ({fr:.2f} % vs best {means.index[0]} {best:.2f} %)"
             )
     return lines
 
@@ -295,7 +295,7 @@ def decomposition_table(boards: dict[str, pd.DataFrame], horizon_s: float) -> pd
                 for p in shown:
                     b = ok[p][(ok[p]["model"] == m) & ok[p]["terrain"].isin(terrains)]
                     v = b[key].to_numpy(float)
-                    vals.append(100 * float(np.nanmean(v)) if np.isfinite(v).any() else np.nan)
+                    vals.append(float(np.nanmean(v)) if np.isfinite(v).any() else np.nan)  # logged in %
                 row[f"{SHORT[kind]} {split.upper()} %"] = " / ".join(
                     "n/a" if not np.isfinite(v) else f"{v:.2f}" for v in vals
                 )
@@ -541,6 +541,7 @@ class CompareResult:
     notes: list[str] = field(default_factory=list)
     inputs: str = "commanded"
     decomposition_md: str = ""
+    links: dict[str, str] = field(default_factory=dict)  # what -> MLflow UI URL
 
 
 def _with_inputs(cfg: Any, protocol: str) -> Any:
@@ -602,6 +603,7 @@ def run_compare(cfg: Any) -> CompareResult:
             f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
         )
     summary = summary_table(board, horizon, str(cfg.rank_by))
+    links = ui_links(cfg, tracker, parent, board, horizon)
     detail = detail_table(board, horizon)
     out = layout.reports
     out.mkdir(parents=True, exist_ok=True)
@@ -681,7 +683,7 @@ def run_compare(cfg: Any) -> CompareResult:
     write_text_atomic(
         report,
         _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol, decomp_md,
-                   shown),
+                   shown, links),
     )  # fmt: skip
     files.append(report)
     if cfg.get("log_to_mlflow", True):
@@ -694,12 +696,29 @@ def run_compare(cfg: Any) -> CompareResult:
             tracker.end(run_id)
         for f in files:
             tracker.artifact(run_id, f, "report")
-    return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md)
+    return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links)
+
+
+def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
+    """MLflow UI links: the parent run, the compare-runs page of the selected child runs, and (with a
+    parent) a saved view of the runs table showing its children with the RMSRE columns."""
+    ui = (cfg.get("mlflow") or {}).get("ui_url")
+    links = {}
+    if parent:
+        links["parent run"] = tracker.run_url(parent, ui)
+    links["compare its model runs"] = tracker.compare_url(board["run_id"].tolist(), ui)
+    if parent:
+        cols = [trk.metric_key(k, s, horizon) for s in ("ld", "cv") for k in KINDS]
+        name = tracker.client.get_run(parent).info.run_name
+        links["runs table (saved view)"] = tracker.save_view(
+            f"evaluate-{parent[:8]}", name, parent, cols, trk.rank_key(str(cfg.rank_by), horizon), ui
+        )
+    return links
 
 
 def _report_md(
     cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol="commanded", decomp_md="",
-    shown=(),
+    shown=(), links=None,
 ) -> str:  # fmt: skip
     failed = board[board["status"] != "FINISHED"]
     parts = [
@@ -714,7 +733,8 @@ def _report_md(
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"
         + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
-        f"- ranked by the mean over terrains of `{cfg.rank_by}_{horizon:g}s`",
+        *[f"- MLflow UI, {what}: <{url}>" for what, url in (links or {}).items()],
+        f"- ranked by the mean over terrains of `{trk.rank_key(str(cfg.rank_by), horizon)}`",
         f"- input protocol: `{protocol}` (every model driven by the same inputs; runs of different protocols "
         "are never ranked together)",
         "",
@@ -782,5 +802,6 @@ def format_console(result: CompareResult) -> str:
         lines += ["Input protocols side by side (commanded / response / measured, RMSRE %):",
                   result.decomposition_md, ""]  # fmt: skip
     lines.append(f"report: {result.report}")
+    lines += [f"MLflow {what}: {url}" for what, url in result.links.items()]
     lines += [f"note: {n}" for n in result.notes]
     return "\n".join(lines)

@@ -273,14 +273,15 @@ def score_split(
 
 
 def summarise(windows: pd.DataFrame, split: str, horizons: Sequence[float]) -> dict[str, float]:
-    """RMSRE metrics (names from :func:`tracking.metric_key`) and window counts of one split."""
+    """RMSRE metrics in % (names from :func:`tracking.metric_key`) and window counts of one split."""
     out: dict[str, float] = {}
     for h in horizons:
         w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
         for kind, col in KINDS.items():
             vals = w[col].to_numpy(float) if len(w) else np.array([])
-            out[trk.metric_key(kind, split, h)] = rmsre(vals)
-            out[f"n_windows_{kind}_{split}_{h:g}s"] = float(np.isfinite(vals).sum())
+            # percent, as every table shows it; to 0.001 % so that the UI's columns read as numbers
+            out[trk.metric_key(kind, split, h)] = round(100.0 * rmsre(vals), 3)
+            out[trk.windows_key(kind, split, h)] = float(np.isfinite(vals).sum())
         if len(w) and "pos_d2" in w:
             out[f"coverage95_position_{split}_{h:g}s"] = float(np.mean(w["pos_d2"] <= CHI2_95_2DOF))
             out[f"coverage95_yaw_{split}_{h:g}s"] = float(np.mean(w["yaw_z2"] <= CHI2_95_1DOF))
@@ -420,15 +421,10 @@ def run_benchmark(
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)
     conf = _as_container(cfg)
-    params = trk.flatten(conf)
+    params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     all_files = [p for fs in files_of.values() for p in fs]
-    common_tags = {
-        trk.TAG_DATASET: str(cfg.dataset),
-        trk.TAG_GIT: commit,
-        "mlflow.source.git.commit": commit.split("+")[0],
-        **transfer_tags,
-    }
+    common_tags = {trk.TAG_DATASET: str(cfg.dataset), trk.TAG_GIT: commit, **transfer_tags}
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
@@ -441,8 +437,9 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped))  # fmt: skip
+        inputs = protocol
         with tracker.run(
-            f"evaluate {cfg.dataset}",
+            tracker.unique_run_name(trk.parent_run_name("evaluate", str(cfg.dataset), inputs)),
             {
                 **common_tags,
                 **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
@@ -451,18 +448,21 @@ def run_benchmark(
                 trk.TAG_INPUTS: protocol,
                 "skidbench.models": ",".join(models),
                 "skidbench.terrains": ",".join(terrains),
+                trk.TAG_NOTE: _describe(cfg, models, terrains, splits, horizons),
             },
         ) as parent_id:
             tracker.log(parent_id, params=params)
             if skipped:
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
+            datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
+            tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             for terrain in terrains:
                 fp = split_fingerprint(files_of[terrain], layout.splits)
                 for model_name in models:
                     child = _run_child(
                         cfg, tracker, parent_id, layout, model_name, terrain, tests[terrain], horizons, hcfg,
-                        fit_fn, params, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
-                        inputs_of[terrain],
+                        fit_fn, conf, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
+                        inputs_of[terrain], datasets_of[terrain],
                     )  # fmt: skip
                     children.append(child)
             n_failed = sum(c.status != "FINISHED" for c in children)
@@ -471,6 +471,7 @@ def run_benchmark(
                 metrics={"n_children": len(children), "n_failed": n_failed},
                 tags={trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED"},
             )
+            save_views(tracker, parent_id, splits, horizons)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
@@ -570,20 +571,24 @@ def _run_child(
     horizons,
     hcfg,
     fit_fn,
-    params,
+    conf,
     tags,
     log_figures,
     inputs: Inputs | None = None,
+    datasets=(),
 ) -> ChildResult:
     inputs = inputs or Inputs()
     protocol = inputs.protocol
     run_id = tracker.start(
         f"{model_name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain,
-         trk.TAG_INPUTS: protocol},
+         trk.TAG_INPUTS: protocol,
+         trk.TAG_NOTE: _describe(cfg, [model_name], [terrain], list(tests), horizons)},
         parent_id,
     )  # fmt: skip
+    params = trk.config_params(conf, _model_config(cfg, model_name))  # this model's config, no other's
     tracker.log(run_id, params={**params, "model": model_name, "terrain": terrain, "inputs": protocol})
+    tracker.log_datasets(run_id, datasets)
     stage = "fit"
     try:
         fit = fit_fn(cfg, model_name, terrain)
@@ -615,6 +620,7 @@ def _run_child(
             described.update(model.tracking_params())
         if inputs.response is not None:  # the calibration's wheel response that drove every model
             described.update({f"wheel_response.{k}": v for k, v in inputs.response.__dict__.items()})
+        described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
         if described:
             tracker.log(run_id, params=described)
         stem = layout.eval_stem(model_name, terrain, protocol)
@@ -628,6 +634,9 @@ def _run_child(
             arrays_npz = stem.with_name(stem.name + ".arrays.npz")
             save_arrays(arrays_npz, arrays)
             tracker.artifact(run_id, arrays_npz, "fit")
+        stage = "logging the model"
+        record_path = stem.with_name(stem.name + ".mlflow_model.json")
+        _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path, next(iter(tests.values()))[0])
         stage = "predict"
         metrics: dict[str, float] = {}
         frames = []
@@ -667,7 +676,7 @@ def _run_child(
             fig_path = stem.with_name(stem.name + ".errors.png")
             window_error_figure(windows, f"{model_name} on {terrain} (inputs={protocol})", fig_path)
             tracker.artifact(run_id, fig_path, "figures")
-        nan_metrics = [k for k, v in metrics.items() if k.startswith("rmsre_") and not np.isfinite(v)]
+        nan_metrics = [k for k, v in metrics.items() if k.endswith("_rmsre_pct") and not np.isfinite(v)]
         tracker.log(
             run_id,
             metrics=metrics,
@@ -696,6 +705,96 @@ def _run_child(
         log.debug("%s", traceback.format_exc())
         tracker.fail(run_id, reason)
         return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason, inputs=protocol)
+
+
+# -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
+def _describe(cfg, models, terrains, splits, horizons) -> str:
+    """The description of an evaluate run (parent: every model and terrain; child: one of each)."""
+    one = len(models) == 1 and len(terrains) == 1
+    cmd = trk.reproduce_command(
+        "evaluate", [f"models=[{','.join(models)}]", f"terrains=[{','.join(terrains)}]"] if one else [],
+        drop=("force",),
+    )  # fmt: skip
+    if one:
+        cmd = trk.reproduce_command("fit", [f"model={models[0]}", f"terrain={terrains[0]}"],
+                                    drop=("models", "terrains", "force")) + "\n" + cmd  # fmt: skip
+    title = (f"**{models[0]}** on **{terrains[0]}**, fitted on Train, scored on {'/'.join(splits).upper()}"
+             if one else f"Benchmark of {len(models)} models on {len(terrains)} terrains")  # fmt: skip
+    facts = {
+        "dataset": f"`{cfg.dataset}` ({layout_from_cfg(cfg).root})",
+        "input protocol": f"`{cfg.get('inputs', 'commanded')}` (what a model is given at predict time)",
+        "horizon": ", ".join(f"{h:g} s" for h in horizons),
+        "models": None if one else ", ".join(models),
+        "terrains": None if one else ", ".join(terrains),
+        "metrics": "`<split>_<horizon>_<trans|rot>_rmsre_pct`: RMSRE of the relative translational / "
+        "rotational error over every window of the horizon, in %, lower is better",
+    }
+    return trk.describe(title, facts, cmd)
+
+
+def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
+    """The Train split and the test splits of one terrain as MLflow dataset inputs."""
+    from skidbench.models.base import concat_sequences
+
+    out = []
+    for split in [TRAIN, *tests]:
+        fs = [p for p in files if p.parent.name == split]
+        tables = (
+            [(s.table, {"sequence": s.name}) for s in tests[split]]
+            if split in tests
+            else [read_split(p) for p in fs]
+        )
+        out.append(trk.SplitData(f"{cfg.dataset}/{terrain}/{split}", split, layout.splits / terrain / split,
+                                 split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
+    return out
+
+
+def _model_config(cfg, model_name: str) -> dict[str, Any] | None:
+    try:
+        from skidbench.models.fitting import model_config
+    except ImportError:  # pragma: no cover
+        return None
+    return model_config(cfg, model_name)
+
+
+def _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path, seq: TestSequence) -> None:
+    """The fitted model as an MLflow Model of the run (tag ``skidbench.logged_model``: its id, or why not:
+    a model object that is no installed skidbench model cannot be rebuilt outside this process)."""
+    from skidbench.models.base import ModelError
+    from skidbench.models.registry import get_model_class
+
+    from .mlflow_model import INPUT_COLUMNS, write_model_record
+
+    model = fit.model
+    spec = str((_fit_json(fit).get("resolved") or {}).get("spec") or model_name)
+    try:
+        cls = get_model_class(spec)  # an augmented spec's class is made anew on each call: compare names
+        if not hasattr(model, "robot") or (type(model) is not cls and getattr(model, "name", "") != cls.name):
+            raise ModelError(f"{type(model).__name__} is not the installed model {spec}")
+        record = write_model_record(record_path, spec, model.to_json(),
+                                    model.robot, str(cfg.get("inputs", "commanded")))  # fmt: skip
+        example = seq.table.head(30).assign(sequence=seq.name)[list(INPUT_COLUMNS)]  # 1 s of a test sequence
+        arrays = record_path.with_name(record_path.name.replace(".mlflow_model.json", ".arrays.npz"))
+        arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None
+        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays)
+    except Exception as exc:  # the benchmark's numbers stand without it: say why, on the run (and console)
+        model_id = f"not logged: {type(exc).__name__}: {one_line(str(exc))[:300]}"
+        if not isinstance(exc, ModelError):
+            log.warning("%s/%s: model %s", model_name, terrain, model_id)
+    tracker.log(run_id, tags={"skidbench.logged_model": model_id})
+
+
+def save_views(tracker, parent_id: str, splits, horizons) -> str:
+    """The UI's saved views of an evaluate (``latest`` and ``evaluate-<run id>``): its child runs with the
+    RMSRE columns of the first horizon (LD first), best LD translational first. Returns the URL."""
+    h = horizons[0]
+    order = sorted(splits, key=lambda s: s != "ld")
+    cols = [trk.metric_key(k, s, h) for s in order for k in ("translational", "rotational")]
+    name = tracker.client.get_run(parent_id).info.run_name
+    url = ""
+    for key, title in ((f"evaluate-{parent_id[:8]}", name), ("latest", f"latest: {name}")):
+        url = tracker.save_view(key, title, parent_id, cols, cols[0])
+    return url
 
 
 #: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins,
@@ -735,7 +834,7 @@ def _num(v: Any) -> float | None:
 
 
 def _brief(metrics: dict[str, float]) -> str:
-    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if k.startswith("rmsre_"))
+    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if k.endswith("_rmsre_pct"))
 
 
 PROTOCOL_TEXT = {
@@ -749,15 +848,10 @@ def format_result(result: BenchmarkResult) -> str:
     """A short text summary for the console: RMSRE in % per (model, terrain) at each horizon."""
     df = result.table()
     cols = {}
-    short = {"translational": "trans", "rotational": "rot"}
-    for c in sorted(
-        (c for c in df.columns if c.startswith("rmsre_")), key=lambda c: c.startswith("rmsre_rot")
-    ):
-        _, kind, split, h = c.split("_", 3)
-        cols[c] = f"{short[kind]} {split.upper()} {h} %"
+    for c in sorted((c for c in df.columns if c.endswith("_rmsre_pct")), key=lambda c: "_rot_" in c):
+        split, h, kind, _ = c.split("_", 3)
+        cols[c] = f"{kind} {split.upper()} {h} %"
     show = df[["model", "inputs", "terrain", "status", *cols]].rename(columns=cols)
-    for c in cols.values():
-        show[c] = 100 * show[c]
     lines = [
         f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
         f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",

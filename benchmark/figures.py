@@ -19,6 +19,8 @@ import pandas as pd  # noqa: E402
 
 from skidbench.pipeline.io import atomic_path  # noqa: E402
 
+from .tracking import metric_key  # noqa: E402
+
 #: display order and names of the built-in models (plugins follow in the order they come)
 MODEL_ORDER = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction")
 MODEL_LABELS = {
@@ -69,7 +71,8 @@ def rmsre_bars(
     """Bar chart of RMSRE per model (bars) and terrain (groups), one panel per test split.
 
     ``board``: one row per (model, terrain) with columns ``model``, ``terrain``, ``status`` and the
-    metric columns ``rmsre_<kind>_<split>_<h>s``. FAILED runs are marked, not dropped."""
+    RMSRE columns (%) named by :func:`skidbench.benchmark.tracking.metric_key`. FAILED runs are marked, not
+    dropped."""
     models = order_models(board["model"].unique().tolist())
     terrains = sorted(board["terrain"].unique().tolist())
     nm, nt = len(models), len(terrains)
@@ -77,9 +80,8 @@ def rmsre_bars(
     fig, axes = plt.subplots(
         1, len(splits), figsize=(1.2 + 1.9 * len(splits) * max(nt, 1.5), 3.8), squeeze=False
     )
-    percent = 100.0
     for ax, split in zip(axes[0], splits, strict=True):
-        col = f"rmsre_{kind}_{split}_{horizon_s:g}s"
+        col = metric_key(kind, split, horizon_s)
         top = 0.0
         for i, m in enumerate(models):
             xs, ys = [], []
@@ -95,7 +97,7 @@ def rmsre_bars(
                 if failed:
                     ax.text(x, 0, "failed", rotation=90, ha="center", va="bottom", fontsize=7, color="0.3")
                 xs.append(x)
-                ys.append(v * percent)
+                ys.append(v)
             ys_arr = np.array(ys)
             top = max(top, np.nanmax(ys_arr) if np.isfinite(ys_arr).any() else 0.0)
             bars = ax.bar(

@@ -22,16 +22,24 @@ on any machine; so a job a cluster retried still yields exactly one FINISHED run
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import datetime as dt
 import functools
+import getpass
+import json
 import logging
 import os
 import re
+import shlex
 import socket
 import subprocess
+import sys
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
-from collections.abc import Iterator, Mapping
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +70,14 @@ TAG_HOST = "skidbench.host"
 TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
 TAG_RUN_KEY = "skidbench.run_key"
-TAG_INPUTS = "skidbench.inputs"  # the input protocol that drove every model of the run (pipeline/protocol.py)
+TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
+TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
+TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
+EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
+TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
+#: what `make mlflow-ui` serves; links printed for a local (SQLite) store point there
+DEFAULT_UI_URL = "http://127.0.0.1:5000"
+SHORT = {"translational": "trans", "rotational": "rot"}
 
 
 @functools.cache
@@ -81,7 +96,10 @@ def process_tags() -> dict[str, str]:
 
 def _quiet_mlflow_logs() -> None:
     # a fresh SQLite store runs its schema migrations through alembic, which is chatty at INFO
-    for name in ("alembic", "alembic.runtime.migration", "mlflow.store.db.utils"):
+    # and logging a model says at INFO that it validated the input example against the signature
+    quiet = ["alembic", "alembic.runtime.migration", "mlflow.store.db.utils"]
+    quiet += ["mlflow.pyfunc", "mlflow.models"]
+    for name in quiet:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
@@ -147,12 +165,168 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
 
 
 def metric_key(kind: str, split: str, horizon_s: float) -> str:
-    """``rmsre_translational_cv_6s`` (the metric names compare and the leaderboard read)."""
-    return f"rmsre_{kind}_{split}_{horizon_s:g}s"
+    """``ld_6s_trans_rmsre_pct``: RMSRE in percent of ``kind`` (translational | rotational) on a test split
+    at a horizon; the metric names evaluate logs and compare, the leaderboard and the UI's columns read."""
+    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_rmsre_pct"
+
+
+def windows_key(kind: str, split: str, horizon_s: float) -> str:
+    """``ld_6s_trans_windows``: how many windows the RMSRE :func:`metric_key` names is over."""
+    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_windows"
+
+
+def rank_key(rank_by: str, horizon_s: float) -> str:
+    """The metric of ``rank_by`` = ``<split>_<trans|rot>`` (e.g. ``ld_trans``) at ``horizon_s``."""
+    split, _, short = str(rank_by).partition("_")
+    kinds = {v: k for k, v in SHORT.items()}
+    if short not in kinds or not split:
+        raise EvaluationError(f"rank_by={rank_by!r}: expected <split>_<trans|rot>, e.g. ld_trans")
+    return metric_key(kinds[short], split, horizon_s)
+
+
+def source_tags() -> dict[str, str]:
+    """MLflow's own tags for who started a run and from what (the UI's "Created by" and "Source"):
+    ``mlflow.user``, ``mlflow.source.type`` LOCAL, ``mlflow.source.name`` the command line, the git
+    commit of the skidbench tree."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):
+        user = "unknown"
+    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"  # e.g. "skidbench evaluate"
+    tags = {
+        "mlflow.user": user,
+        "mlflow.source.type": "LOCAL",
+        "mlflow.source.name": " ".join([prog, shlex.join(sys.argv[1:])]).strip()[:MAX_TAG_LEN],
+    }
+    commit = git_commit()
+    if commit != "unknown":
+        tags["mlflow.source.git.commit"] = commit.split("+")[0]
+    return tags
+
+
+def task_overrides() -> list[str]:
+    """The command-line overrides of the running Hydra app ([] outside one)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return [str(o) for o in HydraConfig.get().overrides.task]
+    except (ImportError, ValueError):
+        return []
+
+
+def reproduce_command(stage: str, extra: Sequence[str] = (), drop: Sequence[str] = ()) -> str:
+    """``skidbench <stage> <this run's overrides> <extra>``; overrides of the keys ``drop`` (and of the keys
+    ``extra`` sets) are left out so that the command runs as printed."""
+    extra = list(extra)
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in extra} | set(drop)
+    kept = [o for o in task_overrides() if o.split("=", 1)[0].lstrip("+~") not in keys]
+    return shlex.join(["skidbench", stage, *kept, *extra])
+
+
+def describe(title: str, facts: Mapping[str, Any], command: str) -> str:
+    """A run description (the ``mlflow.note.content`` tag; Markdown): a title line, facts, the command."""
+    lines = [title, ""]
+    lines += [f"- **{k}**: {v}" for k, v in facts.items() if v not in (None, "")]
+    lines += ["", "Reproduce:", "", "```", command, "```", ""]
+    return "\n".join(lines)[:MAX_TAG_LEN]
+
+
+def parent_run_name(stage: str, dataset: str, inputs: str, when: dt.datetime | None = None) -> str:
+    """``evaluate sim-mini commanded 2026-11-23 23:10:05``: stage, dataset, input protocol, UTC start time
+    (to the second; a parent run's name is unique and says what it is)."""
+    when = when or dt.datetime.now(dt.UTC)
+    return f"{stage} {dataset} {inputs} {when:%Y-%m-%d %H:%M:%S}"
+
+
+def config_params(conf: Mapping[str, Any], model: Mapping[str, Any] | None = None) -> dict[str, str]:
+    """A run's config as params: the stage config without any ``model`` node (a ``+model=...`` override
+    belongs to one model only), plus ``model.*`` of ``model`` (``{"name", "params", "options"}``: the
+    config of the run's own model, :func:`skidbench.models.fitting.model_config`) when given."""
+    conf = {k: v for k, v in conf.items() if k != "model"}
+    if model is not None:
+        conf["model"] = {"name": model.get("name"), "params": model.get("params") or {},
+                         "options": model.get("options") or {}}  # fmt: skip
+    return flatten(conf)
 
 
 def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "default"
+
+
+@dataclasses.dataclass
+class SplitData:
+    """One split of one terrain as a run input: ``name`` (``<dataset>/<terrain>/<split>``), the split,
+    the folder it was read from, its fingerprint and its table (the sequences concatenated)."""
+
+    name: str
+    split: str
+    source: Path
+    fingerprint: str
+    table: Any
+
+    def entity(self):
+        import mlflow.data
+
+        with warnings.catch_warnings():  # MLflow's hints on a local path source and integer columns
+            warnings.simplefilter("ignore", UserWarning)
+            ds = mlflow.data.from_pandas(
+                self.table, source=str(self.source), name=self.name, digest=self.fingerprint[:36]
+            )
+            return ds._to_mlflow_entity()
+
+
+@contextlib.contextmanager
+def _env(**values: str) -> Iterator[None]:
+    """Environment variables set for the duration of a block (restored after)."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextlib.contextmanager
+def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
+    """MLflow's current tracking URI and experiment set for a block, then restored with the environment
+    variables ``mlflow.set_tracking_uri``/``set_experiment`` export (the config reads
+    MLFLOW_TRACKING_URI: left set, a stage's cache key would change after its run)."""
+    import mlflow
+    from mlflow.tracking import fluent
+    from mlflow.tracking._tracking_service import utils as tracking_utils
+
+    names = ("MLFLOW_TRACKING_URI", "MLFLOW_EXPERIMENT_ID")
+    env = {k: os.environ.get(k) for k in names}
+    saved = (tracking_utils._tracking_uri, fluent._active_experiment_id)
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_experiment(experiment_id=experiment_id)
+    try:
+        yield
+    finally:
+        tracking_utils._tracking_uri, fluent._active_experiment_id = saved
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@functools.lru_cache(maxsize=1)
+def _requirements() -> list[str]:
+    """What a logged model needs to load: skidbench and MLflow at their installed versions."""
+    import importlib.metadata as md
+
+    out = []
+    for dist in ("skidbench", "mlflow"):
+        try:
+            out.append(f"{dist}=={md.version(dist)}")
+        except md.PackageNotFoundError:
+            out.append(dist)
+    return out
 
 
 class Tracker:
@@ -178,6 +352,7 @@ class Tracker:
             Path(uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
         self.client = MlflowClient(tracking_uri=uri)
         self.experiment_name = experiment
+        self._datasets: dict[tuple[str, str], Any] = {}  # dataset entities already built
         self._artifact_root = artifact_root
         self._experiment_id: str | None = None
         self._existing_experiment()  # a deleted experiment or an unusable store: one line, now
@@ -207,6 +382,8 @@ class Tracker:
                 f"MLflow experiment {self.experiment_name!r} at {self.uri} is deleted; "
                 "restore it or set mlflow.experiment"
             )
+        if exp.tags.get(TAG_EXPERIMENT_KIND) != EXPERIMENT_KIND:  # a store written before
+            self._tag_experiment(exp.experiment_id, self.experiment_name)
         self._experiment_id = exp.experiment_id
         return self._experiment_id
 
@@ -226,18 +403,34 @@ class Tracker:
             if artifact_root is not None and not is_server(self.uri):
                 loc = (Path(artifact_root).absolute() / _safe_name(name)).as_uri()
             try:
-                return self.client.create_experiment(name, artifact_location=loc)
+                exp_id = self.client.create_experiment(name, artifact_location=loc)
             except MlflowException:  # created concurrently (a parallel sweep)
                 exp = self.client.get_experiment_by_name(name)
                 if exp is None:
                     raise
                 return exp.experiment_id
+            self._tag_experiment(exp_id, name)
+            return exp_id
         except MlflowException as exc:
             raise EvaluationError(f"MLflow store {self.uri}: {one_line(exc.message)[:300]}") from None
 
+    def _tag_experiment(self, exp_id: str, name: str) -> None:
+        """The experiment kind (the UI opens the experiment on its runs table, not on the GenAI overview)
+        and a description."""
+        self.client.set_experiment_tag(exp_id, TAG_EXPERIMENT_KIND, EXPERIMENT_KIND)
+        self.client.set_experiment_tag(
+            exp_id,
+            TAG_NOTE,
+            f"skidbench benchmark runs of `{name.removeprefix('skidbench-')}`: one parent run per "
+            "`skidbench evaluate` (its name: dataset, input protocol, start time) with a child run per "
+            "model and terrain (fitted on Train, scored on the CV and LD test splits; metrics "
+            "`<split>_<horizon>_<trans|rot>_rmsre_pct` are RMSRE in %, lower is better), and one run per "
+            "`skidbench calibrate`. `skidbench compare` prints the link of a saved view that shows them.",
+        )
+
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
-        t = {**process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
+        t = {**source_tags(), **process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
         if self.dataset_id:
             t[TAG_DATASET_ID] = self.dataset_id
         if parent_id:
@@ -292,6 +485,135 @@ class Tracker:
             raise
         else:
             self.end(run_id, "FINISHED")
+
+    def unique_run_name(self, name: str) -> str:
+        """``name``, or ``name #2``, ``#3``, ... when a run of this experiment already has it (two runs
+        started within one second)."""
+        quoted = name.replace("'", "")
+        taken = {
+            r.info.run_name
+            for r in self.client.search_runs(
+                [self.experiment_id], f"attributes.run_name LIKE '{quoted}%'", max_results=1000
+            )
+        }
+        k, out = 1, name
+        while out in taken:
+            k += 1
+            out = f"{name} #{k}"
+        return out
+
+    # -- what a run read and what it made ----------------------------------------------------------
+    def log_datasets(self, run_id: str, datasets: Sequence[SplitData]) -> None:
+        """The split tables a run read as MLflow dataset inputs (``mlflow.data.from_pandas``: name, source
+        folder, digest = the files' fingerprint, schema and row count; context = the split)."""
+        if not datasets:
+            return
+        from mlflow.entities import DatasetInput, InputTag
+
+        inputs = []
+        for d in datasets:
+            key = (d.name, d.fingerprint)
+            if key not in self._datasets:  # a parent and its children share the entity
+                self._datasets[key] = d.entity()
+            tags = [
+                InputTag("mlflow.data.context", d.split),
+                InputTag("skidbench.fingerprint", d.fingerprint),
+            ]
+            inputs.append(DatasetInput(self._datasets[key], tags=tags))
+        self.client.log_inputs(run_id, datasets=inputs)
+
+    def log_model(
+        self, run_id: str, name: str, record: Path, example: Any = None, arrays: Path | None = None
+    ) -> str:
+        """Log a fitted model as an MLflow Model of ``run_id`` (pyfunc flavour with the protocol's
+        signature, :mod:`skidbench.benchmark.mlflow_model`; ``record`` its JSON; ``example`` a few input
+        rows, which MLflow stores and checks the model with); returns its model id.
+        Requirements are given, not inferred (inference loads the model in a subprocess: seconds)."""
+        import mlflow
+        from mlflow.models import Model
+
+        from . import mlflow_model as mm
+
+        # Model.log talks to the current tracking URI and creates the model in the current experiment:
+        # both set for the call only (they are process-wide, and MLFLOW_TRACKING_URI is part of the config)
+        with (
+            _mlflow_current(self.uri, self.experiment_id),
+            _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"),
+        ):
+            info = Model.log(
+                artifact_path=None,
+                name=_safe_name(name)[:100],
+                flavor=mlflow.pyfunc,
+                run_id=run_id,
+                python_model=str(Path(mm.__file__).with_name("mlflow_model_code.py")),  # models from code
+                artifacts={mm.ARTIFACT: str(record), **({mm.ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
+                signature=mm.signature(),
+                input_example=example,
+                pip_requirements=_requirements(),
+            )
+        return info.model_id
+
+    # -- links to the UI ------------------------------------------------------------------------
+    def ui_url(self, ui: str | None = None) -> str:
+        """The MLflow UI that shows this store: a tracking server's own URL, else ``ui`` (what
+        ``make mlflow-ui`` serves by default)."""
+        return self.uri.rstrip("/") if is_server(self.uri) else (ui or DEFAULT_UI_URL).rstrip("/")
+
+    def run_url(self, run_id: str, ui: str | None = None) -> str:
+        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs/{run_id}"
+
+    def compare_url(self, run_ids: Sequence[str], ui: str | None = None) -> str:
+        """The UI's compare-runs page of ``run_ids`` (params, metrics and charts side by side)."""
+        q = urllib.parse.urlencode(
+            {
+                "runs": json.dumps(list(run_ids), separators=(",", ":")),
+                "experiments": json.dumps([self.experiment_id], separators=(",", ":")),
+            }
+        )
+        return f"{self.ui_url(ui)}/#/compare-runs?{q}"
+
+    def save_view(
+        self,
+        key: str,
+        title: str,
+        parent_id: str,
+        columns: Sequence[str],
+        order_by: str,
+        ui: str | None = None,
+    ) -> str:
+        """Save a view of the runs table as an experiment tag (the UI's "Views" menu; MLflow 3.17 reads
+        ``mlflow.sharedViewState.<key>`` when the runs page is opened with ``?viewStateShareKey=<key>``):
+        the child runs of ``parent_id`` grouped by terrain (a group's row: the best, i.e. smallest, value),
+        the metric ``columns`` and the logged models visible, rows sorted by ``order_by`` ascending (the
+        best model of each terrain first). Returns its URL."""
+        metrics = [f"metrics.`{c}`" for c in columns]
+        state = {
+            "searchFilter": f"tags.`{TAG_PARENT}` = '{parent_id}'",
+            "orderByKey": f"metrics.`{order_by}`",
+            "orderByAsc": True,
+            "selectedColumns": [*metrics, "attributes.`Models`"],
+            # the metrics right after the run name, wide enough for their names (the UI's column ids)
+            "columnOrder": [
+                "attributes.`Run Name`",
+                *metrics,
+                "attributes.`Models`",
+                "runDateAndNestInfo",
+                "duration",
+            ],
+            "columnWidths": {m: 8 * len(c) + 24 for m, c in zip(metrics, columns, strict=True)},
+            # the chart view plots every run, not the first 10 (the UI's default) nor the groups' minima
+            "runsHiddenMode": "SHOW_ALL",
+            "useGroupedValuesInCharts": False,
+            "groupBy": {
+                "aggregateFunction": "min",
+                "groupByKeys": [{"mode": "tag", "groupByData": TAG_TERRAIN}],
+            },
+        }
+        now = int(time.time() * 1000)
+        envelope = {"name": title, "createdAt": now, "updatedAt": now, "state": json.dumps(state)}
+        self.client.set_experiment_tag(self.experiment_id, TAG_SAVED_VIEW + key, json.dumps(envelope))
+        q = urllib.parse.urlencode({"viewStateShareKey": key, "workflowType": "machine_learning"})
+        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs?{q}"
 
     def dataset_filter(self) -> list[str]:
         """The search clause that keeps this dataset's runs only (none without a dataset id)."""
@@ -392,6 +714,23 @@ class Tracker:
                     )
                 return run.info.run_id
         return runs[0].info.run_id
+
+
+def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
+    """For ``make mlflow-ui``: per skidbench experiment of the store, the URL of the saved view of its latest
+    evaluate (the runs table with the RMSRE columns) and of its runs page."""
+    from mlflow.tracking import MlflowClient
+
+    _quiet_mlflow_logs()
+    if uri.startswith("sqlite:///") and not Path(uri[len("sqlite:///") :]).is_file():
+        print(f"no MLflow store at {uri} yet: run `make reproduce` (or `skidbench evaluate`) first")
+        return
+    for exp in MlflowClient(uri).search_experiments(filter_string="name LIKE 'skidbench-%'"):
+        base = f"{ui.rstrip('/')}/#/experiments/{exp.experiment_id}"
+        if TAG_SAVED_VIEW + "latest" in exp.tags:
+            print(f"{exp.name}: {base}/runs?viewStateShareKey=latest&workflowType=machine_learning")
+        else:
+            print(f"{exp.name}: {base}/runs?workflowType=machine_learning")
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:

@@ -7,6 +7,7 @@ config found on the Hydra search path).
 
 from __future__ import annotations
 
+import json
 import logging
 
 import hydra
@@ -107,6 +108,11 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         trk.TAG_GIT: trk.git_commit(),
         **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
     }
+    tags[trk.TAG_NOTE] = trk.describe(
+        f"**{name}** fitted on the {cfg.split} split of **{terrain}**",
+        {"dataset": f"`{cfg.dataset}` ({layout.root})", "fit": f"`{res.path}`"},
+        trk.reproduce_command("fit", [f"model={name}", f"terrain={terrain}", "reuse=false"]),
+    )
     with tracker.run(f"fit {name}/{terrain}", tags) as run_id:
         params = {
             "model": name,
@@ -114,7 +120,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
             "split": str(cfg.split),
             "inputs": str(cfg.get("inputs")),
         }
-        params.update({f"param.{k}": v for k, v in trk.flatten(dict(res.model.params or {})).items()})
+        params.update(trk.flatten(dict(res.model.params or {}), "fitted."))  # as evaluate's runs name them
         params.update(trk.flatten(dict(getattr(res.model, "options", None) or {}), "model_options."))
         metrics = {"fit_time_s": res.fit_time_s, "n_train": res.n_train}
         if res.fit_loss is not None:
@@ -123,6 +129,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         tracker.artifact(run_id, res.path, "fit")
         if arrays_file(res.path).is_file():  # a learned model's fitted arrays
             tracker.artifact(run_id, arrays_file(res.path), "fit")
+        _log_model(cfg, tracker, run_id, name, terrain, res, layout)
     return run_id
 
 
@@ -136,6 +143,23 @@ def _response_key(cfg, terrain: str, inputs: str) -> dict | None:
 
     resp = response_for(cfg, terrain)
     return asdict(resp) if resp is not None else None
+
+
+def _log_model(cfg: DictConfig, tracker, run_id: str, name: str, terrain: str, res, layout) -> None:
+    """The fitted model as an MLflow Model of the fit run (as evaluate logs it; tag its id)."""
+    from skidbench.benchmark.mlflow_model import write_model_record
+
+    from .fitting import arrays_file
+
+    spec = str((json.loads(res.path.read_text()).get("resolved") or {}).get("spec") or name)
+    inputs = str(cfg.get("inputs", "commanded"))
+    path = layout.fit_file(name, terrain, inputs).with_suffix(".mlflow_model.json")
+    record = write_model_record(path, spec, res.model.to_json(), res.model.robot, inputs)
+    arrays = arrays_file(res.path)
+    model_id = tracker.log_model(
+        run_id, f"{name}-{terrain}", record, None, arrays if arrays.is_file() else None
+    )
+    tracker.log(run_id, tags={"skidbench.logged_model": model_id})
 
 
 if __name__ == "__main__":

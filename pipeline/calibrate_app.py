@@ -8,13 +8,16 @@ was recomputed.
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import math
 from typing import Any
 
 import hydra
+import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from .cache import Fingerprints
 from .calibration import (
     CONSTANTS,
     MODEL_USAGE,
@@ -24,8 +27,10 @@ from .calibration import (
     use_calibration,
 )
 from .cli import stage
+from .io import fingerprint_obj
 from .layout import layout_from_cfg
 from .robot import robot_from_hydra
+from .schema import read_split
 
 log = logging.getLogger("skidbench.calibrate")
 
@@ -127,7 +132,15 @@ def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str
         trk.TAG_GIT: trk.git_commit(),
         "skidbench.robot": robot,
     }
-    with tracker.run(f"calibrate {cfg.dataset}", tags) as run_id:
+    tags[trk.TAG_NOTE] = trk.describe(
+        f"Calibration of the {robot}'s effective wheel radius and track width per terrain (Train split)",
+        {"dataset": f"`{cfg.dataset}` ({layout.root})", "terrains": ", ".join(docs),
+         "metrics": "`<constant>_<terrain>` (m), interval `_ci_lo`/`_ci_hi`, `_ratio` to the spec sheet"},
+        trk.reproduce_command("calibrate", ["force=true"]),
+    )  # fmt: skip
+    name = tracker.unique_run_name(f"calibrate {cfg.dataset} {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M:%S}")
+    with tracker.run(name, tags) as run_id:
+        tracker.log_datasets(run_id, _train_inputs(cfg, layout, list(docs)))
         params = {
             "robot": robot,
             **trk.flatten({"calibrate": OmegaConf.to_container(cfg.calibrate, resolve=True)}),
@@ -165,6 +178,24 @@ def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str
         tracker.log(run_id, params=params, metrics={k: v for k, v in metrics.items() if math.isfinite(v)})
         tracker.artifact(run_id, layout.calibration, "calibration")
     return run_id
+
+
+def _train_inputs(cfg: DictConfig, layout, terrains: list[str]) -> list:
+    """The Train split of each terrain as an MLflow dataset input (name, folder, fingerprint, table)."""
+    from skidbench.benchmark import tracking as trk
+
+    fingerprints = Fingerprints()
+    files = train_files(layout)
+    out = []
+    for terrain in terrains:
+        fs = [p for p in files if p.parents[1].name == terrain]
+        if not fs:
+            continue
+        table = pd.concat([read_split(p)[0].assign(sequence=p.stem) for p in fs], ignore_index=True)
+        fp = fingerprint_obj({str(p.relative_to(layout.splits)): fingerprints(p) for p in fs})
+        name = f"{cfg.dataset}/{terrain}/train"
+        out.append(trk.SplitData(name, "train", layout.splits / terrain / "train", fp, table))
+    return out
 
 
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="calibrate")

@@ -288,6 +288,7 @@ SCHEMA: dict[str, Spec] = {
     "mlflow.experiment": STR,
     "mlflow.artifact_root": STR,
     "mlflow.timeout_s": number(gt=0, what="s"),
+    "mlflow.ui_url": STR,
     # -- evaluate.yaml ----------------------------------------------------------------------------------
     "models": listof(STR, 1),
     "terrains": listof(STR, 1, null=True),

@@ -223,6 +223,11 @@ def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlf
     runs = client.search_runs([exp.experiment_id], "tags.`skidbench.role` = 'calibration'")
     assert len(runs) >= 1
     assert runs[0].data.metrics["track_width_tile"] == pytest.approx(doc["track_width"]["value"])
+    # what it read (the Train split, as an MLflow dataset input), what it is and how to run it again
+    inputs = runs[0].inputs.dataset_inputs
+    assert [d.dataset.name for d in inputs] == ["calib/tile/train"]
+    assert "skidbench calibrate" in runs[0].data.tags["mlflow.note.content"]
+    assert runs[0].info.run_name.startswith("calibrate calib 20")
     cfg.force = False
     calibrate_app.run(cfg)
     assert "up to date, skipped" in capsys.readouterr().out

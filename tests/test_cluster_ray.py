@@ -67,7 +67,7 @@ def _fit_results(runs) -> dict[tuple[str, str], tuple]:
             continue
         key = (r.data.tags[trk.TAG_MODEL], r.data.tags[trk.TAG_TERRAIN])
         assert key not in out, f"two finished runs of {key}"
-        params = {k: v for k, v in r.data.params.items() if k.startswith("param.")}
+        params = {k: v for k, v in r.data.params.items() if k.startswith("fitted.")}
         out[key] = (r.data.metrics["fit_loss"], r.data.metrics["n_train"], params)
     return out
 
@@ -128,7 +128,7 @@ def test_evaluate_runs_one_ray_task_per_dataset_into_one_mlflow_server(out_root,
         assert {c.info.status for c in children} == {"FINISHED"}
         scores[ds] = {
             (c.data.tags[trk.TAG_MODEL], c.data.tags[trk.TAG_TERRAIN]): c.data.metrics[
-                "rmsre_translational_cv_6s"
+                "cv_6s_trans_rmsre_pct"
             ]
             for c in children
         }
@@ -198,7 +198,7 @@ def test_a_retried_evaluate_job_whose_first_attempt_finished_logs_nothing_again(
     assert again.parent_run_id == first.parent_run_id
 
     def scores(res):
-        return sorted((c.model, c.terrain, c.run_id, c.status, c.metrics["rmsre_translational_cv_6s"])
+        return sorted((c.model, c.terrain, c.run_id, c.status, c.metrics["cv_6s_trans_rmsre_pct"])
                       for c in res.children)  # fmt: skip
 
     assert scores(again) == scores(first) and len(first.children) == 4

@@ -10,7 +10,7 @@ import pytest
 from _bench_data import JACKAL, compose, fit_fn, write_splits
 
 from skidbench.benchmark import figures as figs
-from skidbench.benchmark.compare import CompareError, markdown_table, run_compare
+from skidbench.benchmark.compare import CompareError, format_console, markdown_table, run_compare
 from skidbench.benchmark.evaluate import run_benchmark
 
 DS = "sim-mini"
@@ -99,10 +99,10 @@ def test_a_board_of_two_protocols_is_refused():
 
     board = pd.DataFrame(
         {"model": ["chi", "chi"], "inputs": ["commanded", "response"], "terrain": ["tile", "tile"],
-         "status": ["FINISHED"] * 2, "rmsre_translational_ld_6s": [0.1, 0.05]}
+         "status": ["FINISHED"] * 2, "ld_6s_trans_rmsre_pct": [10.0, 5.0]}
     )  # fmt: skip
     with pytest.raises(CompareError, match="never ranked together"):
-        summary_table(board, 6.0, "rmsre_translational_ld")
+        summary_table(board, 6.0, "ld_trans")
 
 
 def test_no_match_and_bad_filter_are_one_line_errors(two_evaluations):
@@ -115,6 +115,32 @@ def test_no_match_and_bad_filter_are_one_line_errors(two_evaluations):
         CompareError, match="no `skidbench evaluate` run under inputs=commanded in experiment"
     ):
         run_compare(compose("compare", out, ["mlflow.experiment=empty-one"]))
+
+
+def test_compare_links_the_parent_its_children_side_by_side_and_a_saved_view(two_evaluations):
+    import json
+    import urllib.parse
+
+    out, _, second = two_evaluations
+    res = run_compare(compose("compare", out, ["figures.enabled=false", "log_to_mlflow=false"]))
+    client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
+    exp = client.get_experiment_by_name(f"skidbench-{DS}")
+    base = f"http://127.0.0.1:5000/#/experiments/{exp.experiment_id}"
+    assert res.links["parent run"] == f"{base}/runs/{second.parent_run_id}"
+    query = urllib.parse.parse_qs(res.links["compare its model runs"].split("#/compare-runs?")[1])
+    assert sorted(json.loads(query["runs"][0])) == sorted(c.run_id for c in second.children)
+    assert json.loads(query["experiments"][0]) == [exp.experiment_id]
+    view = res.links["runs table (saved view)"]
+    key = urllib.parse.parse_qs(view.split("?")[1])["viewStateShareKey"][0]
+    saved = json.loads(exp.tags[f"mlflow.sharedViewState.{key}"])
+    state = json.loads(saved["state"])
+    assert saved["name"] == client.get_run(second.parent_run_id).info.run_name
+    assert state["searchFilter"] == f"tags.`mlflow.parentRunId` = '{second.parent_run_id}'"
+    assert state["orderByKey"] == "metrics.`ld_6s_trans_rmsre_pct`" and state["orderByAsc"] is True
+    ld = ["metrics.`ld_6s_trans_rmsre_pct`", "metrics.`ld_6s_rot_rmsre_pct`"]
+    assert state["selectedColumns"][:2] == ld
+    text = format_console(res)
+    assert all(url in text for url in res.links.values())
 
 
 def test_markdown_table_formats_numbers_and_missing_values():

@@ -55,10 +55,10 @@ def test_every_model_has_a_finished_run_with_finite_metrics(pipeline):
         assert run.info.status == "FINISHED", (name, run.data.tags.get("skidbench.failure_reason"))
         assert run.data.tags["skidbench.terrain"] == TERRAIN
         for key in (
-            "rmsre_translational_cv_6s",
-            "rmsre_rotational_cv_6s",
-            "rmsre_translational_ld_6s",
-            "rmsre_rotational_ld_6s",
+            "cv_6s_trans_rmsre_pct",
+            "cv_6s_rot_rmsre_pct",
+            "ld_6s_trans_rmsre_pct",
+            "ld_6s_rot_rmsre_pct",
             "fit_time_s",
             "predict_time_s",
         ):

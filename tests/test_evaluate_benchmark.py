@@ -67,16 +67,15 @@ def test_metrics_params_tags_and_artifacts_of_a_child(bench):
     ok = runs[(runs["status"] == "FINISHED")]
     assert set(ok["tags.skidbench.model"]) == {"chi", "ideal_t"}
     for split in ("cv", "ld"):
-        for kind in ("translational", "rotational"):
+        for kind in ("trans", "rot"):
             for h in ("2s", "6s"):
-                col = f"metrics.rmsre_{kind}_{split}_{h}"
+                col = f"metrics.{split}_{h}_{kind}_rmsre_pct"
                 assert np.isfinite(ok[col]).all()
     chi = ok[ok["tags.skidbench.model"] == "chi"]
     ideal = ok[ok["tags.skidbench.model"] == "ideal_t"]
-    assert (
-        chi["metrics.rmsre_rotational_ld_6s"] < 0.05
-    ).all()  # chi is recovered: small error (lateral slip)
-    assert (ideal["metrics.rmsre_rotational_ld_6s"] > 0.2).all()  # ideal ignores the 30 % yaw slip
+    # in percent: chi is recovered (small error: lateral slip); ideal ignores the 30 % yaw slip
+    assert (chi["metrics.ld_6s_rot_rmsre_pct"] < 5.0).all()
+    assert (ideal["metrics.ld_6s_rot_rmsre_pct"] > 20.0).all()
     for m in ("fit_loss", "fit_time_s", "predict_time_s", "n_train"):
         assert np.isfinite(ok[f"metrics.{m}"]).all()
     row = chi.iloc[0]
@@ -152,8 +151,11 @@ def test_unreachable_tracking_server_is_one_line_error_fast(tmp_path, monkeypatc
 
 
 def test_metric_names_and_flatten():
-    assert trk.metric_key("translational", "cv", 6.0) == "rmsre_translational_cv_6s"
-    assert trk.metric_key("rotational", "ld", 2.5) == "rmsre_rotational_ld_2.5s"
+    assert trk.metric_key("translational", "cv", 6.0) == "cv_6s_trans_rmsre_pct"
+    assert trk.metric_key("rotational", "ld", 2.5) == "ld_2.5s_rot_rmsre_pct"
+    assert trk.rank_key("ld_trans", 6.0) == "ld_6s_trans_rmsre_pct"
+    with pytest.raises(EvaluationError, match="rank_by='translational_ld'"):
+        trk.rank_key("translational_ld", 6.0)
     assert trk.flatten({"a": {"b": 1, "c": [1, 2]}, "d": None}) == {"a.b": "1", "a.c": "[1, 2]", "d": "null"}
     assert not math.isnan(0.0)
 

@@ -50,7 +50,7 @@ def test_transfer_fits_on_a_and_scores_on_b_in_its_own_experiment(two_datasets):
         compose("evaluate", out, ["models=[chi]", f"train_dataset={TRAIN}"]), fit_fn=fit_fn, log_figures=False
     )
     assert _chi(out) == pytest.approx(0.4, abs=0.01)  # fitted on A's Train, scored on B
-    rot = "rmsre_rotational_ld_6s"
+    rot = "ld_6s_rot_rmsre_pct"
     assert moved.children[0].metrics[rot] > 5 * same.children[0].metrics[rot]  # A's chi is wrong on B
     assert moved.experiment == f"skidbench-{SCORED}-transfer" != same.experiment
     mlflow.set_tracking_uri(moved.tracking_uri)

@@ -38,7 +38,7 @@ def test_benchmark_logs_through_a_real_tracking_server(server, tmp_path, monkeyp
     assert set(by_model) == {"chi", "broken"}
     chi = by_model["chi"]
     assert chi.info.status == "FINISHED"
-    assert chi.data.metrics["rmsre_translational_cv_6s"] >= 0
+    assert chi.data.metrics["cv_6s_trans_rmsre_pct"] >= 0
     assert chi.data.params["model"] == "chi"
     assert by_model["broken"].info.status == "FAILED"
     assert "singular" in by_model["broken"].data.tags["skidbench.failure_reason"]

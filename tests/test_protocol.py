@@ -226,7 +226,7 @@ def test_measured_skips_a_split_without_encoders_in_one_line_and_a_dataset_witho
     assert len(res.skipped) == 1 and "tile/cv: no wheel encoders in tile_cv_00" in res.skipped[0]
     assert "split skipped under this protocol" in res.skipped[0]
     metrics = res.children[0].metrics
-    assert "rmsre_translational_ld_2s" in metrics and "rmsre_translational_cv_2s" not in metrics
+    assert "ld_2s_trans_rmsre_pct" in metrics and "cv_2s_trans_rmsre_pct" not in metrics
     # no encoders in Train: the protocol is skipped for the whole dataset (not a failed run)
     for p in (tmp_path / DS / "splits" / "tile" / "train").glob("*.parquet"):
         df, meta = read_split(p)
