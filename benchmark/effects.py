@@ -298,10 +298,12 @@ def augmented_prediction(
     params: dict[str, np.ndarray],
     wheel_radius: float,
     track_width: float,
+    terms: dict[str, dict[str, float]] | None = None,
 ) -> np.ndarray:
     """The prediction of a fitted augmented model (base model + effects with ``params``, as discovery
     fits them) on any table: the commands through the lag of ``actuator_lag`` (restarted at each
-    ``sequence``), the base model on them, then the corrections (:func:`apply_effects`)."""
+    ``sequence``), the base model on them, then the corrections (:func:`apply_effects`), then the
+    open-ended ``terms`` (key -> {theta, c_v, c_w}; :mod:`skidbench.benchmark.terms`)."""
     groups = (
         pd.factorize(table["sequence"])[0] if "sequence" in table.columns else np.zeros(len(table), np.int64)
     )
@@ -311,4 +313,12 @@ def augmented_prediction(
     base_pred = np.asarray(base_model.predict(inputs), dtype=float)
     corr = {e: np.asarray(p, dtype=float) for e, p in params.items() if CATALOGUE[e].kind != "input"}
     feats = command_features(inputs, wheel_radius, track_width)
-    return apply_effects(base_pred, feats, corr)
+    out = apply_effects(base_pred, feats, corr)
+    if terms:
+        from skidbench.benchmark import terms as termlib  # terms imports nothing of this module's users
+
+        sig = termlib.signals(feats, base_pred, table["t"].to_numpy(float), track_width)
+        for key, p in terms.items():
+            term = termlib.parse_term(key)
+            out += float(p["theta"]) * term.columns(sig, (float(p["c_v"]), float(p["c_w"])), track_width)
+    return out
