@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, minimize_scalar
 
 from skidbench.benchmark import terms as termlib
 from skidbench.benchmark.effects import (
@@ -336,6 +336,12 @@ class Augmenter:
             theta = self._fit_terms(terms, params, base_pred, feats, rows)
             shift = self._term_sum(terms, theta, feats, base_pred)
             bt = base_targets(self.pool.target - shift, base_pred, feats, params)
+            if terms:  # beyond a limit / inside a dead zone the base model keeps its own output
+                sig = self.signals(feats, base_pred)
+                for t in terms:
+                    m = t.passive(sig)
+                    for c in t.touched:
+                        bt[m, c] = base_pred[m, c]
             base = self._fit_base(table, rows, bt, key)
             base_pred = base.predict(table)
             loss = self._loss(
@@ -656,6 +662,36 @@ def _jsonable_params(params: dict[str, np.ndarray]) -> dict[str, dict[str, float
     return {e: dict(zip(CATALOGUE[e].param_names, map(float, p), strict=True)) for e, p in params.items()}
 
 
+def refine_knots(
+    aug: Augmenter,
+    effects: list[str],
+    warm: dict[str, np.ndarray],
+    terms: list[termlib.Term],
+    term: termlib.Term,
+    units: np.ndarray,
+    rel: float = 0.1,
+    maxiter: int = 12,
+) -> termlib.Term:
+    """The knots of an accepted term, fitted with the base model and its coefficient (the screen chose
+    them with the base model held fixed): a bounded scalar search per knot within +-``rel`` of the
+    screened value, on the fit loss over ``units`` (the training rows)."""
+    if not term.knots:
+        return term
+    knots = list(term.knots)
+    for j, k0 in enumerate(term.knots):
+        lo, hi = sorted((k0 * (1 - rel), k0 * (1 + rel)))
+
+        def loss(x, j=j):
+            kn = list(knots)
+            kn[j] = float(x)
+            return aug.fit(effects, units, warm, fixed_tau=True, terms=[*terms, term.with_knots(kn)]).loss
+
+        res = minimize_scalar(loss, bounds=(lo, hi), method="bounded", options={"maxiter": maxiter})
+        if res.fun < loss(k0 if j == 0 else knots[j]):
+            knots[j] = float(res.x)
+    return term.with_knots(knots)
+
+
 def _term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
     p = dict(state.term_params[term.key])
     for i, k in enumerate(term.knots):
@@ -775,6 +811,7 @@ def discover_terrain(
             show(eid, ev)
         scored_t: dict[str, tuple[dict, HeldOut, termlib.Term]] = {}
         screen_info: dict[str, Any] = {}
+        scr = None
         if settings.open_ended:
             # the sparse regression on the current model's held-out residual picks the candidates
             sig = aug.signals(state.feats, state.base_pred)
@@ -807,6 +844,19 @@ def discover_terrain(
         choice: tuple[str, str] | None = None  # (kind, id)
         best_c = max(passing, key=lambda e: scored[e][0]["penalised_gain"]) if passing else None
         best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"]) if passing_t else None
+        if best_c is not None and settings.open_ended and scr is not None:
+            # the catalogue's best must beat the library's best term of no more parameters on its channels
+            chans = tuple(CHANNELS.index(c) for c in _channels_of(best_c))
+            rival = scr.rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t))
+            if rival is not None:
+                ho = cross_validate(aug, effects, warm, terms + [rival])
+                ev = compare(cur, ho, rival.n_params, settings, rival.touched)
+                scored_t[rival.key] = (ev, ho, rival)
+                table_t[rival.key] = {k: v for k, v in ev.items() if k != "heldout_mse_before"}
+                show(rival.key, ev)
+                if ev["passes"]:
+                    passing_t.append(rival.key)
+                    best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"])
         if best_c is not None:
             naming = _naming("catalogue", scored[best_c][0], scored_t, scored, CATALOGUE[best_c].n_params)
             beaten = naming["rival"] is not None and naming["rival_heldout_gain"] >= naming["heldout_gain"]
@@ -859,6 +909,11 @@ def discover_terrain(
             figure_data.append(_residual_panel(pool, prev_state, name, cur, state))
         else:
             ev, ho, term = scored_t[name]
+            refined = refine_knots(aug, effects, warm, terms, term, all_units)
+            if refined != term:  # the held-out evidence of the model as it is added
+                ho = cross_validate(aug, effects, warm, terms + [refined])
+                ev = compare(cur, ho, refined.n_params, settings, refined.touched)
+                term = refined
             state = aug.fit(effects, all_units, warm, terms=terms + [term])
             warm = {k: v for k, v in state.params.items()}
             terms.append(term)

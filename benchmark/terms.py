@@ -98,6 +98,21 @@ class Term:
         g[:, 2] = c_w * (dr - dl) / track_width
         return g
 
+    def passive(self, sig: dict[str, np.ndarray]) -> np.ndarray:
+        """(T,) rows where a hinge replaces the base model's output (beyond a limit, inside a dead zone):
+        there the velocity does not depend on the base model, so these rows do not refit it."""
+        k = self.knots
+        if self.family == "sat":
+            return np.abs(_signal(self.signal, sig)) > k[0]
+        if self.family == "dz":
+            return np.abs(_signal(self.signal, sig)) < k[0]
+        if self.family in ("wsat", "wload"):
+            lim = k[0] - (k[1] * sig["|w|"] if self.family == "wload" else 0.0)
+            return (np.abs(sig["rim_l"]) > lim) | (np.abs(sig["rim_r"]) > lim)
+        if self.family == "wdz":
+            return (np.abs(sig["rim_l"]) < k[0]) | (np.abs(sig["rim_r"]) < k[0])
+        return np.zeros(len(sig["v"]), bool)
+
     def describe(self, theta: float, wheel_radius: float) -> str:
         """The term in physical words, with its fitted constants."""
         ch = "wheels" if self.channel < 0 else CHANNELS[self.channel]
@@ -248,7 +263,7 @@ def library_groups() -> list[Term]:
 
 
 def _knot_grid(term: Term, sig: dict[str, np.ndarray], rows: np.ndarray) -> list[tuple[float, ...]]:
-    q = np.linspace(0.05, 0.97, 16)
+    q = _quantiles(term.family)
     if term.family == "after":
         return [(float(k),) for k in np.unique(np.quantile(sig["t"][rows], np.linspace(0.1, 0.9, 17)))]
     if term.channel < 0:
@@ -257,10 +272,18 @@ def _knot_grid(term: Term, sig: dict[str, np.ndarray], rows: np.ndarray) -> list
         if term.family == "wload":
             scale = float(np.quantile(rim, 0.9)) / max(float(np.quantile(sig["|w|"][rows], 0.9)), 1e-6)
             k1s = scale * np.array([0.05, 0.1, 0.2, 0.35, 0.5])
-            return [(float(a), float(b)) for a in ks[len(ks) // 3 :] for b in k1s]
+            return [(float(a), float(b)) for a in ks for b in k1s]
         return [(float(k),) for k in ks if k > 0]
     x = np.abs(_signal(term.signal, sig)[rows])
     return [(float(k),) for k in np.unique(np.quantile(x, q)) if k > 0]
+
+
+def _quantiles(family: str) -> np.ndarray:
+    """Where a knot may sit, as quantiles of its signal's magnitude: a dead zone near rest, a limit in the
+    upper part of the range (a knot beyond the data would be a straight line, the ``lin`` family's)."""
+    if family in ("dz", "wdz"):
+        return np.linspace(0.02, 0.5, 16)
+    return np.linspace(0.3, 0.99, 16)
 
 
 def _one_term_gain(g: np.ndarray, r: np.ndarray, wts: np.ndarray) -> tuple[float, float]:
@@ -305,17 +328,26 @@ def stlsq(X: np.ndarray, y: np.ndarray, threshold: float, ridge: float = 1e-3, i
     unit norm; coefficients whose standardised size is under ``threshold`` (a fraction of |y|) are cut and
     the rest refitted, until the support stops changing. Returns the coefficients of the standardised
     columns (zeros off the support)."""
-    norms = np.linalg.norm(X, axis=0)
+    return stlsq_gram(X.T @ X, X.T @ y, float(np.dot(y, y)), threshold, ridge, iters)
+
+
+def stlsq_gram(
+    G: np.ndarray, b: np.ndarray, yy: float, threshold: float, ridge: float = 1e-3, iters: int = 10
+) -> np.ndarray:
+    """:func:`stlsq` from the normal equations (``G = X'X``, ``b = X'y``, ``yy = y'y``)."""
+    norms = np.sqrt(np.maximum(np.diag(G), 0.0))
     ok = norms > 1e-12
-    Xs = np.where(ok, X / np.where(ok, norms, 1.0), 0.0)
-    yn = float(np.linalg.norm(y)) or 1.0
+    scale = np.where(ok, norms, 1.0)
+    Gs = G / np.outer(scale, scale)
+    bs = b / scale
+    yn = float(np.sqrt(yy)) or 1.0
     support = ok.copy()
-    coef = np.zeros(X.shape[1])
+    coef = np.zeros(len(b))
     for _ in range(iters):
-        A = Xs[:, support]
-        c = np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ y) if A.shape[1] else np.zeros(0)
+        idx = np.flatnonzero(support)
+        c = np.linalg.solve(Gs[np.ix_(idx, idx)] + ridge * np.eye(len(idx)), bs[idx]) if len(idx) else idx
         coef[:] = 0.0
-        coef[support] = c
+        coef[idx] = c
         new = support & (np.abs(coef) >= threshold * yn)
         if np.array_equal(new, support):
             break
@@ -329,6 +361,14 @@ class Screen:
     candidates: list[Term]  # in order of what each explains alone, best first
     scores: dict[str, float]  # term key -> fraction of the weighted residual sum of squares it explains alone
     selected: list[str]  # the STLSQ support
+    ranked: list[Term] = None  # every template at its best knots, best first (rivals for catalogue names)
+
+    def rival(self, channels: tuple[int, ...], max_params: int, skip: tuple[str, ...] = ()) -> Term | None:
+        """The library's best term (alone) that changes one of ``channels`` with at most ``max_params``."""
+        for t in self.ranked or []:
+            if t.n_params <= max_params and t.key not in skip and set(t.touched) & set(channels):
+                return t
+        return None
 
 
 def screen(
@@ -365,14 +405,26 @@ def screen(
         if score > 0 and math.isfinite(score):
             best.append((term, score / total))
     if not best:
-        return Screen([], {}, [])
+        return Screen([], {}, [], [])
+    # the normal equations channel by channel: a term's column is zero on the channels it does not touch
     sw = np.sqrt(wts)
-    X = np.column_stack([(t.columns(sig, gains, track_width)[rows] * sw).ravel() for t, _ in best])
-    coef = stlsq(X, (r * sw).ravel(), threshold)
+    P = len(best)
+    G, bvec = np.zeros((P, P)), np.zeros(P)
+    cols = [t.columns(sig, gains, track_width)[rows] * sw for t, _ in best]
+    for c in range(3):
+        idx = [i for i, (t, _) in enumerate(best) if c in t.touched]
+        if not idx:
+            continue
+        Xc = np.column_stack([cols[i][:, c] for i in idx])
+        # einsum without BLAS: a multi-threaded BLAS product of this size stalls on a loaded machine
+        G[np.ix_(idx, idx)] += np.einsum("ti,tj->ij", Xc, Xc, optimize=False)
+        bvec[idx] += np.einsum("ti,t->i", Xc, r[:, c] * sw[:, c], optimize=False)
+    coef = stlsq_gram(G, bvec, float(np.sum(wts * r * r)), threshold)
     selected = [t for (t, _), c in zip(best, coef, strict=True) if c != 0.0]
     scores = {t.key: s for t, s in best}
     ranked = sorted(selected, key=lambda t: -scores[t.key])
-    return Screen(ranked[:max_candidates], scores, [t.key for t in ranked])
+    every = [t for t, _ in sorted(best, key=lambda p: -p[1])]
+    return Screen(ranked[:max_candidates], scores, [t.key for t in ranked], every)
 
 
 def fit_thetas(

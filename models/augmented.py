@@ -140,10 +140,10 @@ def parse_spec(spec: str) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
     base, catalogue effects, open-ended terms (keys of ``skidbench.benchmark.terms``); ModelError naming
     the spec for an unknown or repeated effect."""
     from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
-    from skidbench.benchmark.terms import is_term_key
+    from skidbench.benchmark.terms import is_term_key, parse_term
 
     parts = [p.strip() for p in str(spec).split(SEP)]
-    terms = tuple(p for p in parts[1:] if is_term_key(p))
+    terms = tuple(parse_term(p).key for p in parts[1:] if is_term_key(p))  # one spelling of the knots
     base, effects = parts[0], tuple(p for p in parts[1:] if not is_term_key(p))
     if not base or any(not e for e in effects):
         raise ModelError(f"model {spec}: empty part in the spec (write base+effect+effect)")
