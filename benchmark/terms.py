@@ -40,6 +40,9 @@ from scipy.optimize import minimize_scalar
 
 CHANNELS = ("vx", "vy", "wz")
 WHEEL_FAMILIES = ("slip", "wsat", "wdz", "wload")
+#: hinges are hard limits and dead zones: the excess beyond the knot is lost whole (theta = 1, not fitted),
+#: so a hinge's parameters are its knots and its constant is where the limit sits
+HINGES = ("sat", "dz", "wsat", "wdz", "wload")
 KNOTS = {"sat": 1, "dz": 1, "after": 1, "wsat": 1, "wdz": 1, "wload": 2, "lin": 0, "slip": 0}
 #: the product pairs of the library come from these signals
 CORE = ("one", "v", "w", "dv", "dw", "vx_pred", "wz_pred", "t", "|v|", "|w|", "sgn_v", "sgn_w", "kappa")
@@ -72,9 +75,13 @@ class Term:
         return f"{self.family}.{self.signal}.{ch}{k}"
 
     @property
+    def free_theta(self) -> bool:
+        return self.family not in HINGES
+
+    @property
     def n_params(self) -> int:
-        """theta and every knot (a chosen knot is a parameter too: it is charged like one)."""
-        return 1 + len(self.knots)
+        """theta (unless a hinge) and every knot (a chosen knot is charged like a fitted parameter)."""
+        return int(self.free_theta) + len(self.knots)
 
     @property
     def touched(self) -> tuple[int, ...]:
@@ -120,26 +127,25 @@ class Term:
         k = self.knots
         th = float(theta)
         if self.family == "sat":
-            return f"{ch} saturates at {k[0]:.3g} {unit} ({th:.0%} of the excess over it is lost)"
+            return f"{ch} saturates at {k[0]:.3g} {unit}"
         if self.family == "dz":
-            return f"{ch} has a dead zone: commands below {k[0]:.3g} {unit} move it {th:.0%} less"
+            return f"{ch} has a dead zone: the first {k[0]:.3g} {unit} of {self.signal} do not move it"
         if self.family == "after":
             return f"{ch} changes by {th:+.1%} after {k[0]:.1f} s of sequence time (a change mid-run)"
         if self.family == "slip":
             side = {"l": "left", "r": "right"}[self.signal]
             return f"the {side} side slips: slip ratio s_{self.signal} = {th:.3f} (eq. (8))"
         if self.family == "wsat":
-            return (
-                f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s ({k[0]:.3g} m/s rim speed; "
-                f"{th:.0%} of the excess is lost)"
-            )
+            return f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s ({k[0]:.3g} m/s rim speed)"
         if self.family == "wdz":
-            return f"wheel rates below {k[0] / wheel_radius:.3g} rad/s do not turn the wheels ({th:.0%})"
+            return (
+                f"a wheel dead zone: the first {k[0] / wheel_radius:.3g} rad/s of each wheel command do not "
+                "turn the wheel"
+            )
         if self.family == "wload":
             return (
                 f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s, lower by "
-                f"{k[1] / wheel_radius:.3g} rad/s per rad/s of commanded yaw rate (the turning load; "
-                f"{th:.0%} of the excess is lost)"
+                f"{k[1] / wheel_radius:.3g} rad/s per rad/s of commanded yaw rate (the turning load)"
             )
         if self.signal == "wz_pred" and ch == "vy":
             return f"a longitudinal ICR offset x_ICR = {-th:.3g} m: vy = -x_ICR * wz (eq. (8))"
@@ -286,12 +292,15 @@ def _quantiles(family: str) -> np.ndarray:
     return np.linspace(0.3, 0.99, 16)
 
 
-def _one_term_gain(g: np.ndarray, r: np.ndarray, wts: np.ndarray) -> tuple[float, float]:
-    """(weighted SSE reduction, theta) of fitting theta * g to the residual r alone; g, r (n, 3)."""
+def _one_term_gain(g: np.ndarray, r: np.ndarray, wts: np.ndarray, free: bool = True) -> tuple[float, float]:
+    """(weighted SSE reduction, theta) of fitting theta * g to the residual r alone (``free``; else theta
+    = 1); g, r (n, 3)."""
     num = float(np.sum(wts * g * r))
     den = float(np.sum(wts * g * g))
     if den <= 1e-18:
         return 0.0, 0.0
+    if not free:
+        return 2.0 * num - den, 1.0
     return num * num / den, num / den
 
 
@@ -299,7 +308,8 @@ def _best_knots(term, sig, gains, B, r, rows, wts) -> tuple[Term, float]:
     grid = _knot_grid(term, sig, rows)
     if not grid:
         return term, 0.0
-    scores = [_one_term_gain(term.with_knots(k).columns(sig, gains, B)[rows], r, wts)[0] for k in grid]
+    free = term.free_theta
+    scores = [_one_term_gain(term.with_knots(k).columns(sig, gains, B)[rows], r, wts, free)[0] for k in grid]
     i = int(np.argmax(scores))
     best = list(grid[i])
     best_score = scores[i]
@@ -315,7 +325,7 @@ def _best_knots(term, sig, gains, B, r, rows, wts) -> tuple[Term, float]:
             def f(x, j=j):
                 kn = list(best)
                 kn[j] = x
-                return -_one_term_gain(term.with_knots(kn).columns(sig, gains, B)[rows], r, wts)[0]
+                return -_one_term_gain(term.with_knots(kn).columns(sig, gains, B)[rows], r, wts, free)[0]
 
             res = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4 * (hi - lo)})
             if -res.fun > best_score:
@@ -430,13 +440,19 @@ def screen(
 def fit_thetas(
     terms: list[Term], cols: list[np.ndarray], resid: np.ndarray, rows: np.ndarray, weights: np.ndarray
 ) -> np.ndarray:
-    """Joint weighted least squares of the terms' coefficients on ``rows`` (``cols``: each (T, 3))."""
-    if not terms:
-        return np.zeros(0)
+    """Joint weighted least squares of the terms' coefficients on ``rows`` (``cols``: each (T, 3));
+    a hinge's is 1."""
+    theta = np.ones(len(terms))
+    free = [i for i, t in enumerate(terms) if t.free_theta]
+    if not free:
+        return theta
+    y = np.asarray(resid, float)[rows] - sum(
+        (cols[i][rows] for i, t in enumerate(terms) if not t.free_theta), np.zeros_like(resid[rows])
+    )
     sw = np.sqrt(np.asarray(weights, float))
-    X = np.column_stack([(c[rows] * sw).ravel() for c in cols])
-    y = (np.asarray(resid, float)[rows] * sw).ravel()
-    return np.linalg.lstsq(X, y, rcond=None)[0]
+    X = np.column_stack([(cols[i][rows] * sw).ravel() for i in free])
+    theta[free] = np.linalg.lstsq(X, (y * sw).ravel(), rcond=None)[0]
+    return theta
 
 
 def correlates(
