@@ -669,12 +669,13 @@ def refine_knots(
     terms: list[termlib.Term],
     term: termlib.Term,
     units: np.ndarray,
-    rel: float = 0.1,
-    maxiter: int = 12,
+    rel: float = 0.4,
+    maxiter: int = 16,
 ) -> termlib.Term:
     """The knots of an accepted term, fitted with the base model and its coefficient (the screen chose
-    them with the base model held fixed): a bounded scalar search per knot within +-``rel`` of the
-    screened value, on the fit loss over ``units`` (the training rows)."""
+    them against the base model fitted without the term, which has absorbed part of the effect): a
+    bounded scalar search per knot within +-``rel`` of the screened value, on the fit loss over
+    ``units`` (the training rows)."""
     if not term.knots:
         return term
     knots = list(term.knots)
