@@ -700,6 +700,16 @@ def _term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
     return p
 
 
+def _explains_better(ho_a: HeldOut, ho_b: HeldOut, s: DiscoverSettings) -> tuple[bool, float]:
+    """Whether model a's held-out velocity residual is smaller than model b's, unit by unit: the per-unit
+    sum over channels of log(MSE_b / MSE_a), one-sided sign-flip test at ``alpha``."""
+    eps = 1e-18
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.nansum(np.log((ho_b.unit_mse + eps) / (ho_a.unit_mse + eps)), axis=1)
+    p = sign_flip_pvalue(d, s.seed)
+    return bool(np.nanmean(d) > 0 and p <= s.alpha), p
+
+
 def _naming(kind: str, ev: dict, scored_t: dict, scored_c: dict, n_params: int) -> dict[str, Any]:
     """The check behind a name: a catalogue effect against the best open-ended term of no more
     parameters; a term against the best catalogue effect."""
@@ -859,19 +869,25 @@ def discover_terrain(
                     passing_t.append(rival.key)
                     best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"])
         if best_c is not None:
-            naming = _naming("catalogue", scored[best_c][0], scored_t, scored, CATALOGUE[best_c].n_params)
-            beaten = naming["rival"] is not None and naming["rival_heldout_gain"] >= naming["heldout_gain"]
-            if not beaten and (
-                best_t is None or scored[best_c][0]["penalised_gain"] >= scored_t[best_t][0]["penalised_gain"]
-            ):
-                choice = ("catalogue", best_c)
-            elif best_t is not None:
-                choice = ("term", best_t)
-            if beaten:
+            # a term takes a passing catalogue effect's place only when it explains the held-out velocity
+            # residual significantly better, unit by unit (the same sign-flip test): a term no more
+            # complex than the effect, or one whose penalised gain is also larger
+            cat_ev, cat_ho = scored[best_c]
+            better = {
+                k: _explains_better(scored_t[k][1], cat_ho, settings)
+                for k in passing_t
+                if scored_t[k][2].n_params <= CATALOGUE[best_c].n_params
+                or scored_t[k][0]["penalised_gain"] > cat_ev["penalised_gain"]
+            }
+            winners = [k for k, (ok, _) in better.items() if ok]
+            if winners:
+                choice = ("term", max(winners, key=lambda k: scored_t[k][0]["penalised_gain"]))
                 say(
-                    f"[{terrain}]   {best_c} not named: {naming['rival']} explains as much with no "
-                    "more parameters"
+                    f"[{terrain}]   {best_c} not named: {choice[1]} explains the held-out residual better "
+                    f"(p = {better[choice[1]][1]:.3g})"
                 )
+            else:
+                choice = ("catalogue", best_c)
         elif best_t is not None:
             choice = ("term", best_t)
         if choice is None:

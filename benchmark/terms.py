@@ -48,13 +48,18 @@ KNOTS = {"sat": 1, "dz": 1, "after": 1, "wsat": 1, "wdz": 1, "wload": 2, "lin": 
 CORE = ("one", "v", "w", "dv", "dw", "vx_pred", "wz_pred", "t", "|v|", "|w|", "sgn_v", "sgn_w", "kappa")
 #: the catalogue's own forms (channel, signal): the catalogue names them
 CATALOGUE_FORMS = {
-    (2, "dw"),
-    (0, "dv"),
-    (2, "v"),
-    (1, "vx_pred*wz_pred"),
-    (1, "one"),
-    (2, "|v|*wz_pred"),
-    (2, "wz_pred*|v|"),
+    (2, "dw"),  # angular_acceleration_slip
+    (0, "dv"),  # linear_acceleration_slip
+    (2, "v"),  # side_asymmetry, and what equals it on the base models (vx_pred = v, |v| sgn v = v)
+    (2, "vx_pred"),
+    (2, "|v|*sgn_v"),
+    (1, "vx_pred*wz_pred"),  # centripetal_side_slip, and its commanded forms
+    (1, "v*w"),
+    (1, "v*wz_pred"),
+    (1, "w*vx_pred"),
+    (1, "one"),  # lateral_drift
+    (2, "|v|*wz_pred"),  # speed_dependent_turn_slip, and its commanded form
+    (2, "w*|v|"),
 }
 _KEY = re.compile(r"^(lin|sat|dz|after|slip|wsat|wdz|wload)\.([^.@]+)\.(vx|vy|wz|wheels)(?:@([-0-9.e,]+))?$")
 
