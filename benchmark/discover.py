@@ -957,20 +957,8 @@ def discover_terrain(
         )
         cur = ho
     found = effects + [t.key for t in terms]
-    message = (
-        NO_EFFECT_MESSAGE
-        if not found
-        else "missing effect(s) found: "
-        + ", ".join(
-            [
-                *effects,
-                *(
-                    f"{t.key} [{st['explanation']}]"
-                    for t, st in zip(terms, [x for x in steps if x["kind"] == "term"], strict=True)
-                ),
-            ]
-        )
-    )
+    named = [st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]") for st in steps]
+    message = NO_EFFECT_MESSAGE if not found else "missing effect(s) found: " + ", ".join(named)
     if found and len(found) < settings.max_effects:
         message += "; no further effect earns its place"
     say(f"[{terrain}] {message}")
