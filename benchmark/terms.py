@@ -58,7 +58,7 @@ CATALOGUE_FORMS = {
     (1, "v*wz_pred"),
     (1, "w*vx_pred"),
     (1, "one"),  # lateral_drift
-    (2, "|v|*wz_pred"),  # speed_dependent_turn_slip, and its commanded form
+    (2, "wz_pred*|v|"),  # speed_dependent_turn_slip (either sign: the catalogue bounds the physical one)
     (2, "w*|v|"),
 }
 _KEY = re.compile(r"^(lin|sat|dz|after|slip|wsat|wdz|wload)\.([^.@]+)\.(vx|vy|wz|wheels)(?:@([-0-9.e,]+))?$")
