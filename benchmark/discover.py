@@ -89,7 +89,7 @@ class DiscoverSettings:
     penalty_per_param: float = 0.02
     min_gain: float = 0.02
     max_effects: int = 4  # catalogue effects and open-ended terms together
-    max_terms: int = 2  # open-ended candidates validated per step (the sparse regression's best)
+    max_terms: int = 4  # open-ended candidates validated per step (the sparse regression's best)
     open_ended: bool = True  # search the term library (benchmark/terms.py) next to the catalogue
     channel_tolerance: float = 0.01  # held-out log-MSE loss allowed on a velocity channel the effect changes
     alternations: int = 6  # base/effect refit alternations

@@ -50,7 +50,7 @@ def settings_from_cfg(cfg: DictConfig) -> DiscoverSettings:
         max_effects=int(d.max_effects),
         channel_tolerance=float(d.get("channel_tolerance", 0.01)),
         open_ended=bool(d.get("open_ended", True)),
-        max_terms=int(d.get("max_terms", 2)),
+        max_terms=int(d.get("max_terms", 4)),
         splits=tuple(d.use),
         seed=int(cfg.get("seed", 0) or 0),
     )
