@@ -61,6 +61,19 @@ CATALOGUE_FORMS = {
     (2, "wz_pred*|v|"),  # speed_dependent_turn_slip (either sign: the catalogue bounds the physical one)
     (2, "w*|v|"),
 }
+_UNITS = {
+    "v": "m/s",
+    "|v|": "m/s",
+    "w": "rad/s",
+    "|w|": "rad/s",
+    "dv": "m/s^2",
+    "dw": "rad/s^2",
+    "kappa": "1/m",
+    "vx_pred": "m/s",
+    "wz_pred": "rad/s",
+    "sgn_v": "sign",
+    "sgn_w": "sign",
+}
 _KEY = re.compile(r"^(lin|sat|dz|after|slip|wsat|wdz|wload)\.([^.@]+)\.(vx|vy|wz|wheels)(?:@([-0-9.e,]+))?$")
 
 
@@ -154,10 +167,15 @@ class Term:
             )
         if self.signal == "wz_pred" and ch == "vy":
             return f"a longitudinal ICR offset x_ICR = {-th:.3g} m: vy = -x_ICR * wz (eq. (8))"
-        if self.signal in ("wz_pred*t", "t*wz_pred") and ch == "wz":
-            return f"wz {'falls' if th < 0 else 'grows'} {abs(th):.3%} per second of sequence time"
-        if self.signal in ("vx_pred*t", "t*vx_pred") and ch == "vx":
-            return f"vx {'falls' if th < 0 else 'grows'} {abs(th):.3%} per second of sequence time"
+        own = {"vx": ("v", "vx_pred"), "wz": ("w", "wz_pred")}.get(ch, ())
+        if self.family == "lin" and "*" in self.signal:
+            a, b = self.signal.split("*")
+            other = b if a in own else a if b in own else None
+            if other is not None:  # the channel's own velocity times a signal: a relative change
+                what = {"t": "second of sequence time"}.get(
+                    other, f"unit of {other} ({_UNITS.get(other, '')})"
+                )
+                return f"{ch} {'falls' if th < 0 else 'grows'} {abs(th):.3g} ({abs(th):.1%}) per {what}"
         return f"{ch} += {th:.4g} * {self.signal}"
 
 

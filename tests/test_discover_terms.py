@@ -41,6 +41,7 @@ def test_term_keys_round_trip_and_knots_count_as_parameters():
     ):
         assert tl.parse_term(t.key) == t
         assert t.n_params == (t.family not in tl.HINGES) + len(t.knots)
+    assert tl.Term("lin", "wz_pred*t", 2).describe(-0.004, R).startswith("wz falls 0.004 (0.4%) per second")
     assert tl.parse_term("angular_acceleration_slip") is None
     assert tl.parse_term("sat.wz_pred.wz") is None  # a hinge needs its knot
 
