@@ -281,9 +281,10 @@ def figure(results: list[TerrainDiscovery], path: Path) -> None:
             ax.set_xlabel(d["feature"], fontsize=8)
             ax.set_ylabel(f"{d['channel']} residual (true - model)", fontsize=8)
             verdict = "added" if d.get("accepted") else "best candidate, rejected"
+            title = f"step {j + 1}: {d['effect']} ({verdict})"
             if d.get("unexplained"):
-                verdict = "unexplained, strongest correlate"
-            ax.set_title(f"step {j + 1}: {d['effect']} ({verdict})", fontsize=9)
+                title = f"unexplained {d['channel']} residual and its strongest correlate"
+            ax.set_title(title, fontsize=9)
             ax.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
