@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from skidbench.benchmark import terms as termlib
+
 CMD_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr")
 INF = float("inf")
 
@@ -315,8 +317,6 @@ def augmented_prediction(
     feats = command_features(inputs, wheel_radius, track_width)
     out = apply_effects(base_pred, feats, corr)
     if terms:
-        from skidbench.benchmark import terms as termlib  # terms imports nothing of this module's users
-
         sig = termlib.signals(feats, base_pred, table["t"].to_numpy(float), track_width)
         for key, p in terms.items():
             term = termlib.parse_term(key)

@@ -33,7 +33,7 @@ from __future__ import annotations
 import itertools
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -394,11 +394,11 @@ class Screen:
     candidates: list[Term]  # in order of what each explains alone, best first
     scores: dict[str, float]  # term key -> fraction of the weighted residual sum of squares it explains alone
     selected: list[str]  # the STLSQ support
-    ranked: list[Term] = None  # every template at its best knots, best first (rivals for catalogue names)
+    ranked: list[Term] = field(default_factory=list)  # every template at its best knots, best first
 
     def rival(self, channels: tuple[int, ...], max_params: int, skip: tuple[str, ...] = ()) -> Term | None:
         """The library's best term (alone) that changes one of ``channels`` with at most ``max_params``."""
-        for t in self.ranked or []:
+        for t in self.ranked:
             if t.n_params <= max_params and t.key not in skip and set(t.touched) & set(channels):
                 return t
         return None
