@@ -1,8 +1,12 @@
 """`skidbench compare`: the leaderboard from ``mlflow.search_runs`` and the paper's Figs. 3-7, written to
 ``<out_root>/<dataset>/reports/`` (report.md, leaderboard.md/.csv, fig*.png) and logged to MLflow.
 
-Runs are selected by experiment (``mlflow.experiment``), parent run (``parent_run_id``: ``latest`` = the
-most recent ``skidbench evaluate``, a run id, or null for every child run) and an MLflow ``filter`` string.
+Runs are selected by experiment (``mlflow.experiment``), input protocol (``inputs``, pipeline/protocol.py:
+only runs of that protocol are ranked; runs of different protocols are never ranked together), parent run
+(``parent_run_id``: ``latest`` = the most recent ``skidbench evaluate`` under that protocol, a run id, or
+null for every child run) and an MLflow ``filter`` string. The report also sets the three protocols side
+by side per model (the latest evaluate of each): what the wheel response explains (commanded -> response)
+and what remains when the wheels are known (response -> measured).
 Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 need the dataset's splits and fits on this machine
 and are skipped, with a note in the report, when they are absent.
 """
@@ -22,7 +26,9 @@ from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
+from skidbench.pipeline.protocol import INPUT_COLUMNS, PROTOCOLS, model_inputs, protocol_of
 from skidbench.pipeline.schema import read_split
+from skidbench.pipeline.wheel_response import wheel_response
 
 from . import figures as figs
 from . import tracking as trk
@@ -42,20 +48,23 @@ class CompareError(EvaluationError):
 
 # -- selecting runs ---------------------------------------------------------------------------------
 def select_runs(
-    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None
+    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None
 ) -> tuple[pd.DataFrame, str | None]:
-    """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None)."""
+    """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None);
+    ``inputs``: only runs of that input protocol."""
     import mlflow
 
     parent = parent_run_id
     if parent == "latest":
-        parent = tracker.latest_parent()
+        parent = tracker.latest_parent(inputs)
         if parent is None:
             raise CompareError(
-                f"no `skidbench evaluate` run in experiment {tracker.experiment_name!r} at {tracker.uri}; "
-                "run `skidbench evaluate` first (or set mlflow.experiment)"
+                f"no `skidbench evaluate` run{f' under inputs={inputs}' if inputs else ''} in experiment "
+                f"{tracker.experiment_name!r} at {tracker.uri}; run it first (or set mlflow.experiment)"
             )
     clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
+    if inputs:
+        clauses.append(f"tags.`{trk.TAG_INPUTS}` = '{inputs}'")
     if parent:
         clauses.append(f"tags.`{trk.TAG_PARENT}` = '{parent}'")
     if filter_string:
@@ -63,7 +72,7 @@ def select_runs(
     mlflow.set_tracking_uri(tracker.uri)
     try:
         runs = mlflow.search_runs(
-            experiment_ids=[tracker.experiment_id],
+            experiment_ids=tracker.search_ids() or [tracker.experiment_id],
             filter_string=" AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
             output_format="pandas",
@@ -87,6 +96,7 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     df = pd.DataFrame(
         {
             "model": _col(runs, f"tags.{trk.TAG_MODEL}"),
+            "inputs": _col(runs, f"tags.{trk.TAG_INPUTS}").fillna("unknown"),
             "terrain": _col(runs, f"tags.{trk.TAG_TERRAIN}"),
             "status": runs["status"],
             "reason": _col(runs, f"tags.{trk.TAG_REASON}").fillna(""),
@@ -100,18 +110,48 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
         for split in SPLITS:
             key = trk.metric_key(kind, split, horizon_s)
             df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
+            n_key = window_count_key(kind, split, horizon_s)  # windows behind the RMSRE
+            df[n_key] = pd.to_numeric(_col(runs, f"metrics.{n_key}"), errors="coerce")
     for m in ("fit_loss", "fit_time_s", "predict_time_s"):
         df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
     df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
-    df = df.sort_values("start_time", ascending=False).drop_duplicates(["model", "terrain"], keep="first")
+    df = df.sort_values("start_time", ascending=False)
+    df = df.drop_duplicates(["model", "inputs", "terrain"], keep="first")
     order = {m: i for i, m in enumerate(figs.order_models(df["model"].dropna().unique().tolist()))}
     df = df.assign(_o=df["model"].map(order)).sort_values(["_o", "terrain"]).drop(columns="_o")
     return df.reset_index(drop=True)
 
 
+def window_count_key(kind: str, split: str, horizon_s: float) -> str:
+    """The metric evaluate logs with the number of windows behind an RMSRE:
+    ``n_windows_<kind>_<split>_<h>s``."""
+    return f"n_windows_{kind}_{split}_{horizon_s:g}s"
+
+
+def _windows(counts: pd.Series) -> str:
+    """The windows behind an RMSRE, summed over terrains, as text ("?" when the runs did not log it)."""
+    vals = pd.to_numeric(counts, errors="coerce").to_numpy(float)
+    return str(int(np.nansum(vals))) if np.isfinite(vals).any() else "?"
+
+
+def check_one_protocol(board: pd.DataFrame) -> str:
+    """The one input protocol of a board's runs; CompareError when it holds runs of several (runs driven
+    by different inputs are never ranked together) or of none recorded."""
+    found = sorted({str(x) for x in board["inputs"]}) if "inputs" in board else ["unknown"]
+    if len(found) > 1:
+        raise CompareError(
+            f"the selected runs were driven by different input protocols {found}; runs of different "
+            "protocols are never ranked together: choose one with inputs=<protocol> (the report sets the "
+            "protocols side by side per model instead)"
+        )
+    return found[0] if found else "unknown"
+
+
 def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
     """Per model: the mean over terrains of each RMSRE (%), terrains scored, failures; ranked by
-    ``rank_by`` (a metric prefix such as ``rmsre_translational_ld``)."""
+    ``rank_by`` (a metric prefix such as ``rmsre_translational_ld``). CompareError when the board mixes
+    input protocols (:func:`check_one_protocol`)."""
+    check_one_protocol(board)
     rows = []
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
@@ -121,6 +161,9 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
                 vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
                 row[f"{SHORT[kind]} {split.upper()} %"] = (
                     100 * np.nanmean(vals) if np.isfinite(vals).any() else np.nan
+                )
+                row[f"{SHORT[kind]} {split.upper()} n"] = _windows(
+                    ok[window_count_key(kind, split, horizon_s)]
                 )
         row["terrains"] = f"{len(ok)}/{len(g)}"
         bad = g[g["status"] != "FINISHED"]
@@ -135,10 +178,14 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
 
 
 def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
-    out = pd.DataFrame({"model": board["model"], "terrain": board["terrain"], "status": board["status"]})
+    out = pd.DataFrame({"model": board["model"], "inputs": board["inputs"], "terrain": board["terrain"],
+                        "status": board["status"]})  # fmt: skip
     for kind in KINDS:
         for split in SPLITS:
             out[f"{SHORT[kind]} {split.upper()} %"] = 100 * board[trk.metric_key(kind, split, horizon_s)]
+            out[f"{SHORT[kind]} {split.upper()} n"] = [
+                _windows(pd.Series([v])) for v in board[window_count_key(kind, split, horizon_s)]
+            ]
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]
@@ -184,6 +231,51 @@ def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
     return lines
 
 
+# -- the three protocols side by side ----------------------------------------------------------------
+def protocol_boards(
+    tracker: trk.Tracker, horizon_s: float, filter_string: str | None
+) -> dict[str, pd.DataFrame]:
+    """The board of the latest evaluate under each input protocol that has one (``{protocol: board}``)."""
+    out = {}
+    for p in PROTOCOLS:
+        if tracker.latest_parent(p) is None:
+            continue
+        runs, _ = select_runs(tracker, "latest", filter_string, p)
+        out[p] = board_from_runs(runs, horizon_s)
+    return out
+
+
+def decomposition_table(boards: dict[str, pd.DataFrame], horizon_s: float) -> pd.DataFrame:
+    """Per model (mean over the terrains scored under every protocol shown): each RMSRE (%) under each
+    protocol, ``commanded / response / measured``; a comparison of one model's inputs, not a ranking."""
+    shown = [p for p in PROTOCOLS if p in boards]
+    if not shown:
+        return pd.DataFrame()
+    ok = {p: b[b["status"] == "FINISHED"] for p, b in boards.items()}
+    models = figs.order_models(sorted({m for b in ok.values() for m in b["model"]}))
+    rows = []
+    for m in models:
+        terrains = set.intersection(*[set(ok[p][ok[p]["model"] == m]["terrain"]) for p in shown])
+        row: dict[str, Any] = {"model": m, "terrains": len(terrains)}
+        for kind in KINDS:
+            for split in SPLITS:
+                key = trk.metric_key(kind, split, horizon_s)
+                vals = []
+                for p in shown:
+                    b = ok[p][(ok[p]["model"] == m) & ok[p]["terrain"].isin(terrains)]
+                    v = b[key].to_numpy(float)
+                    vals.append(100 * float(np.nanmean(v)) if np.isfinite(v).any() else np.nan)
+                row[f"{SHORT[kind]} {split.upper()} %"] = " / ".join(
+                    "n/a" if not np.isfinite(v) else f"{v:.2f}" for v in vals
+                )
+                for p, v in zip(shown, vals, strict=True):
+                    row[f"_{kind}_{split}_{p}"] = v
+        rows.append(row)
+    df = pd.DataFrame(rows)
+    df.attrs["protocols"] = shown
+    return df
+
+
 # -- figures 5-7 (need the local dataset) -----------------------------------------------------------
 def _smoothed_derivative(t: np.ndarray, y: np.ndarray, window_s: float = 0.3) -> np.ndarray:
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
@@ -198,6 +290,14 @@ def _load_model(cfg: Any, name: str, terrain: str):
     return load_fitted(cfg, name, terrain)
 
 
+def _predict(cfg: Any, model: Any, table: pd.DataFrame, terrain: str) -> np.ndarray:
+    """(T, 3) the model's prediction from ONLY the inputs of the run's protocol (``cfg.inputs``)."""
+    from skidbench.models.fitting import protocol_inputs
+
+    protocol, robot, response = protocol_inputs(cfg, terrain)
+    return np.asarray(model.predict(model_inputs(table, protocol, robot, response)), float)
+
+
 def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path, dpi: int) -> Path:
     from skidbench.models.base import concat_sequences
 
@@ -208,7 +308,7 @@ def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path,
     acc = np.concatenate(
         [_smoothed_derivative(df["t"].to_numpy(float), df["wz"].to_numpy(float)) for df, _ in tables]
     )
-    pred = np.asarray(model.predict(table), float)[:, 2]
+    pred = _predict(cfg, model, table, terrain)[:, 2]
     ok = table["valid"].to_numpy(bool)
     split = files[0].parent.name if files else "?"
     return figs.residual_vs_acceleration(
@@ -272,7 +372,7 @@ def figure6(
             )
             wz = np.asarray(vel, float)[:, 2]
         else:
-            wz = np.asarray(model.predict(table), float)[:, 2]
+            wz = np.asarray(model.predict(table[list(INPUT_COLUMNS)]), float)[:, 2]
             sol = getattr(model, "last_solve_", None)
         status = getattr(sol, "status", None)
         if status is not None and len(status) == m:  # the friction model's per-step solve status
@@ -342,7 +442,7 @@ def figure7(
             p, df, meta, _ = cands[fi]
             if fi not in preds:
                 table = concat_sequences([(df, meta)])
-                preds[fi] = {m: np.asarray(mod.predict(table), float) for m, mod in loaded.items()}
+                preds[fi] = {m: _predict(cfg, mod, table, terrain) for m, mod in loaded.items()}
             t = df["t"].to_numpy(float)
             gt = df[["x", "y", "yaw"]].to_numpy(float)
             s0 = int(row["start"])
@@ -361,6 +461,45 @@ def figure7(
     return figs.trajectories(samples, horizon_s, path, dpi)
 
 
+def wheel_response_figure(cfg: Any, layout: Layout, terrain: str, path: Path, dpi: int) -> Path:
+    """The identified wheel response (the calibration's) against the encoders around the largest step of
+    the mean commanded wheel rate in the terrain's Train split (1 s before to 4 s after)."""
+    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.calibration import calibration_doc, wheel_response_of
+
+    doc = calibration_doc(cfg, terrain) or {}
+    resp = wheel_response_of(doc)
+    if resp is None:
+        why = (doc.get("wheel_response") or {}).get("reason", "no calibration")
+        raise CompareError(f"terrain {terrain}: no wheel response identified ({why})")
+    table = concat_sequences([read_split(p) for p in split_files(layout, terrain, "train")])
+    t = table["t"].to_numpy(float)
+    cmd = table[["cmd_wl", "cmd_wr"]].to_numpy(float)
+    enc = table[["enc_wl", "enc_wr"]].to_numpy(float, na_value=np.nan)
+    seq = table["sequence"].astype(str).to_numpy()
+    dt = float(np.median(np.diff(t)))
+    before, after = int(round(1.0 / dt)), int(round(4.0 / dt))
+    jump = np.abs(np.diff(cmd.mean(axis=1)))
+    for k in np.argsort(jump)[::-1][:200] + 1:  # the largest step with encoders all around it
+        a, b = k - before, k + after
+        if a >= 0 and b <= len(t) and (seq[a:b] == seq[k]).all() and np.isfinite(enc[a:b]).all():
+            break
+    else:
+        raise CompareError(f"terrain {terrain}: no command step with encoder readings around it in Train")
+    pred = wheel_response(table, resp)[:, :2]
+    wr = doc["wheel_response"]
+    se = wr.get("param_se") or {}
+    title = (
+        f"{terrain}: wheel response `{wr['structure']}` (dead time {resp.delay_s:.2f}"
+        + (f" +- {se['delay_s']:.2f}" if "delay_s" in se else "")
+        + f" s, lag {resp.tau_s:.2f}"
+        + (f" +- {se['tau_s']:.2f}" if "tau_s" in se else "")
+        + f" s) vs encoders, largest Train command step; RMSE {wr['rmse_command']:.2f} -> "
+        f"{wr['rmse_response']:.2f} rad/s"
+    )
+    return figs.wheel_response_steps(t[a:b] - t[k], cmd[a:b], enc[a:b], pred[a:b], title, path, dpi)
+
+
 # -- the stage --------------------------------------------------------------------------------------
 @dataclass
 class CompareResult:
@@ -369,6 +508,22 @@ class CompareResult:
     parent_run_id: str | None
     files: list[Path] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    inputs: str = "commanded"
+    decomposition_md: str = ""
+
+
+def _with_inputs(cfg: Any, protocol: str) -> Any:
+    """``cfg`` with ``inputs`` set to the protocol of the runs shown (their fits are that protocol's)."""
+    import copy
+
+    from omegaconf import OmegaConf, open_dict
+
+    if not OmegaConf.is_config(cfg) or protocol not in PROTOCOLS or cfg.get("inputs") == protocol:
+        return cfg
+    out = copy.deepcopy(cfg)
+    with open_dict(out):
+        out.inputs = protocol
+    return out
 
 
 def run_compare(cfg: Any) -> CompareResult:
@@ -376,10 +531,15 @@ def run_compare(cfg: Any) -> CompareResult:
     tracker = trk.tracker_from_cfg(cfg, layout)
     horizon = float(cfg.horizon)
     parent_cfg = cfg.get("parent_run_id", "latest")
+    parent_arg = None if parent_cfg in (None, "", "null") else str(parent_cfg)
+    # latest: the newest evaluate under cfg.inputs; a run id: that run (its protocol); null: every child
+    # run, which must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
     runs, parent = select_runs(
-        tracker, None if parent_cfg in (None, "", "null") else str(parent_cfg), cfg.get("filter")
+        tracker, parent_arg, cfg.get("filter"), protocol_of(cfg) if parent_arg == "latest" else None
     )
     board = board_from_runs(runs, horizon)
+    protocol = check_one_protocol(board)
+    cfg = _with_inputs(cfg, protocol)
     if not any(
         trk.metric_key(k, s, horizon) in runs.columns.str.removeprefix("metrics.")
         for k in KINDS
@@ -397,6 +557,13 @@ def run_compare(cfg: Any) -> CompareResult:
     lb_md = markdown_table(summary)
     write_text_atomic(out / "leaderboard.md", lb_md + "\n\n" + markdown_table(detail) + "\n")
     files += [out / "leaderboard.csv", out / "leaderboard.md"]
+    try:
+        decomp = decomposition_table(protocol_boards(tracker, horizon, cfg.get("filter")), horizon)
+    except CompareError as exc:  # a protocol's latest evaluate matches no run under the filter
+        log.warning("protocols side by side skipped: %s", one_line(str(exc)))
+        decomp = pd.DataFrame()
+    shown = decomp.attrs.get("protocols", []) if len(decomp) else []
+    decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
     notes: list[str] = []
     fig_md: list[str] = []
@@ -412,6 +579,20 @@ def run_compare(cfg: Any) -> CompareResult:
             ("fig4_rotational_rmsre.png", "Fig. 4: rotational RMSRE per model, terrain and test split",
              lambda p: figs.rmsre_bars(board, "rotational", horizon, SPLITS, p, dpi)),
         ]  # fmt: skip
+        if len(shown) > 1:
+            jobs.append(
+                ("fig_protocols.png",
+                 f"The input protocols side by side ({' / '.join(shown)}), {horizon:g} s RMSRE, mean over "
+                 "terrains",
+                 lambda p: figs.protocol_bars(decomp, shown, f"{horizon:g} s RMSRE per input protocol", p,
+                                              dpi)),
+            )  # fmt: skip
+        if terrain is not None:
+            jobs.append(
+                ("fig_wheel_response.png",
+                 f"The wheel response `calibrate` identified vs the encoders ({terrain}, Train)",
+                 lambda p: wheel_response_figure(cfg, layout, terrain, p, dpi)),
+            )  # fmt: skip
         if terrain is not None:
             models = figs.order_models(finished[finished["terrain"] == terrain]["model"].tolist())
             m5, m6 = figs.label(fc.fig5_model).lower(), figs.label(fc.fig6_model).lower()
@@ -438,22 +619,28 @@ def run_compare(cfg: Any) -> CompareResult:
 
     report = out / "report.md"
     write_text_atomic(
-        report, _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes)
-    )
+        report,
+        _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol, decomp_md,
+                   shown),
+    )  # fmt: skip
     files.append(report)
     if cfg.get("log_to_mlflow", True):
         run_id = parent
         if run_id is None:
             run_id = tracker.start(
-                f"compare {cfg.dataset}", {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset)}
+                f"compare {cfg.dataset}",
+                {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset), trk.TAG_INPUTS: protocol},
             )
             tracker.end(run_id)
         for f in files:
             tracker.artifact(run_id, f, "report")
-    return CompareResult(report, lb_md, parent, files, notes)
+    return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md)
 
 
-def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes) -> str:
+def _report_md(
+    cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol="commanded", decomp_md="",
+    shown=(),
+) -> str:  # fmt: skip
     failed = board[board["status"] != "FINISHED"]
     parts = [
         f"# skidbench report: {cfg.dataset}",
@@ -468,8 +655,10 @@ def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, no
         + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
         f"- ranked by the mean over terrains of `{cfg.rank_by}_{horizon:g}s`",
+        f"- input protocol: `{protocol}` (every model driven by the same inputs; runs of different protocols "
+        "are never ranked together)",
         "",
-        "## Leaderboard (mean over terrains)",
+        f"## Leaderboard, inputs={protocol} (mean over terrains)",
         "",
         markdown_table(summary),
         "",
@@ -488,9 +677,29 @@ def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, no
     parts += [
         "## The paper's claim (friction-based best on LD, comparable on CV)",
         "",
+        *(
+            []
+            if protocol == "commanded"
+            else [
+                f"(These runs are under inputs={protocol}; the paper's own check is the `commanded` one.)",
+                "",
+            ]
+        ),
         *paper_claim(board, horizon),
         "",
     ]
+    if decomp_md:
+        parts += [
+            f"## The input protocols side by side ({' / '.join(shown)})",
+            "",
+            "Per model, each RMSRE (%) under the latest evaluate of each protocol (mean over the terrains "
+            "scored under all of them): commanded -> response is what the identified wheel response "
+            "explains; response -> measured is what remains when the wheels' rates are known. A comparison "
+            "of inputs, not a ranking.",
+            "",
+            decomp_md,
+            "",
+        ]
     if fig_md:
         parts += ["## Figures", "", *fig_md]
     if notes:
@@ -508,11 +717,10 @@ def _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, no
 
 
 def format_console(result: CompareResult) -> str:
-    lines = [
-        "Leaderboard (RMSRE %, mean over terrains):",
-        result.leaderboard_md,
-        "",
-        f"report: {result.report}",
-    ]
+    lines = [f"Leaderboard, inputs={result.inputs} (RMSRE %, mean over terrains):", result.leaderboard_md, ""]
+    if result.decomposition_md:
+        lines += ["Input protocols side by side (commanded / response / measured, RMSRE %):",
+                  result.decomposition_md, ""]  # fmt: skip
+    lines.append(f"report: {result.report}")
     lines += [f"note: {n}" for n in result.notes]
     return "\n".join(lines)

@@ -65,6 +65,7 @@ from skidbench.benchmark.effects import (
 from skidbench.benchmark.horizon import rmsre, window_errors
 from skidbench.models.base import KinematicModel
 from skidbench.pipeline.errors import SkidbenchError
+from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table
 from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.schema import load_split_tables as _load_split_tables
 from skidbench.pipeline.schema import read_split
@@ -209,6 +210,16 @@ def load_pool(
     return pool
 
 
+def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None) -> Pool:
+    """The pool with its inputs replaced by those of the input protocol (pipeline/protocol.py), computed
+    per original sequence (``pool.groups``), targets and held-out units kept: discovery then searches
+    what the base model misses given the protocol's inputs (under ``response`` the wheel response is
+    given, so ``actuator_lag`` has nothing left to explain)."""
+    table = fit_table(pool.table.assign(sequence=pool.groups), protocol, robot, response)
+    table["sequence"] = pool.units
+    return dataclasses.replace(pool, table=table)
+
+
 # -- the augmented model --------------------------------------------------------------------------
 
 
@@ -323,7 +334,7 @@ class Augmenter:
         key = (None if tau is None else round(float(tau), 6), rows.tobytes().__hash__())
         corr = [e for e in effects if CATALOGUE[e].kind != "input"]
         base = self._fit_base(table, rows, None, key)
-        base_pred = base.predict(table)
+        base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
         params = {e: np.array((warm or {}).get(e, CATALOGUE[e].init), dtype=float) for e in corr}
         theta = np.zeros(len(terms))
         n_alt = (2 if quick else self.s.alternations) if (corr or terms) else 0
@@ -343,7 +354,7 @@ class Augmenter:
                     for c in t.touched:
                         bt[m, c] = base_pred[m, c]
             base = self._fit_base(table, rows, bt, key)
-            base_pred = base.predict(table)
+            base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
             loss = self._loss(
                 apply_effects(base_pred, feats, params) + self._term_sum(terms, theta, feats, base_pred), rows
             )

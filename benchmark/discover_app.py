@@ -24,6 +24,7 @@ from skidbench.benchmark.discover import (
     DiscoverError,
     DiscoverSettings,
     TerrainDiscovery,
+    apply_protocol,
     discover_terrain,
     load_pool,
 )
@@ -32,6 +33,7 @@ from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.layout import Layout
 from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.protocol import protocol_of
 from skidbench.pipeline.robot import robot_from_hydra
 
 log = logging.getLogger("skidbench.discover")
@@ -117,6 +119,24 @@ def _model_name(cfg: DictConfig) -> str:
     return str(m) if isinstance(m, str) else str(m.get("name"))
 
 
+def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool):
+    """The wheel response of ``terrain`` under ``inputs=response``: the calibration's on the dataset's own
+    splits; on another splits folder identified here, with the same implementation, from the pool's
+    encoders (its Train sequences, plus CV/LD when the pool had to add them)."""
+    if inputs != "response":
+        return None
+    from skidbench.pipeline.calibration import response_for, wheel_response_doc, wheel_response_of
+
+    if own_splits:
+        resp = response_for(cfg, terrain)
+    else:
+        resp = wheel_response_of(wheel_response_doc(pool.table.assign(sequence=pool.groups)))
+    if resp is None:
+        raise DiscoverError(f"inputs=response: no wheel response identified for terrain {terrain} (no wheel "
+                            "encoders in its Train split; `skidbench calibrate` says why)")  # fmt: skip
+    return resp
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Run discovery for the configured source; returns what was written to discovery.json."""
     from skidbench.models.fitting import build_model
@@ -134,7 +154,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise DiscoverError(
             f"discover.candidates: unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})"
         )
-    print(f"skidbench discover: base model {base_name}; splits {root}")
+    inputs = protocol_of(cfg)
+    print(f"skidbench discover: base model {base_name}; inputs={inputs}; splits {root}")
     print("significance rule: " + settings.rule())
     results: list[TerrainDiscovery] = []
     dataset = _dataset_of(root)
@@ -148,6 +169,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         pool = load_pool(root, terrain, settings, files_of)
         # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
         robot_t = robot_for_model(cfg, get_model_class(base_name), terrain)[0] if own_splits else robot
+        if inputs != "commanded":
+            pool = apply_protocol(pool, inputs, robot, _response(cfg, terrain, pool, inputs, own_splits))
         res = discover_terrain(
             pool,
             lambda r=robot_t: build_model(cfg, base_name, r),
@@ -160,6 +183,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         )
         results.append(res)
     doc = to_document(results, base_name, settings, root, time.perf_counter() - t0)
+    doc["inputs"] = inputs  # the input protocol every fit of the search was driven by
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "discovery.json", doc)
     write_text_atomic(out / "discovery.md", summary_text(doc))

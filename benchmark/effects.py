@@ -24,8 +24,8 @@ import numpy as np
 import pandas as pd
 
 from skidbench.benchmark import terms as termlib
+from skidbench.pipeline.wheel_response import CMD_COLUMNS, lag_filter  # noqa: F401  (the one home of the lag)
 
-CMD_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr")
 INF = float("inf")
 
 
@@ -155,42 +155,6 @@ EFFECT_IDS: tuple[str, ...] = tuple(CATALOGUE)
 
 
 # -- inputs -------------------------------------------------------------------------------------
-
-
-def lag_filter(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.DataFrame:
-    """Commands through a causal first-order lag with time constant ``tau`` (s), restarted at each
-    group (sequence) start with the first command (a robot at rest starts where it is told).
-    Returns a copy with ``cmd_*`` replaced and ``cmd_dwl``/``cmd_dwr`` = (u - y) / tau."""
-    out = table.copy()
-    t = table["t"].to_numpy(float)
-    u = table[list(CMD_COLUMNS)].to_numpy(float)
-    y = np.empty_like(u)
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    ends = np.r_[starts[1:], len(t)]
-    for a, b in zip(starts, ends, strict=True):
-        y[a] = u[a]
-        if b - a < 2:
-            continue
-        dt = np.diff(t[a:b])
-        alpha = 1.0 - np.exp(-dt / max(tau, 1e-6))  # exact zero-order-hold discretisation
-        seg_u = u[a + 1 : b]
-        prev = u[a].copy()
-        # a first-order recursion y_k = y_{k-1} + alpha_k (u_k - y_{k-1}); alpha varies only with dt
-        if np.allclose(alpha, alpha[0]):
-            from scipy.signal import lfilter
-
-            al = float(alpha[0])
-            zi = ((1.0 - al) * prev)[None, :]
-            y[a + 1 : b] = lfilter([al], [1.0, -(1.0 - al)], seg_u, axis=0, zi=zi)[0]
-        else:  # non-uniform clock: plain loop (rare)
-            for k in range(len(seg_u)):
-                prev = prev + alpha[k] * (seg_u[k] - prev)
-                y[a + 1 + k] = prev
-    for j, c in enumerate(CMD_COLUMNS):
-        out[c] = y[:, j]
-    out["cmd_dwl"] = (u[:, 2] - y[:, 2]) / max(tau, 1e-6)
-    out["cmd_dwr"] = (u[:, 3] - y[:, 3]) / max(tau, 1e-6)
-    return out
 
 
 def command_features(table: pd.DataFrame, wheel_radius: float, track_width: float) -> dict[str, np.ndarray]:

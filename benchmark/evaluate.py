@@ -27,16 +27,26 @@ from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import fingerprint_obj, write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg, split_terrains
 from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.protocol import ProtocolError, model_inputs, protocol_of, sequences_without_encoders
+from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.schema import read_split
+from skidbench.pipeline.wheel_response import WheelResponse
 
 from . import tracking as trk
-from .horizon import EvaluationError, HorizonConfig, horizon_steps, rmsre, window_errors
+from .horizon import EvaluationError, HorizonConfig, count_windows, horizon_steps, rmsre, window_errors
+from .transfer import training_layout
 
 log = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "skidbench.models"
 TRAIN = "train"
 KINDS = {"translational": "rel_trans", "rotational": "rel_rot"}
+
+
+class ProtocolSkipped(EvaluationError):
+    """No terrain of the dataset can be driven by the input protocol (e.g. ``measured`` without encoders):
+    the protocol is skipped for the dataset, which is not an error of the run (``skidbench evaluate``
+    prints the line and exits 0)."""
 
 
 # -- data -------------------------------------------------------------------------------------------
@@ -164,12 +174,31 @@ def default_fit_fn() -> Callable[[Any, str, str], Any]:
     return fit_model
 
 
-def predict_split(model: Any, seqs: Sequence[TestSequence]) -> tuple[list[np.ndarray], float]:
-    """Predict every sequence of a split in one batched call; returns per-sequence (T, 3) and seconds."""
+@dataclass(frozen=True)
+class Inputs:
+    """What drives every model of a run on one terrain: the input protocol (pipeline/protocol.py), the
+    robot its wheel rates are converted to ``cmd_v``/``cmd_w`` with, and the terrain's wheel response."""
+
+    protocol: str = "commanded"
+    robot: Robot | None = None
+    response: WheelResponse | None = None
+
+
+def predict_split(
+    model: Any, seqs: Sequence[TestSequence], inputs: Inputs | None = None
+) -> tuple[list[np.ndarray], float]:
+    """Predict every sequence of a split in one batched call; returns per-sequence (T, 3) and seconds.
+    The model gets ONLY the protocol's input columns (:func:`skidbench.pipeline.protocol.model_inputs`:
+    time, sequence and the protocol's wheel rates), never the pose, the targets or the encoders."""
     from skidbench.models.base import concat_sequences
 
+    inputs = inputs or Inputs()
     nonempty = [s for s in seqs if len(s.table)]
-    table = concat_sequences([(s.table, {"sequence": s.name}) for s in nonempty])
+    full = concat_sequences([(s.table, {"sequence": s.name}) for s in nonempty])
+    robot = inputs.robot
+    if robot is None:
+        robot = getattr(model, "robot", None)
+    table = model_inputs(full, inputs.protocol, robot, inputs.response)
     t0 = time.perf_counter()
     vel = np.asarray(model.predict(table), dtype=float)
     dt = time.perf_counter() - t0
@@ -234,6 +263,7 @@ class ChildResult:
     status: str
     metrics: dict[str, float] = field(default_factory=dict)
     reason: str = ""
+    inputs: str = "commanded"
 
 
 @dataclass
@@ -242,6 +272,8 @@ class BenchmarkResult:
     experiment: str
     parent_run_id: str
     children: list[ChildResult]
+    inputs: str = "commanded"
+    skipped: list[str] = field(default_factory=list)  # one line per (terrain, split) the protocol skipped
 
     @property
     def failed(self) -> list[ChildResult]:
@@ -249,7 +281,8 @@ class BenchmarkResult:
 
     def table(self) -> pd.DataFrame:
         rows = [
-            {"model": c.model, "terrain": c.terrain, "status": c.status, **c.metrics} for c in self.children
+            {"model": c.model, "inputs": c.inputs, "terrain": c.terrain, "status": c.status, **c.metrics}
+            for c in self.children
         ]
         return pd.DataFrame(rows)
 
@@ -292,6 +325,10 @@ def run_benchmark(
     default :func:`skidbench.models.fitting.fit_model`."""
     layout = layout_from_cfg(cfg)
     models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
+    try:
+        protocol = protocol_of(cfg)
+    except ProtocolError as exc:
+        raise EvaluationError(str(exc)) from None
     if log_figures is None:
         log_figures = bool(cfg.get("log_figures", True))
     if fit_fn is None:
@@ -307,6 +344,8 @@ def run_benchmark(
                 f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
             )
         fit_fn = default_fit_fn()
+    # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags (benchmark/transfer.py)
+    cfg, fit_fn, transfer_tags = training_layout(cfg, fit_fn)
 
     # 1. the data, checked before anything is logged
     found = find_terrains(layout)
@@ -317,6 +356,8 @@ def run_benchmark(
         raise EvaluationError(f"{layout.manifest}: no sequences of terrain(s) {missing}; it has {found}")
     tests: dict[str, dict[str, list[TestSequence]]] = {}
     files_of: dict[str, list[Path]] = {}
+    inputs_of: dict[str, Inputs] = {}
+    skipped: list[str] = []
     for terrain in terrains:
         train_files = split_files(layout, terrain, TRAIN)
         if not train_files:
@@ -327,8 +368,20 @@ def run_benchmark(
         for split in splits:
             seqs = load_test_split(layout, terrain, split)
             check_horizons(terrain, split, seqs, horizons)
+            for h in horizons:  # short sequences: say how many windows each horizon has (compare shows n)
+                n_win, n_seq, short = count_windows([s.table for s in seqs], h)
+                log.info("%s/%s: %g s horizon: %d windows from %d sequence(s), %d shorter than it",
+                         terrain, split, h, n_win, n_seq, short)  # fmt: skip
             tests[terrain][split] = seqs
         files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
+        why = _protocol_unavailable(cfg, layout, protocol, terrain, train_files, tests[terrain], inputs_of)
+        skipped += why
+    for line in skipped:
+        log.warning("%s", line)
+        print(line, flush=True)
+    terrains = [t for t in terrains if t in inputs_of and tests[t]]
+    if not terrains:
+        raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
 
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)
@@ -340,6 +393,7 @@ def run_benchmark(
         trk.TAG_DATASET: str(cfg.dataset),
         trk.TAG_GIT: commit,
         "mlflow.source.git.commit": commit.split("+")[0],
+        **transfer_tags,
     }
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
@@ -351,7 +405,8 @@ def run_benchmark(
         done = tracker.claim_key(job_key) if job_key else None
         if done:  # a retried job whose earlier attempt finished: its runs are the result
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
-                                                       _logged_children(tracker, done)))  # fmt: skip
+                                                       _logged_children(tracker, done), protocol,
+                                                       skipped))  # fmt: skip
         with tracker.run(
             f"evaluate {cfg.dataset}",
             {
@@ -359,17 +414,21 @@ def run_benchmark(
                 **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
                 trk.TAG_ROLE: "parent",
                 trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
+                trk.TAG_INPUTS: protocol,
                 "skidbench.models": ",".join(models),
                 "skidbench.terrains": ",".join(terrains),
             },
         ) as parent_id:
             tracker.log(parent_id, params=params)
+            if skipped:
+                tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             for terrain in terrains:
                 fp = split_fingerprint(files_of[terrain], layout.splits)
                 for model_name in models:
                     child = _run_child(
                         cfg, tracker, parent_id, layout, model_name, terrain, tests[terrain], horizons, hcfg,
                         fit_fn, params, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
+                        inputs_of[terrain],
                     )  # fmt: skip
                     children.append(child)
             n_failed = sum(c.status != "FINISHED" for c in children)
@@ -380,16 +439,67 @@ def run_benchmark(
             )
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
-    return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children))
+    return _write_last(
+        layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped)
+    )
+
+
+def _protocol_unavailable(
+    cfg: Any, layout: Layout, protocol: str, terrain: str, train_files: Sequence[Path],
+    tests: dict[str, list[TestSequence]], inputs_of: dict[str, Inputs],
+) -> list[str]:  # fmt: skip
+    """Checks the protocol can drive the models on ``terrain``: sets ``inputs_of[terrain]``, drops from
+    ``tests`` the test splits it cannot drive (``measured`` on a split without encoders) and returns one
+    line per (terrain, split) skipped (the whole terrain: no response identified, no Train encoders)."""
+    from skidbench.pipeline.calibration import response_for
+    from skidbench.pipeline.robot import robot_from_hydra
+
+    where = f"{layout.splits / terrain}"
+    response = None
+    if protocol == "response":
+        response = response_for(cfg, terrain)
+        if response is None:
+            return [f"inputs=response: {where}: no wheel response identified (no wheel encoders in its Train "
+                    "split, see `skidbench calibrate`); terrain skipped under this protocol"]  # fmt: skip
+    if protocol == "measured":
+        for p in train_files:
+            df, _ = read_split(p)
+            if sequences_without_encoders(df):
+                return [
+                    f"inputs=measured: {p}: no wheel encoders; terrain {terrain} skipped under this protocol"
+                ]
+        lines = []
+        for split in list(tests):
+            lacking = [s.name for s in tests[split] if len(s.table) and sequences_without_encoders(s.table)]
+            if lacking:
+                lines.append(f"inputs=measured: {where}/{split}: no wheel encoders in {lacking[0]}"
+                             f"{f' (and {len(lacking) - 1} more)' if len(lacking) > 1 else ''}; "
+                             "split skipped under this protocol")  # fmt: skip
+                del tests[split]
+        if not tests:
+            return lines
+        inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), None)
+        return lines
+    inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), response)
+    return []
+
+
+def last_file(layout: Layout, protocol: str = "commanded") -> Path:
+    """``eval/last_evaluate[.<protocol>].json``: the last result under a protocol."""
+    return layout.eval / (
+        "last_evaluate.json" if protocol == "commanded" else f"last_evaluate.{protocol}.json"
+    )
 
 
 def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
     write_json_atomic(
-        layout.eval / "last_evaluate.json",
+        last_file(layout, result.inputs),
         {
             "tracking_uri": result.tracking_uri,
             "experiment": result.experiment,
             "parent_run_id": result.parent_run_id,
+            "inputs": result.inputs,
+            "skipped": result.skipped,
             "children": [c.__dict__ for c in result.children],
         },
     )
@@ -409,6 +519,7 @@ def _logged_children(tracker, parent_id: str) -> list[ChildResult]:
             r.info.status,
             dict(r.data.metrics),
             r.data.tags.get(trk.TAG_REASON, ""),
+            r.data.tags.get(trk.TAG_INPUTS, "commanded"),
         )
         for r in sorted(runs, key=lambda r: r.info.start_time)
     ]
@@ -428,13 +539,17 @@ def _run_child(
     params,
     tags,
     log_figures,
+    inputs: Inputs | None = None,
 ) -> ChildResult:
+    inputs = inputs or Inputs()
+    protocol = inputs.protocol
     run_id = tracker.start(
-        f"{model_name}/{terrain}",
-        {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain},
+        f"{model_name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
+        {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain,
+         trk.TAG_INPUTS: protocol},
         parent_id,
-    )
-    tracker.log(run_id, params={**params, "model": model_name, "terrain": terrain})
+    )  # fmt: skip
+    tracker.log(run_id, params={**params, "model": model_name, "terrain": terrain, "inputs": protocol})
     stage = "fit"
     try:
         fit = fit_fn(cfg, model_name, terrain)
@@ -462,10 +577,12 @@ def _run_child(
             described[f"robot_used.{c}.source"] = rec.get("source")
         if callable(getattr(model, "tracking_params", None)):
             described.update(model.tracking_params())
+        if inputs.response is not None:  # the calibration's wheel response that drove every model
+            described.update({f"wheel_response.{k}": v for k, v in inputs.response.__dict__.items()})
         if described:
             tracker.log(run_id, params=described)
-        out_dir = layout.eval / model_name
-        params_json = out_dir / f"{terrain}.params.json"
+        stem = layout.eval_stem(model_name, terrain, protocol)
+        params_json = stem.with_name(stem.name + ".params.json")
         write_json_atomic(params_json, model.to_json())
         tracker.artifact(run_id, params_json, "fit")
         stage = "predict"
@@ -473,7 +590,7 @@ def _run_child(
         frames = []
         predict_time = 0.0
         for split, seqs in tests.items():
-            vel, dt = predict_split(model, seqs)
+            vel, dt = predict_split(model, seqs, inputs)
             predict_time += dt
             stage = f"score {split}"
             w = score_split(seqs, vel, horizons, hcfg)
@@ -485,20 +602,26 @@ def _run_child(
         metrics["predict_time_s"] = predict_time
         stage = "logging"
         windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-        win_path = out_dir / f"{terrain}.windows.parquet"
+        win_path = stem.with_name(stem.name + ".windows.parquet")
         import pyarrow as pa
 
         write_parquet_atomic(
             pa.Table.from_pandas(windows, preserve_index=False),
             win_path,
-            {"model": model_name, "terrain": terrain, "horizons": list(horizons), "run_id": run_id},
+            {
+                "model": model_name,
+                "terrain": terrain,
+                "horizons": list(horizons),
+                "run_id": run_id,
+                "inputs": protocol,
+            },  # fmt: skip
         )
         tracker.artifact(run_id, win_path, "windows")
         if log_figures and len(windows):
             from .figures import window_error_figure
 
-            fig_path = out_dir / f"{terrain}.errors.png"
-            window_error_figure(windows, f"{model_name} on {terrain}", fig_path)
+            fig_path = stem.with_name(stem.name + ".errors.png")
+            window_error_figure(windows, f"{model_name} on {terrain} (inputs={protocol})", fig_path)
             tracker.artifact(run_id, fig_path, "figures")
         nan_metrics = [k for k, v in metrics.items() if k.startswith("rmsre_") and not np.isfinite(v)]
         tracker.log(
@@ -515,7 +638,7 @@ def _run_child(
         )
         tracker.end(run_id, "FINISHED")
         log.info("%s/%s: %s", model_name, terrain, _brief(metrics))
-        return ChildResult(model_name, terrain, run_id, "FINISHED", metrics)
+        return ChildResult(model_name, terrain, run_id, "FINISHED", metrics, inputs=protocol)
     except KeyboardInterrupt:
         tracker.fail(run_id, "interrupted")
         raise
@@ -528,7 +651,7 @@ def _run_child(
         log.warning("%s/%s FAILED: %s", model_name, terrain, reason)
         log.debug("%s", traceback.format_exc())
         tracker.fail(run_id, reason)
-        return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason)
+        return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason, inputs=protocol)
 
 
 #: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins,
@@ -571,6 +694,13 @@ def _brief(metrics: dict[str, float]) -> str:
     return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if k.startswith("rmsre_"))
 
 
+PROTOCOL_TEXT = {
+    "commanded": "the commanded wheel rates and their derivatives (the paper's protocol)",
+    "response": "the commands through the wheel response `calibrate` identified from the Train encoders",
+    "measured": "the encoders' wheel rates and their derivatives (an oracle)",
+}
+
+
 def format_result(result: BenchmarkResult) -> str:
     """A short text summary for the console: RMSRE in % per (model, terrain) at each horizon."""
     df = result.table()
@@ -581,11 +711,13 @@ def format_result(result: BenchmarkResult) -> str:
     ):
         _, kind, split, h = c.split("_", 3)
         cols[c] = f"{short[kind]} {split.upper()} {h} %"
-    show = df[["model", "terrain", "status", *cols]].rename(columns=cols)
+    show = df[["model", "inputs", "terrain", "status", *cols]].rename(columns=cols)
     for c in cols.values():
         show[c] = 100 * show[c]
     lines = [
         f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
+        f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",
+        *result.skipped,
         show.to_string(index=False, float_format=lambda x: f"{x:.2f}", na_rep="-"),
     ]
     for c in result.failed:

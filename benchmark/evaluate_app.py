@@ -23,11 +23,15 @@ def run(cfg: DictConfig):
     :func:`run_benchmark`. Returns ``(result, skipped)``."""
     from skidbench.pipeline.cache import Stamp
     from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.protocol import protocol_of
 
-    from .evaluate import format_result, run_benchmark
+    from .evaluate import ProtocolSkipped, format_result, last_file, run_benchmark
 
     layout = layout_from_cfg(cfg)
-    stamp = Stamp(layout.root / ".stamps" / "evaluate" / "evaluate.json", "evaluate")
+    inputs = protocol_of(cfg)
+    # one stamp per input protocol: evaluating under another protocol does not stale this one
+    name = "evaluate.json" if inputs == "commanded" else f"evaluate.{inputs}.json"
+    stamp = Stamp(layout.root / ".stamps" / "evaluate" / name, "evaluate")
     if not cfg.get("force", False) and stamp.is_fresh(_stamp_key(cfg, layout, stamp)):
         cached = _cached_result(cfg, layout, stamp)
         if cached is not None:
@@ -38,7 +42,11 @@ def run(cfg: DictConfig):
                 flush=True,
             )
             return cached, True
-    result = run_benchmark(cfg)
+    try:
+        result = run_benchmark(cfg)
+    except ProtocolSkipped as exc:  # e.g. inputs=response on data without wheel encoders: said, not failed
+        print(f"evaluate: {exc}", flush=True)
+        return None, True
     print(format_result(result), flush=True)
     if result.failed:
         log.warning(
@@ -47,7 +55,7 @@ def run(cfg: DictConfig):
             len(result.children),
         )
     else:  # the key is taken after the run: the fits it (re)wrote are part of it
-        stamp.record(_stamp_key(cfg, layout, stamp), [layout.eval / "last_evaluate.json"])
+        stamp.record(_stamp_key(cfg, layout, stamp), [last_file(layout, inputs)])
     return result, False
 
 
@@ -65,7 +73,10 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
     files = [p for p in layout.split_files(manifest) if p.is_file()]
     terrains = split_terrains(manifest)
-    files += [layout.fit_file(str(m), t) for m in cfg.models for t in terrains]
+    from skidbench.pipeline.protocol import protocol_of
+
+    inputs = protocol_of(cfg)
+    files += [layout.fit_file(str(m), t, inputs) for m in cfg.models for t in terrains]
     files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
     if "discovered" in [str(m) for m in cfg.models]:
         files.append(layout.discovery / "discovery.json")
@@ -90,7 +101,11 @@ def _cached_result(cfg: DictConfig, layout, stamp):
     from .evaluate import BenchmarkResult, ChildResult
 
     try:
-        last = json.loads((layout.eval / "last_evaluate.json").read_text())
+        from skidbench.pipeline.protocol import protocol_of
+
+        from .evaluate import last_file
+
+        last = json.loads(last_file(layout, protocol_of(cfg)).read_text())
         tracker = trk.tracker_from_cfg(cfg, layout)
         if last.get("tracking_uri") != tracker.uri:
             return None
@@ -103,7 +118,10 @@ def _cached_result(cfg: DictConfig, layout, stamp):
         log.info("evaluate: cached result not usable (%s); re-running", type(exc).__name__)
         return None
     children = [ChildResult(**c) for c in last.get("children", [])]
-    return BenchmarkResult(last["tracking_uri"], last["experiment"], last["parent_run_id"], children)
+    return BenchmarkResult(
+        last["tracking_uri"], last["experiment"], last["parent_run_id"], children,
+        last.get("inputs", "commanded"), list(last.get("skipped") or []),
+    )  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -363,3 +363,66 @@ def window_error_figure(windows: pd.DataFrame, title: str, path: Path, dpi: int 
     fig.suptitle(f"{title}: per-window errors, {h:g} s horizon", fontsize=10)
     fig.tight_layout()
     return _save(fig, path, dpi)
+
+
+# -- the input protocols side by side, and the wheel response ----------------------------------------
+PROTOCOL_LABELS = {
+    "commanded": "commanded (paper)",
+    "response": "wheel response",
+    "measured": "measured (oracle)",
+}
+
+
+def protocol_bars(
+    values: pd.DataFrame, protocols: Sequence[str], title: str, path: Path, dpi: int = 130
+) -> Path:
+    """Per model, one bar per input protocol, one panel per metric: what the wheel response explains
+    (commanded -> response) and what remains when the wheels are known (response -> measured).
+
+    ``values``: one row per model, column ``model`` and ``_<kind>_<split>_<protocol>`` RMSRE in %."""
+    models = order_models(values["model"].tolist())
+    panels = [(k, s) for k in ("translational", "rotational") for s in ("cv", "ld")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
+    width = 0.8 / max(len(protocols), 1)
+    shades = {"commanded": "0.25", "response": "tab:blue", "measured": "tab:green"}
+    for ax, (kind, split) in zip(axes[0], panels, strict=True):
+        for i, p in enumerate(protocols):
+            col = f"_{kind}_{split}_{p}"
+            ys = [
+                float(values.loc[values["model"] == m, col].iloc[0]) if col in values else np.nan
+                for m in models
+            ]
+            xs = np.arange(len(models)) + (i - (len(protocols) - 1) / 2) * width
+            ax.bar(xs, np.nan_to_num(ys), width * 0.92, color=shades.get(p, _PALETTE[i]),
+                   label=PROTOCOL_LABELS.get(p, p))  # fmt: skip
+        ax.set_xticks(range(len(models)), [label(m) for m in models], rotation=45, ha="right", fontsize=7)
+        ax.set_title(f"{kind[:5]}. {split.upper()}", fontsize=10)
+        ax.set_ylabel("RMSRE (%)")
+        ax.grid(axis="y", alpha=0.3)
+        ax.set_axisbelow(True)
+    handles, labels_ = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels_, loc="lower center", ncol=len(protocols), fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return _save(fig, path, dpi)
+
+
+def wheel_response_steps(
+    t: np.ndarray, command: np.ndarray, measured: np.ndarray, response: np.ndarray, title: str, path: Path,
+    dpi: int = 130,
+) -> Path:  # fmt: skip
+    """The wheels' response to a command step: the commanded, the measured (encoders) and the identified
+    response's wheel rates (rad/s) of the left and right wheel (``(T, 2)`` each) against time (s)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharex=True, squeeze=False)
+    for j, (ax, side) in enumerate(zip(axes[0], ("left", "right"), strict=True)):
+        ax.step(t, command[:, j], where="post", color="0.55", lw=1.2, label="commanded")
+        ax.plot(t, measured[:, j], color="tab:red", lw=1.4, label="measured (encoders)")
+        ax.plot(t, response[:, j], color="tab:blue", lw=1.4, ls="--", label="identified response")
+        ax.set_title(f"{side} wheel", fontsize=10)
+        ax.set_xlabel("time from the command step (s)")
+        ax.set_ylabel("wheel rate (rad/s)")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path, dpi)

@@ -153,3 +153,22 @@ def rmsre(rel: np.ndarray) -> float:
     if rel.size == 0:
         return float("nan")
     return float(np.sqrt(np.mean(rel**2)))
+
+
+def count_windows(tables, horizon_s: float) -> tuple[int, int, int]:
+    """``(windows, sequences, too_short)`` for split tables (each with ``t`` and ``valid``): the windows
+    of ``horizon_s`` with a full horizon of valid samples (those :func:`window_errors` scores, before the
+    minimum distance/rotation), the number of sequences, and how many of them are shorter than the
+    horizon (no window at all)."""
+    total = short = n_seq = 0
+    for df in tables:
+        n_seq += 1
+        t = df["t"].to_numpy(float)
+        n = horizon_steps(t, horizon_s)
+        if n < 1 or len(t) <= n:
+            short += 1
+            continue
+        bad = np.concatenate([[0], np.cumsum(~df["valid"].to_numpy(bool))])
+        starts = np.arange(len(t) - n)
+        total += int(((bad[starts + n + 1] - bad[starts]) == 0).sum())
+    return total, n_seq, short

@@ -62,6 +62,7 @@ TAG_HOST = "skidbench.host"
 TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
 TAG_RUN_KEY = "skidbench.run_key"
+TAG_INPUTS = "skidbench.inputs"  # the input protocol that drove every model of the run (pipeline/protocol.py)
 
 
 @functools.cache
@@ -177,20 +178,50 @@ class Tracker:
             Path(uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
         self.client = MlflowClient(tracking_uri=uri)
         self.experiment_name = experiment
-        self.experiment_id = self._ensure_experiment(experiment, artifact_root)
+        self._artifact_root = artifact_root
+        self._experiment_id: str | None = None
+        self._existing_experiment()  # a deleted experiment or an unusable store: one line, now
+
+    @property
+    def experiment_id(self) -> str:
+        """The experiment's id, created on first use: a command that fails before it logs a run leaves
+        no experiment behind."""
+        if self._experiment_id is None:
+            self._experiment_id = self._ensure_experiment(self.experiment_name, self._artifact_root)
+        return self._experiment_id
+
+    def _existing_experiment(self) -> str | None:
+        """The experiment's id when it exists (never creates it), else None."""
+        from mlflow.exceptions import MlflowException
+
+        if self._experiment_id is not None:
+            return self._experiment_id
+        try:
+            exp = self.client.get_experiment_by_name(self.experiment_name)
+        except MlflowException as exc:
+            raise EvaluationError(f"MLflow store {self.uri}: {one_line(exc.message)[:300]}") from None
+        if exp is None:
+            return None
+        if exp.lifecycle_stage == "deleted":
+            raise EvaluationError(
+                f"MLflow experiment {self.experiment_name!r} at {self.uri} is deleted; "
+                "restore it or set mlflow.experiment"
+            )
+        self._experiment_id = exp.experiment_id
+        return self._experiment_id
+
+    def search_ids(self) -> list[str]:
+        """The experiment to search, or none when it does not exist yet (nothing to find)."""
+        found = self._existing_experiment()
+        return [found] if found is not None else []
 
     def _ensure_experiment(self, name: str, artifact_root: Path | None) -> str:
         from mlflow.exceptions import MlflowException
 
         try:
-            exp = self.client.get_experiment_by_name(name)
-            if exp is not None:
-                if exp.lifecycle_stage == "deleted":
-                    raise EvaluationError(
-                        f"MLflow experiment {name!r} at {self.uri} is deleted; "
-                        "restore it or set mlflow.experiment"
-                    )
-                return exp.experiment_id
+            found = self._existing_experiment()
+            if found is not None:
+                return found
             loc = None
             if artifact_root is not None and not is_server(self.uri):
                 loc = (Path(artifact_root).absolute() / _safe_name(name)).as_uri()
@@ -274,8 +305,10 @@ class Tracker:
         if not me[TAG_BOOT]:  # cannot tell this machine from another of the same name
             return []
         quote = me[TAG_HOST].replace("'", "")
+        if not self.search_ids():
+            return []
         runs = self.client.search_runs(
-            [self.experiment_id],
+            self.search_ids(),
             filter_string=(
                 f"attributes.status = 'RUNNING' AND tags.`{TAG_HOST}` = '{quote}' "
                 f"AND tags.`{TAG_BOOT}` = '{me[TAG_BOOT]}'"
@@ -304,8 +337,10 @@ class Tracker:
         log), else None, after marking ``KILLED`` each run of ``key`` left open and its open children (an
         attempt whose worker or node died; the cluster retried the job). Open means RUNNING or SCHEDULED."""
         quoted = key.replace("'", "")
+        if not self.search_ids():
+            return None
         runs = self.client.search_runs(
-            [self.experiment_id], filter_string=f"tags.`{TAG_RUN_KEY}` = '{quoted}'", max_results=100
+            self.search_ids(), filter_string=f"tags.`{TAG_RUN_KEY}` = '{quoted}'", max_results=100
         )
         done = [r for r in runs if r.info.status == "FINISHED"]
         if done:
@@ -329,12 +364,18 @@ class Tracker:
         return None
 
     # -- queries ----------------------------------------------------------------------------------
-    def latest_parent(self) -> str | None:
+    def latest_parent(self, inputs: str | None = None) -> str | None:
         """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
-        a warning and passed over), else the newest parent of any status, else None."""
+        a warning and passed over), else the newest parent of any status, else None. ``inputs``: only
+        parents of that input protocol (tag ``skidbench.inputs``)."""
+        if not self.search_ids():
+            return None
+        clauses = [f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]
+        if inputs:
+            clauses.append(f"tags.`{TAG_INPUTS}` = '{inputs}'")
         runs = self.client.search_runs(
-            [self.experiment_id],
-            filter_string=" AND ".join([f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]),
+            self.search_ids(),
+            filter_string=" AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
             max_results=50,
         )

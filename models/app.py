@@ -43,9 +43,13 @@ def main(cfg: DictConfig) -> None:
     # the stamp (skidbench.pipeline.cache): the split files fitted on, the model's config and version, robot
     # and its calibration on this terrain (made now if missing or stale: a changed calibration refits)
     from skidbench.pipeline.calibration import load_calibration
+    from skidbench.pipeline.protocol import protocol_of
 
     calibration = load_calibration(cfg, terrain)
-    stamp = Stamp(layout.root / ".stamps" / "fit" / name / f"{terrain}.json", "fit")
+    inputs = protocol_of(cfg)
+    # one stamp per input protocol (a fit under one protocol is never another's; pipeline/protocol.py)
+    stamp_name = f"{terrain}.json" if inputs == "commanded" else f"{terrain}.{inputs}.json"
+    stamp = Stamp(layout.root / ".stamps" / "fit" / name / stamp_name, "fit")
     key = stamp.key(
         _training_files(cfg, name, terrain, split),  # the manifest's files, exactly those fitted on
         {
@@ -54,13 +58,18 @@ def main(cfg: DictConfig) -> None:
             "robot": OmegaConf.to_container(cfg.robot, resolve=True),
             "terrain": terrain,
             "split": split,
+            "inputs": inputs,
+            "wheel_response": _response_key(cfg, terrain, inputs),
             "calibration": {
                 c: (calibration or {}).get(c, {}).get("value") for c in ("wheel_radius", "track_width")
             },
         },
     )
     if bool(cfg.get("reuse", True)) and stamp.is_fresh(key):
-        print(f"fit: {name}/{terrain} up to date, skipped ({layout.fit_file(name, terrain)})", flush=True)
+        print(
+            f"fit: {name}/{terrain} up to date, skipped ({layout.fit_file(name, terrain, inputs)})",
+            flush=True,
+        )
         return
     res = fit_model(cfg, name, terrain, reuse=False, split=split)
     msg = (
@@ -89,6 +98,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         trk.TAG_ROLE: "fit",
         trk.TAG_MODEL: name,
         trk.TAG_TERRAIN: terrain,
+        trk.TAG_INPUTS: str(cfg.get("inputs", "commanded")),
         trk.TAG_DATASET: str(cfg.dataset),
         trk.TAG_MODEL_VERSION: str(getattr(res.model, "version", "unknown")),
         TAG_SWEEP: sweep_id(),
@@ -96,7 +106,12 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
     }
     with tracker.run(f"fit {name}/{terrain}", tags) as run_id:
-        params = {"model": name, "terrain": terrain, "split": str(cfg.split)}
+        params = {
+            "model": name,
+            "terrain": terrain,
+            "split": str(cfg.split),
+            "inputs": str(cfg.get("inputs")),
+        }
         params.update({f"param.{k}": v for k, v in trk.flatten(dict(res.model.params or {})).items()})
         metrics = {"fit_time_s": res.fit_time_s, "n_train": res.n_train}
         if res.fit_loss is not None:
@@ -104,6 +119,18 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         tracker.log(run_id, params=params, metrics=metrics)
         tracker.artifact(run_id, res.path, "fit")
     return run_id
+
+
+def _response_key(cfg, terrain: str, inputs: str) -> dict | None:
+    """The calibrated wheel response a fit under ``inputs=response`` is driven by (part of its stamp)."""
+    if inputs != "response":
+        return None
+    from dataclasses import asdict
+
+    from skidbench.pipeline.calibration import response_for
+
+    resp = response_for(cfg, terrain)
+    return asdict(resp) if resp is not None else None
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ the model's class defaults are used.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import json
 import time
@@ -21,16 +22,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from skidbench.pipeline.calibration import response_for, robot_for_model
 from skidbench.pipeline.io import fingerprint_file, fingerprint_obj, write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
 from skidbench.pipeline.robot import Robot, robot_from_hydra
 from skidbench.pipeline.schema import read_split
+from skidbench.pipeline.wheel_response import WheelResponse
 
 from .base import KinematicModel, ModelError, concat_sequences
 from .registry import DISCOVERED, discover, get_model_class
 
-FIT_SCHEMA = 1
+FIT_SCHEMA = 2  # 2: fitted under an input protocol (``inputs``, pipeline/protocol.py)
 
 
 @dataclass
@@ -163,19 +167,60 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
         raise ModelError(
             f"model {DISCOVERED}: {path} has no discovery for terrain {terrain} ({type(exc).__name__}: {exc})"
         ) from None
+    found_under, inputs = str(doc.get("inputs", "commanded")), protocol_of(cfg)
+    if found_under != inputs:  # what is missing depends on the inputs the search was given
+        raise ModelError(
+            f"model {DISCOVERED}: {path} was found under inputs={found_under}, this run is inputs={inputs}; "
+            f"run `skidbench discover inputs={inputs}` (or evaluate it under inputs={found_under})"
+        )
     spec = "+".join([base, *effects])
     return spec, {"discovery": str(path), "spec": spec, "message": entry.get("message", "")}
 
 
-def _fingerprint(cfg: Any, model_name: str, files: list[Path], robot: Robot, cls: type) -> str:
+def _fingerprint(
+    cfg: Any, model_name: str, files: list[Path], robot: Robot, cls: type, inputs: str,
+    response: WheelResponse | None,
+) -> str:  # fmt: skip
     return fingerprint_obj(
         {
             "model": model_config(cfg, model_name),
             "version": getattr(cls, "version", "?"),
             "robot": robot.to_dict(),
             "files": [fingerprint_file(p) for p in files],
+            "inputs": inputs,  # a fit under one protocol is never reused under another
+            "response": dataclasses.asdict(response) if response is not None else None,
+            "schema": FIT_SCHEMA,
         }
     )
+
+
+def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse | None]:
+    """(protocol, robot the inputs are converted with, the terrain's wheel response) of a run: the
+    protocol ``cfg.inputs``; the spec sheet's robot (the split's own commanded ``cmd_v``/``cmd_w`` come
+    from it); the response ``calibrate`` identified (``response`` protocol only; ProtocolError when
+    there is none)."""
+    from skidbench.pipeline.protocol import ProtocolError
+
+    inputs = protocol_of(cfg)
+    response = None
+    if inputs == "response":
+        response = response_for(cfg, terrain)
+        if response is None:
+            raise ProtocolError(
+                f"inputs=response: no wheel response identified for terrain {terrain} (the Train split has "
+                "no wheel encoders, or too few readings; `skidbench calibrate` says which)"
+            )
+    return inputs, robot_from_hydra(cfg.robot), response
+
+
+def check_inputs(model: Any, model_name: str) -> None:
+    """ModelError when a model needs a column no model is given at predict time (``INPUT_COLUMNS``)."""
+    extra = [c for c in getattr(model, "required_columns", ()) if c not in INPUT_COLUMNS]
+    if extra:
+        raise ModelError(
+            f"model {model_name}: requires column(s) {extra}, but a model is given only the protocol's "
+            f"inputs {list(INPUT_COLUMNS)} at predict time"
+        )
 
 
 def fit_model(
@@ -188,16 +233,18 @@ def fit_model(
     hooks: Sequence[Callable] = (),
 ) -> FitResult:
     """Fit ``model_name`` on ``terrain``'s Train split and write its JSON atomically. With ``reuse`` an
-    existing fit whose inputs (split files, model config and version, robot) are unchanged is loaded."""
-    from skidbench.pipeline.calibration import robot_for_model
-
+    existing fit whose inputs (split files, model config and version, robot, input protocol and wheel
+    response) are unchanged is loaded. The model is fitted on the Train table of the input protocol
+    ``cfg.inputs`` (:func:`skidbench.pipeline.protocol.fit_table`: the protocol's inputs and the targets,
+    nothing else)."""
     layout = layout_from_cfg(cfg)
     spec, resolved = resolve_model_spec(cfg, model_name, terrain)
     cls = get_model_class(spec)
     files = _training_files(cfg, model_name, terrain, split)
+    inputs, spec_robot, response = protocol_inputs(cfg, terrain)
     robot, constants = robot_for_model(cfg, cls, terrain)  # the calibrated constants the model takes
-    fp = _fingerprint(cfg, spec, files, robot, cls)
-    path = layout.fit_file(model_name, terrain)
+    fp = _fingerprint(cfg, spec, files, robot, cls, inputs, response)
+    path = layout.fit_file(model_name, terrain, inputs)
     if reuse and path.is_file():
         try:
             saved = json.loads(path.read_text())
@@ -213,8 +260,9 @@ def fit_model(
                 )
         except (OSError, ValueError, ModelError):
             pass  # unreadable or stale: refit
-    table = concat_sequences([read_split(p) for p in files])
+    table = fit_table(concat_sequences([read_split(p) for p in files]), inputs, spec_robot, response)
     model = build_model(cfg, spec, robot)
+    check_inputs(model, model_name)
     n_train = int(table["valid"].sum()) if "valid" in table else 0
     t0 = time.perf_counter()
     try:
@@ -240,6 +288,8 @@ def fit_model(
             "fit_time_s": fit_time,
             "fit_info": getattr(model, "fit_info_", {}),
             "robot_constants": constants,
+            "inputs": inputs,
+            **({"wheel_response": dataclasses.asdict(response)} if response is not None else {}),
             **({"resolved": resolved} if resolved else {}),
             "package": info.package if info else "?",
             "inputs_fingerprint": fp,
@@ -265,17 +315,17 @@ def _from_saved(cls: type, robot: Robot, saved: dict, model_name: str) -> Kinema
 
 def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
     """The fitted model saved by :func:`fit_model` (ModelError if there is none)."""
-    path = layout_from_cfg(cfg).fit_file(model_name, terrain)
+    inputs = protocol_of(cfg)
+    path = layout_from_cfg(cfg).fit_file(model_name, terrain, inputs)
     if not path.is_file():
         raise ModelError(
-            f"model {model_name}: no fit for terrain {terrain} at {path}; run `skidbench fit "
-            f"model={model_name} terrain={terrain}`"
+            f"model {model_name}: no fit for terrain {terrain} under inputs={inputs} at {path}; run "
+            f"`skidbench fit model={model_name} terrain={terrain} inputs={inputs}`"
         )
     try:
         saved = json.loads(path.read_text())
     except ValueError as exc:
         raise ModelError(f"model {model_name}: unreadable fit {path} ({exc})") from exc
-    from skidbench.pipeline.calibration import robot_for_model
 
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)

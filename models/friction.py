@@ -31,7 +31,6 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from . import actuator
 from ._util import col, mse, targets, training_rows
 from .base import KinematicModel, ModelError
 from .friction_solver import (
@@ -151,7 +150,10 @@ class FrictionBased(KinematicModel):
     # over the data's slip angles); fit_info reports every parameter's identification
     # 1.8: driven by the general wheel response (models/actuator.py: per sum/difference mode lag, slew limit,
     # gain and saturation, and the wheels' rate limit, its structure chosen on held-out Train blocks)
-    version = "1.8"
+    # 1.9: the paper's model again: five parameters, driven by the inputs of the run's protocol (commanded
+    # rates and their derivatives by default); the wheel response is a calibration of the robot shared by
+    # every model (pipeline/wheel_response.py, ``inputs=response``), no longer an option of this model
+    version = "1.9"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
     # the spec sheet's radius and track: the slip ratios (eq. 4) are what the radius an effective-radius
     # calibration measures absorbs, and the wheel positions are physical; taking the calibrated radius
@@ -159,6 +161,13 @@ class FrictionBased(KinematicModel):
     calibrated_constants = ()
 
     def __init__(self, robot, params=None, **options):
+        if "actuator" in options:
+            raise ModelError(
+                f"model {self.name}: options.actuator was removed in 1.9: the wheel response is a calibration"
+                " of the robot shared by every model now (`skidbench calibrate`, then inputs=response)"
+            )
+        # a fit of <= 1.8 also held its wheel response (actuator_* entries): not this model's parameters
+        params = {k: v for k, v in (params or {}).items() if not str(k).startswith("actuator_")}
         super().__init__(robot, params, **options)
         self.params = {**DEFAULT_PARAMS, **self.params}
         self.geometry = FrictionGeometry.from_robot(robot)
@@ -167,44 +176,9 @@ class FrictionBased(KinematicModel):
 
     def inputs(self, table: pd.DataFrame) -> tuple[np.ndarray, ...]:
         """(wl, wr, dwl, dwr) (each (T,)): the wheel rates (rad/s) and their derivatives (rad/s^2) the force
-        balance is driven by: the commanded ones through the wheel response (the ``actuator_*`` entries of
-        ``params``: dead time, lags, slew limits, gains and saturations; ``models/actuator.py``), or the
-        commanded ones as they are when the actuator is off or was not identified (no encoders in Train)."""
-        table = actuator.respond(table, actuator.WheelResponse.from_params(self.params))
+        balance is driven by, as the paper does (section III): the table's ``cmd_wl``, ``cmd_wr``,
+        ``cmd_dwl``, ``cmd_dwr``, i.e. the inputs of the run's protocol (pipeline/protocol.py)."""
         return tuple(col(table, c) for c in ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"))
-
-    def identify_actuator(self, table: pd.DataFrame) -> dict:
-        """``options.actuator``: ``auto`` (default) identifies the wheel response from the table's encoders
-        (Train), choosing its structure among ``actuator.CANDIDATES`` on held-out Train blocks; a structure
-        name (e.g. ``delay+lag``, the 1.6 model) identifies that structure only; ``none`` drives the model
-        by the raw commands; a mapping (``{delay_s, tau_s, ...}``, the fields of ``actuator.WheelResponse``)
-        sets it. Sets the ``actuator_*`` entries of ``params``; returns what was done (for ``fit_info_``)."""
-        opt = self.options.get("actuator", "auto")
-        resp = actuator.WheelResponse()
-        fields = list(actuator.WheelResponse.__dataclass_fields__)
-        if isinstance(opt, dict):
-            unknown = sorted(set(opt) - set(fields))
-            if unknown:
-                raise ModelError(
-                    f"model {self.name}: options.actuator: unknown keys {unknown} (known: {fields})"
-                )
-            resp = actuator.WheelResponse.from_params({f"actuator_{k}": float(v) for k, v in opt.items()})
-            info = {"source": "config", **resp.to_params()}
-        elif opt in (None, "none", False):
-            info = {"source": "none"}
-        elif isinstance(opt, str) and (opt == "auto" or opt in actuator.CANDIDATES):
-            fit = actuator.identify_response(table, None if opt == "auto" else (opt,))
-            if fit is None:
-                info = {"source": "none (no encoder readings in Train)"}
-            else:
-                resp, info = fit.response, {"source": "encoders", **fit.to_dict()}
-        else:
-            raise ModelError(
-                f"model {self.name}: options.actuator={opt!r}: expected auto, none, one of "
-                f"{list(actuator.CANDIDATES)} or a mapping of {fields}"
-            )
-        self.params.update(resp.to_params())
-        return info
 
     def velocities(self, inputs, params=None, theta0=None) -> tuple[np.ndarray, SolveResult]:
         """(T, 3) body velocities and the per-step solve (eq. 12 then eq. 8).
@@ -253,8 +227,6 @@ class FrictionBased(KinematicModel):
 
     def fit(self, table: pd.DataFrame) -> FrictionBased:
         self.check_columns(table, fitting=True)
-        # the actuator runs on the whole table (a causal filter needs the rows a fit leaves out, too)
-        act_info = self.identify_actuator(table)
         all_inp = self.inputs(table)
         rows = table["valid"].to_numpy(bool)
         train = training_rows(table)
@@ -419,7 +391,6 @@ class FrictionBased(KinematicModel):
             "mu_x_identified": mu_x_identified,
             "mu_x_lower_bound": lam_s,
             "lateral": lateral,
-            "actuator": act_info,
             "start": start_info,
             **report,
         }

@@ -21,6 +21,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from .errors import ConfigError
 from .io import fingerprint_file, fingerprint_obj, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -99,3 +100,63 @@ class Stamp:
             "memo": self.fp.memo,
         }
         write_json_atomic(self.path, self.data)
+
+
+# -- failed producers --------------------------------------------------------------------------------
+# Which stages' outputs each stage reads (directly or through another stage's outputs). A stage whose run
+# failed leaves a marker; the stages downstream of it refuse to run on what it left (which may be stale or
+# partial) and name the stage to re-run. A successful run clears its marker.
+PRODUCERS: dict[str, tuple[str, ...]] = {
+    "simulate": (),
+    "extract": ("simulate",),
+    "groundtruth": ("simulate", "extract"),
+    "split": ("simulate", "extract", "groundtruth"),
+    "card": ("simulate", "extract", "groundtruth", "split"),
+    "calibrate": ("simulate", "extract", "groundtruth", "split"),
+    "fit": ("simulate", "extract", "groundtruth", "split", "calibrate"),
+    "evaluate": ("simulate", "extract", "groundtruth", "split", "calibrate"),
+    "compare": ("simulate", "extract", "groundtruth", "split", "calibrate", "evaluate"),
+    "discover": ("simulate", "extract", "groundtruth", "split"),
+}
+
+
+class StaleInputError(ConfigError):
+    """A stage asked to run on the outputs of a stage whose last run failed."""
+
+
+def failed_marker(dataset_root: str | os.PathLike, stage: str) -> Path:
+    return Path(dataset_root) / ".stamps" / f"{stage}.failed.json"
+
+
+def mark_failed(dataset_root: str | os.PathLike, stage: str, message: str) -> None:
+    """Record that ``stage`` failed on this dataset (its outputs may be partial or stale)."""
+    import datetime as dt
+
+    doc = {"stage": stage, "error": message, "time": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
+    try:
+        write_json_atomic(failed_marker(dataset_root, stage), doc)
+    except OSError as exc:  # a full or read-only disk: the stage's own error is the one to report
+        log.warning("could not record that %s failed (%s)", stage, exc)
+
+
+def clear_failed(dataset_root: str | os.PathLike, stage: str) -> None:
+    failed_marker(dataset_root, stage).unlink(missing_ok=True)
+
+
+def check_producers(dataset_root: str | os.PathLike, stage: str) -> None:
+    """StaleInputError (one line) when a stage this one reads from failed on its last run: which stage,
+    its error, and to re-run it."""
+    for producer in PRODUCERS.get(stage, ()):
+        path = failed_marker(dataset_root, producer)
+        if not path.is_file():
+            continue
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            doc = {}
+        when = f" at {doc['time']}" if doc.get("time") else ""
+        raise StaleInputError(
+            f"{Path(dataset_root)}: the last `skidbench {producer}` failed{when} "
+            f"({doc.get('error', 'no message')}); {stage} does not run on what it left: "
+            f"fix that and re-run skidbench {producer} (with the same source settings) first"
+        )

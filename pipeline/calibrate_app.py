@@ -58,6 +58,28 @@ def format_table(docs: dict[str, dict[str, Any]]) -> str:
     )
 
 
+def format_response(docs: dict[str, dict[str, Any]]) -> str:
+    """The wheel response per terrain (the ``response`` input protocol's), one line each."""
+    lines = ["wheel response (pipeline/wheel_response.py; inputs=response drives every model with it):"]
+    for terrain, doc in docs.items():
+        wr = doc.get("wheel_response") or {}
+        if not wr.get("identified"):
+            lines.append(f"  {terrain}: not identified ({wr.get('reason', 'no wheel_response entry')})")
+            continue
+        se = wr.get("param_se") or {}
+
+        def pm(k, wr=wr, se=se):
+            return f"{k}={wr[k]:.3f}" + (f"+-{se[k]:.3f}" if k in se else "")
+
+        names = wr["candidates"][wr["structure"]]["params"]
+        lines.append(
+            f"  {terrain}: {wr['structure']}: {', '.join(pm(k) for k in names)}; "
+            f"encoder RMSE {wr['rmse_command']:.3f} rad/s against the commands -> {wr['rmse_response']:.3f} "
+            f"(held out {wr['heldout_rmse']:.3f})"
+        )
+    return "\n".join(lines)
+
+
 def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
@@ -82,6 +104,7 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
         f"calibrate: robot {spec.name} (spec sheet conf/robot/{spec.name}.yaml), Train split of {cfg.dataset}"
     )
     print(format_table(docs))
+    print(format_response(docs))
     if not use_calibration(cfg):
         print("calibrate.use=false: every model is fitted with the spec sheet's constants")
     else:
@@ -123,6 +146,22 @@ def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str
                     metrics[f"{c}_{terrain}_ratio"] = float(d["ratio_to_spec"])
                 else:
                     params[f"{terrain}.{c}.reason"] = d["reason"]
+            wr = doc.get("wheel_response") or {}
+            params[f"{terrain}.wheel_response.identified"] = str(bool(wr.get("identified")))
+            if wr.get("identified"):
+                params[f"{terrain}.wheel_response.structure"] = wr["structure"]
+                for k, v in wr["candidates"][wr["structure"]]["params"].items():
+                    metrics[f"wheel_response_{terrain}_{k}"] = float(v)
+                for k, v in (wr.get("param_se") or {}).items():
+                    metrics[f"wheel_response_{terrain}_{k}_se"] = float(v)
+                for name, cand in wr["candidates"].items():
+                    if cand.get("heldout_rmse") is not None:
+                        key = name.replace("+", "_")  # MLflow names take no "+"
+                        metrics[f"wheel_response_{terrain}_heldout_rmse.{key}"] = float(cand["heldout_rmse"])
+                metrics[f"wheel_response_{terrain}_rmse_command"] = float(wr["rmse_command"])
+                metrics[f"wheel_response_{terrain}_rmse_response"] = float(wr["rmse_response"])
+            else:
+                params[f"{terrain}.wheel_response.reason"] = wr.get("reason", "")
         tracker.log(run_id, params=params, metrics={k: v for k, v in metrics.items() if math.isfinite(v)})
         tracker.artifact(run_id, layout.calibration, "calibration")
     return run_id

@@ -49,10 +49,11 @@ from .io import fingerprint_obj, write_json_atomic
 from .layout import Layout, layout_from_cfg
 from .robot import Robot, robot_from_hydra
 from .schema import read_split
+from .wheel_response import ResponseFit, WheelResponse, identify_response
 
 log = logging.getLogger("skidbench.calibrate")
 
-CALIBRATION_SCHEMA = 1
+CALIBRATION_SCHEMA = 2  # 2: the wheel response (pipeline/wheel_response.py) next to the constants
 CONSTANTS = ("wheel_radius", "track_width")
 
 
@@ -238,7 +239,29 @@ def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) ->
             "reason": f"{int(turning.sum())} settled turning rows (< min_rows {s.min_rows}); spec value kept",
         }
     doc["not_identified"] = [c for c in CONSTANTS if not doc[c]["identified"]]
+    doc["wheel_response"] = wheel_response_doc(table if has_enc else None)
     return doc
+
+
+def wheel_response_doc(table: pd.DataFrame | None) -> dict[str, Any]:
+    """The ``wheel_response`` entry of a calibration: the response the Train encoders identify
+    (:func:`~skidbench.pipeline.wheel_response.identify_response`: structure chosen on held-out Train
+    blocks, parameters, their block-jackknife standard errors, per-structure RMSEs), or why not (no
+    encoders, too few readings)."""
+    if table is None:
+        return {"identified": False, "reason": "no wheel encoders in the Train split: the response cannot be "
+                "identified (inputs=response is not available for this terrain)"}  # fmt: skip
+    fit: ResponseFit | None = identify_response(table)
+    if fit is None:
+        return {"identified": False, "reason": "fewer encoder readings than the identification needs"}
+    return {"identified": True, **fit.to_dict(),
+            "method": "pipeline/wheel_response.py identify_response on the Train encoders"}  # fmt: skip
+
+
+def wheel_response_of(doc: Mapping[str, Any] | None) -> WheelResponse | None:
+    """The identified wheel response of a calibration document (None: not identified or absent)."""
+    entry = (doc or {}).get("wheel_response") or {}
+    return WheelResponse.from_dict(entry) if entry.get("identified") else None
 
 
 # -- the stage's files ----------------------------------------------------------------------------------
@@ -285,7 +308,9 @@ def calibrate_terrain(
         )
     path = layout.calibration_file(terrain)
     stamp = Stamp(layout.root / ".stamps" / "calibrate" / f"{terrain}.json", "calibrate")
-    key = stamp.key(files, {"robot": spec.to_dict(), "settings": dataclasses.asdict(s)})
+    key = stamp.key(
+        files, {"robot": spec.to_dict(), "settings": dataclasses.asdict(s), "schema": CALIBRATION_SCHEMA}
+    )
     if stamp.is_fresh(key):
         import json
 
@@ -325,10 +350,16 @@ def load_calibration(cfg: Any, terrain: str) -> dict[str, Any] | None:
     """The terrain's calibration for a fit: the saved one when it was made from the current Train files
     and robot spec (whatever its settings), else computed now with ``cfg``'s settings; None when
     ``calibrate.use`` is false."""
-    import json
-
     if not use_calibration(cfg):
         return None
+    return calibration_doc(cfg, terrain)
+
+
+def calibration_doc(cfg: Any, terrain: str) -> dict[str, Any] | None:
+    """The terrain's calibration document whatever ``calibrate.use`` says (the saved one when current,
+    else computed now); None when the terrain has no Train files."""
+    import json
+
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
     path = layout.calibration_file(terrain)
@@ -338,7 +369,8 @@ def load_calibration(cfg: Any, terrain: str) -> dict[str, Any] | None:
     if path.is_file():
         try:
             doc = json.loads(path.read_text())
-            if doc.get("inputs_fingerprint") == _inputs_fingerprint(files, spec):
+            current = doc.get("inputs_fingerprint") == _inputs_fingerprint(files, spec)
+            if current and doc.get("schema") == CALIBRATION_SCHEMA:
                 return doc
         except (OSError, ValueError):
             pass
@@ -375,3 +407,9 @@ def robot_for_model(cfg: Any, model_cls: type, terrain: str) -> tuple[Robot, dic
             src = "calibrated"
         record[c] = {"value": float(getattr(robot, c)), "spec": float(getattr(spec, c)), "source": src}
     return robot, record
+
+
+def response_for(cfg: Any, terrain: str) -> WheelResponse | None:
+    """The wheel response ``calibrate`` identified for ``terrain`` (the ``response`` input protocol's; also
+    with ``calibrate.use=false``, which concerns the robot constants only); None when not identified."""
+    return wheel_response_of(calibration_doc(cfg, terrain))

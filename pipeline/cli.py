@@ -7,13 +7,19 @@ config_path="pkg://skidbench.conf", config_name="<stage>")`` and wrapped in :fun
 
 from __future__ import annotations
 
+import errno
 import functools
 import importlib
 import logging
+import os
 import sys
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
 
-from .errors import SkidbenchError, one_line
+from .cache import StaleInputError, check_producers, clear_failed, mark_failed
+from .config_schema import validate
+from .errors import ConfigError, SkidbenchError, one_line
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -49,26 +55,62 @@ def exit_with_error(message: str, name: str | None = None) -> None:
 
 
 def stage(name: str, home: bool = True) -> Callable:
-    """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2. With ``home``
-    (a config with a ``source``), the dataset's identity is printed and its folder checked first
-    (:func:`skidbench.pipeline.dataset.open_home`)."""
+    """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2. The config is
+    checked against the declared schema first. With ``home`` (a config with a ``source``), the dataset's
+    identity is printed and its folder checked (:func:`skidbench.pipeline.dataset.open_home`), and the
+    stage refuses to run when a stage it reads from failed on its last run
+    (:func:`skidbench.pipeline.cache.check_producers`). When the stage fails, a dataset folder it leaves
+    holding no data is removed (so ``skidbench datasets`` never lists it); otherwise the failure is
+    recorded, and the stages downstream refuse to run until this one succeeds."""
 
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
+            root = None
             try:
                 cfg = args[0] if args else None
+                if hasattr(cfg, "get"):  # a sweep's job or an in-process call: not checked by _preflight
+                    validate(cfg)
                 if home and hasattr(cfg, "get") and cfg.get("source") is not None and "dataset" in cfg:
                     from .dataset import open_home
 
-                    open_home(cfg, name)
-                return fn(*args, **kwargs)
-            except SkidbenchError as exc:
+                    root = open_home(cfg, name)[0].root
+                    check_producers(root, name)
+                result = fn(*args, **kwargs)
+            except StaleInputError as exc:  # this stage did not run: nothing of it to record
                 exit_with_error(str(exc), name)
+            except SkidbenchError as exc:
+                _after_failure(root, name, str(exc))
+                exit_with_error(str(exc), name)
+            except SystemExit as exc:  # a stage that exits by itself: a failure unless its status is 0
+                if exc.code not in (0, None):
+                    _after_failure(root, name, f"exit status {exc.code}")
+                raise
+            except BaseException as exc:  # a bug or an interrupt: what was written may be partial too
+                _after_failure(root, name, f"{type(exc).__name__}: {exc}")
+                raise
+            if root is not None:
+                clear_failed(root, name)
+            return result
 
         return wrapper
 
     return deco
+
+
+def _after_failure(root: Path | None, name: str, message: str) -> None:
+    """A failed stage: remove its dataset folder when it holds no data (only ``dataset.json``), else
+    record the failure for the stages downstream."""
+    if root is None or not root.is_dir():
+        return
+    from .dataset import holds_data
+
+    if not holds_data(root):
+        from .layout import remove_atomic
+
+        remove_atomic(root)
+        return
+    mark_failed(root, name, one_line(message))
 
 
 def _usage() -> str:
@@ -109,21 +151,67 @@ def main(argv: list[str] | None = None) -> None:
     except (ImportError, AttributeError) as exc:  # a stage that is not built yet says so plainly
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
-    _check_overrides(name, argv[1:])
-    sys.argv = [f"skidbench {name}", *argv[1:]]
+    args = _preflight(name, argv[1:])
+    sys.argv = [f"skidbench {name}", *args]
     register_launchers()
     fn()
 
 
-def _check_overrides(name: str, args: list[str]) -> None:
-    """An unknown or misspelt override -> one line naming it and the nearest valid keys, exit 2."""
-    from .overrides import check_overrides
+def _preflight(name: str, args: list[str]) -> list[str]:
+    """Before Hydra runs (and writes anything): overrides checked (an unknown or misspelt key, or a bad
+    group option -> one line naming it and the nearest valid keys), another stage's settings dropped
+    with a note (so one ``ARGS`` serves every stage), every value checked against the declared schema
+    (:mod:`skidbench.pipeline.config_schema`) and the output root checked writable. Returns the
+    arguments to hand to Hydra; a problem is one line on stderr, exit 2."""
+    from .config_schema import check_value
+    from .overrides import check_overrides, parse_value
 
     try:
-        check_overrides(name, args)
+        dropped, cfg = check_overrides(name, args)
+        for line in dropped:
+            key, value = parse_value(line)
+            check_value(key, value)  # another stage's setting is still checked
+            note = f"skidbench {name}: note: {key} is another stage's setting; {name} ignores it"
+            print(note, file=sys.stderr)
+        if cfg is not None:
+            validate(cfg)
+            check_out_root(cfg)
     except SkidbenchError as exc:
         print(f"skidbench {name}: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
         sys.exit(2)
+    kept = list(args)
+    for line in dropped:
+        kept.remove(line)
+    return kept
+
+
+def check_out_root(cfg) -> None:
+    """ConfigError when ``out_root`` cannot be created or written (a read-only file system, no
+    permission): Hydra would otherwise fail with a traceback creating its run folder there."""
+    try:
+        root = Path(str(cfg.out_root)).expanduser().absolute()
+    except Exception:  # noqa: BLE001 - an unresolvable out_root is reported by the stage
+        return
+    probe = root
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    reason = None
+    if not probe.is_dir():
+        reason = f"{probe} is not a folder"
+    elif not os.access(probe, os.W_OK | os.X_OK):
+        reason = os.strerror(errno.EACCES)
+    else:
+        try:  # os.access does not see a read-only mount
+            fd, tmp = tempfile.mkstemp(prefix=".skidbench-probe-", dir=probe)
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            reason = exc.strerror or str(exc)
+    if reason:
+        raise ConfigError(
+            f"out_root={root}: cannot write there ({reason}); "
+            "set out_root=<a writable folder> (or SKIDBENCH_OUT)"
+        )
 
 
 if __name__ == "__main__":

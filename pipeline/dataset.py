@@ -76,8 +76,11 @@ def data_path(source: Any) -> Path:
             "dataset=<name> of a dataset already under out_root (`skidbench datasets` lists them)"
         )
     path = Path(str(source.get("root"))).expanduser().resolve()
-    if source.get("file"):
-        path = path / str(source.get("file"))
+    file = source.get("file")
+    if file and not isinstance(file, str) and hasattr(file, "__len__"):  # several files: one dataset
+        return path / "+".join(Path(str(f)).stem for f in file)
+    if file:
+        path = path / str(file)
     return path
 
 
@@ -184,9 +187,31 @@ def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:
     return doc
 
 
+def holds_data(root: Path) -> bool:
+    """True when a dataset folder holds any file besides its identity (``dataset.json``), the manifest
+    ``extract`` derives from a user's source before reading it, stamps and temporary files: a folder
+    without data is what a command that failed first leaves."""
+    for path in Path(root).rglob("*"):
+        if not path.is_file():
+            continue
+        rel = path.relative_to(root)
+        if rel in (Path("dataset.json"), Path("raw/manifest.json")) or rel.parts[0] == ".stamps":
+            continue
+        if path.name.startswith(".tmp-"):
+            continue
+        return True
+    return False
+
+
+def has_extracted_table(layout: Layout) -> bool:
+    """At least one extracted table (``extracted/<seq>/<key>.parquet``): the least a dataset holds."""
+    return layout.extracted.is_dir() and any(layout.extracted.glob("*/*.parquet"))
+
+
 # -- `skidbench datasets` --------------------------------------------------------------------------
 def list_datasets(out_root: Path) -> list[dict[str, Any]]:
-    """One row per dataset folder under ``out_root`` (a folder with ``dataset.json`` or a manifest):
+    """One row per dataset folder under ``out_root`` (a folder with ``dataset.json`` or a manifest, and at
+    least one extracted table):
     name, source, root, terrains, fingerprint, last evaluate (UTC time and parent run id)."""
     import datetime as dt
 
@@ -197,8 +222,8 @@ def list_datasets(out_root: Path) -> list[dict[str, Any]]:
     for d in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         layout = Layout(root, d.name)
         rec = read_record(layout)
-        if rec is None and not layout.manifest.is_file():
-            continue
+        if (rec is None and not layout.manifest.is_file()) or not has_extracted_table(layout):
+            continue  # not a dataset yet (what a failed first command or a bare simulate leaves)
         rec = rec or {"source": "?", "root": "?", "fingerprint": "?"}
         terrains = rec.get("terrains") or []
         if not terrains and layout.manifest.is_file():

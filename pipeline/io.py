@@ -11,7 +11,6 @@ import errno
 import hashlib
 import json
 import os
-import signal
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -28,32 +27,6 @@ os.umask(_UMASK)
 
 #: errno values of a write that fails for a reason outside the program: one clear line, not a traceback
 WRITE_ERRNOS = {errno.ENOSPC, errno.EACCES, errno.EPERM, errno.EROFS, errno.EDQUOT, errno.EFBIG}
-
-#: Test-only fault injection (tests/test_reliability_*.py): ``SKIDBENCH_FAULT=<action>@<n>[:<substring>]``
-#: acts at the n-th atomic write (1-based) of this process whose final path contains ``substring``, after
-#: the temporary file is written and before it is renamed. ``kill``: SIGKILL the process group
-#: (a killed run; start it in a session of its own);
-#: ``enospc`` / ``eacces``: raise that OSError (a full disk / a permission error).
-FAULT_ENV = "SKIDBENCH_FAULT"
-_fault_count = [0]
-
-
-def _inject_fault(final: Path) -> None:
-    spec = os.environ.get(FAULT_ENV)
-    if not spec:
-        return
-    action, _, rest = spec.partition("@")
-    nth, _, needle = rest.partition(":")
-    if needle and needle not in str(final):
-        return
-    _fault_count[0] += 1
-    if _fault_count[0] != int(nth or 1):
-        return
-    if action == "kill":  # the whole process group: a stage and its worker processes die together
-        os.killpg(os.getpgid(0), signal.SIGKILL)
-    code = {"enospc": errno.ENOSPC, "eacces": errno.EACCES}.get(action)
-    if code is not None:
-        raise OSError(code, os.strerror(code), str(final))
 
 
 def _write_failure(final: Path, exc: OSError) -> OutputError | None:
@@ -95,7 +68,6 @@ def atomic_path(final: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual file mode
     try:
         yield tmp_path
-        _inject_fault(final)
         if tmp_path.is_file():
             with open(tmp_path, "rb") as fh:
                 os.fsync(fh.fileno())

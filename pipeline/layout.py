@@ -8,7 +8,7 @@
     <out_root>/<dataset>/groundtruth/            <seq>.tum, <seq>.json, loop_closure.json
     <out_root>/<dataset>/splits/<terrain>/<split>/<seq>.parquet, card.md
     <out_root>/<dataset>/calibration/<terrain>.json   calibrate output: effective wheel radius, track width
-    <out_root>/<dataset>/fits/<model>/<terrain>.json
+    <out_root>/<dataset>/fits/<model>/<terrain>[.<inputs>].json
     <out_root>/<dataset>/eval/, reports/, discovery/
 
 Which terrains and sequences a stage works on comes from the current manifest (``raw/manifest.json``),
@@ -103,8 +103,17 @@ class Layout:
     def split_file(self, terrain: str, split: str, sequence: str) -> Path:
         return self.splits / terrain / split / f"{sequence}.parquet"
 
-    def fit_file(self, model: str, terrain: str) -> Path:
-        return self.fits / model / f"{terrain}.json"
+    def fit_file(self, model: str, terrain: str, inputs: str = "commanded") -> Path:
+        """The fit of ``model`` on ``terrain`` under the input protocol ``inputs`` (pipeline/protocol.py):
+        ``<terrain>.json`` for ``commanded``, ``<terrain>.<inputs>.json`` for the others (a fit under one
+        protocol is never another's)."""
+        return (
+            self.fits / model / (f"{terrain}.json" if inputs == "commanded" else f"{terrain}.{inputs}.json")
+        )
+
+    def eval_stem(self, model: str, terrain: str, inputs: str = "commanded") -> Path:
+        """``eval/<model>/<terrain>[.<inputs>]``: the evaluate stage's per-run files add a suffix to it."""
+        return self.eval / model / (terrain if inputs == "commanded" else f"{terrain}.{inputs}")
 
     def calibration_file(self, terrain: str) -> Path:
         return self.calibration / f"{terrain}.json"

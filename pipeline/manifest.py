@@ -73,7 +73,10 @@ class Manifest:
             data = json.loads(path.read_text())
             seqs = [Sequence(**s) for s in data["sequences"]]
         except FileNotFoundError as exc:
-            raise ConfigError(f"{path}: no manifest (run `skidbench simulate` or give source.root)") from exc
+            raise ConfigError(
+                f"{path}: no manifest yet: run the stage that writes it first (`skidbench extract` with the "
+                "same source settings for your own data; `skidbench simulate` for the simulated dataset)"
+            ) from exc
         except (json.JSONDecodeError, KeyError, TypeError) as exc:
             raise ConfigError(f"{path}: not a valid manifest ({exc})") from exc
         return cls(seqs, data.get("robot", "jackal"), data.get("format", "ros1"), path.parent)

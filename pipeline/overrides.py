@@ -12,12 +12,13 @@ additions, ``~key`` deletions and ``hydra.*`` settings are checked exactly as Hy
 from __future__ import annotations
 
 import difflib
+import functools
 import re
 from collections.abc import Iterator
 from importlib import resources
 from typing import Any
 
-from .errors import ConfigError
+from .errors import ConfigError, one_line
 
 CONFIG_MODULE = "skidbench.conf"
 # Hydra flags that take no override check: help, shell completion, another config, a rerun
@@ -29,43 +30,110 @@ def is_hydra_stage(stage: str) -> bool:
     return resources.files(CONFIG_MODULE).joinpath(f"{stage}.yaml").is_file()
 
 
-def check_overrides(stage: str, argv: list[str]) -> None:
-    """Raise :class:`ConfigError` (one line) for the first override of ``argv`` that Hydra would refuse."""
+def check_overrides(stage: str, argv: list[str]) -> tuple[list[str], Any]:
+    """Check the overrides of ``argv`` as Hydra will apply them. Returns the overrides that set another
+    stage's settings (this stage ignores them: ``make reproduce ARGS=...`` passes the same settings to
+    every stage) and the composed config (None when there is nothing to compose: help, a flag Hydra
+    reports itself). Raises :class:`ConfigError` (one line) for the first override no stage knows, a
+    group option that does not exist, or bad grammar."""
     from hydra._internal.utils import get_args_parser  # Hydra's own command-line parser
 
     if not is_hydra_stage(stage):
-        return
+        return [], None
     try:
         args = get_args_parser().parse_args(argv)
     except SystemExit:  # an unknown flag: Hydra reports it itself
-        return
+        return [], None
     if any(getattr(args, flag, None) for flag in _SKIP_FLAGS) or getattr(args, "experimental_rerun", None):
-        return
+        return [], None
     overrides = list(args.overrides or [])
-    if not overrides:
-        return
     if not args.multirun:
-        _check(stage, overrides)
-        return
+        return _check(stage, overrides)
     values = _sweep_values(overrides)
     first = [vals[0] if vals else None for _, vals in values]
-    cfg = _check(stage, [f for f in first if f is not None])
+    foreign, cfg = _check(stage, [f for f in first if f is not None])
+    foreign_keys = {_override_key(f) for f in foreign}
+    dropped = [line for line, (key, _) in zip(overrides, values, strict=True) if key in foreign_keys]
     groups = set(cfg.hydra.runtime.choices)  # only a group choice can change which keys exist
     for i, (key, vals) in enumerate(values):
-        if key in groups:
+        if key in groups and key not in foreign_keys:
             for v in vals[1:]:
                 _check(stage, [v if j == i else f for j, f in enumerate(first) if f is not None or j == i])
+    return dropped, cfg
 
 
-def _check(stage: str, overrides: list[str]) -> Any:
-    """The composed config, or ConfigError naming the override Hydra refuses."""
+def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
+    """The overrides that belong to other stages only, and the config composed without them; or
+    ConfigError naming the override Hydra refuses."""
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
+    foreign: list[str] = []
+    kept = list(overrides)
+    while True:
+        try:
+            return foreign, _compose(stage, kept)
+        except (HydraException, OmegaConfBaseException) as exc:
+            key = _refused_key(exc)
+            line = next((o for o in kept if key and _override_key(o) == key and o[:1] not in "+~"), None)
+            if line is None or not is_other_stage_key(key):
+                raise ConfigError(_explain(stage, kept, exc)) from None
+            foreign.append(line)
+            kept.remove(line)
+
+
+def parse_value(line: str) -> tuple[str, Any]:
+    """``key=value`` -> (key, value as Hydra parses it: ``[a,b]`` a list, ``1.5`` a float, ...)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
     try:
-        return _compose(stage, overrides)
-    except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(_explain(stage, overrides, exc)) from None
+        ov = OverridesParser.create().parse_overrides([line])[0]
+    except HydraException as exc:
+        raise ConfigError(f"bad override {line!r} ({one_line(str(exc))})") from None
+    value = None if ov.is_delete() else ov.value()
+    if ov.is_sweep_override():
+        return ov.key_or_group, None
+    return ov.key_or_group, value
+
+
+def _refused_key(exc: Exception) -> str | None:
+    """The key an override error names (an unknown key, or a config group this stage does not have)."""
+    text = " ".join(str(exc).split())
+    for pattern in _KEY_PATTERNS[:1]:
+        if m := re.search(pattern, text):
+            return m.group(1)
+    return None
+
+
+@functools.cache
+def _every_stage_key() -> frozenset[str]:
+    """Every dotted key (sections included) and config group of every stage's config files, read
+    statically from ``conf/`` (no composition: this runs before each stage)."""
+    from omegaconf import OmegaConf
+
+    keys: set[str] = set()
+    root = resources.files(CONFIG_MODULE)
+    for entry in root.iterdir():
+        name = entry.name
+        if entry.is_file() and name.endswith(".yaml"):
+            data = OmegaConf.to_container(OmegaConf.create(entry.read_text()), resolve=False) or {}
+            data.pop("defaults", None)
+            data.pop("hydra", None)
+            keys.update(_flatten(data))
+        elif entry.is_dir() and not name.startswith(("_", ".")) and name != "hydra":
+            keys.add(name)
+            for option in entry.iterdir():
+                if option.name.endswith(".yaml"):
+                    data = OmegaConf.to_container(OmegaConf.create(option.read_text()), resolve=False) or {}
+                    data.pop("defaults", None)
+                    keys.update(_flatten(data, f"{name}."))
+    return frozenset(keys)
+
+
+def is_other_stage_key(key: str) -> bool:
+    """A key (or section, or config group) that some stage's config has: another stage's setting."""
+    return key in _every_stage_key()
 
 
 def _sweep_values(overrides: list[str]) -> list[tuple[str, list[str]]]:
@@ -121,7 +189,14 @@ def _explain(stage: str, overrides: list[str], exc: Exception) -> str:
             key = m.group(1)
             rest = [o for o in overrides if _override_key(o) != key]
             keys = _valid_keys(stage, rest, hydra=key.startswith("hydra."))
-            return f"unknown config key '{key}'{_nearest(key, keys)}"
+            hint = _nearest(key, keys)
+            parent = key.rpartition(".")[0]
+            foreign_parent = bool(parent) and parent not in keys and is_other_stage_key(parent)
+            if not key.startswith("hydra.") and ("did you mean" not in hint or foreign_parent):
+                # a misspelt setting of another stage (ARGS of make reproduce): its nearest keys
+                wider = _nearest(key, sorted({*keys, *_every_stage_key()}))
+                hint = wider if "did you mean" in wider else hint
+            return f"unknown config key '{key}'{hint}"
     if m := re.search(r"Could not append to config\. An item is already at '([^']+)'", text):
         return f"'{m.group(1)}' is already in the config: set it without '+' ('++' adds or overrides)"
     if "Ambiguous value for argument" in text:

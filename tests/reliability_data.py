@@ -19,6 +19,9 @@ SIMULATE = [
     *(f"scale.simulate.loops.{t}=0" for t in ("tile", "asphalt", "grass")),
 ]
 DATASET = "sim-micro"
+#: ``SKIDBENCH_FAULT=<action>@<n>[:<substring>]`` kills or fails a run at a write (tests/fault_injection)
+FAULT_ENV = "SKIDBENCH_FAULT"
+FAULT_INJECTION = Path(__file__).resolve().parent / "fault_injection"
 #: stage -> overrides of a run of the micro dataset
 STAGE_ARGS = {
     "simulate": SIMULATE,
@@ -42,6 +45,8 @@ def skidbench(
     """``skidbench <stage>`` on the micro dataset in a subprocess (niced: the tests share 2 cores);
     ``base`` replaces the stage's default overrides (``STAGE_ARGS``)."""
     e = {**os.environ, "SKIDBENCH_OUT": str(out_root), "PYTHONHASHSEED": "0", **(env or {})}
+    if e.get(FAULT_ENV):  # the fault hook (tests/fault_injection), loaded at start-up by its sitecustomize
+        e["PYTHONPATH"] = os.pathsep.join(filter(None, [str(FAULT_INJECTION), e.get("PYTHONPATH")]))
     if "MLFLOW_TRACKING_URI" not in (env or {}):
         e.pop("MLFLOW_TRACKING_URI", None)
     args = STAGE_ARGS.get(stage, SCALE) if base is None else base

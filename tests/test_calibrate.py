@@ -28,9 +28,11 @@ B_TRUE = dd.TRACK * 1.45  # effective track (ICR spread), 45 % over the spec she
 TRACKING = 0.97  # the wheels hold 97 % of their commanded rate
 
 
-def _sequence(rng, duration: float, kind: str = "train"):
+def _sequence(rng, duration: float, kind: str = "train", lag: tuple[float, float] | None = None):
     """Split table of one sequence: commands converted to wheel rates with the spec constants, wheels at
-    TRACKING x command (encoders: that plus 0.05 rad/s noise), body by R_TRUE / B_TRUE, VO-like poses."""
+    TRACKING x command (encoders: that plus 0.05 rad/s noise), body by R_TRUE / B_TRUE, VO-like poses.
+    ``lag`` = (dead time, time constant) in s: the encoders read the wheels' response to the commands
+    instead, a dead time then a first-order lag integrated exactly on the 180 Hz simulation clock."""
     dt = 1.0 / 180.0
     t, v, w = dd.joystick(rng, duration, dt, kind)
     step = 4  # 45 Hz commands, held
@@ -47,6 +49,17 @@ def _sequence(rng, duration: float, kind: str = "train"):
     df = dd.to_split(cmd, pd.DataFrame({"t": tl, "x": loc[:, 0], "y": loc[:, 1], "yaw": loc[:, 2]}))
     t_grid = df["t"].to_numpy() + max(cmd.t.iloc[0], tl[0])
     idx = np.clip(np.searchsorted(t, t_grid, side="right") - 1, 0, len(t) - 1)
+    if lag is not None:
+        delay_s, tau_s = lag
+        k = int(round(delay_s / dt))
+        u = np.column_stack([wl, wr])
+        u = np.vstack([np.repeat(u[:1], k, axis=0), u[: len(u) - k]])  # the command delay_s earlier
+        y = np.empty_like(u)
+        y[0] = u[0]
+        a = 1.0 - np.exp(-dt / tau_s)  # exact for a command held over each simulation step
+        for i in range(1, len(u)):
+            y[i] = y[i - 1] + a * (u[i - 1] - y[i - 1])
+        wl, wr = y[:, 0], y[:, 1]
     df["enc_wl"] = wl[idx] + rng.normal(0, 0.05, len(df))
     df["enc_wr"] = wr[idx] + rng.normal(0, 0.05, len(df))
     return df
@@ -109,6 +122,41 @@ def test_without_encoders_radius_comes_from_commands_and_track_width_is_not_iden
     assert not tw["identified"] and tw["value"] == jackal.track_width
     assert "no wheel encoders" in tw["reason"]
     assert doc["not_identified"] == ["track_width"]
+
+
+def test_calibration_identifies_an_injected_dead_time_and_lag_of_the_wheels(jackal):
+    """The wheel response ``calibrate`` writes next to the radius and track width recovers the encoders'
+    dead time (to one 30 Hz clock step) and lag (to 10 %), with its structure chosen on held-out blocks and
+    an uncertainty per parameter; the ``response`` inputs built from it then match the encoders."""
+    from skidbench.pipeline.calibration import wheel_response_of
+    from skidbench.pipeline.protocol import model_inputs
+
+    rng = np.random.default_rng(11)
+    tables = [(_sequence(rng, 40.0, lag=(0.2, 0.35)), {"sequence": f"s{i}"}) for i in range(4)]
+    table = concat_sequences(tables)
+    doc = calibrate_table(table, jackal, CalibrationSettings(bootstrap=50))
+    wr = doc["wheel_response"]
+    # the wheels also hold TRACKING of their command: the held-out choice adds the static gain
+    assert wr["identified"] and wr["structure"].startswith("delay+lag"), wr["structure"]
+    assert wr["delay_s"] == pytest.approx(0.2, abs=1 / 30), wr
+    assert wr["tau_s"] == pytest.approx(0.35, rel=0.10), wr
+    assert wr["gain_s"] == pytest.approx(TRACKING, abs=0.02) and wr["gain_d"] == pytest.approx(
+        TRACKING, abs=0.02
+    )
+    assert wr["rmse_response"] < 0.3 * wr["rmse_command"]
+    assert {"delay_s", "tau_s"} <= set(wr["param_se"]) and wr["heldout_rmse"] > 0
+    resp = wheel_response_of(doc)
+    got = model_inputs(table, "response", jackal, resp)[["cmd_wl", "cmd_wr"]].to_numpy()
+    enc = table[["enc_wl", "enc_wr"]].to_numpy()
+    assert np.sqrt(np.mean((got - enc) ** 2)) < 0.1  # the encoders' noise is 0.05 rad/s
+    # without encoders: not identified, and said so (inputs=response unavailable for the terrain)
+    none = calibrate_table(
+        table.assign(enc_wl=np.nan, enc_wr=np.nan), jackal, CalibrationSettings(bootstrap=50)
+    )
+    assert (
+        not none["wheel_response"]["identified"] and "no wheel encoders" in none["wheel_response"]["reason"]
+    )
+    assert wheel_response_of(none) is None
 
 
 def _cfg(root: Path, *over: str):

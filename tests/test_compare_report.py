@@ -26,6 +26,13 @@ def two_evaluations(tmp_path_factory):
     second = run_benchmark(
         compose("evaluate", out, ["models=[chi,ideal_t,broken]"]), fit_fn=fit_fn, log_figures=False
     )
+    # the newest evaluate is under another input protocol: never ranked with the commanded ones
+    third = run_benchmark(
+        compose("evaluate", out, ["models=[chi,ideal_t]", "inputs=measured"]),
+        fit_fn=fit_fn,
+        log_figures=False,
+    )
+    assert third.inputs == "measured"
     yield out, first, second
     mp.undo()
 
@@ -33,7 +40,8 @@ def two_evaluations(tmp_path_factory):
 def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     out, _, second = two_evaluations
     res = run_compare(compose("compare", out))
-    assert res.parent_run_id == second.parent_run_id
+    assert res.parent_run_id == second.parent_run_id  # the latest under inputs=commanded (the default)
+    assert res.inputs == "commanded"
     lb = res.leaderboard_md.splitlines()
     assert lb[2].startswith("| 1 | chi |")  # best first
     assert any(line.startswith("| 3 | broken |") and "grass (FAILED)" in line for line in lb)
@@ -46,6 +54,11 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
         assert (out / DS / "reports" / f).stat().st_size > 5000 and f"]({f})" in text
     # Figs. 5-7 need fits on disk (the tests' models have none): skipped with a note, not a crash
     assert any(n.startswith("Fig. 6 skipped") for n in res.notes) and "## Notes" in text
+    # the protocols side by side per model (commanded / measured: the latest evaluate of each)
+    assert "## The input protocols side by side (commanded / measured)" in text
+    chi = next(line for line in res.decomposition_md.splitlines() if line.startswith("| chi |"))
+    assert chi.count(" / ") == 4  # one pair of values per metric
+    assert (out / DS / "reports" / "fig_protocols.png").stat().st_size > 5000
     client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
     arts = {a.path for a in client.list_artifacts(second.parent_run_id, "report")}
     assert {"report/report.md", "report/leaderboard.csv", "report/fig3_translational_rmsre.png"} <= arts
@@ -62,11 +75,34 @@ def test_select_an_older_parent_a_filter_or_every_run(two_evaluations):
     )
     csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
     assert set(csv["terrain"]) == {"tile"}
+    # every child run: of two protocols here, which compare refuses to rank together
+    with pytest.raises(CompareError, match=r"different input protocols \['commanded', 'measured'\]"):
+        run_compare(compose("compare", out, ["parent_run_id=null", "figures.enabled=false"]))
+    only = "filter=\"tags.`skidbench.inputs` = 'commanded'\""
     res = run_compare(
-        compose("compare", out, ["parent_run_id=null", "figures.enabled=false", "log_to_mlflow=false"])
+        compose("compare", out, ["parent_run_id=null", only, "figures.enabled=false", "log_to_mlflow=false"])
     )
     csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
-    assert len(csv) == 6  # the latest run of each (model, terrain) across both evaluations
+    assert len(csv) == 6  # the latest run of each (model, terrain) across both commanded evaluations
+    assert set(csv["inputs"]) == {"commanded"}
+
+
+def test_compare_ranks_the_runs_of_the_protocol_asked_for(two_evaluations):
+    out, _, _ = two_evaluations
+    res = run_compare(compose("compare", out, ["inputs=measured", "figures.enabled=false"]))
+    assert res.inputs == "measured" and "| broken |" not in res.leaderboard_md
+    assert "inputs=measured" in res.report.read_text()
+
+
+def test_a_board_of_two_protocols_is_refused():
+    from skidbench.benchmark.compare import summary_table
+
+    board = pd.DataFrame(
+        {"model": ["chi", "chi"], "inputs": ["commanded", "response"], "terrain": ["tile", "tile"],
+         "status": ["FINISHED"] * 2, "rmsre_translational_ld_6s": [0.1, 0.05]}
+    )  # fmt: skip
+    with pytest.raises(CompareError, match="never ranked together"):
+        summary_table(board, 6.0, "rmsre_translational_ld")
 
 
 def test_no_match_and_bad_filter_are_one_line_errors(two_evaluations):
@@ -75,7 +111,9 @@ def test_no_match_and_bad_filter_are_one_line_errors(two_evaluations):
         run_compare(compose("compare", out, ["filter=\"tags.`skidbench.model` = 'nope'\""]))
     with pytest.raises(CompareError, match="search_runs"):
         run_compare(compose("compare", out, ["filter='metrics.x >>> 1'"]))
-    with pytest.raises(CompareError, match="no `skidbench evaluate` run in experiment"):
+    with pytest.raises(
+        CompareError, match="no `skidbench evaluate` run under inputs=commanded in experiment"
+    ):
         run_compare(compose("compare", out, ["mlflow.experiment=empty-one"]))
 
 

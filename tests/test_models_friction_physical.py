@@ -1,6 +1,6 @@
-"""The friction model on real robots: the actuator (dead time + lag) it is driven by, the steady-state
-closed forms its fit starts from, recovery of known parameters on Husky geometry, and the DRIVE Husky
-fit with every parameter off its bounds."""
+"""The friction model on real robots: the wheel response (dead time + lag) the calibration identifies,
+the steady-state closed forms its fit starts from, recovery of known parameters on Husky geometry, and
+the DRIVE Husky fit with every parameter off its bounds."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.models import actuator
 from skidbench.models.friction import PARAM_RANGES, FrictionBased, bound_report
 from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve
 from skidbench.models.synthetic import command_table, label_with
+from skidbench.pipeline import wheel_response as actuator
 from skidbench.pipeline.robot import load_robot
 
 #: physically plausible friction on a Husky-sized robot; lambda |s| stays under mu_x (mu_x identifiable
@@ -112,12 +112,12 @@ def test_friction_fit_on_husky_geometry_recovers_known_parameters_inside_the_bou
     """Noise-free data labelled by the model with known parameters on the Husky's geometry (no actuator):
     the fit, started 30 % away, recovers them, inside the bounds, with small Jacobian standard errors."""
     table = command_table(husky, 500, seed=3, v_max=0.9, w_max=1.2)
-    truth = FrictionBased(husky, HUSKY_FRICTION, actuator="none")
+    truth = FrictionBased(husky, HUSKY_FRICTION)
     data = label_with(table, truth.predict(table))
     assert not truth.last_solve_.saturated(table["cmd_wl"], table["cmd_wr"], HUSKY_FRICTION).any()
     names = ["mu_r", "mu_y", "lambda", "C"]
     start = {k: v * (1.3 if k in names else 1.0) for k, v in HUSKY_FRICTION.items()}
-    fitted = FrictionBased(husky, start, actuator="none", start="config", fit_params=names).fit(data)
+    fitted = FrictionBased(husky, start, start="config", fit_params=names).fit(data)
     for k in names:
         assert fitted.params[k] == pytest.approx(HUSKY_FRICTION[k], rel=0.02), k
         assert fitted.fit_info_["param_bound_margin"][k] > 0.01, k
@@ -140,11 +140,11 @@ def test_friction_fit_in_the_linear_lateral_regime_holds_mu_y_and_recovers_the_l
     of its (log) range from its bounds, and recovers the lateral stiffness mu_y / C, mu_r and lambda."""
     truth_p = {"mu_r": 0.06, "mu_x": 2.5, "mu_y": 40.0, "lambda": 2.5, "C": 40.0}
     table = _wide_turns(husky)
-    truth = FrictionBased(husky, truth_p, actuator="none")
+    truth = FrictionBased(husky, truth_p)
     data = label_with(table, truth.predict(table))
     start = {"mu_r": 0.08, "mu_x": 2.5, "mu_y": 0.8, "lambda": 3.2, "C": 0.4}
     names = ["mu_r", "mu_x", "mu_y", "lambda", "C"]
-    fitted = FrictionBased(husky, start, actuator="none", start="config", fit_params=names).fit(data)
+    fitted = FrictionBased(husky, start, start="config", fit_params=names).fit(data)
     info, p = fitted.fit_info_, fitted.params
     lateral = info["lateral"]
     assert lateral["mu_y_identified"] is False
@@ -170,11 +170,11 @@ def test_friction_fit_in_the_saturating_regime_recovers_all_five_and_identifies_
     identified, with small standard errors."""
     truth_p = {"mu_r": 0.06, "mu_x": 0.5, "mu_y": 0.7, "lambda": 2.5, "C": 0.3}
     table = command_table(husky, 500, seed=3, v_max=0.9, w_max=1.2)
-    truth = FrictionBased(husky, truth_p, actuator="none")
+    truth = FrictionBased(husky, truth_p)
     data = label_with(table, truth.predict(table))
     assert truth.last_solve_.saturated(table["cmd_wl"], table["cmd_wr"], truth_p).sum() > 50
     start = {k: v * 1.3 for k, v in truth_p.items()}
-    fitted = FrictionBased(husky, start, actuator="none", start="config", fit_params=list(truth_p)).fit(data)
+    fitted = FrictionBased(husky, start, start="config", fit_params=list(truth_p)).fit(data)
     info = fitted.fit_info_
     assert info["lateral"]["mu_y_identified"] is True and info["lateral"]["lateral_reach"] > 1.0
     for k, v in truth_p.items():
@@ -208,22 +208,29 @@ def drive_husky_fit(shared_real, tmp_path_factory):
     sequences, cut where DRIVE's windows are not back to back)."""
     from drive_data import drive_splits, split_table
 
+    from skidbench.pipeline.protocol import fit_table
+
     splits = drive_splits(shared_real / "drive", tmp_path_factory.mktemp("drive"), "husky")
-    return FrictionBased(load_robot("husky"), max_nfev=40).fit(split_table(splits, rows=6000))
+    husky = load_robot("husky")
+    table = split_table(splits, rows=6000)
+    # the fair protocol: driven by the wheel response identified from the Train encoders, as any model
+    response = actuator.identify_response(table)
+    model = FrictionBased(husky, max_nfev=40).fit(fit_table(table, "response", husky, response.response))
+    return model, response
 
 
-def test_drive_husky_fit_identifies_the_actuator_and_keeps_every_parameter_off_its_bounds(drive_husky_fit):
-    """Real data: the wheels' dead time and lag come from the encoders, and every parameter lies more than
-    1 % of its (log) range inside its bounds: those 1.5 pressed against one (mu_r at 0.499 of 0.5) and
-    mu_y, which 1.6 ran to 3.0 of 3.0 along mu_y / C (the Husky's lateral law is linear over its slip
-    angles: 1.7 holds mu_y, reported as not identified, and fits the lateral stiffness mu_y / C)."""
-    m = drive_husky_fit
+def test_drive_husky_fit_under_response_keeps_every_parameter_off_its_bounds(drive_husky_fit):
+    """Real data: the wheels' dead time and lag come from the encoders (the calibration's wheel response,
+    pipeline/wheel_response.py), and the friction model driven by it has every parameter more than 1 % of
+    its (log) range inside its bounds: those 1.5 pressed against one (mu_r at 0.499 of 0.5) and mu_y,
+    which 1.6 ran to 3.0 of 3.0 along mu_y / C (the Husky's lateral law is linear over its slip angles:
+    1.7 holds mu_y, reported as not identified, and fits the lateral stiffness mu_y / C)."""
+    m, response = drive_husky_fit
     info = m.fit_info_
-    assert info["actuator"]["source"] == "encoders"
-    assert 0.1 < m.params["actuator_delay_s"] < 0.6
-    # friction 1.7: a lag per sum/difference mode (a slew limit may carry most of the sum mode's response)
-    assert 0.01 <= m.params["actuator_tau_s"] < 1.5 and 0.1 < m.params["actuator_tau_d_s"] < 1.5
-    assert info["actuator"]["rmse_response"] <= info["actuator"]["candidates"]["delay+lag"]["train_rmse"]
+    assert 0.1 < response.response.delay_s < 0.6
+    assert 0.01 <= response.response.tau_s < 1.5 and 0.1 < response.response.tau_d_s < 1.5
+    assert response.rmse_response <= response.candidates["delay+lag"]["train_rmse"]
+    assert not any(k.startswith("actuator_") for k in m.params)  # 1.9: five parameters, the paper's
     margins = info["param_bound_margin"]
     assert set(margins) == {"mu_r", "mu_x", "mu_y", "lambda", "C"}
     assert min(margins.values()) > 0.01, margins

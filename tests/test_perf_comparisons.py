@@ -5,17 +5,23 @@ from __future__ import annotations
 
 import math
 
-from skidbench.benchmark.perf import load_all
+import pytest
+
+from skidbench.benchmark.perf import check, load_all
 from skidbench.benchmark.perf import reproduce as rep
 from skidbench.benchmark.perf import scaling as sc
 from skidbench.benchmark.perf import vo as vo_bench
 
 
-def test_new_comparisons_are_registered_with_targets():
-    comps = load_all()
-    assert comps["vo"].targets == {"realtime_ratio": (">=", 2.0)}
-    assert comps["reproduce"].targets == {"total_wall_min": ("<", 10.0)}
-    assert comps["scaling"].targets == {"max_exponent": ("<=", 1.2)}
+@pytest.mark.parametrize("name", ["vo", "reproduce", "scaling"])
+def test_a_comparison_is_registered_from_its_module_and_its_targets_judge_a_measurement(name):
+    comp = load_all()[name]
+    assert comp.module == {"vo": vo_bench, "reproduce": rep, "scaling": sc}[name].__name__
+    assert comp.targets
+    for op, bound in comp.targets.values():
+        better, worse = (bound + 1, bound - 1) if op.startswith(">") else (bound - 1, bound + 1)
+        assert check(better, (op, bound)) is True and check(worse, (op, bound)) is False
+        assert check(f"incomplete ({bound})", (op, bound)) is None  # an unmeasured metric is not judged
 
 
 def test_vo_tracks_a_short_rendered_drive_and_reports_rates():
@@ -25,6 +31,7 @@ def test_vo_tracks_a_short_rendered_drive_and_reports_rates():
     assert m["fps"] > 0 and math.isclose(m["realtime_ratio"], m["fps"] / 15.0)
     for key in ("fps_cpu", "decode_ms_per_pair", "keyframes", "lost_frames", "image_size"):
         assert key in m
+    assert set(load_all()["vo"].targets) <= set(m)  # a target names a metric the comparison reports
 
 
 def test_reproduce_stage_wrapper_reports_time_memory_and_a_failing_stage(tmp_path, monkeypatch):
@@ -33,10 +40,11 @@ def test_reproduce_stage_wrapper_reports_time_memory_and_a_failing_stage(tmp_pat
     assert res["exit"] == 2 and "split" in res["error"]
     assert res["wall_s"] > 0 and res["cpu_s"] > 0 and res["peak_rss_mb"] > 10
     m = rep.metrics({"scale": "tiny", "stages": [res]})
-    assert m["stages_ok"] == "0/6" and m["total_wall_min"].startswith("incomplete")
+    assert m["stages_ok"] == f"0/{len(rep.STAGES)}" and m["total_wall_min"].startswith("incomplete")
+    assert set(load_all()["reproduce"].targets) <= set(m)
     assert m["evaluate_peak_rss_mb"] == res["peak_rss_mb"] and "evaluate_error" in m
     none = rep.metrics(rep.reproduce("tiny", budget_min=0.0))  # no stage started: says why
-    assert none["stages_ok"] == "0/6" and none["stopped"].startswith("budget")
+    assert none["stages_ok"] == f"0/{len(rep.STAGES)}" and none["stopped"].startswith("budget")
     monkeypatch.setenv("SKIDBENCH_OUT", str(tmp_path / "none"))
     ext = rep.extraction_mini_vs_full()
     assert ext["extract_rss_full_mb"].startswith("not measured")
@@ -50,6 +58,7 @@ def test_scaling_reports_an_exponent_per_model_and_kind():
             assert math.isfinite(m[f"{model}_{kind}_exponent"])
             assert len(m[f"{model}_{kind}_cpu_s"].split(" / ")) == 2
     assert m["max_exponent"] == max(v for k, v in m.items() if k.endswith("_exponent"))
+    assert set(load_all()["scaling"].targets) <= set(m)
     assert set(sc.builtin_models()) >= {"ideal", "edd", "full_linear", "roc", "enhanced", "friction"}
 
 

@@ -2,8 +2,9 @@
 a full disk or a permission error is one clear line and keeps earlier outputs; a truncated Parquet
 intermediate fails its fingerprint and is rebuilt, not read.
 
-The kill/ENOSPC/EACCES points come from the test-only hook ``SKIDBENCH_FAULT`` in pipeline/io.py (at the
-n-th atomic write whose path matches, after the temporary file is written, before its rename).
+The kill/ENOSPC/EACCES points come from the test-only hook ``SKIDBENCH_FAULT`` (tests/fault_injection,
+loaded into the stage's processes by its sitecustomize; at the n-th atomic write whose path matches, after
+the temporary file is written, before its rename).
 """
 
 from __future__ import annotations

@@ -119,3 +119,33 @@ def test_husky_wheel_commands_clipped_to_max_wheel_rate_match_the_saturated_enco
     assert sat.sum() > 1000
     ratio = np.median(np.abs(enc[sat]) / 6.06)
     assert 0.95 < ratio < 1.02
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("robot,over", [("husky", ()), ("warthog", ("source.file=warthog_windows.parquet",))])
+def test_drive_splits_run_under_all_three_input_protocols(shared_real, tmp_path, robot, over):
+    """The DRIVE fixtures under every input protocol: the wheel response identified from Train encoders
+    (the calibration's implementation) brings the driving wheel rates closer to the encoders on the held-out
+    CV split than the raw commands, ``measured`` is the encoders themselves, and one model fitted and scored
+    under each protocol sees only the protocol's inputs and predicts finite velocities."""
+    from drive_data import drive_splits, split_table
+
+    from skidbench.models.linear import FullLinear
+    from skidbench.pipeline.protocol import INPUT_COLUMNS, PROTOCOLS, fit_table, model_inputs
+    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.wheel_response import identify_response
+
+    splits = drive_splits(shared_real / "drive", tmp_path, robot, *over)
+    spec = load_robot(robot)
+    train, cv = split_table(splits, rows=6000), split_table(splits, "cv")
+    response = identify_response(train).response
+    enc = cv[["enc_wl", "enc_wr"]].to_numpy(float)
+    rmse = {}
+    for p in PROTOCOLS:
+        inputs = model_inputs(cv, p, spec, response)
+        assert tuple(inputs.columns) == INPUT_COLUMNS
+        ok = np.all(np.isfinite(enc), axis=1)
+        rmse[p] = float(np.sqrt(np.mean((inputs[["cmd_wl", "cmd_wr"]].to_numpy()[ok] - enc[ok]) ** 2)))
+        model = FullLinear(spec).fit(fit_table(train, p, spec, response))
+        assert np.isfinite(model.predict(inputs)).all()
+    assert rmse["measured"] < 0.1 < rmse["response"] < 0.8 * rmse["commanded"], rmse

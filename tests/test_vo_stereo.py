@@ -16,16 +16,16 @@ from skidbench.pipeline.groundtruth.loop import (
     loop_error,
     summarize_loops,
 )
-from skidbench.pipeline.groundtruth.trajectory import Trajectory
-from skidbench.pipeline.groundtruth.vo import (
+from skidbench.pipeline.groundtruth.stereo_vo import (
     StereoCamera,
     StereoVO,
     VOConfig,
     base_to_camera,
     camera_extrinsic,
     camera_to_base,
-    run_stereo_vo,
 )
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
+from skidbench.pipeline.groundtruth.vo import run_stereo_vo
 from skidbench.pipeline.simulate.render import StereoRenderer
 
 REPO = Path(__file__).resolve().parents[1]

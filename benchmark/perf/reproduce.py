@@ -34,12 +34,27 @@ from skidbench.pipeline.layout import default_out_root
 from . import register
 from .harness import peak_rss_mb
 
-STAGES = ("simulate", "extract", "groundtruth", "split", "evaluate", "compare")
+#: the steps of ``make reproduce``: (label, stage, its extra arguments); evaluate runs twice, under the
+#: paper's ``commanded`` inputs and under the calibrated wheel ``response`` (pipeline/protocol.py)
+STEPS = (
+    ("simulate", "simulate", ()),
+    ("extract", "extract", ()),
+    ("groundtruth", "groundtruth", ()),
+    ("split", "split", ()),
+    ("calibrate", "calibrate", ()),
+    ("evaluate", "evaluate", ()),
+    ("evaluate_response", "evaluate", ("inputs=response",)),
+    ("compare", "compare", ()),
+)
+STAGES = tuple(label for label, _, _ in STEPS)
 SCALE_ENV = "SKIDBENCH_BENCH_SCALE"
+KEEP_ENV = "SKIDBENCH_BENCH_KEEP"  # a folder: the run's out root and stage logs are kept there (its numbers)
 BUDGET_ENV = "SKIDBENCH_BENCH_MAX_MIN"  # stop starting stages after this many minutes (a loaded machine)
 
 
-def run_stage(stage: str, args: list[str], out_root: Path, cwd: Path) -> dict[str, Any]:
+def run_stage(
+    stage: str, args: list[str], out_root: Path, cwd: Path, label: str | None = None
+) -> dict[str, Any]:
     """One stage in a fresh process under the wrapper: wall/CPU seconds, peak RSS (MiB), exit code."""
     env = dict(os.environ)
     env["SKIDBENCH_OUT"] = str(out_root)
@@ -47,7 +62,7 @@ def run_stage(stage: str, args: list[str], out_root: Path, cwd: Path) -> dict[st
     with tempfile.NamedTemporaryFile(prefix="skidbench-stage-", suffix=".json", delete=False) as f:
         report = Path(f.name)
     cmd = [sys.executable, "-m", "skidbench.benchmark.perf.reproduce", "stage", str(report), stage, *args]
-    log = cwd / f"{stage}.log"
+    log = cwd / f"{label or stage}.log"
     started = time.perf_counter()
     with log.open("w") as out:
         proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -60,7 +75,7 @@ def run_stage(stage: str, args: list[str], out_root: Path, cwd: Path) -> dict[st
         mem = {}
     report.unlink(missing_ok=True)
     res = {
-        "stage": stage,
+        "stage": label or stage,
         "wall_s": wall,
         "cpu_s": usage.ru_utime + usage.ru_stime,  # the stage and every process it waited for
         "peak_rss_mb": max(mem.get("self_mb", 0.0), mem.get("children_mb", 0.0)),
@@ -84,14 +99,14 @@ def reproduce(scale: str, keep: Path | None = None, budget_min: float | None = N
         stages = []
         stopped = None
         started = time.perf_counter()
-        for stage in STAGES:
+        for label, stage, extra in STEPS:
             if budget_min is not None and time.perf_counter() - started > 60.0 * budget_min:
-                stopped = f"budget of {budget_min:g} min spent before {stage}"
+                stopped = f"budget of {budget_min:g} min spent before {label}"
                 break
-            res = run_stage(stage, [f"scale={scale}", "seed=0"], out_root, root)
+            res = run_stage(stage, [f"scale={scale}", "seed=0", *extra], out_root, root, label)
             stages.append(res)
             print(
-                f"bench reproduce: {stage} {res['wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MiB"
+                f"bench reproduce: {label} {res['wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MiB"
                 + (f" FAILED: {res.get('error')}" if res["exit"] else ""),
                 file=sys.stderr,
                 flush=True,
@@ -155,7 +170,10 @@ def metrics(run: dict[str, Any]) -> dict[str, Any]:
 def reproduce_bench(quick: bool) -> dict[str, Any]:
     scale = os.environ.get(SCALE_ENV) or ("tiny" if quick else "mini")
     budget = os.environ.get(BUDGET_ENV)
-    out = metrics(reproduce(scale, budget_min=float(budget) if budget else None))
+    keep = os.environ.get(KEEP_ENV)
+    out = metrics(
+        reproduce(scale, Path(keep) if keep else None, budget_min=float(budget) if budget else None)
+    )
     out.update(extraction_mini_vs_full())
     return out
 

@@ -31,7 +31,7 @@ from .convert import (
     schema_for,
     tf_rows,
 )
-from .reader import TopicSpec, iter_messages, open_bag, select_connections
+from .reader import DEFAULT_STORES, TopicSpec, iter_messages, open_bag, select_connections
 from .writer import SequenceWriter, TableSink
 
 EXTRACT_INFO = "_extract.json"
@@ -50,9 +50,7 @@ class ExtractOptions:
     batch_bytes: int = 8 << 20
     force: bool = False
     progress: bool = True
-    typestores: Mapping[str, str] = field(
-        default_factory=lambda: {"ros1": "ros1_noetic", "ros2": "ros2_humble"}
-    )
+    typestores: Mapping[str, str] = field(default_factory=lambda: dict(DEFAULT_STORES))
 
     def __post_init__(self):
         if self.images not in IMAGE_MODES:

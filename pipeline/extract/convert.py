@@ -1,7 +1,7 @@
 """Message -> table row: the columns of CONTRIBUTING.md "Extracted tables", one converter per message type.
 
 Pure functions on deserialised rosbags messages (no file access). Every table starts with ``stamp_ns``
-(int64, the header stamp when the message has a non-zero one, else the bag time) and ``bag_time_ns``
+(int64, the header stamp when the message has a positive one, else the bag time) and ``bag_time_ns``
 (int64, the time the message was recorded). Lengths in m, angles in rad, velocities in m/s and rad/s,
 accelerations in m/s^2, exactly as the messages carry them.
 """
@@ -35,10 +35,17 @@ def normalize_msgtype(name: str) -> str:
     return "/".join(parts)
 
 
-def _stamp(msg: Any, bag_time_ns: int) -> int:
+def header_stamp_ns(msg: Any, bag_time_ns: int) -> int:
+    """A message's ``header.stamp`` in ns (int), or ``bag_time_ns`` when the stamp is unset.
+
+    The one conversion of header stamps (extract, VO, loop detection). rosbags gives ``sec``/``nanosec``
+    for ROS1 and ROS2 alike; a ``nsec`` field (ROS1's spelling, from a typestore that keeps it) is read
+    too. Zero rule: a stamp <= 0 (never set, or before the epoch: not a time on any recording clock) is
+    replaced by the bag's receive time."""
     stamp = msg.header.stamp
-    ns = stamp.sec * 1_000_000_000 + stamp.nanosec
-    return ns if ns else bag_time_ns
+    nanosec = stamp.nanosec if hasattr(stamp, "nanosec") else stamp.nsec
+    ns = int(stamp.sec) * 1_000_000_000 + int(nanosec)
+    return ns if ns > 0 else int(bag_time_ns)
 
 
 def _vec(v: Any) -> tuple[float, float, float]:
@@ -71,12 +78,12 @@ def _twist(msg: Any, t: int) -> tuple:
 
 
 def _twist_stamped(msg: Any, t: int) -> tuple:
-    return (_stamp(msg, t), t, *_vec(msg.twist.linear), *_vec(msg.twist.angular))
+    return (header_stamp_ns(msg, t), t, *_vec(msg.twist.linear), *_vec(msg.twist.angular))
 
 
 def _joint_state(msg: Any, t: int) -> tuple:
     return (
-        _stamp(msg, t),
+        header_stamp_ns(msg, t),
         t,
         list(msg.name),
         _floats(msg.position),
@@ -88,7 +95,7 @@ def _joint_state(msg: Any, t: int) -> tuple:
 def _odometry(msg: Any, t: int) -> tuple:
     pose, twist = msg.pose.pose, msg.twist.twist
     return (
-        _stamp(msg, t),
+        header_stamp_ns(msg, t),
         t,
         msg.header.frame_id,
         msg.child_frame_id,
@@ -100,22 +107,28 @@ def _odometry(msg: Any, t: int) -> tuple:
 
 
 def _pose_stamped(msg: Any, t: int) -> tuple:
-    return (_stamp(msg, t), t, msg.header.frame_id, *_vec(msg.pose.position), *_quat(msg.pose.orientation))
+    return (
+        header_stamp_ns(msg, t),
+        t,
+        msg.header.frame_id,
+        *_vec(msg.pose.position),
+        *_quat(msg.pose.orientation),
+    )
 
 
 def _pose_cov_stamped(msg: Any, t: int) -> tuple:
     pose = msg.pose.pose
-    return (_stamp(msg, t), t, msg.header.frame_id, *_vec(pose.position), *_quat(pose.orientation))
+    return (header_stamp_ns(msg, t), t, msg.header.frame_id, *_vec(pose.position), *_quat(pose.orientation))
 
 
 def _transform_stamped(msg: Any, t: int) -> tuple:
     tf = msg.transform
-    return (_stamp(msg, t), t, msg.header.frame_id, *_vec(tf.translation), *_quat(tf.rotation))
+    return (header_stamp_ns(msg, t), t, msg.header.frame_id, *_vec(tf.translation), *_quat(tf.rotation))
 
 
 def _imu(msg: Any, t: int) -> tuple:
     return (
-        _stamp(msg, t),
+        header_stamp_ns(msg, t),
         t,
         *_quat(msg.orientation),
         *_vec(msg.angular_velocity),
@@ -125,7 +138,7 @@ def _imu(msg: Any, t: int) -> tuple:
 
 def _camera_info(msg: Any, t: int) -> tuple:
     return (
-        _stamp(msg, t),
+        header_stamp_ns(msg, t),
         t,
         msg.header.frame_id,
         msg.width,
@@ -224,7 +237,7 @@ def image_schema(mode: str, msgtype: str = COMPRESSED_IMAGE) -> pa.Schema:
 def image_row(msg: Any, bag_time_ns: int, index: int, mode: str) -> tuple:
     """One CompressedImage or Image row; ``index`` is the message's ordinal on its topic."""
     data = msg.data
-    head = (_stamp(msg, bag_time_ns), bag_time_ns, msg.header.frame_id)
+    head = (header_stamp_ns(msg, bag_time_ns), bag_time_ns, msg.header.frame_id)
     if hasattr(msg, "format"):
         row = (*head, msg.format, index, len(data))
     else:
@@ -268,7 +281,7 @@ def tf_rows(msg: Any, bag_time_ns: int, static: bool) -> list[tuple]:
     zero, as static transforms often carry). Frame names are kept as published."""
     return [
         (
-            _stamp(tf, bag_time_ns),
+            header_stamp_ns(tf, bag_time_ns),
             bag_time_ns,
             tf.header.frame_id,
             tf.child_frame_id,

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ExtractError, SkidbenchError, one_line
 from .convert import normalize_msgtype, schema_for
-from .reader import _BAG_ERRORS, _bag_error, bag_format, find_bags, open_bag
+from .reader import _BAG_ERRORS, DEFAULT_STORES, _bag_error, bag_format, find_bags, open_bag
 
 log = logging.getLogger("skidbench.extract")
 
@@ -33,7 +33,6 @@ ODOMETRY, JOINT_STATE, IMU = "nav_msgs/msg/Odometry", "sensor_msgs/msg/JointStat
 POSE_TYPES = (ODOMETRY, "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped")
 IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image")
 CAMERA_INFO, TF_MESSAGE = "sensor_msgs/msg/CameraInfo", "tf2_msgs/msg/TFMessage"
-DEFAULT_STORES = {"ros1": "ros1_noetic", "ros2": "ros2_humble"}
 REQUIRED_ROLES = ("cmd_vel",)  # every model reads the commands; the rest is optional
 GAP_FACTOR = 5.0  # an interval longer than this many median intervals is a gap
 

@@ -20,6 +20,7 @@ import struct
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -36,6 +37,10 @@ ROS1, ROS2 = "ros1", "ros2"
 ROS2_METADATA = "metadata.yaml"
 ROS2_STORAGE_SUFFIXES = (".mcap", ".db3")  # rosbag2's storage files, readable without metadata.yaml
 BAG_KINDS = "a ROS1 .bag file, a ROS2 .mcap or .db3 file, or a ROS2 bag folder with metadata.yaml"
+#: The default typestore per bag format (rosbags' ``Stores`` names, lower case): the types of a bag without
+#: message definitions, and the types the simulator and the synthetic bags write. ``extract.typestores``
+#: in conf/extract.yaml repeats these as the configurable default.
+DEFAULT_STORES: Mapping[str, str] = MappingProxyType({ROS1: "ros1_noetic", ROS2: "ros2_humble"})
 
 try:  # rosbags' SQLite backend (a dependency of rosbags): a damaged .db3 raises its errors
     from apsw import Error as _SqliteError
@@ -112,8 +117,9 @@ def bag_format(path: Path) -> str | None:
     return None
 
 
-def default_typestore(fmt: str, stores: Mapping[str, str]):
-    """The typestore used for bags without embedded message definitions (``extract.typestores``)."""
+def default_typestore(fmt: str, stores: Mapping[str, str] = DEFAULT_STORES):
+    """The typestore of bag format ``fmt`` (``ros1``/``ros2``) used for bags without embedded message
+    definitions (``stores``: ``extract.typestores``; default :data:`DEFAULT_STORES`)."""
     name = str(stores[fmt]).upper()
     try:
         return get_typestore(Stores[name])

@@ -15,7 +15,8 @@ from typing import Any
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
+
+from .reader import ROS1, ROS2, default_typestore
 
 FORMATS = ("ros1", "sqlite3", "mcap")
 T0_NS = 1_700_000_000_000_000_000  # bag clock at the first message (ns)
@@ -34,7 +35,8 @@ JOINTS = ["front_left_wheel", "rear_left_wheel", "front_right_wheel", "rear_righ
 
 
 def typestore_for(fmt: str):
-    return get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
+    """The default typestore of a synthetic bag format (``ros1``, ``sqlite3``, ``mcap``)."""
+    return default_typestore(ROS1 if fmt == "ros1" else ROS2)
 
 
 class _Factory:

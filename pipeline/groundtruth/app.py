@@ -64,6 +64,35 @@ def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: S
     return seq.name, traj, report
 
 
+def _bag_span(ext: Path) -> tuple[int, int] | None:
+    """The bag-clock span (first, last ``bag_time_ns``) of a sequence's extracted tables, or None."""
+    lo = hi = None
+    for table in sorted(ext.glob("*.parquet")):
+        try:
+            t = pd.read_parquet(table, columns=["bag_time_ns"])["bag_time_ns"].to_numpy()
+        except Exception:  # noqa: BLE001 - a table without bag times (a raw source's) says nothing here
+            continue
+        if len(t):
+            lo = int(t.min()) if lo is None else min(lo, int(t.min()))
+            hi = int(t.max()) if hi is None else max(hi, int(t.max()))
+    return None if lo is None else (lo, hi)
+
+
+def _check_overlap(path: Path, traj, ext: Path, seq: str) -> None:
+    """GroundTruthError when an ORB-SLAM trajectory's times never overlap the sequence's recording (a
+    file of another recording, or times on another clock): its poses would pair with no command."""
+    span = _bag_span(ext)
+    if span is None or not len(traj):
+        return
+    t0, t1 = int(traj.stamp_ns[0]), int(traj.stamp_ns[-1])
+    if t1 < span[0] or t0 > span[1]:
+        raise GroundTruthError(
+            f"{path}: poses {t0 * 1e-9:.3f}..{t1 * 1e-9:.3f} s never overlap the recording of {seq} "
+            f"({span[0] * 1e-9:.3f}..{span[1] * 1e-9:.3f} s, bag clock); is it this sequence's file? "
+            "set groundtruth.orbslam.time_offset (s added to the file's stamps) if its clock differs"
+        )
+
+
 def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence):
     """One sequence's ground truth: ``(Trajectory, report)``; report lists the source files consumed."""
     gt = cfg.groundtruth
@@ -109,6 +138,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
             path, camera_extrinsic(cfg), str(o.format), str(o.unit), times if times.is_file() else None,
             float(o.time_offset), ref_stamp, ref_bag, float(o.max_diff), max_gap, float(o.max_speed),
         )  # fmt: skip
+        _check_overlap(path, traj, ext, seq.name)
         files = {str(p): fingerprint_file(p) for p in (path, times) if p.is_file()}
         return traj, {**report, "files": files}
     if method == "vo":
@@ -141,7 +171,8 @@ def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Se
         if o.associate_to:
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
-        files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in ("vo.py", "app.py"))]
+        vo_code = ("vo.py", "stereo_vo.py", "stereo_bag.py", "app.py")
+        files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in vo_code)]
         files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
     return [f for f in files if f.exists()]

@@ -29,7 +29,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import GroundTruthError
+from ..extract.convert import header_stamp_ns
 from ..geometry import se2_relative, wrap_angle
+from ..timesync import interp_se2
 from .trajectory import Trajectory
 
 PAPER_TRANS_BOUND = 0.004  # 0.4 %
@@ -106,13 +108,6 @@ def summarize_loops(
 # accuracy against the simulator's truth
 
 
-def _interp_se2(t_ref: np.ndarray, se2: np.ndarray, t: np.ndarray) -> np.ndarray:
-    yaw = np.unwrap(se2[:, 2])
-    return np.column_stack(
-        [np.interp(t, t_ref, se2[:, 0]), np.interp(t, t_ref, se2[:, 1]), np.interp(t, t_ref, yaw)]
-    )
-
-
 def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: float = 6.0) -> dict[str, Any]:
     """ATE (start-pose aligned) and ``rpe_window_s`` relative pose error of ``est`` against ``truth``."""
     t_true = truth.stamp_ns
@@ -121,7 +116,7 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
         raise GroundTruthError("estimate and truth do not overlap in time")
     t = est.stamp_ns[inside]
     e = est.se2[inside]
-    g = _interp_se2(t_true.astype(float), truth.se2, t.astype(float))
+    g = interp_se2(t_true.astype(float), truth.se2, t.astype(float))
     # start-pose alignment: both relative to their first pose
     e_rel = se2_relative(e[0], e)
     g_rel = se2_relative(g[0], g)
@@ -176,7 +171,7 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
 
 def read_true_pose(bag_path: str | Path, cfg: Any = None, topic: str = "/skidbench/true_pose") -> Trajectory:
     """The simulator's truth (nav_msgs/Odometry) from a bag, header-stamped, streamed."""
-    from .vo import _open, _stamp_ns
+    from .vo import _open
 
     bag_path = Path(bag_path)
     stamps, xyz, quat = [], [], []
@@ -189,7 +184,7 @@ def read_true_pose(bag_path: str | Path, cfg: Any = None, topic: str = "/skidben
             for conn, bag_ns, raw in reader.messages(connections=conns):
                 msg = reader.deserialize(raw, conn.msgtype)
                 p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                stamps.append(_stamp_ns(msg, bag_ns))
+                stamps.append(header_stamp_ns(msg, bag_ns))
                 xyz.append((p.x, p.y, p.z))
                 quat.append((q.x, q.y, q.z, q.w))
     except GroundTruthError:

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import GroundTruthError
 from ..geometry import matrix_to_quaternion, se3_inverse, se3_matrix
+from ..timesync import nearest
 from .pose_topic import clean_poses
 from .trajectory import Trajectory
 
@@ -44,13 +45,21 @@ NS_SPACING = 1e3
 RELATIVE_TIME_S = 1e6
 
 
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def _read_rows(path: Path) -> tuple[list[str], np.ndarray]:
     """The file's numeric rows as strings (first column kept as text for exact stamps) and floats."""
     try:
         text = path.read_text()
     except OSError as exc:
         raise GroundTruthError(f"{path}: cannot read ({exc.strerror})") from exc
-    tokens, ncols = [], None
+    tokens, linenos, ncols = [], [], None
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -67,11 +76,16 @@ def _read_rows(path: Path) -> tuple[list[str], np.ndarray]:
                 f"{path}:{lineno}: wrong column count {len(parts)}, earlier rows have {ncols}"
             )
         tokens.append(parts)
+        linenos.append(lineno)
     if not tokens:
         raise GroundTruthError(f"{path}: empty sequence (no poses)")
     try:
         values = np.array(tokens, dtype=float)
-    except ValueError as exc:
+    except ValueError as exc:  # name the first row that holds a non-number
+        for lineno, parts in zip(linenos, tokens, strict=True):
+            bad = next((p for p in parts if not _is_number(p)), None)
+            if bad is not None:
+                raise GroundTruthError(f"{path}:{lineno}: non-numeric value {bad!r}") from exc
         raise GroundTruthError(f"{path}: non-numeric value ({exc})") from exc
     return [t[0] for t in tokens], values
 
@@ -134,7 +148,8 @@ def read_camera_poses(
     if fmt == "kitti":
         if times is None:
             raise GroundTruthError(
-                f"{path}: a KITTI file needs its times file; set groundtruth.orbslam.times"
+                f"{path}: a KITTI file needs its times file (none found); "
+                "set groundtruth.orbslam.times_pattern (default {seq}.times.txt)"
             )
         stamps = read_times(times)
         if len(stamps) != len(values):
@@ -176,20 +191,6 @@ def base_to_camera(T_b0_bi: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
     return se3_inverse(T_b_c) @ T_b0_bi @ T_b_c
 
 
-def associate(stamps_ns: np.ndarray, ref_ns: np.ndarray, max_diff_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest reference stamp for each stamp (vectorised): ``(index into ref, matched mask)``."""
-    ref_ns = np.asarray(ref_ns, dtype=np.int64)
-    i = (
-        np.clip(np.searchsorted(ref_ns, stamps_ns), 1, len(ref_ns) - 1)
-        if len(ref_ns) > 1
-        else np.zeros(len(stamps_ns), dtype=np.int64)
-    )
-    if len(ref_ns) > 1:
-        left_closer = np.abs(stamps_ns - ref_ns[i - 1]) <= np.abs(ref_ns[i] - stamps_ns)
-        i = np.where(left_closer, i - 1, i)
-    return i, np.abs(ref_ns[i] - stamps_ns) <= max_diff_ns
-
-
 def read_orbslam(
     path: Path,
     T_b_c: np.ndarray,
@@ -218,7 +219,7 @@ def read_orbslam(
             report["relative_times_shifted_to_ns"] = int(ref_stamp_ns[0])
             log.info("%s: stamps are relative; shifted to the first image stamp", path)
         order = np.argsort(ref_stamp_ns, kind="stable")
-        idx, ok = associate(stamps, ref_stamp_ns[order], int(round(max_diff_s * 1e9)))
+        idx, ok = nearest(stamps, ref_stamp_ns[order], int(round(max_diff_s * 1e9)))
         if not ok.any():
             raise GroundTruthError(
                 f"{path}: no pose within {max_diff_s} s of an image stamp (poses {stamps[0] * 1e-9:.3f}.."

@@ -32,6 +32,7 @@ import pyarrow.parquet as pq
 
 from ..errors import GroundTruthError
 from ..geometry import matrix_to_quaternion, quaternion_slerp, se3_inverse, se3_matrix
+from ..timesync import bracket
 from .pose_topic import clean_poses
 from .trajectory import Trajectory
 
@@ -168,15 +169,9 @@ def interpolate_edge(
     rotation. Returns ``(T (N, 4, 4), valid (N,))``; ``valid`` is False outside the samples (no
     extrapolation) and between two samples more than ``max_gap_ns`` apart (unless ``t`` is a sample)."""
     t = np.asarray(t, dtype=np.int64)
+    i, frac, valid = bracket(stamp_ns, t, max_gap_ns, trust_samples=True)
     if len(stamp_ns) == 1:
-        valid = t == stamp_ns[0]
         return np.broadcast_to(se3_matrix(xyz[0], quat[0]), (len(t), 4, 4)).copy(), valid
-    i = np.clip(np.searchsorted(stamp_ns, t, side="right") - 1, 0, len(stamp_ns) - 2)
-    span = stamp_ns[i + 1] - stamp_ns[i]
-    offset = t - stamp_ns[i]
-    frac = np.clip(offset / span, 0.0, 1.0)  # int64 differences: exact before the division
-    at_sample = (offset == 0) | (offset == span)
-    valid = (t >= stamp_ns[0]) & (t <= stamp_ns[-1]) & ((span <= max_gap_ns) | at_sample)
     pos = xyz[i] + frac[:, None] * (xyz[i + 1] - xyz[i])
     rot = quaternion_slerp(quat[i], quat[i + 1], frac)
     return se3_matrix(pos, rot), valid

@@ -13,9 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
 
 from ..errors import SimulateError
+from ..extract.reader import ROS1, ROS2, default_typestore
 
 FORMATS = ("ros1", "ros2", "mcap")
 
@@ -65,13 +65,13 @@ class BagSink:
         if fmt == "ros1":
             from rosbags.rosbag1 import Writer
 
-            self.store = get_typestore(Stores.ROS1_NOETIC)
+            self.store = default_typestore(ROS1)
             self.writer = Writer(self.path)
             self._serialize = self.store.serialize_ros1
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
 
-            self.store = get_typestore(Stores.ROS2_HUMBLE)
+            self.store = default_typestore(ROS2)
             plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
             self.writer = Writer(self.path, version=9, storage_plugin=plugin)
             self._serialize = self.store.serialize_cdr

@@ -4,7 +4,10 @@ split: for every ``train``/``cv``/``ld`` sequence of the manifest, ``groundtruth
 extracted commands (``cmd_vel`` Twist, or ``cmd_wheels``) and wheel measurements (``joint_states``: the
 mean of ``robot.left_joints``/``right_joints`` velocities, or ``enc_wheels``) -> one split file (see
 :mod:`.build` for the clock, the hold and the differentiator), then ``splits/card.md``. A ground truth
-flagged by the loop-closure check is refused unless ``split.allow_flagged=true``.
+flagged by the loop-closure check is refused unless ``split.allow_flagged=true``, and so is a sequence
+flagged by the ground-truth consistency gate (:mod:`..groundtruth.consistency`: its ground truth's body
+velocities against its wheels'); every sequence's gate numbers are in its split file's metadata
+(``consistency``) and in the card, with the segments a source left out (``extracted/segments.json``).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from ..cache import Stamp
 from ..cli import stage
 from ..errors import SplitError
+from ..groundtruth.consistency import GateConfig, consistency, describe
 from ..groundtruth.trajectory import read_tum
 from ..io import fingerprint_file, write_text_atomic
 from ..layout import Layout, layout_from_cfg, prune_stale
@@ -69,8 +73,10 @@ def joint_rates(df: pd.DataFrame, robot: Robot, where: str) -> np.ndarray:
     return np.column_stack([left, right])
 
 
-def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence) -> Path:
-    """Build and write one sequence's split file; returns its path."""
+def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence) -> tuple[Path | None, dict]:
+    """Build one sequence's split table and gate it (:func:`consistency`); write it unless the gate
+    flags it and ``split.allow_flagged`` is false. Returns (its path or None when refused, the gate's
+    numbers)."""
     sp = cfg.split
     ext = layout.extracted / seq.name
     tum = layout.groundtruth / f"{seq.name}.tum"
@@ -111,12 +117,24 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
         robot, gt.stamp_ns, gt.se2, gt.gaps, cmd_t, cmd, kind, enc_t, enc, float(sp.rate_hz),
         float(sp.cmd_timeout), float(sp.max_gap), window, order_,
     )  # fmt: skip
-    if len(df) == 0 or not df["valid"].any():
+    if len(df) == 0 or not df["valid"].any():  # (checked before the gate, which may drop every row)
         raise SplitError(
             f"{tum}: empty sequence: no valid ground truth overlapping the commands of {cmd_path}"
         )
+    gate = consistency(df, robot.wheel_radius, robot.track_width, GateConfig.from_cfg(sp.get("consistency")))
+    if gate["flagged"]:
+        log.warning("ground truth consistency gate FLAGGED %s", describe(seq.name, gate))
+        if bool(sp.get("drop_flagged", False)) and not bool(sp.allow_flagged):
+            gate["dropped"] = True  # kept in the manifest's layout, but no row of it is scored or fitted
+            df["valid"] = False
+            log.warning("%s: dropped (split.drop_flagged=true): every row valid=false", seq.name)
+        elif not bool(sp.allow_flagged):
+            stale = layout.split_file(seq.terrain, seq.category, seq.name)
+            stale.unlink(missing_ok=True)  # an earlier allowed run's file must not be scored now
+            return None, gate
     path = layout.split_file(seq.terrain, seq.category, seq.name)
     meta = {
+        "consistency": gate,
         "sequence": seq.name,
         "terrain": seq.terrain,
         "split": seq.category,
@@ -135,7 +153,7 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
             "%s: wheel commands clipped to +-%g rad/s (robot.max_wheel_rate) in %d of %d rows",
             seq.name, robot.max_wheel_rate, meta["clipped_rows"], len(df),
         )  # fmt: skip
-    return path
+    return path, gate
 
 
 def run(cfg: DictConfig) -> list[Path]:
@@ -150,7 +168,7 @@ def run(cfg: DictConfig) -> list[Path]:
         "split": OmegaConf.to_container(cfg.split, resolve=True),
         "robot": OmegaConf.to_container(cfg.robot, resolve=True),
     }
-    written, skipped = [], 0
+    written, skipped, refused = [], 0, []
     for s in seqs:
         path = layout.split_file(s.terrain, s.category, s.name)
         stamp = Stamp(layout.root / ".stamps" / "split" / f"{s.name}.json", "split")
@@ -158,12 +176,23 @@ def run(cfg: DictConfig) -> list[Path]:
         if stamp.is_fresh(key):
             skipped += 1
         else:
-            path = split_sequence(cfg, layout, robot, s)
+            path, gate = split_sequence(cfg, layout, robot, s)
+            if path is None:
+                refused.append(describe(s.name, gate))
+                continue
             stamp.record(key, [path])
         written.append(path)
+    if refused:
+        raise SplitError(
+            f"{layout.splits}: {len(refused)} of {len(seqs)} sequence(s) flagged by the ground-truth "
+            f"consistency gate: {refused[0]}"
+            + (f" (and {len(refused) - 1} more; the log lists them)" if len(refused) > 1 else "")
+            + "; set split.drop_flagged=true to leave them out, or split.allow_flagged=true to use them"
+        )
     prune_stale(layout, manifest)  # sequences no longer in the manifest, and the folders left empty
     card_stamp = Stamp(layout.root / ".stamps" / "split" / "_card.json", "card")
-    card_key = card_stamp.key(written, {"robot": conf["robot"], "card": _card_conf(cfg)})
+    segments = [p for p in [layout.extracted / "segments.json"] if p.is_file()]  # the card lists them too
+    card_key = card_stamp.key(written + segments, {"robot": conf["robot"], "card": _card_conf(cfg)})
     if not card_stamp.is_fresh(card_key):
         write_card(cfg, layout, robot)
         card_stamp.record(card_key, [layout.splits / "card.md"])
@@ -193,8 +222,82 @@ def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
     card_cfg: Any = cfg.get("card") or {}
     files = [p for p in layout.split_files(Manifest.read(layout.manifest)) if p.is_file()]
     text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)), files)
+    text += gate_section(files) + segments_section(layout)
     write_text_atomic(layout.splits / "card.md", text)
     return text
+
+
+def gate_section(files: list[Path]) -> str:
+    """Markdown: each split file's ground-truth consistency numbers (its metadata's ``consistency``)."""
+    from ..io import read_parquet_metadata
+
+    rows = []
+    for p in files:
+        rep = read_parquet_metadata(p).get("consistency")
+        if not rep:
+            continue
+
+        def f(v, fmt):
+            return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
+
+        rows.append(
+            f"| {p.stem} | {rep.get('wheels')} | {f(rep.get('sign_agreement'), '.2f')} | "
+            f"{f(_plus0(rep.get('heading_offset_deg')), '.0f')} | {f(rep.get('corr_v'), '.2f')} | "
+            f"{f(rep.get('corr_w'), '.2f')} | {f(rep.get('uncommanded_s'), '.1f')} | "
+            f"{_verdict(rep)} |"
+        )
+    if not rows:
+        return ""
+    head = [
+        "",
+        "## Ground-truth consistency (pipeline/groundtruth/consistency.py)",
+        "",
+        "| sequence | wheels | sign agreement | heading offset (deg) | corr v | corr w | uncommanded (s) "
+        "| gate |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
+    ]
+    return "\n".join(head + rows) + "\n"
+
+
+MOVED = "moving, not driven by the recorded commands"
+
+
+def _metres(segs: list[dict]) -> str:
+    """Ground-truth path length of segments ("-" when the source has no absolute pose for them)."""
+    vals = [s["metres"] for s in segs if s.get("metres") is not None]
+    return f"{sum(vals):.1f}" if vals else "-"
+
+
+def segments_section(layout: Layout) -> str:
+    """Markdown: per source file, the segments left out of Train/CV/LD (``extracted/segments.json``,
+    written by sources that classify their rows: seconds, metres, why) and the seconds kept."""
+    path = layout.extracted / "segments.json"
+    if not path.is_file():
+        return ""
+    data = json.loads(path.read_text())
+    out = ["", "## Segments not driven by the recorded commands (left out unless marked kept)", ""]
+    out += [
+        "| file | terrain | class | segments | seconds | metres | why |",
+        "|---|---|---|---:|---:|---:|---|",
+    ]
+    for name, rec in data.items():
+        segs = rec.get("segments", [])
+        kept = [s for s in segs if s["class"] == "command"]
+        groups: dict[tuple[str, str], list[dict]] = {}
+        for s in segs:
+            if s["class"] != "command":
+                key = (s["class"] + ("" if s.get("excluded", True) else " (kept)"), s["why"].split(":")[0])
+                groups.setdefault(key, []).append(s)
+        for (cls, why), g in groups.items():
+            out.append(
+                f"| {name} | {rec.get('terrain')} | {cls} | {len(g)} | {sum(s['seconds'] for s in g):.1f} | "
+                f"{_metres(g)} | {why}: {MOVED if cls.startswith('other') else 'not moving'} |"
+            )
+        out.append(
+            f"| {name} | {rec.get('terrain')} | kept (command-driven) | {len(kept)} | "
+            f"{sum(s['seconds'] for s in kept):.1f} | {_metres(kept)} | scored |"
+        )
+    return "\n".join(out) + "\n"
 
 
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="split")
@@ -208,3 +311,14 @@ def main(cfg: DictConfig) -> None:
 def card_main(cfg: DictConfig) -> None:
     layout = layout_from_cfg(cfg)
     print(write_card(cfg, layout, robot_from_hydra(cfg.robot)))
+
+
+def _plus0(v):
+    """-0.4 prints as "-0" with .0f: add 0.0 after rounding so a zero offset reads "0"."""
+    return None if v is None else round(float(v)) + 0.0
+
+
+def _verdict(rep: dict) -> str:
+    if not rep.get("flagged"):
+        return "ok"
+    return ("DROPPED" if rep.get("dropped") else "FLAGGED (used)") + ": " + "; ".join(rep.get("reasons", []))

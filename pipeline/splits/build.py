@@ -36,39 +36,7 @@ from scipy.signal import savgol_filter
 
 from ..robot import Robot
 from ..schema import SPLIT_COLUMNS
-
-
-def hold(
-    stamps_ns: np.ndarray, values: np.ndarray, grid_ns: np.ndarray, timeout_ns: int | None
-) -> np.ndarray:
-    """Zero-order hold of ``values`` (N, k) at ``grid_ns``; zero before the first sample and after a
-    timeout."""
-    values = np.asarray(values, dtype=float).reshape(len(stamps_ns), -1)
-    i = np.searchsorted(stamps_ns, grid_ns, side="right") - 1
-    out = values[np.clip(i, 0, None)].copy()
-    stale = i < 0
-    if timeout_ns is not None:
-        stale |= grid_ns - stamps_ns[np.clip(i, 0, None)] > timeout_ns
-    out[stale] = 0.0
-    return out
-
-
-def interp_with_gaps(
-    stamps_ns: np.ndarray, values: np.ndarray, grid_ns: np.ndarray, max_gap_ns: int, gaps=()
-) -> tuple[np.ndarray, np.ndarray]:
-    """Linear interpolation of ``values`` (N, k) at ``grid_ns`` and a mask of where it is trusted: inside
-    the coverage, between samples at most ``max_gap_ns`` apart, not inside any ``gaps`` interval."""
-    values = np.asarray(values, dtype=float).reshape(len(stamps_ns), -1)
-    t = (stamps_ns - stamps_ns[0]).astype(float)
-    g = (grid_ns - stamps_ns[0]).astype(float)
-    out = np.column_stack([np.interp(g, t, values[:, c]) for c in range(values.shape[1])])
-    j = np.searchsorted(stamps_ns, grid_ns, side="right")
-    inside = (j > 0) & (j < len(stamps_ns)) | (grid_ns == stamps_ns[-1])
-    jl, jr = np.clip(j - 1, 0, len(stamps_ns) - 1), np.clip(j, 0, len(stamps_ns) - 1)
-    ok = inside & ((stamps_ns[jr] - stamps_ns[jl]) <= max_gap_ns)
-    for a, b in gaps:
-        ok &= ~((grid_ns > a) & (grid_ns < b))
-    return out, ok
+from ..timesync import hold, interp_with_gaps
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:

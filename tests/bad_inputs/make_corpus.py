@@ -112,6 +112,10 @@ def make(out: Path) -> dict[str, Path]:
     jump[20:] = [f"{100.0 + i / 10:.6f} 0 0 {50 + 0.05 * i:.6f} 0 0 0 1" for i in range(20, 40)]
     (out / "orb_tracking_reset.txt").write_text("\n".join(jump) + "\n")
     kitti = ["1 0 0 0 0 1 0 0 0 0 1 %.3f" % (0.05 * i) for i in range(10)]
+    text_row = _tum_rows()
+    text_row[6] = text_row[6].replace(" 0 0 0 1", " 0 0 zero 1")  # an 8-field row with a non-number
+    (out / "orb_non_numeric.txt").write_text("\n".join(text_row) + "\n")
+    (out / "kitti_no_times.txt").write_text("\n".join("1 0 0 0 0 1 0 0 0 0 1 0" for _ in range(5)) + "\n")
     (out / "kitti_poses.txt").write_text("\n".join(kitti) + "\n")
     (out / "kitti_poses.times.txt").write_text("\n".join(str(int(1e9 * (5 + i / 10))) for i in range(10)))
     (out / "kitti_short.txt").write_text("\n".join(kitti) + "\n")

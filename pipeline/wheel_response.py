@@ -14,8 +14,11 @@ actually have, and their finite accelerations ``(w_cmd(t - delay) - w) / tau``) 
 function of the commands only, so it still predicts on data without encoders; the encoders are needed
 only to identify ``(delay_s, tau_s)`` on the Train split.
 
-The lag itself is :func:`skidbench.benchmark.effects.lag_filter` (the one home of the first-order command
-lag, restarted at each sequence start); this module adds the dead time and the identification. The
+This module is the one home of the concept "the wheels do not follow their commands at once": the
+``calibrate`` stage identifies the response per terrain from the Train encoders
+(:func:`identify_response`), the ``response`` input protocol (:mod:`skidbench.pipeline.protocol`) drives
+every model with it, and the discovery effect ``actuator_lag`` is its first-order lag :func:`lag_filter`
+(restarted at each sequence start). This module adds the dead time, the limits and the identification. The
 general response's recursion reduces to it exactly with unit gains and no limits.
 """
 
@@ -26,7 +29,45 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pandas as pd
 from numba import njit
-from scipy.optimize import minimize_scalar
+from scipy.optimize import least_squares, minimize_scalar
+from scipy.signal import lfilter
+
+CMD_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr")
+
+
+def lag_filter(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.DataFrame:
+    """Commands through a causal first-order lag with time constant ``tau`` (s), restarted at each
+    group (sequence) start with the first command (a robot at rest starts where it is told).
+    Returns a copy with ``cmd_*`` replaced and ``cmd_dwl``/``cmd_dwr`` = (u - y) / tau."""
+    out = table.copy()
+    t = table["t"].to_numpy(float)
+    u = table[list(CMD_COLUMNS)].to_numpy(float)
+    y = np.empty_like(u)
+    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
+    ends = np.r_[starts[1:], len(t)]
+    for a, b in zip(starts, ends, strict=True):
+        y[a] = u[a]
+        if b - a < 2:
+            continue
+        dt = np.diff(t[a:b])
+        alpha = 1.0 - np.exp(-dt / max(tau, 1e-6))  # exact zero-order-hold discretisation
+        seg_u = u[a + 1 : b]
+        prev = u[a].copy()
+        # a first-order recursion y_k = y_{k-1} + alpha_k (u_k - y_{k-1}); alpha varies only with dt
+        if np.allclose(alpha, alpha[0]):
+            al = float(alpha[0])
+            zi = ((1.0 - al) * prev)[None, :]
+            y[a + 1 : b] = lfilter([al], [1.0, -(1.0 - al)], seg_u, axis=0, zi=zi)[0]
+        else:  # non-uniform clock: plain loop (rare)
+            for k in range(len(seg_u)):
+                prev = prev + alpha[k] * (seg_u[k] - prev)
+                y[a + 1 + k] = prev
+    for j, c in enumerate(CMD_COLUMNS):
+        out[c] = y[:, j]
+    out["cmd_dwl"] = (u[:, 2] - y[:, 2]) / max(tau, 1e-6)
+    out["cmd_dwr"] = (u[:, 3] - y[:, 3]) / max(tau, 1e-6)
+    return out
+
 
 #: dead times tried by :func:`identify` (s): 0 .. 0.6 s on the split clock
 MAX_DELAY_S = 0.6
@@ -58,8 +99,6 @@ def groups_of(table: pd.DataFrame) -> np.ndarray:
 def delay(table: pd.DataFrame, delay_s: float, groups: np.ndarray | None = None) -> pd.DataFrame:
     """A copy of ``table`` whose commands (``cmd_v``, ``cmd_w``, ``cmd_wl``, ``cmd_wr``) are those of
     ``delay_s`` earlier, per sequence; the first ``delay_s`` of a sequence holds its first command."""
-    from skidbench.benchmark.effects import CMD_COLUMNS
-
     out = table.copy()
     if delay_s <= 0 or len(table) < 2:
         return out
@@ -81,8 +120,6 @@ def apply(table: pd.DataFrame, delay_s: float, tau_s: float) -> pd.DataFrame:
     """``table`` with its wheel commands replaced by the actuator's output: delayed by ``delay_s``, then
     through the lag ``tau_s``; ``cmd_dwl``/``cmd_dwr`` become the output's derivatives. ``tau_s <= 0``
     and ``delay_s <= 0`` leave the commands as they are."""
-    from skidbench.benchmark.effects import lag_filter
-
     groups = groups_of(table)
     if tau_s <= 0:
         return delay(table, delay_s, groups)
@@ -210,6 +247,11 @@ class WheelResponse:
         if "accel_d" not in kw:
             kw["accel_d"] = kw.get("accel_s", 0.0)
         return cls(**kw)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> WheelResponse:
+        """From a mapping holding (at least) the fields, e.g. a calibration document's ``wheel_response``."""
+        return cls(**{k: float(data[k]) for k in cls.__dataclass_fields__ if data.get(k) is not None})
 
     @property
     def is_delay_lag(self) -> bool:
@@ -383,21 +425,29 @@ def _with(base: WheelResponse, names: tuple[str, ...], z: np.ndarray) -> WheelRe
 class ResponseFit:
     response: WheelResponse  # the selected structure refitted on all Train rows
     structure: str  # its name in CANDIDATES
-    candidates: dict  # name -> {"train_rmse", "heldout_rmse" (None: not held out), "params"}
+    candidates: dict  # name -> {"train_rmse", "heldout_rmse" (None: not held out), "params", "param_se"}
     rmse_command: float  # rad/s: encoders against the raw commands
     rmse_response: float  # rad/s: encoders against the selected response
     n_rows: int
+
+    @property
+    def param_se(self) -> dict:
+        """The selected structure's parameters' block-jackknife standard errors (same units as them)."""
+        return dict(self.candidates[self.structure].get("param_se") or {})
 
     def to_dict(self) -> dict:
         return {
             "structure": self.structure,
             **asdict(self.response),
+            "param_se": self.param_se,
+            "heldout_rmse": self.candidates[self.structure].get("heldout_rmse"),
             "rmse_command": self.rmse_command,
             "rmse_response": self.rmse_response,
             "n_rows": self.n_rows,
             "candidates": self.candidates,
             "selection": f"{N_BLOCKS} contiguous Train blocks held out in turn; the simplest structure "
             f"within {SELECT_TOL:.0%} of the best held-out RMSE",
+            "uncertainty": f"param_se: block jackknife over the {N_BLOCKS} leave-one-block-out refits",
         }
 
 
@@ -407,7 +457,6 @@ def _fit_structure(
 ) -> WheelResponse:  # fmt: skip
     """The structure ``names`` (the other parameters at their neutral values) fitted by least squares to
     the encoders on ``rows``, from ``start``'s values of ``names``."""
-    from scipy.optimize import least_squares
 
     def resid(z):
         w = wheel_response(table, _with(WheelResponse(), names, z), groups)
@@ -474,13 +523,20 @@ def identify_response(
         if simpler and train_rmse > (1.0 - SELECT_TOL) * min(simpler):
             cands[name]["heldout_rmse"] = None
             continue
-        sq, count = 0.0, 0
+        sq, count, folds = 0.0, 0, []
         for i, held in enumerate(blocks):
             fit_rows = np.concatenate([b for j, b in enumerate(blocks) if j != i])
             r = _fit_structure(table, groups, enc, fit_rows, names, full, fold_nfev)
+            folds.append([float(getattr(r, n)) for n in names])
             e = wheel_response(table, r, groups)[held, :2] - enc[held]
             sq, count = sq + float(np.sum(e**2)), count + e.size
         cands[name]["heldout_rmse"] = float(np.sqrt(sq / count))
+        # the parameters' uncertainty: the block jackknife of the leave-one-block-out refits (contiguous
+        # blocks: neighbouring rows are correlated, and a per-row Jacobian error would be far too small)
+        f = np.asarray(folds)
+        k = len(f)
+        se = np.sqrt((k - 1) / k * np.sum((f - f.mean(axis=0)) ** 2, axis=0))
+        cands[name]["param_se"] = {n: float(v) for n, v in zip(names, se, strict=True)}
     scored = [n for n in names_all if cands[n]["heldout_rmse"] is not None]
     best = min(cands[n]["heldout_rmse"] for n in scored)
     chosen = next(n for n in scored if cands[n]["heldout_rmse"] <= (1.0 + SELECT_TOL) * best)

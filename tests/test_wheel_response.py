@@ -1,6 +1,7 @@
-"""The general wheel response (models/actuator.py): its recursion against the definition, its reduction to
-the delay + lag model, identification round trips on responses simulated from synthetic commands, the
-structure choice on held-out Train blocks, and the DRIVE Warthog's encoders."""
+"""The general wheel response (pipeline/wheel_response.py, the calibration's): its recursion against the
+definition, its reduction to the delay + lag model, identification round trips on responses simulated
+from synthetic commands, the structure choice on held-out Train blocks, its uncertainty, and the DRIVE
+Warthog's encoders."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.models import actuator
-from skidbench.models.actuator import WheelResponse
+from skidbench.pipeline import wheel_response as actuator
+from skidbench.pipeline.wheel_response import WheelResponse
 
 RATE = 30.0
 
@@ -144,32 +145,34 @@ def test_structure_choice_keeps_the_delay_lag_model_on_data_it_generated():
     assert fit.candidates[fit.structure]["heldout_rmse"] < 0.5 * fit.candidates["delay+lag"]["heldout_rmse"]
 
 
-def test_friction_model_reads_the_structure_from_its_options():
+def test_friction_no_longer_takes_an_actuator_option_nor_keeps_an_old_fits_response():
+    """1.9: the wheel response is a calibration shared by every model (inputs=response), not friction's."""
     from skidbench.models.base import ModelError
     from skidbench.models.friction import FrictionBased
     from skidbench.pipeline.robot import load_robot
 
     husky = load_robot("husky")
-    table = _commands(n=600, seed=6)
-    m = FrictionBased(husky, actuator={"delay_s": 0.1, "tau_s": 0.3, "accel_s": 5.0})
-    info = m.identify_actuator(table)
-    assert info["source"] == "config" and m.params["actuator_accel_s"] == 5.0
-    assert m.params["actuator_accel_d"] == 5.0  # one limit for both modes unless given
-    wl, wr, dwl, dwr = m.inputs(table)
-    assert np.abs((dwl + dwr) / 2).max() <= 5.0 + 1e-9
-    with pytest.raises(ModelError, match="unknown keys"):
-        FrictionBased(husky, actuator={"delay": 0.1}).identify_actuator(table)
-    for bad in ("nonsense", ["delay+lag"]):
-        with pytest.raises(ModelError, match="expected auto"):
-            FrictionBased(husky, actuator=bad).identify_actuator(table)
-    # a structure by name: only that one is identified (no encoders here: nothing is)
-    m = FrictionBased(husky, actuator="delay+lag")
-    assert m.identify_actuator(table)["source"].startswith("none")
-    assert actuator.WheelResponse.from_params(m.params).is_identity
-    enc = _reference(table, TRUTH)
-    info = m.identify_actuator(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
-    assert info["structure"] == "delay+lag" and list(info["candidates"]) == ["delay+lag"]
-    assert m.params["actuator_accel_s"] == 0.0 and m.params["actuator_delay_s"] > 0
+    with pytest.raises(ModelError, match="options.actuator was removed"):
+        FrictionBased(husky, actuator="auto")
+    old = FrictionBased(husky, {"mu_r": 0.05, "actuator_delay_s": 0.3, "actuator_tau_s": 0.4})
+    assert set(old.params) == {"mu_r", "mu_x", "mu_y", "lambda", "C"}
+    table = _commands(n=300, seed=6)
+    wl, wr, dwl, dwr = old.inputs(table)  # the paper's: the table's inputs as they are
+    np.testing.assert_array_equal(dwl, table["cmd_dwl"].to_numpy())
+
+
+def test_identified_response_reports_per_structure_heldout_rmse_and_parameter_uncertainty():
+    table = _commands(n=2400, seed=7)
+    truth = WheelResponse(delay_s=0.2, tau_s=0.35, tau_d_s=0.35)
+    enc = _reference(table, truth) + np.random.default_rng(1).normal(0, 0.05, (len(table), 2))
+    fit = actuator.identify_response(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
+    doc = fit.to_dict()
+    assert doc["structure"] == "delay+lag" and doc["heldout_rmse"] > 0
+    se = doc["param_se"]
+    assert set(se) == {"delay_s", "tau_s"} and all(np.isfinite(v) and v >= 0 for v in se.values())
+    # the block jackknife's error bars cover the injected values (within 4 standard errors + a step)
+    assert abs(fit.response.delay_s - 0.2) <= 4 * se["delay_s"] + 1 / RATE
+    assert abs(fit.response.tau_s - 0.35) <= 4 * se["tau_s"] + 0.02
 
 
 def test_drive_warthog_response_beats_the_delay_lag_model(shared_real, tmp_path):

@@ -1,0 +1,672 @@
+"""Stereo visual odometry with OpenCV: the algorithm of the ``vo`` ground-truth method, on arrays.
+
+Frame-to-keyframe tracking on a rectified stereo pair:
+
+1. keyframe: ORB features (detection + descriptors) in the left image, spread over a grid; stereo
+   matching against the right image's ORB features under the row constraint (|dv| <= ``max_row_diff``)
+   and disparity limits, Hamming distance and ratio test; the disparity is refined to sub-pixel
+   accuracy by pyramidal Lucas-Kanade (left -> right, initialised at the descriptor match) and the
+   points are triangulated (Z = fx b / d);
+2. every frame: the keyframe points are predicted into the current left image with a constant-velocity
+   motion model and tracked there by Lucas-Kanade (forward-backward checked); if that fails (tracking
+   lost, a low-texture frame) the current ORB features are matched to the keyframe descriptors instead;
+3. pose: ``cv2.solvePnPRansac`` (keyframe 3D points -> current 2D), then a robust (Huber) Gauss-Newton
+   refinement of the inliers' reprojection error in both current images (stereo PnP, sub-pixel right
+   positions again by LK);
+4. a new keyframe when the tracked inliers fall below ``min_keyframe_inliers`` or the keyframe is
+   ``keyframe_max_dist_m`` / ``keyframe_max_rot_deg`` away. A frame whose pose cannot be estimated is a
+   tracking loss: the motion model bridges it and a ``gap`` is recorded in the trajectory.
+
+:class:`StereoVO` takes grey images directly (no files); :meth:`StereoVO.run` turns a stream of
+``(stamp_ns, left, right)`` into the base-frame trajectory ``T_b0_bi = T_b_c T_c0_ci T_b_c^-1``.
+A bag's stereo pairs: :mod:`.stereo_bag`; the method's entry point and its config: :mod:`.vo`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..errors import GroundTruthError
+from ..geometry import matrix_to_quaternion, se3_from_xyz_rpy, se3_inverse
+from .orbslam import base_to_camera, camera_to_base
+from .trajectory import Trajectory
+
+__all__ = [
+    "VOConfig",
+    "StereoCamera",
+    "StereoVO",
+    "VOStats",
+    "camera_extrinsic",
+    "camera_to_base",
+    "base_to_camera",
+]
+
+
+@dataclass
+class VOConfig:
+    """Stereo VO options (``groundtruth.vo.*``)."""
+
+    n_features: int = 600  # ORB features per keyframe (left image)
+    fast_threshold: int = 10
+    grid: tuple[int, int] = (4, 3)  # feature spreading cells (columns, rows)
+    max_row_diff: float = 1.0  # px, rectified stereo row constraint
+    min_disparity: float = 1.5  # px (farthest point: fx b / min_disparity)
+    max_disparity: float = 96.0  # px
+    max_hamming: int = 64  # descriptor distance bound (stereo and fallback matching)
+    ratio: float = 0.85  # Lowe ratio test
+    lk_window: int = 15  # px, Lucas-Kanade window side
+    lk_levels: int = 3
+    fb_max_px: float = 0.5  # forward-backward LK consistency, px
+    ransac_reproj_px: float = 1.5
+    ransac_iters: int = 100
+    min_inliers: int = 30  # fewer: tracking lost for this frame
+    min_keyframe_inliers: int = 80  # fewer: the current frame becomes the keyframe
+    max_step_m: float = 0.5  # frame-to-frame motion above these is rejected as a wrong solution
+    max_step_deg: float = 30.0
+    keyframe_max_dist_m: float = 1.0
+    keyframe_max_rot_deg: float = 20.0
+    huber_px: float = 1.0
+    refine_iters: int = 6
+    refine_stereo: bool = True  # use the current right image in the refinement
+    ground_aware: bool = True  # LK on ground-plane-aligned images (removes the ground's stereo shear and
+    # the keyframe-to-frame perspective change of ground points); needs the extrinsic, flat ground
+    ground_aware_tracking: bool = True  # also track ground points keyframe -> frame on the warped keyframe
+    ground_tol_m: float = 0.05  # a point within ground_tol_m + 0.03 Z of the ground plane is ground
+    # bag reading
+    left_topic: str = "/stereo/left/image_raw/compressed"
+    right_topic: str = "/stereo/right/image_raw/compressed"
+    left_info_topic: str = "/stereo/left/camera_info"
+    right_info_topic: str = "/stereo/right/camera_info"
+    max_pair_dt_ms: float = 2.0  # left/right header stamps further apart are not a pair
+    stride: int = 1  # use every n-th stereo pair (1: all)
+
+    @classmethod
+    def from_mapping(cls, options: Mapping[str, Any] | None) -> VOConfig:
+        options = dict(options or {})
+        known = {f.name for f in fields(cls)}
+        unknown = set(options) - known
+        if unknown:
+            raise GroundTruthError(
+                f"groundtruth.vo: unknown options {sorted(unknown)} (known: {sorted(known)})"
+            )
+        if "grid" in options:
+            options["grid"] = tuple(int(v) for v in options["grid"])
+        return cls(**options)
+
+
+@dataclass
+class StereoCamera:
+    """A rectified pair: left intrinsics and the baseline (right camera at +baseline along left x)."""
+
+    K: np.ndarray
+    baseline: float
+    width: int = 0
+    height: int = 0
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @classmethod
+    def from_camera_info(cls, left: Mapping[str, Any], right: Mapping[str, Any]) -> StereoCamera:
+        """From ROS CameraInfo-like mappings (``K``/``k``, ``P``/``p``, nested or flat lists)."""
+
+        def get(d, *names):
+            for n in names:
+                if n in d and d[n] is not None:
+                    return np.asarray(d[n], dtype=float)
+            raise KeyError(names[0])
+
+        P_l = get(left, "P", "p").reshape(3, 4)
+        P_r = get(right, "P", "p").reshape(3, 4)
+        K = P_l[:, :3].copy()
+        if K[0, 0] <= 0:
+            K = get(left, "K", "k").reshape(3, 3)
+        baseline = -P_r[0, 3] / P_r[0, 0]
+        if not baseline > 0:
+            raise ValueError(f"right P[0][3] = {P_r[0, 3]} does not give a positive baseline")
+        return cls(K, float(baseline), int(left.get("width", 0)), int(left.get("height", 0)))
+
+
+@dataclass
+class _Keyframe:
+    img: np.ndarray  # left image
+    pts: np.ndarray  # (N, 2) float32 left pixel positions
+    X: np.ndarray  # (N, 3) points in the keyframe camera frame
+    desc: np.ndarray  # (N, 32) ORB descriptors
+    T_w_k: np.ndarray  # world (first camera) <- keyframe camera
+    ground: np.ndarray  # (N,) bool: the point lies on the ground plane
+
+
+@dataclass
+class VOStats:
+    frames: int = 0
+    keyframes: int = 0
+    lost: int = 0
+    rejected: int = 0
+    fallback: int = 0
+    inliers: list[int] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else float("nan")
+
+    def as_dict(self) -> dict[str, Any]:
+        inl = np.asarray(self.inliers) if self.inliers else np.zeros(1)
+        return {
+            "frames": self.frames,
+            "keyframes": self.keyframes,
+            "lost_frames": self.lost,
+            "rejected_poses": self.rejected,
+            "fallback_matches": self.fallback,
+            "inliers_mean": float(inl.mean()),
+            "inliers_min": int(inl.min()),
+            "seconds": round(self.seconds, 3),
+            "frames_per_s": round(self.fps, 1),
+        }
+
+
+def _se3(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
+    T[:3, 3] = np.asarray(tvec, dtype=float).ravel()
+    return T
+
+
+def _rvec_tvec(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return cv2.Rodrigues(T[:3, :3])[0], T[:3, 3].reshape(3, 1).copy()
+
+
+def _exp_se3(xi: np.ndarray) -> np.ndarray:
+    """Exponential of a twist (rho, phi) (first-order translation coupling is enough for GN steps)."""
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(xi[3:].reshape(3, 1))[0]
+    T[:3, 3] = xi[:3]
+    return T
+
+
+class StereoVO:
+    """Frame-to-keyframe stereo VO. ``process(left, right)`` -> T_c0_ci (4x4) or None when lost."""
+
+    def __init__(self, camera: StereoCamera, config: VOConfig | None = None, T_b_c: np.ndarray | None = None):
+        self.cam = camera
+        self.cfg = config or VOConfig()
+        c = self.cfg
+        self.T_b_c = None if T_b_c is None else np.asarray(T_b_c, dtype=float)
+        # ground plane n . X = d in the camera frame (the base frame's z = 0), when the extrinsic is known
+        self.plane = None
+        self.disp_coef = None
+        if self.T_b_c is not None and c.ground_aware:
+            n = self.T_b_c[2, :3].copy()
+            d = -self.T_b_c[2, 3]
+            if abs(d) > 1e-3:
+                self.plane = (n, d)
+                # ground disparity d_g(u, v) = fx b (n . K^-1 (u, v, 1)) / d, affine in (u, v)
+                self.disp_coef = camera.fx * camera.baseline * (n @ np.linalg.inv(camera.K)) / d
+        self.orb = cv2.ORB_create(
+            nfeatures=c.n_features * 2,
+            scaleFactor=1.2,
+            nlevels=4,
+            edgeThreshold=15,
+            patchSize=15,
+            fastThreshold=c.fast_threshold,
+        )
+        self.orb_right = cv2.ORB_create(
+            nfeatures=c.n_features * 3,
+            scaleFactor=1.2,
+            nlevels=4,
+            edgeThreshold=15,
+            patchSize=15,
+            fastThreshold=max(5, c.fast_threshold - 3),
+        )
+        self.bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.lk = {
+            "winSize": (c.lk_window, c.lk_window),
+            "maxLevel": c.lk_levels,
+            "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+        }
+        self.kf: _Keyframe | None = None
+        self.T_w_c = np.eye(4)  # current camera pose in the first camera frame
+        self.T_k_c = np.eye(4)  # current pose relative to the keyframe
+        self.velocity = np.eye(4)  # last frame-to-frame motion T_prev_cur
+        self.stats = VOStats()
+        self.last_lost = False
+
+    # ---------------------------------------------------------------------------------------------
+    def _detect(self, img: np.ndarray, orb, n: int) -> tuple[list, np.ndarray | None]:
+        kps = orb.detect(img, None)
+        if not kps:
+            return [], None
+        kps = self._spread(kps, img.shape, n)
+        kps, desc = orb.compute(img, kps)
+        return kps, desc
+
+    def _spread(self, kps, shape, n: int):
+        """Keep the strongest keypoints per grid cell so features cover the image."""
+        gx, gy = self.cfg.grid
+        h, w = shape[:2]
+        pts = np.array([k.pt for k in kps])
+        resp = np.array([k.response for k in kps])
+        cell = (np.minimum((pts[:, 0] * gx / w).astype(int), gx - 1) * gy) + np.minimum(
+            (pts[:, 1] * gy / h).astype(int), gy - 1
+        )
+        order = np.lexsort((-resp, cell))
+        per = int(np.ceil(n / (gx * gy)))
+        keep, counts = [], {}
+        for i in order:
+            k = cell[i]
+            if counts.get(k, 0) < per:
+                counts[k] = counts.get(k, 0) + 1
+                keep.append(kps[i])
+        return keep
+
+    def _stereo(self, left: np.ndarray, right: np.ndarray):
+        """Keyframe points: (pts (N,2) float32, X (N,3), desc (N,32))."""
+        c = self.cfg
+        kl, dl = self._detect(left, self.orb, c.n_features)
+        kr, dr = self._detect(right, self.orb_right, int(c.n_features * 1.5))
+        if dl is None or dr is None or len(kl) < 8 or len(kr) < 8:
+            return None
+        pl = np.array([k.pt for k in kl], dtype=np.float32)
+        pr = np.array([k.pt for k in kr], dtype=np.float32)
+        disp = pl[:, None, 0] - pr[None, :, 0]
+        mask = (np.abs(pl[:, None, 1] - pr[None, :, 1]) <= c.max_row_diff + 1.0) & (
+            (disp >= c.min_disparity - 1.0) & (disp <= c.max_disparity)
+        )
+        matches = self.bf.knnMatch(dl, dr, k=2, mask=mask.astype(np.uint8))
+        il, ir = [], []
+        for m in matches:
+            if not m:
+                continue
+            if m[0].distance > c.max_hamming:
+                continue
+            if len(m) > 1 and m[0].distance > c.ratio * m[1].distance:
+                continue
+            il.append(m[0].queryIdx)
+            ir.append(m[0].trainIdx)
+        if len(il) < 8:
+            return None
+        il, ir = np.array(il), np.array(ir)
+        # one left feature per right feature
+        _, first = np.unique(ir, return_index=True)
+        il, ir = il[first], ir[first]
+        p0 = pl[il]
+        # sub-pixel right positions: LK from left to right, started at the descriptor match
+        d0 = p0[:, 0] - pr[ir, 0]
+        p1, good = self._right_positions(left, right, p0, d0, None)
+        d = p0[:, 0] - p1[:, 0]
+        ok = (
+            good
+            & (np.abs(p1[:, 1] - p0[:, 1]) <= c.max_row_diff)
+            & (d >= c.min_disparity)
+            & (d <= c.max_disparity)
+            & (np.abs(p1[:, 0] - pr[ir, 0]) < 2.0)
+        )
+        if ok.sum() < 8:
+            return None
+        p0, d, desc = p0[ok], d[ok], dl[il][ok]
+        K = self.cam.K
+        Z = self.cam.fx * self.cam.baseline / d
+        X = np.column_stack([(p0[:, 0] - K[0, 2]) * Z / K[0, 0], (p0[:, 1] - K[1, 2]) * Z / K[1, 1], Z])
+        return p0.astype(np.float32), X, desc
+
+    def _ground_disp(self, p: np.ndarray) -> np.ndarray:
+        a = self.disp_coef
+        return a[0] * p[:, 0] + a[1] * p[:, 1] + a[2]
+
+    def _sheared(self, right: np.ndarray) -> np.ndarray:
+        """The right image shifted per pixel by the ground disparity: ground points line up with left."""
+        a = self.disp_coef
+        M = np.array([[1.0 - a[0], -a[1], -a[2]], [0.0, 1.0, 0.0]])
+        h, w = right.shape[:2]
+        return cv2.warpAffine(
+            right, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
+        )
+
+    def _right_positions(self, left, right, p0, d0, ground):
+        """Right-image positions of left points ``p0`` with disparity guesses ``d0`` (LK, sub-pixel).
+
+        Ground-aware: points are also tracked in the ground-aligned right image (``ground``: which to
+        use, or None to keep the better LK residual of both). Returns (positions (N, 2), ok (N,))."""
+        n = len(p0)
+        out = np.zeros((n, 2), np.float32)
+        ok = np.zeros(n, bool)
+        err_best = np.full(n, np.inf)
+        use_raw = np.ones(n, bool) if ground is None or self.plane is None else ~ground
+        if use_raw.any():
+            g = np.column_stack([p0[use_raw, 0] - d0[use_raw], p0[use_raw, 1]]).astype(np.float32)
+            p1, st, err = cv2.calcOpticalFlowPyrLK(
+                left,
+                right,
+                p0[use_raw].reshape(-1, 1, 2),
+                g.reshape(-1, 1, 2),
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                **self.lk,
+            )
+            st = st.ravel() == 1
+            idx = np.nonzero(use_raw)[0][st]
+            out[idx] = p1.reshape(-1, 2)[st]
+            ok[idx] = True
+            err_best[idx] = err.ravel()[st]
+        if self.plane is not None:
+            use_g = np.ones(n, bool) if ground is None else ground
+            if use_g.any():
+                sh = self._sheared(right)
+                q0 = p0[use_g]
+                dg0 = self._ground_disp(q0)
+                g = np.column_stack([q0[:, 0] - (d0[use_g] - dg0), q0[:, 1]]).astype(np.float32)
+                p1, st, err = cv2.calcOpticalFlowPyrLK(
+                    left,
+                    sh,
+                    q0.reshape(-1, 1, 2),
+                    g.reshape(-1, 1, 2),
+                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                    **self.lk,
+                )
+                p1 = p1.reshape(-1, 2)
+                p1[:, 0] -= self._ground_disp(p1)
+                st = st.ravel() == 1
+                err = err.ravel()
+                idx = np.nonzero(use_g)[0]
+                better = st & (err < err_best[idx])
+                out[idx[better]] = p1[better]
+                ok[idx[better]] = True
+        return out, ok
+
+    def _is_ground(self, X: np.ndarray) -> np.ndarray:
+        if self.plane is None:
+            return np.zeros(len(X), bool)
+        n, d = self.plane
+        return np.abs(X @ n - d) < self.cfg.ground_tol_m + 0.03 * X[:, 2]
+
+    def _new_keyframe(self, left, right, T_w_c) -> bool:
+        res = self._stereo(left, right)
+        if res is None:
+            return False
+        pts, X, desc = res
+        self.kf = _Keyframe(left, pts, X, desc, T_w_c.copy(), self._is_ground(X))
+        self.T_k_c = np.eye(4)
+        self.stats.keyframes += 1
+        return True
+
+    def _project(self, X: np.ndarray, T_c_k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Xc = X @ T_c_k[:3, :3].T + T_c_k[:3, 3]
+        K = self.cam.K
+        z = Xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.column_stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]])
+        return uv, z
+
+    def _track_lk(self, left: np.ndarray, T_k_pred: np.ndarray):
+        """Keyframe points tracked into ``left`` by LK (initialised by the prediction): (idx, pts)."""
+        kf = self.kf
+        T_c_k = se3_inverse(T_k_pred)
+        guess, z = self._project(kf.X, T_c_k)
+        h, w = left.shape[:2]
+        vis = (
+            (z > 0.05)
+            & (guess[:, 0] > -20)
+            & (guess[:, 0] < w + 20)
+            & (guess[:, 1] > -20)
+            & (guess[:, 1] < h + 20)
+        )
+        idx = np.nonzero(vis)[0]
+        if idx.size < self.cfg.min_inliers:
+            return idx[:0], np.zeros((0, 2), np.float32)
+        p_out = np.zeros((idx.size, 2), np.float32)
+        ok = np.zeros(idx.size, bool)
+        if self.plane is not None and self.cfg.ground_aware_tracking:
+            ground = kf.ground[idx]
+        else:
+            ground = np.zeros(idx.size, bool)
+        for is_g in (False, True):
+            sel = ground == is_g
+            if not sel.any():
+                continue
+            p0 = kf.pts[idx[sel]].reshape(-1, 1, 2)
+            g = guess[idx[sel]].astype(np.float32).reshape(-1, 1, 2)
+            src = kf.img
+            if is_g:
+                # keyframe warped into the predicted view by the ground homography: no perspective change
+                n, d = self.plane
+                Hm = self.cam.K @ (T_c_k[:3, :3] + np.outer(T_c_k[:3, 3], n) / d) @ np.linalg.inv(self.cam.K)
+                src = cv2.warpPerspective(
+                    kf.img, Hm, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                )
+                # the keyframe patch at p_k sits at H p_k in the warped image (exactly, ground or not)
+                p0 = cv2.perspectiveTransform(p0.astype(np.float64), Hm).astype(np.float32)
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(
+                src, left, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk
+            )
+            pb, st2, _ = cv2.calcOpticalFlowPyrLK(
+                left, src, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk
+            )
+            fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+            p1 = p1.reshape(-1, 2)
+            good = (
+                (st.ravel() == 1)
+                & (st2.ravel() == 1)
+                & (fb < self.cfg.fb_max_px)
+                & (p1[:, 0] >= 0)
+                & (p1[:, 0] <= w - 1)
+                & (p1[:, 1] >= 0)
+                & (p1[:, 1] <= h - 1)
+            )
+            p_out[sel] = p1
+            ok[sel] = good
+        return idx[ok], p_out[ok]
+
+    def _match_descriptors(self, left: np.ndarray):
+        """Fallback association: current ORB features matched to the keyframe descriptors."""
+        kps, desc = self._detect(left, self.orb, self.cfg.n_features)
+        if desc is None or len(kps) < self.cfg.min_inliers:
+            return np.zeros(0, int), np.zeros((0, 2), np.float32)
+        matches = self.bf.knnMatch(self.kf.desc, desc, k=2)
+        idx, pts = [], []
+        for m in matches:
+            if not m or m[0].distance > self.cfg.max_hamming:
+                continue
+            if len(m) > 1 and m[0].distance > self.cfg.ratio * m[1].distance:
+                continue
+            idx.append(m[0].queryIdx)
+            pts.append(kps[m[0].trainIdx].pt)
+        return np.array(idx, int), np.array(pts, np.float32).reshape(-1, 2)
+
+    def _pnp(self, idx, pts, T_k_guess: np.ndarray | None):
+        """RANSAC PnP (keyframe 3D -> current 2D): (T_k_c, inlier mask) or None."""
+        c = self.cfg
+        if len(idx) < c.min_inliers:
+            return None
+        obj = self.kf.X[idx].astype(np.float64)
+        img = pts.astype(np.float64)
+        if T_k_guess is not None:
+            rvec, tvec = _rvec_tvec(se3_inverse(T_k_guess))
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                obj,
+                img,
+                self.cam.K,
+                None,
+                rvec,
+                tvec,
+                useExtrinsicGuess=True,
+                iterationsCount=c.ransac_iters,
+                reprojectionError=c.ransac_reproj_px,
+                confidence=0.999,
+                flags=cv2.SOLVEPNP_ITERATIVE,
+            )
+        else:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                obj,
+                img,
+                self.cam.K,
+                None,
+                iterationsCount=max(c.ransac_iters, 300),
+                reprojectionError=c.ransac_reproj_px * 2,
+                confidence=0.999,
+                flags=cv2.SOLVEPNP_EPNP,
+            )
+        if not ok or inl is None or len(inl) < c.min_inliers:
+            return None
+        mask = np.zeros(len(idx), bool)
+        mask[inl.ravel()] = True
+        return se3_inverse(_se3(rvec, tvec)), mask
+
+    def _refine(
+        self, T_k_c: np.ndarray, X: np.ndarray, pl: np.ndarray, pr: np.ndarray | None, has_r: np.ndarray
+    ):
+        """Huber Gauss-Newton on the reprojection error in the current left (and right) image."""
+        c = self.cfg
+        K = self.cam.K
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        b = self.cam.baseline
+        T = se3_inverse(T_k_c)  # current <- keyframe
+        for _ in range(c.refine_iters):
+            Xc = X @ T[:3, :3].T + T[:3, 3]
+            x, y, z = Xc[:, 0], Xc[:, 1], np.maximum(Xc[:, 2], 1e-3)
+            iz = 1.0 / z
+            rows_r, rows_j = [], []
+            # left image residuals and Jacobian wrt a left-multiplied twist (rho, phi)
+            for cam_dx, obs, sel in ((0.0, pl, None), (b, pr, has_r)):
+                if obs is None:
+                    continue
+                xx = x - cam_dx
+                u = fx * xx * iz + cx
+                v = fy * y * iz + cy
+                r = np.column_stack([u - obs[:, 0], v - obs[:, 1]])
+                # d(u,v)/dXc
+                J = np.zeros((len(x), 2, 6))
+                J[:, 0, 0] = fx * iz
+                J[:, 0, 2] = -fx * xx * iz * iz
+                J[:, 1, 1] = fy * iz
+                J[:, 1, 2] = -fy * y * iz * iz
+                # dXc/dphi = -[Xc]x (perturbation applied in the current frame: Xc' = exp(xi) Xc)
+                dxdp = np.zeros((len(x), 3, 3))
+                dxdp[:, 0, 1], dxdp[:, 0, 2] = z, -y
+                dxdp[:, 1, 0], dxdp[:, 1, 2] = -z, x
+                dxdp[:, 2, 0], dxdp[:, 2, 1] = y, -x
+                J[:, :, 3:] = np.einsum("nij,njk->nik", J[:, :, :3], dxdp)
+                if sel is not None:
+                    r, J = r[sel], J[sel]
+                rows_r.append(r.reshape(-1))
+                rows_j.append(J.reshape(-1, 6))
+            r = np.concatenate(rows_r)
+            J = np.concatenate(rows_j)
+            a = np.abs(r)
+            w = np.where(a <= c.huber_px, 1.0, c.huber_px / np.maximum(a, 1e-12))
+            H = J.T @ (J * w[:, None])
+            g = J.T @ (w * r)
+            try:
+                dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+            except np.linalg.LinAlgError:
+                break
+            T = _exp_se3(dx) @ T
+            if np.linalg.norm(dx) < 1e-8:
+                break
+        return se3_inverse(T)
+
+    # ---------------------------------------------------------------------------------------------
+    def process(self, left: np.ndarray, right: np.ndarray) -> np.ndarray | None:
+        """Track one rectified grey stereo pair; returns T_c0_ci, or None for a frame that is lost."""
+        t0 = time.perf_counter()
+        try:
+            return self._process(left, right)
+        finally:
+            self.stats.frames += 1
+            self.stats.seconds += time.perf_counter() - t0
+
+    def _process(self, left: np.ndarray, right: np.ndarray) -> np.ndarray | None:
+        c = self.cfg
+        if self.kf is None:
+            if self._new_keyframe(left, right, self.T_w_c):
+                return self.T_w_c.copy()
+            self.stats.lost += 1
+            return None if self.stats.keyframes else self.T_w_c.copy()
+        T_k_pred = self.T_k_c @ self.velocity
+        idx, pts = self._track_lk(left, T_k_pred)
+        res = self._pnp(idx, pts, T_k_pred)
+        if res is None:
+            self.stats.fallback += 1
+            idx, pts = self._match_descriptors(left)
+            res = self._pnp(idx, pts, None)
+        if res is None:
+            # lost: bridge with the motion model and restart from this frame
+            self.stats.lost += 1
+            T_k_c = T_k_pred
+            self.T_w_c = self.kf.T_w_k @ T_k_c
+            self.kf = None
+            self._new_keyframe(left, right, self.T_w_c)
+            return None
+        T_k_c, inl = res
+        step = se3_inverse(self.T_k_c) @ T_k_c
+        step_deg = np.degrees(np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1)))
+        if np.linalg.norm(step[:3, 3]) > c.max_step_m or step_deg > c.max_step_deg:
+            res = None  # an implausible jump: a wrong PnP solution
+            self.stats.rejected += 1
+        if res is None:
+            self.stats.lost += 1
+            self.T_w_c = self.kf.T_w_k @ T_k_pred
+            self.kf = None
+            self._new_keyframe(left, right, self.T_w_c)
+            return None
+        idx, pts = idx[inl], pts[inl]
+        # stereo refinement: right positions of the inliers by LK (started from the predicted disparity)
+        X = self.kf.X[idx]
+        uv, z = self._project(X, se3_inverse(T_k_c))
+        d_pred = self.cam.fx * self.cam.baseline / np.maximum(z, 1e-3)
+        pr, has_r = self._right_positions(left, right, pts, d_pred, self.kf.ground[idx])
+        has_r &= (np.abs(pr[:, 1] - pts[:, 1]) <= c.max_row_diff) & (
+            np.abs(pts[:, 0] - pr[:, 0] - d_pred) < 3.0
+        )
+        T_k_c = self._refine(T_k_c, X, pts, pr if self.cfg.refine_stereo else None, has_r)
+        self.stats.inliers.append(len(idx))
+        T_prev_k = se3_inverse(self.T_k_c)
+        self.velocity = T_prev_k @ T_k_c
+        self.T_k_c = T_k_c
+        self.T_w_c = self.kf.T_w_k @ T_k_c
+        ang = np.degrees(np.arccos(np.clip((np.trace(T_k_c[:3, :3]) - 1) / 2, -1, 1)))
+        if (
+            len(idx) < c.min_keyframe_inliers
+            or np.linalg.norm(T_k_c[:3, 3]) > c.keyframe_max_dist_m
+            or ang > c.keyframe_max_rot_deg
+        ):
+            self._new_keyframe(left, right, self.T_w_c)
+        return self.T_w_c.copy()
+
+    def run(self, frames: Iterable[tuple[int, np.ndarray, np.ndarray]], T_b_c: np.ndarray) -> Trajectory:
+        """Track ``(stamp_ns, left, right)`` frames; the base-frame trajectory (gaps where lost)."""
+        stamps, poses, gaps = [], [], []
+        gap_start = None
+        last_ok = None
+        for stamp, left, right in frames:
+            T = self.process(left, right)
+            if T is None:
+                if gap_start is None:
+                    gap_start = last_ok if last_ok is not None else stamp
+                continue
+            if gap_start is not None:
+                gaps.append((int(gap_start), int(stamp)))
+                gap_start = None
+            last_ok = stamp
+            stamps.append(stamp)
+            poses.append(T)
+        if gap_start is not None and last_ok is not None:
+            gaps.append((int(gap_start), int(last_ok)))
+        if not poses:
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)), gaps)
+        T_c = np.array(poses)
+        T_b = camera_to_base(T_c, T_b_c)
+        return Trajectory(
+            np.array(stamps, np.int64), T_b[:, :3, 3], matrix_to_quaternion(T_b[:, :3, :3]), gaps
+        )
+
+
+def camera_extrinsic(camera_cfg: Mapping[str, Any]) -> np.ndarray:
+    """T_b_c of the left camera from ``robot.camera`` (``xyz``, ``rpy``)."""
+    return se3_from_xyz_rpy(np.asarray(camera_cfg["xyz"], float), np.asarray(camera_cfg["rpy"], float))

@@ -1,0 +1,239 @@
+"""The README's (and docs/*.md's) commands are tests: every fenced block carries a marker, an HTML comment
+on the line before it, that says what the block is and how it is tested:
+
+    <!-- doc-test: run [slow] [shared] [lines=1,2] [cwd=<dir>] [<placeholder>[@line]=<value> ...] -->
+        its commands are executed (bash, in order; the selected lines only), on a tiny simulated dataset
+        shared by the blocks (``SCALE=tiny`` for make, ``SKIDBENCH_OUT``/``OUT`` a temporary root);
+        ``shared``: skipped when ../shared/data/real is absent; ``slow``: marked slow
+    <!-- doc-test: check [lines=...] [<placeholder>=<value> ...] -->
+        each ``skidbench <stage> ...`` command (and each stage that ``make reproduce|discover`` runs, with
+        its SOURCE, DATA and ARGS) has its overrides and values checked as the CLI checks them before a
+        stage starts (unknown keys, group options, the declared schema), without running it: for
+        commands that need a cluster, a server or data we do not have
+    <!-- doc-test: output -->           printed output, not commands
+    <!-- doc-test: skip <reason> -->    not runnable in a test (the reason is required)
+
+An unmarked block fails the test, so a new documented command is a decision, not an accident. In the
+values, ``$OUT`` (the temporary output root), ``$REPO`` (this checkout) and ``$SHARED``
+(../shared/data/real) are expanded by bash. A placeholder ``<dir>`` not given a value is replaced by a
+dummy word in ``check`` blocks."""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+from conftest import SHARED_REAL
+
+from skidbench.pipeline.config_schema import validate
+from skidbench.pipeline.overrides import check_overrides
+
+REPO = Path(__file__).resolve().parents[1]
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+MARKER = re.compile(r"^<!--\s*doc-test:\s*(\w+)\s*(.*?)\s*-->\s*$")
+MODES = ("run", "check", "output", "skip")
+MAKE_STAGES = {  # what the Makefile's targets run (make reproduce / make discover)
+    "reproduce": ("extract", "groundtruth", "split", "calibrate", "evaluate", "compare"),
+    "discover": ("extract", "groundtruth", "split", "calibrate", "discover", "evaluate", "compare"),
+}
+
+
+@dataclass
+class Block:
+    doc: Path
+    line: int  # of the opening fence, 1-based
+    text: list[str]
+    mode: str | None
+    args: str = ""
+    opts: dict = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        return f"{self.doc.name}:{self.line}"
+
+
+def parse_blocks(path: Path) -> list[Block]:
+    """Every fenced block of a Markdown file with its marker (None when unmarked)."""
+    lines = path.read_text().splitlines()
+    blocks, i = [], 0
+    while i < len(lines):
+        if lines[i].startswith("```"):
+            j = i + 1
+            while j < len(lines) and not lines[j].startswith("```"):
+                j += 1
+            m = MARKER.match(lines[i - 1].strip()) if i else None
+            b = Block(path, i + 1, lines[i + 1 : j], m.group(1) if m else None, m.group(2) if m else "")
+            b.opts = _options(b.args)
+            blocks.append(b)
+            i = j + 1
+        else:
+            i += 1
+    return blocks
+
+
+def _options(args: str) -> dict:
+    opts: dict = {"flags": set(), "subs": [], "lines": None, "cwd": None}
+    for tok in shlex.split(args):
+        if tok in ("slow", "shared"):
+            opts["flags"].add(tok)
+        elif tok.startswith("lines="):
+            opts["lines"] = {int(n) for n in tok[6:].split(",")}
+        elif tok.startswith("cwd="):
+            opts["cwd"] = tok[4:]
+        elif tok.startswith("<") and "=" in tok:
+            name, value = tok.split("=", 1)
+            name, _, at = name.partition("@")
+            opts["subs"].append((name, int(at) if at else None, value))
+    return opts
+
+
+def commands(block: Block, every: bool = False) -> list[tuple[int, str]]:
+    """(command number, command) of a block: continuation lines joined, comments and blank lines out; in
+    a block that shows a prompt (``$ ``), only the prompted lines. The marker's ``lines`` only, unless
+    ``every`` (a run block's other lines are still checked)."""
+    prompted = any(ln.startswith("$ ") for ln in block.text)
+    cmds, buf = [], ""
+    for ln in block.text:
+        if prompted:
+            if not ln.startswith("$ "):
+                continue
+            ln = ln[2:]
+        s = ln.rstrip()
+        if not buf and (not s.strip() or s.lstrip().startswith("#")):
+            continue
+        if s.endswith("\\"):
+            buf += s[:-1] + " "
+            continue
+        cmds.append(buf + s)
+        buf = ""
+    out = []
+    for n, cmd in enumerate(cmds, 1):
+        for name, at, value in block.opts["subs"]:
+            if at in (None, n):
+                cmd = cmd.replace(name, value)
+        if every or block.opts["lines"] is None or n in block.opts["lines"]:
+            out.append((n, cmd))
+    return out
+
+
+BLOCKS = [b for doc in DOCS for b in parse_blocks(doc)]
+
+
+def test_every_block_is_marked():
+    bad = [f"{b.id} ({b.text[0][:60] if b.text else ''})" for b in BLOCKS if b.mode not in MODES]
+    assert not bad, f"mark each fenced block with <!-- doc-test: run|check|output|skip ... -->: {bad}"
+    skips = [b.id for b in BLOCKS if b.mode == "skip" and not b.args]
+    assert not skips, f"a skipped block says why: {skips}"
+
+
+def test_the_markers_cover_the_documented_recipes():
+    """The README's own-data recipes are at least checked; the quick start runs."""
+    modes = {b.text[0].split("#")[0].strip(): b.mode for b in BLOCKS if b.text}
+    assert modes.get("make reproduce") == "run"
+    assert sum(b.mode in ("run", "check") for b in BLOCKS) >= 8
+
+
+# -- check: the overrides of every command, as the CLI checks them before a stage starts --------------
+def _stage_lines(cmd: str) -> list[tuple[str, list[str]]]:
+    """(stage, overrides) of a ``skidbench`` or ``make reproduce|discover`` command line."""
+    cmd = re.sub(r"<[^<>]*>", "x", cmd.split(" #")[0])  # placeholders left: a dummy word
+    words = shlex.split(cmd)
+    env = {}
+    while words and re.match(r"^[A-Z_]+=", words[0]):  # VAR=value before the command
+        k, v = words.pop(0).split("=", 1)
+        env[k] = v
+    if words[:1] == ["skidbench"] and len(words) > 1:
+        return [(words[1], words[2:])]
+    if words[:1] == ["make"] and len(words) > 1 and words[1] in MAKE_STAGES:
+        make = dict(env, **dict(w.split("=", 1) for w in words[2:] if "=" in w))
+        source = make.get("SOURCE", "sim")
+        base = (
+            [f"scale={make.get('SCALE', 'mini')}", f"seed={make.get('SEED', '0')}"]
+            if source == "sim"
+            else [f"source={source}", f"source.root={make.get('DATA', 'x')}"]
+        )
+        args = shlex.split(make.get("ARGS", ""))
+        return [(stage, [*base, *args]) for stage in MAKE_STAGES[words[1]]]
+    return []
+
+
+CHECKED = [
+    pytest.param(b, n, cmd, id=f"{b.id}#{n}")
+    for b in BLOCKS
+    if b.mode in ("check", "run")
+    for n, cmd in commands(b, every=b.mode == "run")
+    if _stage_lines(cmd)
+]
+
+
+@pytest.mark.parametrize(("block", "n", "cmd"), CHECKED)
+def test_documented_commands_pass_the_config_checks(block, n, cmd, monkeypatch, tmp_path):
+    monkeypatch.setenv("SKIDBENCH_OUT", str(tmp_path))
+    for var, value in (("$OUT", str(tmp_path)), ("$REPO", str(REPO)), ("$SHARED", str(SHARED_REAL))):
+        cmd = cmd.replace(var, value)
+    for stage, overrides in _stage_lines(cmd):
+        if stage in ("inspect", "models"):
+            continue
+        try:
+            dropped, cfg = check_overrides(stage, overrides)
+            if cfg is not None:
+                validate(cfg)
+        except Exception as exc:  # noqa: BLE001 - the message is the point
+            pytest.fail(f"{block.id} command {n}, stage {stage}: {exc}")
+
+
+# -- run: the blocks a user is told to run, executed -------------------------------------------------
+@pytest.fixture(scope="module")
+def doc_env(tmp_path_factory) -> dict[str, str]:
+    """One output root for every run block (the tiny simulated dataset of the first is reused)."""
+    out = tmp_path_factory.mktemp("docs_out")
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    bin_dir = str(Path(sys.executable).parent)
+    env.update(
+        PATH=f"{bin_dir}{os.pathsep}{env.get('PATH', '')}",
+        SKIDBENCH_OUT=str(out),
+        OUT=str(out),
+        SCALE="tiny",
+        REPO=str(REPO),
+        SHARED=str(SHARED_REAL),
+    )
+    return env
+
+
+RUN = [
+    pytest.param(b, id=b.id, marks=[pytest.mark.slow] if "slow" in b.opts["flags"] else [])
+    for b in BLOCKS
+    if b.mode == "run"
+]
+
+
+@pytest.mark.parametrize("block", RUN)
+def test_documented_blocks_run_as_written(block, doc_env):
+    if "shared" in block.opts["flags"] and not SHARED_REAL.is_dir():
+        pytest.skip("../shared/data/real is absent")
+    cwd = block.opts["cwd"] or str(REPO)
+    cwd = cwd.replace("$SHARED", str(SHARED_REAL)).replace("$REPO", str(REPO)).replace("$OUT", doc_env["OUT"])
+    for n, cmd in commands(block):
+        if "$SHARED" in cmd and not SHARED_REAL.is_dir():
+            continue
+        proc = subprocess.run(
+            ["bash", "-c", f"set -euo pipefail; {cmd}"],
+            cwd=cwd, env=doc_env, capture_output=True, text=True, timeout=1800,
+        )  # fmt: skip
+        assert proc.returncode == 0, f"{block.id} command {n}: {cmd}\n{proc.stderr[-3000:]}"
+
+
+def test_the_check_refuses_a_misspelt_documented_command(tmp_path):
+    doc = tmp_path / "doc.md"
+    doc.write_text('<!-- doc-test: check -->\n```\nmake reproduce ARGS="groundtruth.methd=vo"\n```\n')
+    (block,) = parse_blocks(doc)
+    ((_, cmd),) = commands(block)
+    stage, overrides = _stage_lines(cmd)[0]
+    with pytest.raises(Exception, match="groundtruth.methd"):
+        check_overrides(stage, overrides)

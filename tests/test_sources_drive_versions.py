@@ -1,0 +1,140 @@
+"""DRIVE's dataframe versions, the robot checked against the data, and the raw form's segment
+classification (command-driven / driven by something else / idle)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from test_sources_drive_synthetic import drive_like_frame
+
+from skidbench.pipeline.errors import ConfigError, SourceError
+from skidbench.pipeline.robot import load_robot
+from skidbench.pipeline.sources.drive_df import (
+    COMMAND,
+    SLIP_BLOCKS,
+    WINDOW,
+    classify_rows,
+    detect_form,
+    raw_to_sequences,
+    window_segments,
+    windows_to_sequences,
+)
+
+STEPS = [(0.6, 0.0), (0.0, 0.8), (-0.4, 0.3), (0.9, -0.5), (0.3, 0.2)]
+
+
+def as_slip_version(df: pd.DataFrame) -> pd.DataFrame:
+    """The same windows in the 1218-column ``slip_dataset_all`` layout: extra 40-sample blocks (ICP and
+    IDD velocities, interpolated ICP, disturbances) and scalars, interleaved before the original ones."""
+    rng = np.random.default_rng(0)
+    extra = {f"{b}_{k}": rng.normal(size=len(df)) for b in SLIP_BLOCKS for k in range(WINDOW)}
+    extra.update({"icp_vx": rng.normal(size=len(df)), "init_icp_x": np.zeros(len(df))})
+    slip = pd.concat([pd.DataFrame(extra), df], axis=1)
+    return slip[sorted(slip.columns)]  # another column order too
+
+
+def test_slip_version_reads_into_the_same_tables_as_the_578_column_version():
+    df, _, _ = drive_like_frame(STEPS)
+    slip = as_slip_version(df)
+    assert detect_form(slip, "x")[1] == "slip_dataset_all"
+    assert detect_form(df, "x")[0] == "windows"
+    kw = dict(cmd_kinematics=(0.3, 1.08))
+    a = windows_to_sequences(df, Path("a.parquet"), 20.0, (0.6, 0.2, 0.2), "w", **kw)
+    b = windows_to_sequences(slip, Path("b.parquet"), 20.0, (0.6, 0.2, 0.2), "w", **kw)
+    assert [s["name"] for s in a] == [s["name"] for s in b]
+    for sa, sb in zip(a, b, strict=True):
+        assert sa["tables"].keys() == sb["tables"].keys()
+        for k in sa["tables"]:
+            pd.testing.assert_frame_equal(sa["tables"][k], sb["tables"][k])
+
+
+def test_window_samples_under_a_zero_command_while_moving_are_reported():
+    df, _, _ = drive_like_frame([(0.6, 0.0), (0.5, 0.2), (0.4, -0.3)])
+    assert {s["class"] for s in window_segments(df, Path("w.parquet"))} == {COMMAND}
+    cmd = [c for c in df.columns if c.startswith("cmd_")]
+    df.loc[3:5, cmd] = 0.0  # step 1: zero commands, the wheels still turn (something else drives it)
+    segs = window_segments(df, Path("w.parquet"))
+    other = [s for s in segs if s["class"] == "other"]
+    assert len(other) == 1 and other[0]["rows"] == 3 * WINDOW
+
+
+def test_a_window_file_without_calib_step_is_one_clear_line():
+    df, _, _ = drive_like_frame(STEPS)
+    with pytest.raises(SourceError, match=r"w\.parquet: window form without a calib_step column"):
+        windows_to_sequences(df.drop(columns="calib_step"), Path("w.parquet"), 20.0, (0.6, 0.2, 0.2), "w")
+
+
+def test_not_a_drive_frame_is_one_line():
+    with pytest.raises(SourceError, match="not a DRIVE dataframe"):
+        detect_form(pd.DataFrame({"a": [1.0]}), "f.parquet")
+
+
+def test_classify_rows_from_state_and_from_consistency():
+    n = 100
+    state = np.array(["idle"] * 30 + ["calib"] * 40 + [""] * 30)
+    cmd = np.r_[np.zeros(30), np.full(40, 0.5), np.zeros(30)]
+    wheels = np.r_[np.full(30, 2.0), np.full(40, 1.5), np.zeros(30)]  # idle phase: moved by something else
+    cls, why = classify_rows(state, cmd, np.zeros(n), wheels, wheels)
+    assert list(cls[[0, 40, 80]]) == ["other", COMMAND, "idle"]
+    assert "calib_state 'idle'" in why[0] and "(empty)" in why[80]
+    cls2, _ = classify_rows(None, cmd, np.zeros(n), wheels, wheels)  # no state column: the same classes
+    np.testing.assert_array_equal(cls, cls2)
+
+
+def test_raw_segments_keep_only_the_calib_rows_of_the_shared_grass_file(shared_real):
+    path = shared_real / "drive" / "warthog_grass2_raw.parquet"
+    df = pd.read_parquet(path)
+    segs: list = []
+    seqs = raw_to_sequences(df, path, (0.6, 0.2, 0.2), "w", segments=segs)
+    calib = df["calib_state"].astype(str) == "calib"
+    stamps = pd.to_numeric(df["ros_time"], errors="coerce").to_numpy(float).astype(np.int64)
+    kept = np.concatenate([s["tables"]["cmd_vel"]["stamp_ns"].to_numpy() for s in seqs])
+    # every calib row is kept (2583 rows = 129.1 s at 20 Hz), and no other row
+    assert len(kept) == int(calib.sum()) == 2583
+    assert set(kept) == set(stamps[calib.to_numpy()])
+    # the non-calib phases where the robot moved under zero commands are left out and reported
+    other = [s for s in segs if s["class"] == "other"]
+    assert sum(s["seconds"] for s in other) > 150 and sum(s["metres"] for s in other) > 50
+    uncommanded = (~calib) & (pd.to_numeric(df["meas_left_vel"], errors="coerce").abs() > 0.3)
+    assert not set(stamps[uncommanded.to_numpy()]) & set(kept)
+    # several 6 s steps per sequence (runs of calib rows), not one sequence per step
+    assert [s["category"] for s in seqs] == ["train", "train", "cv", "cv", "ld"]
+    assert max(len(s["tables"]["cmd_vel"]) for s in seqs) > 3 * 121
+
+
+def test_a_recording_with_wheels_reading_zero_is_one_line(shared_real):
+    path = shared_real / "drive" / "husky_plank_raw.parquet"
+    with pytest.raises(SourceError, match="nothing can be scored: the wheels read zero throughout"):
+        raw_to_sequences(pd.read_parquet(path), path, (0.6, 0.2, 0.2), "h")
+
+
+def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
+    path = shared_real / "drive" / "husky_windows.parquet"
+    df = pd.read_parquet(path)
+    checks: dict = {}
+    windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08),
+                         robot=load_robot("husky"), checks=checks)  # fmt: skip
+    assert 0.7 < checks["speed_gain"] < 1.1 and 0.8 < checks["implied_radius_ratio"] < 1.1
+    with pytest.raises(ConfigError, match=r"robot=warthog: the measured wheel speed .* is 1\.4\dx"):
+        windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08),
+                             robot=load_robot("warthog"))  # fmt: skip
+
+
+def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_real, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from skidbench.pipeline.extract.app import run as extract
+
+    data = tmp_path / "data"
+    data.mkdir()
+    shutil.copy(shared_real / "drive" / "husky_windows.parquet", data / "warthog_day2.parquet")
+    over = [f"out_root={tmp_path}", "source=drive_df", f"source.root={data}", "robot=warthog",
+            "source.file=warthog_day2.parquet"]  # fmt: skip
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        with pytest.raises(ConfigError, match="warthog_day2.parquet: robot=warthog: .*not this robot's") as e:
+            extract(compose("extract", over))
+    assert "\n" not in str(e.value)
