@@ -50,8 +50,9 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, minimize_scalar
 
+from skidbench.benchmark import terms as termlib
 from skidbench.benchmark.effects import (
     CATALOGUE,
     EFFECT_IDS,
@@ -88,7 +89,9 @@ class DiscoverSettings:
     alpha: float = 0.05
     penalty_per_param: float = 0.02
     min_gain: float = 0.02
-    max_effects: int = 4
+    max_effects: int = 4  # catalogue effects and open-ended terms together
+    max_terms: int = 4  # open-ended candidates validated per step (the sparse regression's best)
+    open_ended: bool = True  # search the term library (benchmark/terms.py) next to the catalogue
     channel_tolerance: float = 0.01  # held-out log-MSE loss allowed on a velocity channel the effect changes
     alternations: int = 6  # base/effect refit alternations
     tau_bounds: tuple[float, float] = (0.02, 1.5)
@@ -233,6 +236,8 @@ class FitState:
     base_pred: np.ndarray  # (T, 3) base prediction (on lagged inputs) on every row
     feats: dict[str, np.ndarray]
     loss: float
+    terms: list[termlib.Term] = field(default_factory=list)  # open-ended terms (benchmark/terms.py)
+    term_params: dict[str, dict[str, float]] = field(default_factory=dict)  # key -> theta, c_v, c_w
 
 
 class Augmenter:
@@ -287,16 +292,22 @@ class Augmenter:
         train_units: np.ndarray,
         warm: dict[str, np.ndarray] | None = None,
         fixed_tau: bool = False,
+        terms: tuple[termlib.Term, ...] | list[termlib.Term] = (),
     ) -> FitState:
         rows = np.isin(self.pool.units, train_units) & self.pool.valid
+        terms = list(terms)
         if "actuator_lag" in effects:
             if fixed_tau and warm and "actuator_lag" in warm:  # scoring another candidate: keep tau
-                return self._fit_at(effects, rows, float(warm["actuator_lag"][0]), warm, quick=False)
+                return self._fit_at(
+                    effects, rows, float(warm["actuator_lag"][0]), warm, quick=False, terms=terms
+                )
             # a fixed log grid (lag-filtered inputs are cached and shared by folds and candidates), then
             # a parabola through the best grid point and its neighbours (in log tau)
             lo, hi = self.s.tau_bounds
             grid = np.exp(np.linspace(math.log(lo), math.log(hi), 10))
-            losses = np.array([self._fit_at(effects, rows, g, warm, quick=True).loss for g in grid])
+            losses = np.array(
+                [self._fit_at(effects, rows, g, warm, quick=True, terms=terms).loss for g in grid]
+            )
             i = int(np.clip(np.argmin(losses), 1, len(grid) - 2))
             x = np.log(grid[i - 1 : i + 2])
             y = losses[i - 1 : i + 2]
@@ -306,8 +317,8 @@ class Augmenter:
             best = float(grid[int(np.argmin(losses))])
             if A > 0:
                 best = float(np.exp(np.clip(-B / (2 * A), x[0], x[2])))
-            return self._fit_at(effects, rows, best, warm, quick=False)
-        return self._fit_at(effects, rows, None, warm, quick=False)
+            return self._fit_at(effects, rows, best, warm, quick=False, terms=terms)
+        return self._fit_at(effects, rows, None, warm, quick=False, terms=terms)
 
     def _fit_at(
         self,
@@ -316,33 +327,87 @@ class Augmenter:
         tau: float | None,
         warm: dict[str, np.ndarray] | None,
         quick: bool,
+        terms: list[termlib.Term] | None = None,
     ) -> FitState:
+        terms = list(terms or [])
         table, feats = self.inputs(tau)
         key = (None if tau is None else round(float(tau), 6), rows.tobytes().__hash__())
         corr = [e for e in effects if CATALOGUE[e].kind != "input"]
         base = self._fit_base(table, rows, None, key)
         base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
         params = {e: np.array((warm or {}).get(e, CATALOGUE[e].init), dtype=float) for e in corr}
-        n_alt = (2 if quick else self.s.alternations) if corr else 0
+        theta = np.zeros(len(terms))
+        n_alt = (2 if quick else self.s.alternations) if (corr or terms) else 0
         prev = np.inf
         for _ in range(n_alt):
-            params = self._fit_params(corr, params, base_pred, feats, rows)
-            bt = base_targets(self.pool.target, base_pred, feats, params)
+            if corr:
+                params = self._fit_params(
+                    corr, params, base_pred, feats, rows, self._term_sum(terms, theta, feats, base_pred)
+                )
+            theta = self._fit_terms(terms, params, base_pred, feats, rows)
+            shift = self._term_sum(terms, theta, feats, base_pred)
+            bt = base_targets(self.pool.target - shift, base_pred, feats, params)
+            if terms:  # beyond a limit / inside a dead zone the base model keeps its own output
+                sig = self.signals(feats, base_pred)
+                for t in terms:
+                    m = t.passive(sig)
+                    for c in t.touched:
+                        bt[m, c] = base_pred[m, c]
             base = self._fit_base(table, rows, bt, key)
             base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
-            loss = self._loss(apply_effects(base_pred, feats, params), rows)
+            loss = self._loss(
+                apply_effects(base_pred, feats, params) + self._term_sum(terms, theta, feats, base_pred), rows
+            )
             if prev - loss < 1e-6 * max(prev, 1e-12):
                 break
             prev = loss
         if corr:
-            params = self._fit_params(corr, params, base_pred, feats, rows)
-        pred = apply_effects(base_pred, feats, params)
+            params = self._fit_params(
+                corr, params, base_pred, feats, rows, self._term_sum(terms, theta, feats, base_pred)
+            )
+        theta = self._fit_terms(terms, params, base_pred, feats, rows)
+        pred = apply_effects(base_pred, feats, params) + self._term_sum(terms, theta, feats, base_pred)
         all_params = dict(params)
         if tau is not None:
             all_params = {"actuator_lag": np.array([tau]), **all_params}
-        return FitState(effects, all_params, tau, base, pred, base_pred, feats, self._loss(pred, rows))
+        gains = self._gains(feats, base_pred)
+        tp = {
+            t.key: {"theta": float(th), "c_v": gains[0], "c_w": gains[1]}
+            for t, th in zip(terms, theta, strict=True)
+        }
+        return FitState(
+            effects, all_params, tau, base, pred, base_pred, feats, self._loss(pred, rows), terms, tp
+        )
 
-    def _fit_params(self, corr, params, base_pred, feats, rows) -> dict[str, np.ndarray]:
+    def signals(self, feats: dict[str, np.ndarray], base_pred: np.ndarray) -> dict[str, np.ndarray]:
+        return termlib.signals(feats, base_pred, self.pool.t, self.robot.track_width)
+
+    def _gains(self, feats, base_pred) -> tuple[float, float]:
+        # the base model's gains on every valid row (the same for every fold: a property of the base
+        # model's form, not of the held-out rows' targets)
+        return termlib.base_gains(self.signals(feats, base_pred), self.pool.valid)
+
+    def _term_sum(self, terms, theta, feats, base_pred) -> np.ndarray:
+        out = np.zeros_like(base_pred, dtype=float)
+        if not terms:
+            return out
+        sig = self.signals(feats, base_pred)
+        gains = self._gains(feats, base_pred)
+        for t, th in zip(terms, theta, strict=True):
+            out += th * t.columns(sig, gains, self.robot.track_width)
+        return out
+
+    def _fit_terms(self, terms, params, base_pred, feats, rows) -> np.ndarray:
+        """The terms' coefficients: weighted least squares on what the base model and the effects leave."""
+        if not terms:
+            return np.zeros(0)
+        sig = self.signals(feats, base_pred)
+        gains = self._gains(feats, base_pred)
+        cols = [t.columns(sig, gains, self.robot.track_width) for t in terms]
+        resid = self.pool.target - apply_effects(base_pred, feats, params)
+        return termlib.fit_thetas(terms, cols, resid, rows, self.weights)
+
+    def _fit_params(self, corr, params, base_pred, feats, rows, offset=None) -> dict[str, np.ndarray]:
         """Effect parameters with the base prediction fixed: box-bounded weighted least squares
         (:func:`_bounded_least_squares`); the curvature law, the one clearly nonlinear effect, from a few
         starting values of b2."""
@@ -352,6 +417,8 @@ class Augmenter:
         fr = {k: v[rows] for k, v in feats.items()}
         chans = sorted({CATALOGUE[e].channel for e in corr})  # only these depend on the parameters
         tg = self.pool.target[rows][:, chans]
+        if offset is not None:  # the open-ended terms' correction, held fixed while the effects are fitted
+            tg = tg - offset[rows][:, chans]
         sw = np.sqrt(self.weights[chans] / max(rows.sum(), 1))
 
         def unpack(x):
@@ -404,11 +471,12 @@ def fit_effects(
     robot: Robot,
     effects: list[str],
     settings: DiscoverSettings | None = None,
+    terms: list[termlib.Term] | tuple[termlib.Term, ...] = (),
 ) -> FitState:
-    """Fit base model + ``effects`` on every valid row of a training table (sequences in its ``sequence``
-    column), the way discovery fits its final model: the base alone first (which sets the channel
-    weights), then the effects added one at a time in the given order, each fit warm-started from the
-    last. What an augmented model (``skidbench.models.augmented``) calls on Train."""
+    """Fit base model + ``effects`` (+ open-ended ``terms``, last) on every valid row of a training table
+    (sequences in its ``sequence`` column), the way discovery fits its final model: the base alone first
+    (which sets the channel weights), then the effects added one at a time in the given order, each fit
+    warm-started from the last. What an augmented model (``skidbench.models.augmented``) calls on Train."""
     unknown = [e for e in effects if e not in CATALOGUE]
     if unknown:
         raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})")
@@ -430,6 +498,8 @@ def fit_effects(
     for i in range(len(effects)):
         state = aug.fit(list(effects[: i + 1]), units, warm)
         warm = dict(state.params)
+    if terms:
+        state = aug.fit(list(effects), units, warm, terms=list(terms))
     return state
 
 
@@ -466,7 +536,9 @@ def horizon_metrics(pool: Pool, pred: np.ndarray, horizon_s: float) -> tuple[dic
     return {"translational": rmsre(win["rel_trans"]), "rotational": rmsre(win["rel_rot"])}, win
 
 
-def cross_validate(aug: Augmenter, effects: list[str], warm: dict | None = None) -> HeldOut:
+def cross_validate(
+    aug: Augmenter, effects: list[str], warm: dict | None = None, terms: list[termlib.Term] | None = None
+) -> HeldOut:
     """Held-out predictions by k-fold over units. The lag time constant of a model that already has
     ``actuator_lag`` stays at its fitted value while other candidates are scored (it is re-searched
     when the model is refitted after an effect is added)."""
@@ -475,10 +547,15 @@ def cross_validate(aug: Augmenter, effects: list[str], warm: dict | None = None)
     fold_params = []
     for held in folds_of(pool, aug.s.folds):
         train = np.setdiff1d(np.arange(pool.n_units), held)
-        st = aug.fit(effects, train, warm, fixed_tau=True)
+        st = aug.fit(effects, train, warm, fixed_tau=True, terms=terms or [])
         rows = np.isin(pool.units, held)
         pred[rows] = st.pred[rows]
-        fold_params.append({e: [float(v) for v in p] for e, p in st.params.items()})
+        fold_params.append(
+            {
+                **{e: [float(v) for v in p] for e, p in st.params.items()},
+                **{k: [v["theta"]] for k, v in st.term_params.items()},
+            }
+        )
     err2 = (pred - pool.target) ** 2
     v = pool.valid
     mse = err2[v].mean(axis=0)
@@ -529,8 +606,15 @@ def _channels_of(eid: str) -> tuple[str, ...]:
     return CHANNELS if ch < 0 else (CHANNELS[ch],)
 
 
-def compare(before: HeldOut, after: HeldOut, n_params: int, s: DiscoverSettings) -> dict[str, Any]:
-    """The evidence for one candidate: held-out gains and the significance rule's verdict."""
+def compare(
+    before: HeldOut,
+    after: HeldOut,
+    n_params: int,
+    s: DiscoverSettings,
+    touched_channels: tuple[int, ...] | None = None,
+) -> dict[str, Any]:
+    """The evidence for one candidate: held-out gains and the significance rule's verdict
+    (``touched_channels``: the velocity channels the candidate changes; default: its effect's)."""
     keys = ("translational", "rotational")
     pose_gain = _log_ratio2([before.rmsre[k] for k in keys], [after.rmsre[k] for k in keys])
     G = float(np.nansum(pose_gain))
@@ -541,7 +625,10 @@ def compare(before: HeldOut, after: HeldOut, n_params: int, s: DiscoverSettings)
     vel_gain = np.log((before.mse + eps) / (after.mse + eps))
     Gv = float(np.sum(vel_gain))
     penalised = G - s.penalty_per_param * n_params
-    touched = [CHANNELS.index(c) for c in _channels_of(after.effects[-1])] if after.effects else []
+    if touched_channels is not None:
+        touched = list(touched_channels)
+    else:
+        touched = [CHANNELS.index(c) for c in _channels_of(after.effects[-1])] if after.effects else []
     worse = [CHANNELS[c] for c in touched if vel_gain[c] < -s.channel_tolerance]
     passes = bool(penalised >= s.min_gain and p <= s.alpha and Gv > 0.0 and not worse)
     return {
@@ -578,10 +665,103 @@ class TerrainDiscovery:
     figure_data: list[dict[str, Any]]
     rejected: dict[str, Any] | None
     seconds: float
+    terms: list[str] = field(default_factory=list)  # open-ended terms added (keys of benchmark/terms.py)
+    unexplained: dict[str, Any] | None = None  # what is left when nothing more passes
 
 
 def _jsonable_params(params: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     return {e: dict(zip(CATALOGUE[e].param_names, map(float, p), strict=True)) for e, p in params.items()}
+
+
+def refine_knots(
+    aug: Augmenter,
+    effects: list[str],
+    warm: dict[str, np.ndarray],
+    terms: list[termlib.Term],
+    term: termlib.Term,
+    units: np.ndarray,
+    rel: float = 0.4,
+    maxiter: int = 16,
+) -> termlib.Term:
+    """The knots of an accepted term, fitted with the base model and its coefficient (the screen chose
+    them against the base model fitted without the term, which has absorbed part of the effect): a
+    bounded scalar search per knot within +-``rel`` of the screened value, on the fit loss over
+    ``units`` (the training rows)."""
+    if not term.knots:
+        return term
+    knots = list(term.knots)
+    for j, k0 in enumerate(term.knots):
+        lo, hi = sorted((k0 * (1 - rel), k0 * (1 + rel)))
+
+        def loss(x, j=j):
+            kn = list(knots)
+            kn[j] = float(x)
+            return aug.fit(effects, units, warm, fixed_tau=True, terms=[*terms, term.with_knots(kn)]).loss
+
+        res = minimize_scalar(loss, bounds=(lo, hi), method="bounded", options={"maxiter": maxiter})
+        if res.fun < loss(k0 if j == 0 else knots[j]):
+            knots[j] = float(res.x)
+    return term.with_knots(knots)
+
+
+def _term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
+    p = dict(state.term_params[term.key])
+    for i, k in enumerate(term.knots):
+        p[f"knot{i}"] = float(k)
+    return p
+
+
+def _explains_better(ho_a: HeldOut, ho_b: HeldOut, s: DiscoverSettings) -> tuple[bool, float]:
+    """Whether model a's held-out velocity residual is smaller than model b's, unit by unit: the per-unit
+    sum over channels of log(MSE_b / MSE_a), one-sided sign-flip test at ``alpha``."""
+    eps = 1e-18
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.nansum(np.log((ho_b.unit_mse + eps) / (ho_a.unit_mse + eps)), axis=1)
+    p = sign_flip_pvalue(d, s.seed)
+    return bool(np.nanmean(d) > 0 and p <= s.alpha), p
+
+
+def _naming(kind: str, ev: dict, scored_t: dict, scored_c: dict, n_params: int) -> dict[str, Any]:
+    """The check behind a name: a catalogue effect against the best open-ended term of no more
+    parameters; a term against the best catalogue effect."""
+    if kind == "catalogue":
+        rivals = {k: e for k, (e, _, t) in scored_t.items() if t.n_params <= n_params}
+    else:
+        rivals = {k: e for k, (e, _) in scored_c.items()}
+    if not rivals:
+        return {"rival": None, "rival_heldout_gain": None, "heldout_gain": ev["heldout_gain"]}
+    best = max(rivals, key=lambda k: rivals[k]["heldout_gain"])
+    return {
+        "rival": best,
+        "rival_heldout_gain": rivals[best]["heldout_gain"],
+        "heldout_gain": ev["heldout_gain"],
+    }
+
+
+def unexplained_report(pool: Pool, aug: Augmenter, state: FitState, ho: HeldOut) -> dict[str, Any]:
+    """What the model leaves on held-out units, per channel: its RMS, the share of the target's RMS, and
+    the library signals it follows most (Pearson r)."""
+    resid = pool.target - ho.pred
+    v = pool.valid
+    rms = np.sqrt(np.mean(resid[v] ** 2, axis=0))
+    scale = np.sqrt(np.mean(pool.target[v] ** 2, axis=0))
+    corr = termlib.correlates(aug.signals(state.feats, state.base_pred), resid, v)
+    parts = []
+    for c, ch in enumerate(CHANNELS):
+        top = ", ".join(f"{d['signal']} (r = {d['r']:+.2f})" for d in corr[ch])
+        unit = "rad/s" if ch == "wz" else "m/s"
+        parts.append(
+            f"{ch} {rms[c]:.4g} {unit} ({rms[c] / max(scale[c], 1e-12):.0%} of its RMS; follows {top})"
+        )
+    return {
+        "heldout_residual_rms": dict(zip(CHANNELS, map(float, rms), strict=True)),
+        "relative_to_target_rms": dict(
+            zip(CHANNELS, map(float, rms / np.maximum(scale, 1e-12)), strict=True)
+        ),
+        "correlates": corr,
+        "heldout_rmsre": ho.rmsre,
+        "text": "unexplained held-out residual: " + "; ".join(parts),
+    }
 
 
 def discover_terrain(
@@ -594,6 +774,11 @@ def discover_terrain(
     candidates: tuple[str, ...] = EFFECT_IDS,
     progress: Callable[[str], None] | None = None,
 ) -> TerrainDiscovery:
+    """Catalogue effects and open-ended terms (:mod:`skidbench.benchmark.terms`) scored side by side on
+    the same held-out units by the same rule; the best passing one is added, except that a catalogue
+    effect is named only when no open-ended term of no more parameters explains more of the held-out
+    gap (then the term is added under its own formula). When nothing passes, the residual is reported
+    as unexplained with its size and its strongest correlates."""
     t_start = time.perf_counter()
     say = progress or (lambda msg: log.info(msg))
     aug = Augmenter(pool, factory, robot, settings)
@@ -621,65 +806,178 @@ def discover_terrain(
         f"({pool.n_units} held-out units from {len(pool.sequences)} sequences)"
     )
     effects: list[str] = []
+    terms: list[termlib.Term] = []
     warm: dict[str, np.ndarray] = {}
     steps: list[dict[str, Any]] = []
     figure_data: list[dict[str, Any]] = []
     rejected = None
+    unexplained = None
     state = base_fit
-    while len(effects) < settings.max_effects:
+    B = robot.track_width
+
+    def show(name: str, ev: dict) -> None:
+        say(
+            f"[{terrain}]   {name:28s} gain {ev['heldout_gain']:+.4f} (penalised "
+            f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} "
+            f"velocity gain {ev['velocity_gain']:+.4f}{'  PASS' if ev['passes'] else ''}"
+        )
+
+    while len(effects) + len(terms) < settings.max_effects:
         scored: dict[str, tuple[dict, HeldOut]] = {}
         for eid in candidates:
             if eid in effects:
                 continue
-            ho = cross_validate(aug, effects + [eid], warm)
+            ho = cross_validate(aug, effects + [eid], warm, terms)
             ev = compare(cur, ho, CATALOGUE[eid].n_params, settings)
             scored[eid] = (ev, ho)
-            say(
-                f"[{terrain}]   {eid:28s} gain {ev['heldout_gain']:+.4f} (penalised "
-                f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} "
-                f"velocity gain {ev['velocity_gain']:+.4f}{'  PASS' if ev['passes'] else ''}"
+            show(eid, ev)
+        scored_t: dict[str, tuple[dict, HeldOut, termlib.Term]] = {}
+        screen_info: dict[str, Any] = {}
+        scr = None
+        if settings.open_ended:
+            # the sparse regression on the current model's held-out residual picks the candidates
+            sig = aug.signals(state.feats, state.base_pred)
+            gains = termlib.base_gains(sig, pool.valid)
+            scr = termlib.screen(
+                sig,
+                gains,
+                B,
+                pool.target - cur.pred,
+                pool.valid,
+                aug.weights,
+                exclude=tuple(t.key for t in terms),
+                max_candidates=settings.max_terms,
             )
+            screen_info = {"stlsq_support": scr.selected, "candidates": [t.key for t in scr.candidates]}
+            for term in scr.candidates:
+                ho = cross_validate(aug, effects, warm, terms + [term])
+                ev = compare(cur, ho, term.n_params, settings, term.touched)
+                scored_t[term.key] = (ev, ho, term)
+                show(term.key, ev)
         table = {
             e: {k: v for k, v in ev.items() if k != "heldout_mse_before"} for e, (ev, _) in scored.items()
         }
+        table_t = {
+            k: {kk: v for kk, v in ev.items() if kk != "heldout_mse_before"}
+            for k, (ev, _, _) in scored_t.items()
+        }
         passing = [e for e, (ev, _) in scored.items() if ev["passes"]]
-        if not passing:
-            best = max(scored, key=lambda e: scored[e][0]["penalised_gain"]) if scored else None
-            rejected = {"best_candidate": best, "candidates": table}
-            figure_data.append(_residual_panel(pool, state, best, cur, None))
-            break
-        best = max(passing, key=lambda e: scored[e][0]["penalised_gain"])
-        ev, ho = scored[best]
-        prev_state = state
-        state = aug.fit(effects + [best], all_units, warm)  # refit on all training sequences
-        warm = {k: v for k, v in state.params.items()}
-        effects.append(best)
-        e = CATALOGUE[best]
-        steps.append(
-            {
-                "effect": best,
-                "explanation": e.explanation,
-                "formula": e.formula,
-                "evidence": {**ev, "candidates": table},
-                "params": _jsonable_params(state.params),
-                "heldout_rmsre_before": cur.rmsre,
-                "heldout_rmsre_after": ho.rmsre,
+        passing_t = [k for k, (ev, _, _) in scored_t.items() if ev["passes"]]
+        choice: tuple[str, str] | None = None  # (kind, id)
+        best_c = max(passing, key=lambda e: scored[e][0]["penalised_gain"]) if passing else None
+        best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"]) if passing_t else None
+        if best_c is not None and settings.open_ended and scr is not None:
+            # the catalogue's best must beat the library's best term of no more parameters on its channels
+            chans = tuple(CHANNELS.index(c) for c in _channels_of(best_c))
+            rival = scr.rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t))
+            if rival is not None:
+                ho = cross_validate(aug, effects, warm, terms + [rival])
+                ev = compare(cur, ho, rival.n_params, settings, rival.touched)
+                scored_t[rival.key] = (ev, ho, rival)
+                table_t[rival.key] = {k: v for k, v in ev.items() if k != "heldout_mse_before"}
+                show(rival.key, ev)
+                if ev["passes"]:
+                    passing_t.append(rival.key)
+                    best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"])
+        if best_c is not None:
+            # a term takes a passing catalogue effect's place only when it explains the held-out velocity
+            # residual significantly better, unit by unit (the same sign-flip test): a term no more
+            # complex than the effect, or one whose penalised gain is also larger
+            cat_ev, cat_ho = scored[best_c]
+            better = {
+                k: _explains_better(scored_t[k][1], cat_ho, settings)
+                for k in passing_t
+                if scored_t[k][2].n_params <= CATALOGUE[best_c].n_params
+                or scored_t[k][0]["penalised_gain"] > cat_ev["penalised_gain"]
             }
-        )
-        figure_data.append(_residual_panel(pool, prev_state, best, cur, state))
+            winners = [k for k, (ok, _) in better.items() if ok]
+            if winners:
+                choice = ("term", max(winners, key=lambda k: scored_t[k][0]["penalised_gain"]))
+                say(
+                    f"[{terrain}]   {best_c} not named: {choice[1]} explains the held-out residual better "
+                    f"(p = {better[choice[1]][1]:.3g})"
+                )
+            else:
+                choice = ("catalogue", best_c)
+        elif best_t is not None:
+            choice = ("term", best_t)
+        if choice is None:
+            pool_best = [(e, scored[e][0]["penalised_gain"]) for e in scored] + [
+                (k, scored_t[k][0]["penalised_gain"]) for k in scored_t
+            ]
+            best = max(pool_best, key=lambda p: p[1])[0] if pool_best else None
+            rejected = {"best_candidate": best, "candidates": table, "terms": table_t, "screen": screen_info}
+            best_cat = max(scored, key=lambda e: scored[e][0]["penalised_gain"]) if scored else None
+            figure_data.append(_residual_panel(pool, state, best_cat, cur, None))
+            unexplained = unexplained_report(pool, aug, state, cur)
+            figure_data += _unexplained_panels(pool, aug, state, cur, unexplained)
+            say(f"[{terrain}] {unexplained['text']}")
+            break
+        kind, name = choice
+        prev_state = state
+        if kind == "catalogue":
+            ev, ho = scored[name]
+            state = aug.fit(effects + [name], all_units, warm, terms=terms)  # refit on all training sequences
+            warm = {k: v for k, v in state.params.items()}
+            effects.append(name)
+            e = CATALOGUE[name]
+            steps.append(
+                {
+                    "effect": name,
+                    "kind": "catalogue",
+                    "explanation": e.explanation,
+                    "formula": e.formula,
+                    "evidence": {**ev, "candidates": table, "terms": table_t, "screen": screen_info},
+                    "naming": _naming("catalogue", ev, scored_t, scored, e.n_params),
+                    "params": _jsonable_params(state.params),
+                    "heldout_rmsre_before": cur.rmsre,
+                    "heldout_rmsre_after": ho.rmsre,
+                }
+            )
+            figure_data.append(_residual_panel(pool, prev_state, name, cur, state))
+        else:
+            ev, ho, term = scored_t[name]
+            refined = refine_knots(aug, effects, warm, terms, term, all_units)
+            if refined != term:  # the held-out evidence of the model as it is added
+                ho = cross_validate(aug, effects, warm, terms + [refined])
+                ev = compare(cur, ho, refined.n_params, settings, refined.touched)
+                term = refined
+            state = aug.fit(effects, all_units, warm, terms=terms + [term])
+            warm = {k: v for k, v in state.params.items()}
+            terms.append(term)
+            theta = state.term_params[term.key]["theta"]
+            steps.append(
+                {
+                    "effect": term.key,
+                    "kind": "term",
+                    "explanation": term.describe(theta, robot.wheel_radius),
+                    "formula": f"{'vx, wz' if term.channel < 0 else CHANNELS[term.channel]} += theta * g, "
+                    f"g = {term.key}",
+                    "evidence": {**ev, "candidates": table, "terms": table_t, "screen": screen_info},
+                    "naming": _naming("term", ev, scored_t, scored, term.n_params),
+                    "params": {term.key: _term_step_params(state, term)},
+                    "heldout_rmsre_before": cur.rmsre,
+                    "heldout_rmsre_after": ho.rmsre,
+                }
+            )
+            figure_data.append(_term_panel(pool, prev_state, term, cur, state, aug))
         say(
-            f"[{terrain}] + {best}: held-out RMSRE trans {cur.rmsre['translational']:.4f} -> "
+            f"[{terrain}] + {name}: held-out RMSRE trans {cur.rmsre['translational']:.4f} -> "
             f"{ho.rmsre['translational']:.4f}, rot {cur.rmsre['rotational']:.4f} -> "
-            f"{ho.rmsre['rotational']:.4f}"
+            f"{ho.rmsre['rotational']:.4f}" + (f" ({steps[-1]['explanation']})" if kind == "term" else "")
         )
         cur = ho
-    message = NO_EFFECT_MESSAGE if not effects else "missing effect(s) found: " + ", ".join(effects)
-    if effects and len(effects) < settings.max_effects:
+    found = effects + [t.key for t in terms]
+    named = [st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]") for st in steps]
+    message = NO_EFFECT_MESSAGE if not found else "missing effect(s) found: " + ", ".join(named)
+    if found and len(found) < settings.max_effects:
         message += "; no further effect earns its place"
     say(f"[{terrain}] {message}")
     final = {
         "effects": list(effects),
+        "terms": [t.key for t in terms],
         "params": _jsonable_params(state.params),
+        "term_params": {t.key: _term_step_params(state, t) for t in terms},
         "base_params": state.base.get_params(),
         "heldout_rmsre": cur.rmsre,
         "heldout_mse": dict(zip(CHANNELS, map(float, cur.mse), strict=True)),
@@ -695,7 +993,76 @@ def discover_terrain(
         figure_data,
         rejected,
         time.perf_counter() - t_start,
+        [t.key for t in terms],
+        unexplained,
     )
+
+
+def _binned(x: np.ndarray, r: np.ndarray, extra: np.ndarray | None = None) -> dict[str, list[float]]:
+    """Quantile-binned means (and standard errors) of ``r`` against ``x`` (20 bins)."""
+    if len(x) < 10:
+        return {}
+    qs = np.unique(np.quantile(x, np.linspace(0, 1, 21)))
+    if len(qs) < 2:
+        return {}
+    idx = np.clip(np.searchsorted(qs, x, side="right") - 1, 0, len(qs) - 2)
+    nb = len(qs) - 1
+    cnt = np.bincount(idx, minlength=nb).astype(float)
+    ok = cnt > 0
+    c = np.maximum(cnt, 1)
+
+    def mean(y):
+        return np.where(ok, np.bincount(idx, y, minlength=nb) / c, np.nan)
+
+    by = mean(r)
+    sd = np.sqrt(np.maximum(mean(r * r) - by**2, 0.0))
+    out = {"bin_x": mean(x).tolist(), "bin_y": by.tolist(), "bin_se": (sd / np.sqrt(c)).tolist()}
+    if extra is not None:
+        out["bin_fit"] = mean(extra).tolist()
+    return out
+
+
+def _term_panel(pool: Pool, state: FitState, term: termlib.Term, ho: HeldOut, after: FitState, aug) -> dict:
+    """Held-out residual of the term's (first) channel against its signal, and the correction added."""
+    ch = 0 if term.channel < 0 else term.channel
+    sig = aug.signals(state.feats, state.base_pred)
+    x = sig["rim_l"] if term.family == "slip" and term.signal == "l" else None
+    if x is None:
+        x = sig["rim_r"] if term.family == "slip" else None
+    if x is None:
+        x = sig["t"] if term.family == "after" else None
+    if x is None:
+        x = np.maximum(np.abs(sig["rim_l"]), np.abs(sig["rim_r"])) if term.channel < 0 else None
+    if x is None:
+        x = termlib._signal(term.signal, sig)
+    r = (pool.target - ho.pred)[:, ch]
+    m = pool.valid & np.isfinite(x)
+    out = {"effect": term.key, "channel": CHANNELS[ch], "feature": term.signal, "accepted": True}
+    out.update(_binned(x[m], r[m], (after.pred - state.pred)[:, ch][m]))
+    return out
+
+
+def _unexplained_panels(pool: Pool, aug, state: FitState, ho: HeldOut, rep: dict) -> list[dict]:
+    """One panel per velocity channel: the held-out residual against its strongest correlate."""
+    sig = aug.signals(state.feats, state.base_pred)
+    out = []
+    for c, ch in enumerate(CHANNELS):
+        if not rep["correlates"][ch]:
+            continue
+        name = rep["correlates"][ch][0]["signal"]
+        x = termlib._signal(name, sig)
+        r = (pool.target - ho.pred)[:, c]
+        m = pool.valid & np.isfinite(x)
+        d = {
+            "effect": "unexplained",
+            "channel": ch,
+            "feature": f"{name} (r = {rep['correlates'][ch][0]['r']:+.2f})",
+        }
+        d.update(_binned(x[m], r[m]))
+        d["accepted"] = False
+        d["unexplained"] = True
+        out.append(d)
+    return out
 
 
 def _residual_panel(

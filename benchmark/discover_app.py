@@ -51,6 +51,8 @@ def settings_from_cfg(cfg: DictConfig) -> DiscoverSettings:
         min_gain=float(d.min_gain),
         max_effects=int(d.max_effects),
         channel_tolerance=float(d.get("channel_tolerance", 0.01)),
+        open_ended=bool(d.get("open_ended", True)),
+        max_terms=int(d.get("max_terms", 4)),
         splits=tuple(d.use),
         seed=int(cfg.get("seed", 0) or 0),
     )
@@ -200,7 +202,9 @@ def to_document(
         terrains[r.terrain] = {
             "base_model": base_name,
             "effects": r.effects,
+            "terms": r.terms,
             "message": r.message,
+            "unexplained": r.unexplained,
             "steps": r.steps,
             "base": r.base,
             "final": r.final,
@@ -209,13 +213,13 @@ def to_document(
         }
     if len(results) == 1:
         r = results[0]
-        effects, steps, message = list(r.effects), list(r.steps), r.message
+        effects, steps, message = list(r.effects) + list(r.terms), list(r.steps), r.message
     else:
         effects, steps = [], []
         for r in results:
             for st in r.steps:
                 steps.append({"terrain": r.terrain, **st})
-                if st["effect"] not in effects:
+                if st.get("kind", "catalogue") == "catalogue" and st["effect"] not in effects:
                     effects.append(st["effect"])
         message = "; ".join(f"{r.terrain}: {r.message}" for r in results)
     for st in steps:
@@ -254,6 +258,8 @@ def summary_text(doc: dict[str, Any]) -> str:
             )
             lines.append(f"      {st['explanation']}")
         lines.append(f"[{terrain}] {r['message']}")
+        if r.get("unexplained"):
+            lines.append(f"[{terrain}] {r['unexplained']['text']}")
     return "\n".join(lines)
 
 
@@ -269,7 +275,7 @@ def figure(results: list[TerrainDiscovery], path: Path) -> None:
     fig, axes = plt.subplots(len(results), ncol, figsize=(4.2 * ncol, 3.6 * len(results)), squeeze=False)
     for row, r in zip(axes, results, strict=True):
         ax = row[0]
-        labels = ["base"] + r.effects
+        labels = ["base"] + [s["effect"] for s in r.steps]
         trans = [r.base["heldout_rmsre"]["translational"]] + [
             s["heldout_rmsre_after"]["translational"] for s in r.steps
         ]
@@ -280,11 +286,11 @@ def figure(results: list[TerrainDiscovery], path: Path) -> None:
         ax.plot(x, trans, "o-", label="translational")
         ax.plot(x, rot, "s-", label="rotational")
         ax.set_xticks(x)
-        ax.set_xticklabels(["base"] + [f"+{e}" for e in r.effects], rotation=25, ha="right", fontsize=7)
+        ax.set_xticklabels(["base"] + [f"+{e}" for e in labels[1:]], rotation=25, ha="right", fontsize=7)
         ax.set_ylabel("held-out 6 s RMSRE")
         ax.set_ylim(bottom=0)
         ax.set_title(
-            f"{r.terrain}: {r.base_model}" + ("" if r.effects else f" ({NO_EFFECT_MESSAGE})"), fontsize=9
+            f"{r.terrain}: {r.base_model}" + ("" if r.steps else f" ({NO_EFFECT_MESSAGE})"), fontsize=9
         )
         ax.legend(fontsize=7)
         for j, ax in enumerate(row[1:]):
@@ -299,7 +305,10 @@ def figure(results: list[TerrainDiscovery], path: Path) -> None:
             ax.set_xlabel(d["feature"], fontsize=8)
             ax.set_ylabel(f"{d['channel']} residual (true - model)", fontsize=8)
             verdict = "added" if d.get("accepted") else "best candidate, rejected"
-            ax.set_title(f"step {j + 1}: {d['effect']} ({verdict})", fontsize=9)
+            title = f"step {j + 1}: {d['effect']} ({verdict})"
+            if d.get("unexplained"):
+                title = f"unexplained {d['channel']} residual and its strongest correlate"
+            ax.set_title(title, fontsize=9)
             ax.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from skidbench.benchmark import terms as termlib
 from skidbench.pipeline.wheel_response import CMD_COLUMNS, lag_filter  # noqa: F401  (the one home of the lag)
 
 INF = float("inf")
@@ -263,10 +264,12 @@ def augmented_prediction(
     params: dict[str, np.ndarray],
     wheel_radius: float,
     track_width: float,
+    terms: dict[str, dict[str, float]] | None = None,
 ) -> np.ndarray:
     """The prediction of a fitted augmented model (base model + effects with ``params``, as discovery
     fits them) on any table: the commands through the lag of ``actuator_lag`` (restarted at each
-    ``sequence``), the base model on them, then the corrections (:func:`apply_effects`)."""
+    ``sequence``), the base model on them, then the corrections (:func:`apply_effects`), then the
+    open-ended ``terms`` (key -> {theta, c_v, c_w}; :mod:`skidbench.benchmark.terms`)."""
     groups = (
         pd.factorize(table["sequence"])[0] if "sequence" in table.columns else np.zeros(len(table), np.int64)
     )
@@ -276,4 +279,10 @@ def augmented_prediction(
     base_pred = np.asarray(base_model.predict(inputs), dtype=float)
     corr = {e: np.asarray(p, dtype=float) for e, p in params.items() if CATALOGUE[e].kind != "input"}
     feats = command_features(inputs, wheel_radius, track_width)
-    return apply_effects(base_pred, feats, corr)
+    out = apply_effects(base_pred, feats, corr)
+    if terms:
+        sig = termlib.signals(feats, base_pred, table["t"].to_numpy(float), track_width)
+        for key, p in terms.items():
+            term = termlib.parse_term(key)
+            out += float(p["theta"]) * term.columns(sig, (float(p["c_v"]), float(p["c_w"])), track_width)
+    return out

@@ -37,6 +37,7 @@ class AugmentedModel(KinematicModel):
     version: ClassVar[str] = "1.0"
     base_name: ClassVar[str] = ""
     effects: ClassVar[tuple[str, ...]] = ()
+    terms: ClassVar[tuple[str, ...]] = ()  # open-ended terms discovery found (keys, benchmark/terms.py)
 
     def __init__(
         self,
@@ -85,12 +86,22 @@ class AugmentedModel(KinematicModel):
         if missing:
             raise ModelError(f"model {self.name}: training table lacks column(s) {missing}")
         try:
-            state = fit_effects(table, self._new_base, self.robot, list(self.effects))
+            from skidbench.benchmark.terms import parse_term
+
+            state = fit_effects(
+                table,
+                self._new_base,
+                self.robot,
+                list(self.effects),
+                terms=[parse_term(k) for k in self.terms],
+            )
         except DiscoverError as exc:
             raise ModelError(f"model {self.name}: {exc}") from None
         self.base_model = state.base
         base_json = state.base.to_json() if hasattr(state.base, "to_json") else {"params": state.base.params}
         self.params = {"base": base_json, "effects": _jsonable_params(state.params)}
+        if self.terms:
+            self.params["terms"] = {k: dict(v) for k, v in state.term_params.items()}
         valid = table["valid"].to_numpy(bool)
         self.fit_loss_ = mse(self.predict(table)[valid], targets(table)[valid])
         return self
@@ -102,7 +113,12 @@ class AugmentedModel(KinematicModel):
         if self.base_model is None:
             raise ModelError(f"model {self.name}: not fitted")
         return augmented_prediction(
-            table, self.base_model, self._effect_params(), self.robot.wheel_radius, self.robot.track_width
+            table,
+            self.base_model,
+            self._effect_params(),
+            self.robot.wheel_radius,
+            self.robot.track_width,
+            terms=self.params.get("terms") or None,
         )
 
     def tracking_params(self) -> dict[str, str]:
@@ -111,24 +127,32 @@ class AugmentedModel(KinematicModel):
         for e, values in self.params.get("effects", {}).items():
             for p, v in values.items():
                 out[f"effect.{e}.{p}"] = f"{float(v):.6g}"
+        if self.terms:
+            out["augmented.terms"] = ",".join(self.terms)
+            for i, (k, values) in enumerate(self.params.get("terms", {}).items()):
+                out[f"term.{i}.key"] = k
+                out[f"term.{i}.theta"] = f"{float(values['theta']):.6g}"
         return out
 
 
-def parse_spec(spec: str) -> tuple[str, tuple[str, ...]]:
-    """``"edd+actuator_lag+angular_acceleration_slip"`` -> ("edd", ("actuator_lag", ...)); ModelError
-    naming the spec for an unknown or repeated effect."""
+def parse_spec(spec: str) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
+    """``"edd+actuator_lag+sat.wz_pred.wz@0.99"`` -> ("edd", ("actuator_lag",), ("sat.wz_pred.wz@0.99",)):
+    base, catalogue effects, open-ended terms (keys of ``skidbench.benchmark.terms``); ModelError naming
+    the spec for an unknown or repeated effect."""
     from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
+    from skidbench.benchmark.terms import is_term_key, parse_term
 
     parts = [p.strip() for p in str(spec).split(SEP)]
-    base, effects = parts[0], tuple(parts[1:])
+    terms = tuple(parse_term(p).key for p in parts[1:] if is_term_key(p))  # one spelling of the knots
+    base, effects = parts[0], tuple(p for p in parts[1:] if not is_term_key(p))
     if not base or any(not e for e in effects):
         raise ModelError(f"model {spec}: empty part in the spec (write base+effect+effect)")
     unknown = [e for e in effects if e not in CATALOGUE]
     if unknown:
         raise ModelError(f"model {spec}: unknown effect(s) {unknown} (catalogue: {', '.join(EFFECT_IDS)})")
-    if len(set(effects)) != len(effects):
+    if len(set(effects)) != len(effects) or len(set(terms)) != len(terms):
         raise ModelError(f"model {spec}: an effect is named twice")
-    return base, effects
+    return base, effects, terms
 
 
 @functools.lru_cache(maxsize=128)
@@ -136,7 +160,7 @@ def augmented_class(spec: str) -> type[AugmentedModel]:
     """The model class of a spec ``base+effect+...`` (the base must be an installed model)."""
     from .registry import get_model_class
 
-    base, effects = parse_spec(spec)
+    base, effects, terms = parse_spec(spec)
     if SEP in base:
         raise ModelError(f"model {spec}: bad spec")
     base_cls = get_model_class(base)
@@ -149,6 +173,7 @@ def augmented_class(spec: str) -> type[AugmentedModel]:
             "version": f"{AugmentedModel.version}+{getattr(base_cls, 'version', '?')}",
             "base_name": base,
             "effects": effects,
+            "terms": terms,
             "required_columns": required,
             "calibrated_constants": tuple(getattr(base_cls, "calibrated_constants", ("wheel_radius",))),
             "__module__": __name__,

@@ -214,6 +214,7 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
         doc = json.loads(path.read_text())
         entry = doc["terrains"][terrain]
         base, effects = str(entry["base_model"]), [str(e) for e in entry["effects"]]
+        effects += [str(k) for k in entry.get("terms", [])]  # open-ended terms, after the catalogue's
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ModelError(
             f"model {DISCOVERED}: {path} has no discovery for terrain {terrain} ({type(exc).__name__}: {exc})"

@@ -36,6 +36,21 @@ DEFAULT_SIZES = {
     "speed_dependent_turn_slip": 0.12,  # 1/(m/s)
 }
 
+# effects outside the catalogue (what discovery's open-ended terms must name, or call unexplained)
+OUTSIDE = {
+    "command_dead_zone": 2.0,  # rad/s: each wheel's commanded rate loses this much (motor driver dead band)
+    "payload_change": (
+        18.0,
+        0.15,
+    ),  # (s into each run, fraction): the yaw rate drops when a payload is loaded
+    "yaw_rate_limit": 1.0,  # rad/s: the yaw rate controller's limit
+    "one_side_slip": ("l", 0.10),  # (side, slip ratio): one side's wheels slip (eq. (8))
+    "load_wheel_limit": (
+        13.0,
+        2.0,
+    ),  # (rad/s, rad/s per rad/s): wheel-rate limit L0 - k |w_cmd| (turning load)
+}
+
 
 def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "train"):
     """Commands (t, v, w) on a fine clock: targets held for a while, reached under varying limits."""
@@ -78,6 +93,13 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
     dt = np.diff(t, prepend=t[0] - (t[1] - t[0]))
     wl = (v - w * TRACK / 2) / R_WHEEL
     wr = (v + w * TRACK / 2) / R_WHEEL
+    if "command_dead_zone" in effects:  # the driver ignores the first d rad/s of every wheel command
+        d = float(effects["command_dead_zone"])
+        wl, wr = wl - np.clip(wl, -d, d), wr - np.clip(wr, -d, d)
+    if "load_wheel_limit" in effects:  # the motors' top speed falls with the torque a skid turn takes
+        L0, k = effects["load_wheel_limit"]
+        lim = np.maximum(float(L0) - float(k) * np.abs(w), 0.0)
+        wl, wr = np.clip(wl, -lim, lim), np.clip(wr, -lim, lim)
     if "actuator_lag" in effects:  # each wheel's motor: first-order response
         tau = float(effects["actuator_lag"])
         from scipy.signal import lfilter
@@ -89,6 +111,12 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
     if "side_asymmetry" in effects:
         e = float(effects["side_asymmetry"])
         rl, rr = R_WHEEL * (1 - e), R_WHEEL * (1 + e)
+    if "one_side_slip" in effects:  # eq. (8): one side's rim speed times (1 - s)
+        side, s_ratio = effects["one_side_slip"]
+        if side == "l":
+            wl = wl * (1.0 - float(s_ratio))
+        else:
+            wr = wr * (1.0 - float(s_ratio))
     vx = (rl * wl + rr * wr) / 2
     turn = (rr * wr - rl * wl) / TRACK  # ideal yaw rate
     chi = np.full(len(t), CHI)
@@ -101,6 +129,12 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
                 R = np.where(np.abs(wz) > 1e-6, np.abs(vx) / np.abs(wz), 1e6)
             chi = 1.0 + b1 / (1.0 + b2 * np.sqrt(R))
     wz = turn / chi
+    if "payload_change" in effects:  # more normal load, more scrub: the yaw rate drops from t_c on
+        t_c, p = effects["payload_change"]
+        wz = np.where(t - t[0] >= float(t_c), wz * (1.0 - float(p)), wz)
+    if "yaw_rate_limit" in effects:
+        lim = float(effects["yaw_rate_limit"])
+        wz = np.clip(wz, -lim, lim)
     if "speed_dependent_turn_slip" in effects:
         wz = wz / (1.0 + float(effects["speed_dependent_turn_slip"]) * np.abs(vx))
     if "angular_acceleration_slip" in effects:
@@ -218,7 +252,7 @@ def dataset(effects: dict[str, object], seed: int, n_train: int = 10, duration: 
 
 
 def hidden(names: list[str] | tuple[str, ...]) -> dict[str, object]:
-    return {n: DEFAULT_SIZES[n] for n in names}
+    return {n: (DEFAULT_SIZES[n] if n in DEFAULT_SIZES else OUTSIDE[n]) for n in names}
 
 
 def split_tables(raw) -> list[tuple[pd.DataFrame, dict]]:

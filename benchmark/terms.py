@@ -1,0 +1,500 @@
+"""Open-ended discovery: a library of candidate terms beyond the effect catalogue, and the sparse regression
+that picks from it (SPEC.md "Discrepancy discovery"; the catalogue is :mod:`skidbench.benchmark.effects`).
+
+A term is an additive correction ``V += theta * g(signals; knots)`` of the body velocities V = (vx, vy, wz),
+with one coefficient ``theta`` and zero, one or two knots. The signals are what every split has under
+every input protocol: the model's input wheel rates (commanded, or the protocol's response/measured rates
+written into ``cmd_*``) through any catalogue input transform, their derivatives, the body velocities the
+base model predicts, curvature, speed, time within the sequence, signs and magnitudes. Families:
+
+* ``lin``: a signal or the product of a pair (``wz_pred*t``: the yaw rate drifts with sequence time;
+  ``wz_pred`` on vy: a longitudinal ICR offset, ``vy = -x_ICR * wz``, eq. (8));
+* ``sat`` / ``dz``: a hinge, the saturation ``-sign(x) max(|x| - k, 0)`` or the dead zone ``-clip(x, -k, k)``
+  of a body-velocity signal (theta = 1: a hard limit at k);
+* ``after``: the base prediction switched on after ``k`` s of sequence time (a change mid-run: a payload);
+* wheel-level terms, which act on both wheels' rim speeds ``r w_l``, ``r w_r`` and reach vx and wz through
+  the base model's own gains (``c_v = <vx_pred, v>/<v, v>``, ``c_w = <wz_pred, w>/<w, w>``, 1 and 1/chi
+  for the extended differential drive): ``slip`` (one side's slip ratio, eq. (8)), ``wsat`` (a wheel-rate
+  limit), ``wdz`` (a wheel-rate dead zone), ``wload`` (a wheel-rate limit ``k0 - k1 |w_cmd|`` that falls
+  with the turning load).
+
+Forms the catalogue already has (``wz ~ dw``, ``vx ~ dv``, ``wz ~ v``, ``vy ~ vx wz``, a constant vy,
+``wz ~ |v| wz``) are left out: there the catalogue's name is the name.
+
+Selection (:func:`screen`): every hinge's knot is chosen on a quantile grid of its signal and refined by a
+bounded scalar search, by the weighted residual sum of squares a one-term fit leaves; the best knot of each
+(family, signal, channel) then enters a ridge-regularised sequentially thresholded least squares (STLSQ, as
+in SINDy, Brunton et al. 2016) over the three channels at once; the surviving terms, ranked by what each
+explains alone, are the candidates discovery validates on held-out units like catalogue effects.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+CHANNELS = ("vx", "vy", "wz")
+WHEEL_FAMILIES = ("slip", "wsat", "wdz", "wload")
+#: hinges are hard limits and dead zones: the excess beyond the knot is lost whole (theta = 1, not fitted),
+#: so a hinge's parameters are its knots and its constant is where the limit sits
+HINGES = ("sat", "dz", "wsat", "wdz", "wload")
+KNOTS = {"sat": 1, "dz": 1, "after": 1, "wsat": 1, "wdz": 1, "wload": 2, "lin": 0, "slip": 0}
+#: the product pairs of the library come from these signals
+CORE = ("one", "v", "w", "dv", "dw", "vx_pred", "wz_pred", "t", "|v|", "|w|", "sgn_v", "sgn_w", "kappa")
+#: the catalogue's own forms (channel, signal): the catalogue names them
+CATALOGUE_FORMS = {
+    (2, "dw"),  # angular_acceleration_slip
+    (0, "dv"),  # linear_acceleration_slip
+    (2, "v"),  # side_asymmetry, and what equals it on the base models (vx_pred = v, |v| sgn v = v)
+    (2, "vx_pred"),
+    (2, "|v|*sgn_v"),
+    (1, "vx_pred*wz_pred"),  # centripetal_side_slip, and its commanded forms
+    (1, "v*w"),
+    (1, "v*wz_pred"),
+    (1, "w*vx_pred"),
+    (1, "one"),  # lateral_drift
+    (2, "wz_pred*|v|"),  # speed_dependent_turn_slip (either sign: the catalogue bounds the physical one)
+    (2, "w*|v|"),
+}
+_UNITS = {
+    "v": "m/s",
+    "|v|": "m/s",
+    "w": "rad/s",
+    "|w|": "rad/s",
+    "dv": "m/s^2",
+    "dw": "rad/s^2",
+    "kappa": "1/m",
+    "vx_pred": "m/s",
+    "wz_pred": "rad/s",
+    "sgn_v": "sign",
+    "sgn_w": "sign",
+}
+_KEY = re.compile(r"^(lin|sat|dz|after|slip|wsat|wdz|wload)\.([^.@]+)\.(vx|vy|wz|wheels)(?:@([-0-9.e,]+))?$")
+
+
+@dataclass(frozen=True)
+class Term:
+    """One library term: ``family.signal.channel@knots`` (channel ``wheels`` for the wheel-level ones)."""
+
+    family: str
+    signal: str
+    channel: int  # 0 vx, 1 vy, 2 wz, -1 wheel-level (vx and wz)
+    knots: tuple[float, ...] = ()
+
+    @property
+    def key(self) -> str:
+        ch = "wheels" if self.channel < 0 else CHANNELS[self.channel]
+        k = "@" + ",".join(f"{x:.6g}" for x in self.knots) if self.knots else ""
+        return f"{self.family}.{self.signal}.{ch}{k}"
+
+    @property
+    def free_theta(self) -> bool:
+        return self.family not in HINGES
+
+    @property
+    def n_params(self) -> int:
+        """theta (unless a hinge) and every knot (a chosen knot is charged like a fitted parameter)."""
+        return int(self.free_theta) + len(self.knots)
+
+    @property
+    def touched(self) -> tuple[int, ...]:
+        return (0, 2) if self.channel < 0 else (self.channel,)
+
+    def with_knots(self, knots) -> Term:
+        return Term(self.family, self.signal, self.channel, tuple(float(k) for k in knots))
+
+    def columns(
+        self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float
+    ) -> np.ndarray:
+        """(T, 3) the term's direction g: the correction is theta * g."""
+        T = len(sig["v"])
+        g = np.zeros((T, 3))
+        if self.channel >= 0:
+            g[:, self.channel] = _channel_column(self.family, self.signal, self.knots, sig)
+            return g
+        dl, dr = _wheel_deltas(self.family, self.signal, self.knots, sig)
+        c_v, c_w = gains
+        g[:, 0] = c_v * (dl + dr) / 2.0  # eq. (8) with the base model's gains
+        g[:, 2] = c_w * (dr - dl) / track_width
+        return g
+
+    def passive(self, sig: dict[str, np.ndarray]) -> np.ndarray:
+        """(T,) rows where a hinge replaces the base model's output (beyond a limit, inside a dead zone):
+        there the velocity does not depend on the base model, so these rows do not refit it."""
+        k = self.knots
+        if self.family == "sat":
+            return np.abs(_signal(self.signal, sig)) > k[0]
+        if self.family == "dz":
+            return np.abs(_signal(self.signal, sig)) < k[0]
+        if self.family in ("wsat", "wload"):
+            lim = k[0] - (k[1] * sig["|w|"] if self.family == "wload" else 0.0)
+            return (np.abs(sig["rim_l"]) > lim) | (np.abs(sig["rim_r"]) > lim)
+        if self.family == "wdz":
+            return (np.abs(sig["rim_l"]) < k[0]) | (np.abs(sig["rim_r"]) < k[0])
+        return np.zeros(len(sig["v"]), bool)
+
+    def describe(self, theta: float, wheel_radius: float) -> str:
+        """The term in physical words, with its fitted constants."""
+        ch = "wheels" if self.channel < 0 else CHANNELS[self.channel]
+        unit = {"vx": "m/s", "vy": "m/s", "wz": "rad/s"}.get(ch, "")
+        k = self.knots
+        th = float(theta)
+        if self.family == "sat":
+            return f"{ch} saturates at {k[0]:.3g} {unit}"
+        if self.family == "dz":
+            return f"{ch} has a dead zone: the first {k[0]:.3g} {unit} of {self.signal} do not move it"
+        if self.family == "after":
+            return f"{ch} changes by {th:+.1%} after {k[0]:.1f} s of sequence time (a change mid-run)"
+        if self.family == "slip":
+            side = {"l": "left", "r": "right"}[self.signal]
+            return f"the {side} side slips: slip ratio s_{self.signal} = {th:.3f} (eq. (8))"
+        if self.family == "wsat":
+            return f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s ({k[0]:.3g} m/s rim speed)"
+        if self.family == "wdz":
+            return (
+                f"a wheel dead zone: the first {k[0] / wheel_radius:.3g} rad/s of each wheel command do not "
+                "turn the wheel"
+            )
+        if self.family == "wload":
+            return (
+                f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s, lower by "
+                f"{k[1] / wheel_radius:.3g} rad/s per rad/s of commanded yaw rate (the turning load)"
+            )
+        if self.signal == "wz_pred" and ch == "vy":
+            return f"a longitudinal ICR offset x_ICR = {-th:.3g} m: vy = -x_ICR * wz (eq. (8))"
+        own = {"vx": ("v", "vx_pred"), "wz": ("w", "wz_pred")}.get(ch, ())
+        if self.family == "lin" and "*" in self.signal:
+            a, b = self.signal.split("*")
+            other = b if a in own else a if b in own else None
+            if other is not None:  # the channel's own velocity times a signal: a relative change
+                what = {"t": "second of sequence time"}.get(
+                    other, f"unit of {other} ({_UNITS.get(other, '')})"
+                )
+                return f"{ch} {'falls' if th < 0 else 'grows'} {abs(th):.3g} ({abs(th):.1%}) per {what}"
+        return f"{ch} += {th:.4g} * {self.signal}"
+
+
+def parse_term(key: str) -> Term | None:
+    """The term of a key ``family.signal.channel[@k1,k2]``; None if ``key`` is not a term key."""
+    m = _KEY.match(str(key))
+    if not m:
+        return None
+    fam, sig, ch, knots = m.groups()
+    kn = tuple(float(x) for x in knots.split(",")) if knots else ()
+    if len(kn) != KNOTS[fam]:
+        return None
+    return Term(fam, sig, -1 if ch == "wheels" else CHANNELS.index(ch), kn)
+
+
+def is_term_key(key: str) -> bool:
+    return parse_term(key) is not None
+
+
+# -- signals ------------------------------------------------------------------------------------
+
+
+def signals(feats: dict[str, np.ndarray], base_pred: np.ndarray, t: np.ndarray, track_width: float) -> dict:
+    """The library's signals (each (T,)): ``feats`` of :func:`skidbench.benchmark.effects.command_features`
+    (m/s, rad/s and their derivatives, after any input transform), the base prediction (T, 3), ``t`` (s
+    since the sequence start)."""
+    v, w = np.asarray(feats["v"], float), np.asarray(feats["w"], float)
+    bp = np.asarray(base_pred, float)
+    return {
+        "one": np.ones(len(v)),
+        "v": v,
+        "w": w,
+        "dv": np.asarray(feats["dv"], float),
+        "dw": np.asarray(feats["dw"], float),
+        "vx_pred": bp[:, 0],
+        "wz_pred": bp[:, 2],
+        "t": np.asarray(t, float),
+        "|v|": np.abs(v),
+        "|w|": np.abs(w),
+        "sgn_v": np.sign(v),
+        "sgn_w": np.sign(w),
+        "kappa": np.clip(w / np.maximum(np.abs(v), 0.1), -10.0, 10.0),  # curvature (1/m), bounded at spins
+        "rim_l": v - w * track_width / 2.0,  # r * w_l (m/s)
+        "rim_r": v + w * track_width / 2.0,
+    }
+
+
+def base_gains(sig: dict[str, np.ndarray], rows: np.ndarray) -> tuple[float, float]:
+    """How the base model turns commanded (v, w) into (vx, wz), by least squares on ``rows``."""
+    v, w = sig["v"][rows], sig["w"][rows]
+    c_v = float(np.dot(sig["vx_pred"][rows], v) / max(np.dot(v, v), 1e-12))
+    c_w = float(np.dot(sig["wz_pred"][rows], w) / max(np.dot(w, w), 1e-12))
+    return (c_v if np.dot(v, v) > 1e-9 else 1.0), (c_w if np.dot(w, w) > 1e-9 else 1.0)
+
+
+def _signal(name: str, sig: dict[str, np.ndarray]) -> np.ndarray:
+    if "*" in name:
+        a, b = name.split("*")
+        return sig[a] * sig[b]
+    return sig[name]
+
+
+def _hinge_sat(x: np.ndarray, k) -> np.ndarray:
+    return -np.sign(x) * np.maximum(np.abs(x) - k, 0.0)
+
+
+def _channel_column(fam: str, name: str, knots, sig) -> np.ndarray:
+    x = _signal(name, sig)
+    if fam == "lin":
+        return x
+    if fam == "sat":
+        return _hinge_sat(x, knots[0])
+    if fam == "dz":
+        return -np.clip(x, -knots[0], knots[0])
+    if fam == "after":
+        return x * (sig["t"] > knots[0])
+    raise KeyError(fam)
+
+
+def _wheel_deltas(fam: str, name: str, knots, sig) -> tuple[np.ndarray, np.ndarray]:
+    """Rim-speed changes (m/s) of the left and right wheels."""
+    rl, rr = sig["rim_l"], sig["rim_r"]
+    if fam == "slip":
+        return (-rl, 0.0 * rr) if name == "l" else (0.0 * rl, -rr)
+    if fam == "wsat":
+        return _hinge_sat(rl, knots[0]), _hinge_sat(rr, knots[0])
+    if fam == "wdz":
+        return -np.clip(rl, -knots[0], knots[0]), -np.clip(rr, -knots[0], knots[0])
+    if fam == "wload":
+        k = knots[0] - knots[1] * sig["|w|"]
+        return _hinge_sat(rl, k), _hinge_sat(rr, k)
+    raise KeyError(fam)
+
+
+# -- the library --------------------------------------------------------------------------------
+
+
+def library_groups() -> list[Term]:
+    """One knot-free template per (family, signal, channel) of the library."""
+    out: list[Term] = []
+    singles = list(CORE) + ["rim_l", "rim_r"]
+    pairs = [f"{a}*{b}" for a, b in itertools.combinations(CORE[1:], 2)]
+    for ch in range(3):
+        for s in singles + pairs:
+            if (ch, s) in CATALOGUE_FORMS:
+                continue
+            out.append(Term("lin", s, ch))
+    for fam in ("sat", "dz"):
+        out += [Term(fam, "vx_pred", 0), Term(fam, "v", 0), Term(fam, "wz_pred", 2), Term(fam, "w", 2)]
+    out += [Term("after", "vx_pred", 0), Term("after", "wz_pred", 2)]
+    out += [Term("slip", "l", -1), Term("slip", "r", -1)]
+    out += [Term(f, "rim", -1) for f in ("wsat", "wdz", "wload")]
+    return out
+
+
+def _knot_grid(term: Term, sig: dict[str, np.ndarray], rows: np.ndarray) -> list[tuple[float, ...]]:
+    q = _quantiles(term.family)
+    if term.family == "after":
+        return [(float(k),) for k in np.unique(np.quantile(sig["t"][rows], np.linspace(0.1, 0.9, 17)))]
+    if term.channel < 0:
+        rim = np.abs(np.concatenate([sig["rim_l"][rows], sig["rim_r"][rows]]))
+        ks = np.unique(np.quantile(rim, q))
+        if term.family == "wload":
+            scale = float(np.quantile(rim, 0.9)) / max(float(np.quantile(sig["|w|"][rows], 0.9)), 1e-6)
+            k1s = scale * np.array([0.05, 0.1, 0.2, 0.35, 0.5])
+            return [(float(a), float(b)) for a in ks for b in k1s]
+        return [(float(k),) for k in ks if k > 0]
+    x = np.abs(_signal(term.signal, sig)[rows])
+    return [(float(k),) for k in np.unique(np.quantile(x, q)) if k > 0]
+
+
+def _quantiles(family: str) -> np.ndarray:
+    """Where a knot may sit, as quantiles of its signal's magnitude: a dead zone near rest, a limit in the
+    upper part of the range (a knot beyond the data would be a straight line, the ``lin`` family's)."""
+    if family in ("dz", "wdz"):
+        return np.linspace(0.02, 0.5, 16)
+    return np.linspace(0.3, 0.99, 16)
+
+
+def _one_term_gain(g: np.ndarray, r: np.ndarray, wts: np.ndarray, free: bool = True) -> tuple[float, float]:
+    """(weighted SSE reduction, theta) of fitting theta * g to the residual r alone (``free``; else theta
+    = 1); g, r (n, 3)."""
+    num = float(np.sum(wts * g * r))
+    den = float(np.sum(wts * g * g))
+    if den <= 1e-18:
+        return 0.0, 0.0
+    if not free:
+        return 2.0 * num - den, 1.0
+    return num * num / den, num / den
+
+
+def _best_knots(term, sig, gains, B, r, rows, wts) -> tuple[Term, float]:
+    grid = _knot_grid(term, sig, rows)
+    if not grid:
+        return term, 0.0
+    free = term.free_theta
+    scores = [_one_term_gain(term.with_knots(k).columns(sig, gains, B)[rows], r, wts, free)[0] for k in grid]
+    i = int(np.argmax(scores))
+    best = list(grid[i])
+    best_score = scores[i]
+    # refine each knot between its grid neighbours (coordinate-wise; two rounds for two knots)
+    for _ in range(len(best)):
+        for j in range(len(best)):
+            vals = sorted({k[j] for k in grid})
+            pos = int(np.argmin(np.abs(np.asarray(vals) - best[j])))
+            lo, hi = vals[max(pos - 1, 0)], vals[min(pos + 1, len(vals) - 1)]
+            if hi - lo <= 1e-12:
+                continue
+
+            def f(x, j=j):
+                kn = list(best)
+                kn[j] = x
+                return -_one_term_gain(term.with_knots(kn).columns(sig, gains, B)[rows], r, wts, free)[0]
+
+            res = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4 * (hi - lo)})
+            if -res.fun > best_score:
+                best[j], best_score = float(res.x), float(-res.fun)
+    return term.with_knots(best), best_score
+
+
+def stlsq(X: np.ndarray, y: np.ndarray, threshold: float, ridge: float = 1e-3, iters: int = 10) -> np.ndarray:
+    """Sequentially thresholded least squares (SINDy's STLSQ with a ridge): columns of X standardised to
+    unit norm; coefficients whose standardised size is under ``threshold`` (a fraction of |y|) are cut and
+    the rest refitted, until the support stops changing. Returns the coefficients of the standardised
+    columns (zeros off the support)."""
+    return stlsq_gram(X.T @ X, X.T @ y, float(np.dot(y, y)), threshold, ridge, iters)
+
+
+def stlsq_gram(
+    G: np.ndarray, b: np.ndarray, yy: float, threshold: float, ridge: float = 1e-3, iters: int = 10
+) -> np.ndarray:
+    """:func:`stlsq` from the normal equations (``G = X'X``, ``b = X'y``, ``yy = y'y``)."""
+    norms = np.sqrt(np.maximum(np.diag(G), 0.0))
+    ok = norms > 1e-12
+    scale = np.where(ok, norms, 1.0)
+    Gs = G / np.outer(scale, scale)
+    bs = b / scale
+    yn = float(np.sqrt(yy)) or 1.0
+    support = ok.copy()
+    coef = np.zeros(len(b))
+    for _ in range(iters):
+        idx = np.flatnonzero(support)
+        c = np.linalg.solve(Gs[np.ix_(idx, idx)] + ridge * np.eye(len(idx)), bs[idx]) if len(idx) else idx
+        coef[:] = 0.0
+        coef[idx] = c
+        new = support & (np.abs(coef) >= threshold * yn)
+        if np.array_equal(new, support):
+            break
+        support = new
+    coef[~support] = 0.0
+    return coef
+
+
+@dataclass
+class Screen:
+    candidates: list[Term]  # in order of what each explains alone, best first
+    scores: dict[str, float]  # term key -> fraction of the weighted residual sum of squares it explains alone
+    selected: list[str]  # the STLSQ support
+    ranked: list[Term] = field(default_factory=list)  # every template at its best knots, best first
+
+    def rival(self, channels: tuple[int, ...], max_params: int, skip: tuple[str, ...] = ()) -> Term | None:
+        """The library's best term (alone) that changes one of ``channels`` with at most ``max_params``."""
+        for t in self.ranked:
+            if t.n_params <= max_params and t.key not in skip and set(t.touched) & set(channels):
+                return t
+        return None
+
+
+def screen(
+    sig: dict[str, np.ndarray],
+    gains: tuple[float, float],
+    track_width: float,
+    resid: np.ndarray,
+    rows: np.ndarray,
+    weights: np.ndarray,
+    exclude: tuple[str, ...] = (),
+    max_candidates: int = 2,
+    threshold: float = 0.05,
+) -> Screen:
+    """Candidate terms for the held-out residual ``resid`` (T, 3) on ``rows``: knots chosen per template,
+    then STLSQ over all templates jointly (channels weighted by ``weights``, (3,)); the support ranked by
+    what each term explains alone, at most ``max_candidates``."""
+    r = np.asarray(resid, float)[rows]
+    wts = np.broadcast_to(np.asarray(weights, float), r.shape)
+    total = float(np.sum(wts * r * r)) or 1.0
+    skip = {
+        parse_term(k).family + parse_term(k).signal + str(parse_term(k).channel)
+        for k in exclude
+        if parse_term(k)
+    }
+    best: list[tuple[Term, float]] = []
+    for tmpl in library_groups():
+        if tmpl.family + tmpl.signal + str(tmpl.channel) in skip:
+            continue
+        if KNOTS[tmpl.family]:
+            term, score = _best_knots(tmpl, sig, gains, track_width, r, rows, wts)
+        else:
+            term = tmpl
+            score = _one_term_gain(term.columns(sig, gains, track_width)[rows], r, wts)[0]
+        if score > 0 and math.isfinite(score):
+            best.append((term, score / total))
+    if not best:
+        return Screen([], {}, [], [])
+    # the normal equations channel by channel: a term's column is zero on the channels it does not touch
+    sw = np.sqrt(wts)
+    P = len(best)
+    G, bvec = np.zeros((P, P)), np.zeros(P)
+    cols = [t.columns(sig, gains, track_width)[rows] * sw for t, _ in best]
+    for c in range(3):
+        idx = [i for i, (t, _) in enumerate(best) if c in t.touched]
+        if not idx:
+            continue
+        Xc = np.column_stack([cols[i][:, c] for i in idx])
+        # einsum without BLAS: a multi-threaded BLAS product of this size stalls on a loaded machine
+        G[np.ix_(idx, idx)] += np.einsum("ti,tj->ij", Xc, Xc, optimize=False)
+        bvec[idx] += np.einsum("ti,t->i", Xc, r[:, c] * sw[:, c], optimize=False)
+    coef = stlsq_gram(G, bvec, float(np.sum(wts * r * r)), threshold)
+    selected = [t for (t, _), c in zip(best, coef, strict=True) if c != 0.0]
+    scores = {t.key: s for t, s in best}
+    ranked = sorted(selected, key=lambda t: -scores[t.key])
+    every = [t for t, _ in sorted(best, key=lambda p: -p[1])]
+    return Screen(ranked[:max_candidates], scores, [t.key for t in ranked], every)
+
+
+def fit_thetas(
+    terms: list[Term], cols: list[np.ndarray], resid: np.ndarray, rows: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """Joint weighted least squares of the terms' coefficients on ``rows`` (``cols``: each (T, 3));
+    a hinge's is 1."""
+    theta = np.ones(len(terms))
+    free = [i for i, t in enumerate(terms) if t.free_theta]
+    if not free:
+        return theta
+    y = np.asarray(resid, float)[rows] - sum(
+        (cols[i][rows] for i, t in enumerate(terms) if not t.free_theta), np.zeros_like(resid[rows])
+    )
+    sw = np.sqrt(np.asarray(weights, float))
+    X = np.column_stack([(cols[i][rows] * sw).ravel() for i in free])
+    theta[free] = np.linalg.lstsq(X, (y * sw).ravel(), rcond=None)[0]
+    return theta
+
+
+def correlates(
+    sig: dict[str, np.ndarray], resid: np.ndarray, rows: np.ndarray, n: int = 3
+) -> dict[str, list[dict[str, float]]]:
+    """Per channel, the ``n`` library signals (single and pair products) most correlated with the residual."""
+    names = [s for s in list(CORE[1:]) + ["rim_l", "rim_r"]]
+    names += [f"{a}*{b}" for a, b in itertools.combinations(CORE[1:], 2)]
+    out = {}
+    for c, ch in enumerate(CHANNELS):
+        y = np.asarray(resid, float)[rows, c]
+        y = y - y.mean()
+        found = []
+        for s in names:
+            x = _signal(s, sig)[rows]
+            x = x - x.mean()
+            den = float(np.linalg.norm(x) * np.linalg.norm(y))
+            if den > 1e-12:
+                found.append((s, float(np.dot(x, y) / den)))
+        found.sort(key=lambda p: -abs(p[1]))
+        out[ch] = [{"signal": s, "r": r} for s, r in found[:n]]
+    return out
