@@ -175,7 +175,7 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
     ``rank_by`` (``<split>_<trans|rot>``, e.g. ``ld_trans``: :func:`tracking.rank_key`). CompareError when
     the board mixes input protocols (:func:`check_one_protocol`)."""
     check_one_protocol(board)
-    key = trk.rank_key(rank_by, horizon_s)
+    rank_key = trk.rank_key(rank_by, horizon_s)
     rows = []
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
@@ -197,7 +197,8 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
         row["failed"] = (
             ", ".join(f"{t} ({s})" for t, s in zip(bad["terrain"], bad["status"], strict=True)) or ""
         )
-        row["_key"] = np.nanmean(ok[key].to_numpy(float)) if len(ok) and key in ok else np.nan
+        ranked = ok[rank_key].to_numpy(float) if len(ok) and rank_key in ok else np.array([])
+        row["_key"] = np.nanmean(ranked) if np.isfinite(ranked).any() else np.nan
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
     out.insert(0, "rank", np.arange(1, len(out) + 1))

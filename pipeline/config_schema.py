@@ -325,6 +325,8 @@ SCHEMA: dict[str, Spec] = {
     "discover.max_effects": integer(0),
     "discover.candidates": listof(STR, null=True),
     "discover.figure": BOOL,
+    "discover.open_ended": BOOL,
+    "discover.max_terms": integer(0),
 }
 # fmt: on
 
