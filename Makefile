@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce test lint clean bench discover mlflow-ui
+.PHONY: setup reproduce test test-fast lint clean bench discover mlflow-ui
 
 setup: $(STAMP)
 
@@ -82,8 +82,15 @@ $(CLUSTER_STAMP): $(STAMP)
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 
+# The suite on two workers (pytest-xdist), each test file on one worker so that a file's shared fixtures
+# (a simulated dataset, an MLflow store) are built once. `make test-fast`: the unit tests only (no test
+# marked slow: no end-to-end pipelines, sweeps, virtual environments or browsers), for the edit loop.
+PYTEST := $(BIN)/python -m pytest -q -n 2 --dist loadfile
 test: setup $(CLUSTER_STAMP)
-	$(BIN)/python -m pytest -q
+	$(PYTEST)
+
+test-fast: setup
+	$(PYTEST) -m "not slow"
 
 # Performance comparisons, one process each -> benchmark/results/latest.{json,md} (BENCH="a b" for some).
 bench: setup
