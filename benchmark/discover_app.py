@@ -21,14 +21,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from skidbench.benchmark.discover import (
     NO_EFFECT_MESSAGE,
-    DiscoverError,
-    DiscoverSettings,
     TerrainDiscovery,
     apply_protocol,
     discover_terrain,
     load_pool,
 )
-from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
+from skidbench.models.effect_fit import DiscoverError, DiscoverSettings
+from skidbench.models.effects import CATALOGUE, EFFECT_IDS
 from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.layout import Layout
@@ -160,7 +159,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     results: list[TerrainDiscovery] = []
     dataset = _dataset_of(root)
     files_of = _files_of(dataset)
-    from skidbench.models.registry import get_model_class
+    from skidbench.models.specs import get_model_class
     from skidbench.pipeline.calibration import robot_for_model
     from skidbench.pipeline.layout import layout_from_cfg
 

@@ -110,13 +110,9 @@ def is_model_spec(name: str) -> bool:
     return name == DISCOVERED or "+" in str(name)
 
 
-def get_model_class(name: str) -> type[KinematicModel]:
-    """The model class registered as ``name``, or the augmented model of a spec ``base+effect+...``
-    (``skidbench.models.augmented``); ModelError (one line) if absent or broken."""
-    if "+" in str(name):
-        from .augmented import augmented_class
-
-        return augmented_class(str(name))
+def plugin_class(name: str) -> type[KinematicModel]:
+    """The model class installed as ``name`` (an entry point; a spec ``base+effect+...`` is resolved by
+    :func:`skidbench.models.specs.get_model_class`); ModelError (one line) if absent or broken."""
     if name == DISCOVERED:
         raise ModelError(
             f"model {DISCOVERED}: stands for a terrain's discovery result; it is resolved per terrain by "
