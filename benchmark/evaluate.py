@@ -201,7 +201,7 @@ def predict_split(
     ``predict_cov``, else None; its time is included).
     The model gets ONLY the protocol's input columns (:func:`skidbench.pipeline.protocol.model_inputs`:
     time, sequence and the protocol's wheel rates), never the pose, the targets or the encoders."""
-    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.schema import concat_sequences
 
     inputs = inputs or Inputs()
     nonempty = [s for s in seqs if len(s.table)]
@@ -735,7 +735,7 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
 
 def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
     """The Train split and the test splits of one terrain as MLflow dataset inputs."""
-    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.schema import concat_sequences
 
     out = []
     for split in [TRAIN, *tests]:

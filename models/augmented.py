@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from .base import KinematicModel, ModelError
+from .base import KinematicModel, ModelError, calibrated_constants
 from .columns import mse, targets
 from .effect_fit import DiscoverError, fit_effects, jsonable_params
 from .effects import CATALOGUE, EFFECT_IDS, augmented_prediction
@@ -161,7 +161,7 @@ def augmented_class(spec: str) -> type[AugmentedModel]:
             "effects": effects,
             "terms": terms,
             "required_columns": required,
-            "calibrated_constants": tuple(getattr(base_cls, "calibrated_constants", ("wheel_radius",))),
+            "calibrated_constants": calibrated_constants(base_cls),
             "__module__": __name__,
         },
     )

@@ -30,10 +30,10 @@ from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
 from skidbench.pipeline.robot import Robot, robot_from_hydra
-from skidbench.pipeline.schema import read_split
+from skidbench.pipeline.schema import concat_sequences, read_split
 from skidbench.pipeline.wheel_response import WheelResponse
 
-from .base import KinematicModel, ModelError, concat_sequences
+from .base import KinematicModel, ModelError, calibrated_constants
 from .registry import DISCOVERED, discover
 from .saved import arrays_file, from_saved, save_arrays
 from .specs import get_model_class
@@ -299,7 +299,8 @@ def fit_model(
     cls = get_model_class(spec)
     files = _training_files(cfg, model_name, terrain, split)
     inputs, spec_robot, response = protocol_inputs(cfg, terrain)
-    robot, constants = robot_for_model(cfg, cls, terrain)  # the calibrated constants the model takes
+    # the calibrated constants the model takes
+    robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
     fp = _fingerprint(cfg, spec, files, robot, cls, inputs, response)
     path = layout.fit_file(model_name, terrain, inputs)
     if reuse and path.is_file():
@@ -397,5 +398,5 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
 
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)
-    robot, _ = robot_for_model(cfg, cls, terrain)
+    robot, _ = robot_for_model(cfg, calibrated_constants(cls), terrain)
     return from_saved(cls, robot, saved, spec, path)

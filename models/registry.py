@@ -100,6 +100,13 @@ def available() -> list[str]:
     return [n for n, i in discover().items() if i.ok]
 
 
+def calibration_usage() -> dict[str, str]:
+    """How each installed model that says so takes the calibrated constants (name -> its
+    ``calibration_usage``), by name."""
+    usage = {n: str(getattr(i.cls, "calibration_usage", "") or "") for n, i in discover().items() if i.ok}
+    return {n: u for n, u in usage.items() if u}
+
+
 #: the model name that stands, per terrain, for what ``skidbench discover`` found (base + effects in the
 #: dataset's discovery.json); resolved by ``skidbench.models.fitting.resolve_model_spec``
 DISCOVERED = "discovered"

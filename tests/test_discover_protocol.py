@@ -16,8 +16,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
 from skidbench.benchmark.discover import apply_protocol, discover_terrain  # noqa: E402
-from skidbench.models.base import concat_sequences  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
+from skidbench.pipeline.schema import concat_sequences  # noqa: E402
 from skidbench.pipeline.wheel_response import identify_response  # noqa: E402
 
 TAU = dd.DEFAULT_SIZES["actuator_lag"]
