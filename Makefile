@@ -99,6 +99,7 @@ bench: setup
 lint: setup
 	$(BIN)/ruff check pipeline models benchmark hydra_plugins tests examples
 	$(BIN)/ruff format --check pipeline models benchmark hydra_plugins tests examples
+	$(BIN)/python -m pytest -q tests/test_layers.py  # imports go down only, no cycles (CONTRIBUTING.md)
 
 clean:
 	rm -rf $(OUT) .pytest_cache .ruff_cache build *.egg-info

@@ -331,7 +331,7 @@ def _predict(cfg: Any, model: Any, table: pd.DataFrame, terrain: str) -> np.ndar
 
 
 def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path, dpi: int) -> Path:
-    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.schema import concat_sequences
 
     model = _load_model(cfg, model_name, terrain)
     files = split_files(layout, terrain, "ld") or split_files(layout, terrain, None)
@@ -439,7 +439,7 @@ def figure7(
     path: Path,
     dpi: int,
 ) -> Path:
-    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.schema import concat_sequences
 
     loaded = {}
     for m in models:
@@ -496,8 +496,8 @@ def figure7(
 def wheel_response_figure(cfg: Any, layout: Layout, terrain: str, path: Path, dpi: int) -> Path:
     """The identified wheel response (the calibration's) against the encoders around the largest step of
     the mean commanded wheel rate in the terrain's Train split (1 s before to 4 s after)."""
-    from skidbench.models.base import concat_sequences
     from skidbench.pipeline.calibration import calibration_doc, wheel_response_of
+    from skidbench.pipeline.schema import concat_sequences
 
     doc = calibration_doc(cfg, terrain) or {}
     resp = wheel_response_of(doc)

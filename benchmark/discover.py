@@ -5,7 +5,7 @@ Workflow, per terrain, on the Train split:
 
 1. Fit the base model (default: extended differential drive, ``edd``) and take its residuals: body
    velocities (vx, vy, wz) against ground truth, and 6 s horizon pose errors (RMSRE).
-2. For every effect of the catalogue (:mod:`skidbench.benchmark.effects`) not yet in the model, fit the
+2. For every effect of the catalogue (:mod:`skidbench.models.effects`) not yet in the model, fit the
    augmented model (base model refitted together with the effect's parameters, by alternation) on the
    training folds and predict the held-out fold. Folds are whole sequences (k-fold over sequences;
    long sequences are cut into contiguous chunks when there are too few of them), never random rows.
@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -50,130 +49,37 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import minimize_scalar
 
-from skidbench.benchmark import terms as termlib
-from skidbench.benchmark.effects import (
+from skidbench.benchmark.horizon import rmsre, window_errors
+from skidbench.models import terms as termlib
+from skidbench.models.effect_fit import (
+    CHANNELS,
+    Augmenter,
+    DiscoverError,
+    DiscoverSettings,
+    FitState,
+    ModelFactory,
+    Pool,
+    build_pool,
+    jsonable_params,
+)
+from skidbench.models.effects import (
     CATALOGUE,
     EFFECT_IDS,
-    apply_effects,
-    base_targets,
-    command_features,
-    lag_filter,
     revealing_feature,
 )
-from skidbench.benchmark.horizon import rmsre, window_errors
-from skidbench.models.base import KinematicModel
-from skidbench.pipeline.errors import SkidbenchError
-from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table
+from skidbench.pipeline.protocol import fit_table
 from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.schema import load_split_tables as _load_split_tables
 from skidbench.pipeline.schema import read_split
 
 log = logging.getLogger("skidbench.discover")
 
-CHANNELS = ("vx", "vy", "wz")
 NO_EFFECT_MESSAGE = "no missing effect found"
 
 
-class DiscoverError(SkidbenchError):
-    pass
-
-
-@dataclass(frozen=True)
-class DiscoverSettings:
-    horizon_s: float = 6.0
-    folds: int = 5
-    min_units: int = 8  # cut sequences into chunks when there are fewer sequences than this
-    chunk_s: float = 30.0  # chunk length when cutting (s); never shorter than 2 horizons
-    alpha: float = 0.05
-    penalty_per_param: float = 0.02
-    min_gain: float = 0.02
-    max_effects: int = 4  # catalogue effects and open-ended terms together
-    max_terms: int = 4  # open-ended candidates validated per step (the sparse regression's best)
-    open_ended: bool = True  # search the term library (benchmark/terms.py) next to the catalogue
-    channel_tolerance: float = 0.01  # held-out log-MSE loss allowed on a velocity channel the effect changes
-    alternations: int = 6  # base/effect refit alternations
-    tau_bounds: tuple[float, float] = (0.02, 1.5)
-    splits: tuple[str, ...] = ("train",)
-    seed: int = 0
-
-    def rule(self) -> str:
-        return (
-            f"add the best effect whose held-out {self.horizon_s:g} s gain G = sum over (translational, "
-            f"rotational) of log(RMSRE_before^2 / RMSRE_after^2) satisfies G - {self.penalty_per_param:g} * "
-            f"n_params >= {self.min_gain:g}, whose per-held-out-unit gains pass a one-sided paired sign-flip "
-            f"test at alpha = {self.alpha:g}, and whose held-out velocity residual (sum over vx, vy, wz of "
-            f"log MSE_before/MSE_after) also improves with no changed channel worse by more than "
-            f"{self.channel_tolerance:g}; held out by {self.folds}-fold over whole sequences "
-            f"(contiguous chunks of >= {self.chunk_s:g} s when there are fewer than {self.min_units} "
-            "sequences)"
-        )
-
-
 # -- data ---------------------------------------------------------------------------------------
-
-
-@dataclass
-class Pool:
-    """The training sequences of one terrain, concatenated, with held-out units assigned."""
-
-    table: pd.DataFrame  # split columns + "sequence" (= unit code, contiguous)
-    groups: np.ndarray  # (T,) original sequence code (lag filters restart here)
-    units: np.ndarray  # (T,) unit code (held-out granularity)
-    unit_names: list[str]
-    target: np.ndarray  # (T, 3) ground-truth vx, vy, wz
-    valid: np.ndarray  # (T,) bool
-    pose: np.ndarray  # (T, 3)
-    t: np.ndarray  # (T,)
-    sequences: list[str]
-    note: str = ""
-
-    @property
-    def n_units(self) -> int:
-        return len(self.unit_names)
-
-
-def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettings) -> Pool:
-    """Concatenate split tables; cut them into contiguous chunks if there are too few sequences."""
-    tables = [(df, m) for df, m in tables if len(df) > 2]
-    if not tables:
-        raise DiscoverError("no training sequences with data")
-    cut = len(tables) < settings.min_units
-    total = sum(float(df["t"].iloc[-1] - df["t"].iloc[0]) for df, _ in tables)
-    # chunks long enough for several 6 s windows, short enough to give min_units held-out units
-    chunk = max(2.0 * settings.horizon_s + 1.0, min(settings.chunk_s, total / max(settings.min_units, 1)))
-    frames, groups, units, unit_names, names = [], [], [], [], []
-    for g, (df, meta) in enumerate(tables):
-        name = str(meta.get("sequence", f"seq{g}"))
-        names.append(name)
-        df = df.reset_index(drop=True)
-        t = df["t"].to_numpy(float)
-        n = len(df)
-        bounds = [0, n]
-        if cut:
-            k = max(1, int((t[-1] - t[0]) // chunk))
-            bounds = [int(round(i * n / k)) for i in range(k + 1)]
-        for j, (a, b) in enumerate(itertools.pairwise(bounds)):
-            unit_names.append(name if len(bounds) == 2 else f"{name}#{j}")
-            units.append(np.full(b - a, len(unit_names) - 1))
-        groups.append(np.full(n, g))
-        frames.append(df)
-    table = pd.concat(frames, ignore_index=True)
-    units_a = np.concatenate(units)
-    table["sequence"] = units_a
-    valid = table["valid"].to_numpy(bool) & np.all(np.isfinite(table[list(CHANNELS)].to_numpy(float)), axis=1)
-    return Pool(
-        table=table,
-        groups=np.concatenate(groups),
-        units=units_a,
-        unit_names=unit_names,
-        target=np.nan_to_num(table[list(CHANNELS)].to_numpy(float)),
-        valid=valid,
-        pose=table[["x", "y", "yaw"]].to_numpy(float),
-        t=table["t"].to_numpy(float),
-        sequences=names,
-    )
 
 
 def load_pool(
@@ -218,289 +124,6 @@ def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None
     table = fit_table(pool.table.assign(sequence=pool.groups), protocol, robot, response)
     table["sequence"] = pool.units
     return dataclasses.replace(pool, table=table)
-
-
-# -- the augmented model --------------------------------------------------------------------------
-
-
-ModelFactory = Callable[[], KinematicModel]
-
-
-@dataclass
-class FitState:
-    effects: list[str]
-    params: dict[str, np.ndarray]
-    tau: float | None
-    base: KinematicModel
-    pred: np.ndarray  # (T, 3) augmented prediction on every row of the pool
-    base_pred: np.ndarray  # (T, 3) base prediction (on lagged inputs) on every row
-    feats: dict[str, np.ndarray]
-    loss: float
-    terms: list[termlib.Term] = field(default_factory=list)  # open-ended terms (benchmark/terms.py)
-    term_params: dict[str, dict[str, float]] = field(default_factory=dict)  # key -> theta, c_v, c_w
-
-
-class Augmenter:
-    """Fits base model + effects on a subset of a pool's rows and predicts every row."""
-
-    def __init__(self, pool: Pool, factory: ModelFactory, robot: Robot, settings: DiscoverSettings):
-        self.pool = pool
-        self.factory = factory
-        self.robot = robot
-        self.s = settings
-        self._lag_cache: dict[float, tuple[pd.DataFrame, dict]] = {}
-        self._sub_cache: dict[tuple, pd.DataFrame] = {}
-        self._feats0 = command_features(pool.table, robot.wheel_radius, robot.track_width)
-        self.weights = np.ones(3)
-
-    def inputs(self, tau: float | None) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
-        if tau is None:
-            return self.pool.table, self._feats0
-        key = round(float(tau), 6)
-        if key not in self._lag_cache:
-            if len(self._lag_cache) > 64:
-                self._lag_cache.clear()
-            tab = lag_filter(self.pool.table, key, self.pool.groups)
-            self._lag_cache[key] = (
-                tab,
-                command_features(tab, self.robot.wheel_radius, self.robot.track_width),
-            )
-        return self._lag_cache[key]
-
-    def _fit_base(
-        self, table: pd.DataFrame, rows: np.ndarray, target: np.ndarray | None, key: tuple
-    ) -> KinematicModel:
-        if key not in self._sub_cache:
-            if len(self._sub_cache) > 64:
-                self._sub_cache.clear()
-            cols = [c for c in table.columns if c not in ("x", "y", "yaw", "stamp_ns")]
-            self._sub_cache[key] = table.loc[rows, cols]
-        sub = self._sub_cache[key]
-        if target is not None:
-            sub = sub.copy()
-            for j, c in enumerate(CHANNELS):
-                sub[c] = target[rows, j]
-        return self.factory().fit(sub)
-
-    def _loss(self, pred: np.ndarray, rows: np.ndarray) -> float:
-        r = (pred[rows] - self.pool.target[rows]) ** 2
-        return float(np.sum(r.mean(axis=0) * self.weights))
-
-    def fit(
-        self,
-        effects: list[str],
-        train_units: np.ndarray,
-        warm: dict[str, np.ndarray] | None = None,
-        fixed_tau: bool = False,
-        terms: tuple[termlib.Term, ...] | list[termlib.Term] = (),
-    ) -> FitState:
-        rows = np.isin(self.pool.units, train_units) & self.pool.valid
-        terms = list(terms)
-        if "actuator_lag" in effects:
-            if fixed_tau and warm and "actuator_lag" in warm:  # scoring another candidate: keep tau
-                return self._fit_at(
-                    effects, rows, float(warm["actuator_lag"][0]), warm, quick=False, terms=terms
-                )
-            # a fixed log grid (lag-filtered inputs are cached and shared by folds and candidates), then
-            # a parabola through the best grid point and its neighbours (in log tau)
-            lo, hi = self.s.tau_bounds
-            grid = np.exp(np.linspace(math.log(lo), math.log(hi), 10))
-            losses = np.array(
-                [self._fit_at(effects, rows, g, warm, quick=True, terms=terms).loss for g in grid]
-            )
-            i = int(np.clip(np.argmin(losses), 1, len(grid) - 2))
-            x = np.log(grid[i - 1 : i + 2])
-            y = losses[i - 1 : i + 2]
-            den = (x[0] - x[1]) * (x[0] - x[2]) * (x[1] - x[2])
-            A = (x[2] * (y[1] - y[0]) + x[1] * (y[0] - y[2]) + x[0] * (y[2] - y[1])) / den
-            B = (x[2] ** 2 * (y[0] - y[1]) + x[1] ** 2 * (y[2] - y[0]) + x[0] ** 2 * (y[1] - y[2])) / den
-            best = float(grid[int(np.argmin(losses))])
-            if A > 0:
-                best = float(np.exp(np.clip(-B / (2 * A), x[0], x[2])))
-            return self._fit_at(effects, rows, best, warm, quick=False, terms=terms)
-        return self._fit_at(effects, rows, None, warm, quick=False, terms=terms)
-
-    def _fit_at(
-        self,
-        effects: list[str],
-        rows: np.ndarray,
-        tau: float | None,
-        warm: dict[str, np.ndarray] | None,
-        quick: bool,
-        terms: list[termlib.Term] | None = None,
-    ) -> FitState:
-        terms = list(terms or [])
-        table, feats = self.inputs(tau)
-        key = (None if tau is None else round(float(tau), 6), rows.tobytes().__hash__())
-        corr = [e for e in effects if CATALOGUE[e].kind != "input"]
-        base = self._fit_base(table, rows, None, key)
-        base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
-        params = {e: np.array((warm or {}).get(e, CATALOGUE[e].init), dtype=float) for e in corr}
-        theta = np.zeros(len(terms))
-        n_alt = (2 if quick else self.s.alternations) if (corr or terms) else 0
-        prev = np.inf
-        for _ in range(n_alt):
-            if corr:
-                params = self._fit_params(
-                    corr, params, base_pred, feats, rows, self._term_sum(terms, theta, feats, base_pred)
-                )
-            theta = self._fit_terms(terms, params, base_pred, feats, rows)
-            shift = self._term_sum(terms, theta, feats, base_pred)
-            bt = base_targets(self.pool.target - shift, base_pred, feats, params)
-            if terms:  # beyond a limit / inside a dead zone the base model keeps its own output
-                sig = self.signals(feats, base_pred)
-                for t in terms:
-                    m = t.passive(sig)
-                    for c in t.touched:
-                        bt[m, c] = base_pred[m, c]
-            base = self._fit_base(table, rows, bt, key)
-            base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
-            loss = self._loss(
-                apply_effects(base_pred, feats, params) + self._term_sum(terms, theta, feats, base_pred), rows
-            )
-            if prev - loss < 1e-6 * max(prev, 1e-12):
-                break
-            prev = loss
-        if corr:
-            params = self._fit_params(
-                corr, params, base_pred, feats, rows, self._term_sum(terms, theta, feats, base_pred)
-            )
-        theta = self._fit_terms(terms, params, base_pred, feats, rows)
-        pred = apply_effects(base_pred, feats, params) + self._term_sum(terms, theta, feats, base_pred)
-        all_params = dict(params)
-        if tau is not None:
-            all_params = {"actuator_lag": np.array([tau]), **all_params}
-        gains = self._gains(feats, base_pred)
-        tp = {
-            t.key: {"theta": float(th), "c_v": gains[0], "c_w": gains[1]}
-            for t, th in zip(terms, theta, strict=True)
-        }
-        return FitState(
-            effects, all_params, tau, base, pred, base_pred, feats, self._loss(pred, rows), terms, tp
-        )
-
-    def signals(self, feats: dict[str, np.ndarray], base_pred: np.ndarray) -> dict[str, np.ndarray]:
-        return termlib.signals(feats, base_pred, self.pool.t, self.robot.track_width)
-
-    def _gains(self, feats, base_pred) -> tuple[float, float]:
-        # the base model's gains on every valid row (the same for every fold: a property of the base
-        # model's form, not of the held-out rows' targets)
-        return termlib.base_gains(self.signals(feats, base_pred), self.pool.valid)
-
-    def _term_sum(self, terms, theta, feats, base_pred) -> np.ndarray:
-        out = np.zeros_like(base_pred, dtype=float)
-        if not terms:
-            return out
-        sig = self.signals(feats, base_pred)
-        gains = self._gains(feats, base_pred)
-        for t, th in zip(terms, theta, strict=True):
-            out += th * t.columns(sig, gains, self.robot.track_width)
-        return out
-
-    def _fit_terms(self, terms, params, base_pred, feats, rows) -> np.ndarray:
-        """The terms' coefficients: weighted least squares on what the base model and the effects leave."""
-        if not terms:
-            return np.zeros(0)
-        sig = self.signals(feats, base_pred)
-        gains = self._gains(feats, base_pred)
-        cols = [t.columns(sig, gains, self.robot.track_width) for t in terms]
-        resid = self.pool.target - apply_effects(base_pred, feats, params)
-        return termlib.fit_thetas(terms, cols, resid, rows, self.weights)
-
-    def _fit_params(self, corr, params, base_pred, feats, rows, offset=None) -> dict[str, np.ndarray]:
-        """Effect parameters with the base prediction fixed: box-bounded weighted least squares
-        (:func:`_bounded_least_squares`); the curvature law, the one clearly nonlinear effect, from a few
-        starting values of b2."""
-        sizes = [CATALOGUE[e].n_params for e in corr]
-        x0 = np.concatenate([params[e] for e in corr]).astype(float)
-        bp = base_pred[rows]
-        fr = {k: v[rows] for k, v in feats.items()}
-        chans = sorted({CATALOGUE[e].channel for e in corr})  # only these depend on the parameters
-        tg = self.pool.target[rows][:, chans]
-        if offset is not None:  # the open-ended terms' correction, held fixed while the effects are fitted
-            tg = tg - offset[rows][:, chans]
-        sw = np.sqrt(self.weights[chans] / max(rows.sum(), 1))
-
-        def unpack(x):
-            out, i = {}, 0
-            for e, n in zip(corr, sizes, strict=True):
-                out[e] = x[i : i + n]
-                i += n
-            return out
-
-        def resid(x):
-            return ((apply_effects(bp, fr, unpack(x))[:, chans] - tg) * sw).ravel()
-
-        lo = np.concatenate([[b[0] for b in CATALOGUE[e].bounds] for e in corr])
-        hi = np.concatenate([[b[1] for b in CATALOGUE[e].bounds] for e in corr])
-        starts = [x0]
-        if "curvature_dependent_icr" in corr:  # a few starting values for b2
-            i = sum(sizes[: corr.index("curvature_dependent_icr")])
-            for b2 in (0.3, 1.0, 4.0):
-                xs = x0.copy()
-                xs[i + 1] = b2
-                starts.append(xs)
-        best, best_cost = x0, np.inf
-        for xs in starts:
-            x = _bounded_least_squares(resid, xs, lo, hi, 60 if len(starts) > 1 else 20)
-            c = float(np.sum(resid(x) ** 2))
-            if c < best_cost:
-                best, best_cost = x, c
-        return unpack(best)
-
-
-def _bounded_least_squares(resid, x, lo, hi, max_nfev: int) -> np.ndarray:
-    """``scipy.optimize.least_squares`` with box bounds: ``dogbox``, because an effect's parameters start
-    at their no-effect value, often a bound, where ``trf``'s scaling shrinks the first steps to nothing
-    (it stopped at 2e-10 from the start on mini). The effects have one or two parameters each and are
-    (nearly) linear in them: a few steps suffice."""
-    lo = np.asarray(lo, float)
-    hi = np.maximum(np.asarray(hi, float), lo + 1e-12)  # least_squares needs lo < hi
-    # a relative finite-difference step of 1e-4: the effects' features are smoothed derivatives, and the
-    # default (1.5e-8) sees only their round-off
-    res = least_squares(
-        resid, np.clip(x, lo, hi), bounds=(lo, hi), method="dogbox", diff_step=1e-4, max_nfev=max_nfev
-    )
-    log.debug("effect fit: %s (nfev %d)", res.message, res.nfev)
-    return res.x
-
-
-def fit_effects(
-    table: pd.DataFrame,
-    factory: ModelFactory,
-    robot: Robot,
-    effects: list[str],
-    settings: DiscoverSettings | None = None,
-    terms: list[termlib.Term] | tuple[termlib.Term, ...] = (),
-) -> FitState:
-    """Fit base model + ``effects`` (+ open-ended ``terms``, last) on every valid row of a training table
-    (sequences in its ``sequence`` column), the way discovery fits its final model: the base alone first
-    (which sets the channel weights), then the effects added one at a time in the given order, each fit
-    warm-started from the last. What an augmented model (``skidbench.models.augmented``) calls on Train."""
-    unknown = [e for e in effects if e not in CATALOGUE]
-    if unknown:
-        raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})")
-    s = settings or DiscoverSettings()
-    if "sequence" in table.columns:
-        tables = [
-            (g.drop(columns="sequence").reset_index(drop=True), {"sequence": str(name)})
-            for name, g in table.groupby("sequence", sort=False)
-        ]
-    else:
-        tables = [(table.reset_index(drop=True), {"sequence": "0"})]
-    pool = build_pool(tables, dataclasses.replace(s, min_units=1))  # whole sequences, never cut
-    aug = Augmenter(pool, factory, robot, s)
-    units = np.arange(pool.n_units)
-    state = aug.fit([], units)
-    res = (state.pred - pool.target)[pool.valid]
-    aug.weights = 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
-    warm: dict[str, np.ndarray] = {}
-    for i in range(len(effects)):
-        state = aug.fit(list(effects[: i + 1]), units, warm)
-        warm = dict(state.params)
-    if terms:
-        state = aug.fit(list(effects), units, warm, terms=list(terms))
-    return state
 
 
 # -- held-out evaluation ------------------------------------------------------------------------
@@ -665,12 +288,8 @@ class TerrainDiscovery:
     figure_data: list[dict[str, Any]]
     rejected: dict[str, Any] | None
     seconds: float
-    terms: list[str] = field(default_factory=list)  # open-ended terms added (keys of benchmark/terms.py)
+    terms: list[str] = field(default_factory=list)  # open-ended terms added (keys of models/terms.py)
     unexplained: dict[str, Any] | None = None  # what is left when nothing more passes
-
-
-def _jsonable_params(params: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
-    return {e: dict(zip(CATALOGUE[e].param_names, map(float, p), strict=True)) for e, p in params.items()}
 
 
 def refine_knots(
@@ -774,7 +393,7 @@ def discover_terrain(
     candidates: tuple[str, ...] = EFFECT_IDS,
     progress: Callable[[str], None] | None = None,
 ) -> TerrainDiscovery:
-    """Catalogue effects and open-ended terms (:mod:`skidbench.benchmark.terms`) scored side by side on
+    """Catalogue effects and open-ended terms (:mod:`skidbench.models.terms`) scored side by side on
     the same held-out units by the same rule; the best passing one is added, except that a catalogue
     effect is named only when no open-ended term of no more parameters explains more of the held-out
     gap (then the term is added under its own formula). When nothing passes, the residual is reported
@@ -929,7 +548,7 @@ def discover_terrain(
                     "formula": e.formula,
                     "evidence": {**ev, "candidates": table, "terms": table_t, "screen": screen_info},
                     "naming": _naming("catalogue", ev, scored_t, scored, e.n_params),
-                    "params": _jsonable_params(state.params),
+                    "params": jsonable_params(state.params),
                     "heldout_rmsre_before": cur.rmsre,
                     "heldout_rmsre_after": ho.rmsre,
                 }
@@ -976,7 +595,7 @@ def discover_terrain(
     final = {
         "effects": list(effects),
         "terms": [t.key for t in terms],
-        "params": _jsonable_params(state.params),
+        "params": jsonable_params(state.params),
         "term_params": {t.key: _term_step_params(state, t) for t in terms},
         "base_params": state.base.get_params(),
         "heldout_rmsre": cur.rmsre,

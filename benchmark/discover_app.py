@@ -21,14 +21,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from skidbench.benchmark.discover import (
     NO_EFFECT_MESSAGE,
-    DiscoverError,
-    DiscoverSettings,
     TerrainDiscovery,
     apply_protocol,
     discover_terrain,
     load_pool,
 )
-from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
+from skidbench.models.effect_fit import DiscoverError, DiscoverSettings
+from skidbench.models.effects import CATALOGUE, EFFECT_IDS
 from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.layout import Layout
@@ -160,7 +159,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     results: list[TerrainDiscovery] = []
     dataset = _dataset_of(root)
     files_of = _files_of(dataset)
-    from skidbench.models.registry import get_model_class
+    from skidbench.models.base import calibrated_constants
+    from skidbench.models.specs import get_model_class
     from skidbench.pipeline.calibration import robot_for_model
     from skidbench.pipeline.layout import layout_from_cfg
 
@@ -168,7 +168,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for terrain in _terrains(root, cfg, settings.splits, dataset):
         pool = load_pool(root, terrain, settings, files_of)
         # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
-        robot_t = robot_for_model(cfg, get_model_class(base_name), terrain)[0] if own_splits else robot
+        constants = calibrated_constants(get_model_class(base_name))
+        robot_t = robot_for_model(cfg, constants, terrain)[0] if own_splits else robot
         if inputs != "commanded":
             pool = apply_protocol(pool, inputs, robot, _response(cfg, terrain, pool, inputs, own_splits))
         res = discover_terrain(

@@ -201,7 +201,7 @@ def predict_split(
     ``predict_cov``, else None; its time is included).
     The model gets ONLY the protocol's input columns (:func:`skidbench.pipeline.protocol.model_inputs`:
     time, sequence and the protocol's wheel rates), never the pose, the targets or the encoders."""
-    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.schema import concat_sequences
 
     inputs = inputs or Inputs()
     nonempty = [s for s in seqs if len(s.table)]
@@ -367,7 +367,8 @@ def run_benchmark(
     if log_figures is None:
         log_figures = bool(cfg.get("log_figures", True))
     if fit_fn is None:
-        from skidbench.models.registry import get_model_class, is_model_spec
+        from skidbench.models.registry import is_model_spec
+        from skidbench.models.specs import get_model_class
 
         known = installed_models()
         for m in models:  # an augmented spec "base+effect+..." must name a known base and known effects
@@ -629,7 +630,7 @@ def _run_child(
         tracker.artifact(run_id, params_json, "fit")
         arrays = dict(getattr(model, "arrays", None) or {})
         if arrays:  # a learned model's fitted arrays, as the fit stage saved them
-            from skidbench.models.fitting import save_arrays
+            from skidbench.models.saved import save_arrays
 
             arrays_npz = stem.with_name(stem.name + ".arrays.npz")
             save_arrays(arrays_npz, arrays)
@@ -734,7 +735,7 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
 
 def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
     """The Train split and the test splits of one terrain as MLflow dataset inputs."""
-    from skidbench.models.base import concat_sequences
+    from skidbench.pipeline.schema import concat_sequences
 
     out = []
     for split in [TRAIN, *tests]:
@@ -761,7 +762,7 @@ def _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path
     """The fitted model as an MLflow Model of the run (tag ``skidbench.logged_model``: its id, or why not:
     a model object that is no installed skidbench model cannot be rebuilt outside this process)."""
     from skidbench.models.base import ModelError
-    from skidbench.models.registry import get_model_class
+    from skidbench.models.specs import get_model_class
 
     from .mlflow_model import INPUT_COLUMNS, write_model_record
 

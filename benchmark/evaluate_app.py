@@ -64,8 +64,9 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     each model's version and config."""
     from omegaconf import OmegaConf
 
-    from skidbench.models.fitting import arrays_file, model_config
+    from skidbench.models.fitting import model_config
     from skidbench.models.registry import discover
+    from skidbench.models.saved import arrays_file
     from skidbench.pipeline.layout import split_terrains
     from skidbench.pipeline.manifest import Manifest
 

@@ -30,7 +30,7 @@ def main(cfg: DictConfig) -> None:
     from skidbench.pipeline.layout import layout_from_cfg
 
     from .fitting import _training_files, fit_model, model_config
-    from .registry import get_model_class
+    from .specs import get_model_class
 
     try:
         terrain = str(cfg.terrain)
@@ -90,7 +90,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
     from skidbench.benchmark import tracking as trk
     from skidbench.benchmark.sweep import TAG_SWEEP, run_key, sweep_id
 
-    from .fitting import arrays_file
+    from .saved import arrays_file
 
     tracker = trk.tracker_from_cfg(cfg, layout)
     job_key = run_key()
@@ -149,7 +149,7 @@ def _log_model(cfg: DictConfig, tracker, run_id: str, name: str, terrain: str, r
     """The fitted model as an MLflow Model of the fit run (as evaluate logs it; tag its id)."""
     from skidbench.benchmark.mlflow_model import write_model_record
 
-    from .fitting import arrays_file
+    from .saved import arrays_file
 
     spec = str((json.loads(res.path.read_text()).get("resolved") or {}).get("spec") or name)
     inputs = str(cfg.get("inputs", "commanded"))

@@ -2,13 +2,13 @@
 
     skidbench evaluate models=[edd,friction,edd+actuator_lag+angular_acceleration_slip,discovered]
 
-A model spec ``base+effect+effect`` (ids of :mod:`skidbench.benchmark.effects`) names the base model
+A model spec ``base+effect+effect`` (ids of :mod:`skidbench.models.effects`) names the base model
 (any installed model, ``friction`` too) and the effects added to it; ``discovered`` is, per terrain, the
 base model and effects that ``skidbench discover`` wrote to the dataset's ``discovery.json``
 (:func:`skidbench.models.fitting.resolve_model_spec`). The augmented model is fitted on the Train split
-exactly as discovery fits its final model (:func:`skidbench.benchmark.discover.fit_effects`: the base
+exactly as discovery fits its final model (:func:`skidbench.models.effect_fit.fit_effects`: the base
 model and the effect parameters by alternation, the lag time constant by a grid and a parabola) and
-predicts with :func:`skidbench.benchmark.effects.augmented_prediction`. It takes the robot constants its
+predicts with :func:`skidbench.models.effects.augmented_prediction`. It takes the robot constants its
 base model takes (``calibrated_constants``).
 
 The cost of a fit is that of several base-model fits (about 6 alternations, 30 with ``actuator_lag``'s
@@ -23,8 +23,13 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from .base import KinematicModel, ModelError
+from .base import KinematicModel, ModelError, calibrated_constants
 from .columns import mse, targets
+from .effect_fit import DiscoverError, fit_effects, jsonable_params
+from .effects import CATALOGUE, EFFECT_IDS, augmented_prediction
+from .registry import plugin_class
+from .saved import from_saved
+from .terms import is_term_key, parse_term
 
 SEP = "+"
 EFFECT_COLUMNS = ("t", "cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
@@ -37,7 +42,7 @@ class AugmentedModel(KinematicModel):
     version: ClassVar[str] = "1.0"
     base_name: ClassVar[str] = ""
     effects: ClassVar[tuple[str, ...]] = ()
-    terms: ClassVar[tuple[str, ...]] = ()  # open-ended terms discovery found (keys, benchmark/terms.py)
+    terms: ClassVar[tuple[str, ...]] = ()  # open-ended terms discovery found (keys, models/terms.py)
 
     def __init__(
         self,
@@ -56,22 +61,14 @@ class AugmentedModel(KinematicModel):
         )
         self.base_model: KinematicModel | None = None
         if self.params.get("base"):
-            from .fitting import _from_saved
-            from .registry import get_model_class
-
-            self.base_model = _from_saved(
-                get_model_class(self.base_name), robot, self.params["base"], self.base_name
-            )
+            base_cls = plugin_class(self.base_name)
+            self.base_model = from_saved(base_cls, robot, self.params["base"], self.base_name)
 
     def _new_base(self) -> KinematicModel:
-        from .registry import get_model_class
-
-        cls = get_model_class(self.base_name)
+        cls = plugin_class(self.base_name)
         return cls(self.robot, dict(self.options["base_params"]) or None, **self.options["base_options"])
 
     def _effect_params(self) -> dict[str, np.ndarray]:
-        from skidbench.benchmark.effects import CATALOGUE
-
         out = {}
         for e in self.effects:
             values = self.params.get("effects", {}).get(e, {})
@@ -79,15 +76,11 @@ class AugmentedModel(KinematicModel):
         return out
 
     def fit(self, table: pd.DataFrame) -> AugmentedModel:
-        from skidbench.benchmark.discover import DiscoverError, _jsonable_params, fit_effects
-
         self.check_columns(table, fitting=True)
         missing = [c for c in ("x", "y", "yaw") if c not in table.columns]
         if missing:
             raise ModelError(f"model {self.name}: training table lacks column(s) {missing}")
         try:
-            from skidbench.benchmark.terms import parse_term
-
             state = fit_effects(
                 table,
                 self._new_base,
@@ -99,7 +92,7 @@ class AugmentedModel(KinematicModel):
             raise ModelError(f"model {self.name}: {exc}") from None
         self.base_model = state.base
         base_json = state.base.to_json() if hasattr(state.base, "to_json") else {"params": state.base.params}
-        self.params = {"base": base_json, "effects": _jsonable_params(state.params)}
+        self.params = {"base": base_json, "effects": jsonable_params(state.params)}
         if self.terms:
             self.params["terms"] = {k: dict(v) for k, v in state.term_params.items()}
         valid = table["valid"].to_numpy(bool)
@@ -107,8 +100,6 @@ class AugmentedModel(KinematicModel):
         return self
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:
-        from skidbench.benchmark.effects import augmented_prediction
-
         self.check_columns(table)
         if self.base_model is None:
             raise ModelError(f"model {self.name}: not fitted")
@@ -137,11 +128,8 @@ class AugmentedModel(KinematicModel):
 
 def parse_spec(spec: str) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
     """``"edd+actuator_lag+sat.wz_pred.wz@0.99"`` -> ("edd", ("actuator_lag",), ("sat.wz_pred.wz@0.99",)):
-    base, catalogue effects, open-ended terms (keys of ``skidbench.benchmark.terms``); ModelError naming
+    base, catalogue effects, open-ended terms (keys of ``skidbench.models.terms``); ModelError naming
     the spec for an unknown or repeated effect."""
-    from skidbench.benchmark.effects import CATALOGUE, EFFECT_IDS
-    from skidbench.benchmark.terms import is_term_key, parse_term
-
     parts = [p.strip() for p in str(spec).split(SEP)]
     terms = tuple(parse_term(p).key for p in parts[1:] if is_term_key(p))  # one spelling of the knots
     base, effects = parts[0], tuple(p for p in parts[1:] if not is_term_key(p))
@@ -158,12 +146,10 @@ def parse_spec(spec: str) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
 @functools.lru_cache(maxsize=128)
 def augmented_class(spec: str) -> type[AugmentedModel]:
     """The model class of a spec ``base+effect+...`` (the base must be an installed model)."""
-    from .registry import get_model_class
-
     base, effects, terms = parse_spec(spec)
     if SEP in base:
         raise ModelError(f"model {spec}: bad spec")
-    base_cls = get_model_class(base)
+    base_cls = plugin_class(base)
     required = tuple(dict.fromkeys((*getattr(base_cls, "required_columns", ()), *EFFECT_COLUMNS)))
     return type(
         "Augmented_" + "_".join((base, *effects)),
@@ -175,7 +161,7 @@ def augmented_class(spec: str) -> type[AugmentedModel]:
             "effects": effects,
             "terms": terms,
             "required_columns": required,
-            "calibrated_constants": tuple(getattr(base_cls, "calibrated_constants", ("wheel_radius",))),
+            "calibrated_constants": calibrated_constants(base_cls),
             "__module__": __name__,
         },
     )

@@ -55,6 +55,9 @@ class KinematicModel(ABC):
     #: because the model's own parameters absorb them. Default: the effective wheel radius only (what r
     #: means in any kinematic model); a model whose geometry is the physical track keeps it.
     calibrated_constants: ClassVar[tuple[str, ...]] = ("wheel_radius",)
+    #: how the model takes the calibrated constants, in a line (``skidbench calibrate`` prints it and the
+    #: calibration JSON records it as ``model_usage``); empty: not listed
+    calibration_usage: ClassVar[str] = ""
 
     def __init__(self, robot: Robot, params: dict[str, Any] | None = None, **options: Any):
         self.robot = robot
@@ -149,15 +152,7 @@ def _json_scalar(v: Any) -> Any:
     raise TypeError(f"{type(v).__name__} is not JSON data")
 
 
-def concat_sequences(tables: list[tuple[pd.DataFrame, dict]] | list[pd.DataFrame]) -> pd.DataFrame:
-    """Concatenate split tables of several sequences, adding a ``sequence`` column (int codes kept
-    stable by order) so that models and metrics never integrate or differentiate across a boundary."""
-    frames = []
-    for i, item in enumerate(tables):
-        df, meta = item if isinstance(item, tuple) else (item, {})
-        df = df.copy()
-        df["sequence"] = meta.get("sequence", str(i))
-        frames.append(df)
-    if not frames:
-        raise ModelError("no sequences to concatenate")
-    return pd.concat(frames, ignore_index=True)
+def calibrated_constants(cls: type) -> tuple[str, ...]:
+    """The robot constants a model class takes from the calibration (``calibrated_constants``; a duck-typed
+    plugin without it takes the radius, as :class:`KinematicModel`)."""
+    return tuple(getattr(cls, "calibrated_constants", ("wheel_radius",)))

@@ -31,6 +31,9 @@ class EnhancedKinematic(KinematicModel):
     required_columns = ("cmd_wl", "cmd_wr")
     #: slips beyond the calibrated kinematics (p2 and p6 would absorb a radius and a track scale anyway)
     calibrated_constants = ("wheel_radius", "track_width")
+    calibration_usage = (
+        "calibrated radius and track width (p1..p6 are slips beyond the calibrated kinematics)"
+    )
 
     def features(self, table: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(v_x, w) zero-slip prediction and (f_lon/N, f_lat/N), each (T,)."""

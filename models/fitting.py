@@ -25,16 +25,18 @@ from typing import Any
 import numpy as np
 
 from skidbench.pipeline.calibration import response_for, robot_for_model
-from skidbench.pipeline.io import atomic_path, fingerprint_file, fingerprint_obj, write_json_atomic
+from skidbench.pipeline.io import fingerprint_file, fingerprint_obj, write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
 from skidbench.pipeline.robot import Robot, robot_from_hydra
-from skidbench.pipeline.schema import read_split
+from skidbench.pipeline.schema import concat_sequences, read_split
 from skidbench.pipeline.wheel_response import WheelResponse
 
-from .base import KinematicModel, ModelError, concat_sequences
-from .registry import DISCOVERED, discover, get_model_class
+from .base import KinematicModel, ModelError, calibrated_constants
+from .registry import DISCOVERED, discover
+from .saved import arrays_file, from_saved, save_arrays
+from .specs import get_model_class
 
 FIT_SCHEMA = 2  # 2: fitted under an input protocol (``inputs``, pipeline/protocol.py)
 
@@ -297,14 +299,15 @@ def fit_model(
     cls = get_model_class(spec)
     files = _training_files(cfg, model_name, terrain, split)
     inputs, spec_robot, response = protocol_inputs(cfg, terrain)
-    robot, constants = robot_for_model(cfg, cls, terrain)  # the calibrated constants the model takes
+    # the calibrated constants the model takes
+    robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
     fp = _fingerprint(cfg, spec, files, robot, cls, inputs, response)
     path = layout.fit_file(model_name, terrain, inputs)
     if reuse and path.is_file():
         try:
             saved = json.loads(path.read_text())
             if saved.get("inputs_fingerprint") == fp:
-                model = _from_saved(cls, robot, saved, spec, path)
+                model = from_saved(cls, robot, saved, spec, path)
                 return FitResult(
                     model,
                     path,
@@ -367,32 +370,6 @@ def fit_model(
     return result
 
 
-def arrays_file(fit_json: Path) -> Path:
-    """``fits/<model>/<terrain>.arrays.npz``: the fitted arrays of the fit ``fit_json``."""
-    return fit_json.with_name(fit_json.name.removesuffix(".json") + ".arrays.npz")
-
-
-def save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> str:
-    """Write ``arrays`` (name -> array) atomically as an uncompressed .npz; returns its fingerprint."""
-    with atomic_path(path, ".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-    return fingerprint_file(path)
-
-
-def load_arrays(path: Path, fingerprint: str | None = None) -> dict[str, np.ndarray]:
-    """The arrays of :func:`save_arrays` (ModelError if absent, unreadable or not the recorded file)."""
-    if not path.is_file():
-        raise ModelError(f"{path}: fitted arrays missing; refit (skidbench fit)")
-    if fingerprint is not None and fingerprint_file(path) != fingerprint:
-        raise ModelError(f"{path}: fitted arrays changed since the fit JSON was written; refit")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise ModelError(f"{path}: unreadable fitted arrays ({exc})") from None
-
-
 def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:
     arrays = dict(getattr(model, "arrays", None) or {})
     for k, v in arrays.items():
@@ -403,26 +380,6 @@ def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:
             raise ModelError(f"model {model_name}: arrays[{k!r}] is not numeric (dtype object)")
         arrays[k] = a
     return arrays
-
-
-def _from_saved(
-    cls: type, robot: Robot, saved: dict, model_name: str, path: Path | None = None
-) -> KinematicModel:
-    if hasattr(cls, "from_json"):
-        m = cls.from_json(robot, saved)
-    else:
-        m = cls(robot, saved.get("params") or {}, **(saved.get("options") or {}))
-        m.fit_loss_ = saved.get("fit_loss")
-    rec = saved.get("arrays")
-    if rec:
-        if path is None:
-            raise ModelError(f"model {model_name}: a fit with arrays needs its file's folder")
-        arrays = load_arrays(path.parent / rec["file"], rec.get("fingerprint"))
-        if hasattr(m, "set_arrays"):
-            m.set_arrays(arrays)
-        else:
-            m.arrays = arrays
-    return m
 
 
 def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
@@ -441,5 +398,5 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
 
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)
-    robot, _ = robot_for_model(cfg, cls, terrain)
-    return _from_saved(cls, robot, saved, spec, path)
+    robot, _ = robot_for_model(cfg, calibrated_constants(cls), terrain)
+    return from_saved(cls, robot, saved, spec, path)

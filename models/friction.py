@@ -159,6 +159,9 @@ class FrictionBased(KinematicModel):
     # calibration measures absorbs, and the wheel positions are physical; taking the calibrated radius
     # counts the slip twice (DRIVE Husky Train: fit loss 0.149 with it, 0.0845 without; README)
     calibrated_constants = ()
+    calibration_usage = (
+        "neither: its slip ratios absorb the effective radius, its wheel positions are physical"
+    )
 
     def __init__(self, robot, params=None, **options):
         if "actuator" in options:

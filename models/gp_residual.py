@@ -40,7 +40,7 @@ from scipy.optimize import minimize
 
 from .base import KinematicModel, ModelError
 from .columns import TARGETS, col, error_autocorrelation, mse, sequence_starts, targets
-from .registry import get_model_class
+from .specs import get_model_class
 
 try:  # installed with scipy's and scikit-learn's stacks; optional here
     from threadpoolctl import threadpool_limits

@@ -17,6 +17,7 @@ class IdealDifferentialDrive(KinematicModel):
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
     calibrated_constants = ("wheel_radius", "track_width")  # the calibrated kinematics, nothing fitted
+    calibration_usage = "calibrated radius and track width (the ideal model is the calibrated kinematics)"
 
     def fit(self, table: pd.DataFrame) -> IdealDifferentialDrive:
         self.check_columns(table, fitting=True)

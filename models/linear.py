@@ -19,6 +19,9 @@ class ExtendedDifferentialDrive(KinematicModel):
     required_columns = ("cmd_wl", "cmd_wr")
     #: chi absorbs the track width (chi = B_eff / B_spec): the spec sheet's track keeps chi's meaning
     calibrated_constants = ("wheel_radius",)
+    calibration_usage = (
+        "calibrated radius; spec-sheet track: chi absorbs the track width (chi = B_eff / B_spec)"
+    )
 
     def fit(self, table: pd.DataFrame) -> ExtendedDifferentialDrive:
         self.check_columns(table, fitting=True)
@@ -49,6 +52,7 @@ class FullLinear(KinematicModel):
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
     calibrated_constants = ()  # A absorbs radius and track width (they only enter its unfitted default)
+    calibration_usage = "neither: its matrix A absorbs radius and track width"
 
     def ideal_matrix(self) -> np.ndarray:
         r, B = self.robot.wheel_radius, self.robot.track_width

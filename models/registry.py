@@ -100,6 +100,13 @@ def available() -> list[str]:
     return [n for n, i in discover().items() if i.ok]
 
 
+def calibration_usage() -> dict[str, str]:
+    """How each installed model that says so takes the calibrated constants (name -> its
+    ``calibration_usage``), by name."""
+    usage = {n: str(getattr(i.cls, "calibration_usage", "") or "") for n, i in discover().items() if i.ok}
+    return {n: u for n, u in usage.items() if u}
+
+
 #: the model name that stands, per terrain, for what ``skidbench discover`` found (base + effects in the
 #: dataset's discovery.json); resolved by ``skidbench.models.fitting.resolve_model_spec``
 DISCOVERED = "discovered"
@@ -110,13 +117,9 @@ def is_model_spec(name: str) -> bool:
     return name == DISCOVERED or "+" in str(name)
 
 
-def get_model_class(name: str) -> type[KinematicModel]:
-    """The model class registered as ``name``, or the augmented model of a spec ``base+effect+...``
-    (``skidbench.models.augmented``); ModelError (one line) if absent or broken."""
-    if "+" in str(name):
-        from .augmented import augmented_class
-
-        return augmented_class(str(name))
+def plugin_class(name: str) -> type[KinematicModel]:
+    """The model class installed as ``name`` (an entry point; a spec ``base+effect+...`` is resolved by
+    :func:`skidbench.models.specs.get_model_class`); ModelError (one line) if absent or broken."""
     if name == DISCOVERED:
         raise ModelError(
             f"model {DISCOVERED}: stands for a terrain's discovery result; it is resolved per terrain by "

@@ -22,6 +22,7 @@ class RocBased(KinematicModel):
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr")
     calibrated_constants = ("wheel_radius",)  # chi(R) absorbs the track width, as edd's chi
+    calibration_usage = "calibrated radius; spec-sheet track: chi(R) absorbs the track width"
 
     def chi(self, wl: np.ndarray, wr: np.ndarray, b1: float, b2: float) -> np.ndarray:
         num = np.abs(self.robot.track_width / 2.0 * (wr + wl))

@@ -17,10 +17,11 @@ import hydra
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from skidbench.models.registry import calibration_usage
+
 from .cache import Fingerprints
 from .calibration import (
     CONSTANTS,
-    MODEL_USAGE,
     calibrate_terrain,
     settings_from_cfg,
     train_files,
@@ -100,9 +101,10 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
         import shutil
 
         shutil.rmtree(layout.root / ".stamps" / "calibrate", ignore_errors=True)
+    usage = calibration_usage()  # the models say how they take the constants; the calibration knows none
     docs, recomputed = {}, []
     for terrain in terrains:
-        docs[terrain], fresh = calibrate_terrain(layout, terrain, spec, s, str(cfg.dataset))
+        docs[terrain], fresh = calibrate_terrain(layout, terrain, spec, s, str(cfg.dataset), usage)
         if fresh:
             recomputed.append(terrain)
     print(
@@ -113,7 +115,7 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     if not use_calibration(cfg):
         print("calibrate.use=false: every model is fitted with the spec sheet's constants")
     else:
-        print("models take: " + "; ".join(f"{m}: {u}" for m, u in MODEL_USAGE.items()))
+        print("models take: " + "; ".join(f"{m}: {u}" for m, u in usage.items()))
     print(f"written: {layout.calibration}/<terrain>.json" + ("" if recomputed else " (up to date, skipped)"))
     if recomputed and bool(cfg.get("track", True)):
         log_run(cfg, layout, docs, spec.name)

@@ -26,10 +26,9 @@ interval at ``ci`` and the bootstrap standard error.
 
 How the models take the constants (:func:`robot_for_model`): a model class lists the constants it takes
 from the calibration in ``calibrated_constants`` (``models/base.py``: the radius by default), and keeps
-the spec sheet's value of the others, which its own parameters absorb (chi of ``edd``/``roc`` is the
-ratio of the effective to the physical track, ``full_linear``'s A absorbs both, the friction model's slip
-ratios absorb the effective radius and its wheel positions are physical). ``calibrate.use=false``: every
-model gets the spec sheet's robot.
+the spec sheet's value of the others, which its own parameters absorb (each model says how in its
+``calibration_usage``; the calibration knows no model). ``calibrate.use=false``: every model gets the
+spec sheet's robot.
 """
 
 from __future__ import annotations
@@ -48,7 +47,7 @@ from .errors import SkidbenchError
 from .io import fingerprint_obj, write_json_atomic
 from .layout import Layout, layout_from_cfg
 from .robot import Robot, robot_from_hydra
-from .schema import read_split
+from .schema import concat_sequences, read_split
 from .wheel_response import ResponseFit, WheelResponse, identify_response
 
 log = logging.getLogger("skidbench.calibrate")
@@ -140,7 +139,7 @@ def _slope_with_ci(
 
 def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
     """The calibration document of one terrain from its concatenated Train table (``sequence`` column as
-    :func:`skidbench.models.base.concat_sequences` adds). See the module docstring."""
+    :func:`skidbench.pipeline.schema.concat_sequences` adds). See the module docstring."""
     need = ["t", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr", "enc_wl", "enc_wr", "vx", "wz", "valid"]
     missing = [c for c in need if c not in table.columns]
     if missing:
@@ -295,12 +294,17 @@ def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
 
 
 def calibrate_terrain(
-    layout: Layout, terrain: str, spec: Robot, s: CalibrationSettings, dataset: str = ""
+    layout: Layout,
+    terrain: str,
+    spec: Robot,
+    s: CalibrationSettings,
+    dataset: str = "",
+    model_usage: Mapping[str, str] | None = None,
 ) -> tuple[dict[str, Any], bool]:
     """The calibration of ``terrain`` (``<ds>/calibration/<terrain>.json``), recomputed only when its
-    stamp (Train split files, robot spec, settings) is stale. Returns (document, recomputed)."""
-    from skidbench.models.base import concat_sequences
-
+    stamp (Train split files, robot spec, settings) is stale. Returns (document, recomputed).
+    ``model_usage``: how the installed models take the constants (model name -> text, their
+    ``calibration_usage``), recorded in the document as it is given."""
     files = train_files(layout, terrain)
     if not files:
         raise CalibrationError(
@@ -326,24 +330,12 @@ def calibrate_terrain(
             "split": "train",
             "sequences": [p.stem for p in files],
             "inputs_fingerprint": _inputs_fingerprint(files, spec),
-            "model_usage": MODEL_USAGE,
+            "model_usage": dict(model_usage or {}),
         }
     )
     write_json_atomic(path, doc)
     stamp.record(key, [path])
     return doc, True
-
-
-#: how the built-in models take the calibrated constants (the class attribute
-#: ``calibrated_constants`` is the contract; this text is what the JSON and the README say)
-MODEL_USAGE = {
-    "ideal": "calibrated radius and track width (the ideal model is the calibrated kinematics)",
-    "edd": "calibrated radius; spec-sheet track: chi absorbs the track width (chi = B_eff / B_spec)",
-    "roc": "calibrated radius; spec-sheet track: chi(R) absorbs the track width",
-    "full_linear": "neither: its matrix A absorbs radius and track width",
-    "enhanced": "calibrated radius and track width (p1..p6 are slips beyond the calibrated kinematics)",
-    "friction": "neither: its slip ratios absorb the effective radius, its wheel positions are physical",
-}
 
 
 def load_calibration(cfg: Any, terrain: str) -> dict[str, Any] | None:
@@ -388,11 +380,12 @@ def calibrated_robot(spec: Robot, doc: Mapping[str, Any] | None, constants: Sequ
     return dataclasses.replace(spec, **changes) if changes else spec
 
 
-def robot_for_model(cfg: Any, model_cls: type, terrain: str) -> tuple[Robot, dict[str, Any]]:
-    """The robot a model of class ``model_cls`` is built with on ``terrain``, and a record of where each
-    constant came from (for the fit JSON and MLflow)."""
+def robot_for_model(cfg: Any, constants: Sequence[str], terrain: str) -> tuple[Robot, dict[str, Any]]:
+    """The robot a model that takes the calibrated ``constants`` (its class's ``calibrated_constants``,
+    e.g. ``("wheel_radius",)``) is built with on ``terrain``, and a record of where each constant came
+    from (for the fit JSON and MLflow)."""
     spec = robot_from_hydra(cfg.robot)
-    constants = tuple(getattr(model_cls, "calibrated_constants", ("wheel_radius",)))
+    constants = tuple(constants)
     doc = load_calibration(cfg, terrain)
     robot = calibrated_robot(spec, doc, constants)
     record: dict[str, Any] = {}

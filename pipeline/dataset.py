@@ -24,10 +24,8 @@ but carry the old fingerprint in ``skidbench.dataset_id``, so compare never mixe
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
-import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -36,13 +34,12 @@ from omegaconf import OmegaConf
 
 from .errors import ConfigError
 from .io import write_json_atomic
-from .layout import Layout, layout_from_cfg, prune_stale, remove_atomic
+from .layout import Layout, data_key, data_path, fingerprint_of, layout_from_cfg, prune_stale, remove_atomic
 from .manifest import Manifest
 
 log = logging.getLogger("skidbench.dataset")
 
 RECORD_SCHEMA = 1
-NAME_FP_LEN = 6
 
 
 class DatasetError(ConfigError):
@@ -60,50 +57,8 @@ class DatasetIdentity:
         return f"dataset {self.name} ({self.source} {self.root}, fingerprint {self.fingerprint})"
 
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_.") or "root"
-
-
-def fingerprint_of(key: dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
-
-
-def data_path(source: Any) -> Path:
-    """The resolved absolute path of a source's data: ``source.root`` (+ ``source.file`` when set)."""
-    if OmegaConf.is_config(source) and OmegaConf.is_missing(source, "root"):
-        raise ConfigError(
-            f"source.root is not set for source={source.get('name')}: give source.root=<folder>, or "
-            "dataset=<name> of a dataset already under out_root (`skidbench datasets` lists them)"
-        )
-    path = Path(str(source.get("root"))).expanduser().resolve()
-    file = source.get("file")
-    if file and not isinstance(file, str) and hasattr(file, "__len__"):  # several files: one dataset
-        return path / "+".join(Path(str(f)).stem for f in file)
-    if file:
-        path = path / str(file)
-    return path
-
-
 def is_sim(source: Any) -> bool:
     return str(source.get("name")) == "sim"
-
-
-def _data_key(source: Any) -> dict[str, str]:
-    return {"source": str(source.get("name")), "root": str(data_path(source))}
-
-
-def auto_name(prefix: str, source: Any) -> str:
-    """``<prefix>-<root name>-<fingerprint[:6]>`` (``<prefix>-<label>`` when ``source.label`` is set)."""
-    if source.get("label"):
-        return f"{prefix}-{_safe(str(source.get('label')))}"
-    path = data_path(source)
-    stem = path.stem if path.is_file() else path.name
-    return f"{prefix}-{_safe(stem)}-{fingerprint_of(_data_key(source))[:NAME_FP_LEN]}"
-
-
-def sim_name(scale: str, seed: Any) -> str:
-    seed = int(seed or 0)
-    return f"sim-{scale}" + (f"-seed{seed}" if seed else "")
 
 
 def read_record(layout: Layout) -> dict[str, Any] | None:
@@ -128,7 +83,7 @@ def identity_from_cfg(cfg: Any) -> DatasetIdentity:
                 layout.dataset, str(rec["source"]), str(rec["root"]), str(rec["fingerprint"])
             )
         data_path(source)  # the one-line error
-    key = _data_key(source)
+    key = data_key(source)
     return DatasetIdentity(layout.dataset, key["source"], key["root"], fingerprint_of(key))
 
 

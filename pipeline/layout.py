@@ -20,11 +20,18 @@ manifest no longer holds.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import os
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+
+from omegaconf import OmegaConf
+
+from .errors import ConfigError
 
 if TYPE_CHECKING:
     from .manifest import Manifest
@@ -201,24 +208,68 @@ def layout_from_cfg(cfg) -> Layout:
     return Layout(Path(cfg.out_root), str(cfg.dataset))
 
 
-def _dataset_name(prefix, _root_):
-    from .dataset import auto_name
+# -- dataset names (the folder under out_root a configured source writes to) ----------------------
 
+NAME_FP_LEN = 6
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_.") or "root"
+
+
+def fingerprint_of(key: dict[str, Any]) -> str:
+    """sha256 of a JSON key, 12 hex digits."""
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def data_path(source: Any) -> Path:
+    """The resolved absolute path of a source's data: ``source.root`` (+ ``source.file`` when set)."""
+    if OmegaConf.is_config(source) and OmegaConf.is_missing(source, "root"):
+        raise ConfigError(
+            f"source.root is not set for source={source.get('name')}: give source.root=<folder>, or "
+            "dataset=<name> of a dataset already under out_root (`skidbench datasets` lists them)"
+        )
+    path = Path(str(source.get("root"))).expanduser().resolve()
+    file = source.get("file")
+    if file and not isinstance(file, str) and hasattr(file, "__len__"):  # several files: one dataset
+        return path / "+".join(Path(str(f)).stem for f in file)
+    if file:
+        path = path / str(file)
+    return path
+
+
+def data_key(source: Any) -> dict[str, str]:
+    """The identity key of a source's data: its name and resolved path."""
+    return {"source": str(source.get("name")), "root": str(data_path(source))}
+
+
+def auto_name(prefix: str, source: Any) -> str:
+    """``<prefix>-<root name>-<fingerprint[:6]>`` (``<prefix>-<label>`` when ``source.label`` is set)."""
+    if source.get("label"):
+        return f"{prefix}-{_safe(str(source.get('label')))}"
+    path = data_path(source)
+    stem = path.stem if path.is_file() else path.name
+    return f"{prefix}-{_safe(stem)}-{fingerprint_of(data_key(source))[:NAME_FP_LEN]}"
+
+
+def sim_name(scale: str, seed: Any) -> str:
+    """``sim-<scale>`` (``-seed<n>`` for a seed other than 0)."""
+    seed = int(seed or 0)
+    return f"sim-{scale}" + (f"-seed{seed}" if seed else "")
+
+
+def _dataset_name(prefix, _root_):
     return auto_name(str(prefix), _root_.source)
 
 
 def _sim_dataset_name(scale, seed):
-    from .dataset import sim_name
-
     return sim_name(str(scale), seed)
 
 
 def register_resolvers() -> None:
     """The config's dataset names (conf/source/*.yaml): ``${skidbench.dataset:<prefix>}`` and
-    ``${skidbench.sim_dataset:<scale>,<seed>}`` (pipeline/dataset.py). Registered on import: every module
-    that reads ``cfg.dataset`` imports this one."""
-    from omegaconf import OmegaConf
-
+    ``${skidbench.sim_dataset:<scale>,<seed>}``. Registered on import: every module that reads
+    ``cfg.dataset`` imports this one."""
     if not OmegaConf.has_resolver("skidbench.dataset"):
         OmegaConf.register_new_resolver("skidbench.dataset", _dataset_name)
     if not OmegaConf.has_resolver("skidbench.sim_dataset"):

@@ -136,10 +136,9 @@ def protocol_wheels(table: pd.DataFrame, protocol: str, response: Any = None) ->
             "inputs=response: no wheel response identified for this terrain; run `skidbench calibrate` "
             "(it needs wheel encoders in the Train split)"
         )
-    # lazy: the response's recursion is numba-compiled, and importing numba costs every CLI start ~0.5 s
-    from .wheel_response import wheel_response
-
-    return wheel_response(table, response, _groups(table))
+    # a method of the response (pipeline/wheel_response.py): the protocol, a core module, imports no stage,
+    # and numba (the response's recursion is compiled) is loaded only by whoever identified a response
+    return response.wheels(table, _groups(table))
 
 
 def model_inputs(table: pd.DataFrame, protocol: str, robot: Robot, response: Any = None) -> pd.DataFrame:

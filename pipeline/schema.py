@@ -90,3 +90,17 @@ def list_split_files(splits_root: Path, terrain: str | None = None, split: str |
 def load_split_tables(splits_root: Path, terrain: str, split: str) -> list[tuple[pd.DataFrame, dict]]:
     files = list_split_files(splits_root, terrain, split)
     return [read_split(p) for p in files]
+
+
+def concat_sequences(tables: list[tuple[pd.DataFrame, dict]] | list[pd.DataFrame]) -> pd.DataFrame:
+    """Concatenate split tables of several sequences, adding a ``sequence`` column (int codes kept
+    stable by order) so that models and metrics never integrate or differentiate across a boundary."""
+    frames = []
+    for i, item in enumerate(tables):
+        df, meta = item if isinstance(item, tuple) else (item, {})
+        df = df.copy()
+        df["sequence"] = meta.get("sequence", str(i))
+        frames.append(df)
+    if not frames:
+        raise SplitError("no sequences to concatenate")
+    return pd.concat(frames, ignore_index=True)

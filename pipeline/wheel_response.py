@@ -229,6 +229,12 @@ class WheelResponse:
     wheel_max: float = 0.0  # rad/s
     wheel_drop: float = 0.0  # wheel_max lost per rad/s of (shaped) difference-mode rate
 
+    def wheels(self, table: pd.DataFrame, groups: np.ndarray | None = None) -> np.ndarray:
+        """(T, 4) the wheels' response (wl, wr, dwl, dwr) to ``table``'s commands: :func:`wheel_response`
+        (what the ``response`` input protocol calls, so that ``pipeline/protocol.py`` needs no import of
+        this module)."""
+        return wheel_response(table, self, groups)
+
     def to_params(self) -> dict[str, float]:
         """The ``actuator_*`` entries of a model's ``params``."""
         return {f"actuator_{k}": float(v) for k, v in asdict(self).items()}

@@ -138,9 +138,8 @@ def fit_fn(cfg, model_name, terrain):
     """A stand-in for skidbench.models.fitting.fit_model on the synthetic splits."""
     import time
 
-    from skidbench.models.base import concat_sequences
     from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.schema import load_split_tables
+    from skidbench.pipeline.schema import concat_sequences, load_split_tables
 
     tables = load_split_tables(layout_from_cfg(cfg).splits, terrain, "train")
     table = concat_sequences(tables)

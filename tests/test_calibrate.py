@@ -19,9 +19,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.models.base import concat_sequences  # noqa: E402
 from skidbench.pipeline.calibration import CalibrationSettings, calibrate_table  # noqa: E402
-from skidbench.pipeline.schema import write_split  # noqa: E402
+from skidbench.pipeline.schema import (
+    concat_sequences,  # noqa: E402
+    write_split,  # noqa: E402
+)
 
 R_TRUE = dd.R_WHEEL * 1.06  # effective radius, 6 % over the spec sheet (dd.R_WHEEL = the Jackal's)
 B_TRUE = dd.TRACK * 1.45  # effective track (ICR spread), 45 % over the spec sheet

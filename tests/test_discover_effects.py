@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.benchmark.discover import sign_flip_pvalue
-from skidbench.benchmark.effects import (
+from skidbench.models.effects import (
     CATALOGUE,
     EFFECT_IDS,
     apply_effects,

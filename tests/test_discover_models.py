@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
 from skidbench.models.base import ModelError  # noqa: E402
-from skidbench.models.registry import get_model_class  # noqa: E402
+from skidbench.models.specs import get_model_class  # noqa: E402
 
 EFFECT = "angular_acceleration_slip"
 SPEC = f"edd+{EFFECT}"

@@ -1,4 +1,4 @@
-"""Open-ended discovery (benchmark/terms.py): effects outside the catalogue are named by a term that
+"""Open-ended discovery (models/terms.py): effects outside the catalogue are named by a term that
 matches them, with the constant that was injected, and no catalogue effect is named falsely.
 
 The closed forms first (the slip term is eq. (8) on the extended differential drive; STLSQ recovers a
@@ -18,9 +18,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark import terms as tl  # noqa: E402
-from skidbench.benchmark.discover import DiscoverSettings, build_pool, discover_terrain  # noqa: E402
-from skidbench.models.registry import get_model_class  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.models import terms as tl  # noqa: E402
+from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
+from skidbench.models.specs import get_model_class  # noqa: E402
 
 R, B = dd.R_WHEEL, dd.TRACK
 

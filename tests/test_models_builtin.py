@@ -14,8 +14,8 @@ from skidbench.models.friction import FrictionBased
 from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve, solve_reference
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive, FullLinear
-from skidbench.models.registry import get_model_class
 from skidbench.models.roc import RocBased
+from skidbench.models.specs import get_model_class
 from skidbench.models.synthetic import command_table, label_with
 
 TRUE_FRICTION = {"mu_r": 0.05, "mu_x": 0.9, "mu_y": 0.6, "lambda": 6.0, "C": 0.3}

@@ -10,13 +10,15 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from skidbench.models.base import ModelError, concat_sequences
+from skidbench.models.base import ModelError
 from skidbench.models.drive_blr import DriveBLR
-from skidbench.models.fitting import fit_model, load_arrays, load_fitted, model_config, save_arrays
+from skidbench.models.fitting import fit_model, load_fitted, model_config
 from skidbench.models.gp_residual import GPResidual
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive
+from skidbench.models.saved import load_arrays, save_arrays
 from skidbench.models.synthetic import command_table, label_with, write_train_splits
+from skidbench.pipeline.schema import concat_sequences
 
 NOISE = np.array([0.05, 0.02, 0.04])  # injected velocity noise std (vx m/s, vy m/s, wz rad/s)
 

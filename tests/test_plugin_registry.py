@@ -65,11 +65,11 @@ def test_broken_plugins_are_reported_and_the_others_still_load(with_plugins):
 
 def test_using_a_broken_plugin_is_a_one_line_model_error(with_plugins):
     with pytest.raises(ModelError, match=r"^model broken \(package \?\): cannot import") as exc:
-        registry.get_model_class("broken")
+        registry.plugin_class("broken")
     assert "\n" not in str(exc.value)
     with pytest.raises(ModelError, match=r"model nope: not installed"):
-        registry.get_model_class("nope")
-    assert registry.get_model_class("edd").name == "edd"
+        registry.plugin_class("nope")
+    assert registry.plugin_class("edd").name == "edd"
 
 
 def test_skidbench_models_lists_good_plugins_and_one_line_per_broken_one(with_plugins, capsys):

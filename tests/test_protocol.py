@@ -15,7 +15,7 @@ from _bench_data import JACKAL, compose, sequence_table, write_splits
 from skidbench.benchmark import evaluate as ev
 from skidbench.benchmark.evaluate import run_benchmark
 from skidbench.models import registry
-from skidbench.models.base import KinematicModel, ModelError, concat_sequences
+from skidbench.models.base import KinematicModel, ModelError
 from skidbench.models.fitting import check_inputs
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive
@@ -28,6 +28,7 @@ from skidbench.pipeline.protocol import (
     fit_table,
     model_inputs,
 )
+from skidbench.pipeline.schema import concat_sequences
 from skidbench.pipeline.wheel_response import WheelResponse, wheel_response
 
 DS = "sim-mini"

@@ -36,11 +36,10 @@ def training_table(n_seq: int, seq_rows: int = SEQ_ROWS):
     sequences."""
     from hydra import initialize_config_module
 
-    from skidbench.models.base import concat_sequences
     from skidbench.models.fitting import build_model
     from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.robot import robot_from_hydra
-    from skidbench.pipeline.schema import list_split_files, read_split
+    from skidbench.pipeline.schema import concat_sequences, list_split_files, read_split
 
     from .scaling import _compose, write_splits
 

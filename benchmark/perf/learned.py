@@ -30,10 +30,9 @@ def husky_train(tmp: Path):
     """(cfg, Train table) of the DRIVE Husky through the pipeline's stages into ``tmp``."""
     from hydra import compose, initialize_config_module
 
-    from skidbench.models.base import concat_sequences
     from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.manifest import Manifest
-    from skidbench.pipeline.schema import read_split
+    from skidbench.pipeline.schema import concat_sequences, read_split
 
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp)}
     for stage in ("extract", "groundtruth", "split"):

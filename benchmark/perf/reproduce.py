@@ -7,13 +7,14 @@ Scale: ``mini`` (what ``make reproduce`` runs); ``SKIDBENCH_BENCH_SCALE=tiny`` f
 stages done are reported, the total says incomplete).
 
 Each stage runs as ``skidbench <stage> scale=<s> seed=0`` in its own process, under a small wrapper
-(``python -m skidbench.benchmark.perf.reproduce stage <json> <stage> [overrides]``) that runs the stage
-in-process and at exit writes its own ``VmHWM`` (the high-water mark of the stage's process image) and
-``RUSAGE_CHILDREN``'s ``ru_maxrss`` (the largest process the stage started and waited for, e.g. the
-simulator's workers). Not ``/usr/bin/time -v`` nor the benchmark's own ``RUSAGE_CHILDREN``: a process
-started by fork/vfork+exec inherits its parent's resident size as the floor of its ``ru_maxrss``, so
-those would report at least the size of the (Python) process that started them. Peak per stage is the
-larger of the two figures: the largest single process, not the sum of concurrent workers.
+(``python -m skidbench.benchmark.perf.reproduce stage <json> <stage> [overrides]``) that runs the CLI
+in-process (``runpy``, as ``python -m skidbench.pipeline.cli``) and at exit writes its own ``VmHWM`` (the
+high-water mark of the stage's process image) and ``RUSAGE_CHILDREN``'s ``ru_maxrss`` (the largest process
+the stage started and waited for, e.g. the simulator's workers). Not ``/usr/bin/time -v`` nor the
+benchmark's own ``RUSAGE_CHILDREN``: a process started by fork/vfork+exec inherits its parent's resident
+size as the floor of its ``ru_maxrss``, so those would report at least the size of the (Python) process that
+started them. Peak per stage is the larger of the two figures: the largest single process, not the sum of
+concurrent workers.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import atexit
 import json
 import os
 import resource
+import runpy
 import subprocess
 import sys
 import tempfile
@@ -188,9 +190,11 @@ def _stage_main(report: str, stage: str, args: list[str]) -> None:
         Path(report).write_text(json.dumps({"self_mb": peak_rss_mb(), "children_mb": children}))
 
     atexit.register(write)
-    from skidbench.pipeline.cli import main
-
-    main([stage, *args])
+    # the CLI run as a program, in this process (``python -m skidbench.pipeline.cli <stage> ...``): the
+    # harness measures the command line itself, and the app layer sits above the benchmark, so it is
+    # run by name, not imported (a subprocess would inherit this process's size as its RSS floor, above)
+    sys.argv = ["skidbench", stage, *args]
+    runpy.run_module("skidbench.pipeline.cli", run_name="__main__", alter_sys=True)
 
 
 if __name__ == "__main__":

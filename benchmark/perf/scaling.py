@@ -92,10 +92,9 @@ def time_model(cfg, name: str, repeats: int, eval_params: dict | None = None) ->
     the model just fitted); ``"fitted"``: the fitted model's ``to_json()``."""
     from skidbench.benchmark.evaluate import load_test_split, predict_split, score_split, split_files
     from skidbench.benchmark.horizon import HorizonConfig
-    from skidbench.models.base import concat_sequences
     from skidbench.models.fitting import build_model
     from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.schema import read_split
+    from skidbench.pipeline.schema import concat_sequences, read_split
 
     layout = layout_from_cfg(cfg)
     train = concat_sequences([read_split(p) for p in split_files(layout, "tile", "train")])

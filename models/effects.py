@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from skidbench.benchmark import terms as termlib
+from skidbench.models import terms as termlib
 from skidbench.pipeline.wheel_response import CMD_COLUMNS, lag_filter  # noqa: F401  (the one home of the lag)
 
 INF = float("inf")
@@ -269,7 +269,7 @@ def augmented_prediction(
     """The prediction of a fitted augmented model (base model + effects with ``params``, as discovery
     fits them) on any table: the commands through the lag of ``actuator_lag`` (restarted at each
     ``sequence``), the base model on them, then the corrections (:func:`apply_effects`), then the
-    open-ended ``terms`` (key -> {theta, c_v, c_w}; :mod:`skidbench.benchmark.terms`)."""
+    open-ended ``terms`` (key -> {theta, c_v, c_w}; :mod:`skidbench.models.terms`)."""
     groups = (
         pd.factorize(table["sequence"])[0] if "sequence" in table.columns else np.zeros(len(table), np.int64)
     )

@@ -1,5 +1,5 @@
 """Open-ended discovery: a library of candidate terms beyond the effect catalogue, and the sparse regression
-that picks from it (SPEC.md "Discrepancy discovery"; the catalogue is :mod:`skidbench.benchmark.effects`).
+that picks from it (SPEC.md "Discrepancy discovery"; the catalogue is :mod:`skidbench.models.effects`).
 
 A term is an additive correction ``V += theta * g(signals; knots)`` of the body velocities V = (vx, vy, wz),
 with one coefficient ``theta`` and zero, one or two knots. The signals are what every split has under
@@ -199,7 +199,7 @@ def is_term_key(key: str) -> bool:
 
 
 def signals(feats: dict[str, np.ndarray], base_pred: np.ndarray, t: np.ndarray, track_width: float) -> dict:
-    """The library's signals (each (T,)): ``feats`` of :func:`skidbench.benchmark.effects.command_features`
+    """The library's signals (each (T,)): ``feats`` of :func:`skidbench.models.effects.command_features`
     (m/s, rad/s and their derivatives, after any input transform), the base prediction (T, 3), ``t`` (s
     since the sequence start)."""
     v, w = np.asarray(feats["v"], float), np.asarray(feats["w"], float)

@@ -1,0 +1,61 @@
+"""A fitted model on disk: the fit JSON and the fitted arrays beside it (``fits/<model>/<terrain>.json``
+and ``.arrays.npz``), read back into a model object."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from skidbench.pipeline.io import atomic_path, fingerprint_file
+from skidbench.pipeline.robot import Robot
+
+from .base import KinematicModel, ModelError
+
+
+def arrays_file(fit_json: Path) -> Path:
+    """``fits/<model>/<terrain>.arrays.npz``: the fitted arrays of the fit ``fit_json``."""
+    return fit_json.with_name(fit_json.name.removesuffix(".json") + ".arrays.npz")
+
+
+def save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write ``arrays`` (name -> array) atomically as an uncompressed .npz; returns its fingerprint."""
+    with atomic_path(path, ".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    return fingerprint_file(path)
+
+
+def load_arrays(path: Path, fingerprint: str | None = None) -> dict[str, np.ndarray]:
+    """The arrays of :func:`save_arrays` (ModelError if absent, unreadable or not the recorded file)."""
+    if not path.is_file():
+        raise ModelError(f"{path}: fitted arrays missing; refit (skidbench fit)")
+    if fingerprint is not None and fingerprint_file(path) != fingerprint:
+        raise ModelError(f"{path}: fitted arrays changed since the fit JSON was written; refit")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise ModelError(f"{path}: unreadable fitted arrays ({exc})") from None
+
+
+def from_saved(
+    cls: type, robot: Robot, saved: dict, model_name: str, path: Path | None = None
+) -> KinematicModel:
+    """A fitted model of class ``cls`` from its saved fit JSON ``saved`` (the arrays it names read from
+    beside ``path``)."""
+    if hasattr(cls, "from_json"):
+        m = cls.from_json(robot, saved)
+    else:
+        m = cls(robot, saved.get("params") or {}, **(saved.get("options") or {}))
+        m.fit_loss_ = saved.get("fit_loss")
+    rec = saved.get("arrays")
+    if rec:
+        if path is None:
+            raise ModelError(f"model {model_name}: a fit with arrays needs its file's folder")
+        arrays = load_arrays(path.parent / rec["file"], rec.get("fingerprint"))
+        if hasattr(m, "set_arrays"):
+            m.set_arrays(arrays)
+        else:
+            m.arrays = arrays
+    return m
