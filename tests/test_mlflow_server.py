@@ -10,6 +10,10 @@ from mlflow_server import running_mlflow_server
 from skidbench.benchmark.compare import run_compare
 from skidbench.benchmark.evaluate import run_benchmark
 
+# subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
+pytestmark = pytest.mark.slow
+
+
 DS = "sim-mini"
 
 

@@ -219,6 +219,7 @@ def drive_husky_fit(shared_real, tmp_path_factory):
     return model, response
 
 
+@pytest.mark.slow
 def test_drive_husky_fit_under_response_keeps_every_parameter_off_its_bounds(drive_husky_fit):
     """Real data: the wheels' dead time and lag come from the encoders (the calibration's wheel response,
     pipeline/wheel_response.py), and the friction model driven by it has every parameter more than 1 % of

@@ -3,9 +3,14 @@ runs again in a fresh output root (fits recomputed, a new MLflow store)."""
 
 from __future__ import annotations
 
+import pytest
 from hydra import compose, initialize_config_module
 from mlflow.tracking import MlflowClient
 from reliability_data import SCALE, copy_splits
+
+# subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 TIMINGS = {"fit_time_s", "predict_time_s"}  # wall-clock: the only metrics allowed to differ
 

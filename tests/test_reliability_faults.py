@@ -16,6 +16,9 @@ import pyarrow.parquet as pq
 import pytest
 from reliability_data import DATASET, STAGE_ARGS, copy_splits, skidbench, snapshot, tmp_files
 
+# subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
+pytestmark = pytest.mark.slow
+
 # stage -> (outputs deleted before the killed run, path fragment of the write that is killed, n-th write)
 KILLS = {
     "simulate": ("raw/bags/*.bag", ".bag", 2),

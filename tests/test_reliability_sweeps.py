@@ -10,6 +10,10 @@ import pytest
 from mlflow_server import running_mlflow_server
 from reliability_data import DATASET, SCALE, skidbench
 
+# subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
+pytestmark = pytest.mark.slow
+
+
 MODELS = ("ideal", "edd", "full_linear")  # 3 jobs on 2 workers
 TERRAINS = ("tile",)  # the micro dataset has one terrain
 

@@ -175,6 +175,7 @@ def test_identified_response_reports_per_structure_heldout_rmse_and_parameter_un
     assert abs(fit.response.tau_s - 0.35) <= 4 * se["tau_s"] + 0.02
 
 
+@pytest.mark.slow
 def test_drive_warthog_response_beats_the_delay_lag_model(shared_real, tmp_path):
     """Real data: on the first 200 s of the DRIVE Warthog's Train split the identified response's encoder
     RMSE is below the delay + lag model's (its wheels saturate and turn at a fraction of the command)."""

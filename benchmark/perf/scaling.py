@@ -86,10 +86,10 @@ def _compose(out_root: Path, dataset: str):
     return compose(config_name="evaluate", overrides=[f"out_root={out_root}", f"dataset={dataset}"])
 
 
-def time_model(cfg, name: str, repeats: int, eval_params: dict | None = None) -> dict[str, Any]:
+def time_model(cfg, name: str, repeats: int, eval_params: tuple | None = None) -> dict[str, Any]:
     """Best-of CPU and wall seconds of fit (``model.fit`` on the Train table, as ``fit_model`` calls it)
-    and evaluation (predict + score the CV split) of the model ``eval_params`` (a ``to_json()``; default
-    the model just fitted); ``"fitted"``: the fitted model's ``to_json()``."""
+    and evaluation (predict + score the CV split) of the model ``eval_params`` (``(to_json(), arrays)``;
+    default the model just fitted); ``"fitted"``: the fitted model's ``(to_json(), arrays)``."""
     from skidbench.benchmark.evaluate import load_test_split, predict_split, score_split, split_files
     from skidbench.benchmark.horizon import HorizonConfig
     from skidbench.models.fitting import build_model
@@ -106,9 +106,13 @@ def time_model(cfg, name: str, repeats: int, eval_params: dict | None = None) ->
         model.fit(train)
         best["fit_cpu"] = min(best["fit_cpu"], time.process_time() - c)
         best["fit_wall"] = min(best["fit_wall"], time.perf_counter() - w)
-        best["fitted"] = model.to_json()
+        # a learned model's fitted arrays travel with its JSON (as a saved fit's .npz does)
+        best["fitted"] = (model.to_json(), dict(getattr(model, "arrays", None) or {}))
         if eval_params is not None:
-            model = type(model).from_json(model.robot, eval_params)
+            saved, arrays = eval_params
+            model = type(model).from_json(model.robot, saved)
+            if arrays:
+                model.set_arrays(arrays)
         c, w = time.process_time(), time.perf_counter()
         vel, _ = predict_split(model, seqs)
         windows = score_split(seqs, vel, [HORIZON_S], HorizonConfig(HORIZON_S))
@@ -136,7 +140,7 @@ def scaling(
     models = list(models or builtin_models())
     out: dict[str, Any] = {}
     table: dict[str, dict[str, list[float]]] = {m: {} for m in models}
-    eval_params: dict[str, dict] = {}
+    eval_params: dict[str, tuple] = {}
     rows: list[float] = []
     # one BLAS thread: CPU time then measures work, not idle spinning of a second thread
     with (
