@@ -4,7 +4,7 @@ function, goes to the same layer or one below, and no two modules import each ot
     core        pipeline/{errors,geometry,io,cache,layout,manifest,schema,robot,protocol}
     stages      the rest of pipeline/ (simulate, extract, groundtruth, splits, sources, calibration, ...)
     models      models/
-    benchmark   benchmark/ (evaluation, tracking, comparison, discovery, performance harness)
+    benchmark   benchmark/ (evaluation, tracking, comparison, discovery)
     apps        every stage's Hydra entry point (``app.py``, ``*_app.py``), ``pipeline/cli.py`` and the stage
                 plumbing beside it (``pipeline/stage.py``, ``pipeline/overrides.py``)
 
@@ -128,3 +128,19 @@ def test_the_check_sees_imports_inside_functions(tmp_path):
     assert imports_of("models.x", src, {"benchmark.evaluate"}) == [(2, "benchmark.evaluate")]
     assert layer("models.x") == "models" and layer("benchmark.evaluate") == "benchmark"
     assert layer("pipeline.io") == "core" and layer("pipeline.calibrate_app") == "apps"
+
+
+def test_the_installed_package_never_imports_the_bench_harness():
+    """``bench/`` (``make bench``) sits outside the installed package: an import of it from the package
+    would work in a checkout and fail in an installed copy."""
+    found = []
+    for mod, path in our_modules().items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [node.module or ""]
+            else:
+                continue
+            found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] == "bench"]
+    assert not found, "\n".join(found)

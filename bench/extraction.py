@@ -1,8 +1,8 @@
 """Extraction: our ``extract_bag`` vs bare rosbags (open, filter connections, iterate, deserialise the
 same messages, nothing else), and extraction's peak memory on a short and a long bag.
 
-Each side of the memory comparison runs in a fresh interpreter (``python -m
-skidbench.benchmark.perf.extraction rss <bag> <out>``), so the figures are each run's own peak RSS.
+Each side of the memory comparison runs in a fresh interpreter (``python -m bench.extraction rss <bag>
+<out>``), so the figures are each run's own peak RSS.
 Bags are synthetic Jackal bags (``pipeline/extract/synthetic.py``), cached under
 ``$SKIDBENCH_OUT/bench/bags``; the simulator's ``sim-mini``/``sim-full`` bags are measured too when
 they exist.
@@ -24,7 +24,7 @@ from skidbench.pipeline.extract.synthetic import JACKAL_TOPICS, write_bag
 from skidbench.pipeline.layout import default_out_root
 from skidbench.pipeline.manifest import Manifest
 
-from . import register
+from . import child_env, register
 from .harness import peak_rss_mb
 
 # the Jackal topic keys of conf/source/sim.yaml that the synthetic bags carry
@@ -99,8 +99,8 @@ def measure_rss(bag: Path, mode: str = "ours") -> dict[str, float]:
     ``mode``: ``ours`` (extract_bag, synthetic topics), ``sim`` (extract_bag, the sim config's topics) or
     ``bare`` (rosbags alone)."""
     with tempfile.TemporaryDirectory(prefix="skidbench-rss-") as tmp:
-        cmd = [sys.executable, "-m", "skidbench.benchmark.perf.extraction", mode, str(bag), tmp]
-        proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        cmd = [sys.executable, "-m", "bench.extraction", mode, str(bag), tmp]
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=child_env())
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 

@@ -7,7 +7,7 @@ Scale: ``mini`` (what ``make reproduce`` runs); ``SKIDBENCH_BENCH_SCALE=tiny`` f
 stages done are reported, the total says incomplete).
 
 Each stage runs as ``skidbench <stage> scale=<s> seed=0`` in its own process, under a small wrapper
-(``python -m skidbench.benchmark.perf.reproduce stage <json> <stage> [overrides]``) that runs the CLI
+(``python -m bench.reproduce stage <json> <stage> [overrides]``) that runs the CLI
 in-process (``runpy``, as ``python -m skidbench.pipeline.cli``) and at exit writes its own ``VmHWM`` (the
 high-water mark of the stage's process image) and ``RUSAGE_CHILDREN``'s ``ru_maxrss`` (the largest process
 the stage started and waited for, e.g. the simulator's workers). Not ``/usr/bin/time -v`` nor the
@@ -33,7 +33,7 @@ from typing import Any
 
 from skidbench.pipeline.layout import default_out_root
 
-from . import register
+from . import child_env, register
 from .harness import peak_rss_mb
 
 #: the steps of ``make reproduce``: (label, stage, its extra arguments); evaluate runs twice, under the
@@ -58,12 +58,12 @@ def run_stage(
     stage: str, args: list[str], out_root: Path, cwd: Path, label: str | None = None
 ) -> dict[str, Any]:
     """One stage in a fresh process under the wrapper: wall/CPU seconds, peak RSS (MiB), exit code."""
-    env = dict(os.environ)
+    env = child_env()  # the stage's cwd is its own folder: bench found through PYTHONPATH
     env["SKIDBENCH_OUT"] = str(out_root)
     env.pop("MLFLOW_TRACKING_URI", None)  # the fresh root's own mlflow.db
     with tempfile.NamedTemporaryFile(prefix="skidbench-stage-", suffix=".json", delete=False) as f:
         report = Path(f.name)
-    cmd = [sys.executable, "-m", "skidbench.benchmark.perf.reproduce", "stage", str(report), stage, *args]
+    cmd = [sys.executable, "-m", "bench.reproduce", "stage", str(report), stage, *args]
     log = cwd / f"{label or stage}.log"
     started = time.perf_counter()
     with log.open("w") as out:
@@ -191,8 +191,8 @@ def _stage_main(report: str, stage: str, args: list[str]) -> None:
 
     atexit.register(write)
     # the CLI run as a program, in this process (``python -m skidbench.pipeline.cli <stage> ...``): the
-    # harness measures the command line itself, and the app layer sits above the benchmark, so it is
-    # run by name, not imported (a subprocess would inherit this process's size as its RSS floor, above)
+    # harness measures the command line itself, run by name as a user runs it, not imported; in this
+    # process, because a subprocess would inherit this process's size as its RSS floor (above)
     sys.argv = ["skidbench", stage, *args]
     runpy.run_module("skidbench.pipeline.cli", run_name="__main__", alter_sys=True)
 
@@ -201,5 +201,5 @@ if __name__ == "__main__":
     if len(sys.argv) >= 4 and sys.argv[1] == "stage":
         _stage_main(sys.argv[2], sys.argv[3], sys.argv[4:])
     else:
-        print("usage: python -m skidbench.benchmark.perf.reproduce stage <report.json> <stage> [args]")
+        print("usage: python -m bench.reproduce stage <report.json> <stage> [args]")
         sys.exit(2)

@@ -1,11 +1,11 @@
 """Runs the registered comparisons, each in its own Python process (so one comparison's allocations,
 caches and imports never colour the next, and the machine's drift hits both sides of a ratio alike),
-then writes ``benchmark/results/latest.json`` and ``latest.md`` and prints the table.
+then writes ``bench/results/latest.json`` and ``latest.md`` and prints the table.
 
-    python -m skidbench.benchmark.perf                 # every comparison
-    python -m skidbench.benchmark.perf extraction      # some
-    python -m skidbench.benchmark.perf --quick         # small problems (a smoke run)
-    python -m skidbench.benchmark.perf --list
+    python -m bench                 # every comparison (from the repository root)
+    python -m bench extraction      # some
+    python -m bench --quick         # small problems (a smoke run)
+    python -m bench --list
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from typing import Any
 
 from skidbench.pipeline.io import write_json_atomic, write_text_atomic
 
-from . import check, load_all
+from . import check, child_env, load_all
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def peak_rss_mb() -> float:
@@ -62,11 +62,11 @@ def run_in_subprocess(name: str, quick: bool, timeout_s: float) -> dict[str, Any
     """Run one comparison in a fresh interpreter and collect its JSON result (or its error)."""
     with tempfile.TemporaryDirectory(prefix="skidbench-bench-") as tmp:
         out = Path(tmp) / "result.json"
-        cmd = [sys.executable, "-m", "skidbench.benchmark.perf.harness", "--one", name, "--json", str(out)]
+        cmd = [sys.executable, "-m", "bench.harness", "--one", name, "--json", str(out)]
         if quick:
             cmd.append("--quick")
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=child_env())
         except subprocess.TimeoutExpired:
             return {"error": f"timed out after {timeout_s:.0f} s"}
         if proc.returncode != 0 or not out.is_file():
@@ -148,9 +148,7 @@ def run_all(names: list[str], quick: bool, timeout_s: float, results_dir: Path) 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        prog="python -m skidbench.benchmark.perf", description=__doc__.split("\n")[0]
-    )
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n")[0])
     parser.add_argument("names", nargs="*", help="comparisons to run (default: all)")
     parser.add_argument("--quick", action="store_true", help="small problems (smoke run)")
     parser.add_argument("--list", action="store_true", help="list the comparisons and exit")
