@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from skidbench.benchmark.horizon import window_errors
 from skidbench.models.base import ModelError
 from skidbench.models.enhanced import EnhancedKinematic
 from skidbench.models.friction import FrictionBased
@@ -292,3 +293,23 @@ def test_a_step_friction_cannot_deliver_is_predicted_at_the_largest_balanced_acc
     off = FrictionBased(jackal, TRUE_FRICTION, accel_fallback=False)
     off.predict(df)
     np.testing.assert_array_equal(off.last_solve_.theta, raw.theta)
+
+
+def test_label_with_dead_reckons_a_constant_twist_onto_its_circle(jackal, table):
+    """Constant (v, w) from the origin: x = v/w sin(w t), y = v/w (1 - cos(w t)), yaw = w t (exact SE(2)
+    steps; first-order Euler steps would miss by O(dt) over the run)."""
+    v, w = 0.8, 0.5
+    t = table["t"].to_numpy() - table["t"].iloc[0]
+    labelled = label_with(table, np.tile([v, 0.0, w], (len(table), 1)))
+    np.testing.assert_allclose(labelled["yaw"], w * t, atol=1e-9)
+    np.testing.assert_allclose(labelled["x"], v / w * np.sin(w * t), atol=1e-9)
+    np.testing.assert_allclose(labelled["y"], v / w * (1 - np.cos(w * t)), atol=1e-9)
+
+
+def test_a_model_that_predicts_the_labelled_velocities_has_zero_horizon_error(jackal, table):
+    """label_with integrates as the horizon evaluation does, so the truth model scores exactly zero."""
+    vel = ExtendedDifferentialDrive(jackal, {"chi": 1.4}).predict(table)
+    df = label_with(table, vel)
+    err = window_errors(df["t"].to_numpy(), df[["x", "y", "yaw"]].to_numpy(), vel, 6.0)
+    assert len(err) > 100
+    assert err["trans_err"].abs().max() < 1e-9 and err["rot_err"].abs().max() < 1e-9
