@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from . import register
+from . import REPO, register
 
 MODELS = ("friction", "drive_blr", "gp_residual")
-DRIVE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real" / "drive"
+DRIVE = REPO.parent / "shared" / "data" / "real" / "drive"
 ARGS = ["source=drive_df", f"source.root={DRIVE}", "robot=husky", "source.file=husky_windows.parquet"]
 
 

@@ -17,14 +17,12 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import register
+from . import REPO, register
 
-REPO = Path(__file__).resolve().parents[2]
 CORES = 2
 
 
