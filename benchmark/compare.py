@@ -401,7 +401,7 @@ class CompareResult:
 
 
 def _with_inputs(cfg: Any, protocol: str) -> Any:
-    """``cfg`` with ``inputs`` set to the protocol of the runs shown (their fits are that protocol's)."""
+    """``cfg`` with ``inputs`` set to the protocol of the runs shown (the files evaluate wrote for them)."""
     import copy
 
     from omegaconf import OmegaConf, open_dict
