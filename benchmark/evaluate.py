@@ -459,7 +459,7 @@ def run_benchmark(
             datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             for terrain in terrains:
-                write_wheel_response_steps(cfg, layout, terrain)  # compare's wheel-response figure
+                tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
                 fp = split_fingerprint(files_of[terrain], layout.splits)
                 for model_name in models:
                     child = _run_child(
