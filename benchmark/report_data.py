@@ -284,8 +284,8 @@ def _wheel_response_steps(cfg: Any, layout: Layout, terrain: str) -> tuple[dict[
 # -- compare's side -----------------------------------------------------------------------------------
 def _missing(path: Path, what: str) -> ReportDataError:
     return ReportDataError(
-        f"{path}: no {what} written by `skidbench evaluate` (an evaluate older than this report data); "
-        "re-run `skidbench evaluate force=true`"
+        f"{path}: no {what} written by `skidbench evaluate` (this model, terrain and protocol not evaluated, "
+        "or evaluated before evaluate wrote report data: re-run `skidbench evaluate force=true`)"
     )
 
 

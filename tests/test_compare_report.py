@@ -58,7 +58,8 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png"):
         assert (out / DS / "reports" / f).stat().st_size > 5000 and f"]({f})" in text
     # Fig. 6 shows the friction model by default, which these runs do not have: skipped with a note
-    assert any(n.startswith("Fig. 6 skipped") for n in res.notes) and "## Notes" in text
+    assert any(n.startswith("Fig. 6 skipped") and "friction/grass.surfaces.npz: no Fig. 6 surfaces" in n
+               for n in res.notes) and "## Notes" in text  # fmt: skip
     # the protocols side by side per model (commanded / measured: the latest evaluate of each)
     assert "## The input protocols side by side (commanded / measured)" in text
     chi = next(line for line in res.decomposition_md.splitlines() if line.startswith("| chi |"))
