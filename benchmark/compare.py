@@ -7,8 +7,9 @@ only runs of that protocol are ranked; runs of different protocols are never ran
 null for every child run) and an MLflow ``filter`` string. The report also sets the three protocols side
 by side per model (the latest evaluate of each): what the wheel response explains (commanded -> response)
 and what remains when the wheels are known (response -> measured).
-Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 need the dataset's splits and fits on this machine
-and are skipped, with a note in the report, when they are absent.
+Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 and the wheel response from what evaluate wrote
+next to each run's per-window table (benchmark/report_data.py): compare reads no split, loads no fit and
+predicts nothing. A figure whose data is absent is skipped, with a note in the report.
 """
 
 from __future__ import annotations
@@ -23,17 +24,15 @@ import numpy as np
 import pandas as pd
 
 from skidbench.pipeline.dataset import identity_from_cfg
-from skidbench.pipeline.errors import SkidbenchError, one_line
+from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import INPUT_COLUMNS, PROTOCOLS, model_inputs, protocol_of
-from skidbench.pipeline.schema import read_split
-from skidbench.pipeline.wheel_response import wheel_response
+from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
 
 from . import figures as figs
+from . import report_data as rd
 from . import tracking as trk
-from .evaluate import split_files
-from .horizon import EvaluationError, horizon_steps, window_errors, window_trajectory
+from .horizon import EvaluationError
 
 log = logging.getLogger(__name__)
 
@@ -308,45 +307,14 @@ def decomposition_table(boards: dict[str, pd.DataFrame], horizon_s: float) -> pd
     return df
 
 
-# -- figures 5-7 (need the local dataset) -----------------------------------------------------------
-def _smoothed_derivative(t: np.ndarray, y: np.ndarray, window_s: float = 0.3) -> np.ndarray:
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    k = max(1, int(round(window_s / dt)))
-    ys = np.convolve(y, np.ones(k) / k, mode="same") if len(y) >= k else y
-    return np.gradient(ys, t) if len(t) > 1 else np.zeros_like(y)
-
-
-def _load_model(cfg: Any, name: str, terrain: str):
-    from skidbench.models.fitting import load_fitted
-
-    return load_fitted(cfg, name, terrain)
-
-
-def _predict(cfg: Any, model: Any, table: pd.DataFrame, terrain: str) -> np.ndarray:
-    """(T, 3) the model's prediction from ONLY the inputs of the run's protocol (``cfg.inputs``)."""
-    from skidbench.models.fitting import protocol_inputs
-
-    protocol, robot, response = protocol_inputs(cfg, terrain)
-    return np.asarray(model.predict(model_inputs(table, protocol, robot, response)), float)
-
-
-def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path, dpi: int) -> Path:
-    from skidbench.pipeline.schema import concat_sequences
-
-    model = _load_model(cfg, model_name, terrain)
-    files = split_files(layout, terrain, "ld") or split_files(layout, terrain, None)
-    tables = [read_split(p) for p in files]
-    table = concat_sequences(tables)
-    acc = np.concatenate(
-        [_smoothed_derivative(df["t"].to_numpy(float), df["wz"].to_numpy(float)) for df, _ in tables]
-    )
-    pred = _predict(cfg, model, table, terrain)[:, 2]
-    ok = table["valid"].to_numpy(bool)
-    split = files[0].parent.name if files else "?"
+# -- figures 5-7 and the wheel response: drawn from what evaluate wrote (benchmark/report_data.py) ----------
+def figure5(layout: Layout, terrain: str, model_name: str, inputs: str, path: Path, dpi: int) -> Path:
+    """Fig. 5 from the residual series evaluate wrote for ``model_name`` on ``terrain``."""
+    df, split = rd.read_residuals(layout.eval_stem(model_name, terrain, inputs))
     return figs.residual_vs_acceleration(
-        pred[ok],
-        table["wz"].to_numpy(float)[ok],
-        acc[ok],
+        df["wz_pred"].to_numpy(float),
+        df["wz_meas"].to_numpy(float),
+        df["accel"].to_numpy(float),
         f"Yaw-rate residual of the {figs.label(model_name).lower()} model vs angular acceleration "
         f"({terrain}, {split.upper()} split)",
         path,
@@ -354,70 +322,14 @@ def figure5(cfg: Any, layout: Layout, terrain: str, model_name: str, path: Path,
     )
 
 
-def figure6(
-    cfg: Any, layout: Layout, terrain: str, model_name: str, accels: Sequence[float], path: Path, dpi: int
-) -> Path:
-    model = _load_model(cfg, model_name, terrain)
-    robot = model.robot
-    files = split_files(layout, terrain, "train")
-    lim = 10.0
-    if files:
-        df, _ = read_split(files[0])
-        lim = float(np.nanpercentile(np.abs(df[["cmd_wl", "cmd_wr"]].to_numpy(float)), 95)) or lim
-    n = 31
-    g = np.linspace(-lim, lim, n)
-    wl, wr = np.meshgrid(g, g, indexing="xy")  # symmetric grid: the anti-diagonal is wr = -wl
-    surfaces = {}
-    no_root_cells = {}
-    masked = no_root = reduced = 0
-    for a in accels:
-        dwl, dwr = robot.wheel_rates_from_twist(0.0, float(a))  # pure angular acceleration
-        v, w = robot.twist_from_wheel_rates(wl.ravel(), wr.ravel())
-        m = wl.size
-        table = pd.DataFrame(
-            {
-                "t": np.arange(m) / 30.0,
-                "stamp_ns": np.arange(m, dtype=np.int64),
-                "cmd_v": v,
-                "cmd_w": w,
-                "cmd_wl": wl.ravel(),
-                "cmd_wr": wr.ravel(),
-                "cmd_dwl": np.full(m, float(dwl)),
-                "cmd_dwr": np.full(m, float(dwr)),
-                "enc_wl": np.nan,
-                "enc_wr": np.nan,
-                "x": 0.0,
-                "y": 0.0,
-                "yaw": 0.0,
-                "vx": 0.0,
-                "vy": 0.0,
-                "wz": 0.0,
-                "valid": True,
-                "sequence": "grid",
-            }
-        )
-        if hasattr(model, "velocities"):
-            # the force balance at these wheel rates and accelerations themselves: the grid's rows are
-            # independent points, not a time series a model's actuator (dead time, lag) could run over
-            vel, sol = model.velocities(
-                (wl.ravel(), wr.ravel(), table["cmd_dwl"].to_numpy(), table["cmd_dwr"].to_numpy())
-            )
-            wz = np.asarray(vel, float)[:, 2]
-        else:
-            wz = np.asarray(model.predict(table[list(INPUT_COLUMNS)]), float)[:, 2]
-            sol = getattr(model, "last_solve_", None)
-        status = getattr(sol, "status", None)
-        if status is not None and len(status) == m:  # the friction model's per-step solve status
-            status = np.asarray(status)
-            scale = getattr(sol, "accel_scale", None)
-            reduced_here = np.asarray(scale) < 1 if scale is not None else np.zeros(m, bool)
-            blank = (status == 0) & ~reduced_here  # not converged, no fallback: nothing to show
-            wz[blank] = np.nan
-            masked += int(np.sum(blank))
-            no_root += int(np.sum((status == 2) & ~reduced_here))
-            reduced += int(np.sum(reduced_here))
-            no_root_cells[float(a)] = ((status != 1) | reduced_here).reshape(wl.shape)
-        surfaces[float(a)] = wz.reshape(wl.shape)
+def figure6(layout: Layout, terrain: str, model_name: str, inputs: str, path: Path, dpi: int) -> Path:
+    """Fig. 6 from the yaw-rate surfaces evaluate computed with the fitted ``model_name``."""
+    z = rd.read_surfaces(layout.eval_stem(model_name, terrain, inputs))
+    accels = [float(a) for a in z["accels"]]
+    surfaces = {a: z["wz"][i] for i, a in enumerate(accels)}
+    marks = {a: z["marked"][i] for i, a in enumerate(accels)} if bool(z["has_marks"]) else {}
+    masked, no_root, reduced = (int(c) for c in z["counts"])
+    wl = z["wl"]
     title = (
         f"{figs.label(model_name)} model: predicted yaw rate at commanded angular accelerations ({terrain})"
     )
@@ -426,110 +338,53 @@ def figure6(
             f"\nof {wl.size * len(accels)} grid points, marked: {reduced} balanced only at a reduced "
             f"acceleration (shown there), {no_root} with no root (least-squares), {masked} not converged"
         )
-    return figs.yaw_rate_surfaces(wl, wr, surfaces, title, path, dpi, no_root=no_root_cells)
+    return figs.yaw_rate_surfaces(wl, z["wr"], surfaces, title, path, dpi, no_root=marks)
+
+
+def figure6_accels(layout: Layout, terrain: str, model_name: str, inputs: str) -> list[float]:
+    """The commanded angular accelerations (rad/s²) of the surfaces evaluate wrote ([] when none)."""
+    try:
+        return [float(a) for a in rd.read_surfaces(layout.eval_stem(model_name, terrain, inputs))["accels"]]
+    except rd.ReportDataError:
+        return []
 
 
 def figure7(
-    cfg: Any,
-    layout: Layout,
-    terrain: str,
-    models: Sequence[str],
-    horizon_s: float,
-    n_windows: int,
-    path: Path,
-    dpi: int,
+    layout: Layout, terrain: str, models: Sequence[str], inputs: str, horizon_s: float, path: Path, dpi: int
 ) -> Path:
-    from skidbench.pipeline.schema import concat_sequences
-
-    loaded = {}
+    """Fig. 7 from the windows' true and predicted poses evaluate wrote for each model of ``terrain``."""
+    samples: dict[tuple[str, int], dict[str, Any]] = {}
     for m in models:
         try:
-            loaded[m] = _load_model(cfg, m, terrain)
-        except SkidbenchError as exc:
+            df, h = rd.read_trajectories(layout.eval_stem(m, terrain, inputs))
+        except rd.ReportDataError as exc:
             log.warning("Fig. 7: %s/%s skipped (%s)", m, terrain, one_line(str(exc)))
-    if not loaded:
-        raise CompareError(f"no fitted model for terrain {terrain}")
-    samples = []
-    for split in SPLITS:
-        files = split_files(layout, terrain, split)
-        cands = []
-        for p in files:
-            df, meta = read_split(p)
-            t = df["t"].to_numpy(float)
-            if len(df) <= horizon_steps(t, horizon_s):
-                continue
-            gt = df[["x", "y", "yaw"]].to_numpy(float)
-            w = window_errors(t, gt, np.zeros((len(t), 3)), horizon_s, df["valid"].to_numpy(bool))
-            w = w[w["distance"] >= 0.5]
-            if len(w):
-                cands.append((p, df, meta, w))
-        if not cands:
             continue
-        allw = pd.concat([c[3].assign(_f=i) for i, c in enumerate(cands)], ignore_index=True)
-        qs = np.linspace(0.5, 0.97, n_windows) if n_windows > 1 else [0.9]
-        picked = allw.sort_values("rotation").iloc[[int(q * (len(allw) - 1)) for q in qs]]
-        preds: dict[int, dict[str, np.ndarray]] = {}
-        for _, row in picked.iterrows():
-            fi = int(row["_f"])
-            p, df, meta, _ = cands[fi]
-            if fi not in preds:
-                table = concat_sequences([(df, meta)])
-                preds[fi] = {m: _predict(cfg, mod, table, terrain) for m, mod in loaded.items()}
-            t = df["t"].to_numpy(float)
-            gt = df[["x", "y", "yaw"]].to_numpy(float)
-            s0 = int(row["start"])
-            n = horizon_steps(t, horizon_s)
-            samples.append(
-                {
-                    "split": split,
-                    "sequence": str(meta.get("sequence") or p.stem),
-                    "t0": float(t[s0]),
-                    "truth": gt[s0 : s0 + n + 1],
-                    "pred": {m: window_trajectory(t, gt, v, s0, horizon_s) for m, v in preds[fi].items()},
-                }
-            )
+        if not np.isclose(h, horizon_s):
+            log.warning("Fig. 7: %s/%s has %g s windows, not %g s: skipped", m, terrain, h, horizon_s)
+            continue
+        for (split, j), w in df.groupby(["split", "window"], sort=False):
+            w = w.sort_values("k")
+            sample = samples.setdefault(
+                (str(split), int(j)),
+                {"split": str(split), "sequence": str(w["sequence"].iloc[0]), "t0": float(w["t0"].iloc[0]),
+                 "truth": w[w["role"] == "truth"][["x", "y", "yaw"]].to_numpy(float), "pred": {}},
+            )  # fmt: skip
+            sample["pred"][m] = w[w["role"] == "pred"][["x", "y", "yaw"]].to_numpy(float)
     if not samples:
-        raise CompareError(f"no test window of {horizon_s:g} s on terrain {terrain}")
-    return figs.trajectories(samples, horizon_s, path, dpi)
+        raise CompareError(f"no {horizon_s:g} s test window written by evaluate for terrain {terrain}")
+    order = {sp: i for i, sp in enumerate(SPLITS)}
+    return figs.trajectories([samples[k] for k in sorted(samples, key=lambda k: (order.get(k[0], 9), k[1]))],
+                             horizon_s, path, dpi)  # fmt: skip
 
 
-def wheel_response_figure(cfg: Any, layout: Layout, terrain: str, path: Path, dpi: int) -> Path:
-    """The identified wheel response (the calibration's) against the encoders around the largest step of
-    the mean commanded wheel rate in the terrain's Train split (1 s before to 4 s after)."""
-    from skidbench.pipeline.calibration import calibration_doc, wheel_response_of
-    from skidbench.pipeline.schema import concat_sequences
-
-    doc = calibration_doc(cfg, terrain) or {}
-    resp = wheel_response_of(doc)
-    if resp is None:
-        why = (doc.get("wheel_response") or {}).get("reason", "no calibration")
-        raise CompareError(f"terrain {terrain}: no wheel response identified ({why})")
-    table = concat_sequences([read_split(p) for p in split_files(layout, terrain, "train")])
-    t = table["t"].to_numpy(float)
-    cmd = table[["cmd_wl", "cmd_wr"]].to_numpy(float)
-    enc = table[["enc_wl", "enc_wr"]].to_numpy(float, na_value=np.nan)
-    seq = table["sequence"].astype(str).to_numpy()
-    dt = float(np.median(np.diff(t)))
-    before, after = int(round(1.0 / dt)), int(round(4.0 / dt))
-    jump = np.abs(np.diff(cmd.mean(axis=1)))
-    for k in np.argsort(jump)[::-1][:200] + 1:  # the largest step with encoders all around it
-        a, b = k - before, k + after
-        if a >= 0 and b <= len(t) and (seq[a:b] == seq[k]).all() and np.isfinite(enc[a:b]).all():
-            break
-    else:
-        raise CompareError(f"terrain {terrain}: no command step with encoder readings around it in Train")
-    pred = wheel_response(table, resp)[:, :2]
-    wr = doc["wheel_response"]
-    se = wr.get("param_se") or {}
-    title = (
-        f"{terrain}: wheel response `{wr['structure']}` (dead time {resp.delay_s:.2f}"
-        + (f" +- {se['delay_s']:.2f}" if "delay_s" in se else "")
-        + f" s, lag {resp.tau_s:.2f}"
-        + (f" +- {se['tau_s']:.2f}" if "tau_s" in se else "")
-        + f" s) vs encoders, largest Train command step; RMSE {wr['rmse_command']:.2f} -> "
-        f"{wr['rmse_response']:.2f} rad/s"
-    )
-    return figs.wheel_response_steps(t[a:b] - t[k], cmd[a:b], enc[a:b], pred[a:b], title, path, dpi)
+def wheel_response_figure(layout: Layout, terrain: str, path: Path, dpi: int) -> Path:
+    """The identified wheel response against the encoders around the largest Train command step, as
+    evaluate extracted it (:func:`report_data.write_wheel_response_steps`)."""
+    df, title = rd.read_wheel_response_steps(layout, terrain)
+    cols = lambda p: df[[f"{p}_wl", f"{p}_wr"]].to_numpy(float)  # noqa: E731
+    return figs.wheel_response_steps(df["t"].to_numpy(float), cols("cmd"), cols("enc"), cols("resp"), title,
+                                     path, dpi)  # fmt: skip
 
 
 # -- the stage --------------------------------------------------------------------------------------
@@ -546,7 +401,7 @@ class CompareResult:
 
 
 def _with_inputs(cfg: Any, protocol: str) -> Any:
-    """``cfg`` with ``inputs`` set to the protocol of the runs shown (their fits are that protocol's)."""
+    """``cfg`` with ``inputs`` set to the protocol of the runs shown (the files evaluate wrote for them)."""
     import copy
 
     from omegaconf import OmegaConf, open_dict
@@ -626,6 +481,7 @@ def run_compare(cfg: Any) -> CompareResult:
     fc = cfg.figures
     if fc.enabled:
         dpi = int(fc.dpi)
+        inputs = str(cfg.get("inputs") or "commanded")  # the protocol of the runs shown (_with_inputs)
         finished = board[board["status"] == "FINISHED"]
         terrains = sorted(finished["terrain"].unique())
         terrain = str(fc.terrain) if fc.get("terrain") else (terrains[0] if terrains else None)
@@ -647,24 +503,25 @@ def run_compare(cfg: Any) -> CompareResult:
             jobs.append(
                 ("fig_wheel_response.png",
                  f"The wheel response `calibrate` identified vs the encoders ({terrain}, Train)",
-                 lambda p: wheel_response_figure(cfg, layout, terrain, p, dpi)),
+                 lambda p: wheel_response_figure(layout, terrain, p, dpi)),
             )  # fmt: skip
         if terrain is not None:
             models = figs.order_models(finished[finished["terrain"] == terrain]["model"].tolist())
             m5, m6 = figs.label(fc.fig5_model).lower(), figs.label(fc.fig6_model).lower()
+            accels = figure6_accels(layout, terrain, str(fc.fig6_model), inputs)
             jobs += [
                 ("fig5_residual_vs_acceleration.png",
                  f"Fig. 5: yaw-rate residual of the {m5} model against angular acceleration ({terrain})",
-                 lambda p: figure5(cfg, layout, terrain, str(fc.fig5_model), p, dpi)),
+                 lambda p: figure5(layout, terrain, str(fc.fig5_model), inputs, p, dpi)),
                 ("fig6_yaw_rate_surfaces.png",
                  f"Fig. 6: {m6} model's yaw rate over the wheel-velocity plane at commanded angular "
-                 f"accelerations {list(fc.fig6_accels)} rad/s² ({terrain})",
-                 lambda p: figure6(cfg, layout, terrain, str(fc.fig6_model), list(fc.fig6_accels), p, dpi)),
+                 f"accelerations {accels} rad/s² ({terrain})",
+                 lambda p: figure6(layout, terrain, str(fc.fig6_model), inputs, p, dpi)),
                 ("fig7_trajectories.png",
                  f"Fig. 7: true and predicted {horizon:g} s trajectories ({terrain})",
-                 lambda p: figure7(cfg, layout, terrain, models, horizon, int(fc.fig7_windows), p, dpi)),
+                 lambda p: figure7(layout, terrain, models, inputs, horizon, p, dpi)),
             ]  # fmt: skip
-        calib = calibration_windows(layout, finished, str(cfg.get("inputs") or "commanded"))
+        calib = calibration_windows(layout, finished, inputs)
         if calib:
             jobs.append(
                 ("calibration.png",

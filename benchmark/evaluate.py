@@ -43,6 +43,7 @@ from .horizon import (
     rmsre,
     window_errors,
 )
+from .report_data import write_report_data, write_wheel_response_steps
 from .transfer import training_layout
 
 log = logging.getLogger(__name__)
@@ -458,6 +459,7 @@ def run_benchmark(
             datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             for terrain in terrains:
+                tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
                 fp = split_fingerprint(files_of[terrain], layout.splits)
                 for model_name in models:
                     child = _run_child(
@@ -643,8 +645,10 @@ def _run_child(
         frames = []
         predict_time = 0.0
         autocorr = getattr(model, "error_autocorrelation_", None)
+        velocities = {}
         for split, seqs in tests.items():
             vel, dt, cov = predict_split(model, seqs, inputs, with_cov=True)
+            velocities[split] = vel
             predict_time += dt
             stage = f"score {split}"
             w = score_split(seqs, vel, horizons, hcfg, cov, autocorr)
@@ -671,6 +675,9 @@ def _run_child(
             },  # fmt: skip
         )
         tracker.artifact(run_id, win_path, "windows")
+        stage = "report data"  # what compare draws beyond the metrics (Figs. 5-7), from this model
+        for p in write_report_data(cfg, layout, stem, model, terrain, tests, velocities, horizons[0]):
+            tracker.artifact(run_id, p, "report_data")
         if log_figures and len(windows):
             from .figures import window_error_figure
 

@@ -297,6 +297,9 @@ SCHEMA: dict[str, Spec] = {
     "min_distance_m": number(0, what="m"),
     "min_rotation_deg": number(0, what="deg"),
     "log_figures": BOOL,
+    "report_data.fig6_accels": listof(number(), 1, what="rad/s^2"),
+    "report_data.fig6_grid": integer(2),
+    "report_data.fig7_windows": integer(0),
     # -- compare.yaml -----------------------------------------------------------------------------------
     "parent_run_id": OPT_STR,
     "filter": OPT_STR,
@@ -306,8 +309,6 @@ SCHEMA: dict[str, Spec] = {
     "figures.dpi": integer(20, 1200),
     "figures.fig5_model": STR,
     "figures.fig6_model": STR,
-    "figures.fig6_accels": listof(number(), 1, what="rad/s^2"),
-    "figures.fig7_windows": integer(0),
     "figures.terrain": OPT_STR,
     "log_to_mlflow": BOOL,
     # -- discover.yaml ----------------------------------------------------------------------------------

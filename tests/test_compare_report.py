@@ -3,15 +3,20 @@ run selection, the leaderboard (FAILED rows kept, with reasons), the report and 
 
 from __future__ import annotations
 
+import shutil
+
 import mlflow
 import numpy as np
 import pandas as pd
 import pytest
-from _bench_data import JACKAL, compose, fit_fn, write_splits
+from _bench_data import JACKAL, TRUE_CHI, compose, fit_fn, write_splits
 
 from skidbench.benchmark import figures as figs
+from skidbench.benchmark import report_data as rd
 from skidbench.benchmark.compare import CompareError, format_console, markdown_table, run_compare
 from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.pipeline.layout import layout_from_cfg
+from skidbench.pipeline.schema import read_split
 
 DS = "sim-mini"
 
@@ -52,8 +57,9 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     assert "## Failed runs" in text and "singular normal equations" in text
     for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png"):
         assert (out / DS / "reports" / f).stat().st_size > 5000 and f"]({f})" in text
-    # Figs. 5-7 need fits on disk (the tests' models have none): skipped with a note, not a crash
-    assert any(n.startswith("Fig. 6 skipped") for n in res.notes) and "## Notes" in text
+    # Fig. 6 shows the friction model by default, which these runs do not have: skipped with a note
+    assert any(n.startswith("Fig. 6 skipped") and "friction/grass.surfaces.npz: no Fig. 6 surfaces" in n
+               for n in res.notes) and "## Notes" in text  # fmt: skip
     # the protocols side by side per model (commanded / measured: the latest evaluate of each)
     assert "## The input protocols side by side (commanded / measured)" in text
     chi = next(line for line in res.decomposition_md.splitlines() if line.startswith("| chi |"))
@@ -168,3 +174,52 @@ def test_fig6_and_fig7_drawing_from_arrays(tmp_path):
         for sp in ("cv", "ld")
     ]
     assert figs.trajectories(samples, 6.0, tmp_path / "f7.png").stat().st_size > 10_000
+
+
+def test_compare_draws_figs_5_to_7_from_what_evaluate_wrote_with_splits_and_fits_gone(tmp_path, monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    ds = tmp_path / DS
+    write_splits(ds, terrains=("grass",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
+    cfg = compose("evaluate", tmp_path, ["models=[chi,ideal_t]", "report_data.fig7_windows=2"])
+    run_benchmark(cfg, fit_fn=fit_fn, log_figures=False)
+    layout = layout_from_cfg(cfg)
+    chi, ideal = layout.eval_stem("chi", "grass"), layout.eval_stem("ideal_t", "grass")
+    # Fig. 5: the data's yaw rate is chi * the commanded one, which the fitted chi model predicts exactly
+    res, split = rd.read_residuals(chi)
+    assert split == "ld" and len(res) == 600
+    assert np.allclose(res["wz_pred"], res["wz_meas"], atol=1e-9)
+    # Fig. 6: the chi model's yaw rate is chi * r (wr - wl) / track at every commanded acceleration
+    z = rd.read_surfaces(chi)
+    _, w = JACKAL.twist_from_wheel_rates(z["wl"], z["wr"])
+    assert list(z["accels"]) == [-8.0, 0.0, 8.0] and z["wz"].shape == (3, 31, 31)
+    assert np.allclose(z["wz"], TRUE_CHI * w[None], atol=1e-9)
+    # Fig. 7: the same windows for every model, each prediction starting at the true pose; its truth is
+    # the split's ground truth, and chi ends nearer it than the ideal model
+    tc, _ = rd.read_trajectories(chi)
+    ti, _ = rd.read_trajectories(ideal)
+    assert tc.groupby(["split", "window"]).ngroups == 4
+    assert tc[["split", "sequence", "t0", "k"]].equals(ti[["split", "sequence", "t0", "k"]])
+    split_df, _ = read_split(ds / "splits" / "grass" / "ld" / "grass_ld_00.parquet")
+    first = tc[(tc["split"] == "ld") & (tc["window"] == 0)]
+    truth = first[first["role"] == "truth"]
+    k0 = int(np.argmin(np.abs(split_df["t"].to_numpy() - truth["t0"].iloc[0])))
+    assert np.allclose(truth[["x", "y", "yaw"]], split_df[["x", "y", "yaw"]].to_numpy()[k0 : k0 + len(truth)])
+
+    def end_error(df):
+        ends = df.groupby(["split", "window", "role"])[["x", "y"]].last().unstack("role")
+        return np.hypot(ends["x"]["pred"] - ends["x"]["truth"], ends["y"]["pred"] - ends["y"]["truth"])
+
+    assert (end_error(tc) < end_error(ti)).all()
+    assert np.allclose(tc.loc[tc["k"] == 0, ["x", "y", "yaw"]].to_numpy()[::2],
+                       tc.loc[tc["k"] == 0, ["x", "y", "yaw"]].to_numpy()[1::2])  # fmt: skip
+
+    # compare recomputes nothing: with the splits, the manifest and any fit gone, every figure is drawn
+    for d in (layout.splits, layout.manifest.parent, layout.root / "fits"):
+        shutil.rmtree(d, ignore_errors=True)
+    out = run_compare(compose("compare", tmp_path, ["figures.fig5_model=chi", "figures.fig6_model=chi"]))
+    assert not out.notes, out.notes
+    figures = ("fig5_residual_vs_acceleration.png", "fig6_yaw_rate_surfaces.png", "fig7_trajectories.png",
+               "fig_wheel_response.png")  # fmt: skip
+    for f in figures:
+        assert (ds / "reports" / f).stat().st_size > 10_000
+    assert "accelerations [-8.0, 0.0, 8.0] rad/s²" in out.report.read_text()  # the ones evaluate computed

@@ -32,8 +32,8 @@ def pipeline(tmp_path_factory):
     out = tmp_path_factory.mktemp("e2e")
     for stage in ("simulate", "extract", "groundtruth", "split", "calibrate"):
         _skidbench(out, stage, "scale=tiny")
-    ev = _skidbench(out, "evaluate", "scale=tiny", f"terrains=[{TERRAIN}]")
-    cmp_ = _skidbench(out, "compare", "scale=tiny", "figures.fig7_windows=2")
+    ev = _skidbench(out, "evaluate", "scale=tiny", f"terrains=[{TERRAIN}]", "report_data.fig7_windows=2")
+    cmp_ = _skidbench(out, "compare", "scale=tiny")
     return out, ev, cmp_
 
 
