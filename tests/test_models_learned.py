@@ -71,6 +71,29 @@ def test_gp_residual_recovers_a_smooth_residual_of_edd_and_beats_it(jackal):
     assert std == pytest.approx([0.01, 0.01, 0.01], rel=0.25)  # noise, plus little posterior variance
 
 
+def test_gp_residual_reverts_to_its_base_outside_the_training_inputs(jackal):
+    """Trained on slow commands, asked about fast ones (beyond the Train range in speed, turn rate and
+    acceleration): the residual GP's mean decays to 0 away from its data, so it is never much worse than the
+    base it corrects, wherever the held-out inputs are."""
+    rng = np.random.default_rng(3)
+
+    def labelled(tab):
+        base = ExtendedDifferentialDrive(jackal, {"chi": 1.5}).predict(tab)
+        v, w = tab.cmd_v.to_numpy(), tab.cmd_w.to_numpy()
+        truth = base + np.column_stack(
+            [0.1 * np.sin(2 * v), 0.05 * np.tanh(v * w), 0.2 * np.sin(w) * np.cos(v)]
+        )
+        return label_with(tab, truth + rng.normal(size=base.shape) * 0.01), truth
+
+    train, _ = labelled(command_table(jackal, 3000, seed=30, v_max=0.4, w_max=0.5))
+    test, truth = labelled(command_table(jackal, 3000, seed=31, v_max=1.5, w_max=2.0))
+    gp = GPResidual(jackal, n_inducing=60, max_opt_iter=40).fit(train)
+    edd = ExtendedDifferentialDrive(jackal).fit(train)
+    err_gp = np.sqrt(np.mean((gp.predict(test) - truth) ** 2, 0))
+    err_edd = np.sqrt(np.mean((edd.predict(test) - truth) ** 2, 0))
+    assert np.all(err_gp <= 1.05 * err_edd + 0.005)
+
+
 def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal, monkeypatch):
     write_train_splits(tmp_path, jackal, terrains=("tile",), n=800)
     cfg = compose_fit(
