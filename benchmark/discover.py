@@ -62,6 +62,7 @@ from skidbench.models.effect_fit import (
     ModelFactory,
     Pool,
     build_pool,
+    channel_weights,
     jsonable_params,
 )
 from skidbench.models.effects import (
@@ -404,7 +405,7 @@ def discover_terrain(
     all_units = np.arange(pool.n_units)
     base_fit = aug.fit([], all_units)
     res = (base_fit.pred - pool.target)[pool.valid]
-    aug.weights = 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
+    aug.weights = channel_weights(pool, base_fit)
     cur = cross_validate(aug, [])
     base_info = {
         "train_residual_rmse": dict(zip(CHANNELS, map(float, np.sqrt((res**2).mean(axis=0))), strict=True)),
@@ -586,6 +587,25 @@ def discover_terrain(
             f"{ho.rmsre['rotational']:.4f}" + (f" ({steps[-1]['explanation']})" if kind == "term" else "")
         )
         cur = ho
+        # the channel weights are the inverse residual variances of the model as it now is (the base model's
+        # overstated the channels the added correction fixed): re-estimated, with the model refitted and held
+        # out under them, so the next candidates are fitted and compared as a Gaussian likelihood with
+        # per-channel noise would weigh them (with the base model's weights, a wheel-level term's constant
+        # absorbs the base model's own vx misfit and leaves the yaw rate a residual a catalogue effect names)
+        weights = channel_weights(pool, state)
+        if not np.allclose(weights, aug.weights, rtol=0.05):
+            aug.weights = weights
+            state = aug.fit(effects, all_units, warm, terms=terms)
+            warm = {k: v for k, v in state.params.items()}
+            cur = cross_validate(aug, effects, warm, terms)
+            # the step reports the constants of the model as refitted under the new weights
+            if kind == "catalogue":
+                steps[-1]["params"] = jsonable_params(state.params)
+            else:
+                theta = state.term_params[term.key]["theta"]
+                steps[-1]["params"] = {term.key: _term_step_params(state, term)}
+                steps[-1]["explanation"] = term.describe(theta, robot.wheel_radius)
+        steps[-1]["channel_weights_after"] = dict(zip(CHANNELS, map(float, aug.weights), strict=True))
     found = effects + [t.key for t in terms]
     named = [st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]") for st in steps]
     message = NO_EFFECT_MESSAGE if not found else "missing effect(s) found: " + ", ".join(named)

@@ -383,6 +383,13 @@ def _bounded_least_squares(resid, x, lo, hi, max_nfev: int) -> np.ndarray:
     return res.x
 
 
+def channel_weights(pool: Pool, state: FitState) -> np.ndarray:
+    """(3,) the fit's channel weights: the inverse mean squared residual of ``state`` per velocity channel
+    on the valid rows (1/(m/s)^2, 1/(rad/s)^2)."""
+    res = (state.pred - pool.target)[pool.valid]
+    return 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
+
+
 def fit_effects(
     table: pd.DataFrame,
     factory: ModelFactory,
@@ -394,7 +401,9 @@ def fit_effects(
     """Fit base model + ``effects`` (+ open-ended ``terms``, last) on every valid row of a training table
     (sequences in its ``sequence`` column), the way discovery fits its final model: the base alone first
     (which sets the channel weights), then the effects added one at a time in the given order, each fit
-    warm-started from the last. What an augmented model (``skidbench.models.augmented``) calls on Train."""
+    warm-started from the last, then (as discovery after each step) the channel weights re-estimated from
+    the augmented model's residual and the whole refitted once under them. What an augmented model
+    (``skidbench.models.augmented``) calls on Train."""
     unknown = [e for e in effects if e not in CATALOGUE]
     if unknown:
         raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})")
@@ -410,14 +419,18 @@ def fit_effects(
     aug = Augmenter(pool, factory, robot, s)
     units = np.arange(pool.n_units)
     state = aug.fit([], units)
-    res = (state.pred - pool.target)[pool.valid]
-    aug.weights = 1.0 / np.maximum(res.var(axis=0) + (res.mean(axis=0) ** 2), 1e-12)
+    aug.weights = channel_weights(pool, state)
     warm: dict[str, np.ndarray] = {}
     for i in range(len(effects)):
         state = aug.fit(list(effects[: i + 1]), units, warm)
         warm = dict(state.params)
     if terms:
         state = aug.fit(list(effects), units, warm, terms=list(terms))
+    if effects or terms:  # as discovery: the weights re-estimated from the augmented model's residual
+        weights = channel_weights(pool, state)
+        if not np.allclose(weights, aug.weights, rtol=0.05):
+            aug.weights = weights
+            state = aug.fit(list(effects), units, dict(state.params), terms=list(terms))
     return state
 
 

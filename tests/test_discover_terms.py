@@ -157,16 +157,8 @@ OUTSIDE_CASES = {
 }
 
 
-# not met yet: after the slip term (s_r within 6 %), side_asymmetry still passes and is named
-KNOWN_FALSE_NAME = pytest.mark.xfail(
-    strict=True, reason="one-sided slip: side_asymmetry is named after slip.r.wheels (a false catalogue name)"
-)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "case", [pytest.param(c, marks=KNOWN_FALSE_NAME) if c == "one_side_slip" else c for c in OUTSIDE_CASES]
-)
+@pytest.mark.parametrize("case", list(OUTSIDE_CASES))
 def test_effect_outside_the_catalogue_is_named_by_its_term_with_the_injected_constant(case, jackal):
     effects, (fam, signal, channel), constants = OUTSIDE_CASES[case]
     res = _discover(effects, seed=300 + list(OUTSIDE_CASES).index(case), jackal=jackal)
