@@ -1,21 +1,7 @@
 """Stereo visual odometry with OpenCV: the ``vo`` ground-truth method.
 
-Frame-to-keyframe tracking on a rectified stereo pair:
-
-1. keyframe: ORB features (detection + descriptors) in the left image, spread over a grid; stereo
-   matching against the right image's ORB features under the row constraint (|dv| <= ``max_row_diff``)
-   and disparity limits, Hamming distance and ratio test; the disparity is refined to sub-pixel
-   accuracy by pyramidal Lucas-Kanade (left -> right, initialised at the descriptor match) and the
-   points are triangulated (Z = fx b / d);
-2. every frame: the keyframe points are predicted into the current left image with a constant-velocity
-   motion model and tracked there by Lucas-Kanade (forward-backward checked); if that fails (tracking
-   lost, a low-texture frame) the current ORB features are matched to the keyframe descriptors instead;
-3. pose: ``cv2.solvePnPRansac`` (keyframe 3D points -> current 2D), then a robust (Huber) Gauss-Newton
-   refinement of the inliers' reprojection error in both current images (stereo PnP, sub-pixel right
-   positions again by LK);
-4. a new keyframe when the tracked inliers fall below ``min_keyframe_inliers`` or the keyframe is
-   ``keyframe_max_dist_m`` / ``keyframe_max_rot_deg`` away. A frame whose pose cannot be estimated is a
-   tracking loss: the motion model bridges it and a ``gap`` is recorded in the trajectory.
+The algorithm (ORB keyframes, stereo matching refined by Lucas-Kanade, PnP with RANSAC and a robust
+stereo refinement, keyframe policy, tracking-loss gaps) is described in :mod:`.stereo_vo`.
 
 Three modules: the algorithm on arrays (:mod:`.stereo_vo`: :class:`StereoVO`, :class:`VOConfig`); a bag's
 stereo pairs (:mod:`.stereo_bag`: camera_info, topics, left/right pairing by header stamp, decoding); and
