@@ -83,13 +83,7 @@ def _files_of(dataset: tuple[Layout, Manifest] | None):
     layout, manifest = dataset
 
     def files(terrain: str, split: str) -> list[Path]:
-        out = layout.split_files(manifest, terrain, split)
-        missing = [p for p in out if not p.is_file()]
-        if missing:
-            raise DiscoverError(
-                f"{missing[0]}: no split file for a sequence of {layout.manifest}; run `skidbench split`"
-            )
-        return out
+        return layout.require_split_files(manifest, terrain, split, DiscoverError)
 
     return files
 

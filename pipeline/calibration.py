@@ -286,12 +286,13 @@ def _inputs_fingerprint(files: Sequence[Path], spec: Robot) -> str:
 
 
 def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
-    """The Train split files of the current manifest's sequences (one terrain, or all), that exist."""
+    """The Train split files of the current manifest's sequences (one terrain, or all); [] without a
+    manifest; CalibrationError when one is not written (:meth:`Layout.require_split_files`)."""
     from .manifest import Manifest
 
     if not layout.manifest.is_file():
         return []
-    return [p for p in layout.split_files(Manifest.read(layout.manifest), terrain, "train") if p.is_file()]
+    return layout.require_split_files(Manifest.read(layout.manifest), terrain, "train", CalibrationError)
 
 
 def calibrate_terrain(
