@@ -102,3 +102,22 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
         p.stderr.strip().splitlines()[-1]
         == "skidbench fit: error: model edd: column cmd_wl holds 1 non-finite value(s)"
     )
+
+
+def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_path, jackal):
+    """One split lookup (Layout.require_split_files): fit and evaluate say the same of a missing file."""
+    from skidbench.benchmark.evaluate import EvaluationError, split_files
+    from skidbench.models.fitting import fit_model
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    gone = sorted((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))[0]
+    gone.unlink()
+    cfg = compose(tmp_path, ["terrain=tile", "calibrate.use=false"])
+    msg = f"{gone}: no split file for sequence {gone.stem} of "
+    with pytest.raises(ModelError, match="run `skidbench split`") as fit_err:
+        fit_model(cfg, "edd", "tile")
+    assert str(fit_err.value).startswith(f"model edd: {msg}")
+    with pytest.raises(EvaluationError) as eval_err:
+        split_files(layout_from_cfg(cfg), "tile", "train")
+    assert str(eval_err.value).startswith(msg) and str(eval_err.value).endswith("run `skidbench split`")
