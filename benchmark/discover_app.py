@@ -63,9 +63,11 @@ def _splits_root(cfg: DictConfig) -> Path:
         if not root.is_dir():
             raise DiscoverError(f"{root}: splits folder not found (discover.splits)")
         return root
-    from skidbench.pipeline.api import prepare_splits
+    from skidbench.pipeline.api import prepare_calibration, prepare_splits
 
-    return Path(prepare_splits(cfg))
+    root = Path(prepare_splits(cfg))
+    prepare_calibration(cfg)  # one command from a raw source: the calibrate stage's step too, as split's
+    return root
 
 
 def _dataset_of(root: Path) -> tuple[Layout, Manifest] | None:
