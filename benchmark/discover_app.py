@@ -63,9 +63,11 @@ def _splits_root(cfg: DictConfig) -> Path:
         if not root.is_dir():
             raise DiscoverError(f"{root}: splits folder not found (discover.splits)")
         return root
-    from skidbench.pipeline.api import prepare_splits
+    from skidbench.pipeline.api import prepare_calibration, prepare_splits
 
-    return Path(prepare_splits(cfg))
+    root = Path(prepare_splits(cfg))
+    prepare_calibration(cfg)  # one command from a raw source: the calibrate stage's step too, as split's
+    return root
 
 
 def _dataset_of(root: Path) -> tuple[Layout, Manifest] | None:
@@ -83,13 +85,7 @@ def _files_of(dataset: tuple[Layout, Manifest] | None):
     layout, manifest = dataset
 
     def files(terrain: str, split: str) -> list[Path]:
-        out = layout.split_files(manifest, terrain, split)
-        missing = [p for p in out if not p.is_file()]
-        if missing:
-            raise DiscoverError(
-                f"{missing[0]}: no split file for a sequence of {layout.manifest}; run `skidbench split`"
-            )
-        return out
+        return layout.require_split_files(manifest, terrain, split, DiscoverError)
 
     return files
 

@@ -90,14 +90,7 @@ def split_files(
 ) -> list[Path]:
     """The split files of the manifest's ``terrain``/``split`` sequences; EvaluationError if one is
     missing."""
-    files = layout.split_files(manifest or current_manifest(layout), terrain, split)
-    missing = [p for p in files if not p.is_file()]
-    if missing:
-        raise EvaluationError(
-            f"{missing[0]}: no split file for sequence {missing[0].stem} of {layout.manifest}"
-            f"{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}; run `skidbench split`"
-        )
-    return files
+    return layout.require_split_files(manifest or current_manifest(layout), terrain, split, EvaluationError)
 
 
 def find_terrains(layout: Layout) -> list[str]:

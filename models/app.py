@@ -42,7 +42,7 @@ def main(cfg: DictConfig) -> None:
     split = str(cfg.split)
     layout = layout_from_cfg(cfg)
     # the stamp (skidbench.pipeline.cache): the split files fitted on, the model's config and version, robot
-    # and its calibration on this terrain (made now if missing or stale: a changed calibration refits)
+    # and its calibration on this terrain (`calibrate`'s; a changed calibration refits)
     from skidbench.pipeline.calibration import load_calibration
     from skidbench.pipeline.protocol import protocol_of
 

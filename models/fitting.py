@@ -51,11 +51,6 @@ class FitResult:
     reused: bool = False
 
 
-#: Called after every fit as ``hook(result, cfg, model_name, terrain)``; the evaluate stage may register
-#: its MLflow logging here (fit itself stays free of MLflow).
-FIT_HOOKS: list[Callable[[FitResult, Any, str, str], None]] = []
-
-
 def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
     """``{"name", "params", "options"}`` for ``model_name`` (see module docstring). An augmented spec
     ``base+effect+...`` gets its base model's params and options as ``base_params``/``base_options``."""
@@ -180,23 +175,16 @@ def build_model(cfg: Any, model_name: str, robot: Robot | None = None) -> Kinema
 def _training_files(cfg: Any, model_name: str, terrain: str, split: str) -> list[Path]:
     """The split files of the current manifest's ``terrain``/``split`` sequences (pipeline/layout.py)."""
     layout = layout_from_cfg(cfg)
-    root = layout.splits
     if not layout.manifest.is_file():
         raise ModelError(
             f"model {model_name}: no manifest {layout.manifest}; run `skidbench extract` and `split`"
         )
     manifest = Manifest.read(layout.manifest)
-    files = layout.split_files(manifest, terrain, split)
+    files = layout.require_split_files(manifest, terrain, split, ModelError, f"model {model_name}: ")
     if not files:
         raise ModelError(
             f"model {model_name}: no {split} sequences of terrain {terrain} in {layout.manifest} "
             f"(terrains: {', '.join(manifest.terrains)}); check terrain={terrain}"
-        )
-    missing = [p for p in files if not p.is_file()]
-    if missing:
-        raise ModelError(
-            f"model {model_name}: no split files in {root / terrain / split} for {missing[0].stem}; "
-            "run `skidbench split`"
         )
     return files
 
@@ -293,7 +281,8 @@ def fit_model(
     existing fit whose inputs (split files, model config and version, robot, input protocol and wheel
     response) are unchanged is loaded. The model is fitted on the Train table of the input protocol
     ``cfg.inputs`` (:func:`skidbench.pipeline.protocol.fit_table`: the protocol's inputs and the targets,
-    nothing else)."""
+    nothing else). ``hooks``: called after the fit as ``hook(result, cfg, model_name, terrain)``, passed
+    by the caller (the evaluate stage its MLflow logging; fit itself stays free of MLflow)."""
     layout = layout_from_cfg(cfg)
     spec, resolved = resolve_model_spec(cfg, model_name, terrain)
     cls = get_model_class(spec)
@@ -365,7 +354,7 @@ def fit_model(
     if not arrays and apath.is_file():
         apath.unlink()  # a refit without arrays leaves no stale file
     result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train)
-    for hook in (*FIT_HOOKS, *hooks):
+    for hook in hooks:
         hook(result, cfg, model_name, terrain)
     return result
 

@@ -46,3 +46,19 @@ def prepare_splits(cfg: DictConfig) -> Path:
     gt_app.run(_with_stage(cfg, "groundtruth"))
     split_app.run(_with_stage(cfg, "split"))
     return layout.splits
+
+
+def prepare_calibration(cfg: DictConfig) -> list[str]:
+    """Make ``<ds>/calibration/<terrain>.json`` up to date for every terrain with Train files (the
+    ``calibrate`` stage's computation, :func:`skidbench.pipeline.calibration.calibrate_terrain`, skipped
+    per terrain while its stamp is current; no MLflow run). For a one-command run from a raw source
+    (``skidbench discover source=...``) after :func:`prepare_splits`. Returns the terrains."""
+    from .calibration import calibrate_terrain, settings_from_cfg, train_files
+    from .robot import robot_from_hydra
+
+    layout = layout_from_cfg(cfg)
+    spec, settings = robot_from_hydra(cfg.robot), settings_from_cfg(cfg)
+    terrains = sorted({p.parents[1].name for p in train_files(layout)})
+    for terrain in terrains:
+        calibrate_terrain(layout, terrain, spec, settings, str(cfg.dataset))
+    return terrains

@@ -34,6 +34,7 @@ spec sheet's robot.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -42,7 +43,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .cache import Fingerprints, Stamp
+from .cache import Fingerprints, StaleInputError, Stamp
 from .errors import SkidbenchError
 from .io import fingerprint_obj, write_json_atomic
 from .layout import Layout, layout_from_cfg
@@ -285,12 +286,13 @@ def _inputs_fingerprint(files: Sequence[Path], spec: Robot) -> str:
 
 
 def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
-    """The Train split files of the current manifest's sequences (one terrain, or all), that exist."""
+    """The Train split files of the current manifest's sequences (one terrain, or all); [] without a
+    manifest; CalibrationError when one is not written (:meth:`Layout.require_split_files`)."""
     from .manifest import Manifest
 
     if not layout.manifest.is_file():
         return []
-    return [p for p in layout.split_files(Manifest.read(layout.manifest), terrain, "train") if p.is_file()]
+    return layout.require_split_files(Manifest.read(layout.manifest), terrain, "train", CalibrationError)
 
 
 def calibrate_terrain(
@@ -316,8 +318,6 @@ def calibrate_terrain(
         files, {"robot": spec.to_dict(), "settings": dataclasses.asdict(s), "schema": CALIBRATION_SCHEMA}
     )
     if stamp.is_fresh(key):
-        import json
-
         return json.loads(path.read_text()), False
     tables = [read_split(p) for p in files]
     table = concat_sequences(tables)
@@ -339,35 +339,48 @@ def calibrate_terrain(
 
 
 def load_calibration(cfg: Any, terrain: str) -> dict[str, Any] | None:
-    """The terrain's calibration for a fit: the saved one when it was made from the current Train files
-    and robot spec (whatever its settings), else computed now with ``cfg``'s settings; None when
-    ``calibrate.use`` is false."""
+    """The terrain's calibration for a fit: the one ``calibrate`` saved from the current Train files and
+    robot spec (whatever its settings); None when ``calibrate.use`` is false. MissingCalibrationError
+    when there is none or it is stale (only ``calibrate`` computes it)."""
     if not use_calibration(cfg):
         return None
     return calibration_doc(cfg, terrain)
 
 
-def calibration_doc(cfg: Any, terrain: str) -> dict[str, Any] | None:
-    """The terrain's calibration document whatever ``calibrate.use`` says (the saved one when current,
-    else computed now); None when the terrain has no Train files."""
-    import json
+class MissingCalibrationError(StaleInputError):
+    """A stage needs the calibration of a terrain and ``calibrate`` has not made it (or made it from other
+    Train files or another robot spec)."""
 
+
+def calibration_doc(cfg: Any, terrain: str) -> dict[str, Any] | None:
+    """The terrain's calibration document whatever ``calibrate.use`` says, as ``calibrate`` saved it;
+    None when the terrain has no Train files. MissingCalibrationError (one line) when the document is
+    missing, unreadable, of another schema, or stale (its Train fingerprint differs): only the
+    ``calibrate`` stage computes it."""
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
     path = layout.calibration_file(terrain)
     files = train_files(layout, terrain)
     if not files:
         return None
-    if path.is_file():
+    if not path.is_file():
+        why = "there is none"
+    else:
         try:
             doc = json.loads(path.read_text())
-            current = doc.get("inputs_fingerprint") == _inputs_fingerprint(files, spec)
-            if current and doc.get("schema") == CALIBRATION_SCHEMA:
+        except (OSError, ValueError) as exc:
+            why = f"it cannot be read ({exc})"
+        else:
+            if doc.get("schema") != CALIBRATION_SCHEMA:
+                why = f"it has schema {doc.get('schema')!r}, not {CALIBRATION_SCHEMA}"
+            elif doc.get("inputs_fingerprint") != _inputs_fingerprint(files, spec):
+                why = "it was made from other Train split files or another robot spec (stale)"
+            else:
                 return doc
-        except (OSError, ValueError):
-            pass
-    doc, _ = calibrate_terrain(layout, terrain, spec, settings_from_cfg(cfg), str(cfg.dataset))
-    return doc
+    raise MissingCalibrationError(
+        f"{path}: no current calibration of terrain {terrain} ({why}); "
+        "run `skidbench calibrate` first (or set calibrate.use=false for the spec's constants)"
+    )
 
 
 def calibrated_robot(spec: Robot, doc: Mapping[str, Any] | None, constants: Sequence[str]) -> Robot:

@@ -138,6 +138,27 @@ class Layout:
             if s.category in SPLITS and terrain in (None, s.terrain) and split in (None, s.category)
         )
 
+    def require_split_files(
+        self,
+        manifest: Manifest,
+        terrain: str | None = None,
+        split: str | None = None,
+        error: type[Exception] = ConfigError,
+        prefix: str = "",
+    ) -> list[Path]:
+        """:meth:`split_files`, every one of them written: the one lookup of a stage's split files. A
+        missing one raises ``error`` (the calling stage's error class) with one line naming it, how many
+        more are missing and to run ``skidbench split``; ``prefix`` (e.g. ``"model edd: "``) goes first."""
+        files = self.split_files(manifest, terrain, split)
+        missing = [p for p in files if not p.is_file()]
+        if missing:
+            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+            raise error(
+                f"{prefix}{missing[0]}: no split file for sequence {missing[0].stem} of {self.manifest}"
+                f"{more}; run `skidbench split`"
+            )
+        return files
+
 
 def split_terrains(manifest: Manifest) -> list[str]:
     """The terrains with at least one train/cv/ld sequence in the manifest, sorted."""

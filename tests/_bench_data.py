@@ -156,3 +156,23 @@ def compose(config_name: str, out_root: Path, overrides=()):
     GlobalHydra.instance().clear()
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         return hcompose(config_name, overrides=[f"out_root={out_root}", *overrides])
+
+
+def calibrate_splits(cfg) -> list[str]:
+    """Run the ``calibrate`` stage's per-terrain step (pipeline/calibration.py) for ``cfg``'s dataset and
+    robot on every terrain with Train files: ``fit`` and ``evaluate`` read its output and only
+    ``calibrate`` computes it. 20 bootstrap draws (the intervals are not what these tests check).
+    Returns the terrains calibrated."""
+    import dataclasses
+
+    from skidbench.pipeline.calibration import calibrate_terrain, settings_from_cfg
+    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.robot import robot_from_hydra
+
+    layout = layout_from_cfg(cfg)
+    spec = robot_from_hydra(cfg.robot)
+    settings = dataclasses.replace(settings_from_cfg(cfg), bootstrap=20)
+    terrains = sorted(p.name for p in layout.splits.iterdir() if (p / "train").is_dir())
+    for terrain in terrains:
+        calibrate_terrain(layout, terrain, spec, settings, str(cfg.dataset))
+    return terrains

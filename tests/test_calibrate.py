@@ -170,8 +170,14 @@ def _cfg(root: Path, *over: str):
 
 def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(calib_root, jackal):
     from skidbench.models.fitting import fit_model
+    from skidbench.pipeline.calibration import MissingCalibrationError, calibrate_terrain, settings_from_cfg
+    from skidbench.pipeline.layout import layout_from_cfg
 
     cfg = _cfg(calib_root)
+    # fit never calibrates: without `skidbench calibrate` it stops and says to run it
+    with pytest.raises(MissingCalibrationError, match="skidbench calibrate"):
+        fit_model(cfg, "ideal", "tile")
+    calibrate_terrain(layout_from_cfg(cfg), "tile", jackal, settings_from_cfg(cfg), "calib")
     ideal = fit_model(cfg, "ideal", "tile")
     assert ideal.model.robot.wheel_radius == pytest.approx(R_TRUE, rel=0.01)
     assert ideal.model.robot.track_width == pytest.approx(B_TRUE, rel=0.01)
@@ -192,6 +198,9 @@ def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(cali
         jackal.track_width,
     )
     assert json.loads(off.path.read_text())["robot_constants"]["wheel_radius"]["source"].startswith("spec")
+    # a calibration made for another robot spec is stale: the fit stops rather than recalibrating
+    with pytest.raises(MissingCalibrationError, match="stale"):
+        fit_model(_cfg(calib_root, f"robot.wheel_radius={jackal.wheel_radius * 1.1}"), "ideal", "tile")
     # the ideal model's yaw rate with the calibrated track is close to the truth (off by the 3 % tracking
     # error of the commanded rates it predicts from), with the spec sheet's 45 % off
     table = _train_table(calib_root)

@@ -27,7 +27,14 @@ needs_ray = pytest.mark.skipif(
 MODELS = ("edd", "roc")
 TERRAINS = ("tile", "asphalt", "grass")
 DATASETS = ("lab-a", "lab-b")  # the same synthetic data twice: their metrics must agree
-FIT = ["scale=tiny", f"model={','.join(MODELS)}", f"terrain={','.join(TERRAINS)}", "reuse=false"]
+# calibrate.use=false: the sweeps are about the launcher, not the calibration (only `calibrate` computes it)
+FIT = [
+    "scale=tiny",
+    f"model={','.join(MODELS)}",
+    f"terrain={','.join(TERRAINS)}",
+    "reuse=false",
+    "calibrate.use=false",
+]
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +120,7 @@ def test_a_ray_sweep_survives_a_killed_worker_and_logs_each_fit_once_with_the_jo
 def test_evaluate_runs_one_ray_task_per_dataset_into_one_mlflow_server(out_root, ray_address, mlflow_uri):
     skidbench(
         "evaluate", out_root, "-m", f"dataset={','.join(DATASETS)}", "models=[edd,roc]", "log_figures=false",
-        "hydra/launcher=ray", f"hydra.launcher.address={ray_address}",
+        "calibrate.use=false", "hydra/launcher=ray", f"hydra.launcher.address={ray_address}",
         base=[], env=ray_env({"MLFLOW_TRACKING_URI": mlflow_uri}),
     )  # fmt: skip
     scores = {}

@@ -46,6 +46,7 @@ def cfg(stage: str, out: Path, *over: str):
 def run_stage(stage: str, out: Path, *over: str):
     """A stage as the CLI runs it (``stage`` wrapper: open_home first), in this process."""
     from skidbench.benchmark import compare, discover_app, evaluate_app
+    from skidbench.pipeline import calibrate_app
     from skidbench.pipeline.extract import app as extract
     from skidbench.pipeline.groundtruth import app as groundtruth
     from skidbench.pipeline.splits import app as split
@@ -54,6 +55,7 @@ def run_stage(stage: str, out: Path, *over: str):
         "extract": extract.run,
         "groundtruth": groundtruth.run,
         "split": split.run,
+        "calibrate": calibrate_app.run,  # evaluate reads its calibration (only calibrate computes it)
         "evaluate": evaluate_app.run,
         "compare": compare.run_compare,
         "discover": discover_app.run,
@@ -70,7 +72,7 @@ def run_stage(stage: str, out: Path, *over: str):
 def pipeline(out: Path, *source: str) -> dict:
     return {
         s: run_stage(s, out, *source)
-        for s in ("extract", "groundtruth", "split", "evaluate", "discover", "compare")
+        for s in ("extract", "groundtruth", "split", "calibrate", "evaluate", "discover", "compare")
     }
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _bench_data import calibrate_splits
 
 from skidbench.models.base import ModelError
 from skidbench.models.synthetic import write_train_splits as make_splits
@@ -31,6 +32,7 @@ def test_fit_model_writes_json_and_load_fitted_reads_it(tmp_path, jackal):
 
     make_splits(tmp_path, jackal)
     cfg = compose(tmp_path, ["model=edd", "terrain=tile"])
+    calibrate_splits(cfg)
     res = fit_model(cfg, "edd", "tile")
     assert res.path == tmp_path / "sim-mini" / "fits" / "edd" / "tile.json"
     saved = json.loads(res.path.read_text())
@@ -67,6 +69,13 @@ def run_cli(args, out_root: Path):
 
 def test_cli_sweep_fits_every_model_and_terrain(tmp_path, jackal):
     make_splits(tmp_path, jackal)
+    # fit never calibrates: before `skidbench calibrate` it stops with one line saying to run it
+    p = run_cli(["fit", "model=edd", "terrain=tile", "track=false"], tmp_path)
+    assert p.returncode == 2
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith("skidbench fit: error: ") and "run `skidbench calibrate` first" in last
+    assert not (tmp_path / "sim-mini" / "fits").exists()
+    calibrate_splits(compose(tmp_path))
     p = run_cli(["fit", "-m", "model=edd,full_linear", "terrain=tile,grass", "track=false"], tmp_path)
     assert p.returncode == 0, p.stderr
     fits = sorted(
@@ -86,9 +95,29 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
     df, meta = read_split(f)
     df.loc[3, "cmd_wl"] = np.nan
     write_split(pd.DataFrame(df), f, meta)
-    p = run_cli(["fit", "model=edd", "terrain=tile", "track=false"], tmp_path)
+    # calibrate.use=false: this test is about the model's input check, not the calibration
+    p = run_cli(["fit", "model=edd", "terrain=tile", "track=false", "calibrate.use=false"], tmp_path)
     assert p.returncode == 2
     assert (
         p.stderr.strip().splitlines()[-1]
         == "skidbench fit: error: model edd: column cmd_wl holds 1 non-finite value(s)"
     )
+
+
+def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_path, jackal):
+    """One split lookup (Layout.require_split_files): fit and evaluate say the same of a missing file."""
+    from skidbench.benchmark.evaluate import EvaluationError, split_files
+    from skidbench.models.fitting import fit_model
+    from skidbench.pipeline.layout import layout_from_cfg
+
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    gone = sorted((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))[0]
+    gone.unlink()
+    cfg = compose(tmp_path, ["terrain=tile", "calibrate.use=false"])
+    msg = f"{gone}: no split file for sequence {gone.stem} of "
+    with pytest.raises(ModelError, match="run `skidbench split`") as fit_err:
+        fit_model(cfg, "edd", "tile")
+    assert str(fit_err.value).startswith(f"model edd: {msg}")
+    with pytest.raises(EvaluationError) as eval_err:
+        split_files(layout_from_cfg(cfg), "tile", "train")
+    assert str(eval_err.value).startswith(msg) and str(eval_err.value).endswith("run `skidbench split`")

@@ -4,6 +4,7 @@ runs again in a fresh output root (fits recomputed, a new MLflow store)."""
 from __future__ import annotations
 
 import pytest
+from _bench_data import calibrate_splits
 from hydra import compose, initialize_config_module
 from mlflow.tracking import MlflowClient
 from reliability_data import SCALE, copy_splits
@@ -23,6 +24,7 @@ def _evaluate(micro_root, root):
         cfg = compose(
             "evaluate", overrides=[f"out_root={root}", *SCALE, "models=[ideal,edd]", "log_figures=false"]
         )
+    calibrate_splits(cfg)  # each fresh root is calibrated again too (only `calibrate` computes it)
     result = run_benchmark(cfg)
     client = MlflowClient(result.tracking_uri)
     out = {}
