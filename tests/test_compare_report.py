@@ -9,7 +9,7 @@ import mlflow
 import numpy as np
 import pandas as pd
 import pytest
-from _bench_data import JACKAL, TRUE_CHI, compose, fit_fn, write_splits
+from _bench_data import JACKAL, TRUE_CHI, calibrate_splits, compose, fit_fn, write_splits
 
 from skidbench.benchmark import figures as figs
 from skidbench.benchmark import report_data as rd
@@ -181,6 +181,7 @@ def test_compare_draws_figs_5_to_7_from_what_evaluate_wrote_with_splits_and_fits
     ds = tmp_path / DS
     write_splits(ds, terrains=("grass",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
     cfg = compose("evaluate", tmp_path, ["models=[chi,ideal_t]", "report_data.fig7_windows=2"])
+    calibrate_splits(cfg)  # the wheel-response figure's data: only `calibrate` identifies it
     run_benchmark(cfg, fit_fn=fit_fn, log_figures=False)
     layout = layout_from_cfg(cfg)
     chi, ideal = layout.eval_stem("chi", "grass"), layout.eval_stem("ideal_t", "grass")

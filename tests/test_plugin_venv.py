@@ -63,7 +63,11 @@ def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_p
     assert "skidbench-ridge" in rows["ridge"] and "friction" in rows
 
     write_train_splits(tmp_path / "out", jackal, terrains=("tile",))
-    run([*cli, "fit", "model=ridge", "terrain=tile", "track=false"], env=env, cwd=tmp_path)
+    run(
+        [*cli, "fit", "model=ridge", "terrain=tile", "track=false", "calibrate.use=false"],
+        env=env,
+        cwd=tmp_path,
+    )
     fit = tmp_path / "out" / "sim-mini" / "fits" / "ridge" / "tile.json"
     import json
 
@@ -105,7 +109,11 @@ def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(
     assert "skidbench-slipgrid" in {line.split()[0]: line for line in listing.splitlines()[1:]}["slipgrid"]
 
     write_train_splits(tmp_path / "out", jackal, terrains=("tile",))
-    run([*cli, "fit", "model=slipgrid", "terrain=tile", "track=false"], env=env, cwd=tmp_path)
+    run(
+        [*cli, "fit", "model=slipgrid", "terrain=tile", "track=false", "calibrate.use=false"],
+        env=env,
+        cwd=tmp_path,
+    )
     fits = tmp_path / "out" / "sim-mini" / "fits" / "slipgrid"
     import json
 
