@@ -438,6 +438,12 @@ def calibration_windows(
 
 def run_compare(cfg: Any) -> CompareResult:
     layout = layout_from_cfg(cfg)
+    uri = trk.resolve_tracking_uri(cfg, layout)
+    if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
+        raise CompareError(
+            f"no MLflow store at {uri}: nothing was evaluated under this output root; "
+            "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
+        )
     tracker = trk.tracker_from_cfg(cfg, layout)
     horizon = float(cfg.horizon)
     parent_cfg = cfg.get("parent_run_id", "latest")

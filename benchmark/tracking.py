@@ -114,6 +114,18 @@ def is_server(uri: str) -> bool:
     return uri.startswith(("http://", "https://"))
 
 
+def local_store_file(uri: str) -> Path | None:
+    """The database file of a local ``sqlite:///`` store, else None (a server or another backend)."""
+    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
+
+
+def has_store(uri: str) -> bool:
+    """False only for a local SQLite store whose file does not exist yet: opening it would create it
+    (with MLflow's ``Default`` experiment), so a reader asks first."""
+    db = local_store_file(uri)
+    return db is None or db.is_file()
+
+
 def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
     """Raise EvaluationError (one line) when an ``http(s)`` tracking server does not answer /health."""
     if not is_server(uri):
@@ -348,8 +360,8 @@ class Tracker:
 
         self.uri = uri
         check_reachable(uri, timeout_s)
-        if uri.startswith("sqlite:///"):
-            Path(uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+        if local_store_file(uri) is not None:
+            local_store_file(uri).parent.mkdir(parents=True, exist_ok=True)
         self.client = MlflowClient(tracking_uri=uri)
         self.experiment_name = experiment
         self._datasets: dict[tuple[str, str], Any] = {}  # dataset entities already built
@@ -722,7 +734,7 @@ def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
     from mlflow.tracking import MlflowClient
 
     _quiet_mlflow_logs()
-    if uri.startswith("sqlite:///") and not Path(uri[len("sqlite:///") :]).is_file():
+    if not has_store(uri):
         print(f"no MLflow store at {uri} yet: run `make reproduce` (or `skidbench evaluate`) first")
         return
     for exp in MlflowClient(uri).search_experiments(filter_string="name LIKE 'skidbench-%'"):

@@ -123,6 +123,14 @@ def test_no_match_and_bad_filter_are_one_line_errors(two_evaluations):
         run_compare(compose("compare", out, ["mlflow.experiment=empty-one"]))
 
 
+def test_compare_under_an_output_root_never_evaluated_creates_no_store(tmp_path):
+    """compare only reads: on a root with no MLflow store it says so, and leaves no mlflow.db behind
+    (opening a SQLite store creates the file and MLflow's own Default experiment)."""
+    with pytest.raises(CompareError, match="no MLflow store at sqlite:.*run `skidbench evaluate` first"):
+        run_compare(compose("compare", tmp_path))
+    assert not (tmp_path / "mlflow.db").exists()
+
+
 def test_compare_links_the_parent_its_children_side_by_side_and_a_saved_view(two_evaluations):
     import json
     import urllib.parse
