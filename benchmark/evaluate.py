@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import fingerprint_obj, write_json_atomic, write_parquet_atomic
@@ -451,16 +452,14 @@ def run_benchmark(
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
+            ctx = ChildContext(
+                cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags, log_figures
+            )
             for terrain in terrains:
                 tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
-                fp = split_fingerprint(files_of[terrain], layout.splits)
-                for model_name in models:
-                    child = _run_child(
-                        cfg, tracker, parent_id, layout, model_name, terrain, tests[terrain], horizons, hcfg,
-                        fit_fn, conf, {**common_tags, trk.TAG_FINGERPRINT: fp}, log_figures,
-                        inputs_of[terrain], datasets_of[terrain],
-                    )  # fmt: skip
-                    children.append(child)
+                td = TerrainData(terrain, tests[terrain], inputs_of[terrain], datasets_of[terrain],
+                                 split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
+                children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
             tracker.log(
                 parent_id,
@@ -556,156 +555,256 @@ def _logged_children(tracker, parent_id: str) -> list[ChildResult]:
     ]
 
 
-def _run_child(
-    cfg,
-    tracker,
-    parent_id,
-    layout,
-    model_name,
-    terrain,
-    tests,
-    horizons,
-    hcfg,
-    fit_fn,
-    conf,
-    tags,
-    log_figures,
-    inputs: Inputs | None = None,
-    datasets=(),
-) -> ChildResult:
-    inputs = inputs or Inputs()
-    protocol = inputs.protocol
-    run_id = tracker.start(
-        f"{model_name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
-        {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name, trk.TAG_TERRAIN: terrain,
-         trk.TAG_INPUTS: protocol,
-         trk.TAG_NOTE: _describe(cfg, [model_name], [terrain], list(tests), horizons)},
-        parent_id,
-    )  # fmt: skip
-    params = trk.config_params(conf, _model_config(cfg, model_name))  # this model's config, no other's
-    tracker.log(run_id, params={**params, "model": model_name, "terrain": terrain, "inputs": protocol})
-    tracker.log_datasets(run_id, datasets)
-    stage = "fit"
+# -- one child run: a model on a terrain ------------------------------------------------------------
+@dataclass(frozen=True)
+class ChildContext:
+    """What every child run of one evaluate parent run shares: the config (and its plain-container form
+    ``conf`` the params are logged from), the store, the parent run, the output layout, the horizons and
+    window thresholds, the fit function, the tags every child carries and whether to draw figures."""
+
+    cfg: Any
+    tracker: Any
+    parent_id: str
+    layout: Layout
+    horizons: Sequence[float]
+    hcfg: HorizonConfig
+    fit_fn: Callable[[Any, str, str], Any]
+    conf: dict[str, Any]
+    tags: dict[str, str]
+    log_figures: bool
+
+
+@dataclass(frozen=True)
+class TerrainData:
+    """What every model of one terrain is scored on: the test sequences per split, the inputs that drive
+    the models, the splits as MLflow dataset inputs and the fingerprint of the terrain's split files."""
+
+    terrain: str
+    tests: dict[str, list[TestSequence]]
+    inputs: Inputs = field(default_factory=Inputs)
+    datasets: Sequence[trk.SplitData] = ()
+    fingerprint: str = ""
+
+
+class _Stage:
+    """The step a child run is at; a failure's reason reads ``"<stage> failed: <Type>: <message>"``."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __call__(self, name: str) -> None:
+        self.name = name
+
+
+def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResult:
+    """Fit ``model_name`` on ``td.terrain``'s Train split, score it on every test split and log it all to
+    one child run; an exception of the model (fit, predict, scoring, its outputs) ends that run FAILED with
+    the reason and the benchmark carries on (an MLflow store error or an interrupt does not)."""
+    protocol = td.inputs.protocol
+    run_id = _start_child(ctx, model_name, td)
+    stage = _Stage("fit")
     try:
-        fit = fit_fn(cfg, model_name, terrain)
-        model = fit.model
-        tracker.log(
-            run_id,
-            metrics={
-                "fit_loss": _num(getattr(fit, "fit_loss", None)),
-                "fit_time_s": _num(getattr(fit, "fit_time_s", None)),
-                "n_train": _num(getattr(fit, "n_train", None)),
-            },
-            tags={
-                trk.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
-                trk.TAG_PLUGIN: plugin_package(model_name, model),
-            },
-        )
-        bound_metrics = fit_quality_metrics(fit)
-        if bound_metrics:
-            tracker.log(run_id, metrics=bound_metrics)
-        # what the model is beyond its config: the robot constants it was fitted with (calibrated or the
-        # spec sheet's), and an augmented model's base, effects and their fitted values
-        described = {}
-        for c, rec in (_fit_json(fit).get("robot_constants") or {}).items():
-            described[f"robot_used.{c}"] = rec.get("value")
-            described[f"robot_used.{c}.source"] = rec.get("source")
-        for k, v in trk.flatten(dict(getattr(model, "options", None) or {}), "model_options.").items():
-            described[k] = v  # the options the model was built with (config and +model.options.*)
-        if callable(getattr(model, "tracking_params", None)):
-            described.update(model.tracking_params())
-        if inputs.response is not None:  # the calibration's wheel response that drove every model
-            described.update({f"wheel_response.{k}": v for k, v in inputs.response.__dict__.items()})
-        described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
-        if described:
-            tracker.log(run_id, params=described)
-        stem = layout.eval_stem(model_name, terrain, protocol)
-        params_json = stem.with_name(stem.name + ".params.json")
-        write_json_atomic(params_json, model.to_json())
-        tracker.artifact(run_id, params_json, "fit")
-        arrays = dict(getattr(model, "arrays", None) or {})
-        if arrays:  # a learned model's fitted arrays, as the fit stage saved them
-            from skidbench.models.saved import save_arrays
-
-            arrays_npz = stem.with_name(stem.name + ".arrays.npz")
-            save_arrays(arrays_npz, arrays)
-            tracker.artifact(run_id, arrays_npz, "fit")
-        stage = "logging the model"
+        stem = ctx.layout.eval_stem(model_name, td.terrain, protocol)
+        fit = _fit_and_log(ctx, run_id, model_name, td, stem)
+        stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
-        _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path, next(iter(tests.values()))[0])
-        stage = "predict"
-        metrics: dict[str, float] = {}
-        frames = []
-        predict_time = 0.0
-        autocorr = getattr(model, "error_autocorrelation_", None)
-        velocities = {}
-        for split, seqs in tests.items():
-            vel, dt, cov = predict_split(model, seqs, inputs, with_cov=True)
-            velocities[split] = vel
-            predict_time += dt
-            stage = f"score {split}"
-            w = score_split(seqs, vel, horizons, hcfg, cov, autocorr)
-            if len(w):
-                w.insert(0, "split", split)
-                frames.append(w)
-            metrics.update(summarise(w, split, horizons))
-            stage = "predict"
-        metrics["predict_time_s"] = predict_time
-        stage = "logging"
-        windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-        win_path = stem.with_name(stem.name + ".windows.parquet")
-        import pyarrow as pa
-
-        write_parquet_atomic(
-            pa.Table.from_pandas(windows, preserve_index=False),
-            win_path,
-            {
-                "model": model_name,
-                "terrain": terrain,
-                "horizons": list(horizons),
-                "run_id": run_id,
-                "inputs": protocol,
-            },  # fmt: skip
+        _log_model(ctx.cfg, ctx.tracker, run_id, fit, model_name, td.terrain, record_path,
+                   next(iter(td.tests.values()))[0])  # fmt: skip
+        stage("predict")
+        metrics, windows, velocities = predict_and_score(
+            fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage
         )
-        tracker.artifact(run_id, win_path, "windows")
-        stage = "report data"  # what compare draws beyond the metrics (Figs. 5-7), from this model
-        for p in write_report_data(cfg, layout, stem, model, terrain, tests, velocities, horizons[0]):
-            tracker.artifact(run_id, p, "report_data")
-        if log_figures and len(windows):
-            from .figures import window_error_figure
-
-            fig_path = stem.with_name(stem.name + ".errors.png")
-            window_error_figure(windows, f"{model_name} on {terrain} (inputs={protocol})", fig_path)
-            tracker.artifact(run_id, fig_path, "figures")
-        nan_metrics = [k for k, v in metrics.items() if k.endswith("_rmsre_pct") and not np.isfinite(v)]
-        tracker.log(
-            run_id,
-            metrics=metrics,
-            tags={
-                trk.TAG_STATUS: "FINISHED",
-                **(
-                    {"skidbench.warning": f"no window over the minimum distance/rotation for {nan_metrics}"}
-                    if nan_metrics
-                    else {}
-                ),
-            },
-        )
-        tracker.end(run_id, "FINISHED")
-        log.info("%s/%s: %s", model_name, terrain, _brief(metrics))
-        return ChildResult(model_name, terrain, run_id, "FINISHED", metrics, inputs=protocol)
+        stage("logging")
+        _log_windows(ctx, run_id, model_name, td, stem, windows)
+        stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
+        _log_report_data(ctx, run_id, model_name, td, stem, fit.model, windows, velocities)
+        _finish_child(ctx.tracker, run_id, metrics)
+        log.info("%s/%s: %s", model_name, td.terrain, _brief(metrics))
+        return ChildResult(model_name, td.terrain, run_id, "FINISHED", metrics, inputs=protocol)
     except KeyboardInterrupt:
-        tracker.fail(run_id, "interrupted")
+        ctx.tracker.fail(run_id, "interrupted")
         raise
     except Exception as exc:
         from mlflow.exceptions import MlflowException
 
         if isinstance(exc, MlflowException):
             raise
-        reason = f"{stage} failed: {type(exc).__name__}: {one_line(str(exc))}"
-        log.warning("%s/%s FAILED: %s", model_name, terrain, reason)
+        reason = f"{stage.name} failed: {type(exc).__name__}: {one_line(str(exc))}"
+        log.warning("%s/%s FAILED: %s", model_name, td.terrain, reason)
         log.debug("%s", traceback.format_exc())
-        tracker.fail(run_id, reason)
-        return ChildResult(model_name, terrain, run_id, "FAILED", reason=reason, inputs=protocol)
+        ctx.tracker.fail(run_id, reason)
+        return ChildResult(model_name, td.terrain, run_id, "FAILED", reason=reason, inputs=protocol)
+
+
+def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
+    """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
+    protocol = td.inputs.protocol
+    run_id = ctx.tracker.start(
+        f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
+        {**ctx.tags, trk.TAG_FINGERPRINT: td.fingerprint, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name,
+         trk.TAG_TERRAIN: td.terrain, trk.TAG_INPUTS: protocol,
+         trk.TAG_NOTE: _describe(ctx.cfg, [model_name], [td.terrain], list(td.tests), ctx.horizons)},
+        ctx.parent_id,
+    )  # fmt: skip
+    params = trk.config_params(ctx.conf, _model_config(ctx.cfg, model_name))  # this model's config only
+    ctx.tracker.log(run_id, params={**params, "model": model_name, "terrain": td.terrain, "inputs": protocol})
+    ctx.tracker.log_datasets(run_id, td.datasets)
+    return run_id
+
+
+def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path) -> Any:
+    """Fits the model (``ctx.fit_fn``) and logs what the fit is: its loss, time and size, the model's
+    version and package, its fit diagnostics, the parameters of :func:`fit_description`, and the fitted
+    model's files (``<stem>.params.json``, a learned model's ``<stem>.arrays.npz``). Returns the fit."""
+    tracker = ctx.tracker
+    fit = ctx.fit_fn(ctx.cfg, model_name, td.terrain)
+    model = fit.model
+    tracker.log(
+        run_id,
+        metrics={
+            "fit_loss": _num(getattr(fit, "fit_loss", None)),
+            "fit_time_s": _num(getattr(fit, "fit_time_s", None)),
+            "n_train": _num(getattr(fit, "n_train", None)),
+        },
+        tags={
+            trk.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
+            trk.TAG_PLUGIN: plugin_package(model_name, model),
+        },
+    )
+    bound_metrics = fit_quality_metrics(fit)
+    if bound_metrics:
+        tracker.log(run_id, metrics=bound_metrics)
+    described = fit_description(fit, td.inputs.response)
+    if described:
+        tracker.log(run_id, params=described)
+    params_json = stem.with_name(stem.name + ".params.json")
+    write_json_atomic(params_json, model.to_json())
+    tracker.artifact(run_id, params_json, "fit")
+    arrays = dict(getattr(model, "arrays", None) or {})
+    if arrays:  # a learned model's fitted arrays, as the fit stage saved them
+        from skidbench.models.saved import save_arrays
+
+        arrays_npz = stem.with_name(stem.name + ".arrays.npz")
+        save_arrays(arrays_npz, arrays)
+        tracker.artifact(run_id, arrays_npz, "fit")
+    return fit
+
+
+def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str, Any]:
+    """What a fitted model is beyond its config, as MLflow params: the robot constants it was fitted with
+    (``robot_used.<c>`` and its ``.source``: calibrated or the spec sheet's), the options it was built with
+    (``model_options.*``), the model's own ``tracking_params()`` (an augmented model's base and effects),
+    the wheel response that drove every model (``wheel_response.*``) and the fitted values (``fitted.*``)."""
+    model = fit.model
+    described = {}
+    for c, rec in (_fit_json(fit).get("robot_constants") or {}).items():
+        described[f"robot_used.{c}"] = rec.get("value")
+        described[f"robot_used.{c}.source"] = rec.get("source")
+    for k, v in trk.flatten(dict(getattr(model, "options", None) or {}), "model_options.").items():
+        described[k] = v  # the options the model was built with (config and +model.options.*)
+    if callable(getattr(model, "tracking_params", None)):
+        described.update(model.tracking_params())
+    if response is not None:  # the calibration's wheel response that drove every model
+        described.update({f"wheel_response.{k}": v for k, v in response.__dict__.items()})
+    described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
+    return described
+
+
+def predict_and_score(
+    model: Any,
+    tests: dict[str, Sequence[TestSequence]],
+    horizons: Sequence[float],
+    hcfg: HorizonConfig,
+    inputs: Inputs | None = None,
+    on_step: Callable[[str], None] | None = None,
+) -> tuple[dict[str, float], pd.DataFrame, dict[str, list[np.ndarray]]]:
+    """Predicts every test split with ``model`` (:func:`predict_split`, with its covariances when it has
+    ``predict_cov``) and scores every window of every horizon (:func:`score_split`). Returns the metrics
+    (:func:`summarise` of each split, plus ``predict_time_s``: the seconds spent in predict), the windows
+    of every split in one frame (first column ``split``; empty when no split has a window) and the
+    predicted body velocities per split (per sequence (T, 3): vx, vy in m/s, wz in rad/s). Logs nothing;
+    ``on_step`` is told the step it is at ("predict", "score <split>") before each."""
+    step = on_step or (lambda _name: None)
+    metrics: dict[str, float] = {}
+    frames = []
+    predict_time = 0.0
+    autocorr = getattr(model, "error_autocorrelation_", None)
+    velocities = {}
+    for split, seqs in tests.items():
+        vel, dt, cov = predict_split(model, seqs, inputs, with_cov=True)
+        velocities[split] = vel
+        predict_time += dt
+        step(f"score {split}")
+        w = score_split(seqs, vel, horizons, hcfg, cov, autocorr)
+        if len(w):
+            w.insert(0, "split", split)
+            frames.append(w)
+        metrics.update(summarise(w, split, horizons))
+        step("predict")
+    metrics["predict_time_s"] = predict_time
+    windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    return metrics, windows, velocities
+
+
+def _log_windows(
+    ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path, windows: pd.DataFrame
+) -> None:
+    """Writes the per-window table ``<stem>.windows.parquet`` (what compare reads) and logs it."""
+    win_path = stem.with_name(stem.name + ".windows.parquet")
+    write_parquet_atomic(
+        pa.Table.from_pandas(windows, preserve_index=False),
+        win_path,
+        {
+            "model": model_name,
+            "terrain": td.terrain,
+            "horizons": list(ctx.horizons),
+            "run_id": run_id,
+            "inputs": td.inputs.protocol,
+        },  # fmt: skip
+    )
+    ctx.tracker.artifact(run_id, win_path, "windows")
+
+
+def _log_report_data(
+    ctx: ChildContext,
+    run_id: str,
+    model_name: str,
+    td: TerrainData,
+    stem: Path,
+    model: Any,
+    windows: pd.DataFrame,
+    velocities: dict[str, list[np.ndarray]],
+) -> None:
+    """Writes and logs what compare draws from this model beyond the metrics (report_data.py), and the
+    window-error figure when figures are logged and there is a window."""
+    for p in write_report_data(ctx.cfg, ctx.layout, stem, model, td.terrain, td.tests, velocities,
+                               ctx.horizons[0]):  # fmt: skip
+        ctx.tracker.artifact(run_id, p, "report_data")
+    if ctx.log_figures and len(windows):
+        from .figures import window_error_figure  # matplotlib: imported only when a figure is drawn
+
+        fig_path = stem.with_name(stem.name + ".errors.png")
+        window_error_figure(windows, f"{model_name} on {td.terrain} (inputs={td.inputs.protocol})", fig_path)
+        ctx.tracker.artifact(run_id, fig_path, "figures")
+
+
+def _finish_child(tracker, run_id: str, metrics: dict[str, float]) -> None:
+    """Logs the metrics, the status tag (and a warning when a split/horizon had no window) and ends the
+    run FINISHED."""
+    nan_metrics = [k for k, v in metrics.items() if k.endswith("_rmsre_pct") and not np.isfinite(v)]
+    tracker.log(
+        run_id,
+        metrics=metrics,
+        tags={
+            trk.TAG_STATUS: "FINISHED",
+            **(
+                {"skidbench.warning": f"no window over the minimum distance/rotation for {nan_metrics}"}
+                if nan_metrics
+                else {}
+            ),
+        },
+    )
+    tracker.end(run_id, "FINISHED")
 
 
 # -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------

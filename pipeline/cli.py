@@ -20,6 +20,7 @@ from pathlib import Path
 from .cache import StaleInputError, check_producers, clear_failed, mark_failed
 from .config_schema import validate
 from .errors import ConfigError, SkidbenchError, one_line
+from .layout import register_resolvers
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -63,10 +64,14 @@ def stage(name: str, home: bool = True) -> Callable:
     holding no data is removed (so ``skidbench datasets`` never lists it); otherwise the failure is
     recorded, and the stages downstream refuse to run until this one succeeds."""
 
+    # as Hydra's docs register resolvers: in the app, before @hydra.main composes (`python -m <app>` too)
+    register_resolvers()
+
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
             root = None
+            register_resolvers()  # a sweep's job may run in a process that did not start at main()
             try:
                 cfg = args[0] if args else None
                 if hasattr(cfg, "get"):  # a sweep's job or an in-process call: not checked by _preflight
@@ -151,6 +156,7 @@ def main(argv: list[str] | None = None) -> None:
     except (ImportError, AttributeError) as exc:  # a stage that is not built yet says so plainly
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
+    register_resolvers()  # before the override check and Hydra compose (and resolve) the stage's config
     args = _preflight(name, argv[1:])
     sys.argv = [f"skidbench {name}", *args]
     register_launchers()

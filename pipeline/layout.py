@@ -226,6 +226,10 @@ def prune_stale(layout: Layout, manifest: Manifest) -> list[Path]:
 
 
 def layout_from_cfg(cfg) -> Layout:
+    """The layout of ``cfg``'s dataset (``cfg.out_root``, ``cfg.dataset``). Registers the config's resolvers
+    first (idempotent): ``cfg.dataset`` resolves lazily, so a library caller that composed the config
+    without the CLI gets its dataset name too."""
+    register_resolvers()
     return Layout(Path(cfg.out_root), str(cfg.dataset))
 
 
@@ -288,13 +292,13 @@ def _sim_dataset_name(scale, seed):
 
 
 def register_resolvers() -> None:
-    """The config's dataset names (conf/source/*.yaml): ``${skidbench.dataset:<prefix>}`` and
-    ``${skidbench.sim_dataset:<scale>,<seed>}``. Registered on import: every module that reads
-    ``cfg.dataset`` imports this one."""
+    """Registers the config's dataset names (conf/source/*.yaml) with OmegaConf:
+    ``${skidbench.dataset:<prefix>}`` and ``${skidbench.sim_dataset:<scale>,<seed>}``. Idempotent. The
+    entry points call it before a config is composed or resolved, as Hydra's docs do before
+    ``@hydra.main``: the CLI (``pipeline/cli.py``: ``main``, each stage app's ``stage`` decorator and its
+    task function, so a sweep's job in another process has them), the override check's and ``inspect``'s
+    compose, and :func:`layout_from_cfg` (library callers); importing this module registers nothing."""
     if not OmegaConf.has_resolver("skidbench.dataset"):
         OmegaConf.register_new_resolver("skidbench.dataset", _dataset_name)
     if not OmegaConf.has_resolver("skidbench.sim_dataset"):
         OmegaConf.register_new_resolver("skidbench.sim_dataset", _sim_dataset_name)
-
-
-register_resolvers()

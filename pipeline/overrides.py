@@ -19,6 +19,7 @@ from importlib import resources
 from typing import Any
 
 from .errors import ConfigError, one_line
+from .layout import register_resolvers
 
 CONFIG_MODULE = "skidbench.conf"
 # Hydra flags that take no override check: help, shell completion, another config, a rerun
@@ -163,6 +164,7 @@ def _sweep_values(overrides: list[str]) -> list[tuple[str, list[str]]]:
 def _compose(stage: str, overrides: list[str]) -> Any:
     from hydra import compose, initialize_config_module
 
+    register_resolvers()  # the composed config is validated (resolved) by the caller
     with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3", job_name=stage):
         return compose(stage, overrides=overrides, return_hydra_config=True)
 

@@ -12,6 +12,14 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_REAL = Path(os.environ.get("SKIDBENCH_SHARED_REAL", REPO.parent / "shared" / "data" / "real"))
 
 
+def pytest_configure(config):
+    """The config's resolvers (``${skidbench.dataset:...}``), registered as the CLI registers them before
+    composing: tests compose configs with Hydra's compose API and read ``cfg.dataset``."""
+    from skidbench.pipeline.layout import register_resolvers
+
+    register_resolvers()
+
+
 @pytest.fixture(scope="session")
 def shared_real() -> Path:
     """../shared/data/real (real robot recordings); skips the test when absent."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -183,3 +184,66 @@ def test_the_evaluate_stamp_changes_when_a_models_config_changes(tmp_path, monke
 
         monkeypatch.setattr(fitting, "model_config", changed)
         assert evaluate_app._stamp_key(cfg, layout, stamp) != key
+
+
+def _constant_twist_sequence(name: str, n: int, rate_hz: float, v: float, w: float):
+    """A sequence driven at a constant twist (v m/s, w rad/s) whose ground truth is that twist exactly
+    (no slip): the ideal model's prediction."""
+    from _bench_data import JACKAL
+
+    from skidbench.benchmark.evaluate import TestSequence
+    from skidbench.pipeline.geometry import integrate_body_velocity
+
+    t = np.arange(n) / rate_hz
+    wl, wr = JACKAL.wheel_rates_from_twist(np.full(n, v), np.full(n, w))
+    true = np.column_stack([np.full(n, v), np.zeros(n), np.full(n, w)])
+    pose = integrate_body_velocity(np.zeros(3), true[:-1], np.diff(t))
+    table = pd.DataFrame(
+        {"t": t, "cmd_v": v, "cmd_w": w, "cmd_wl": wl, "cmd_wr": wr, "cmd_dwl": 0.0, "cmd_dwr": 0.0,
+         "x": pose[:, 0], "y": pose[:, 1], "yaw": pose[:, 2], "vx": true[:, 0], "vy": true[:, 1],
+         "wz": true[:, 2], "valid": np.ones(n, bool)}
+    )  # fmt: skip
+    return TestSequence(name, Path(f"{name}.parquet"), table, {"sequence": name})
+
+
+def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_window():
+    """No slip: the ideal model predicts the truth, so every scored window has zero error; a sequence of
+    T samples at rate r has T - round(h r) windows of horizon h. A straight line turns by 0 rad (under the
+    minimum rotation: no rotational window, RMSRE NaN); an arc of 0.5 rad/s turns by 3 rad in 6 s."""
+    from _bench_data import JACKAL, IdealModel
+
+    from skidbench.benchmark.evaluate import predict_and_score
+    from skidbench.benchmark.horizon import HorizonConfig
+
+    rate, h = 30.0, 6.0
+    tests = {
+        "cv": [_constant_twist_sequence("line20", 600, rate, 1.0, 0.0),
+               _constant_twist_sequence("line10", 300, rate, 0.5, 0.0)],
+        "ld": [_constant_twist_sequence("arc20", 600, rate, 1.0, 0.5)],
+    }  # fmt: skip
+    model = IdealModel(JACKAL).fit(None)
+    steps = []
+    metrics, windows, velocities = predict_and_score(
+        model, tests, [h], HorizonConfig(h, 0.5, np.deg2rad(10.0)), on_step=steps.append
+    )
+    n_h = round(h * rate)
+    assert metrics[trk.windows_key("translational", "cv", h)] == (600 - n_h) + (300 - n_h)
+    assert metrics[trk.windows_key("rotational", "cv", h)] == 0
+    assert math.isnan(metrics[trk.metric_key("rotational", "cv", h)])
+    assert metrics[trk.windows_key("translational", "ld", h)] == 600 - n_h
+    assert metrics[trk.windows_key("rotational", "ld", h)] == 600 - n_h
+    for key in (trk.metric_key("translational", "cv", h), trk.metric_key("translational", "ld", h),
+                trk.metric_key("rotational", "ld", h)):  # fmt: skip
+        assert metrics[key] == 0.0
+    assert "predict_time_s" in metrics
+    assert list(windows.columns[:3]) == ["split", "horizon_s", "sequence"]
+    assert windows.groupby(["split", "sequence"]).size().to_dict() == {
+        ("cv", "line10"): 300 - n_h, ("cv", "line20"): 600 - n_h, ("ld", "arc20"): 600 - n_h
+    }  # fmt: skip
+    assert np.allclose(windows["trans_err"], 0.0, atol=1e-9) and np.allclose(
+        windows["rot_err"], 0.0, atol=1e-9
+    )
+    for split, seqs in tests.items():
+        for s, vel in zip(seqs, velocities[split], strict=True):
+            assert np.allclose(vel, s.table[["vx", "vy", "wz"]].to_numpy(), atol=1e-12)
+    assert steps == ["score cv", "predict", "score ld", "predict"]

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ExtractError, SkidbenchError, one_line
+from ..layout import register_resolvers
 from .convert import normalize_msgtype, schema_for
 from .reader import _BAG_ERRORS, DEFAULT_STORES, _bag_error, bag_format, find_bags, open_bag
 
@@ -336,6 +337,7 @@ def _configured_keys() -> list[str]:
     try:
         from hydra import compose, initialize_config_module
 
+        register_resolvers()
         with initialize_config_module(config_module="skidbench.conf", version_base="1.3"):
             return list(compose("extract", overrides=["source=bag", "source.root=."]).source.topics.keys())
     except Exception:  # noqa: BLE001 - the report stands without it
