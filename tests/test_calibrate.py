@@ -225,9 +225,15 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
         settings_from_cfg,
     )
     from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.schema import read_split
 
     for part in ("splits", "raw"):  # a copy: this test changes its Train files
         shutil.copytree(calib_root / "calib" / part, tmp_path / "calib" / part)
+    for f in (tmp_path / "calib" / "splits" / "tile" / "train").glob("*.parquet"):
+        df, meta = read_split(
+            f
+        )  # without encoders: the radius only, no wheel response (seconds, not a minute)
+        write_split(df.assign(enc_wl=np.nan, enc_wr=np.nan), f, meta)
     cfg = _cfg(tmp_path)
     layout = layout_from_cfg(cfg)
     settings = dataclasses.replace(settings_from_cfg(cfg), bootstrap=20)
@@ -251,8 +257,6 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     assert "made with another robot" in stale(_cfg(tmp_path, "robot.track_width=0.5"))
     # other Train split files (one changed)
     f = sorted((tmp_path / "calib" / "splits" / "tile" / "train").glob("*.parquet"))[0]
-    from skidbench.pipeline.schema import read_split
-
     df, meta = read_split(f)
     write_split(df.iloc[:-10].reset_index(drop=True), f, meta)
     assert f"input(s) changed since ({f}" in stale(cfg)
