@@ -204,12 +204,12 @@ def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         ev = hcompose("evaluate", [f"out_root={tmp_path}", "dataset=sim-mini", "calibrate.use=false"])
         assert not default_fit_fn()(ev, "edd", "tile").reused
-    args = ["model=edd", "terrain=tile", "track=false", "calibrate.use=false"]
-    p = run_cli(["fit", *args], tmp_path)
+    # one command: edd (evaluate's fit) is up to date, roc is fitted
+    p = run_cli(
+        ["fit", "-m", "model=edd,roc", "terrain=tile", "track=false", "calibrate.use=false"], tmp_path
+    )
     assert p.returncode == 0, p.stderr
-    assert "fit: edd/tile up to date, skipped" in p.stdout
-    p = run_cli(["fit", "model=roc", *args[1:]], tmp_path)
-    assert p.returncode == 0 and "up to date" not in p.stdout, p.stdout + p.stderr
+    assert "fit: edd/tile up to date, skipped" in p.stdout and "roc/tile up to date" not in p.stdout
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         ev = hcompose("evaluate", [f"out_root={tmp_path}", "dataset=sim-mini", "calibrate.use=false"])
         assert default_fit_fn()(ev, "roc", "tile").reused
