@@ -21,7 +21,7 @@ def main(cfg: DictConfig) -> None:
 def run(cfg: DictConfig):
     """The stage: skipped (the cached result) when its stamp is fresh and its parent run exists, else
     :func:`run_benchmark`. Returns ``(result, skipped)``."""
-    from skidbench.pipeline.cache import Stamp
+    from skidbench.pipeline.cache import Stamp, stamp_file
     from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.protocol import protocol_of
 
@@ -31,7 +31,7 @@ def run(cfg: DictConfig):
     inputs = protocol_of(cfg)
     # one stamp per input protocol: evaluating under another protocol does not stale this one
     name = "evaluate.json" if inputs == "commanded" else f"evaluate.{inputs}.json"
-    stamp = Stamp(layout.root / ".stamps" / "evaluate" / name, "evaluate")
+    stamp = Stamp(stamp_file(layout.root, "evaluate", name), "evaluate")
     if not cfg.get("force", False) and stamp.is_fresh(_stamp_key(cfg, layout, stamp)):
         cached = _cached_result(cfg, layout, stamp)
         if cached is not None:

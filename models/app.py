@@ -23,14 +23,11 @@ log = logging.getLogger(__name__)
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="fit")
 @stage("fit")
 def main(cfg: DictConfig) -> None:
-    from omegaconf import OmegaConf
     from omegaconf.errors import MissingMandatoryValue
 
-    from skidbench.pipeline.cache import Stamp
     from skidbench.pipeline.layout import layout_from_cfg
 
-    from .fitting import _training_files, fit_model, model_config
-    from .specs import get_model_class
+    from .fitting import fit_model
 
     try:
         terrain = str(cfg.terrain)
@@ -39,49 +36,25 @@ def main(cfg: DictConfig) -> None:
             "fit: no terrain given; add terrain=<t> (a folder under <dataset>/splits/)"
         ) from None
     name = str(cfg.model.name)
-    split = str(cfg.split)
     layout = layout_from_cfg(cfg)
-    # the stamp (skidbench.pipeline.cache): the split files fitted on, the model's config and version, robot
-    # and its calibration on this terrain (`calibrate`'s; a changed calibration refits)
-    from skidbench.pipeline.calibration import load_calibration
-    from skidbench.pipeline.protocol import protocol_of
+    track = bool(cfg.get("track", True))
 
-    calibration = load_calibration(cfg, terrain)
-    inputs = protocol_of(cfg)
-    # one stamp per input protocol (a fit under one protocol is never another's; pipeline/protocol.py)
-    stamp_name = f"{terrain}.json" if inputs == "commanded" else f"{terrain}.{inputs}.json"
-    stamp = Stamp(layout.root / ".stamps" / "fit" / name / stamp_name, "fit")
-    key = stamp.key(
-        _training_files(cfg, name, terrain, split),  # the manifest's files, exactly those fitted on
-        {
-            "model": model_config(cfg, name),
-            "version": getattr(get_model_class(name), "version", "?"),
-            "robot": OmegaConf.to_container(cfg.robot, resolve=True),
-            "terrain": terrain,
-            "split": split,
-            "inputs": inputs,
-            "wheel_response": _response_key(cfg, terrain, inputs),
-            "calibration": {
-                c: (calibration or {}).get(c, {}).get("value") for c in ("wheel_radius", "track_width")
-            },
-        },
-    )
-    if bool(cfg.get("reuse", True)) and stamp.is_fresh(key):
-        print(
-            f"fit: {name}/{terrain} up to date, skipped ({layout.fit_file(name, terrain, inputs)})",
-            flush=True,
+    def log_run(res, cfg, name, terrain) -> None:
+        loss = f"{res.fit_loss:.6g}" if res.fit_loss is not None else "n/a"
+        log.info(
+            f"fit {name} on {terrain}: {res.n_train} rows, loss {loss}, {res.fit_time_s:.2f} s, "
+            f"params {res.model.params} -> {res.path}"
         )
-        return
-    res = fit_model(cfg, name, terrain, reuse=False, split=split)
-    msg = (
-        f"fit {name} on {terrain}: {res.n_train} rows, loss {res.fit_loss:.6g}, {res.fit_time_s:.2f} s, "
-        f"params {res.model.params} -> {res.path}"
+        if track:
+            log_fit_run(cfg, layout, name, terrain, res)
+
+    # up to date (fitting.fit_stamp, whichever stage made the fit): reused and nothing logged; else
+    # fitted, logged, and only then stamped (a job killed before its run was logged refits when retried)
+    res = fit_model(
+        cfg, name, terrain, reuse=bool(cfg.get("reuse", True)), split=str(cfg.split), hooks=[log_run]
     )
-    log.info(msg)
-    if bool(cfg.get("track", True)):
-        log_fit_run(cfg, layout, name, terrain, res)
-    # recorded last: a job killed before its run finished is not "up to date" when retried
-    stamp.record(key, [res.path])
+    if res.reused:
+        print(f"fit: {name}/{terrain} up to date, skipped ({res.path})", flush=True)
 
 
 def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
@@ -131,18 +104,6 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
             tracker.artifact(run_id, arrays_file(res.path), "fit")
         _log_model(cfg, tracker, run_id, name, terrain, res, layout)
     return run_id
-
-
-def _response_key(cfg, terrain: str, inputs: str) -> dict | None:
-    """The calibrated wheel response a fit under ``inputs=response`` is driven by (part of its stamp)."""
-    if inputs != "response":
-        return None
-    from dataclasses import asdict
-
-    from skidbench.pipeline.calibration import response_for
-
-    resp = response_for(cfg, terrain)
-    return asdict(resp) if resp is not None else None
 
 
 def _log_model(cfg: DictConfig, tracker, run_id: str, name: str, terrain: str, res, layout) -> None:

@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from skidbench.pipeline.calibration import response_for, robot_for_model
-from skidbench.pipeline.io import fingerprint_file, fingerprint_obj, write_json_atomic
+from skidbench.pipeline.cache import Stamp, stamp_file
+from skidbench.pipeline.calibration import CONSTANTS, load_calibration, response_for, robot_for_model
+from skidbench.pipeline.io import write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
@@ -219,26 +220,6 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
     return spec, {"discovery": str(path), "spec": spec, "message": entry.get("message", "")}
 
 
-def _fingerprint(
-    cfg: Any, model_name: str, files: list[Path], robot: Robot, cls: type, inputs: str,
-    response: WheelResponse | None,
-) -> str:  # fmt: skip
-    info = discover().get(model_name.split("+")[0])
-    return fingerprint_obj(
-        {
-            "model": model_config(cfg, model_name),
-            "version": getattr(cls, "version", "?"),
-            # a plugin release that forgets to bump its class version still invalidates its old fits
-            "package": [info.package, info.package_version] if info else None,
-            "robot": robot.to_dict(),
-            "files": [fingerprint_file(p) for p in files],
-            "inputs": inputs,  # a fit under one protocol is never reused under another
-            "response": dataclasses.asdict(response) if response is not None else None,
-            "schema": FIT_SCHEMA,
-        }
-    )
-
-
 def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse | None]:
     """(protocol, robot the inputs are converted with, the terrain's wheel response) of a run: the
     protocol ``cfg.inputs``; the spec sheet's robot (the split's own commanded ``cmd_v``/``cmd_w`` come
@@ -268,6 +249,69 @@ def check_inputs(model: Any, model_name: str) -> None:
         )
 
 
+@dataclass
+class _FitPlan:
+    """Everything a fit of one model on one terrain is made from, and its stamp."""
+
+    spec: str  # the model spec fitted (``discovered`` resolved)
+    resolved: dict[str, Any]
+    cls: type
+    files: list[Path]  # the Train split files
+    inputs: str  # input protocol
+    spec_robot: Robot  # the spec sheet's (converts the protocol's wheel rates to cmd_v/cmd_w)
+    response: WheelResponse | None
+    robot: Robot  # the robot the model is built with (the calibrated constants it takes)
+    constants: dict[str, Any]  # where each constant came from (robot_for_model)
+    path: Path  # the fit JSON
+    stamp: Stamp
+    key: str
+
+
+def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
+    layout = layout_from_cfg(cfg)
+    spec, resolved = resolve_model_spec(cfg, model_name, terrain)
+    cls = get_model_class(spec)
+    files = _training_files(cfg, model_name, terrain, split)
+    inputs, spec_robot, response = protocol_inputs(cfg, terrain)
+    robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
+    calibration = load_calibration(cfg, terrain)  # None with calibrate.use=false
+    info = discover().get(spec.split("+")[0])
+    path = layout.fit_file(model_name, terrain, inputs)
+    # one stamp per model, terrain and input protocol, as the fit file (a fit under one protocol is never
+    # another's; pipeline/protocol.py)
+    stamp = Stamp(stamp_file(layout.root, "fit", model_name, path.name), "fit")
+    key = stamp.key(
+        files,  # the manifest's Train files of the terrain, exactly those fitted on
+        {
+            "model": model_config(cfg, spec),
+            "version": getattr(cls, "version", "?"),
+            # a plugin release that forgets to bump its class version still invalidates its old fits
+            "package": [info.package, info.package_version] if info else None,
+            "robot": robot.to_dict(),  # as built, with the calibrated constants the model takes
+            "spec_robot": spec_robot.to_dict(),
+            "terrain": terrain,
+            "split": split,
+            "inputs": inputs,
+            "response": dataclasses.asdict(response) if response is not None else None,
+            "calibration": {c: ((calibration or {}).get(c) or {}).get("value") for c in CONSTANTS},
+            "schema": FIT_SCHEMA,
+        },
+    )
+    return _FitPlan(
+        spec, resolved, cls, files, inputs, spec_robot, response, robot, constants, path, stamp, key
+    )
+
+
+def fit_stamp(cfg: Any, model_name: str, terrain: str, split: str = "train") -> tuple[Stamp, str]:
+    """The stamp of the fit of ``model_name`` on ``terrain``'s ``split`` (``<ds>/.stamps/fit/<model>/
+    <terrain>[.<inputs>].json``) and the key of its current inputs: the split files (content), the model's
+    config, class version and plugin package version, the robot it is built with (calibrated constants
+    included) and the spec sheet's, terrain, split, input protocol, wheel response, the calibration's
+    constants and ``FIT_SCHEMA``. ``stamp.is_fresh(key)``: the saved fit is up to date."""
+    plan = _plan(cfg, model_name, terrain, split)
+    return plan.stamp, plan.key
+
+
 def fit_model(
     cfg: Any,
     model_name: str,
@@ -277,37 +321,43 @@ def fit_model(
     split: str = "train",
     hooks: Sequence[Callable] = (),
 ) -> FitResult:
-    """Fit ``model_name`` on ``terrain``'s Train split and write its JSON atomically. With ``reuse`` an
-    existing fit whose inputs (split files, model config and version, robot, input protocol and wheel
-    response) are unchanged is loaded. The model is fitted on the Train table of the input protocol
-    ``cfg.inputs`` (:func:`skidbench.pipeline.protocol.fit_table`: the protocol's inputs and the targets,
-    nothing else). ``hooks``: called after the fit as ``hook(result, cfg, model_name, terrain)``, passed
-    by the caller (the evaluate stage its MLflow logging; fit itself stays free of MLflow)."""
-    layout = layout_from_cfg(cfg)
-    spec, resolved = resolve_model_spec(cfg, model_name, terrain)
-    cls = get_model_class(spec)
-    files = _training_files(cfg, model_name, terrain, split)
-    inputs, spec_robot, response = protocol_inputs(cfg, terrain)
-    # the calibrated constants the model takes
-    robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
-    fp = _fingerprint(cfg, spec, files, robot, cls, inputs, response)
-    path = layout.fit_file(model_name, terrain, inputs)
-    if reuse and path.is_file():
+    """Fit ``model_name`` on ``terrain``'s Train split and write its JSON (and fitted arrays) atomically.
+
+    With ``reuse`` the saved fit is loaded instead when its stamp (:func:`fit_stamp`, the one definition
+    of "up to date" of a fit, whichever stage made it: a fit ``evaluate`` made is up to date for ``fit``
+    and the other way round) is fresh: same inputs, and the fit JSON and its arrays intact (a corrupted
+    or truncated one is refitted). The model is fitted on the Train table of the input protocol
+    ``cfg.inputs`` (:func:`skidbench.pipeline.protocol.fit_table`: the protocol's inputs and the
+    targets, nothing else). ``hooks``: called after a fit (not a reuse) as ``hook(result, cfg,
+    model_name, terrain)``, passed by the caller (the fit stage its MLflow logging; fitting stays free of
+    MLflow). The stamp is recorded after the hooks: a job killed before its hooks finished is refitted
+    when retried."""
+    plan = _plan(cfg, model_name, terrain, split)
+    spec, cls, files, inputs, robot, path = (
+        plan.spec,
+        plan.cls,
+        plan.files,
+        plan.inputs,
+        plan.robot,
+        plan.path,
+    )
+    if reuse and plan.stamp.is_fresh(plan.key):
         try:
             saved = json.loads(path.read_text())
-            if saved.get("inputs_fingerprint") == fp:
-                model = from_saved(cls, robot, saved, spec, path)
-                return FitResult(
-                    model,
-                    path,
-                    saved.get("fit_loss"),
-                    saved.get("fit_time_s", 0.0),
-                    int(saved.get("n_train", 0)),
-                    reused=True,
-                )
+            model = from_saved(cls, robot, saved, spec, path)
+            return FitResult(
+                model,
+                path,
+                saved.get("fit_loss"),
+                saved.get("fit_time_s", 0.0),
+                int(saved.get("n_train", 0)),
+                reused=True,
+            )
         except (OSError, ValueError, ModelError):
-            pass  # unreadable or stale: refit
-    table = fit_table(concat_sequences([read_split(p) for p in files]), inputs, spec_robot, response)
+            pass  # unreadable: refit
+    table = fit_table(
+        concat_sequences([read_split(p) for p in files]), inputs, plan.spec_robot, plan.response
+    )
     model = build_model(cfg, spec, robot)
     check_inputs(model, model_name)
     n_train = int(table["valid"].sum()) if "valid" in table else 0
@@ -335,12 +385,11 @@ def fit_model(
             "n_train": n_train,
             "fit_time_s": fit_time,
             "fit_info": getattr(model, "fit_info_", {}),
-            "robot_constants": constants,
+            "robot_constants": plan.constants,
             "inputs": inputs,
-            **({"wheel_response": dataclasses.asdict(response)} if response is not None else {}),
-            **({"resolved": resolved} if resolved else {}),
+            **({"wheel_response": dataclasses.asdict(plan.response)} if plan.response is not None else {}),
+            **({"resolved": plan.resolved} if plan.resolved else {}),
             "package": info.package if info else "?",
-            "inputs_fingerprint": fp,
         }
     )
     apath = arrays_file(path)
@@ -356,6 +405,8 @@ def fit_model(
     result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train)
     for hook in hooks:
         hook(result, cfg, model_name, terrain)
+    # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date
+    plan.stamp.record(plan.key, [path, *([apath] if arrays else [])])
     return result
 
 

@@ -1,15 +1,21 @@
-"""Up-to-date checks for stage outputs: content fingerprints of inputs, config and outputs.
+"""Up-to-date checks for stage outputs: content fingerprints of inputs, config and outputs. The one
+definition of "up to date" every stage uses.
 
-A stage unit (one sequence of one stage, say) records a *stamp* next to its outputs::
+A stage unit (one sequence of one stage, one model on one terrain, ...) records a *stamp*
+(``<ds>/.stamps/<stage>/<unit>.json``, :func:`stamp_file`) after its outputs::
 
-    {"stage": "extract", "key": <fingerprint of inputs + config>,
-     "inputs": {path: fingerprint}, "outputs": {path: fingerprint}, "config": {...}}
+    {"schema": 2, "stage": "fit", "key": <fingerprint of inputs + config>,
+     "inputs": {path: fingerprint}, "config": {...}, "outputs": {path: fingerprint}, "info": {...}}
 
-On a re-run the unit is skipped when the key is unchanged and every recorded output still has its
+The stage that *makes* the outputs asks :meth:`Stamp.is_fresh` with the key of its current inputs and
+config (:meth:`Stamp.key`): skipped when the key is unchanged and every recorded output still has its
 recorded fingerprint, so a changed input or config re-runs exactly what depends on it, and a truncated
-or corrupted output is detected and rebuilt instead of read. Fingerprints are content hashes
-(BLAKE2b); to keep a no-op re-run well under a second, a file's hash is reused while its
-(size, mtime_ns, inode) is unchanged (memo kept in the stamp).
+or corrupted output is detected and rebuilt instead of read. A stage that *reads* another's outputs asks
+:meth:`Stamp.stale_reason` with the inputs and the part of the config it cares about (``calibration_doc``:
+the Train files and the robot spec, whatever the calibration's settings): None when current, else a
+short reason to put in its error. A stamp of another schema (an older skidbench) is simply not fresh.
+Fingerprints are content hashes (BLAKE2b); to keep a no-op re-run well under a second, a file's hash is
+reused while its (size, mtime_ns, inode) is unchanged (memo kept in the stamp).
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from .io import fingerprint_file, fingerprint_obj, write_json_atomic
 
 log = logging.getLogger(__name__)
 
-STAMP_SCHEMA = 1
+STAMP_SCHEMA = 2  # 2: the stamp records what its key was made of (inputs, config)
 
 
 def _stat_key(path: Path) -> list[int]:
@@ -54,6 +60,12 @@ class Fingerprints:
         return fp
 
 
+def stamp_file(dataset_root: str | os.PathLike, stage: str, *unit: str) -> Path:
+    """``<dataset_root>/.stamps/<stage>/<unit...>``: where the stamp of one unit of ``stage`` lives (the
+    last part is the file name, e.g. ``stamp_file(root, "fit", "edd", "tile.json")``)."""
+    return Path(dataset_root, ".stamps", stage, *unit)
+
+
 class Stamp:
     """The stamp of one stage unit, stored at ``path`` (a JSON file)."""
 
@@ -66,35 +78,93 @@ class Stamp:
                 self.data = json.loads(self.path.read_text())
             except (OSError, json.JSONDecodeError):
                 self.data = {}
-        self.fp = Fingerprints(self.data.get("memo"))
+            if not isinstance(self.data, dict):
+                self.data = {}
+        memo = self.data.get("memo")
+        self.fp = Fingerprints(memo if isinstance(memo, dict) else None)
+        self._made_of: dict[str, dict[str, Any]] = {}  # key -> its inputs and config, for record()
+
+    def _inputs(self, inputs: Iterable[str | os.PathLike]) -> dict[str, str]:
+        return {str(Path(p)): self.fp(p) for p in sorted(map(str, inputs))}
 
     def key(self, inputs: Iterable[str | os.PathLike], config: Any) -> str:
-        ins = {str(Path(p)): self.fp(p) for p in sorted(map(str, inputs))}
-        return fingerprint_obj({"stage": self.stage, "inputs": ins, "config": config})
+        """The fingerprint of ``inputs`` (files or bag folders, by content) and ``config`` (any JSON-able
+        object) for this stage; :meth:`record` stores what it was made of."""
+        ins = self._inputs(inputs)
+        key = fingerprint_obj({"stage": self.stage, "inputs": ins, "config": config})
+        self._made_of[key] = {"inputs": ins, "config": config}
+        return key
 
-    def is_fresh(self, key: str) -> bool:
-        """True when the recorded key equals ``key`` and every recorded output is intact."""
-        if self.data.get("schema") != STAMP_SCHEMA or self.data.get("key") != key:
-            return False
+    def _outputs_reason(self) -> str | None:
+        """Why the recorded outputs cannot be used (None: every one has its recorded fingerprint)."""
         outputs = self.data.get("outputs") or {}
         if not outputs:
-            return False
+            return "it records no outputs"
         for p, fp in outputs.items():
             path = Path(p)
             if not path.exists():
-                log.info("%s: output %s is missing; rebuilding", self.stage, p)
-                return False
+                return f"its output {p} is missing"
             if self.fp(path) != fp:
-                log.warning("%s: output %s fails its fingerprint (corrupted?); rebuilding", self.stage, p)
-                return False
+                return f"its output {p} fails its fingerprint (corrupted?)"
+        return None
+
+    def is_fresh(self, key: str) -> bool:
+        """True when the recorded key equals ``key`` and every recorded output is intact (the producing
+        stage's check)."""
+        if self.data.get("schema") != STAMP_SCHEMA or self.data.get("key") != key:
+            return False
+        why = self._outputs_reason()
+        if why is not None:
+            if "missing" in why or "no outputs" in why:
+                log.info("%s: %s; rebuilding", self.stage, why)
+            else:
+                log.warning("%s: %s; rebuilding", self.stage, why)
+            return False
         return True
 
+    def stale_reason(
+        self, inputs: Iterable[str | os.PathLike], config: Mapping[str, Any] | None = None
+    ) -> str | None:
+        """The consuming stage's check: None when this stamp exists, its outputs are intact, it was made
+        from exactly ``inputs`` (same files, same contents) and each entry of ``config`` equals the one
+        the stamp recorded (entries not given are not compared: a reader passes the part of the producer's
+        config it depends on); else a short human reason (no trailing period)."""
+        if not self.data:
+            return f"no {self.stage} stamp {self.path}"
+        if self.data.get("schema") != STAMP_SCHEMA:
+            return f"its stamp has schema {self.data.get('schema')!r}, not {STAMP_SCHEMA} (an older version)"
+        why = self._outputs_reason()
+        if why is not None:
+            return why
+        then = self.data.get("inputs")
+        then = then if isinstance(then, dict) else {}
+        now = self._inputs(inputs)
+        gone, new = sorted(set(then) - set(now)), sorted(set(now) - set(then))
+        if gone or new:
+            parts = [f"{len(new)} input(s) it did not read ({Path(new[0]).name}, ...)"] if new else []
+            parts += [f"{len(gone)} input(s) no longer read ({Path(gone[0]).name}, ...)"] if gone else []
+            return "it was made from other inputs: " + "; ".join(parts)
+        changed = [p for p in now if now[p] != then[p]]
+        if changed:
+            return f"{len(changed)} of its input(s) changed since ({changed[0]}, ...)"
+        recorded = self.data.get("config")
+        recorded = recorded if isinstance(recorded, dict) else {}
+        for k, v in (config or {}).items():
+            if k not in recorded or fingerprint_obj(recorded[k]) != fingerprint_obj(v):
+                return f"it was made with another {k}"
+        return None
+
     def record(self, key: str, outputs: Iterable[str | os.PathLike], info: Mapping[str, Any] | None = None):
+        """Write the stamp: ``key`` (from :meth:`key`; what it was made of is stored with it), the
+        fingerprints of ``outputs`` and ``info``. Called after the outputs are written."""
         outs = {str(Path(p)): self.fp(p) for p in outputs}
+        made_of = self._made_of.get(key, {})
         self.data = {
             "schema": STAMP_SCHEMA,
             "stage": self.stage,
             "key": key,
+            "inputs": made_of.get("inputs", {}),
+            "config": made_of.get("config"),
             "outputs": outs,
             "info": dict(info or {}),
             "memo": self.fp.memo,

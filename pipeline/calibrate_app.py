@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from skidbench.models.registry import calibration_usage
 
-from .cache import Fingerprints
+from .cache import Fingerprints, stamp_file
 from .calibration import (
     CONSTANTS,
     calibrate_terrain,
@@ -100,7 +100,7 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     if bool(cfg.get("force", False)):
         import shutil
 
-        shutil.rmtree(layout.root / ".stamps" / "calibrate", ignore_errors=True)
+        shutil.rmtree(stamp_file(layout.root, "calibrate"), ignore_errors=True)
     usage = calibration_usage()  # the models say how they take the constants; the calibration knows none
     docs, recomputed = {}, []
     for terrain in terrains:

@@ -43,9 +43,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .cache import Fingerprints, StaleInputError, Stamp
+from .cache import StaleInputError, Stamp, stamp_file
 from .errors import SkidbenchError
-from .io import fingerprint_obj, write_json_atomic
+from .io import write_json_atomic
 from .layout import Layout, layout_from_cfg
 from .robot import Robot, robot_from_hydra
 from .schema import concat_sequences, read_split
@@ -280,11 +280,6 @@ def use_calibration(cfg: Any) -> bool:
     return bool(node.get("use", True)) if node is not None else True
 
 
-def _inputs_fingerprint(files: Sequence[Path], spec: Robot) -> str:
-    fp = Fingerprints()
-    return fingerprint_obj({"files": [fp(p) for p in files], "robot": spec.to_dict()})
-
-
 def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
     """The Train split files of the current manifest's sequences (one terrain, or all); [] without a
     manifest; CalibrationError when one is not written (:meth:`Layout.require_split_files`)."""
@@ -293,6 +288,12 @@ def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
     if not layout.manifest.is_file():
         return []
     return layout.require_split_files(Manifest.read(layout.manifest), terrain, "train", CalibrationError)
+
+
+def calibration_stamp(layout: Layout, terrain: str) -> Stamp:
+    """The stamp of ``terrain``'s calibration (``<ds>/.stamps/calibrate/<terrain>.json``): made from the
+    Train split files, the robot spec, the settings and ``CALIBRATION_SCHEMA``."""
+    return Stamp(stamp_file(layout.root, "calibrate", f"{terrain}.json"), "calibrate")
 
 
 def calibrate_terrain(
@@ -313,7 +314,7 @@ def calibrate_terrain(
             f"{layout.splits / terrain / 'train'}: no Train split files to calibrate; run `skidbench split`"
         )
     path = layout.calibration_file(terrain)
-    stamp = Stamp(layout.root / ".stamps" / "calibrate" / f"{terrain}.json", "calibrate")
+    stamp = calibration_stamp(layout, terrain)
     key = stamp.key(
         files, {"robot": spec.to_dict(), "settings": dataclasses.asdict(s), "schema": CALIBRATION_SCHEMA}
     )
@@ -329,7 +330,6 @@ def calibrate_terrain(
             "robot": spec.name,
             "split": "train",
             "sequences": [p.stem for p in files],
-            "inputs_fingerprint": _inputs_fingerprint(files, spec),
             "model_usage": dict(model_usage or {}),
         }
     )
@@ -354,8 +354,9 @@ class MissingCalibrationError(StaleInputError):
 
 def calibration_doc(cfg: Any, terrain: str) -> dict[str, Any] | None:
     """The terrain's calibration document whatever ``calibrate.use`` says, as ``calibrate`` saved it;
-    None when the terrain has no Train files. MissingCalibrationError (one line) when the document is
-    missing, unreadable, of another schema, or stale (its Train fingerprint differs): only the
+    None when the terrain has no Train files. MissingCalibrationError (one line) when there is none or it
+    is not current: its stamp (:func:`calibration_stamp`) says it was made from other Train files or
+    another robot spec (whatever its settings), or the document is missing or changed since. Only the
     ``calibrate`` stage computes it."""
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
@@ -366,17 +367,15 @@ def calibration_doc(cfg: Any, terrain: str) -> dict[str, Any] | None:
     if not path.is_file():
         why = "there is none"
     else:
-        try:
-            doc = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            why = f"it cannot be read ({exc})"
-        else:
-            if doc.get("schema") != CALIBRATION_SCHEMA:
-                why = f"it has schema {doc.get('schema')!r}, not {CALIBRATION_SCHEMA}"
-            elif doc.get("inputs_fingerprint") != _inputs_fingerprint(files, spec):
-                why = "it was made from other Train split files or another robot spec (stale)"
-            else:
-                return doc
+        stale = calibration_stamp(layout, terrain).stale_reason(
+            files, {"robot": spec.to_dict(), "schema": CALIBRATION_SCHEMA}
+        )
+        if stale is None:
+            try:
+                return json.loads(path.read_text())
+            except (OSError, ValueError) as exc:
+                stale = f"it cannot be read ({exc})"
+        why = f"stale: {stale}"
     raise MissingCalibrationError(
         f"{path}: no current calibration of terrain {terrain} ({why}); "
         "run `skidbench calibrate` first (or set calibrate.use=false for the spec's constants)"

@@ -211,6 +211,65 @@ def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(cali
     assert err_cal < 0.2 * err_spec, (err_cal, err_spec)
 
 
+def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tmp_path, jackal):
+    """The fit reads the calibration only when its stamp says it is current (whatever its settings), and
+    refits when it changed."""
+    import dataclasses
+    import shutil
+
+    from skidbench.models.fitting import fit_model
+    from skidbench.pipeline.calibration import (
+        MissingCalibrationError,
+        calibrate_terrain,
+        calibration_doc,
+        settings_from_cfg,
+    )
+    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.schema import read_split
+
+    for part in ("splits", "raw"):  # a copy: this test changes its Train files
+        shutil.copytree(calib_root / "calib" / part, tmp_path / "calib" / part)
+    for f in (tmp_path / "calib" / "splits" / "tile" / "train").glob("*.parquet"):
+        df, meta = read_split(
+            f
+        )  # without encoders: the radius only, no wheel response (seconds, not a minute)
+        write_split(df.assign(enc_wl=np.nan, enc_wr=np.nan), f, meta)
+    cfg = _cfg(tmp_path)
+    layout = layout_from_cfg(cfg)
+    settings = dataclasses.replace(settings_from_cfg(cfg), bootstrap=20)
+    calibrate_terrain(layout, "tile", jackal, settings, "calib")
+    assert not fit_model(cfg, "edd", "tile").reused and fit_model(cfg, "edd", "tile").reused
+    # calibrated with other settings: other constants (edd takes the radius; the track width too is part
+    # of the fit's inputs)
+    settings = dataclasses.replace(settings, settle_s=1.5)
+    doc, recomputed = calibrate_terrain(layout, "tile", jackal, settings, "calib")
+    assert recomputed and doc == calibration_doc(cfg, "tile")  # settings: not a reader's concern
+    assert not fit_model(cfg, "edd", "tile").reused and fit_model(cfg, "edd", "tile").reused
+
+    def stale(c) -> str:
+        with pytest.raises(MissingCalibrationError) as err:
+            fit_model(c, "edd", "tile")
+        msg = str(err.value)
+        assert len(msg.splitlines()) == 1 and "run `skidbench calibrate` first" in msg and "(stale: " in msg
+        return msg
+
+    # another robot spec
+    assert "made with another robot" in stale(_cfg(tmp_path, "robot.track_width=0.5"))
+    # other Train split files (one changed)
+    f = sorted((tmp_path / "calib" / "splits" / "tile" / "train").glob("*.parquet"))[0]
+    df, meta = read_split(f)
+    write_split(df.iloc[:-10].reset_index(drop=True), f, meta)
+    assert f"input(s) changed since ({f}" in stale(cfg)
+    calibrate_terrain(layout, "tile", jackal, settings, "calib")
+    assert fit_model(cfg, "edd", "tile").n_train > 0
+    # a calibration made by an older version (stamp of another schema) is stale, and calibrate redoes it
+    stamp = tmp_path / "calib" / ".stamps" / "calibrate" / "tile.json"
+    stamp.write_text(json.dumps({**json.loads(stamp.read_text()), "schema": 1}))
+    assert "schema 1" in stale(cfg)
+    assert calibrate_terrain(layout, "tile", jackal, settings, "calib")[1]
+    assert fit_model(cfg, "edd", "tile").reused  # the same calibration: its fit is still up to date
+
+
 @pytest.mark.slow
 def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlflow(
     calib_root, jackal, capsys

@@ -1,9 +1,11 @@
 """Atomic writes and stage stamps."""
 
+import json
+
 import pyarrow as pa
 import pytest
 
-from skidbench.pipeline.cache import Stamp
+from skidbench.pipeline.cache import STAMP_SCHEMA, Stamp, stamp_file
 from skidbench.pipeline.io import atomic_path, read_parquet_metadata, write_parquet_atomic
 
 
@@ -40,3 +42,55 @@ def test_stamp_is_fresh_until_input_config_or_output_changes(tmp_path):
     src.write_bytes(b"abc")
     out.write_bytes(b"resu")  # truncated output
     assert not Stamp(tmp_path / "_stamp.json", "stage").is_fresh(key)
+
+
+def test_stamp_records_what_its_key_was_made_of_and_readers_get_a_reason(tmp_path):
+    a, b, out = tmp_path / "a.bin", tmp_path / "b.bin", tmp_path / "out.bin"
+    a.write_bytes(b"abc")
+    b.write_bytes(b"xyz")
+    out.write_bytes(b"result")
+    path = tmp_path / ".stamps" / "stage" / "unit.json"
+    assert Stamp(path, "stage").stale_reason([a]) == f"no stage stamp {path}"
+    stamp = Stamp(path, "stage")
+    stamp.record(stamp.key([a, b], {"robot": {"r": 0.1}, "settings": {"n": 3}}), [out])
+    saved = json.loads(path.read_text())
+    assert saved["schema"] == STAMP_SCHEMA and saved["config"] == {"robot": {"r": 0.1}, "settings": {"n": 3}}
+    assert set(saved["inputs"]) == {str(a), str(b)}
+
+    reader = Stamp(path, "stage")
+    assert reader.stale_reason([b, a], {"robot": {"r": 0.1}}) is None  # settings: not the reader's concern
+    assert reader.stale_reason([a, b]) is None
+    assert reader.stale_reason([a, b], {"robot": {"r": 0.2}}) == "it was made with another robot"
+    assert reader.stale_reason([a, b], {"other": 1}) == "it was made with another other"
+    assert "other inputs" in reader.stale_reason([a])
+    b.write_bytes(b"xyy")
+    assert reader.stale_reason([a, b]).startswith(f"1 of its input(s) changed since ({b}")
+    b.write_bytes(b"xyz")
+    out.write_bytes(b"res")  # truncated output
+    assert reader.stale_reason([a, b]) == f"its output {out} fails its fingerprint (corrupted?)"
+    out.unlink()
+    assert reader.stale_reason([a, b]) == f"its output {out} is missing"
+
+
+@pytest.mark.parametrize("old", [{"schema": 1, "stage": "stage", "outputs": {}}, [1, 2], "not json {"])
+def test_an_old_or_foreign_stamp_is_not_fresh_and_is_rebuilt_without_error(tmp_path, old):
+    src, out = tmp_path / "in.bin", tmp_path / "out.bin"
+    src.write_bytes(b"abc")
+    out.write_bytes(b"result")
+    path = tmp_path / "_stamp.json"
+    path.write_text(old if isinstance(old, str) else json.dumps(old))
+    if isinstance(old, dict):  # an older skidbench's stamp of these very inputs and outputs
+        key = Stamp(path, "stage").key([src], {"k": 1})
+        path.write_text(json.dumps({**old, "key": key, "outputs": {str(out): "x"}}))
+        assert "schema 1" in Stamp(path, "stage").stale_reason([src])
+    stamp = Stamp(path, "stage")
+    key = stamp.key([src], {"k": 1})
+    assert not stamp.is_fresh(key)
+    stamp.record(key, [out])
+    assert Stamp(path, "stage").is_fresh(key) and Stamp(path, "stage").stale_reason([src], {"k": 1}) is None
+
+
+def test_stamp_files_have_one_home(tmp_path):
+    assert (
+        stamp_file(tmp_path, "fit", "edd", "tile.json") == tmp_path / ".stamps" / "fit" / "edd" / "tile.json"
+    )

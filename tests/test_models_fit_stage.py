@@ -121,3 +121,95 @@ def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_p
     with pytest.raises(EvaluationError) as eval_err:
         split_files(layout_from_cfg(cfg), "tile", "train")
     assert str(eval_err.value).startswith(msg) and str(eval_err.value).endswith("run `skidbench split`")
+
+
+def test_a_fit_is_reused_until_one_of_its_inputs_changes(tmp_path, jackal, monkeypatch):
+    """One definition of up to date (fitting.fit_stamp): each input of a fit refits when it changes."""
+    import dataclasses
+
+    from skidbench.models import fitting
+    from skidbench.pipeline.wheel_response import WheelResponse
+
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    base = ["model=edd", "terrain=tile", "calibrate.use=false"]  # the calibration: the next test
+
+    def fit(*over: str):
+        return fitting.fit_model(compose(tmp_path, [*base, *over]), "edd", "tile")
+
+    assert not fit().reused and fit().reused  # unchanged inputs: reused
+    changes = {
+        "model config": ["+model.params.chi=1.2"],
+        "robot constant": [f"robot.wheelbase={jackal.wheelbase * 1.1}"],
+        "robot (any key)": [f"robot.mass={jackal.mass + 1}"],
+    }
+    for what, over in changes.items():
+        assert not fit(*over).reused, what
+        assert fit(*over).reused, what
+        assert not fit().reused, what  # and back
+    # another input protocol (inputs=response: the wheel response calibrate identified, given here
+    # directly, as the synthetic splits have no encoders): its own fit, which leaves this one up to date
+    responses = iter([WheelResponse(), WheelResponse(), WheelResponse(tau_s=0.05)])
+    monkeypatch.setattr(fitting, "response_for", lambda cfg, terrain: next(responses))
+    other = fit("inputs=response")
+    assert not other.reused and other.path.name == "tile.response.json" and fit().reused
+    assert fit("inputs=response").reused
+    assert not fit("inputs=response").reused  # another wheel response
+    # a new release of the model's package (its class version unchanged)
+    infos = fitting.discover()
+    bumped = {**infos, "edd": dataclasses.replace(infos["edd"], package_version="9.9")}
+    monkeypatch.setattr(fitting, "discover", lambda: bumped)
+    assert not fit().reused and fit().reused
+    # a truncated fit file is refitted, not read
+    path = fit().path
+    path.write_text(path.read_text()[:40])
+    res = fit()
+    assert not res.reused and json.loads(path.read_text())["params"] == res.model.params
+    # a changed split file
+    f = sorted((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))[0]
+    from skidbench.pipeline.schema import read_split
+
+    df, meta = read_split(f)
+    write_split(df.iloc[:-10].reset_index(drop=True), f, meta)
+    assert not fit().reused and fit().reused
+
+
+def test_a_fit_whose_hooks_did_not_finish_is_not_up_to_date(tmp_path, jackal):
+    from skidbench.models.fitting import fit_model
+
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    cfg = compose(tmp_path, ["model=edd", "terrain=tile", "calibrate.use=false"])
+
+    def killed(*_):
+        raise KeyboardInterrupt  # the job killed while logging its run
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_model(cfg, "edd", "tile", hooks=[killed])
+    assert (tmp_path / "sim-mini" / "fits" / "edd" / "tile.json").is_file()
+    logged = []
+    assert not fit_model(cfg, "edd", "tile", hooks=[lambda *a: logged.append(a[2:])]).reused
+    assert logged == [("edd", "tile")]
+    assert fit_model(cfg, "edd", "tile", hooks=[lambda *a: logged.append(a)]).reused and len(logged) == 1
+
+
+def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_path, jackal):
+    """A fit evaluate made (its default fit function) is the fit stage's, and vice versa."""
+    from hydra import compose as hcompose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from skidbench.benchmark.evaluate import default_fit_fn
+
+    make_splits(tmp_path, jackal, terrains=("tile",))
+    GlobalHydra.instance().clear()
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        ev = hcompose("evaluate", [f"out_root={tmp_path}", "dataset=sim-mini", "calibrate.use=false"])
+        assert not default_fit_fn()(ev, "edd", "tile").reused
+    # one command: edd (evaluate's fit) is up to date, roc is fitted
+    p = run_cli(
+        ["fit", "-m", "model=edd,roc", "terrain=tile", "track=false", "calibrate.use=false"], tmp_path
+    )
+    assert p.returncode == 0, p.stderr
+    assert "fit: edd/tile up to date, skipped" in p.stdout and "roc/tile up to date" not in p.stdout
+    with initialize_config_module("skidbench.conf", version_base="1.3"):
+        ev = hcompose("evaluate", [f"out_root={tmp_path}", "dataset=sim-mini", "calibrate.use=false"])
+        assert default_fit_fn()(ev, "roc", "tile").reused

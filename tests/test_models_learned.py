@@ -116,6 +116,8 @@ def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal
     assert fit_model(cfg, "gp_residual", "tile").reused
     npz.unlink()  # the cache treats the arrays like the JSON: missing arrays refit
     assert not fit_model(cfg, "gp_residual", "tile").reused and npz.is_file()
+    npz.write_bytes(npz.read_bytes()[:100])  # and truncated ones
+    assert not fit_model(cfg, "gp_residual", "tile").reused and fit_model(cfg, "gp_residual", "tile").reused
 
     import dataclasses
 

@@ -21,7 +21,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 from omegaconf import DictConfig, OmegaConf
 
-from ..cache import Stamp
+from ..cache import Stamp, stamp_file
 from ..cli import stage
 from ..errors import ConfigError, GroundTruthError
 from ..geometry import se3_from_xyz_rpy
@@ -259,7 +259,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     stale: list[tuple[Sequence, Stamp, str]] = []
     for seq in manifest.sequences:
         tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
-        stamp = Stamp(layout.root / ".stamps" / "groundtruth" / f"{seq.name}.json", "groundtruth")
+        stamp = Stamp(stamp_file(layout.root, "groundtruth", f"{seq.name}.json"), "groundtruth")
         key = stamp.key(sequence_inputs(cfg, layout, manifest, seq), conf)
         if stamp.is_fresh(key):
             skipped += 1

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from ..cache import Stamp
+from ..cache import Stamp, stamp_file
 from ..io import fingerprint_file, write_json_atomic, write_parquet_atomic
 
 EXTRACT_INFO = "_extract.json"
@@ -66,7 +66,7 @@ def source_stamp(layout, unit: str, inputs: list[Path], config: Any) -> tuple[St
     ``records`` (the ``_extract.json`` records) is not None when the unit is up to date."""
     import json
 
-    stamp = Stamp(layout.root / ".stamps" / "extract" / f"{unit}.json", "extract")
+    stamp = Stamp(stamp_file(layout.root, "extract", f"{unit}.json"), "extract")
     key = stamp.key(inputs, config)
     if stamp.is_fresh(key):
         try:

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from ..cache import Stamp
+from ..cache import Stamp, stamp_file
 from ..cli import stage
 from ..errors import SplitError
 from ..groundtruth.consistency import GateConfig, consistency, describe
@@ -171,7 +171,7 @@ def run(cfg: DictConfig) -> list[Path]:
     written, skipped, refused = [], 0, []
     for s in seqs:
         path = layout.split_file(s.terrain, s.category, s.name)
-        stamp = Stamp(layout.root / ".stamps" / "split" / f"{s.name}.json", "split")
+        stamp = Stamp(stamp_file(layout.root, "split", f"{s.name}.json"), "split")
         key = stamp.key(split_inputs(layout, s), {**conf, "terrain": s.terrain, "category": s.category})
         if stamp.is_fresh(key):
             skipped += 1
@@ -190,7 +190,7 @@ def run(cfg: DictConfig) -> list[Path]:
             + "; set split.drop_flagged=true to leave them out, or split.allow_flagged=true to use them"
         )
     prune_stale(layout, manifest)  # sequences no longer in the manifest, and the folders left empty
-    card_stamp = Stamp(layout.root / ".stamps" / "split" / "_card.json", "card")
+    card_stamp = Stamp(stamp_file(layout.root, "split", "_card.json"), "card")
     segments = [p for p in [layout.extracted / "segments.json"] if p.is_file()]  # the card lists them too
     card_key = card_stamp.key(written + segments, {"robot": conf["robot"], "card": _card_conf(cfg)})
     if not card_stamp.is_fresh(card_key):
