@@ -33,6 +33,10 @@ from .io import fingerprint_file, fingerprint_obj, write_json_atomic
 log = logging.getLogger(__name__)
 
 STAMP_SCHEMA = 2  # 2: the stamp records what its key was made of (inputs, config)
+# schema 1 had the same key formula but did not record what the key was made of: the producing stage
+# upgrades a fresh schema-1 stamp in place (a dataset made before is not rebuilt, and its readers can
+# check it again)
+UPGRADABLE_SCHEMAS = (1,)
 
 
 def _stat_key(path: Path) -> list[int]:
@@ -111,7 +115,8 @@ class Stamp:
     def is_fresh(self, key: str) -> bool:
         """True when the recorded key equals ``key`` and every recorded output is intact (the producing
         stage's check)."""
-        if self.data.get("schema") != STAMP_SCHEMA or self.data.get("key") != key:
+        schema = self.data.get("schema")
+        if schema not in (STAMP_SCHEMA, *UPGRADABLE_SCHEMAS) or self.data.get("key") != key:
             return False
         why = self._outputs_reason()
         if why is not None:
@@ -120,6 +125,10 @@ class Stamp:
             else:
                 log.warning("%s: %s; rebuilding", self.stage, why)
             return False
+        if schema != STAMP_SCHEMA and key in self._made_of:
+            # the same key formula, without what the key was made of: add that now rather than rebuild
+            self.data.update(schema=STAMP_SCHEMA, **self._made_of[key], memo=self.fp.memo)
+            write_json_atomic(self.path, self.data)
         return True
 
     def stale_reason(

@@ -90,6 +90,26 @@ def test_an_old_or_foreign_stamp_is_not_fresh_and_is_rebuilt_without_error(tmp_p
     assert Stamp(path, "stage").is_fresh(key) and Stamp(path, "stage").stale_reason([src], {"k": 1}) is None
 
 
+def test_a_fresh_schema_1_stamp_is_upgraded_in_place_not_rebuilt(tmp_path):
+    """Schema 1 had the same key but did not record what it was made of: the producer's check accepts
+    it (same key, intact outputs) and records that, so a reader can check it from then on."""
+    src, out = tmp_path / "in.bin", tmp_path / "out.bin"
+    src.write_bytes(b"abc")
+    out.write_bytes(b"result")
+    path = tmp_path / "_stamp.json"
+    stamp = Stamp(path, "stage")
+    key = stamp.key([src], {"k": 1})
+    stamp.record(key, [out])
+    old = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("inputs", "config")}
+    path.write_text(json.dumps({**old, "schema": 1}))
+    assert "schema 1" in Stamp(path, "stage").stale_reason([src], {"k": 1})  # a reader cannot tell
+    producer = Stamp(path, "stage")
+    assert producer.is_fresh(producer.key([src], {"k": 1}))  # the producer can: not rebuilt
+    assert json.loads(path.read_text())["schema"] == STAMP_SCHEMA
+    assert Stamp(path, "stage").stale_reason([src], {"k": 1}) is None
+    assert Stamp(path, "stage").stale_reason([src], {"k": 2}) == "it was made with another k"
+
+
 def test_stamp_files_have_one_home(tmp_path):
     assert (
         stamp_file(tmp_path, "fit", "edd", "tile.json") == tmp_path / ".stamps" / "fit" / "edd" / "tile.json"
