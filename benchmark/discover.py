@@ -120,7 +120,7 @@ def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None
     return dataclasses.replace(pool, table=table)
 
 
-# -- what the search records -------------------------------------------------------------------------
+# -- the result, and the parts of a step -----------------------------------------------------------
 
 
 @dataclass
