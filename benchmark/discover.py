@@ -13,33 +13,19 @@ Workflow, per terrain, on the Train split:
 4. Add the best candidate that passes the significance rule, refit, and repeat; stop when none passes
    ("no missing effect found").
 
-Significance rule (every part must hold; the constants are ``discover.*`` settings):
-
-* the held-out 6 s horizon gain ``G = sum_m log(RMSRE_m,before^2 / RMSRE_m,after^2)`` over the metrics
-  m in (translational, rotational) (the Gaussian log-likelihood gain of the benchmark's own pose errors)
-  pays for the effect's parameters: ``G - penalty_per_param * n_params >= min_gain`` (defaults 0.02
-  and 0.02: an information-criterion-like charge, AIC's 2/n_eff for ~100 independent windows, so a
-  one-parameter effect must cut one held-out RMSRE by at least 2 %, or both by 1 %);
-* a paired one-sided sign-flip (permutation) test over the held-out units (whole sequences, or
-  contiguous chunks) of the per-unit gains ``d_s`` (the same log ratio, per unit) rejects "no
-  improvement" at ``alpha`` (default 0.05; exact for up to 16 units);
-* the held-out velocity residuals agree: ``sum_c log(MSE_c,before / MSE_c,after)`` over (vx, vy, wz)
-  is positive, and no channel the effect changes gets worse by more than ``channel_tolerance`` (0.01)
-  (an effect that fixes poses while making a velocity worse is compensating for another, not real).
+The held-out evaluation and the significance rule (a penalised held-out 6 s gain, a paired sign-flip
+test over held-out units, velocity residuals that agree) are in :mod:`skidbench.benchmark.discover_stats`;
+the figure data in :mod:`skidbench.benchmark.discover_panels`.
 
 Effects keep their physical direction (parameter bounds in the catalogue: slips are shortfalls, the
 side slip is outward, chi grows in tight turns, the turn deficit grows with speed).
 
-The held-out prediction of each unit comes from the model fitted without it (k-fold over sequences,
-never random rows). Velocity-based fitting, pose-based scoring: the 6 s windows integrate the velocity
-noise of differentiated visual-odometry poses away, and are what the benchmark ranks models by.
 Among the candidates that pass, the one with the largest penalised gain is added.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import logging
 import time
 from collections.abc import Callable
@@ -51,7 +37,18 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from skidbench.benchmark.horizon import rmsre, window_errors
+from skidbench.benchmark.discover_panels import (
+    residual_panel,
+    term_panel,
+    unexplained_panels,
+)
+from skidbench.benchmark.discover_stats import (
+    HeldOut,
+    channels_of,
+    compare,
+    cross_validate,
+    explains_better,
+)
 from skidbench.models import terms as termlib
 from skidbench.models.effect_fit import (
     CHANNELS,
@@ -65,11 +62,7 @@ from skidbench.models.effect_fit import (
     channel_weights,
     jsonable_params,
 )
-from skidbench.models.effects import (
-    CATALOGUE,
-    EFFECT_IDS,
-    revealing_feature,
-)
+from skidbench.models.effects import CATALOGUE, EFFECT_IDS
 from skidbench.pipeline.protocol import fit_table
 from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.schema import load_split_tables as _load_split_tables
@@ -80,7 +73,7 @@ log = logging.getLogger("skidbench.discover")
 NO_EFFECT_MESSAGE = "no missing effect found"
 
 
-# -- data ---------------------------------------------------------------------------------------
+# -- the pool ---------------------------------------------------------------------------------------
 
 
 def load_pool(
@@ -127,158 +120,15 @@ def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None
     return dataclasses.replace(pool, table=table)
 
 
-# -- held-out evaluation ------------------------------------------------------------------------
-
-
-@dataclass
-class HeldOut:
-    effects: list[str]
-    pred: np.ndarray  # (T, 3) held-out prediction of every row
-    mse: np.ndarray  # (3,) pooled held-out MSE per channel
-    unit_mse: np.ndarray  # (U, 3)
-    rmsre: dict[str, float]
-    windows: pd.DataFrame
-    fold_params: list[dict[str, list[float]]] = field(default_factory=list)
-
-
-def folds_of(pool: Pool, k: int) -> list[np.ndarray]:
-    k = max(2, min(k, pool.n_units))
-    ids = np.arange(pool.n_units)
-    return [ids[ids % k == j] for j in range(k)]
-
-
-def horizon_metrics(pool: Pool, pred: np.ndarray, horizon_s: float) -> tuple[dict[str, float], pd.DataFrame]:
-    frames = []
-    for u in range(pool.n_units):
-        m = pool.units == u
-        w = window_errors(pool.t[m], pool.pose[m], pred[m], horizon_s, valid=pool.valid[m])
-        w["unit"] = u
-        frames.append(w)
-    win = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    if win.empty:
-        return {"translational": float("nan"), "rotational": float("nan")}, win
-    return {"translational": rmsre(win["rel_trans"]), "rotational": rmsre(win["rel_rot"])}, win
-
-
-def cross_validate(
-    aug: Augmenter, effects: list[str], warm: dict | None = None, terms: list[termlib.Term] | None = None
-) -> HeldOut:
-    """Held-out predictions by k-fold over units. The lag time constant of a model that already has
-    ``actuator_lag`` stays at its fitted value while other candidates are scored (it is re-searched
-    when the model is refitted after an effect is added)."""
-    pool = aug.pool
-    pred = np.zeros_like(pool.target)
-    fold_params = []
-    for held in folds_of(pool, aug.s.folds):
-        train = np.setdiff1d(np.arange(pool.n_units), held)
-        st = aug.fit(effects, train, warm, fixed_tau=True, terms=terms or [])
-        rows = np.isin(pool.units, held)
-        pred[rows] = st.pred[rows]
-        fold_params.append(
-            {
-                **{e: [float(v) for v in p] for e, p in st.params.items()},
-                **{k: [v["theta"]] for k, v in st.term_params.items()},
-            }
-        )
-    err2 = (pred - pool.target) ** 2
-    v = pool.valid
-    mse = err2[v].mean(axis=0)
-    unit_mse = np.array(
-        [
-            err2[v & (pool.units == u)].mean(axis=0) if np.any(v & (pool.units == u)) else [np.nan] * 3
-            for u in range(pool.n_units)
-        ]
-    )
-    rm, win = horizon_metrics(pool, pred, aug.s.horizon_s)
-    return HeldOut(list(effects), pred, mse, unit_mse, rm, win, fold_params)
-
-
-def sign_flip_pvalue(d: np.ndarray, seed: int = 0, n_random: int = 20000) -> float:
-    """One-sided p-value of mean(d) > 0 under random sign flips (exact for up to 16 units)."""
-    d = np.asarray(d, dtype=float)
-    d = d[np.isfinite(d)]
-    n = len(d)
-    if n == 0:
-        return 1.0
-    obs = d.mean()
-    if n <= 16:
-        signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))
-    else:
-        signs = np.random.default_rng(seed).choice((-1.0, 1.0), size=(n_random, n))
-    null = (signs * d).mean(axis=1)
-    return float(np.mean(null >= obs - 1e-15))
-
-
-def unit_rmsre(ho: HeldOut, n_units: int) -> np.ndarray:
-    """(U, 2) held-out translational and rotational RMSRE of every unit."""
-    out = np.full((n_units, 2), np.nan)
-    if ho.windows.empty:
-        return out
-    for u, w in ho.windows.groupby("unit"):
-        out[int(u)] = [rmsre(w["rel_trans"]), rmsre(w["rel_rot"])]
-    return out
-
-
-def _log_ratio2(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = 2.0 * np.log(np.asarray(before, float) / np.asarray(after, float))
-    return np.where(np.isfinite(g), g, np.nan)
-
-
-def _channels_of(eid: str) -> tuple[str, ...]:
-    ch = CATALOGUE[eid].channel
-    return CHANNELS if ch < 0 else (CHANNELS[ch],)
-
-
-def compare(
-    before: HeldOut,
-    after: HeldOut,
-    n_params: int,
-    s: DiscoverSettings,
-    touched_channels: tuple[int, ...] | None = None,
-) -> dict[str, Any]:
-    """The evidence for one candidate: held-out gains and the significance rule's verdict
-    (``touched_channels``: the velocity channels the candidate changes; default: its effect's)."""
-    keys = ("translational", "rotational")
-    pose_gain = _log_ratio2([before.rmsre[k] for k in keys], [after.rmsre[k] for k in keys])
-    G = float(np.nansum(pose_gain))
-    n_units = len(before.unit_mse)
-    d = np.nansum(_log_ratio2(unit_rmsre(before, n_units), unit_rmsre(after, n_units)), axis=1)
-    p = sign_flip_pvalue(d, s.seed)
-    eps = 1e-18
-    vel_gain = np.log((before.mse + eps) / (after.mse + eps))
-    Gv = float(np.sum(vel_gain))
-    penalised = G - s.penalty_per_param * n_params
-    if touched_channels is not None:
-        touched = list(touched_channels)
-    else:
-        touched = [CHANNELS.index(c) for c in _channels_of(after.effects[-1])] if after.effects else []
-    worse = [CHANNELS[c] for c in touched if vel_gain[c] < -s.channel_tolerance]
-    passes = bool(penalised >= s.min_gain and p <= s.alpha and Gv > 0.0 and not worse)
-    return {
-        "n_params": n_params,
-        "heldout_gain": G,
-        "heldout_gain_per_metric": dict(zip(keys, map(float, pose_gain), strict=True)),
-        "penalised_gain": float(penalised),
-        "velocity_gain": Gv,
-        "velocity_gain_per_channel": dict(zip(CHANNELS, map(float, vel_gain), strict=True)),
-        "heldout_mse_before": dict(zip(CHANNELS, map(float, before.mse), strict=True)),
-        "heldout_mse_after": dict(zip(CHANNELS, map(float, after.mse), strict=True)),
-        "velocity_channels_worse": worse,
-        "paired_p_value": p,
-        "n_heldout_units": int(np.sum(np.isfinite(d))),
-        "units_improved": int(np.sum(d > 0)),
-        "heldout_rmsre_before": before.rmsre,
-        "heldout_rmsre_after": after.rmsre,
-        "passes": passes,
-    }
-
-
-# -- the discovery loop -------------------------------------------------------------------------
+# -- the result, and the parts of a step -----------------------------------------------------------
 
 
 @dataclass
 class TerrainDiscovery:
+    """What discovery found on one terrain (written to ``discovery.json`` by ``discover_app``): the effects
+    and terms added in order, one step each with its evidence, the base and final models' held-out
+    errors, the figure data, the candidates rejected last and the residual left unexplained."""
+
     terrain: str
     base_model: str
     effects: list[str]
@@ -331,16 +181,6 @@ def _term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
     return p
 
 
-def _explains_better(ho_a: HeldOut, ho_b: HeldOut, s: DiscoverSettings) -> tuple[bool, float]:
-    """Whether model a's held-out velocity residual is smaller than model b's, unit by unit: the per-unit
-    sum over channels of log(MSE_b / MSE_a), one-sided sign-flip test at ``alpha``."""
-    eps = 1e-18
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = np.nansum(np.log((ho_b.unit_mse + eps) / (ho_a.unit_mse + eps)), axis=1)
-    p = sign_flip_pvalue(d, s.seed)
-    return bool(np.nanmean(d) > 0 and p <= s.alpha), p
-
-
 def _naming(kind: str, ev: dict, scored_t: dict, scored_c: dict, n_params: int) -> dict[str, Any]:
     """The check behind a name: a catalogue effect against the best open-ended term of no more
     parameters; a term against the best catalogue effect."""
@@ -384,23 +224,63 @@ def unexplained_report(pool: Pool, aug: Augmenter, state: FitState, ho: HeldOut)
     }
 
 
-def discover_terrain(
+# -- the search, step by step -----------------------------------------------------------------------
+
+Scored = dict[str, tuple[dict[str, Any], HeldOut]]  # catalogue effect -> (evidence, held-out evaluation)
+ScoredTerms = dict[str, tuple[dict[str, Any], HeldOut, termlib.Term]]  # term key -> (..., the term)
+
+
+@dataclass
+class _Search:
+    """One terrain's search as it stands: the model (catalogue effects and terms added so far, fitted on
+    every training unit, its parameters as the warm start of the next fits, its held-out evaluation
+    ``cur``) and what has been recorded (steps, figure data, the rejected candidates, the unexplained
+    residual)."""
+
+    pool: Pool
+    aug: Augmenter
+    robot: Robot
+    settings: DiscoverSettings
+    terrain: str
+    say: Callable[[str], None]
+    all_units: np.ndarray
+    state: FitState
+    cur: HeldOut
+    base_info: dict[str, Any]
+    effects: list[str] = field(default_factory=list)
+    terms: list[termlib.Term] = field(default_factory=list)
+    warm: dict[str, np.ndarray] = field(default_factory=dict)
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    figure_data: list[dict[str, Any]] = field(default_factory=list)
+    rejected: dict[str, Any] | None = None
+    unexplained: dict[str, Any] | None = None
+
+
+def _show(run: _Search, name: str, ev: dict[str, Any]) -> None:
+    """One progress line: a candidate's held-out gains and whether it passes the rule."""
+    run.say(
+        f"[{run.terrain}]   {name:28s} gain {ev['heldout_gain']:+.4f} (penalised "
+        f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} "
+        f"velocity gain {ev['velocity_gain']:+.4f}{'  PASS' if ev['passes'] else ''}"
+    )
+
+
+def _evidence_row(ev: dict[str, Any]) -> dict[str, Any]:
+    """A candidate's evidence as the step's table of candidates records it."""
+    return {k: v for k, v in ev.items() if k != "heldout_mse_before"}
+
+
+def _fit_base(
     pool: Pool,
     factory: ModelFactory,
     robot: Robot,
     settings: DiscoverSettings,
     terrain: str,
     base_name: str,
-    candidates: tuple[str, ...] = EFFECT_IDS,
-    progress: Callable[[str], None] | None = None,
-) -> TerrainDiscovery:
-    """Catalogue effects and open-ended terms (:mod:`skidbench.models.terms`) scored side by side on
-    the same held-out units by the same rule; the best passing one is added, except that a catalogue
-    effect is named only when no open-ended term of no more parameters explains more of the held-out
-    gap (then the term is added under its own formula). When nothing passes, the residual is reported
-    as unexplained with its size and its strongest correlates."""
-    t_start = time.perf_counter()
-    say = progress or (lambda msg: log.info(msg))
+    say: Callable[[str], None],
+) -> _Search:
+    """Fit the base model on every training unit and score it held out: the search's starting point. The
+    channel weights of the fits are set from this fit's residuals (:func:`channel_weights`)."""
     aug = Augmenter(pool, factory, robot, settings)
     all_units = np.arange(pool.n_units)
     base_fit = aug.fit([], all_units)
@@ -425,314 +305,294 @@ def discover_terrain(
         f"trans {cur.rmsre['translational']:.4f} rot {cur.rmsre['rotational']:.4f} "
         f"({pool.n_units} held-out units from {len(pool.sequences)} sequences)"
     )
-    effects: list[str] = []
-    terms: list[termlib.Term] = []
-    warm: dict[str, np.ndarray] = {}
-    steps: list[dict[str, Any]] = []
-    figure_data: list[dict[str, Any]] = []
-    rejected = None
-    unexplained = None
-    state = base_fit
-    B = robot.track_width
+    return _Search(pool, aug, robot, settings, terrain, say, all_units, base_fit, cur, base_info)
 
-    def show(name: str, ev: dict) -> None:
-        say(
-            f"[{terrain}]   {name:28s} gain {ev['heldout_gain']:+.4f} (penalised "
-            f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} "
-            f"velocity gain {ev['velocity_gain']:+.4f}{'  PASS' if ev['passes'] else ''}"
-        )
 
-    while len(effects) + len(terms) < settings.max_effects:
-        scored: dict[str, tuple[dict, HeldOut]] = {}
-        for eid in candidates:
-            if eid in effects:
-                continue
-            ho = cross_validate(aug, effects + [eid], warm, terms)
-            ev = compare(cur, ho, CATALOGUE[eid].n_params, settings)
-            scored[eid] = (ev, ho)
-            show(eid, ev)
-        scored_t: dict[str, tuple[dict, HeldOut, termlib.Term]] = {}
-        screen_info: dict[str, Any] = {}
-        scr = None
-        if settings.open_ended:
-            # the sparse regression on the current model's held-out residual picks the candidates
-            sig = aug.signals(state.feats, state.base_pred)
-            gains = termlib.base_gains(sig, pool.valid)
-            scr = termlib.screen(
-                sig,
-                gains,
-                B,
-                pool.target - cur.pred,
-                pool.valid,
-                aug.weights,
-                exclude=tuple(t.key for t in terms),
-                max_candidates=settings.max_terms,
-            )
-            screen_info = {"stlsq_support": scr.selected, "candidates": [t.key for t in scr.candidates]}
-            for term in scr.candidates:
-                ho = cross_validate(aug, effects, warm, terms + [term])
-                ev = compare(cur, ho, term.n_params, settings, term.touched)
-                scored_t[term.key] = (ev, ho, term)
-                show(term.key, ev)
-        table = {
-            e: {k: v for k, v in ev.items() if k != "heldout_mse_before"} for e, (ev, _) in scored.items()
+def _score_catalogue(run: _Search, candidates: tuple[str, ...]) -> Scored:
+    """Every catalogue effect of ``candidates`` not yet in the model, added to it, fitted fold by fold and
+    scored held out against the current model."""
+    scored: Scored = {}
+    for eid in candidates:
+        if eid in run.effects:
+            continue
+        ho = cross_validate(run.aug, run.effects + [eid], run.warm, run.terms)
+        ev = compare(run.cur, ho, CATALOGUE[eid].n_params, run.settings)
+        scored[eid] = (ev, ho)
+        _show(run, eid, ev)
+    return scored
+
+
+def _score_terms(run: _Search) -> tuple[ScoredTerms, dict[str, Any], termlib.Screen | None]:
+    """The open-ended terms (``discover.open_ended``): the sparse regression on the current model's
+    held-out residual picks up to ``max_terms`` candidates, each scored held out like a catalogue effect.
+    Returns the scores, what the screen selected (for the record) and the screen (none when off)."""
+    scored_t: ScoredTerms = {}
+    if not run.settings.open_ended:
+        return scored_t, {}, None
+    sig = run.aug.signals(run.state.feats, run.state.base_pred)
+    gains = termlib.base_gains(sig, run.pool.valid)
+    scr = termlib.screen(
+        sig,
+        gains,
+        run.robot.track_width,
+        run.pool.target - run.cur.pred,
+        run.pool.valid,
+        run.aug.weights,
+        exclude=tuple(t.key for t in run.terms),
+        max_candidates=run.settings.max_terms,
+    )
+    screen_info = {"stlsq_support": scr.selected, "candidates": [t.key for t in scr.candidates]}
+    for term in scr.candidates:
+        ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [term])
+        ev = compare(run.cur, ho, term.n_params, run.settings, term.touched)
+        scored_t[term.key] = (ev, ho, term)
+        _show(run, term.key, ev)
+    return scored_t, screen_info, scr
+
+
+def _score_rival(
+    run: _Search, best_c: str, scored_t: ScoredTerms, table_t: dict[str, Any], scr: termlib.Screen
+) -> str | None:
+    """The catalogue's best must beat the library's best term of no more parameters on its channels:
+    that rival, when the screen has one not yet scored, is scored and recorded (``scored_t``,
+    ``table_t``). Returns its key when it passes."""
+    chans = tuple(CHANNELS.index(c) for c in channels_of(best_c))
+    rival = scr.rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t))
+    if rival is None:
+        return None
+    ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [rival])
+    ev = compare(run.cur, ho, rival.n_params, run.settings, rival.touched)
+    scored_t[rival.key] = (ev, ho, rival)
+    table_t[rival.key] = _evidence_row(ev)
+    _show(run, rival.key, ev)
+    return rival.key if ev["passes"] else None
+
+
+def _choose(
+    run: _Search, scored: Scored, scored_t: ScoredTerms, table_t: dict[str, Any], scr: termlib.Screen | None
+) -> tuple[str, str] | None:
+    """The candidate to add, as (kind, id) with kind "catalogue" or "term"; None when none passes. The
+    passing catalogue effect of largest penalised gain is named unless a passing term explains the
+    held-out velocity residual significantly better, unit by unit (the same sign-flip test), and is no
+    more complex or has the larger penalised gain too; with no passing effect, the best passing term."""
+    passing = [e for e, (ev, _) in scored.items() if ev["passes"]]
+    passing_t = [k for k, (ev, _, _) in scored_t.items() if ev["passes"]]
+    if not passing:
+        return ("term", max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"])) if passing_t else None
+    best_c = max(passing, key=lambda e: scored[e][0]["penalised_gain"])
+    if run.settings.open_ended and scr is not None:
+        rival = _score_rival(run, best_c, scored_t, table_t, scr)
+        if rival is not None:
+            passing_t.append(rival)
+    cat_ev, cat_ho = scored[best_c]
+    better = {
+        k: explains_better(scored_t[k][1], cat_ho, run.settings)
+        for k in passing_t
+        if scored_t[k][2].n_params <= CATALOGUE[best_c].n_params
+        or scored_t[k][0]["penalised_gain"] > cat_ev["penalised_gain"]
+    }
+    winners = [k for k, (ok, _) in better.items() if ok]
+    if not winners:
+        return ("catalogue", best_c)
+    name = max(winners, key=lambda k: scored_t[k][0]["penalised_gain"])
+    run.say(
+        f"[{run.terrain}]   {best_c} not named: {name} explains the held-out residual better "
+        f"(p = {better[name][1]:.3g})"
+    )
+    return ("term", name)
+
+
+def _report_unexplained(
+    run: _Search, scored: Scored, scored_t: ScoredTerms, evidence: dict[str, Any]
+) -> None:
+    """Nothing passes: record the candidates rejected (and the best of them by penalised gain), the
+    residual panel of the best catalogue effect, and what the model leaves unexplained on held-out units
+    (its size, its strongest correlates, their panels)."""
+    pool_best = [(e, scored[e][0]["penalised_gain"]) for e in scored] + [
+        (k, scored_t[k][0]["penalised_gain"]) for k in scored_t
+    ]
+    best = max(pool_best, key=lambda p: p[1])[0] if pool_best else None
+    run.rejected = {"best_candidate": best, **evidence}
+    best_cat = max(scored, key=lambda e: scored[e][0]["penalised_gain"]) if scored else None
+    run.figure_data.append(residual_panel(run.pool, run.state, best_cat, run.cur, None))
+    run.unexplained = unexplained_report(run.pool, run.aug, run.state, run.cur)
+    run.figure_data += unexplained_panels(run.pool, run.aug, run.state, run.cur, run.unexplained)
+    run.say(f"[{run.terrain}] {run.unexplained['text']}")
+
+
+def _add_effect(
+    run: _Search, name: str, scored: Scored, scored_t: ScoredTerms, evidence: dict[str, Any]
+) -> HeldOut:
+    """Add the catalogue effect ``name``: refit on every training unit, record the step (its explanation,
+    evidence, naming check and parameters) and its residual panel. Returns its held-out evaluation."""
+    ev, ho = scored[name]
+    prev_state = run.state
+    run.state = run.aug.fit(run.effects + [name], run.all_units, run.warm, terms=run.terms)
+    run.warm = {k: v for k, v in run.state.params.items()}
+    run.effects.append(name)
+    e = CATALOGUE[name]
+    run.steps.append(
+        {
+            "effect": name,
+            "kind": "catalogue",
+            "explanation": e.explanation,
+            "formula": e.formula,
+            "evidence": {**ev, **evidence},
+            "naming": _naming("catalogue", ev, scored_t, scored, e.n_params),
+            "params": jsonable_params(run.state.params),
+            "heldout_rmsre_before": run.cur.rmsre,
+            "heldout_rmsre_after": ho.rmsre,
         }
-        table_t = {
-            k: {kk: v for kk, v in ev.items() if kk != "heldout_mse_before"}
-            for k, (ev, _, _) in scored_t.items()
+    )
+    run.figure_data.append(residual_panel(run.pool, prev_state, name, run.cur, run.state))
+    return ho
+
+
+def _add_term(
+    run: _Search, name: str, scored: Scored, scored_t: ScoredTerms, evidence: dict[str, Any]
+) -> tuple[HeldOut, termlib.Term]:
+    """Add the open-ended term ``name``: its knots refined with the model (and its held-out evidence
+    re-taken when they moved), refit on every training unit, record the step (the term described with
+    its constants) and its panel. Returns its held-out evaluation and the term as added."""
+    ev, ho, term = scored_t[name]
+    refined = refine_knots(run.aug, run.effects, run.warm, run.terms, term, run.all_units)
+    if refined != term:  # the held-out evidence of the model as it is added
+        ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [refined])
+        ev = compare(run.cur, ho, refined.n_params, run.settings, refined.touched)
+        term = refined
+    prev_state = run.state
+    run.state = run.aug.fit(run.effects, run.all_units, run.warm, terms=run.terms + [term])
+    run.warm = {k: v for k, v in run.state.params.items()}
+    run.terms.append(term)
+    theta = run.state.term_params[term.key]["theta"]
+    run.steps.append(
+        {
+            "effect": term.key,
+            "kind": "term",
+            "explanation": term.describe(theta, run.robot.wheel_radius),
+            "formula": f"{'vx, wz' if term.channel < 0 else CHANNELS[term.channel]} += theta * g, "
+            f"g = {term.key}",
+            "evidence": {**ev, **evidence},
+            "naming": _naming("term", ev, scored_t, scored, term.n_params),
+            "params": {term.key: _term_step_params(run.state, term)},
+            "heldout_rmsre_before": run.cur.rmsre,
+            "heldout_rmsre_after": ho.rmsre,
         }
-        passing = [e for e, (ev, _) in scored.items() if ev["passes"]]
-        passing_t = [k for k, (ev, _, _) in scored_t.items() if ev["passes"]]
-        choice: tuple[str, str] | None = None  # (kind, id)
-        best_c = max(passing, key=lambda e: scored[e][0]["penalised_gain"]) if passing else None
-        best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"]) if passing_t else None
-        if best_c is not None and settings.open_ended and scr is not None:
-            # the catalogue's best must beat the library's best term of no more parameters on its channels
-            chans = tuple(CHANNELS.index(c) for c in _channels_of(best_c))
-            rival = scr.rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t))
-            if rival is not None:
-                ho = cross_validate(aug, effects, warm, terms + [rival])
-                ev = compare(cur, ho, rival.n_params, settings, rival.touched)
-                scored_t[rival.key] = (ev, ho, rival)
-                table_t[rival.key] = {k: v for k, v in ev.items() if k != "heldout_mse_before"}
-                show(rival.key, ev)
-                if ev["passes"]:
-                    passing_t.append(rival.key)
-                    best_t = max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"])
-        if best_c is not None:
-            # a term takes a passing catalogue effect's place only when it explains the held-out velocity
-            # residual significantly better, unit by unit (the same sign-flip test): a term no more
-            # complex than the effect, or one whose penalised gain is also larger
-            cat_ev, cat_ho = scored[best_c]
-            better = {
-                k: _explains_better(scored_t[k][1], cat_ho, settings)
-                for k in passing_t
-                if scored_t[k][2].n_params <= CATALOGUE[best_c].n_params
-                or scored_t[k][0]["penalised_gain"] > cat_ev["penalised_gain"]
-            }
-            winners = [k for k, (ok, _) in better.items() if ok]
-            if winners:
-                choice = ("term", max(winners, key=lambda k: scored_t[k][0]["penalised_gain"]))
-                say(
-                    f"[{terrain}]   {best_c} not named: {choice[1]} explains the held-out residual better "
-                    f"(p = {better[choice[1]][1]:.3g})"
-                )
-            else:
-                choice = ("catalogue", best_c)
-        elif best_t is not None:
-            choice = ("term", best_t)
-        if choice is None:
-            pool_best = [(e, scored[e][0]["penalised_gain"]) for e in scored] + [
-                (k, scored_t[k][0]["penalised_gain"]) for k in scored_t
-            ]
-            best = max(pool_best, key=lambda p: p[1])[0] if pool_best else None
-            rejected = {"best_candidate": best, "candidates": table, "terms": table_t, "screen": screen_info}
-            best_cat = max(scored, key=lambda e: scored[e][0]["penalised_gain"]) if scored else None
-            figure_data.append(_residual_panel(pool, state, best_cat, cur, None))
-            unexplained = unexplained_report(pool, aug, state, cur)
-            figure_data += _unexplained_panels(pool, aug, state, cur, unexplained)
-            say(f"[{terrain}] {unexplained['text']}")
-            break
-        kind, name = choice
-        prev_state = state
+    )
+    run.figure_data.append(term_panel(run.pool, prev_state, term, run.cur, run.state, run.aug))
+    return ho, term
+
+
+def _accept(run: _Search, name: str, kind: str, ho: HeldOut) -> None:
+    """The added candidate's held-out evaluation becomes the current model's; the gap it closed is
+    reported."""
+    cur = run.cur
+    run.say(
+        f"[{run.terrain}] + {name}: held-out RMSRE trans {cur.rmsre['translational']:.4f} -> "
+        f"{ho.rmsre['translational']:.4f}, rot {cur.rmsre['rotational']:.4f} -> "
+        f"{ho.rmsre['rotational']:.4f}" + (f" ({run.steps[-1]['explanation']})" if kind == "term" else "")
+    )
+    run.cur = ho
+
+
+def _reweight(run: _Search, kind: str, term: termlib.Term | None) -> None:
+    """Re-estimate the channel weights after a step and record them with it.
+
+    The channel weights are the inverse residual variances of the model as it now is (the base model's
+    overstated the channels the added correction fixed): re-estimated, with the model refitted and held
+    out under them, so the next candidates are fitted and compared as a Gaussian likelihood with
+    per-channel noise would weigh them (with the base model's weights, a wheel-level term's constant
+    absorbs the base model's own vx misfit and leaves the yaw rate a residual a catalogue effect names).
+    """
+    weights = channel_weights(run.pool, run.state)
+    if not np.allclose(weights, run.aug.weights, rtol=0.05):
+        run.aug.weights = weights
+        run.state = run.aug.fit(run.effects, run.all_units, run.warm, terms=run.terms)
+        run.warm = {k: v for k, v in run.state.params.items()}
+        run.cur = cross_validate(run.aug, run.effects, run.warm, run.terms)
+        # the step reports the constants of the model as refitted under the new weights
         if kind == "catalogue":
-            ev, ho = scored[name]
-            state = aug.fit(effects + [name], all_units, warm, terms=terms)  # refit on all training sequences
-            warm = {k: v for k, v in state.params.items()}
-            effects.append(name)
-            e = CATALOGUE[name]
-            steps.append(
-                {
-                    "effect": name,
-                    "kind": "catalogue",
-                    "explanation": e.explanation,
-                    "formula": e.formula,
-                    "evidence": {**ev, "candidates": table, "terms": table_t, "screen": screen_info},
-                    "naming": _naming("catalogue", ev, scored_t, scored, e.n_params),
-                    "params": jsonable_params(state.params),
-                    "heldout_rmsre_before": cur.rmsre,
-                    "heldout_rmsre_after": ho.rmsre,
-                }
-            )
-            figure_data.append(_residual_panel(pool, prev_state, name, cur, state))
+            run.steps[-1]["params"] = jsonable_params(run.state.params)
         else:
-            ev, ho, term = scored_t[name]
-            refined = refine_knots(aug, effects, warm, terms, term, all_units)
-            if refined != term:  # the held-out evidence of the model as it is added
-                ho = cross_validate(aug, effects, warm, terms + [refined])
-                ev = compare(cur, ho, refined.n_params, settings, refined.touched)
-                term = refined
-            state = aug.fit(effects, all_units, warm, terms=terms + [term])
-            warm = {k: v for k, v in state.params.items()}
-            terms.append(term)
-            theta = state.term_params[term.key]["theta"]
-            steps.append(
-                {
-                    "effect": term.key,
-                    "kind": "term",
-                    "explanation": term.describe(theta, robot.wheel_radius),
-                    "formula": f"{'vx, wz' if term.channel < 0 else CHANNELS[term.channel]} += theta * g, "
-                    f"g = {term.key}",
-                    "evidence": {**ev, "candidates": table, "terms": table_t, "screen": screen_info},
-                    "naming": _naming("term", ev, scored_t, scored, term.n_params),
-                    "params": {term.key: _term_step_params(state, term)},
-                    "heldout_rmsre_before": cur.rmsre,
-                    "heldout_rmsre_after": ho.rmsre,
-                }
-            )
-            figure_data.append(_term_panel(pool, prev_state, term, cur, state, aug))
-        say(
-            f"[{terrain}] + {name}: held-out RMSRE trans {cur.rmsre['translational']:.4f} -> "
-            f"{ho.rmsre['translational']:.4f}, rot {cur.rmsre['rotational']:.4f} -> "
-            f"{ho.rmsre['rotational']:.4f}" + (f" ({steps[-1]['explanation']})" if kind == "term" else "")
-        )
-        cur = ho
-        # the channel weights are the inverse residual variances of the model as it now is (the base model's
-        # overstated the channels the added correction fixed): re-estimated, with the model refitted and held
-        # out under them, so the next candidates are fitted and compared as a Gaussian likelihood with
-        # per-channel noise would weigh them (with the base model's weights, a wheel-level term's constant
-        # absorbs the base model's own vx misfit and leaves the yaw rate a residual a catalogue effect names)
-        weights = channel_weights(pool, state)
-        if not np.allclose(weights, aug.weights, rtol=0.05):
-            aug.weights = weights
-            state = aug.fit(effects, all_units, warm, terms=terms)
-            warm = {k: v for k, v in state.params.items()}
-            cur = cross_validate(aug, effects, warm, terms)
-            # the step reports the constants of the model as refitted under the new weights
-            if kind == "catalogue":
-                steps[-1]["params"] = jsonable_params(state.params)
-            else:
-                theta = state.term_params[term.key]["theta"]
-                steps[-1]["params"] = {term.key: _term_step_params(state, term)}
-                steps[-1]["explanation"] = term.describe(theta, robot.wheel_radius)
-        steps[-1]["channel_weights_after"] = dict(zip(CHANNELS, map(float, aug.weights), strict=True))
-    found = effects + [t.key for t in terms]
-    named = [st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]") for st in steps]
+            theta = run.state.term_params[term.key]["theta"]
+            run.steps[-1]["params"] = {term.key: _term_step_params(run.state, term)}
+            run.steps[-1]["explanation"] = term.describe(theta, run.robot.wheel_radius)
+    run.steps[-1]["channel_weights_after"] = dict(zip(CHANNELS, map(float, run.aug.weights), strict=True))
+
+
+def _result(run: _Search, base_name: str, t_start: float) -> TerrainDiscovery:
+    """The search's outcome: the message naming what was found (or that nothing was), the final model
+    with its held-out errors, and everything recorded on the way (``t_start``: perf_counter at the start)."""
+    found = run.effects + [t.key for t in run.terms]
+    named = [
+        st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]") for st in run.steps
+    ]
     message = NO_EFFECT_MESSAGE if not found else "missing effect(s) found: " + ", ".join(named)
-    if found and len(found) < settings.max_effects:
+    if found and len(found) < run.settings.max_effects:
         message += "; no further effect earns its place"
-    say(f"[{terrain}] {message}")
+    run.say(f"[{run.terrain}] {message}")
+    state, cur = run.state, run.cur
     final = {
-        "effects": list(effects),
-        "terms": [t.key for t in terms],
+        "effects": list(run.effects),
+        "terms": [t.key for t in run.terms],
         "params": jsonable_params(state.params),
-        "term_params": {t.key: _term_step_params(state, t) for t in terms},
+        "term_params": {t.key: _term_step_params(state, t) for t in run.terms},
         "base_params": state.base.get_params(),
         "heldout_rmsre": cur.rmsre,
         "heldout_mse": dict(zip(CHANNELS, map(float, cur.mse), strict=True)),
     }
     return TerrainDiscovery(
-        terrain,
+        run.terrain,
         base_name,
-        effects,
-        steps,
-        base_info,
+        run.effects,
+        run.steps,
+        run.base_info,
         final,
         message,
-        figure_data,
-        rejected,
+        run.figure_data,
+        run.rejected,
         time.perf_counter() - t_start,
-        [t.key for t in terms],
-        unexplained,
+        [t.key for t in run.terms],
+        run.unexplained,
     )
 
 
-def _binned(x: np.ndarray, r: np.ndarray, extra: np.ndarray | None = None) -> dict[str, list[float]]:
-    """Quantile-binned means (and standard errors) of ``r`` against ``x`` (20 bins)."""
-    if len(x) < 10:
-        return {}
-    qs = np.unique(np.quantile(x, np.linspace(0, 1, 21)))
-    if len(qs) < 2:
-        return {}
-    idx = np.clip(np.searchsorted(qs, x, side="right") - 1, 0, len(qs) - 2)
-    nb = len(qs) - 1
-    cnt = np.bincount(idx, minlength=nb).astype(float)
-    ok = cnt > 0
-    c = np.maximum(cnt, 1)
-
-    def mean(y):
-        return np.where(ok, np.bincount(idx, y, minlength=nb) / c, np.nan)
-
-    by = mean(r)
-    sd = np.sqrt(np.maximum(mean(r * r) - by**2, 0.0))
-    out = {"bin_x": mean(x).tolist(), "bin_y": by.tolist(), "bin_se": (sd / np.sqrt(c)).tolist()}
-    if extra is not None:
-        out["bin_fit"] = mean(extra).tolist()
-    return out
-
-
-def _term_panel(pool: Pool, state: FitState, term: termlib.Term, ho: HeldOut, after: FitState, aug) -> dict:
-    """Held-out residual of the term's (first) channel against its signal, and the correction added."""
-    ch = 0 if term.channel < 0 else term.channel
-    sig = aug.signals(state.feats, state.base_pred)
-    x = sig["rim_l"] if term.family == "slip" and term.signal == "l" else None
-    if x is None:
-        x = sig["rim_r"] if term.family == "slip" else None
-    if x is None:
-        x = sig["t"] if term.family == "after" else None
-    if x is None:
-        x = np.maximum(np.abs(sig["rim_l"]), np.abs(sig["rim_r"])) if term.channel < 0 else None
-    if x is None:
-        x = termlib._signal(term.signal, sig)
-    r = (pool.target - ho.pred)[:, ch]
-    m = pool.valid & np.isfinite(x)
-    out = {"effect": term.key, "channel": CHANNELS[ch], "feature": term.signal, "accepted": True}
-    out.update(_binned(x[m], r[m], (after.pred - state.pred)[:, ch][m]))
-    return out
-
-
-def _unexplained_panels(pool: Pool, aug, state: FitState, ho: HeldOut, rep: dict) -> list[dict]:
-    """One panel per velocity channel: the held-out residual against its strongest correlate."""
-    sig = aug.signals(state.feats, state.base_pred)
-    out = []
-    for c, ch in enumerate(CHANNELS):
-        if not rep["correlates"][ch]:
-            continue
-        name = rep["correlates"][ch][0]["signal"]
-        x = termlib._signal(name, sig)
-        r = (pool.target - ho.pred)[:, c]
-        m = pool.valid & np.isfinite(x)
-        d = {
-            "effect": "unexplained",
-            "channel": ch,
-            "feature": f"{name} (r = {rep['correlates'][ch][0]['r']:+.2f})",
+def discover_terrain(
+    pool: Pool,
+    factory: ModelFactory,
+    robot: Robot,
+    settings: DiscoverSettings,
+    terrain: str,
+    base_name: str,
+    candidates: tuple[str, ...] = EFFECT_IDS,
+    progress: Callable[[str], None] | None = None,
+) -> TerrainDiscovery:
+    """Catalogue effects and open-ended terms (:mod:`skidbench.models.terms`) scored side by side on
+    the same held-out units by the same rule; the best passing one is added, except that a catalogue
+    effect is named only when no open-ended term of no more parameters explains more of the held-out
+    gap (then the term is added under its own formula). When nothing passes, the residual is reported
+    as unexplained with its size and its strongest correlates. ``factory()``: a fresh base model;
+    ``progress``: where the progress lines go (default: the ``skidbench.discover`` logger)."""
+    t_start = time.perf_counter()
+    say = progress or (lambda msg: log.info(msg))
+    run = _fit_base(pool, factory, robot, settings, terrain, base_name, say)
+    while len(run.effects) + len(run.terms) < settings.max_effects:
+        scored = _score_catalogue(run, candidates)
+        scored_t, screen_info, scr = _score_terms(run)
+        evidence = {
+            "candidates": {e: _evidence_row(ev) for e, (ev, _) in scored.items()},
+            "terms": {k: _evidence_row(ev) for k, (ev, _, _) in scored_t.items()},
+            "screen": screen_info,
         }
-        d.update(_binned(x[m], r[m]))
-        d["accepted"] = False
-        d["unexplained"] = True
-        out.append(d)
-    return out
-
-
-def _residual_panel(
-    pool: Pool, state: FitState, eid: str | None, ho: HeldOut, after: FitState | None
-) -> dict:
-    """Binned held-out residual of the effect's channel against the feature that revealed it."""
-    if eid is None:
-        return {}
-    e = CATALOGUE[eid]
-    ch = 2 if e.channel < 0 else e.channel
-    x = revealing_feature(eid, state.feats, state.base_pred)
-    r = (pool.target - ho.pred)[:, ch]
-    m = pool.valid & np.isfinite(x)
-    x, r = x[m], r[m]
-    out = {"effect": eid, "channel": CHANNELS[ch], "feature": e.feature_label, "accepted": after is not None}
-    if len(x) < 10:
-        return out
-    qs = np.unique(np.quantile(x, np.linspace(0, 1, 21)))
-    idx = np.clip(np.searchsorted(qs, x, side="right") - 1, 0, len(qs) - 2)
-    bx = np.array([x[idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(qs) - 1)])
-    by = np.array([r[idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(qs) - 1)])
-    be = np.array(
-        [
-            r[idx == i].std() / max(1, np.sum(idx == i)) ** 0.5 if np.any(idx == i) else np.nan
-            for i in range(len(qs) - 1)
-        ]
-    )
-    out.update({"bin_x": bx.tolist(), "bin_y": by.tolist(), "bin_se": be.tolist()})
-    if after is not None:  # the correction the effect adds (relative to the previous model), binned
-        delta = (after.pred - state.pred)[:, ch][m]
-        out["bin_fit"] = [
-            float(delta[idx == i].mean()) if np.any(idx == i) else float("nan") for i in range(len(qs) - 1)
-        ]
-    return out
+        choice = _choose(run, scored, scored_t, evidence["terms"], scr)
+        if choice is None:
+            _report_unexplained(run, scored, scored_t, evidence)
+            break
+        kind, name = choice
+        if kind == "catalogue":
+            ho, term = _add_effect(run, name, scored, scored_t, evidence), None
+        else:
+            ho, term = _add_term(run, name, scored, scored_t, evidence)
+        _accept(run, name, kind, ho)
+        _reweight(run, kind, term)
+    return _result(run, base_name, t_start)

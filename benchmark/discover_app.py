@@ -5,7 +5,8 @@
 Writes ``<out>/discovery.json`` (base model, effects in the order added, one step per effect with its
 one-sentence physical explanation, the evidence and the held-out 6 s RMSRE before and after) and
 ``<out>/discovery.png`` (the gap shrinking step by step, and the residual that revealed each effect).
-The workflow and its significance rule: :mod:`skidbench.benchmark.discover`.
+The workflow: :mod:`skidbench.benchmark.discover`; its significance rule:
+:mod:`skidbench.benchmark.discover_stats`.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from skidbench.benchmark.discover import sign_flip_pvalue
+from skidbench.benchmark.discover_stats import sign_flip_pvalue
 from skidbench.models.effects import (
     CATALOGUE,
     EFFECT_IDS,
