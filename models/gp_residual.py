@@ -119,9 +119,94 @@ def select_inducing(X: np.ndarray, m: int, seed: int) -> np.ndarray:
     return np.unique(np.array(idx))
 
 
+def block_folds(table: pd.DataFrame, use: np.ndarray, k: int) -> np.ndarray | None:
+    """(use.sum(),) fold index 0..k-1 of every training row: k contiguous blocks of the Train rows in time
+    order (sequence after sequence), equal in row count. None when k < 2 (no cross-validation). Blocks, not
+    random rows: the residuals are autocorrelated over seconds, so a randomly held-out row has its
+    neighbours in the training folds and a held-out error would be that of interpolation, not of a new
+    drive."""
+    n = int(use.sum())
+    if k < 2 or n < 10 * k:
+        return None
+    return np.minimum(np.arange(n) * k // n, k - 1)
+
+
+def blocked_cv_select(
+    Xs: np.ndarray,
+    y: np.ndarray,
+    Z: np.ndarray,
+    ls: np.ndarray,
+    sf: float,
+    sn: float,
+    folds: np.ndarray | None,
+    ls_factors: list[float],
+    noise_factors: list[float],
+) -> dict[str, Any]:
+    """Hyperparameters of one output by blocked cross-validation, and how far to trust the GP there.
+
+    Xs (N, D) standardised inputs, y (N,) residuals of the base, Z (m, D) inducing inputs; ls, sf, sn the
+    maximum-likelihood length scales, signal and noise variance. Candidates: length scales x ls_factors
+    and noise x noise_factors (the marginal likelihood assumes white noise; the residuals are correlated
+    over seconds, so it picks length scales and noise that interpolate the Train drive). Each candidate's
+    DTC posterior is refitted without each block (the block's V V^T and V y subtracted from the totals:
+    one pass over the rows per length scale) and predicts the held-out block. The candidate with the least
+    held-out MSE is kept, then:
+    - shrink: the factor in [0, 1] on its mean that minimises the held-out MSE (least squares of y on
+      the held-out mean): 0 when the correction does not carry over to new blocks (the model is its base),
+      1 when it does fully;
+    - var_scale: mean held-out squared error / mean held-out predictive variance, so the predictive
+      variance matches the errors on data the fit did not see (mean z^2 = 1).
+    Returns those, the chosen lengthscales and noise_var, Lmm, G = V V^T and h = V y over all rows (for the
+    final posterior), the held-out means (N,) ('heldout', None without folds) and the held-out MSE of the
+    candidate (cv_mse) and of the base (cv_mse_base: the residual itself)."""
+    out: dict[str, Any] = {"lengthscale_factor": 1.0, "noise_factor": 1.0, "shrink": 1.0, "var_scale": 1.0}
+    out.update(heldout=None, cv_mse=None, cv_mse_base=float(np.mean(y**2)))
+    if folds is None:
+        ls_factors, noise_factors = [1.0], [1.0]
+    k = 0 if folds is None else int(folds.max()) + 1
+    m = len(Z)
+    best = None
+    for a in ls_factors:
+        lsa = ls * a
+        Lmm = np.linalg.cholesky(se_kernel(Z, Z, lsa, sf) + 1e-6 * sf * np.eye(m))
+        V = np.empty((m, len(Xs)))
+        for r in range(0, len(Xs), CHUNK):
+            V[:, r : r + CHUNK] = solve_triangular(Lmm, se_kernel(Z, Xs[r : r + CHUNK], lsa, sf), lower=True)
+        Gk = [V[:, folds == f] @ V[:, folds == f].T for f in range(k)]
+        hk = [V[:, folds == f] @ y[folds == f] for f in range(k)]
+        G = sum(Gk) if k else V @ V.T
+        h = sum(hk) if k else V @ y
+        for b in noise_factors:
+            s2 = sn * b
+            if b != noise_factors[0] and s2 > 2.0 * np.mean(y**2):
+                continue
+            pred = np.zeros(len(y))
+            for f in range(k):
+                L = np.linalg.cholesky(np.eye(m) + (G - Gk[f]) / s2)
+                pred[folds == f] = V[:, folds == f].T @ cho_solve((L, True), (h - hk[f]) / s2)
+            err = float(np.mean((y - pred) ** 2)) if k else 0.0
+            if best is None or err < best[0]:
+                best = (err, a, b, lsa, s2, Lmm, G, h, Gk, hk, V, pred)
+    err, a, b, lsa, s2, Lmm, G, h, Gk, hk, V, pred = best
+    out.update(lengthscale_factor=a, noise_factor=b, lengthscales=lsa, noise_var=s2, Lmm=Lmm, G=G, h=h)
+    if not k:
+        return out
+    pp = float(pred @ pred)
+    alpha = float(np.clip(y @ pred / pp, 0.0, 1.0)) if pp > 0 else 0.0
+    var = np.zeros(len(y))
+    for f in range(k):
+        L = np.linalg.cholesky(np.eye(m) + (G - Gk[f]) / s2)
+        q = V[:, folds == f]
+        var[folds == f] = s2 + sf - np.sum(q**2, 0) + np.sum(solve_triangular(L, q, lower=True) ** 2, 0)
+    r = y - alpha * pred
+    out.update(shrink=alpha, var_scale=float(np.mean(r**2) / max(np.mean(var), 1e-300)))
+    out.update(heldout=pred, cv_mse=err)
+    return out
+
+
 class GPResidual(KinematicModel):
     name = "gp_residual"
-    version = "1.0"
+    version = "2.0"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
     calibrated_constants = ("wheel_radius",)
     DEFAULTS: dict[str, Any] = {
@@ -132,6 +217,15 @@ class GPResidual(KinematicModel):
         "max_opt_iter": 200,  # L-BFGS iterations of the marginal likelihood
         "seed": 0,
         "autocorr_lags_s": 10.0,
+        # blocked cross-validation on Train (contiguous time blocks; 0 or 1: maximum likelihood only)
+        "cv_folds": 5,
+        "cv_lengthscale_factors": [1.0, 2.0, 4.0, 8.0],  # x the maximum-likelihood length scales
+        # x the maximum-likelihood noise variance, those up to the residual's variance (the likelihood on
+        # the spread-out inducing rows cannot tell noise from signal and often picks a far too small noise)
+        "cv_noise_factors": [1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0],
+        "shrink": True,  # scale the mean by the held-out least-squares factor in [0, 1]
+        "calibrate_variance": True,  # scale the predictive variance to the held-out squared errors
+        "autocorr_residuals": "heldout",  # "heldout" (blocked CV) or "fit" (in-sample) errors
     }
 
     def __init__(self, robot, params=None, **options):
@@ -140,6 +234,8 @@ class GPResidual(KinematicModel):
             known = sorted(self.DEFAULTS)
             raise ModelError(f"model {self.name}: unknown option(s) {unknown}; known: {known}")
         super().__init__(robot, params, **{**self.DEFAULTS, **options})
+        if self.options["autocorr_residuals"] not in ("heldout", "fit"):
+            raise ModelError(f"model {self.name}: options.autocorr_residuals must be 'heldout' or 'fit'")
         if str(self.options["base"]) == self.name:
             raise ModelError(f"model {self.name}: options.base cannot be {self.name}")
         self._base: KinematicModel | None = None
@@ -186,7 +282,9 @@ class GPResidual(KinematicModel):
         idx = select_inducing(Xs, int(o["n_inducing"]), int(o["seed"]))
         Z = Xs[idx]
         arrays: dict[str, np.ndarray] = {"x_mean": mu, "x_scale": sd, "inducing": Z}
+        folds = block_folds(table, use, int(o["cv_folds"]))
         hyper = []
+        heldout = np.full((len(table), 3), np.nan)  # held-out residuals of the blocked CV (used rows)
         for j, name in enumerate(TARGETS):
             y = R[:, j]
             yz = y[idx]
@@ -200,24 +298,31 @@ class GPResidual(KinematicModel):
             theta = res.x
             ls, sf, sn = np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
             sn = max(sn, 1e-10)
-            Kmm = se_kernel(Z, Z, ls, sf) + 1e-6 * sf * np.eye(len(Z))
-            Lmm = np.linalg.cholesky(Kmm)
+            sel = blocked_cv_select(
+                Xs, y, Z, ls, sf, sn, folds,
+                [float(a) for a in o["cv_lengthscale_factors"]], [float(b) for b in o["cv_noise_factors"]],
+            )  # fmt: skip
+            ls, sn, Lmm, G, h = sel["lengthscales"], sel["noise_var"], sel["Lmm"], sel["G"], sel["h"]
+            alpha = sel["shrink"] if o["shrink"] else 1.0
+            kappa = sel["var_scale"] if o["calibrate_variance"] else 1.0
+            if sel["heldout"] is not None:
+                heldout[np.flatnonzero(use), j] = y - alpha * sel["heldout"]
             # whitened DTC (numerically stable for small noise): V = Lmm^-1 Kmn, B = I + V V^T / sn,
-            # accumulated over row blocks; mean = q*^T B^-1 V y / sn with q* = Lmm^-1 k*
-            B = np.eye(len(Z))
-            c = np.zeros(len(Z))
-            for r in range(0, len(Xs), CHUNK):
-                V = solve_triangular(Lmm, se_kernel(Z, Xs[r : r + CHUNK], ls, sf), lower=True)
-                B += V @ V.T / sn
-                c += V @ y[r : r + CHUNK] / sn
-            LB = np.linalg.cholesky(B)
-            arrays[f"{name}_beta"] = cho_solve((LB, True), c)
+            # mean = q*^T B^-1 V y / sn with q* = Lmm^-1 k*; G = V V^T and h = V y over all rows
+            LB = np.linalg.cholesky(np.eye(len(Z)) + G / sn)
+            arrays[f"{name}_beta"] = alpha * cho_solve((LB, True), h / sn)
             arrays[f"{name}_Lmm"] = Lmm
             arrays[f"{name}_LB"] = LB
-            arrays[f"{name}_theta"] = theta
+            arrays[f"{name}_theta"] = np.concatenate([np.log(ls), [np.log(sf), np.log(sn)]])
+            arrays[f"{name}_var_scale"] = np.array(kappa)
             hyper.append(
-                {"lengthscales": ls.tolist(), "signal_var": sf, "noise_var": sn, "nlml": float(res.fun)}
-            )
+                {
+                    "lengthscales": ls.tolist(), "signal_var": sf, "noise_var": sn, "nlml": float(res.fun),
+                    "lengthscale_factor": sel["lengthscale_factor"], "noise_factor": sel["noise_factor"],
+                    "shrink": float(alpha), "var_scale": float(kappa),
+                    "cv_mse": sel["cv_mse"], "cv_mse_base": sel["cv_mse_base"],
+                }
+            )  # fmt: skip
         for k, v in getattr(base, "arrays", {}).items():
             arrays[f"base__{k}"] = np.asarray(v)
         self.arrays = arrays
@@ -229,8 +334,12 @@ class GPResidual(KinematicModel):
             "n_train": int(use.sum()),
         }
         rows = table.loc[valid]
-        res = targets(rows) - self.predict(rows)
-        self.fit_loss_ = mse(self.predict(rows), targets(rows))
+        pred = self.predict(table)
+        res = targets(table) - pred
+        if o["autocorr_residuals"] == "heldout":  # the errors the model makes on rows it did not see
+            res = np.where(np.isnan(heldout), res, heldout)
+        res = res[valid]
+        self.fit_loss_ = mse(pred[valid], targets(rows))
         dt = float(np.median(np.diff(col(table, "t")))) if len(table) > 1 else 1.0
         lags = max(1, int(round(float(o["autocorr_lags_s"]) / max(dt, 1e-6))))
         starts = sequence_starts(rows) | (np.diff(rows.index.to_numpy(), prepend=-2) != 1)
@@ -263,6 +372,7 @@ class GPResidual(KinematicModel):
                 if with_var:
                     s = solve_triangular(a[f"{name}_LB"], q, lower=True)
                     var[r : r + CHUNK, j] = sn + sf - np.sum(q**2, 0) + np.sum(s**2, 0)
+            var[:, j] *= float(a.get(f"{name}_var_scale", 1.0))
         return mean, np.maximum(var, 1e-12)
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:
