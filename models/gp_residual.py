@@ -37,6 +37,7 @@ import pandas as pd
 from scipy.cluster.vq import kmeans2
 from scipy.linalg import cho_solve, solve_triangular
 from scipy.optimize import minimize
+from scipy.signal import lfilter
 
 from .base import KinematicModel, ModelError
 from .columns import TARGETS, col, error_autocorrelation, mse, sequence_starts, targets
@@ -60,11 +61,29 @@ def _one_blas_thread():
 CHUNK = 8192  # rows per block of the O(N m^2) accumulation: bounded memory
 
 
-def gp_features(table: pd.DataFrame, robot) -> np.ndarray:
+def recent_wheel_acceleration(table: pd.DataFrame, tau_s: float) -> np.ndarray:
+    """(T,) rad/s^2: root of the exponential moving average, time constant ``tau_s`` (s), of the protocol's
+    squared wheel accelerations (mean of left and right), causal, restarted at each sequence: how hard the
+    robot has been driven over the last few seconds (high in aggressive driving, ~0 when cruising)."""
+    a2 = 0.5 * (col(table, "cmd_dwl") ** 2 + col(table, "cmd_dwr") ** 2)
+    a2 = np.where(np.isfinite(a2), a2, 0.0)
+    t = col(table, "t")
+    starts = np.flatnonzero(sequence_starts(table)).tolist() + [len(table)]
+    out = np.empty(len(table))
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        dt = float(np.median(np.diff(t[a:b]))) if b - a > 1 else 1.0
+        k = 1.0 - np.exp(-max(dt, 1e-6) / tau_s)
+        out[a:b], _ = lfilter([k], [1.0, k - 1.0], a2[a:b], zi=[(1.0 - k) * a2[a]])
+    return np.sqrt(np.maximum(out, 0.0))
+
+
+def gp_features(table: pd.DataFrame, robot, regime_tau_s: float = 0.0) -> np.ndarray:
     """(T, 4) GP inputs: commanded body velocity (m/s, rad/s) and acceleration (m/s^2, rad/s^2) of the
-    protocol's wheel rates."""
+    protocol's wheel rates; (T, 5) with :func:`recent_wheel_acceleration` (rad/s^2) when regime_tau_s > 0."""
     v, w = robot.twist_from_wheel_rates(col(table, "cmd_wl"), col(table, "cmd_wr"))
     dv, dw = robot.twist_from_wheel_rates(col(table, "cmd_dwl"), col(table, "cmd_dwr"))
+    if regime_tau_s > 0:
+        return np.column_stack([v, w, dv, dw, recent_wheel_acceleration(table, regime_tau_s)])
     return np.column_stack([v, w, dv, dw])
 
 
@@ -226,6 +245,7 @@ class GPResidual(KinematicModel):
         "shrink": True,  # scale the mean by the held-out least-squares factor in [0, 1]
         "calibrate_variance": True,  # scale the predictive variance to the held-out squared errors
         "autocorr_residuals": "heldout",  # "heldout" (blocked CV) or "fit" (in-sample) errors
+        "regime_tau_s": 0.0,  # s; > 0: a fifth input, the recent wheel acceleration (0: none)
     }
 
     def __init__(self, robot, params=None, **options):
@@ -269,7 +289,7 @@ class GPResidual(KinematicModel):
         base.fit(table)
         self._base = base
         valid = table["valid"].to_numpy(bool)
-        X = gp_features(table, self.robot)
+        X = gp_features(table, self.robot, float(o["regime_tau_s"]))
         still = (np.abs(X[:, 0]) < o["standstill_speed"]) & (np.abs(X[:, 1]) < o["standstill_speed"])
         use = valid & ~still
         if use.sum() < 20:
@@ -328,7 +348,8 @@ class GPResidual(KinematicModel):
         self.arrays = arrays
         self.params = {
             "base": base.to_json(),
-            "features": list(FEATURE_NAMES),
+            "features": list(FEATURE_NAMES) + (["wheel_acc_rms"] if float(o["regime_tau_s"]) > 0 else []),
+            "regime_tau_s": float(o["regime_tau_s"]),
             "hyperparameters": dict(zip(TARGETS, hyper, strict=True)),
             "n_inducing": len(Z),
             "n_train": int(use.sum()),
@@ -359,7 +380,8 @@ class GPResidual(KinematicModel):
         if "inducing" not in self.arrays:
             raise ModelError(f"model {self.name}: not fitted (no inducing points)")
         a = self.arrays
-        Xs = (gp_features(table, self.robot) - a["x_mean"]) / a["x_scale"]
+        tau = float(self.params.get("regime_tau_s", 0.0))
+        Xs = (gp_features(table, self.robot, tau) - a["x_mean"]) / a["x_scale"]
         Z = a["inducing"]
         mean = np.zeros((len(Xs), 3))
         var = np.zeros((len(Xs), 3))
