@@ -25,6 +25,19 @@ training conditional (DTC / projected process, Seeger et al. 2003) on EVERY vali
 in chunks: O(N m^2) time, O(m^2 + chunk m) memory. A subset of data alone would throw away all but m rows;
 an exact GP on 10^5 rows needs 80 GB. Predictive variance per output:
 sigma_n^2 + k** - k*^T Kmm^-1 k* + k*^T A^-1 k*, A = Kmm + sigma_n^-2 Kmn Knm (computed whitened).
+
+Version 2, so that the correction is only as large as held-out data support it (:func:`blocked_cv_select`):
+the Train rows are cut into ``cv_folds`` contiguous time blocks; length scales (x ``cv_lengthscale_factors``
+of the maximum-likelihood ones) and noise (x ``cv_noise_factors``) are chosen by the blocked
+cross-validated MSE, since the marginal likelihood assumes white noise where a drive's residuals are
+correlated over seconds; the mean is then multiplied by the held-out least-squares factor in [0, 1]
+(``shrink``: 0 makes the model its base when the correction does not carry over to unseen blocks), the
+predictive variance by held-out squared error / held-out predictive variance (``calibrate_variance``), and
+the error autocorrelation the horizon integrates is that of the held-out errors. A fifth input
+(``regime_tau_s``, default 1 s) is the recent wheel acceleration (:func:`recent_wheel_acceleration`): how
+hard the robot has been driven lately, which the command-to-velocity lag and the base model's error depend
+on; a drive far gentler than Train's lies away from Train's inputs in it, where the GP's mean decays to 0
+(the base). Version 1 is ``cv_folds=0 regime_tau_s=0``.
 """
 
 from __future__ import annotations
@@ -245,7 +258,7 @@ class GPResidual(KinematicModel):
         "shrink": True,  # scale the mean by the held-out least-squares factor in [0, 1]
         "calibrate_variance": True,  # scale the predictive variance to the held-out squared errors
         "autocorr_residuals": "heldout",  # "heldout" (blocked CV) or "fit" (in-sample) errors
-        "regime_tau_s": 0.0,  # s; > 0: a fifth input, the recent wheel acceleration (0: none)
+        "regime_tau_s": 1.0,  # s; > 0: a fifth input, the recent wheel acceleration (0: none)
     }
 
     def __init__(self, robot, params=None, **options):

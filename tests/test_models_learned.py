@@ -7,13 +7,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
 from skidbench.models.base import ModelError
 from skidbench.models.drive_blr import DriveBLR
 from skidbench.models.fitting import fit_model, load_fitted, model_config
-from skidbench.models.gp_residual import GPResidual
+from skidbench.models.gp_residual import GPResidual, recent_wheel_acceleration
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive
 from skidbench.models.saved import load_arrays, save_arrays
@@ -92,6 +93,24 @@ def test_gp_residual_reverts_to_its_base_outside_the_training_inputs(jackal):
     err_gp = np.sqrt(np.mean((gp.predict(test) - truth) ** 2, 0))
     err_edd = np.sqrt(np.mean((edd.predict(test) - truth) ** 2, 0))
     assert np.all(err_gp <= 1.05 * err_edd + 0.005)
+
+
+def test_recent_wheel_acceleration_is_the_rms_over_its_time_constant_per_sequence():
+    """Constant wheel accelerations a_l, a_r give sqrt((a_l^2 + a_r^2) / 2) from the first row; a step from
+    0 to a reaches sqrt(1 - exp(-t / tau)) * a (the average of a^2 rises as a first-order lag); each
+    sequence starts afresh."""
+    t = np.arange(300) / 30.0
+    one = pd.DataFrame({"t": t, "cmd_dwl": 3.0, "cmd_dwr": 4.0, "sequence": "a"})
+    assert recent_wheel_acceleration(one, 1.0) == pytest.approx(np.full(300, np.sqrt(12.5)))
+    step = pd.DataFrame({"t": t, "cmd_dwl": np.where(t >= 2.0, 2.0, 0.0), "sequence": "b"})
+    step["cmd_dwr"] = step["cmd_dwl"]
+    got = recent_wheel_acceleration(pd.concat([one, step], ignore_index=True), 1.0)
+    assert got[:300] == pytest.approx(np.sqrt(12.5))  # the first sequence's level does not leak into the next
+    after = t >= 2.0
+    lag = t[after] - 2.0 + 1.0 / 30.0  # the first row at 2.0 s is already in the average (discrete step)
+    expected = 2.0 * np.sqrt(1.0 - np.exp(-1.0 / 30.0) ** np.round(lag * 30.0))
+    assert got[300:][after] == pytest.approx(expected, rel=1e-9)
+    assert np.all(got[300:][~after] == 0.0)
 
 
 def ar1_noise(rng, n: int, steps: float) -> np.ndarray:
