@@ -33,11 +33,11 @@ cross-validated MSE, since the marginal likelihood assumes white noise where a d
 correlated over seconds; the mean is then multiplied by the held-out least-squares factor in [0, 1]
 (``shrink``: 0 makes the model its base when the correction does not carry over to unseen blocks), the
 predictive variance by held-out squared error / held-out predictive variance (``calibrate_variance``), and
-the error autocorrelation the horizon integrates is that of the held-out errors. A fifth input
-(``regime_tau_s``, default 1 s) is the recent wheel acceleration (:func:`recent_wheel_acceleration`): how
-hard the robot has been driven lately, which the command-to-velocity lag and the base model's error depend
-on; a drive far gentler than Train's lies away from Train's inputs in it, where the GP's mean decays to 0
-(the base). Version 1 is ``cv_folds=0 regime_tau_s=0``.
+the error autocorrelation the horizon integrates is that of the held-out errors. The vx GP
+(``regime_outputs``) has a fifth input (``regime_tau_s``, default 1 s), the recent wheel acceleration
+(:func:`recent_wheel_acceleration`): how hard the robot has been driven lately, which the command-to-velocity
+lag and the base model's error depend on; a drive far gentler than Train's lies away from Train's inputs in
+it, where the GP's mean decays to 0 (the base). Version 1 is ``cv_folds=0 regime_tau_s=0``.
 """
 
 from __future__ import annotations
@@ -236,6 +236,12 @@ def blocked_cv_select(
     return out
 
 
+def input_dims(name: str, n_inputs: int, regime_outputs) -> list[int]:
+    """Columns of the GP inputs the output ``name`` uses: all of them if it is among ``regime_outputs``,
+    else the first four (commanded velocity and acceleration, without the recent wheel acceleration)."""
+    return list(range(n_inputs)) if name in list(regime_outputs or []) else list(range(min(n_inputs, 4)))
+
+
 class GPResidual(KinematicModel):
     name = "gp_residual"
     version = "2.0"
@@ -259,6 +265,7 @@ class GPResidual(KinematicModel):
         "calibrate_variance": True,  # scale the predictive variance to the held-out squared errors
         "autocorr_residuals": "heldout",  # "heldout" (blocked CV) or "fit" (in-sample) errors
         "regime_tau_s": 1.0,  # s; > 0: a fifth input, the recent wheel acceleration (0: none)
+        "regime_outputs": ["vx"],  # the outputs whose GP gets that fifth input (measured: see docs/models.md)
     }
 
     def __init__(self, robot, params=None, **options):
@@ -319,20 +326,22 @@ class GPResidual(KinematicModel):
         hyper = []
         heldout = np.full((len(table), 3), np.nan)  # held-out residuals of the blocked CV (used rows)
         for j, name in enumerate(TARGETS):
+            dims = input_dims(name, Xs.shape[1], o["regime_outputs"])
+            Xj, Zj = Xs[:, dims], Z[:, dims]
             y = R[:, j]
             yz = y[idx]
             var0 = max(float(np.var(y)), 1e-10)
-            theta0 = np.concatenate([np.zeros(Xs.shape[1]), [np.log(var0), np.log(0.1 * var0)]])
+            theta0 = np.concatenate([np.zeros(len(dims)), [np.log(var0), np.log(0.1 * var0)]])
             res = minimize(
-                neg_log_marginal, theta0, args=(Z, yz), method="L-BFGS-B", jac=True,
-                bounds=[(-4, 4)] * Xs.shape[1] + [(np.log(var0) - 12, np.log(var0) + 4)] * 2,
+                neg_log_marginal, theta0, args=(Zj, yz), method="L-BFGS-B", jac=True,
+                bounds=[(-4, 4)] * len(dims) + [(np.log(var0) - 12, np.log(var0) + 4)] * 2,
                 options={"maxiter": int(o["max_opt_iter"])},
             )  # fmt: skip
             theta = res.x
             ls, sf, sn = np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
             sn = max(sn, 1e-10)
             sel = blocked_cv_select(
-                Xs, y, Z, ls, sf, sn, folds,
+                Xj, y, Zj, ls, sf, sn, folds,
                 [float(a) for a in o["cv_lengthscale_factors"]], [float(b) for b in o["cv_noise_factors"]],
             )  # fmt: skip
             ls, sn, Lmm, G, h = sel["lengthscales"], sel["noise_var"], sel["Lmm"], sel["G"], sel["h"]
@@ -348,6 +357,7 @@ class GPResidual(KinematicModel):
             arrays[f"{name}_LB"] = LB
             arrays[f"{name}_theta"] = np.concatenate([np.log(ls), [np.log(sf), np.log(sn)]])
             arrays[f"{name}_var_scale"] = np.array(kappa)
+            arrays[f"{name}_dims"] = np.array(dims)
             hyper.append(
                 {
                     "lengthscales": ls.tolist(), "signal_var": sf, "noise_var": sn, "nlml": float(res.fun),
@@ -401,8 +411,10 @@ class GPResidual(KinematicModel):
         for j, name in enumerate(TARGETS):
             theta = a[f"{name}_theta"]
             ls, sf, sn = np.exp(theta[:-2]), float(np.exp(theta[-2])), max(float(np.exp(theta[-1])), 1e-10)
-            for r in range(0, len(Xs), CHUNK):
-                q = solve_triangular(a[f"{name}_Lmm"], se_kernel(Z, Xs[r : r + CHUNK], ls, sf), lower=True)
+            dims = a.get(f"{name}_dims", np.arange(Xs.shape[1]))
+            Xj, Zj = Xs[:, dims], Z[:, dims]
+            for r in range(0, len(Xj), CHUNK):
+                q = solve_triangular(a[f"{name}_Lmm"], se_kernel(Zj, Xj[r : r + CHUNK], ls, sf), lower=True)
                 mean[r : r + CHUNK, j] = q.T @ a[f"{name}_beta"]
                 if with_var:
                     s = solve_triangular(a[f"{name}_LB"], q, lower=True)
