@@ -62,6 +62,10 @@ except ImportError:  # pragma: no cover
     threadpool_limits = None
 
 FEATURE_NAMES = ("cmd_v", "cmd_w", "cmd_dv", "cmd_dw")
+# the left-right mirror image of a drive (left and right wheels swapped): the GP inputs (cmd_v, cmd_w, dv,
+# dw, recent wheel acceleration) become (v, -w, dv, -dw, same), the residual (vx, vy, wz) (vx, -vy, -wz)
+MIRROR_INPUTS = np.array([1.0, -1.0, 1.0, -1.0, 1.0])
+MIRROR_TARGETS = np.array([1.0, -1.0, -1.0])
 
 
 def _one_blas_thread():
@@ -244,7 +248,7 @@ def input_dims(name: str, n_inputs: int, regime_outputs) -> list[int]:
 
 class GPResidual(KinematicModel):
     name = "gp_residual"
-    version = "2.0"
+    version = "2.1"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
     calibrated_constants = ("wheel_radius",)
     DEFAULTS: dict[str, Any] = {
@@ -266,6 +270,8 @@ class GPResidual(KinematicModel):
         "autocorr_residuals": "heldout",  # "heldout" (blocked CV) or "fit" (in-sample) errors
         "regime_tau_s": 1.0,  # s; > 0: a fifth input, the recent wheel acceleration (0: none)
         "regime_outputs": ["vx"],  # the outputs whose GP gets that fifth input (measured: see docs/models.md)
+        # the outputs whose GP trains on every row and its left-right mirror image (a symmetric robot's prior)
+        "mirror_outputs": ["vx", "vy", "wz"],
     }
 
     def __init__(self, robot, params=None, **options):
@@ -316,24 +322,39 @@ class GPResidual(KinematicModel):
             raise ModelError(f"model {self.name}: {int(use.sum())} moving valid training rows")
         resid = targets(table) - base.predict(table)
         Xu, R = X[use], resid[use]
+        folds = block_folds(table, use, int(o["cv_folds"]))
+        n_use = len(Xu)
+        mirror = list(o["mirror_outputs"] or [])
+        if mirror:
+            # a skid-steer robot is left-right symmetric: the residual of a mirrored drive is the mirrored
+            # residual, so vy and wz are odd in (w, dw) and vx even. Without it the GP transfers Train's
+            # correction of, e.g., its hard forward right turns to straight or left-turning driving Train
+            # lacks (Train's forward rows turning one way, its reverse rows the other): on the DRIVE
+            # Warthog's LD that was a +0.086 rad/s wz bias on gently turning forward windows (docs/models.md).
+            Xu = np.vstack([Xu, Xu * MIRROR_INPUTS[: Xu.shape[1]]])
+            R = np.vstack([R, R * MIRROR_TARGETS])
+            folds = None if folds is None else np.concatenate([folds, folds])  # a row and its mirror together
         mu, sd = Xu.mean(0), Xu.std(0)
         sd[sd < 1e-9] = 1.0
         Xs = (Xu - mu) / sd
         idx = select_inducing(Xs, int(o["n_inducing"]), int(o["seed"]))
         Z = Xs[idx]
         arrays: dict[str, np.ndarray] = {"x_mean": mu, "x_scale": sd, "inducing": Z}
-        folds = block_folds(table, use, int(o["cv_folds"]))
         hyper = []
         heldout = np.full((len(table), 3), np.nan)  # held-out residuals of the blocked CV (used rows)
         for j, name in enumerate(TARGETS):
             dims = input_dims(name, Xs.shape[1], o["regime_outputs"])
-            Xj, Zj = Xs[:, dims], Z[:, dims]
-            y = R[:, j]
-            yz = y[idx]
+            rows = slice(None) if name in mirror else slice(0, n_use)  # the mirror images are rows n_use..
+            Xj, Zj = Xs[rows][:, dims], Z[:, dims]
+            y = R[rows, j]
+            iz = (
+                idx if name in mirror else idx[idx < n_use]
+            )  # the likelihood's rows: inducing rows trained on
+            yz = R[iz, j]
             var0 = max(float(np.var(y)), 1e-10)
             theta0 = np.concatenate([np.zeros(len(dims)), [np.log(var0), np.log(0.1 * var0)]])
             res = minimize(
-                neg_log_marginal, theta0, args=(Zj, yz), method="L-BFGS-B", jac=True,
+                neg_log_marginal, theta0, args=(Xs[iz][:, dims], yz), method="L-BFGS-B", jac=True,
                 bounds=[(-4, 4)] * len(dims) + [(np.log(var0) - 12, np.log(var0) + 4)] * 2,
                 options={"maxiter": int(o["max_opt_iter"])},
             )  # fmt: skip
@@ -341,14 +362,14 @@ class GPResidual(KinematicModel):
             ls, sf, sn = np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
             sn = max(sn, 1e-10)
             sel = blocked_cv_select(
-                Xj, y, Zj, ls, sf, sn, folds,
+                Xj, y, Zj, ls, sf, sn, None if folds is None else folds[rows],
                 [float(a) for a in o["cv_lengthscale_factors"]], [float(b) for b in o["cv_noise_factors"]],
             )  # fmt: skip
             ls, sn, Lmm, G, h = sel["lengthscales"], sel["noise_var"], sel["Lmm"], sel["G"], sel["h"]
             alpha = sel["shrink"] if o["shrink"] else 1.0
             kappa = sel["var_scale"] if o["calibrate_variance"] else 1.0
             if sel["heldout"] is not None:
-                heldout[np.flatnonzero(use), j] = y - alpha * sel["heldout"]
+                heldout[np.flatnonzero(use), j] = (y - alpha * sel["heldout"])[:n_use]
             # whitened DTC (numerically stable for small noise): V = Lmm^-1 Kmn, B = I + V V^T / sn,
             # mean = q*^T B^-1 V y / sn with q* = Lmm^-1 k*; G = V V^T and h = V y over all rows
             LB = np.linalg.cholesky(np.eye(len(Z)) + G / sn)
@@ -357,6 +378,11 @@ class GPResidual(KinematicModel):
             arrays[f"{name}_LB"] = LB
             arrays[f"{name}_theta"] = np.concatenate([np.log(ls), [np.log(sf), np.log(sn)]])
             arrays[f"{name}_var_scale"] = np.array(kappa)
+            if o["calibrate_variance"] and alpha == 0.0 and sel["heldout"] is not None:
+                # no correction carries over: the output is its base's, and so is its variance, the base's
+                # held-out squared residual everywhere (the unshrunk GP's shape of it is not the base's:
+                # with it, a residual that is white noise had wz intervals covering 92 %, not 95 %)
+                arrays[f"{name}_var_const"] = np.array(float(np.mean(y**2)))
             arrays[f"{name}_dims"] = np.array(dims)
             hyper.append(
                 {
@@ -420,6 +446,8 @@ class GPResidual(KinematicModel):
                     s = solve_triangular(a[f"{name}_LB"], q, lower=True)
                     var[r : r + CHUNK, j] = sn + sf - np.sum(q**2, 0) + np.sum(s**2, 0)
             var[:, j] *= float(a.get(f"{name}_var_scale", 1.0))
+            if f"{name}_var_const" in a:
+                var[:, j] = float(a[f"{name}_var_const"])
         return mean, np.maximum(var, 1e-12)
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:
