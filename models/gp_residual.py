@@ -37,7 +37,10 @@ the error autocorrelation the horizon integrates is that of the held-out errors.
 (``regime_outputs``) has a fifth input (``regime_tau_s``, default 1 s), the recent wheel acceleration
 (:func:`recent_wheel_acceleration`): how hard the robot has been driven lately, which the command-to-velocity
 lag and the base model's error depend on; a drive far gentler than Train's lies away from Train's inputs in
-it, where the GP's mean decays to 0 (the base). Version 1 is ``cv_folds=0 regime_tau_s=0``.
+it, where the GP's mean decays to 0 (the base). Version 2.1: every output's GP trains on each Train row and
+its left-right mirror image (``mirror_outputs``; a symmetric robot's prior: vy and wz odd in the turn, vx
+even), so that a Train drive coupling speed and turn direction does not become a wz correction of the turns
+it lacks. Version 1 is ``cv_folds=0 regime_tau_s=0 mirror_outputs=[]``.
 """
 
 from __future__ import annotations
