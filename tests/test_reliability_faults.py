@@ -17,7 +17,8 @@ import pytest
 from reliability_data import DATASET, STAGE_ARGS, copy_splits, skidbench, snapshot, tmp_files
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
-pytestmark = pytest.mark.slow
+# the files using the session's micro dataset (conftest.py micro_root) on one worker: it is built once
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("micro_root")]
 
 # stage -> (outputs deleted before the killed run, path fragment of the write that is killed, n-th write)
 KILLS = {

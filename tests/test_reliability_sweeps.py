@@ -11,7 +11,8 @@ from mlflow_server import running_mlflow_server
 from reliability_data import DATASET, SCALE, skidbench
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
-pytestmark = pytest.mark.slow
+# the files using the session's micro dataset (conftest.py micro_root) on one worker: it is built once
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("micro_root")]
 
 
 MODELS = ("ideal", "edd", "full_linear")  # 3 jobs on 2 workers
