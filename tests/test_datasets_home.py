@@ -22,8 +22,6 @@ from skidbench.pipeline.dataset import DatasetError, identity_from_cfg, list_dat
 from skidbench.pipeline.layout import layout_from_cfg
 
 FIXTURE = Path(__file__).parent / "fixtures" / "amrl"
-# with the other files using the session's micro dataset (conftest.py micro_root) on one worker: built once
-pytestmark = pytest.mark.xdist_group("micro_root")
 EVALUATE = ["models=[ideal,edd]", "log_figures=false"]
 COMPARE = ["figures.enabled=false"]
 DISCOVER = [

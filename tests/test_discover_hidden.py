@@ -28,8 +28,6 @@ from skidbench.models.effects import EFFECT_IDS  # noqa: E402
 N_TRAIN = 8  # Train sequences per data set
 DURATION = 36.0  # s each
 CLI_EFFECT = "speed_dependent_turn_slip"  # this one goes through amrl_txt text files and the CLI
-# long, independent tests (no module fixture): spread one by one over the xdist workers (conftest.py)
-SPREAD_OVER_WORKERS = True
 
 
 def _discover(effects: list[str], seed: int, jackal):

@@ -24,8 +24,6 @@ from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E4
 from skidbench.models.specs import get_model_class  # noqa: E402
 
 R, B = dd.R_WHEEL, dd.TRACK
-# long, independent tests (no module fixture): spread one by one over the xdist workers (conftest.py)
-SPREAD_OVER_WORKERS = True
 
 
 def _feats(n=400, seed=0):

@@ -30,9 +30,6 @@ from doc_blocks import BLOCKS, MODES, REPO, commands, doc_env, parse_blocks, qui
 from skidbench.pipeline.config_schema import validate
 from skidbench.pipeline.overrides import check_overrides
 
-# on the worker of tests/test_e2e.py: the README's quick start (readme_reproduce) runs once, nobody waits
-pytestmark = pytest.mark.xdist_group("readme_reproduce")
-
 MAKE_STAGES = {  # what the Makefile's targets run (make reproduce / make discover)
     "reproduce": ("extract", "groundtruth", "split", "calibrate", "evaluate", "compare"),
     "discover": ("extract", "groundtruth", "split", "calibrate", "discover", "evaluate", "compare"),

@@ -11,8 +11,7 @@ from pathlib import Path
 
 import pytest
 
-# on the worker that runs the README's quick start (test_docs_commands.py): it is built once, nobody waits
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("readme_reproduce")]
+pytestmark = pytest.mark.slow
 
 MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual")
 TERRAINS = ("asphalt", "grass", "tile")  # scale=tiny simulates all three

@@ -10,8 +10,7 @@ from mlflow.tracking import MlflowClient
 from reliability_data import SCALE, copy_splits
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
-# the files using the session's micro dataset (conftest.py micro_root) on one worker: it is built once
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("micro_root")]
+pytestmark = pytest.mark.slow
 
 
 TIMINGS = {"fit_time_s", "predict_time_s"}  # wall-clock: the only metrics allowed to differ

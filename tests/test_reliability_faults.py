@@ -17,8 +17,7 @@ import pytest
 from reliability_data import DATASET, STAGE_ARGS, copy_splits, skidbench, snapshot, tmp_files
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
-# the files using the session's micro dataset (conftest.py micro_root) on one worker: it is built once
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("micro_root")]
+pytestmark = pytest.mark.slow
 
 # stage -> (outputs deleted before the killed run, path fragment of the write that is killed, n-th write)
 KILLS = {

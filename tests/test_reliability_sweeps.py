@@ -11,8 +11,7 @@ from mlflow_server import running_mlflow_server
 from reliability_data import DATASET, SCALE, skidbench
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
-# the files using the session's micro dataset (conftest.py micro_root) on one worker: it is built once
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("micro_root")]
+pytestmark = pytest.mark.slow
 
 
 MODELS = ("ideal", "edd", "full_linear")  # 3 jobs on 2 workers
