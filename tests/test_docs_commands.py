@@ -2,8 +2,9 @@
 on the line before it, that says what the block is and how it is tested:
 
     <!-- doc-test: run [slow] [shared] [lines=1,2] [cwd=<dir>] [<placeholder>[@line]=<value> ...] -->
-        its commands are executed (bash, in order; the selected lines only), on a tiny simulated dataset
-        shared by the blocks (``SCALE=tiny`` for make, ``SKIDBENCH_OUT``/``OUT`` a temporary root);
+        its commands are executed (bash, in order; the selected lines only), on the tiny simulated dataset
+        (``SCALE=tiny`` for make, ``SKIDBENCH_OUT``/``OUT`` a temporary root; the quick start in its own,
+        once per session, shared with tests/test_e2e.py);
         ``shared``: skipped when ../shared/data/real is absent; ``slow``: marked slow
     <!-- doc-test: check [lines=...] [<placeholder>=<value> ...] -->
         each ``skidbench <stage> ...`` command (and each stage that ``make reproduce|discover`` runs, with
