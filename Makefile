@@ -83,9 +83,10 @@ $(CLUSTER_STAMP): $(STAMP)
 	@touch $@
 
 # The suite on two workers (pytest-xdist), each test file on one worker so that a file's shared fixtures
-# (a simulated dataset, an MLflow store) are built once. `make test-fast`: the unit tests only (no test
+# (a simulated dataset, an MLflow store) are built once; `loadgroup` with tests/conftest.py's groups: the
+# files sharing a session fixture on one worker, long independent tests spread one by one. `make test-fast`: the unit tests only (no test
 # marked slow: no end-to-end pipelines, sweeps, virtual environments or browsers), for the edit loop.
-PYTEST := $(BIN)/python -m pytest -q -n 2 --dist loadfile
+PYTEST := $(BIN)/python -m pytest -q -n 2 --dist loadgroup
 test: setup $(CLUSTER_STAMP)
 	$(PYTEST)
 

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
 
 REPO = Path(__file__).resolve().parents[1]
 # SKIDBENCH_SHARED_REAL: where the real recordings are when the checkout is not next to ../shared (a worktree)
@@ -51,3 +55,89 @@ def _no_inherited_mlflow_store(monkeypatch):
     """Each test starts without MLFLOW_TRACKING_URI: compare's ``mlflow.set_tracking_uri`` exports it for
     the rest of the process, and `make` or a user may have it set; a test that wants a store sets it."""
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+
+
+# -- built once per test session, shared by the xdist workers ------------------------------------------
+def once_per_session(tmp_path_factory, name: str, build: Callable[[Path], dict]) -> tuple[Path, dict]:
+    """``build(<root>)`` run once per test session in a fresh folder ``<root>``; returns ``(root, what build
+    returned)`` (JSON-able). The pytest-xdist workers are separate processes: the first to ask builds under a
+    file lock in the session's temporary folder (the workers' basetemps' parent), the others wait and read
+    its result; without xdist, the session's own basetemp. A build that raised leaves no result, so the
+    next worker builds again (the error is its own)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    base = tmp_path_factory.getbasetemp().parent if worker else tmp_path_factory.getbasetemp()
+    root, result = base / name, base / f"{name}.json"
+    with FileLock(str(base / f"{name}.lock")):
+        if not result.is_file():
+            shutil.rmtree(root, ignore_errors=True)  # a build that raised part-way
+            root.mkdir()
+            result.write_text(json.dumps(build(root)))
+    return root, json.loads(result.read_text())
+
+
+@pytest.fixture(scope="session")
+def readme_reproduce(tmp_path_factory) -> dict:
+    """The README's quick start (``make reproduce``, as written, on the tiny simulated dataset) executed once
+    per session in a fresh output root: ``{"root": <root>, "results": [one dict per command: n, cmd,
+    returncode, stdout, stderr]}``. tests/test_docs_commands.py asserts that it succeeds,
+    tests/test_e2e.py what it wrote (the MLflow runs, fits, calibration and report). Read only: a test
+    that changes an output root makes its own."""
+    from doc_blocks import doc_env, quickstart, run_block
+
+    root, results = once_per_session(
+        tmp_path_factory, "readme_reproduce", lambda out: run_block(quickstart(), doc_env(out))
+    )
+    return {"root": root, "results": results}
+
+
+# -- pytest-xdist: which tests share a worker (make test: -n 2 --dist loadgroup) ------------------------
+#: files whose tests share a session fixture: one worker runs them all, so it is built once and no worker
+#: waits for the other's build (README quick start: test_docs_commands and test_e2e; the micro dataset)
+XDIST_GROUPS = {
+    "tests/test_docs_commands.py": "readme_reproduce",
+    "tests/test_e2e.py": "readme_reproduce",
+    "tests/test_datasets_home.py": "micro_root",
+    "tests/test_reliability_determinism.py": "micro_root",
+    "tests/test_reliability_faults.py": "micro_root",
+    "tests/test_reliability_sweeps.py": "micro_root",
+}
+#: files of long, independent tests (no module fixture): one test per unit, so they balance over workers
+XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
+#: the longest units start first (longest-processing-time-first), the rest in xdist's order (most tests
+#: first). Measured with --durations=40 on 2026-11-24: the quick start and discover_hidden's
+#: curvature_dependent_icr case are the two longest units.
+XDIST_FIRST = (
+    "readme_reproduce",
+    "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_first_and_shrinks_the_gap"
+    "[curvature_dependent_icr]",
+)
+
+
+def xdist_unit(nodeid: str) -> str:
+    """The work unit of a test under ``--dist loadgroup``: its file (as ``--dist loadfile``: a file's module
+    fixtures are built once), its group (``XDIST_GROUPS``) or, in ``XDIST_SPREAD``, the test itself."""
+    path = nodeid.split("::")[0]
+    if path in XDIST_SPREAD:
+        return nodeid
+    return XDIST_GROUPS.get(path, path)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadgroup``: units of :func:`xdist_unit` (pytest-xdist's own loadgroup reads ``xdist_group``
+    marks by renaming node ids, which pytest 9.2 ignores, so it distributes test by test)."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class UnitScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_unit(nodeid)
+
+        def _assign_work_unit(self, node) -> None:
+            for unit in reversed(XDIST_FIRST):
+                if unit in self.workqueue:
+                    self.workqueue.move_to_end(unit, last=False)
+            super()._assign_work_unit(node)
+
+    return UnitScheduling(config, log)

@@ -2,8 +2,9 @@
 on the line before it, that says what the block is and how it is tested:
 
     <!-- doc-test: run [slow] [shared] [lines=1,2] [cwd=<dir>] [<placeholder>[@line]=<value> ...] -->
-        its commands are executed (bash, in order; the selected lines only), on a tiny simulated dataset
-        shared by the blocks (``SCALE=tiny`` for make, ``SKIDBENCH_OUT``/``OUT`` a temporary root);
+        its commands are executed (bash, in order; the selected lines only), on the tiny simulated dataset
+        (``SCALE=tiny`` for make, ``SKIDBENCH_OUT``/``OUT`` a temporary root; the quick start in its own,
+        once per session, shared with tests/test_e2e.py);
         ``shared``: skipped when ../shared/data/real is absent; ``slow``: marked slow
     <!-- doc-test: check [lines=...] [<placeholder>=<value> ...] -->
         each ``skidbench <stage> ...`` command (and each stage that ``make reproduce|discover`` runs, with
@@ -20,109 +21,20 @@ dummy word in ``check`` blocks."""
 
 from __future__ import annotations
 
-import os
 import re
 import shlex
-import subprocess
-import sys
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import pytest
 from conftest import SHARED_REAL
+from doc_blocks import BLOCKS, MODES, REPO, commands, doc_env, parse_blocks, quickstart, run_block
 
 from skidbench.pipeline.config_schema import validate
 from skidbench.pipeline.overrides import check_overrides
 
-REPO = Path(__file__).resolve().parents[1]
-DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
-MARKER = re.compile(r"^<!--\s*doc-test:\s*(\w+)\s*(.*?)\s*-->\s*$")
-MODES = ("run", "check", "output", "skip")
 MAKE_STAGES = {  # what the Makefile's targets run (make reproduce / make discover)
     "reproduce": ("extract", "groundtruth", "split", "calibrate", "evaluate", "compare"),
     "discover": ("extract", "groundtruth", "split", "calibrate", "discover", "evaluate", "compare"),
 }
-
-
-@dataclass
-class Block:
-    doc: Path
-    line: int  # of the opening fence, 1-based
-    text: list[str]
-    mode: str | None
-    args: str = ""
-    opts: dict = field(default_factory=dict)
-
-    @property
-    def id(self) -> str:
-        return f"{self.doc.name}:{self.line}"
-
-
-def parse_blocks(path: Path) -> list[Block]:
-    """Every fenced block of a Markdown file with its marker (None when unmarked)."""
-    lines = path.read_text().splitlines()
-    blocks, i = [], 0
-    while i < len(lines):
-        if lines[i].startswith("```"):
-            j = i + 1
-            while j < len(lines) and not lines[j].startswith("```"):
-                j += 1
-            m = MARKER.match(lines[i - 1].strip()) if i else None
-            b = Block(path, i + 1, lines[i + 1 : j], m.group(1) if m else None, m.group(2) if m else "")
-            b.opts = _options(b.args)
-            blocks.append(b)
-            i = j + 1
-        else:
-            i += 1
-    return blocks
-
-
-def _options(args: str) -> dict:
-    opts: dict = {"flags": set(), "subs": [], "lines": None, "cwd": None}
-    for tok in shlex.split(args):
-        if tok in ("slow", "shared"):
-            opts["flags"].add(tok)
-        elif tok.startswith("lines="):
-            opts["lines"] = {int(n) for n in tok[6:].split(",")}
-        elif tok.startswith("cwd="):
-            opts["cwd"] = tok[4:]
-        elif tok.startswith("<") and "=" in tok:
-            name, value = tok.split("=", 1)
-            name, _, at = name.partition("@")
-            opts["subs"].append((name, int(at) if at else None, value))
-    return opts
-
-
-def commands(block: Block, every: bool = False) -> list[tuple[int, str]]:
-    """(command number, command) of a block: continuation lines joined, comments and blank lines out; in
-    a block that shows a prompt (``$ ``), only the prompted lines. The marker's ``lines`` only, unless
-    ``every`` (a run block's other lines are still checked)."""
-    prompted = any(ln.startswith("$ ") for ln in block.text)
-    cmds, buf = [], ""
-    for ln in block.text:
-        if prompted:
-            if not ln.startswith("$ "):
-                continue
-            ln = ln[2:]
-        s = ln.rstrip()
-        if not buf and (not s.strip() or s.lstrip().startswith("#")):
-            continue
-        if s.endswith("\\"):
-            buf += s[:-1] + " "
-            continue
-        cmds.append(buf + s)
-        buf = ""
-    out = []
-    for n, cmd in enumerate(cmds, 1):
-        for name, at, value in block.opts["subs"]:
-            if at in (None, n):
-                cmd = cmd.replace(name, value)
-        if every or block.opts["lines"] is None or n in block.opts["lines"]:
-            out.append((n, cmd))
-    return out
-
-
-BLOCKS = [b for doc in DOCS for b in parse_blocks(doc)]
 
 
 def test_every_block_is_marked():
@@ -189,21 +101,13 @@ def test_documented_commands_pass_the_config_checks(block, n, cmd, monkeypatch, 
 
 
 # -- run: the blocks a user is told to run, executed -------------------------------------------------
+# Every run block runs in a temporary output root, once per session. The quick start (``make reproduce``,
+# the longest) runs in its own root through the session fixture ``readme_reproduce`` (tests/conftest.py):
+# tests/test_e2e.py asserts on what that same run wrote instead of building its own tiny pipeline.
 @pytest.fixture(scope="module")
-def doc_env(tmp_path_factory) -> dict[str, str]:
-    """One output root for every run block (the tiny simulated dataset of the first is reused)."""
-    out = tmp_path_factory.mktemp("docs_out")
-    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    bin_dir = str(Path(sys.executable).parent)
-    env.update(
-        PATH=f"{bin_dir}{os.pathsep}{env.get('PATH', '')}",
-        SKIDBENCH_OUT=str(out),
-        OUT=str(out),
-        SCALE="tiny",
-        REPO=str(REPO),
-        SHARED=str(SHARED_REAL),
-    )
-    return env
+def doc_out(tmp_path_factory) -> dict[str, str]:
+    """One output root for the other run blocks."""
+    return doc_env(tmp_path_factory.mktemp("docs_out"))
 
 
 RUN = [
@@ -214,19 +118,17 @@ RUN = [
 
 
 @pytest.mark.parametrize("block", RUN)
-def test_documented_blocks_run_as_written(block, doc_env):
+def test_documented_blocks_run_as_written(block, request):
     if "shared" in block.opts["flags"] and not SHARED_REAL.is_dir():
         pytest.skip("../shared/data/real is absent")
-    cwd = block.opts["cwd"] or str(REPO)
-    cwd = cwd.replace("$SHARED", str(SHARED_REAL)).replace("$REPO", str(REPO)).replace("$OUT", doc_env["OUT"])
-    for n, cmd in commands(block):
-        if "$SHARED" in cmd and not SHARED_REAL.is_dir():
-            continue
-        proc = subprocess.run(
-            ["bash", "-c", f"set -euo pipefail; {cmd}"],
-            cwd=cwd, env=doc_env, capture_output=True, text=True, timeout=1800,
-        )  # fmt: skip
-        assert proc.returncode == 0, f"{block.id} command {n}: {cmd}\n{proc.stderr[-3000:]}"
+    if block.id == quickstart().id:  # executed once per session (run_block), its results read here
+        results = request.getfixturevalue("readme_reproduce")["results"]
+    else:
+        results = run_block(block, request.getfixturevalue("doc_out"))
+    for r in results:
+        assert r["returncode"] == 0, f"{block.id} command {r['n']}: {r['cmd']}\n{r['stderr'][-3000:]}"
+    expected = [n for n, cmd in commands(block) if "$SHARED" not in cmd or SHARED_REAL.is_dir()]
+    assert [r["n"] for r in results] == expected
 
 
 def test_the_check_refuses_a_misspelt_documented_command(tmp_path):

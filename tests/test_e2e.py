@@ -1,13 +1,12 @@
-"""End to end through the real CLI on a tiny simulated dataset: simulate -> extract -> groundtruth ->
-split -> calibrate -> evaluate -> compare in a tmp output root; the MLflow runs and metrics exist and are
-finite."""
+"""End to end through the real CLI on the tiny simulated dataset: the README's quick start (``make
+reproduce``: simulate -> extract -> groundtruth -> split -> calibrate -> evaluate -> evaluate
+inputs=response -> compare), run once per test session in a temporary output root (tests/conftest.py
+``readme_reproduce``, also asserted by tests/test_docs_commands.py); the MLflow runs of both input protocols
+and their metrics exist and are finite, fits use their terrain's calibration, the report has its figures."""
 
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,70 +14,73 @@ import pytest
 pytestmark = pytest.mark.slow
 
 MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual")
-TERRAIN = "grass"  # one terrain keeps evaluate/compare short; the split stage still builds all three
-
-
-def _skidbench(out: Path, *args: str) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    env["SKIDBENCH_OUT"] = str(out)
-    exe = Path(sys.executable).with_name("skidbench")
-    proc = subprocess.run([str(exe), *args], env=env, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, f"skidbench {' '.join(args)} failed:\n{proc.stderr[-3000:]}"
-    return proc
+TERRAINS = ("asphalt", "grass", "tile")  # scale=tiny simulates all three
+PROTOCOLS = ("commanded", "response")  # make reproduce evaluates under both
 
 
 @pytest.fixture(scope="module")
-def pipeline(tmp_path_factory):
-    out = tmp_path_factory.mktemp("e2e")
-    for stage in ("simulate", "extract", "groundtruth", "split", "calibrate"):
-        _skidbench(out, stage, "scale=tiny")
-    ev = _skidbench(out, "evaluate", "scale=tiny", f"terrains=[{TERRAIN}]", "report_data.fig7_windows=2")
-    cmp_ = _skidbench(out, "compare", "scale=tiny")
-    return out, ev, cmp_
+def pipeline(readme_reproduce) -> tuple[Path, str]:
+    """(output root, stdout of every stage) of the session's ``make reproduce`` (SCALE=tiny)."""
+    results = readme_reproduce["results"]
+    for r in results:
+        assert r["returncode"] == 0, f"{r['cmd']} failed:\n{r['stderr'][-3000:]}"
+    assert results, "the README's quick start ran no command"
+    return readme_reproduce["root"], "".join(r["stdout"] for r in results)
 
 
 def test_every_model_has_a_finished_run_with_finite_metrics(pipeline):
-    out, ev, _ = pipeline
+    out, stdout = pipeline
     from mlflow import MlflowClient
 
     client = MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
     exp = client.get_experiment_by_name("skidbench-sim-tiny")
     assert exp is not None
     parents = client.search_runs([exp.experiment_id], "tags.`skidbench.role` = 'parent'")
-    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
-    parent = parents[0]
-    assert parent.data.params["scale.name"] == "tiny"
-    children = client.search_runs([exp.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
-    by_model = {c.data.tags["skidbench.model"]: c for c in children}
-    assert set(by_model) == set(MODELS)
-    for name, run in by_model.items():
-        assert run.info.status == "FINISHED", (name, run.data.tags.get("skidbench.failure_reason"))
-        assert run.data.tags["skidbench.terrain"] == TERRAIN
-        for key in (
-            "cv_6s_trans_rmsre_pct",
-            "cv_6s_rot_rmsre_pct",
-            "ld_6s_trans_rmsre_pct",
-            "ld_6s_rot_rmsre_pct",
-            "fit_time_s",
-            "predict_time_s",
-        ):
-            assert math.isfinite(run.data.metrics[key]), (name, key)
-        assert run.data.tags["skidbench.plugin_package"].startswith("skidbench")
-        learned = name in ("drive_blr", "gp_residual")  # predictive covariance: uncertainty scored
-        assert ("coverage95_position_cv_6s" in run.data.metrics) == learned, name
-        if learned:
-            assert 0 <= run.data.metrics["coverage95_position_ld_6s"] <= 1
-    assert parent.info.run_id in ev.stdout
+    by_protocol = {p.data.params["inputs"]: p for p in parents}
+    assert len(parents) == len(PROTOCOLS) and set(by_protocol) == set(PROTOCOLS)  # one evaluate each
+    for protocol, parent in by_protocol.items():
+        assert parent.info.status == "FINISHED", protocol
+        assert parent.data.params["scale.name"] == "tiny"
+        assert parent.data.tags["skidbench.inputs"] == protocol
+        children = client.search_runs(
+            [exp.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'", max_results=1000
+        )
+        by_key = {(c.data.tags["skidbench.model"], c.data.tags["skidbench.terrain"]): c for c in children}
+        assert len(children) == len(by_key)  # one run per model and terrain
+        assert set(by_key) == {(m, t) for m in MODELS for t in TERRAINS}, protocol
+        for (name, _), run in by_key.items():
+            _check_child(name, run)
+        assert parent.info.run_id in stdout
 
 
-def test_models_are_fitted_with_the_calibration_of_their_terrain(pipeline):
+def _check_child(name, run):
+    """The assertions on one model's run (one model, terrain and protocol)."""
+    assert run.info.status == "FINISHED", (name, run.data.tags.get("skidbench.failure_reason"))
+    for key in (
+        "cv_6s_trans_rmsre_pct",
+        "cv_6s_rot_rmsre_pct",
+        "ld_6s_trans_rmsre_pct",
+        "ld_6s_rot_rmsre_pct",
+        "fit_time_s",
+        "predict_time_s",
+    ):
+        assert math.isfinite(run.data.metrics[key]), (name, key)
+    assert run.data.tags["skidbench.plugin_package"].startswith("skidbench")
+    learned = name in ("drive_blr", "gp_residual")  # predictive covariance: uncertainty scored
+    assert ("coverage95_position_cv_6s" in run.data.metrics) == learned, name
+    if learned:
+        assert 0 <= run.data.metrics["coverage95_position_ld_6s"] <= 1
+
+
+@pytest.mark.parametrize("terrain", TERRAINS)
+def test_models_are_fitted_with_the_calibration_of_their_terrain(pipeline, terrain):
     import json
 
-    out, _, _ = pipeline
-    doc = json.loads((out / "sim-tiny" / "calibration" / f"{TERRAIN}.json").read_text())
+    out, _ = pipeline
+    doc = json.loads((out / "sim-tiny" / "calibration" / f"{terrain}.json").read_text())
     assert doc["source"] == "encoders" and doc["wheel_radius"]["identified"]
-    ideal = json.loads((out / "sim-tiny" / "fits" / "ideal" / f"{TERRAIN}.json").read_text())
-    friction = json.loads((out / "sim-tiny" / "fits" / "friction" / f"{TERRAIN}.json").read_text())
+    ideal = json.loads((out / "sim-tiny" / "fits" / "ideal" / f"{terrain}.json").read_text())
+    friction = json.loads((out / "sim-tiny" / "fits" / "friction" / f"{terrain}.json").read_text())
     for c in ("wheel_radius", "track_width"):
         if doc[c]["identified"]:
             assert ideal["robot_constants"][c] == {
@@ -89,7 +91,7 @@ def test_models_are_fitted_with_the_calibration_of_their_terrain(pipeline):
 
 
 def test_compare_writes_the_report_with_figures_and_prints_the_leaderboard(pipeline):
-    out, _, cmp_ = pipeline
+    out, stdout = pipeline
     reports = out / "sim-tiny" / "reports"
     report = reports / "report.md"
     assert report.is_file()
@@ -104,6 +106,6 @@ def test_compare_writes_the_report_with_figures_and_prints_the_leaderboard(pipel
         assert (reports / fig).stat().st_size > 10_000, fig
         assert f"]({fig})" in text
     assert (reports / "leaderboard.csv").is_file()
-    assert "Leaderboard" in cmp_.stdout and f"report: {report}" in cmp_.stdout
+    assert "Leaderboard" in stdout and f"report: {report}" in stdout
     for m in MODELS:
-        assert f"| {m} |" in cmp_.stdout
+        assert f"| {m} |" in stdout
