@@ -82,10 +82,11 @@ $(CLUSTER_STAMP): $(STAMP)
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 
-# The suite on two workers (pytest-xdist), each test file on one worker so that a file's shared fixtures
-# (a simulated dataset, an MLflow store) are built once; `loadgroup` with tests/conftest.py's groups: the
-# files sharing a session fixture on one worker, long independent tests spread one by one. `make test-fast`: the unit tests only (no test
-# marked slow: no end-to-end pipelines, sweeps, virtual environments or browsers), for the edit loop.
+# The suite on two workers (pytest-xdist). Work units (tests/conftest.py `xdist_unit`): a test file, so
+# that its shared fixtures (a simulated dataset, an MLflow store) are built once; the files that share a
+# session fixture (the README's `make reproduce`, built once under a file lock) as one unit; the long
+# independent discovery tests one by one. `make test-fast`: the unit tests only (no test marked slow: no
+# end-to-end pipelines, sweeps, virtual environments or browsers), for the edit loop.
 PYTEST := $(BIN)/python -m pytest -q -n 2 --dist loadgroup
 test: setup $(CLUSTER_STAMP)
 	$(PYTEST)
