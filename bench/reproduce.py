@@ -130,6 +130,8 @@ def extraction_mini_vs_full() -> dict[str, Any]:
         path = bags.get(scale)
         if path is None:
             where = default_out_root() / f"sim-{scale}"
+            if where.is_relative_to(Path.cwd()):  # the results table is committed: no machine's paths in it
+                where = where.relative_to(Path.cwd())
             out[f"extract_rss_{scale}_mb"] = f"not measured ({where} not simulated)"
             continue
         size = sum(f.stat().st_size for f in [path, *path.glob("*")]) / 2**20
