@@ -5,7 +5,8 @@ A stage unit (one sequence of one stage, one model on one terrain, ...) records 
 (``<ds>/.stamps/<stage>/<unit>.json``, :func:`stamp_file`) after its outputs::
 
     {"schema": 2, "stage": "fit", "key": <fingerprint of inputs + config>,
-     "inputs": {path: fingerprint}, "config": {...}, "outputs": {path: fingerprint}, "info": {...}}
+     "inputs": {path: fingerprint}, "config": {...}, "outputs": {path: fingerprint}, "root": <dataset>,
+     "info": {...}}
 
 The stage that *makes* the outputs asks :meth:`Stamp.is_fresh` with the key of its current inputs and
 config (:meth:`Stamp.key`): skipped when the key is unchanged and every recorded output still has its
@@ -91,6 +92,26 @@ class Stamp:
     def _inputs(self, inputs: Iterable[str | os.PathLike]) -> dict[str, str]:
         return {str(Path(p)): self.fp(p) for p in sorted(map(str, inputs))}
 
+    @property
+    def root(self) -> Path:
+        """The dataset folder of this stamp (the parent of its ``.stamps``; else the stamp's folder)."""
+        for parent in self.path.absolute().parents:
+            if parent.name == ".stamps":
+                return parent.parent
+        return self.path.absolute().parent
+
+    def _here(self, recorded: str) -> str:
+        """A path the stamp recorded, where it is now: a path under the root the stamp was recorded in is
+        taken relative to it and joined to this stamp's root, so a copied or moved dataset's readers still
+        find what its outputs were made of (the producers' keys hold the paths: they re-run)."""
+        then = self.data.get("root")
+        if then:
+            try:
+                return str(self.root / Path(recorded).relative_to(then))
+            except ValueError:
+                pass
+        return recorded
+
     def key(self, inputs: Iterable[str | os.PathLike], config: Any) -> str:
         """The fingerprint of ``inputs`` (files or bag folders, by content) and ``config`` (any JSON-able
         object) for this stage; :meth:`record` stores what it was made of."""
@@ -105,6 +126,7 @@ class Stamp:
         if not outputs:
             return "it records no outputs"
         for p, fp in outputs.items():
+            p = self._here(p)
             path = Path(p)
             if not path.exists():
                 return f"its output {p} is missing"
@@ -127,7 +149,9 @@ class Stamp:
             return False
         if schema != STAMP_SCHEMA and key in self._made_of:
             # the same key formula, without what the key was made of: add that now rather than rebuild
-            self.data.update(schema=STAMP_SCHEMA, **self._made_of[key], memo=self.fp.memo)
+            self.data.update(
+                schema=STAMP_SCHEMA, **self._made_of[key], root=str(self.root), memo=self.fp.memo
+            )
             write_json_atomic(self.path, self.data)
         return True
 
@@ -146,7 +170,7 @@ class Stamp:
         if why is not None:
             return why
         then = self.data.get("inputs")
-        then = then if isinstance(then, dict) else {}
+        then = {self._here(p): fp for p, fp in then.items()} if isinstance(then, dict) else {}
         now = self._inputs(inputs)
         gone, new = sorted(set(then) - set(now)), sorted(set(now) - set(then))
         if gone or new:
@@ -175,6 +199,7 @@ class Stamp:
             "inputs": made_of.get("inputs", {}),
             "config": made_of.get("config"),
             "outputs": outs,
+            "root": str(self.root),  # what the recorded paths are under (:meth:`_here`)
             "info": dict(info or {}),
             "memo": self.fp.memo,
         }

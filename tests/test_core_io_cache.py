@@ -110,6 +110,36 @@ def test_a_fresh_schema_1_stamp_is_upgraded_in_place_not_rebuilt(tmp_path):
     assert Stamp(path, "stage").stale_reason([src], {"k": 2}) == "it was made with another k"
 
 
+def test_a_copied_dataset_s_stamps_still_tell_its_readers_what_its_outputs_were_made_of(tmp_path):
+    """The producer's key holds the input paths (it re-runs in the copy), but a reader compares by place
+    in the dataset and content: a copied dataset's current outputs are current, a changed input is not."""
+    import shutil
+
+    src_root = tmp_path / "a" / "ds"
+    (src_root / "splits").mkdir(parents=True)
+    split, out = src_root / "splits" / "t.parquet", src_root / "calibration.json"
+    split.write_bytes(b"rows")
+    out.write_bytes(b"{}")
+    stamp = Stamp(stamp_file(src_root, "calibrate", "t.json"), "calibrate")
+    key = stamp.key([split], {"robot": {"r": 0.1}})
+    stamp.record(key, [out])
+    copy = tmp_path / "b" / "ds"
+    shutil.copytree(src_root, copy)
+    reader = Stamp(stamp_file(copy, "calibrate", "t.json"), "calibrate")
+    assert reader.stale_reason([copy / "splits" / "t.parquet"], {"robot": {"r": 0.1}}) is None
+    assert not reader.is_fresh(reader.key([copy / "splits" / "t.parquet"], {"robot": {"r": 0.1}}))
+    (copy / "splits" / "t.parquet").write_bytes(b"other rows")
+    reason = Stamp(stamp_file(copy, "calibrate", "t.json"), "calibrate").stale_reason(
+        [copy / "splits" / "t.parquet"]
+    )
+    assert reason == f"1 of its input(s) changed since ({copy / 'splits' / 't.parquet'}, ...)"
+    (copy / "calibration.json").unlink()
+    reason = Stamp(stamp_file(copy, "calibrate", "t.json"), "calibrate").stale_reason(
+        [copy / "splits" / "t.parquet"]
+    )
+    assert reason == f"its output {copy / 'calibration.json'} is missing"
+
+
 def test_stamp_files_have_one_home(tmp_path):
     assert (
         stamp_file(tmp_path, "fit", "edd", "tile.json") == tmp_path / ".stamps" / "fit" / "edd" / "tile.json"
