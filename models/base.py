@@ -58,8 +58,17 @@ class KinematicModel(ABC):
     #: how the model takes the calibrated constants, in a line (``skidbench calibrate`` prints it and the
     #: calibration JSON records it as ``model_usage``); empty: not listed
     calibration_usage: ClassVar[str] = ""
+    #: the options the model takes and their defaults; when set, an option it does not list is refused
+    #: (ModelError naming the known ones) and the others default to these. None: options are not checked
+    DEFAULTS: ClassVar[dict[str, Any] | None] = None
 
     def __init__(self, robot: Robot, params: dict[str, Any] | None = None, **options: Any):
+        if self.DEFAULTS is not None:
+            unknown = sorted(set(options) - set(self.DEFAULTS))
+            if unknown:
+                known = sorted(self.DEFAULTS)
+                raise ModelError(f"model {self.name}: unknown option(s) {unknown}; known: {known}")
+            options = {**self.DEFAULTS, **options}
         self.robot = robot
         self.params: dict[str, Any] = dict(params or {})
         self.options: dict[str, Any] = dict(options)

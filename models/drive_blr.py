@@ -84,11 +84,7 @@ class DriveBLR(KinematicModel):
     }
 
     def __init__(self, robot, params=None, **options):
-        unknown = sorted(set(options) - set(self.DEFAULTS))
-        if unknown:
-            known = sorted(self.DEFAULTS)
-            raise ModelError(f"model {self.name}: unknown option(s) {unknown}; known: {known}")
-        super().__init__(robot, params, **{**self.DEFAULTS, **options})
+        super().__init__(robot, params, **options)  # DEFAULTS: checked and applied there
         if self.options["train_rows"] not in ("all", "steady"):
             raise ModelError(f"model {self.name}: options.train_rows must be all or steady")
 

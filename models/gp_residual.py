@@ -278,11 +278,7 @@ class GPResidual(KinematicModel):
     }
 
     def __init__(self, robot, params=None, **options):
-        unknown = sorted(set(options) - set(self.DEFAULTS))
-        if unknown:
-            known = sorted(self.DEFAULTS)
-            raise ModelError(f"model {self.name}: unknown option(s) {unknown}; known: {known}")
-        super().__init__(robot, params, **{**self.DEFAULTS, **options})
+        super().__init__(robot, params, **options)  # DEFAULTS: checked and applied there
         if self.options["autocorr_residuals"] not in ("heldout", "fit"):
             raise ModelError(f"model {self.name}: options.autocorr_residuals must be 'heldout' or 'fit'")
         if str(self.options["base"]) == self.name:
