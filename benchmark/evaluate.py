@@ -28,6 +28,7 @@ from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import ProtocolError, protocol_of
 from skidbench.pipeline.schema import read_split
 
+from . import intervals as iv
 from . import metrics as mt
 from . import tracking as trk
 from .fit_record import (
@@ -40,9 +41,10 @@ from .fit_record import (
     num,
     plugin_package,
 )
+from .floor import FLOOR, floor_windows
 from .horizon import EvaluationError, HorizonConfig, count_windows
 from .report_data import write_report_data, write_wheel_response_steps
-from .scoring import Inputs, TestSequence, predict_and_score
+from .scoring import Inputs, TestSequence, predict_and_score, summarise
 from .testsets import (
     TRAIN,
     check_horizons,
@@ -83,6 +85,7 @@ class BenchmarkResult:
     children: list[ChildResult]
     inputs: str = "commanded"
     skipped: list[str] = field(default_factory=list)  # one line per (terrain, split) the protocol skipped
+    floor: dict[str, dict[str, float]] = field(default_factory=dict)  # terrain -> the floor's metrics
 
     @property
     def failed(self) -> list[ChildResult]:
@@ -134,6 +137,12 @@ def run_benchmark(
     default :func:`skidbench.models.fitting.fit_model`."""
     layout = layout_from_cfg(cfg)
     models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
+    intervals = iv.IntervalConfig.from_cfg(cfg)
+    for h in horizons:  # blocks shorter than a horizon: one line before anything runs
+        intervals.block_length(h)
+    if FLOOR in models:
+        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
+                              "velocities, on every board), not a model name")  # fmt: skip
     try:
         protocol = protocol_of(cfg)
     except ProtocolError as exc:
@@ -231,13 +240,14 @@ def run_benchmark(
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
-            ctx = ChildContext(
-                cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags, log_figures
-            )
+            ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
+                               log_figures, intervals)  # fmt: skip
+            floor: dict[str, dict[str, float]] = {}
             for terrain in terrains:
                 tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
                 td = TerrainData(terrain, tests[terrain], inputs_of[terrain], datasets_of[terrain],
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
+                floor[terrain] = _log_floor(ctx, td)
                 children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
             tracker.log(
@@ -249,7 +259,8 @@ def run_benchmark(
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
-        layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped)
+        layout,
+        BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped, floor),
     )
 
 
@@ -270,6 +281,7 @@ def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
             "inputs": result.inputs,
             "skipped": result.skipped,
             "children": [c.__dict__ for c in result.children],
+            "floor": result.floor,
         },
     )
     return result
@@ -311,6 +323,7 @@ class ChildContext:
     conf: dict[str, Any]
     tags: dict[str, str]
     log_figures: bool
+    intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
 
 
 @dataclass(frozen=True)
@@ -351,7 +364,7 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
                    next(iter(td.tests.values()))[0])  # fmt: skip
         stage("predict")
         metrics, windows, velocities = predict_and_score(
-            fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage
+            fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
         )
         stage("logging")
         _log_windows(ctx, run_id, model_name, td, stem, windows)
@@ -427,6 +440,31 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
         save_arrays(arrays_npz, arrays)
         tracker.artifact(run_id, arrays_npz, "fit")
     return fit
+
+
+def _log_floor(ctx: ChildContext, td: TerrainData) -> dict[str, float]:
+    """The floor of one terrain (benchmark/floor.py): the ground truth's own velocities through the same
+    windows, scored as a model is (every metric and its interval), its windows written next to the models'
+    (``<ds>/eval/floor/<terrain>[.<inputs>].windows.parquet``, what compare reads) and its metrics logged on
+    the parent run as ``floor.<terrain>.<metric>``. Not a child run: it is never ranked."""
+    frames, metrics = [], {}
+    for split, seqs in td.tests.items():
+        w = floor_windows([(s.name, s.table) for s in seqs], ctx.horizons, ctx.hcfg)
+        if len(w):
+            w.insert(0, "split", split)
+            frames.append(w)
+        metrics.update(summarise(w, split, ctx.horizons, ctx.intervals))
+    windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    stem = ctx.layout.eval_stem(FLOOR, td.terrain, td.inputs.protocol)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    path = stem.with_name(stem.name + ".windows.parquet")
+    write_parquet_atomic(pa.Table.from_pandas(windows, preserve_index=False), path,
+                         {"model": FLOOR, "terrain": td.terrain, "horizons": list(ctx.horizons),
+                          "inputs": td.inputs.protocol})  # fmt: skip
+    ctx.tracker.artifact(ctx.parent_id, path, "floor")
+    finite = {k: v for k, v in metrics.items() if np.isfinite(v)}
+    ctx.tracker.log(ctx.parent_id, metrics={f"{FLOOR}.{td.terrain}.{k}": v for k, v in finite.items()})
+    return metrics
 
 
 def _log_windows(
@@ -569,21 +607,42 @@ PROTOCOL_TEXT = {
 
 def format_result(result: BenchmarkResult) -> str:
     """A short text summary for the console: the headline metrics (RMSRE in %, ...) per (model, terrain)
-    at each horizon."""
-    df = result.table()
-    cols = {}
+    at each horizon, each with its 95 % interval in brackets, and the floor of each terrain (never
+    ranked; docs/intervals.md)."""
+    rows = [
+        {"model": c.model, "terrain": c.terrain, "status": c.status, **c.metrics} for c in result.children
+    ]
+    rows += [{"model": f"{FLOOR} (reference)", "terrain": t, "status": "", **m}
+             for t, m in result.floor.items()]  # fmt: skip
+    df = pd.DataFrame(rows)
+    show = df[["model", "terrain", "status"]].copy()
     for metric in mt.HEADLINE:
-        for c in df.columns:
+        for c in list(df.columns):
             parsed = mt.parse_key(c)
             if parsed is not None and parsed[0] is metric:
-                cols[c] = f"{metric.short} {parsed[1].upper()} {parsed[2]} {metric.label_unit}".rstrip()
-    show = df[["model", "inputs", "terrain", "status", *cols]].rename(columns=cols)
+                split, h = parsed[1], float(parsed[2][:-1])
+                lo, hi, _ = metric.interval_keys(split, h)
+                label = f"{metric.short} {split.upper()} {parsed[2]} {metric.label_unit}".rstrip()
+                show[label] = [_with_interval(r.get(c), r.get(lo), r.get(hi)) for r in df.to_dict("records")]
     lines = [
         f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
         f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",
         *result.skipped,
-        show.to_string(index=False, float_format=lambda x: f"{x:.2f}", na_rep="-"),
+        show.to_string(index=False),
+        "(value [95 % interval]; the floor is the ground truth's own velocities, never ranked; `skidbench "
+        "compare` ranks with paired intervals)",
     ]
     for c in result.failed:
         lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
     return "\n".join(lines)
+
+
+def _with_interval(value: Any, lo: Any, hi: Any) -> str:
+    """``6.91 [6.20, 7.62]``; ``-`` for no value; the value alone when it has no interval."""
+    v = num(value)
+    if v is None or not np.isfinite(v):
+        return "-"
+    a, b = num(lo), num(hi)
+    if a is None or b is None or not (np.isfinite(a) and np.isfinite(b)):
+        return f"{v:.2f}"
+    return f"{v:.2f} [{a:.2f}, {b:.2f}]"

@@ -38,9 +38,11 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pandas as pd
+import scipy.stats
 
 from .horizon import EvaluationError
 
@@ -48,8 +50,8 @@ LEVEL = 0.95
 #: bootstrap resamples per stratum (quantiles of 2.5 % and 97.5 % from 50 resamples each side)
 RESAMPLES = 2000
 #: fewest independent blocks behind a statistic for it to be ranked (and at least 2 in each of its strata;
-#: docs/intervals.md: why 5)
-MIN_BLOCKS = 5
+#: docs/intervals.md: why 8)
+MIN_BLOCKS = 8
 #: the default block length in horizons (docs/intervals.md: one horizon covered 0.82-0.90 where the errors
 #: are correlated beyond a window, two 0.89-0.96)
 HORIZONS_PER_BLOCK = 2
@@ -74,6 +76,20 @@ class IntervalConfig:
     min_blocks: int = MIN_BLOCKS
     block_s: float | None = None
     seed: int = 0
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> IntervalConfig:
+        """From a stage config's ``intervals`` group (conf/intervals/default.yaml); defaults without one."""
+        got = (cfg.get("intervals") if hasattr(cfg, "get") else None) or {}
+        d = cls()
+        block = got.get("block_s", d.block_s)
+        return cls(
+            level=float(got.get("level", d.level)),
+            resamples=int(got.get("resamples", d.resamples)),
+            min_blocks=int(got.get("min_blocks", d.min_blocks)),
+            block_s=None if block is None else float(block),
+            seed=int(got.get("seed", d.seed)),
+        )
 
     def block_length(self, horizon_s: float) -> float:
         """The block length (s) at a horizon: ``block_s``, or :data:`HORIZONS_PER_BLOCK` horizons when it is
@@ -114,6 +130,12 @@ def assign_blocks(sequence: Sequence, t0: np.ndarray, block_s: float) -> tuple[n
     s_of, p_of = uniq // stride, uniq % stride
     adjacent = (s_of[1:] == s_of[:-1]) & (np.diff(p_of) == 1)
     return block.astype(int), adjacent
+
+
+def stratum_key(split: str, horizon_s: float, sequences: Iterable[str]) -> str:
+    """The key of a stratum: a test split's sequences at one horizon (``ld@6s:grass_ld_00``). It seeds the
+    stratum's draws, so evaluate and compare, which name the terrain differently, draw the same ones."""
+    return f"{split}@{horizon_s:g}s:" + ",".join(sorted({str(s) for s in sequences}))
 
 
 # -- strata and their block sums --------------------------------------------------------------------------
@@ -292,7 +314,7 @@ def _one(sample: Sample, stat: Stat, a2: float) -> dict:
         return row
     theta = 0.0
     theta_b = np.zeros(int(sample.cfg.resamples))
-    var0 = 0.0
+    var_iid = var_hac = var_boot = 0.0
     var_b = np.zeros(int(sample.cfg.resamples))
     n_windows = 0
     blocks = []
@@ -307,8 +329,8 @@ def _one(sample: Sample, stat: Stat, a2: float) -> dict:
             row.update(n_windows=n_windows, reason=f"{st_key}: no window counts for this score")
             return _finish(row, blocks, cfg.min_blocks)
         W = sample.weights(st_key)  # (B, K)
-        u = np.zeros(K)
-        u_b = np.zeros((W.shape[0], K))
+        u = np.zeros(K)  # the statistic's influence values over the stratum's blocks (delta method)
+        u_b = np.zeros((W.shape[0], K))  # ... in each resample
         for col, c in cols:
             S, N = st.sums[col]
             agg = st.aggregation[col]
@@ -318,12 +340,14 @@ def _one(sample: Sample, stat: Stat, a2: float) -> dict:
             Sb, Nb = W @ S, W @ N
             with np.errstate(divide="ignore", invalid="ignore"):
                 mb = Sb / Nb
+                u_b += (c * _slope(mb, agg) / Nb)[:, None] * (S[None, :] - mb[:, None] * N[None, :])
             theta_b += c * _score(Sb, Nb, agg)
-            u_b += (c * _slope(mb, agg) / Nb)[:, None] * (S[None, :] - mb[:, None] * N[None, :])
         if K >= 2:
             f = K / (K - 1.0)
             cross = max(0.0, float(np.sum(u[:-1] * u[1:] * st.adjacent)))  # overlapping neighbours
-            var0 += f * (float(np.sum(u**2)) + 2.0 * cross)
+            var_boot += float(np.sum(u**2))  # what resampling K blocks from K gives: (K - 1) / K of it
+            var_iid += f * float(np.sum(u**2))
+            var_hac += f * (float(np.sum(u**2)) + 2.0 * cross)
             var_b += f * np.sum(W * u_b**2, axis=1)
     row["estimate"] = theta
     row["n_windows"] = n_windows
@@ -331,18 +355,14 @@ def _one(sample: Sample, stat: Stat, a2: float) -> dict:
     if min(k for _, k in blocks) < 2:
         row["reason"] = row["reason"] or "one block: no interval"
         return row
-    se = float(np.sqrt(var0))
-    row["se"] = se
-    if se == 0.0:
-        row.update(lo=theta, hi=theta)
-        return row
     ok = np.isfinite(theta_b)
-    se_b = np.sqrt(var_b[ok])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (theta_b[ok] - theta) / se_b
-    t = np.where(np.isnan(t), 0.0, t)  # a resample equal to the estimate with no spread
-    q_hi, q_lo = np.quantile(t, [1.0 - a2, a2], method="inverted_cdf")
-    lo, hi = theta - q_hi * se, theta - q_lo * se
+    if var_hac == 0.0:  # no spread at all (a model minus an identical one)
+        row.update(lo=theta, hi=theta, se=0.0)
+        return row
+    if row["rankable"]:
+        lo, hi, row["se"] = _bootstrap_t(theta, theta_b[ok], var_b[ok], var_hac, a2)
+    else:
+        lo, hi, row["se"] = _bootstrap_se_t(theta, theta_b[ok], stat, blocks, var_boot, var_iid, var_hac, a2)
     if not (np.isfinite(lo) and np.isfinite(hi)):
         row["reason"] = row["reason"] or "too few blocks for a finite interval"
         return row
@@ -350,6 +370,35 @@ def _one(sample: Sample, stat: Stat, a2: float) -> dict:
         lo = max(lo, 0.0)
     row.update(lo=float(lo), hi=float(hi))
     return row
+
+
+def _bootstrap_t(theta, theta_b, var_b, var_hac, a2) -> tuple[float, float, float]:
+    """The studentized interval: each resample's statistic studentized by its own standard error
+    (``var_b``: resampled blocks are independent), the estimate by the standard error with the adjacent
+    blocks' covariance (``var_hac``)."""
+    se = float(np.sqrt(var_hac))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (theta_b - theta) / np.sqrt(var_b)
+    t = np.where(np.isnan(t), 0.0, t)  # a resample equal to the estimate with no spread
+    q_hi, q_lo = np.quantile(t, [1.0 - a2, a2], method="inverted_cdf")
+    return theta - q_hi * se, theta - q_lo * se, se
+
+
+def _bootstrap_se_t(
+    theta, theta_b, stat, blocks, var_boot, var_iid, var_hac, a2
+) -> tuple[float, float, float]:
+    """The interval under the minimum of blocks, where the studentized one is unstable (one block can
+    dominate: a resample without it has almost no spread): the bootstrap standard error (of the log of a
+    positive score), made unbiased (``var_iid / var_boot``: K / (K - 1)) and widened by the adjacent blocks'
+    covariance, with a Student-t quantile on the blocks' degrees of freedom."""
+    widen = float(np.sqrt(var_hac / var_boot)) if var_boot > 0.0 else 1.0
+    df = max(1.0, sum(k - 1 for _, k in blocks) * (var_iid / var_hac if var_hac > 0.0 else 1.0))
+    tq = float(scipy.stats.t.ppf(1.0 - a2, df))
+    if stat.nonnegative and theta > 0.0 and bool(np.all(theta_b > 0.0)):
+        sd = float(np.std(np.log(theta_b), ddof=1)) * widen
+        return theta * np.exp(-tq * sd), theta * np.exp(tq * sd), theta * sd
+    sd = float(np.std(theta_b, ddof=1)) * widen
+    return theta - tq * sd, theta + tq * sd, sd
 
 
 def _finish(row: dict, blocks: list[tuple[str, int]], min_blocks: int) -> dict:

@@ -49,10 +49,19 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     assert res.inputs == "commanded"
     lb = res.leaderboard_md.splitlines()
     assert lb[2].startswith("| 1 | chi |")  # best first
-    assert any(line.startswith("| 3 | broken |") and "grass (FAILED)" in line for line in lb)
+    # a model that failed everywhere is shown, not ranked, with the reason; the floor is a reference row
+    assert any(line.startswith("|  | broken |") and "grass (FAILED)" in line and "not ranked" in line
+               for line in lb)  # fmt: skip
+    assert any(line.startswith("|  | floor |") and "reference" in line for line in lb)
     csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
-    assert set(csv["model"]) == {"chi", "ideal_t", "broken"} and len(csv) == 6
+    assert set(csv["model"]) == {"chi", "ideal_t", "broken", "floor"} and len(csv) == 8
     assert (csv[csv["model"] == "broken"]["status"] == "FAILED").all()
+    assert (csv[csv["model"] == "floor"]["status"] == "reference").all()
+    assert {"trans LD % lo", "trans LD % hi", "trans LD % blocks"} <= set(csv.columns)  # added columns
+    chi = csv[csv["model"] == "chi"]
+    assert (chi["trans LD % lo"] <= chi["trans LD %"]).all() and (
+        chi["trans LD %"] <= chi["trans LD % hi"]
+    ).all()
     text = res.report.read_text()
     assert "## Failed runs" in text and "singular normal equations" in text
     for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png", "fig_end_position_rmse.png"):
@@ -119,7 +128,7 @@ def test_select_an_older_parent_a_filter_or_every_run(two_evaluations):
         compose("compare", out, ["parent_run_id=null", only, "figures.enabled=false", "log_to_mlflow=false"])
     )
     csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
-    assert len(csv) == 6  # the latest run of each (model, terrain) across both commanded evaluations
+    assert len(csv) == 8  # the latest run of each (model, terrain) across both commanded evaluations, floor
     assert set(csv["inputs"]) == {"commanded"}
 
 
