@@ -146,6 +146,8 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             keys = [metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)]
             if metric.bootstrap is not None:  # its 95 % interval and the independent blocks behind it
                 keys += list(metric.interval_keys(split, horizon_s))
+                seed_sd = f"{metric.metric_key(split, horizon_s)}_seed_sd"  # evaluate seeds=N > 1
+                keys += [seed_sd] if f"metrics.{seed_sd}" in runs else []
             for key in keys:
                 if key is not None:  # the value, and the windows behind it
                     df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
@@ -255,10 +257,11 @@ def standings_table(board: pd.DataFrame, horizon_s: float, standings: st.Standin
     floor = standings.cells[standings.cells["model"] == FLOOR]
     agg_label = st.AGGREGATE_LABEL if standings.ranked_by == st.AGGREGATE else f"{standings.ranked_by} %"
     rows = []
-    for model in ov.index:
+    missing = [m for m in board["model"].dropna().unique() if m not in ov.index]  # failed everywhere
+    for model in [*ov.index, *missing]:
         g = board[board["model"] == model]
         ok = g[g["status"] == "FINISHED"]
-        r = ov.loc[model]
+        r = ov.loc[model] if model in ov.index else _no_standing(ov.columns, "no finished run to score")
         row: dict[str, Any] = {"rank": r["rank"], "model": _marked(model, g) if len(g) else model}
         row[agg_label] = _ci(float(r["estimate"]), float(r["lo"]), float(r["hi"]))
         for metric in mt.HEADLINE:
@@ -294,6 +297,13 @@ def standings_table(board: pd.DataFrame, horizon_s: float, standings: st.Standin
     out = pd.DataFrame(rows)
     out = out.iloc[sorted(range(len(out)), key=lambda i: out["_key"].iloc[i])]
     return out.drop(columns="_key").reset_index(drop=True)
+
+
+def _no_standing(columns: pd.Index, why: str) -> pd.Series:
+    """A standings row for a model with nothing to score: no value, not ranked, why."""
+    r = pd.Series(np.nan, index=columns, dtype=object)
+    r["rank"], r["standing"], r["n_blocks"] = "", f"{iv.NOT_RANKED}: {why}", 0
+    return r
 
 
 def _rank_number(rank: Any) -> int:
@@ -333,6 +343,9 @@ def detail_table(
                 out[f"{lab} lo"] = board[lo] if lo in board else np.nan
                 out[f"{lab} hi"] = board[hi] if hi in board else np.nan
                 out[f"{lab} blocks"] = board[blocks] if blocks in board else np.nan
+                seed_sd = f"{metric.metric_key(split, horizon_s)}_seed_sd"
+                if seed_sd in board and board[seed_sd].notna().any():  # a model fitted over several seeds
+                    out[f"{lab} seed sd"] = board[seed_sd]
     if standings is not None and len(standings.per_terrain):
         pt = standings.per_terrain.set_index(["model", "terrain"])
         keys = list(zip(board["model"], board["terrain"], strict=True))
@@ -379,6 +392,10 @@ def display_detail(detail: pd.DataFrame) -> pd.DataFrame:
         if f"{col} lo" in out and f"{col} hi" in out:
             triples = zip(out[col], out[f"{col} lo"], out[f"{col} hi"], strict=True)
             out[col] = [_ci(float(v), float(a), float(b)) if pd.notna(v) else "n/a" for v, a, b in triples]
+            if f"{col} seed sd" in out:  # the seed spread beside the data interval
+                out[col] = [c + (f" ±{sd:.2f}s" if pd.notna(sd) else "")
+                            for c, sd in zip(out[col], out[f"{col} seed sd"], strict=True)]  # fmt: skip
+                out = out.drop(columns=[f"{col} seed sd"])
             out = out.drop(columns=[f"{col} lo", f"{col} hi"])
             n_col = col.removesuffix(" %").removesuffix(" m") + " n"
             if f"{col} blocks" in out and n_col in out:

@@ -241,7 +241,7 @@ def run_benchmark(
             datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
-                               log_figures, intervals)  # fmt: skip
+                               log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
             floor: dict[str, dict[str, float]] = {}
             for terrain in terrains:
                 tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
@@ -324,6 +324,7 @@ class ChildContext:
     tags: dict[str, str]
     log_figures: bool
     intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
+    seeds: int = 1  # fits of a model with random parts (evaluate's ``seeds``)
 
 
 @dataclass(frozen=True)
@@ -366,6 +367,9 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         metrics, windows, velocities = predict_and_score(
             fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
         )
+        if ctx.seeds > 1:
+            stage("other seeds")
+            metrics.update(seed_spread(ctx, model_name, td, fit.model, metrics))
         stage("logging")
         _log_windows(ctx, run_id, model_name, td, stem, windows)
         stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
@@ -440,6 +444,36 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
         save_arrays(arrays_npz, arrays)
         tracker.artifact(run_id, arrays_npz, "fit")
     return fit
+
+
+def seed_spread(
+    ctx: ChildContext, model_name: str, td: TerrainData, model: Any, metrics: dict[str, float]
+) -> dict[str, float]:
+    """A model with random parts (a ``seed`` option) fitted with ``ctx.seeds - 1`` more seeds (its seed + 1,
+    + 2, ...) and scored on the same windows: per metric with an interval, ``<key>_seed_sd`` (the standard
+    deviation over the seeds, the configured one's included), ``<key>_seed_min``, ``<key>_seed_max``, and
+    ``n_seeds``. {} for a model without one (deterministic). The other seeds' fits are not saved: they
+    cost a fit each, every evaluate (docs/intervals.md, "Seeds")."""
+    from skidbench.models.fitting import fit_with_seed, is_seeded
+
+    if not is_seeded(model):
+        return {}
+    keys = [m.metric_key(sp, h) for h in ctx.horizons for sp in td.tests for m in mt.METRICS
+            if m.bootstrap is not None and m.metric_key(sp, h) in metrics]  # fmt: skip
+    values = {k: [metrics[k]] for k in keys}
+    base = int(model.options["seed"])
+    for k in range(1, ctx.seeds):
+        other = fit_with_seed(ctx.cfg, model_name, td.terrain, base + k)
+        got, _, _ = predict_and_score(other, td.tests, ctx.horizons, ctx.hcfg, td.inputs, intervals=None)
+        for key in keys:
+            values[key].append(got.get(key, np.nan))
+    out: dict[str, float] = {"n_seeds": float(ctx.seeds)}
+    for key, v in values.items():
+        arr = np.asarray(v, dtype=float)
+        if np.isfinite(arr).sum() >= 2:
+            out[f"{key}_seed_sd"] = round(float(np.nanstd(arr, ddof=1)), 4)
+            out[f"{key}_seed_min"], out[f"{key}_seed_max"] = float(np.nanmin(arr)), float(np.nanmax(arr))
+    return out
 
 
 def _log_floor(ctx: ChildContext, td: TerrainData) -> dict[str, float]:
@@ -623,26 +657,31 @@ def format_result(result: BenchmarkResult) -> str:
                 split, h = parsed[1], float(parsed[2][:-1])
                 lo, hi, _ = metric.interval_keys(split, h)
                 label = f"{metric.short} {split.upper()} {parsed[2]} {metric.label_unit}".rstrip()
-                show[label] = [_with_interval(r.get(c), r.get(lo), r.get(hi)) for r in df.to_dict("records")]
+                show[label] = [
+                    _with_interval(r.get(c), r.get(lo), r.get(hi), r.get(f"{c}_seed_sd"))
+                    for r in df.to_dict("records")
+                ]
     lines = [
         f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
         f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",
         *result.skipped,
         show.to_string(index=False),
-        "(value [95 % interval]; the floor is the ground truth's own velocities, never ranked; `skidbench "
-        "compare` ranks with paired intervals)",
+        "(value [95 % interval], ±s: the spread over seeds of a model with random parts; the floor is the "
+        "ground truth's own velocities, never ranked; `skidbench compare` ranks with paired intervals)",
     ]
     for c in result.failed:
         lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
     return "\n".join(lines)
 
 
-def _with_interval(value: Any, lo: Any, hi: Any) -> str:
-    """``6.91 [6.20, 7.62]``; ``-`` for no value; the value alone when it has no interval."""
+def _with_interval(value: Any, lo: Any, hi: Any, seed_sd: Any = None) -> str:
+    """``6.91 [6.20, 7.62]`` (and `` ±0.31s``: the spread over seeds); ``-`` for no value; the value alone
+    when it has no interval."""
     v = num(value)
     if v is None or not np.isfinite(v):
         return "-"
-    a, b = num(lo), num(hi)
+    a, b, sd = num(lo), num(hi), num(seed_sd)
+    spread = f" ±{sd:.2f}s" if sd is not None and np.isfinite(sd) else ""
     if a is None or b is None or not (np.isfinite(a) and np.isfinite(b)):
-        return f"{v:.2f}"
-    return f"{v:.2f} [{a:.2f}, {b:.2f}]"
+        return f"{v:.2f}{spread}"
+    return f"{v:.2f} [{a:.2f}, {b:.2f}]{spread}"

@@ -129,7 +129,9 @@ def build(
             if not frames:
                 continue
             paired = iv.pair_windows(frames)
-            key = iv.stratum_key(split, horizon_s, paired["sequence"])
+            key = iv.stratum_key(split, horizon_s, paired["sequence"])  # as evaluate's: the same draws
+            if key in sample.strata:  # two terrains with the same sequence names: strata of their own
+                key = f"{key}|{terrain}"
             cols, aggs = {}, {}
             for model, f in frames.items():
                 for m in mt.METRICS:

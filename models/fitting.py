@@ -423,6 +423,33 @@ def fit_model(
     return result
 
 
+def is_seeded(model: Any) -> bool:
+    """Does a model have random parts it declares (a ``seed`` among its options: gp_residual, a plugin's)?"""
+    return "seed" in (getattr(model, "options", None) or {})
+
+
+def fit_with_seed(cfg: Any, model_name: str, terrain: str, seed: int, split: str = "train") -> KinematicModel:
+    """``model_name`` fitted on ``terrain``'s Train table as :func:`fit_model` fits it, but with its option
+    ``seed`` set to ``seed``: the spread of a model's random parts (evaluate's ``seeds``). Nothing is written
+    or reused: the saved fit stays the configured seed's."""
+    plan = _plan(cfg, model_name, terrain, split)
+    table = fit_table(
+        concat_sequences([read_split(p) for p in plan.files]), plan.inputs, plan.spec_robot, plan.response
+    )
+    mc = model_config(cfg, plan.spec)
+    try:
+        model = plan.cls(plan.robot, mc["params"] or None, **{**mc["options"], "seed": int(seed)})
+        model.fit(table)
+    except ModelError:
+        raise
+    except Exception as exc:
+        raise ModelError(
+            f"model {model_name}: fit with seed {seed} failed on terrain {terrain} "
+            f"({type(exc).__name__}: {exc})"
+        ) from exc
+    return model
+
+
 def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:
     arrays = dict(getattr(model, "arrays", None) or {})
     for k, v in arrays.items():
