@@ -71,6 +71,8 @@ TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
 TAG_RUN_KEY = "skidbench.run_key"
 TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
+TAG_EXTERNAL = "skidbench.external"  # "true" on a run of `skidbench score` (benchmark/external.py)
+TAG_PREDICTIONS_SHA256 = "skidbench.predictions_sha256"  # the sha256 of the predictions file it scored
 TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
@@ -745,11 +747,13 @@ def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
             print(f"{exp.name}: {base}/runs?workflowType=machine_learning")
 
 
-def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
+def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
+    """The store and experiment of ``cfg``, for ``layout``'s dataset; ``dataset_id``: its identity (default:
+    the configured source's, pipeline/dataset.py; a stage that names a dataset by its folder passes the
+    one its ``dataset.json`` records)."""
     node = cfg.mlflow
     uri = resolve_tracking_uri(cfg, layout)
-    dataset_id = None
-    if cfg.get("source") is not None:
+    if dataset_id is None and cfg.get("source") is not None:
         from skidbench.pipeline.dataset import identity_from_cfg
 
         dataset_id = identity_from_cfg(cfg).fingerprint
