@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import fingerprint_obj, write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg, split_terrains
@@ -168,6 +169,14 @@ def plugin_package(model_name: str, model: Any = None) -> str:
                 return name
         return f"module:{type(model).__module__}"
     return "unknown"
+
+
+def model_code(model_name: str, model: Any) -> provenance.CodeIdentity:
+    """The code of a fitted model (pipeline/provenance.py): its entry point's distribution, version and
+    the digest of its package's files."""
+    ep = installed_models().get(model_name)
+    dist = ep.dist if ep is not None else None
+    return provenance.code_identity(type(model), *((dist.name, dist.version) if dist else ()))
 
 
 def default_fit_fn() -> Callable[[Any, str, str], Any]:
@@ -420,7 +429,9 @@ def run_benchmark(
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     all_files = [p for fs in files_of.values() for p in fs]
-    common_tags = {trk.TAG_DATASET: str(cfg.dataset), trk.TAG_GIT: commit, **transfer_tags}
+    # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
+    env_tags = provenance.run_tags()
+    common_tags = {trk.TAG_DATASET: str(cfg.dataset), **env_tags, trk.TAG_GIT: commit, **transfer_tags}
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
@@ -669,6 +680,7 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
         tags={
             trk.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
             trk.TAG_PLUGIN: plugin_package(model_name, model),
+            **provenance.code_tags(model_code(model_name, model)),
         },
     )
     bound_metrics = fit_quality_metrics(fit)
@@ -876,7 +888,8 @@ def _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path
         example = seq.table.head(30).assign(sequence=seq.name)[list(INPUT_COLUMNS)]  # 1 s of a test sequence
         arrays = record_path.with_name(record_path.name.replace(".mlflow_model.json", ".arrays.npz"))
         arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None
-        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays)
+        requirements = provenance.requirements_of(model_code(model_name, model))  # what loading it needs
+        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays, requirements)
     except Exception as exc:  # the benchmark's numbers stand without it: say why, on the run (and console)
         model_id = f"not logged: {type(exc).__name__}: {one_line(str(exc))[:300]}"
         if not isinstance(exc, ModelError):
