@@ -503,7 +503,7 @@ def run_compare(cfg: Any) -> CompareResult:
     shown = decomp.attrs.get("protocols", []) if len(decomp) else []
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
-    notes: list[str] = []
+    notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
     fig_md: list[str] = []
     fc = cfg.figures
     if fc.enabled:
@@ -585,6 +585,18 @@ def run_compare(cfg: Any) -> CompareResult:
         for f in files:
             tracker.artifact(run_id, f, "report")
     return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links)
+
+
+def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
+    """The findings of the board's fits (a parameter at its bound: ``roc degenerates to edd on this data:
+    b2 at its bound``), for the console notes and the report's Notes (models/fitting.py formats them)."""
+    try:
+        from skidbench.models.fitting import board_findings
+    except ImportError:  # pragma: no cover - the models package is part of the install
+        return []
+    done = board[board["status"] == "FINISHED"] if "status" in board else board
+    rows = list(zip(done["model"].astype(str), done["terrain"].astype(str), strict=True))
+    return board_findings(layout, rows, inputs)
 
 
 def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):

@@ -76,6 +76,8 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
     if response is not None:  # the calibration's wheel response that drove every model
         described.update({f"wheel_response.{k}": v for k, v in response.__dict__.items()})
     described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
+    for f in (fit_json(fit).get("fit_info") or {}).get("at_bound") or []:  # a fit at a bound: a finding
+        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f['bound']:g}: {f['finding']}"
     return described
 
 
