@@ -48,6 +48,7 @@ from skidbench.pipeline.layout import Layout
 from skidbench.pipeline.provenance import git_commit, requirements_of
 
 from .horizon import EvaluationError
+from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
 
 log = logging.getLogger(__name__)
 
@@ -71,13 +72,14 @@ TAG_BOOT = "skidbench.boot_id"
 TAG_PID = "skidbench.pid"
 TAG_RUN_KEY = "skidbench.run_key"
 TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
+TAG_EXTERNAL = "skidbench.external"  # "true" on a run of `skidbench score` (benchmark/external.py)
+TAG_PREDICTIONS_SHA256 = "skidbench.predictions_sha256"  # the sha256 of the predictions file it scored
 TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
 TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
 #: what `make mlflow-ui` serves; links printed for a local (SQLite) store point there
 DEFAULT_UI_URL = "http://127.0.0.1:5000"
-SHORT = {"translational": "trans", "rotational": "rot"}
 
 
 @functools.cache
@@ -154,26 +156,6 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
             s = "null" if v is None else str(v)
             out[key] = s if len(s) <= MAX_PARAM_LEN else s[: MAX_PARAM_LEN - 3] + "..."
     return out
-
-
-def metric_key(kind: str, split: str, horizon_s: float) -> str:
-    """``ld_6s_trans_rmsre_pct``: RMSRE in percent of ``kind`` (translational | rotational) on a test split
-    at a horizon; the metric names evaluate logs and compare, the leaderboard and the UI's columns read."""
-    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_rmsre_pct"
-
-
-def windows_key(kind: str, split: str, horizon_s: float) -> str:
-    """``ld_6s_trans_windows``: how many windows the RMSRE :func:`metric_key` names is over."""
-    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_windows"
-
-
-def rank_key(rank_by: str, horizon_s: float) -> str:
-    """The metric of ``rank_by`` = ``<split>_<trans|rot>`` (e.g. ``ld_trans``) at ``horizon_s``."""
-    split, _, short = str(rank_by).partition("_")
-    kinds = {v: k for k, v in SHORT.items()}
-    if short not in kinds or not split:
-        raise EvaluationError(f"rank_by={rank_by!r}: expected <split>_<trans|rot>, e.g. ld_trans")
-    return metric_key(kinds[short], split, horizon_s)
 
 
 def source_tags() -> dict[str, str]:
@@ -718,11 +700,13 @@ def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
             print(f"{exp.name}: {base}/runs?workflowType=machine_learning")
 
 
-def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
+def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
+    """The store and experiment of ``cfg``, for ``layout``'s dataset; ``dataset_id``: its identity (default:
+    the configured source's, pipeline/dataset.py; a stage that names a dataset by its folder passes the
+    one its ``dataset.json`` records)."""
     node = cfg.mlflow
     uri = resolve_tracking_uri(cfg, layout)
-    dataset_id = None
-    if cfg.get("source") is not None:
+    if dataset_id is None and cfg.get("source") is not None:
         from skidbench.pipeline.dataset import identity_from_cfg
 
         dataset_id = identity_from_cfg(cfg).fingerprint

@@ -17,9 +17,18 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from .cache import StaleInputError, check_producers, clear_failed, mark_failed
+from .cache import (
+    LOCAL_PRODUCERS,
+    StaleInputError,
+    check_producers,
+    clear_failed,
+    data_state,
+    inputs_changed,
+    mark_failed,
+)
 from .config_schema import validate
 from .errors import ConfigError, SkidbenchError, one_line
+from .imported import check_stage
 from .layout import register_resolvers
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
@@ -40,6 +49,10 @@ STAGES: dict[str, tuple[str, str]] = {
     "compare": ("skidbench.benchmark.compare_app:main", "leaderboard and the paper's figures"),
     "discover": ("skidbench.benchmark.discover_app:main", "find the missing physical effect"),
     "datasets": ("skidbench.pipeline.datasets_app:main", "list the datasets the output root holds"),
+    "export": ("skidbench.benchmark.bundle_app:export_main", "<dataset> <dir>: dataset, board as a bundle"),
+    "import": ("skidbench.benchmark.bundle_app:import_main", "<dir>: verify a bundle, make a dataset of it"),
+    "score": ("skidbench.benchmark.score_app:main", "<dataset> --predictions <file>: score a model's output"),
+    "publish": ("skidbench.benchmark.publish_app:main", "<dataset> <dir>: the boards as a static web page"),
 }
 
 log = logging.getLogger("skidbench")
@@ -61,8 +74,10 @@ def stage(name: str, home: bool = True) -> Callable:
     identity is printed and its folder checked (:func:`skidbench.pipeline.dataset.open_home`), and the
     stage refuses to run when a stage it reads from failed on its last run
     (:func:`skidbench.pipeline.cache.check_producers`). When the stage fails, a dataset folder it leaves
-    holding no data is removed (so ``skidbench datasets`` never lists it); otherwise the failure is
-    recorded, and the stages downstream refuse to run until this one succeeds."""
+    holding no data is removed (so ``skidbench datasets`` never lists it); a stage of ``LOCAL_PRODUCERS``
+    that changed nothing in the folder (refused before its first write) while what it made before is
+    still current leaves the dataset as it was;
+    otherwise the failure is recorded, and the stages downstream refuse to run until this one succeeds."""
 
     # as Hydra's docs register resolvers: in the app, before @hydra.main composes (`python -m <app>` too)
     register_resolvers()
@@ -70,7 +85,7 @@ def stage(name: str, home: bool = True) -> Callable:
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
-            root = None
+            root = before = None
             register_resolvers()  # a sweep's job may run in a process that did not start at main()
             try:
                 cfg = args[0] if args else None
@@ -81,18 +96,20 @@ def stage(name: str, home: bool = True) -> Callable:
 
                     root = open_home(cfg, name)[0].root
                     check_producers(root, name)
+                    check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
+                    before = data_state(root) if name in LOCAL_PRODUCERS else None
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
                 exit_with_error(str(exc), name)
             except SkidbenchError as exc:
-                _after_failure(root, name, str(exc))
+                _after_failure(root, name, str(exc), before)
                 exit_with_error(str(exc), name)
             except SystemExit as exc:  # a stage that exits by itself: a failure unless its status is 0
                 if exc.code not in (0, None):
-                    _after_failure(root, name, f"exit status {exc.code}")
+                    _after_failure(root, name, f"exit status {exc.code}", before)
                 raise
             except BaseException as exc:  # a bug or an interrupt: what was written may be partial too
-                _after_failure(root, name, f"{type(exc).__name__}: {exc}")
+                _after_failure(root, name, f"{type(exc).__name__}: {exc}", before)
                 raise
             if root is not None:
                 clear_failed(root, name)
@@ -103,9 +120,11 @@ def stage(name: str, home: bool = True) -> Callable:
     return deco
 
 
-def _after_failure(root: Path | None, name: str, message: str) -> None:
-    """A failed stage: remove its dataset folder when it holds no data (only ``dataset.json``), else
-    record the failure for the stages downstream."""
+def _after_failure(root: Path | None, name: str, message: str, before: dict | None = None) -> None:
+    """A failed stage: remove its dataset folder when it holds no data (only ``dataset.json``); leave it
+    as it was when the stage changed none of its files (``before``: :func:`data_state` when it started)
+    and what it made before is still current (:func:`inputs_changed`); else record the failure for the
+    stages downstream."""
     if root is None or not root.is_dir():
         return
     from .dataset import holds_data
@@ -114,6 +133,9 @@ def _after_failure(root: Path | None, name: str, message: str) -> None:
         from .layout import remove_atomic
 
         remove_atomic(root)
+        return
+    if before is not None and data_state(root) == before and inputs_changed(root, name) is None:
+        log.info("%s failed before writing anything: %s is as it was", name, root)
         return
     mark_failed(root, name, one_line(message))
 
@@ -157,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
     register_resolvers()  # before the override check and Hydra compose (and resolve) the stage's config
-    args = _preflight(name, argv[1:])
+    args = _preflight(name, positional_overrides(name, fn, argv[1:]))
     sys.argv = [f"skidbench {name}", *args]
     register_launchers()
     fn()
@@ -189,6 +211,72 @@ def _preflight(name: str, args: list[str]) -> list[str]:
     for line in dropped:
         kept.remove(line)
     return kept
+
+
+def positional_overrides(name: str, fn: Callable, args: list[str]) -> list[str]:
+    """The arguments of a stage that takes positional ones (``skidbench export <dataset> <dir>``) as Hydra
+    overrides. The stage's main declares them: ``fn.positional`` = (the keys the positional arguments set,
+    in order; ``{"--flag": key}`` for flags that take a value). A positional ``dataset`` also sets
+    ``robot=<the dataset's robot>`` (from its manifest) unless ``robot=`` is given. Other arguments pass
+    through. A missing or extra argument is one line with the usage, exit 2."""
+    spec = getattr(fn, "positional", None)
+    if not spec or any(a in ("-h", "--help", "--cfg", "-c", "--info") for a in args):
+        return args
+    keys, flags = spec
+    out, given = [], []
+    it = iter(args)
+    for a in it:
+        flag, eq, value = a.partition("=")
+        if flag in flags:
+            value = value if eq else next(it, None)
+            if value is None:
+                exit_with_error(f"{flag} needs a value; usage: {_positional_usage(name, keys, flags)}", name)
+            out.append(f"{flags[flag]}={_quoted(value)}")
+        elif "=" in a or a.startswith("-"):
+            out.append(a)
+        else:
+            given.append(a)
+    set_keys = {o.split("=", 1)[0].lstrip("+~") for o in out}
+    wanted = [k for k in keys if k not in set_keys]
+    if len(given) != len(wanted):
+        what = "missing" if len(given) < len(wanted) else f"unexpected {given[len(wanted)]!r}"
+        exit_with_error(f"{what} argument; usage: {_positional_usage(name, keys, flags)}", name)
+    out += [f"{k}={_quoted(v)}" for k, v in zip(wanted, given, strict=True)]
+    if "dataset" in wanted and "robot" not in set_keys:
+        robot = _dataset_robot(out, given[wanted.index("dataset")])
+        if robot:
+            out.append(f"robot={robot}")
+    return out
+
+
+def _positional_usage(name: str, keys, flags) -> str:
+    words = [f"<{k.split('.')[-1]}>" for k in keys] + [f"{f} <{k.split('.')[-1]}>" for f, k in flags.items()]
+    return f"skidbench {name} {' '.join(words)} [key=value ...]"
+
+
+def _quoted(value: str) -> str:
+    """A value as a Hydra override reads it back unchanged (quoted when it holds grammar characters)."""
+    import re
+
+    if re.fullmatch(r"[A-Za-z0-9_./:+@~-]+", value):
+        return value
+    return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _dataset_robot(overrides: list[str], dataset: str) -> str | None:
+    """The robot of ``<out_root>/<dataset>/raw/manifest.json`` when it has a packaged config, else None."""
+    import json
+    from importlib.resources import files
+
+    from .layout import default_out_root
+
+    root = next((o.split("=", 1)[1].strip("'") for o in overrides if o.startswith("out_root=")), None)
+    manifest = Path(root or default_out_root()).expanduser() / dataset / "raw" / "manifest.json"
+    try:
+        robot = str(json.loads(manifest.read_text()).get("robot") or "")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return robot if robot and (files("skidbench.conf") / "robot" / f"{robot}.yaml").is_file() else None
 
 
 def check_out_root(cfg) -> None:

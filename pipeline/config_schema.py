@@ -200,6 +200,7 @@ SCHEMA: dict[str, Spec] = {
     "source.split_fractions": listof(number(0, 1), 3),
     "source.groundtruth_method": choice("vo", "orbslam", "pose_topic"),
     "source.groundtruth_key": STR,
+    "source.identify_cmd_kinematics": BOOL,
     "source.cmd_kinematics.*": listof(number(gt=0), 2, what="[wheel radius m, track m]"),
     "source.cmd_limits.*": listof(number(gt=0), 2, what="[v_max m/s, w_max rad/s]"),
     "source.break_at_jumps": BOOL,
@@ -311,6 +312,18 @@ SCHEMA: dict[str, Spec] = {
     "figures.fig6_model": STR,
     "figures.terrain": OPT_STR,
     "log_to_mlflow": BOOL,
+    # -- export.yaml / import.yaml (benchmark/bundle.py) -------------------------------------------------
+    "bundle.dir": STR,
+    "bundle.licence": OPT_STR,
+    "bundle.provenance": OPT_STR,
+    "bundle.name": OPT_STR,
+    # -- score.yaml (benchmark/external.py) -------------------------------------------------------------
+    "score.predictions": STR,
+    "score.name": OPT_STR,
+    # -- publish.yaml (benchmark/publish.py) ------------------------------------------------------------
+    "publish.dir": STR,
+    "publish.figures": BOOL,
+    "publish.dpi": integer(20, 600),
     # -- discover.yaml ----------------------------------------------------------------------------------
     "discover.out": STR,
     "discover.splits": OPT_STR,
