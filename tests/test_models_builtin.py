@@ -12,7 +12,8 @@ from skidbench.benchmark.horizon import window_errors
 from skidbench.models.base import ModelError
 from skidbench.models.enhanced import EnhancedKinematic
 from skidbench.models.friction import FrictionBased
-from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve, solve_reference
+from skidbench.models.friction_balance import FrictionGeometry, body_velocity
+from skidbench.models.friction_solver import solve, solve_reference
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive, FullLinear
 from skidbench.models.roc import RocBased
