@@ -580,7 +580,7 @@ def run_compare(cfg: Any) -> CompareResult:
     shown = decomp.attrs.get("protocols", []) if len(decomp) else []
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
-    notes: list[str] = []
+    notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
     fig_md: list[str] = []
     fc = cfg.figures
     if fc.enabled:
@@ -689,6 +689,18 @@ def _leaderboard_header(cfg, target, protocol, parent, horizon, when, left_out) 
         lines += ["", "Newer runs left out (the board keeps the complete run named):", ""]
         lines += [f"- {line}" for line in left_out]
     return lines
+
+
+def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
+    """The findings of the board's fits (a parameter at its bound: ``roc degenerates to edd on this data:
+    b2 at its bound``), for the console notes and the report's Notes (models/fitting.py formats them)."""
+    try:
+        from skidbench.models.fitting import board_findings
+    except ImportError:  # pragma: no cover - the models package is part of the install
+        return []
+    done = board[board["status"] == "FINISHED"] if "status" in board else board
+    rows = list(zip(done["model"].astype(str), done["terrain"].astype(str), strict=True))
+    return board_findings(layout, rows, inputs)
 
 
 def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
