@@ -105,6 +105,12 @@ def test_a_model_evaluated_alone_lands_on_the_full_board(root):
     assert board["options_digest"].str.fullmatch(r"[0-9a-f]{12}").all()
     assert by_model.loc["chi", "options_digest"] != by_model.loc["ideal_t", "options_digest"]
     assert by_model.loc["chi", "model_version"] == "0.1"
+    import numpy
+
+    assert (board["env.numpy"] == numpy.__version__).all() and board["skidbench_version"].str.len().gt(
+        0
+    ).all()
+    assert by_model.loc["chi", "code_digest"] != ""  # the digest of the model's code (pipeline/provenance.py)
     # the protocols table shows every model of the board, not only the newest evaluate's
     shown = {line.split("|")[1].strip() for line in res.decomposition_md.splitlines()[2:]}
     assert {"chi", "ideal_t"} <= shown
