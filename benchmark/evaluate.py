@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
@@ -36,6 +37,7 @@ from .fit_record import (
     fit_quality_metrics,
     installed_models,
     log_model,
+    model_code,
     model_config,
     num,
     plugin_package,
@@ -199,7 +201,9 @@ def run_benchmark(
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     all_files = [p for fs in files_of.values() for p in fs]
-    common_tags = {trk.TAG_DATASET: str(cfg.dataset), trk.TAG_GIT: commit, **transfer_tags}
+    # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
+    env_tags = provenance.run_tags()
+    common_tags = {trk.TAG_DATASET: str(cfg.dataset), **env_tags, trk.TAG_GIT: commit, **transfer_tags}
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
@@ -408,6 +412,7 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
         tags={
             trk.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
             trk.TAG_PLUGIN: plugin_package(model_name, model),
+            **provenance.code_tags(model_code(model_name, model)),
         },
     )
     bound_metrics = fit_quality_metrics(fit)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from skidbench.models import fitting
+from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.wheel_response import WheelResponse
 
@@ -45,6 +46,14 @@ def plugin_package(model_name: str, model: Any = None) -> str:
                 return name
         return f"module:{type(model).__module__}"
     return "unknown"
+
+
+def model_code(model_name: str, model: Any) -> provenance.CodeIdentity:
+    """The code of a fitted model (pipeline/provenance.py): its entry point's distribution, version and
+    the digest of its package's files."""
+    ep = installed_models().get(model_name)
+    dist = ep.dist if ep is not None else None
+    return provenance.code_identity(type(model), *((dist.name, dist.version) if dist else ()))
 
 
 def default_fit_fn() -> Callable[[Any, str, str], Any]:
@@ -100,7 +109,8 @@ def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path,
         example = seq.table.head(30).assign(sequence=seq.name)[list(INPUT_COLUMNS)]  # 1 s of a test sequence
         arrays = record_path.with_name(record_path.name.replace(".mlflow_model.json", ".arrays.npz"))
         arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None
-        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays)
+        requirements = provenance.requirements_of(model_code(model_name, model))  # what loading it needs
+        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays, requirements)
     except Exception as exc:  # the benchmark's numbers stand without it: say why, on the run (and console)
         model_id = f"not logged: {type(exc).__name__}: {one_line(str(exc))[:300]}"
         if not isinstance(exc, ModelError):

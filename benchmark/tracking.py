@@ -32,7 +32,6 @@ import os
 import re
 import shlex
 import socket
-import subprocess
 import sys
 import time
 import urllib.error
@@ -46,6 +45,7 @@ from typing import Any
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import process_alive
 from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.provenance import git_commit, requirements_of
 
 from .horizon import EvaluationError
 from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
@@ -143,26 +143,6 @@ def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
             f"MLflow tracking server {uri} is unreachable ({reason}); start it "
             "(mlflow server --backend-store-uri ...) or unset MLFLOW_TRACKING_URI to use the local store"
         ) from None
-
-
-@functools.lru_cache(maxsize=1)
-def git_commit() -> str:
-    """The commit of the skidbench source tree ("+dirty" when it has local changes), or "unknown"."""
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
-        return sha + ("+dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -307,20 +287,6 @@ def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-
-
-@functools.lru_cache(maxsize=1)
-def _requirements() -> list[str]:
-    """What a logged model needs to load: skidbench and MLflow at their installed versions."""
-    import importlib.metadata as md
-
-    out = []
-    for dist in ("skidbench", "mlflow"):
-        try:
-            out.append(f"{dist}=={md.version(dist)}")
-        except md.PackageNotFoundError:
-            out.append(dist)
-    return out
 
 
 class Tracker:
@@ -517,12 +483,19 @@ class Tracker:
         self.client.log_inputs(run_id, datasets=inputs)
 
     def log_model(
-        self, run_id: str, name: str, record: Path, example: Any = None, arrays: Path | None = None
+        self,
+        run_id: str,
+        name: str,
+        record: Path,
+        example: Any = None,
+        arrays: Path | None = None,
+        requirements: Sequence[str] | None = None,
     ) -> str:
         """Log a fitted model as an MLflow Model of ``run_id`` (pyfunc flavour with the protocol's
         signature, :mod:`skidbench.benchmark.mlflow_model`; ``record`` its JSON; ``example`` a few input
         rows, which MLflow stores and checks the model with); returns its model id.
-        Requirements are given, not inferred (inference loads the model in a subprocess: seconds)."""
+        Requirements are given, not inferred (inference loads the model in a subprocess: seconds):
+        ``requirements``, else skidbench's (:func:`skidbench.pipeline.provenance.requirements_of`)."""
         import mlflow
         from mlflow.models import Model
 
@@ -543,7 +516,7 @@ class Tracker:
                 artifacts={mm.ARTIFACT: str(record), **({mm.ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
                 signature=mm.signature(),
                 input_example=example,
-                pip_requirements=_requirements(),
+                pip_requirements=list(requirements or requirements_of()),
             )
         return info.model_id
 
