@@ -256,3 +256,32 @@ def read_board(path: Path) -> Board:
     rows = pd.DataFrame(doc.get("rows") or [])
     return Board(str(doc["protocol"]), str(doc.get("parent_run_id") or ""), float(doc.get("horizon_s", 6.0)),
                  dict(doc.get("settings") or {}), rows)  # fmt: skip
+
+
+def leaderboard_header(
+    dataset: str, dataset_id: str | None, experiment: str, protocol: str, parent: str | None,
+    horizon: float, rank_key: str, when: str, left_out: list[str],
+) -> list[str]:  # fmt: skip
+    """The lines above a leaderboard file's tables: what it is, the command that wrote it and when, which
+    runs its rows are (``parent``: one evaluate's; None: the newest complete ones), the newer runs left
+    out."""
+    which = (
+        f"the child runs of evaluate run {parent}"
+        if parent
+        else "the newest complete (FINISHED) run of each (model, terrain) of this dataset under this "
+        "protocol, across evaluates"
+    )
+    cmd = f"skidbench compare dataset={dataset} inputs={protocol}" + (
+        f" parent_run_id={parent}" if parent else ""
+    )
+    lines = [
+        f"# Leaderboard: dataset {dataset}, inputs={protocol}, {horizon:g} s horizon",
+        "",
+        f"Written by `{cmd}` on {when}. Rows: {which}. Ranked by the mean over terrains of `{rank_key}` "
+        f"(lower is better). Dataset identity `{dataset_id or '?'}`; MLflow experiment `{experiment}`. "
+        "The CSV beside this file has every row's run id, options digest, versions and commit.",
+    ]
+    if left_out:
+        lines += ["", "Newer runs left out (the board keeps the complete run named):", ""]
+        lines += [f"- {line}" for line in left_out]
+    return lines

@@ -424,27 +424,14 @@ def calibration_windows(
     return out
 
 
-def _retarget(cfg: Any, target: sel.Target) -> Any:
-    """``cfg`` with the dataset and MLflow experiment compare reads (:func:`selection.resolve_target`)."""
-    import copy
-
+def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
+    """The dataset compare reads, its store and experiment: ``(cfg with that dataset and experiment,
+    target, tracker)`` (:func:`selection.target_from_cfg`). CompareError (one line) when there is no store,
+    no such dataset or run; StaleInputError when the dataset's last evaluate failed as a stage (a model run
+    that failed does not count)."""
+    from mlflow.tracking import MlflowClient
     from omegaconf import OmegaConf, open_dict
 
-    if not OmegaConf.is_config(cfg) or (
-        cfg.dataset == target.name and cfg.mlflow.experiment == target.experiment
-    ):
-        return cfg
-    out = copy.deepcopy(cfg)
-    with open_dict(out):
-        out.dataset = target.name
-        out.mlflow.experiment = target.experiment
-    return out
-
-
-def open_target(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
-    """The dataset compare reads, its store and experiment: ``(cfg retargeted, target, tracker)``.
-    CompareError (one line) when there is no store, no such dataset or run; StaleInputError when the
-    dataset's last evaluate failed as a stage (a model run that failed does not count)."""
     from skidbench.pipeline.cache import check_producers
     from skidbench.pipeline.imported import check_stage
 
@@ -455,15 +442,17 @@ def open_target(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
             "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
         )
     trk.check_reachable(uri, float((cfg.get("mlflow") or {}).get("timeout_s", 5.0)))
-    from mlflow.tracking import MlflowClient
-
     try:
-        target = sel.resolve_target(cfg, MlflowClient(tracking_uri=uri))
+        target = sel.target_from_cfg(cfg, MlflowClient(tracking_uri=uri))
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
     if target.note:
         log.info("compare: %s", target.note)
-    cfg = _retarget(cfg, target)
+    if OmegaConf.is_config(cfg) and (cfg.dataset, cfg.mlflow.experiment) != (target.name, target.experiment):
+        cfg = copy.deepcopy(cfg)
+        with open_dict(cfg):
+            cfg.dataset = target.name
+            cfg.mlflow.experiment = target.experiment
     if target.layout.root.is_dir():
         check_producers(target.layout.root, "compare")
         check_stage(cfg, "compare", target.layout.root)
@@ -508,7 +497,7 @@ def leaderboard_texts(
 
 
 def run_compare(cfg: Any) -> CompareResult:
-    cfg, target, tracker = open_target(cfg)
+    cfg, target, tracker = open_target_from_cfg(cfg)
     layout = target.layout
     horizon = float(cfg.horizon)
     parent_cfg = cfg.get("parent_run_id", "latest")
@@ -564,7 +553,9 @@ def run_compare(cfg: Any) -> CompareResult:
                 shown_boards[p] = (board_from_runs(s.runs, horizon), s.runs, s.left_out)
     lb_md = markdown_table(summary)
     for p, (b, r, lo) in shown_boards.items():
-        header = _leaderboard_header(cfg, target, p, parent, horizon, when, lo)
+        rank_key = trk.rank_key(str(cfg.rank_by), horizon)
+        header = brd.leaderboard_header(target.name, target.dataset_id, tracker.experiment_name, p, parent,
+                                        horizon, rank_key, when, lo)  # fmt: skip
         csv_text, md_text, md_ranked = leaderboard_texts(b, r, horizon, str(cfg.rank_by), header)
         paths, line = brd.write_leaderboard(out, p, csv_text, md_text)
         files += paths
@@ -664,31 +655,6 @@ def run_compare(cfg: Any) -> CompareResult:
             tracker.artifact(run_id, f, "report")
     return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links, left_out, written,
                          target.name, parents)  # fmt: skip
-
-
-def _leaderboard_header(cfg, target, protocol, parent, horizon, when, left_out) -> list[str]:
-    """The lines above a leaderboard file's tables: what it is, the command, when, which runs."""
-    which = (
-        f"the child runs of evaluate run {parent}"
-        if parent
-        else "the newest complete (FINISHED) run of each (model, terrain) of this dataset under this "
-        "protocol, across evaluates"
-    )
-    cmd = f"skidbench compare dataset={target.name} inputs={protocol}" + (
-        f" parent_run_id={parent}" if parent else ""
-    )
-    lines = [
-        f"# Leaderboard: dataset {target.name}, inputs={protocol}, {horizon:g} s horizon",
-        "",
-        f"Written by `{cmd}` on {when}. Rows: {which}. Ranked by the mean over terrains of "
-        f"`{trk.rank_key(str(cfg.rank_by), horizon)}` (RMSRE %, lower is better). Dataset identity "
-        f"`{target.dataset_id or '?'}`; MLflow `{cfg.mlflow.experiment}`. The CSV beside this file has every "
-        "row's run id, options digest, versions and commit.",
-    ]
-    if left_out:
-        lines += ["", "Newer runs left out (the board keeps the complete run named):", ""]
-        lines += [f"- {line}" for line in left_out]
-    return lines
 
 
 def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:

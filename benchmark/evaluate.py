@@ -11,10 +11,7 @@ predict gets its child run marked FAILED with the reason, and the others carry o
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,14 +23,14 @@ import pyarrow as pa
 
 from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
-from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic, write_text_atomic
+from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import ProtocolError, protocol_of
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import metrics as mt
 from . import tracking as trk
-from .boards import TAG_OPTIONS
+from .failures import fail_run, kill_run
 from .fit_record import (
     default_fit_fn,
     fit_description,
@@ -43,6 +40,7 @@ from .fit_record import (
     model_code,
     model_config,
     num,
+    options_tags,
     plugin_package,
 )
 from .horizon import EvaluationError, HorizonConfig, count_windows
@@ -346,7 +344,7 @@ class _Stage:
 def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResult:
     """Fit ``model_name`` on ``td.terrain``'s Train split, score it on every test split and log it all to
     one child run; an exception of the model (fit, predict, scoring, its outputs) ends that run FAILED with
-    the reason and its traceback (:func:`save_traceback`) and the benchmark carries on (an MLflow store
+    the reason and its traceback (benchmark/failures.py) and the benchmark carries on (an MLflow store
     error does not; an interrupt ends the run KILLED and stops the benchmark)."""
     protocol = td.inputs.protocol
     run_id = _start_child(ctx, model_name, td)
@@ -370,78 +368,16 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         log.info("%s/%s: %s", model_name, td.terrain, _brief(metrics))
         return ChildResult(model_name, td.terrain, run_id, "FINISHED", metrics, inputs=protocol)
     except KeyboardInterrupt:
-        with _no_interrupt():
-            ctx.tracker.kill(run_id)
+        kill_run(ctx.tracker, run_id)
         raise
     except Exception as exc:
         from mlflow.exceptions import MlflowException
 
         if isinstance(exc, MlflowException):
             raise
-        reason = f"{stage.name} failed: {type(exc).__name__}: {one_line(str(exc))}"
-        where = save_traceback(
-            ctx.tracker, run_id, stem, f"{model_name}/{td.terrain}", traceback.format_exc()
-        )
-        log.warning("%s/%s FAILED: %s (traceback: %s)", model_name, td.terrain, reason, where)
-        ctx.tracker.fail(run_id, reason)
+        reason, where = fail_run(ctx.tracker, run_id, stem, f"{model_name}/{td.terrain}", stage.name, exc)
         return ChildResult(model_name, td.terrain, run_id, "FAILED", reason=reason, inputs=protocol,
                            traceback=where)  # fmt: skip
-
-
-TRACEBACK_ARTIFACT = "error/traceback.txt"  # a FAILED child run's traceback, as a run artifact
-TAG_TRACEBACK = "skidbench.traceback"
-
-
-def save_traceback(tracker, run_id: str, stem: Path, what: str, text: str) -> str:
-    """A failed run's traceback: logged as the run's artifact ``error/traceback.txt`` (tag
-    ``skidbench.traceback`` names it), written to ``<stem>.traceback.txt`` next to its other outputs and to
-    the stage log (the files the logging writes to: Hydra's ``<out_root>/hydra/<stage>/<time>/<stage>.log``).
-    Returns where, for the console line. A traceback that cannot be saved somewhere is said, not raised."""
-    where = []
-    try:
-        tracker.client.log_text(run_id, text, TRACEBACK_ARTIFACT)
-        tracker.log(run_id, tags={TAG_TRACEBACK: TRACEBACK_ARTIFACT})
-        where.append(f"MLflow run {run_id} artifact {TRACEBACK_ARTIFACT}")
-    except Exception as exc:  # noqa: BLE001 - the failure itself is recorded by the caller
-        log.warning("%s: traceback not logged to MLflow (%s)", what, one_line(str(exc))[:200])
-    path = stem.with_name(stem.name + ".traceback.txt")
-    try:
-        write_text_atomic(path, text)
-        where.append(str(path))
-    except OSError as exc:
-        log.warning("%s: traceback not written to %s (%s)", what, path, exc)
-    logs = _to_log_files(f"{what} FAILED:\n{text}")
-    where += [f"stage log {p}" for p in logs]
-    return "; ".join(where)
-
-
-def _to_log_files(text: str) -> list[str]:
-    """Writes ``text`` to the log files of this process (not the console: the console gets one line) and
-    returns their paths."""
-    paths = []
-    record = log.makeRecord(log.name, logging.ERROR, __file__, 0, "%s", (text,), None)
-    for handler in logging.getLogger().handlers:
-        if isinstance(handler, logging.FileHandler) and handler.baseFilename != os.devnull:
-            handler.handle(record)
-            paths.append(handler.baseFilename)
-    return paths
-
-
-@contextlib.contextmanager
-def _no_interrupt():
-    """A second Ctrl-C while the runs are being closed is ignored (in the main thread; elsewhere a no-op)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        with contextlib.suppress(Exception):
-            yield
-    finally:
-        signal.signal(signal.SIGINT, old)
 
 
 def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
@@ -452,7 +388,7 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {**ctx.tags, trk.TAG_FINGERPRINT: td.fingerprint, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name,
          trk.TAG_TERRAIN: td.terrain, trk.TAG_INPUTS: protocol,
-         TAG_OPTIONS: options_digest(ctx.conf, model_conf, protocol),
+         **options_tags(ctx.conf, model_conf, protocol),
          trk.TAG_NOTE: _describe(ctx.cfg, [model_name], [td.terrain], list(td.tests), ctx.horizons)},
         ctx.parent_id,
     )  # fmt: skip
@@ -460,23 +396,6 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     ctx.tracker.log(run_id, params={**params, "model": model_name, "terrain": td.terrain, "inputs": protocol})
     ctx.tracker.log_datasets(run_id, td.datasets)
     return run_id
-
-
-#: the settings of an evaluate a child run's numbers depend on (with the model's config and the protocol)
-OPTION_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "calibrate", "train_dataset",
-               "train_terrain")  # fmt: skip
-
-
-def options_digest(conf: dict[str, Any], model_conf: dict[str, Any], protocol: str) -> str:
-    """The digest (12 hex digits) of what a child run was made with besides its data and code: the
-    model's config (name, params, options), the input protocol and :data:`OPTION_KEYS` of the evaluate's
-    config. Two rows with one digest were made with the same options; it is the run's tag
-    ``skidbench.options_digest`` and a column of compare's leaderboard files."""
-    from skidbench.pipeline.io import fingerprint_obj
-
-    return fingerprint_obj(
-        {"model": model_conf, "inputs": protocol, **{k: conf.get(k) for k in OPTION_KEYS}}
-    )[:12]
 
 
 def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path) -> Any:
@@ -676,14 +595,3 @@ def format_result(result: BenchmarkResult) -> str:
         if c.traceback:
             lines.append(f"  traceback: {c.traceback}")
     return "\n".join(lines)
-
-
-def failure_summary(result: BenchmarkResult) -> str:
-    """One line for a benchmark with FAILED runs: how many, which, and where their tracebacks are."""
-    bad = result.failed
-    which = ", ".join(f"{c.model}/{c.terrain} ({c.status})" for c in bad)
-    return (
-        f"{len(bad)} of {len(result.children)} model run(s) FAILED under inputs={result.inputs}: {which}; "
-        f"each run's traceback is its MLflow artifact {TRACEBACK_ARTIFACT} (parent run "
-        f"{result.parent_run_id}); the other runs are complete and `skidbench compare` ranks them"
-    )

@@ -24,7 +24,7 @@ INTERRUPTED = (
 def main(cfg: DictConfig) -> None:
     from skidbench.pipeline.errors import PartialFailure
 
-    from .evaluate import failure_summary
+    from .failures import failure_summary
 
     result, _ = run(cfg)
     if result is not None and result.failed and not _in_sweep():

@@ -11,7 +11,7 @@ newer than the one a row uses is *left out*, with why, in one line each (compare
 terrain) without any complete run shows its newest run (FAILED, KILLED, ...) so that failures stay on the
 board.
 
-**The dataset** (:func:`resolve_target`): ``dataset=<name>`` names a folder of the output root, and its
+**The dataset** (:func:`target_from_cfg`): ``dataset=<name>`` names a folder of the output root, and its
 ``dataset.json`` gives the identity the runs carry, whatever ``source`` is configured (so ``compare
 dataset=<name>`` needs no source arguments); ``parent_run_id=<run id>`` takes the dataset and experiment
 of that run; ``mlflow.experiment=<name>`` alone takes the dataset of that experiment's runs.
@@ -276,7 +276,7 @@ def _no_dataset(out_root: Path, name: str) -> SelectionError:
     return SelectionError(f"{Path(out_root) / name}: no dataset {name!r} under {out_root}; {held}")
 
 
-def resolve_target(cfg: Any, client: Any | None) -> Target:
+def target_from_cfg(cfg: Any, client: Any | None) -> Target:
     """The dataset and experiment ``cfg`` asks for (see the module docstring). ``client``: an MlflowClient
     of the store (None: no store yet)."""
     from skidbench.pipeline.dataset import read_record

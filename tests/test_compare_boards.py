@@ -21,7 +21,8 @@ from _bench_data import compose, fit_fn, write_splits
 from skidbench.benchmark import boards as brd
 from skidbench.benchmark import tracking as trk
 from skidbench.benchmark.compare import run_compare
-from skidbench.benchmark.evaluate import TRACEBACK_ARTIFACT, failure_summary, format_result, run_benchmark
+from skidbench.benchmark.evaluate import format_result, run_benchmark
+from skidbench.benchmark.failures import TRACEBACK_ARTIFACT, failure_summary
 
 DS = "sim-mini"
 OTHER = "drive-other-abc123"  # a second dataset of the root, of another source
