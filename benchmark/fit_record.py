@@ -82,7 +82,7 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
         described.update({f"wheel_response.{k}": v for k, v in response.__dict__.items()})
     described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
     for f in (fit_json(fit).get("fit_info") or {}).get("at_bound") or []:  # a fit at a bound: a finding
-        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f['bound']:g}: {f['finding']}"
+        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f.get('bound', 'inf')}: {f['finding']}"
     return described
 
 
