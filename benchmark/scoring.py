@@ -19,8 +19,8 @@ from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.schema import concat_sequences
 from skidbench.pipeline.wheel_response import WheelResponse
 
-from . import intervals as iv
 from .horizon import EvaluationError, HorizonConfig, window_errors
+from .intervals import IntervalConfig, Sample, cell, estimate, stratum_key
 from .metrics import METRICS
 
 
@@ -132,7 +132,7 @@ def summarise(
     windows: pd.DataFrame,
     split: str,
     horizons: Sequence[float],
-    intervals: iv.IntervalConfig | None = iv.IntervalConfig(),  # noqa: B008 (frozen: shared safely)
+    intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
 ) -> dict[str, float]:
     """Every metric of :data:`~skidbench.benchmark.metrics.METRICS` (and its window count) on the windows
     of one split, per horizon, by its MLflow name (``ld_6s_trans_rmsre_pct``: :func:`Metric.metric_key`);
@@ -150,7 +150,7 @@ def summarise(
 
 
 def metric_intervals(
-    windows: pd.DataFrame, split: str, horizon_s: float, cfg: iv.IntervalConfig
+    windows: pd.DataFrame, split: str, horizon_s: float, cfg: IntervalConfig
 ) -> dict[str, float]:
     """``<key>_ci_lo``, ``<key>_ci_hi`` (rounded as the value is) and the blocks behind each metric with a
     bootstrap, on the windows of one split at one horizon (:mod:`skidbench.benchmark.intervals`; a
@@ -163,12 +163,12 @@ def metric_intervals(
                 lo, hi, blocks = m.interval_keys(split, horizon_s)
                 out.update({lo: float("nan"), hi: float("nan"), blocks: 0.0})
         return out
-    key = iv.stratum_key(split, horizon_s, windows["sequence"])
-    sample = iv.Sample(cfg)
+    key = stratum_key(split, horizon_s, windows["sequence"])
+    sample = Sample(cfg)
     sample.add(key, windows["sequence"], windows["t0"].to_numpy(float),
                {m.name: m.bootstrap.scale * m.window_values(windows) for m in metrics}, horizon_s,
                {m.name: m.bootstrap.aggregation for m in metrics})  # fmt: skip
-    res = iv.estimate(sample, [iv.cell(m.name, key, m.name) for m in metrics])
+    res = estimate(sample, [cell(m.name, key, m.name) for m in metrics])
     for m, row in zip(metrics, res.itertuples(index=False), strict=True):
         lo, hi, blocks = m.interval_keys(split, horizon_s)
         out[lo], out[hi] = round(float(row.lo), 4), round(float(row.hi), 4)
@@ -183,7 +183,7 @@ def predict_and_score(
     hcfg: HorizonConfig,
     inputs: Inputs | None = None,
     on_step: Callable[[str], None] | None = None,
-    intervals: iv.IntervalConfig | None = iv.IntervalConfig(),  # noqa: B008 (frozen: shared safely)
+    intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
 ) -> tuple[dict[str, float], pd.DataFrame, dict[str, list[np.ndarray]]]:
     """Predicts every test split with ``model`` (:func:`predict_split`, with its covariances when it has
     ``predict_cov``) and scores every window of every horizon (:func:`score_split`). Returns the metrics
