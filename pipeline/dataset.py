@@ -4,28 +4,29 @@ Name (the output folder and the MLflow experiment ``skidbench-<name>``):
 - ``source.dataset`` when the user sets it (or, for ``drive_df``, ``source.label``: ``drive-<label>``);
 - the simulated source: ``sim-<scale>``, ``sim-<scale>-seed<N>`` for a seed other than 0 (scale and seed
   are its identity: the same pair gives the same bytes);
-- any other source: ``<prefix>-<root name>-<fingerprint[:6]>``, e.g. ``amrl-grass_day2-3f9c1a``.
+- any other source: ``<prefix>-<root name>-<path fingerprint[:6]>``, e.g. ``amrl-grass_day2-3f9c1a``, the
+  fingerprint of the source kind and the resolved path of its data (``layout.path_key``): the data's home
+  on this machine, which survives edits of its files (the stages' stamps re-run exactly what depends on a
+  changed file, pruning removes the outputs of sequences that are gone).
 
-The fingerprint (the run tag ``skidbench.dataset_id``) is the data's content, not where it is mounted
-(``layout.data_key``): the source kind and each file's path relative to ``source.root`` (or the files
-``source.file`` names), size and content hash (a file over 1 MiB: its size and three 64 KiB blocks).
-Measured 2026-11-25 on a loaded 2-core machine: the 23 files (498 MB) of `mini`'s bags 0.06-0.08 s, the 13
-files (19 MB) of ../shared/data/real 0.05 s, once per process (then memoised by size, time and inode).
-Two mount points or two machines holding the same files are one dataset, with one id; the simulated
-source's is its scale and seed (the same pair gives the same bytes). Files hidden by name (``.*``) and the
-output root, when it lies inside the data's root, are not part of it.
-
-Edited data is other data: unnamed, it gets a new name (a new folder, re-extracted there); a dataset named
-with ``source.dataset`` keeps its folder when its root's files change, with a note that its identity moved
-(the stamps re-run exactly what depends on the changed files; runs logged under the old id are not ranked
-with the new ones). A folder named from the root's path by an earlier release (record schema 1) keeps its
-name and is upgraded in place, with the same note, and stays that root's home like a named dataset.
+The dataset's identity, its fingerprint (the run tag ``skidbench.dataset_id``), is the data's content, not
+where it is mounted (``layout.data_key``): the source kind and each file's path relative to
+``source.root`` (or the files ``source.file`` names), size and content hash (a file over 1 MiB: its size
+and three 64 KiB blocks). Measured 2026-11-25 on a loaded 2-core machine: the 23 files (498 MB) of
+`mini`'s bags 0.06-0.08 s, the 13 files (19 MB) of ../shared/data/real 0.05 s, once per process (then
+memoised by size, time and inode). Two mount points or two machines holding the same files are one
+dataset id (their runs are compared as one dataset's); the simulated source's is its scale and seed (the
+same pair gives the same bytes). Files hidden by name (``.*``) and the output root, when it lies inside the
+data's root, are not part of it.
 
 Each stage records the identity in ``<ds>/dataset.json`` (schema 2: name, source, root, fingerprint,
-terrains, sequences; written atomically) and refuses a folder recorded for another root with other
-content, in one line naming both roots, unless ``source.replace=true`` (the old folder is then removed;
-its MLflow runs stay, but carry the old fingerprint in ``skidbench.dataset_id``, so compare never mixes
-them in).
+terrains, sequences; written atomically). A folder whose recorded root holds other content now (its files
+were edited, or the record was made by a release whose fingerprint was the root's path: schema 1) is
+updated with a note that its identity moved: runs logged under the old id are not ranked with new ones.
+A folder recorded for another root is taken over when that root holds the same content (the data moved to
+another mount point) and refused otherwise, in one line naming both roots, unless ``source.replace=true``
+(the old folder is then removed; its MLflow runs stay, but carry the old fingerprint in
+``skidbench.dataset_id``, so compare never mixes them in).
 """
 
 from __future__ import annotations
@@ -124,10 +125,10 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
     rec = read_record(layout)
     if rec is not None and rec.get("fingerprint") != ident.fingerprint:
         if rec.get("source") == ident.source and rec.get("root") == ident.root:
-            # the same root, other content: its files were edited (a named dataset keeps its folder: the
+            # the same root, other content: its files were edited (the folder stays their home: the
             # stamps re-run what depends on the changed files), or the folder was recorded by a release
             # whose identity was the root's path (schema 1)
-            why = "named after its path by an earlier release" if int(rec.get("schema", 1)) < 2 else "edited"
+            why = "recorded by its path by an earlier release" if int(rec.get("schema", 1)) < 2 else "edited"
             print(
                 f"skidbench {stage}: note: {ident.root} changed since {layout.root} recorded it ({why}): its "
                 f"identity is now fingerprint {ident.fingerprint} (was {rec.get('fingerprint')}); MLflow "

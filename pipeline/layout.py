@@ -334,28 +334,20 @@ def data_key(source: Any, exclude: Path | None = None) -> dict[str, Any]:
 
 
 def path_key(source: Any) -> dict[str, str]:
-    """The identity key of records before schema 2 (the source kind and the resolved root path): what an
-    output folder made then was named after."""
+    """The key a dataset's folder name is made from: the source kind and the data's resolved path. The
+    folder is the data's home on this machine (it survives edits of the files: the stages' stamps re-run
+    what depends on a changed file); the identity is :func:`data_key`."""
     return {"source": str(source.get("name")), "root": str(data_path(source))}
 
 
-def auto_name(prefix: str, source: Any, out_root: Any = None) -> str:
+def auto_name(prefix: str, source: Any) -> str:
     """``<prefix>-<root name>-<fingerprint[:6]>`` (``<prefix>-<label>`` when ``source.label`` is set), the
-    fingerprint of :func:`data_key`. An output folder named from the root's path by an earlier release
-    (:func:`path_key`; its ``dataset.json`` records the same source and root) keeps its name: the stages
-    upgrade its record (schema 2) and it stays this root's home, as a named dataset does."""
+    fingerprint of :func:`path_key`."""
     if source.get("label"):
         return f"{prefix}-{_safe(str(source.get('label')))}"
     path = data_path(source)
     stem = path.stem if path.is_file() else path.name
-    exclude = Path(str(out_root)) if out_root not in (None, "") else None
-    if exclude is not None:
-        legacy = f"{prefix}-{_safe(stem)}-{fingerprint_of(path_key(source))[:NAME_FP_LEN]}"
-        with contextlib.suppress(OSError, ValueError):
-            rec = json.loads((exclude / legacy / "dataset.json").read_text())
-            if rec.get("root") == str(path) and rec.get("source") == str(source.get("name")):
-                return legacy
-    return f"{prefix}-{_safe(stem)}-{fingerprint_of(data_key(source, exclude))[:NAME_FP_LEN]}"
+    return f"{prefix}-{_safe(stem)}-{fingerprint_of(path_key(source))[:NAME_FP_LEN]}"
 
 
 def sim_name(scale: str, seed: Any) -> str:
@@ -365,7 +357,7 @@ def sim_name(scale: str, seed: Any) -> str:
 
 
 def _dataset_name(prefix, _root_):
-    return auto_name(str(prefix), _root_.source, _root_.get("out_root"))
+    return auto_name(str(prefix), _root_.source)
 
 
 def _sim_dataset_name(scale, seed):

@@ -173,20 +173,22 @@ def test_two_bag_folders_run_one_after_the_other_keep_their_own_homes(tmp_path, 
     assert skipped
 
 
-def test_a_dataset_is_named_by_its_content_not_its_path(tmp_path):
+def test_a_dataset_is_named_by_its_place_and_identified_by_its_content(tmp_path):
     for where, value in (("x", "1"), ("y", "2"), ("mnt", "1")):
         (tmp_path / where / "data" / "Tile").mkdir(parents=True)
         (tmp_path / where / "data" / "Tile" / "a.txt").write_text(value)
     (tmp_path / "mnt" / "data" / ".DS_Store").write_text("hidden: not data")
     os.symlink(tmp_path / "x" / "data", tmp_path / "link")
-    name = lambda root: str(cfg("split", tmp_path, "source=amrl_txt", f"source.root={root}").dataset)  # noqa: E731
-    x = name(tmp_path / "x" / "data")
-    assert x == name(tmp_path / "link") == name(tmp_path / "x" / ".." / "x" / "data")
-    assert x == name(tmp_path / "mnt" / "data")  # the same files mounted elsewhere: the same dataset
-    assert x != name(tmp_path / "y" / "data")  # other content: never the same
-    assert x.startswith("amrl-data-")
-    (tmp_path / "x" / "data" / "Tile" / "b.txt").write_text("3")  # edited data is other data
-    assert name(tmp_path / "x" / "data") != x
+    ident = lambda root: identity_from_cfg(cfg("split", tmp_path, "source=amrl_txt", f"source.root={root}"))  # noqa: E731
+    x = ident(tmp_path / "x" / "data")
+    assert x == ident(tmp_path / "link") == ident(tmp_path / "x" / ".." / "x" / "data")
+    assert x.name.startswith("amrl-data-")
+    mnt, y = ident(tmp_path / "mnt" / "data"), ident(tmp_path / "y" / "data")
+    assert mnt.fingerprint == x.fingerprint and mnt.name != x.name  # the same files elsewhere: one id
+    assert y.fingerprint != x.fingerprint and y.name != x.name  # other content: never the same
+    (tmp_path / "x" / "data" / "Tile" / "b.txt").write_text("3")  # edited data: the same home, another id
+    edited = ident(tmp_path / "x" / "data")
+    assert edited.name == x.name and edited.fingerprint != x.fingerprint
     assert (
         str(cfg("split", tmp_path, "source=amrl_txt", "source.root=/a", "source.dataset=lab").dataset)
         == "lab"
@@ -198,19 +200,22 @@ def test_a_dataset_is_named_by_its_content_not_its_path(tmp_path):
     assert sim0.fingerprint != sim1.fingerprint
 
 
-def test_two_mount_points_of_one_dataset_are_one_dataset_id_and_one_home(tmp_path, capsys):
+def test_two_mount_points_of_one_dataset_are_one_dataset_id(tmp_path, capsys):
     out = tmp_path / "out"
     for mount in ("mnt1", "mnt2"):
         shutil.copytree(FIXTURE / "Tile", tmp_path / mount / "amrl" / "Tile")
     a, b = (["source=amrl_txt", f"source.root={tmp_path / m / 'amrl'}"] for m in ("mnt1", "mnt2"))
-    run_stage("extract", out, *a)
-    la = layout_from_cfg(cfg("extract", out, *a))
+    for args in (a, b):
+        run_stage("extract", out, *args)
     ida, idb = (identity_from_cfg(cfg("extract", out, *s)) for s in (a, b))
-    assert ida.name == idb.name and ida.fingerprint == idb.fingerprint and ida.root != idb.root
-    run_stage("extract", out, *b)  # another mount point of the same files: the same home, no error
-    rec = json.loads((la.root / "dataset.json").read_text())
-    assert rec["fingerprint"] == ida.fingerprint and rec["root"] == idb.root and rec["schema"] == 2
-    assert [p.name for p in out.iterdir() if p.is_dir() and p.name.startswith("amrl")] == [la.dataset]
+    assert ida.fingerprint == idb.fingerprint and ida.root != idb.root
+    recs = [json.loads((out / i.name / "dataset.json").read_text()) for i in (ida, idb)]
+    assert [r["fingerprint"] for r in recs] == [ida.fingerprint] * 2 and recs[0]["schema"] == 2
+    # named: one home, taken over by the other mount point of the same files (no error), its root updated
+    for args in (a, b):
+        run_stage("extract", out, *args, "source.dataset=lab")
+    rec = json.loads((out / "lab" / "dataset.json").read_text())
+    assert rec["fingerprint"] == ida.fingerprint and rec["root"] == idb.root
     # an output root inside the data's root is not part of the data
     inside = tmp_path / "mnt1" / "amrl" / "outputs"
     run_stage("extract", inside, *a)
@@ -218,7 +223,7 @@ def test_two_mount_points_of_one_dataset_are_one_dataset_id_and_one_home(tmp_pat
     capsys.readouterr()
 
 
-def test_a_folder_named_after_its_path_by_an_earlier_release_keeps_its_name_with_a_note(tmp_path, capsys):
+def test_a_folder_recorded_by_its_path_by_an_earlier_release_is_upgraded_with_a_note(tmp_path, capsys):
     from skidbench.pipeline.layout import NAME_FP_LEN, fingerprint_of
 
     out, root = tmp_path / "out", tmp_path / "day1"
@@ -232,11 +237,11 @@ def test_a_folder_named_after_its_path_by_an_earlier_release_keeps_its_name_with
     run_stage("extract", out, *args)
     ident = identity_from_cfg(cfg("extract", out, *args))
     assert ident.name == legacy.name and ident.fingerprint != old_fp
-    assert "named after its path by an earlier release" in capsys.readouterr().out
+    assert "recorded by its path by an earlier release" in capsys.readouterr().out
     rec = json.loads((legacy / "dataset.json").read_text())
     assert rec["schema"] == 2 and rec["fingerprint"] == ident.fingerprint
     assert (legacy / "extracted" / "tile_train_01").is_dir()
-    run_stage("extract", out, *args)  # upgraded: the same home, no note any more
+    run_stage("extract", out, *args)  # upgraded: no note any more
     assert [p.name for p in out.iterdir() if p.is_dir()] == [legacy.name]
     assert "note:" not in capsys.readouterr().out
 
