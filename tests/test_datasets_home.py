@@ -104,7 +104,7 @@ def assert_both_intact(out: Path, a: tuple, b: tuple, results: dict) -> None:
         assert len(runs) == 2 * len(results[ident.name])  # ideal, edd per evaluate run
         shown, _ = select_runs(trk.tracker_from_cfg(c, layout), "latest", None)
         assert set(shown["tags.skidbench.terrain"]) == {terrain}
-        report = (layout.reports / "leaderboard.csv").read_text()
+        report = (layout.reports / "leaderboard-commanded.csv").read_text()
         assert terrain in report and other not in report
         doc = json.loads((layout.discovery / "discovery.json").read_text())
         assert set(doc["terrains"]) == {terrain}
