@@ -439,7 +439,8 @@ def fit_findings(data: dict[str, Any]) -> list[str]:
     (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
     out = []
     for f in (data.get("fit_info") or {}).get("at_bound") or []:
-        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {f['bound']:g})")
+        bound = "inf" if f.get("bound") is None else f"{f['bound']:g}"
+        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {bound})")
     return out
 
 
