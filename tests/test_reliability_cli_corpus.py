@@ -181,7 +181,8 @@ def prepared(tmp_path_factory) -> dict[str, str]:
     base = tmp_path_factory.mktemp("cli_corpus")
     amrl, out, c = base / "amrl", base / "out", base / "corpus"
     shutil.copytree(FIXTURE, amrl)
-    shutil.copytree(FIXTURE, base / "amrl2")
+    shutil.copytree(FIXTURE, base / "amrl2")  # another recording (a copy would be the same dataset)
+    (base / "amrl2" / "notes.txt").write_text("recorded on another day")
     c.mkdir()
     _write_corpus(c)
     for stage_args in (["extract"], ["groundtruth"], ["split"], ["calibrate", "track=false"]):
