@@ -705,7 +705,7 @@ def run_compare(cfg: Any) -> CompareResult:
             f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
         )
     interval_notes: list[str] = []
-    standings = board_standings(cfg, layout, board, protocol, horizon, interval_notes)
+    standings = standings_from_cfg(cfg, layout, board, protocol, horizon, interval_notes)
     summary = summary_table(board, horizon, str(cfg.rank_by), standings)
     parents = sel.Selection(protocol, horizon, runs).parents if parent is None else [parent]
     links = ui_links(cfg, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
@@ -726,7 +726,7 @@ def run_compare(cfg: Any) -> CompareResult:
         rank_key = st.AGGREGATE if rank_by == st.AGGREGATE else trk.rank_key(rank_by, horizon)
         st_p = standings
         if p != protocol:  # another protocol's board, from its own windows
-            st_p = board_standings(_with_inputs(cfg, p), layout, b, p, horizon, [])
+            st_p = standings_from_cfg(_with_inputs(cfg, p), layout, b, p, horizon, [])
         header = brd.leaderboard_header(target.name, target.dataset_id, tracker.experiment_name, p, parent,
                                         horizon, rank_key, when, lo)  # fmt: skip
         csv_text, md_text, md_ranked = leaderboard_texts(b, r, horizon, str(cfg.rank_by), header, st_p)
@@ -841,7 +841,7 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
     return board_findings(layout, rows, inputs)
 
 
-def board_standings(
+def standings_from_cfg(
     cfg: Any, layout: Layout, board: pd.DataFrame, protocol: str, horizon: float, notes: list[str]
 ) -> st.Standings | None:
     """The board's intervals, ranking and claim from the per-window tables evaluate wrote
@@ -880,21 +880,20 @@ def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataF
         cols = [m.metric_key(s, horizon) for s in ("ld", "cv") for m in mt.HEADLINE]
         name = tracker.client.get_run(parent).info.run_name
         links["runs table (saved view)"] = tracker.save_view(
-            f"evaluate-{parent[:8]}", name, parent, cols, _sort_key(cfg, horizon), ui
+            f"evaluate-{parent[:8]}", name, parent, cols, _sort_key(str(cfg.rank_by), horizon), ui
         )
     return links
 
 
-def _sort_key(cfg: Any, horizon: float) -> str:
+def _sort_key(rank_by: str, horizon: float) -> str:
     """The MLflow metric the runs table is sorted by: ``rank_by``'s, or LD translational RMSRE for the
     aggregate (no one run logs the mean over terrains)."""
-    rank_by = str(cfg.rank_by)
     return trk.rank_key("ld_trans" if rank_by == st.AGGREGATE else rank_by, horizon)
 
 
-def _ranked_by_line(cfg: Any, horizon: float, standings: st.Standings | None) -> str:
+def _ranked_by_line(rank_by: str, horizon: float, standings: st.Standings | None) -> str:
     if standings is None:
-        what = "the four RMSREs" if str(cfg.rank_by) == st.AGGREGATE else f"`{_sort_key(cfg, horizon)}`"
+        what = "the four RMSREs" if rank_by == st.AGGREGATE else f"`{_sort_key(rank_by, horizon)}`"
         return f"- ranked by point estimate of the mean over terrains of {what} (no paired intervals here)"
     what = f"the mean over terrains of `{standings.ranked_by}`"
     if standings.ranked_by == st.AGGREGATE:
@@ -934,7 +933,7 @@ def _report_md(
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`" + runs_line,
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
         *[f"- MLflow UI, {what}: <{url}>" for what, url in (links or {}).items()],
-        _ranked_by_line(cfg, horizon, standings),
+        _ranked_by_line(str(cfg.rank_by), horizon, standings),
         f"- input protocol: `{protocol}` (every model driven by the same inputs; runs of different protocols "
         "are never ranked together)",
         "",

@@ -31,6 +31,7 @@ from skidbench.pipeline.schema import concat_sequences, read_split
 from . import intervals as iv
 from . import metrics as mt
 from . import tracking as trk
+from .console import PROTOCOL_TEXT, format_result  # noqa: F401 (the console summary, importable here)
 from .failures import fail_run, kill_run
 from .fit_record import (
     default_fit_fn,
@@ -44,10 +45,11 @@ from .fit_record import (
     options_tags,
     plugin_package,
 )
-from .floor import FLOOR, floor_windows
+from .floor import FLOOR
 from .horizon import EvaluationError, HorizonConfig, count_windows
+from .references import log_floor, seed_spread
 from .report_data import write_report_data, write_wheel_response_steps
-from .scoring import Inputs, TestSequence, predict_and_score, summarise
+from .scoring import Inputs, TestSequence, predict_and_score
 from .testsets import (
     TRAIN,
     check_horizons,
@@ -253,7 +255,9 @@ def run_benchmark(
                 tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
                 td = TerrainData(terrain, tests[terrain], inputs_of[terrain], datasets_of[terrain],
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
-                floor[terrain] = _log_floor(ctx, td)
+                stem = layout.eval_stem(FLOOR, terrain, protocol)
+                floor[terrain] = log_floor(tracker, parent_id, stem, terrain, tests[terrain], horizons, hcfg,
+                                           intervals, protocol)  # fmt: skip
                 children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
             tracker.log(
@@ -374,9 +378,15 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         metrics, windows, velocities = predict_and_score(
             fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
         )
-        if ctx.seeds > 1:
+        if ctx.seeds > 1 and "seed" in (getattr(fit.model, "options", None) or {}):  # random parts
             stage("other seeds")
-            metrics.update(seed_spread(ctx, model_name, td, fit.model, metrics))
+            from skidbench.models.fitting import refit_from_cfg
+
+            refit = refit_from_cfg(ctx.cfg, model_name, td.terrain)
+            spread = seed_spread(
+                refit, fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, ctx.seeds, metrics
+            )
+            metrics.update(spread)
         stage("logging")
         _log_windows(ctx, run_id, model_name, td, stem, windows)
         stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
@@ -452,61 +462,6 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
         save_arrays(arrays_npz, arrays)
         tracker.artifact(run_id, arrays_npz, "fit")
     return fit
-
-
-def seed_spread(
-    ctx: ChildContext, model_name: str, td: TerrainData, model: Any, metrics: dict[str, float]
-) -> dict[str, float]:
-    """A model with random parts (a ``seed`` option) fitted with ``ctx.seeds - 1`` more seeds (its seed + 1,
-    + 2, ...) and scored on the same windows: per metric with an interval, ``<key>_seed_sd`` (the standard
-    deviation over the seeds, the configured one's included), ``<key>_seed_min``, ``<key>_seed_max``, and
-    ``n_seeds``. {} for a model without one (deterministic). The other seeds' fits are not saved: they
-    cost a fit each, every evaluate (docs/intervals.md, "Seeds")."""
-    from skidbench.models.fitting import fit_with_seed, is_seeded
-
-    if not is_seeded(model):
-        return {}
-    keys = [m.metric_key(sp, h) for h in ctx.horizons for sp in td.tests for m in mt.METRICS
-            if m.bootstrap is not None and m.metric_key(sp, h) in metrics]  # fmt: skip
-    values = {k: [metrics[k]] for k in keys}
-    base = int(model.options["seed"])
-    for k in range(1, ctx.seeds):
-        other = fit_with_seed(ctx.cfg, model_name, td.terrain, base + k)
-        got, _, _ = predict_and_score(other, td.tests, ctx.horizons, ctx.hcfg, td.inputs, intervals=None)
-        for key in keys:
-            values[key].append(got.get(key, np.nan))
-    out: dict[str, float] = {"n_seeds": float(ctx.seeds)}
-    for key, v in values.items():
-        arr = np.asarray(v, dtype=float)
-        if np.isfinite(arr).sum() >= 2:
-            out[f"{key}_seed_sd"] = round(float(np.nanstd(arr, ddof=1)), 4)
-            out[f"{key}_seed_min"], out[f"{key}_seed_max"] = float(np.nanmin(arr)), float(np.nanmax(arr))
-    return out
-
-
-def _log_floor(ctx: ChildContext, td: TerrainData) -> dict[str, float]:
-    """The floor of one terrain (benchmark/floor.py): the ground truth's own velocities through the same
-    windows, scored as a model is (every metric and its interval), its windows written next to the models'
-    (``<ds>/eval/floor/<terrain>[.<inputs>].windows.parquet``, what compare reads) and its metrics logged on
-    the parent run as ``floor.<terrain>.<metric>``. Not a child run: it is never ranked."""
-    frames, metrics = [], {}
-    for split, seqs in td.tests.items():
-        w = floor_windows([(s.name, s.table) for s in seqs], ctx.horizons, ctx.hcfg)
-        if len(w):
-            w.insert(0, "split", split)
-            frames.append(w)
-        metrics.update(summarise(w, split, ctx.horizons, ctx.intervals))
-    windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    stem = ctx.layout.eval_stem(FLOOR, td.terrain, td.inputs.protocol)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    path = stem.with_name(stem.name + ".windows.parquet")
-    write_parquet_atomic(pa.Table.from_pandas(windows, preserve_index=False), path,
-                         {"model": FLOOR, "terrain": td.terrain, "horizons": list(ctx.horizons),
-                          "inputs": td.inputs.protocol})  # fmt: skip
-    ctx.tracker.artifact(ctx.parent_id, path, "floor")
-    finite = {k: v for k, v in metrics.items() if np.isfinite(v)}
-    ctx.tracker.log(ctx.parent_id, metrics={f"{FLOOR}.{td.terrain}.{k}": v for k, v in finite.items()})
-    return metrics
 
 
 def _log_windows(
@@ -636,60 +591,3 @@ def _brief(metrics: dict[str, float]) -> str:
 def _headline(key: str) -> bool:
     parsed = mt.parse_key(key)
     return parsed is not None and parsed[0].headline
-
-
-PROTOCOL_TEXT = {
-    "commanded": "the commanded wheel rates and their derivatives (the paper's protocol)",
-    "response": "the commands through the wheel response `calibrate` identified from the Train encoders",
-    "measured": "the encoders' wheel rates and their derivatives (an oracle)",
-}
-
-
-def format_result(result: BenchmarkResult) -> str:
-    """A short text summary for the console: the headline metrics (RMSRE in %, ...) per (model, terrain)
-    at each horizon, each with its 95 % interval in brackets, and the floor of each terrain (never
-    ranked; docs/intervals.md)."""
-    rows = [
-        {"model": c.model, "terrain": c.terrain, "status": c.status, **c.metrics} for c in result.children
-    ]
-    rows += [{"model": f"{FLOOR} (reference)", "terrain": t, "status": "", **m}
-             for t, m in result.floor.items()]  # fmt: skip
-    df = pd.DataFrame(rows)
-    show = df[["model", "terrain", "status"]].copy()
-    for metric in mt.HEADLINE:
-        for c in list(df.columns):
-            parsed = mt.parse_key(c)
-            if parsed is not None and parsed[0] is metric:
-                split, h = parsed[1], float(parsed[2][:-1])
-                lo, hi, _ = metric.interval_keys(split, h)
-                label = f"{metric.short} {split.upper()} {parsed[2]} {metric.label_unit}".rstrip()
-                show[label] = [
-                    _with_interval(r.get(c), r.get(lo), r.get(hi), r.get(f"{c}_seed_sd"))
-                    for r in df.to_dict("records")
-                ]
-    lines = [
-        f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
-        f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",
-        *result.skipped,
-        show.to_string(index=False),
-        "(value [95 % interval], ±s: the spread over seeds of a model with random parts; the floor is the "
-        "ground truth's own velocities, never ranked; `skidbench compare` ranks with paired intervals)",
-    ]
-    for c in result.failed:
-        lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
-        if c.traceback:
-            lines.append(f"  traceback: {c.traceback}")
-    return "\n".join(lines)
-
-
-def _with_interval(value: Any, lo: Any, hi: Any, seed_sd: Any = None) -> str:
-    """``6.91 [6.20, 7.62]`` (and `` ±0.31s``: the spread over seeds); ``-`` for no value; the value alone
-    when it has no interval."""
-    v = num(value)
-    if v is None or not np.isfinite(v):
-        return "-"
-    a, b, sd = num(lo), num(hi), num(seed_sd)
-    spread = f" ±{sd:.2f}s" if sd is not None and np.isfinite(sd) else ""
-    if a is None or b is None or not (np.isfinite(a) and np.isfinite(b)):
-        return f"{v:.2f}{spread}"
-    return f"{v:.2f} [{a:.2f}, {b:.2f}]{spread}"

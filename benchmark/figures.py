@@ -113,23 +113,14 @@ def metric_bars(
             bars = ax.bar(
                 xs, np.nan_to_num(ys_arr), width * 0.92, label=label(m), color=model_color(m, models)
             )
-            has = np.isfinite(ys_arr) & np.isfinite(lo_arr) & np.isfinite(hi_arr)
-            if has.any():  # the 95 % interval (block bootstrap), as the paper's Figs. 3-4 would have it
-                err = np.vstack([ys_arr[has] - lo_arr[has], hi_arr[has] - ys_arr[has]]).clip(min=0.0)
-                ax.errorbar(np.array(xs)[has], ys_arr[has], yerr=err, fmt="none", ecolor="0.15",
-                            elinewidth=0.8, capsize=1.5)  # fmt: skip
-                top = max(top, float(np.nanmax(hi_arr[has])))
+            top = max(top, _error_bars(ax, np.array(xs), ys_arr, lo_arr, hi_arr))
             for b, y in zip(bars, ys_arr, strict=True):
                 if np.isfinite(y):
                     txt = f"{y:.{digits}f}" if y >= small else f"<{10.0**-digits:g}"
                     xy = (b.get_x() + b.get_width() / 2, b.get_height())
                     ax.annotate(txt, xy, xytext=(0, 2), textcoords="offset points", ha="center", va="bottom",
                                 fontsize=6, rotation=90)  # fmt: skip
-        for j, ter in enumerate(terrains):
-            fv = (floor or {}).get((ter, split))
-            if fv is not None and np.isfinite(fv):
-                ax.hlines(fv, j - 0.42, j + 0.42, colors="k", linewidth=1.2,
-                          label="floor (ground truth)" if j == 0 else None)  # fmt: skip
+        _floor_lines(ax, terrains, split, floor or {})
         ax.set_xticks(range(nt), [t.capitalize() for t in terrains])
         ax.set_title(SPLIT_LABELS.get(split, split), fontsize=10)
         ax.set_ylabel(fig_spec.axis if fig_spec else metric.column_label(""))
@@ -142,6 +133,26 @@ def metric_bars(
     fig.suptitle(f"{title}, {horizon_s:g} s horizon", fontsize=11)
     fig.tight_layout(rect=(0, 0.08 if nm <= 6 else 0.14, 1, 1))
     return _save(fig, path, dpi)
+
+
+def _error_bars(ax, xs: np.ndarray, ys: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Each bar's 95 % interval (block bootstrap) as an error bar, as the paper's Figs. 3-4 would have it;
+    returns the highest upper bound (0 without one)."""
+    has = np.isfinite(ys) & np.isfinite(lo) & np.isfinite(hi)
+    if not has.any():
+        return 0.0
+    err = np.vstack([ys[has] - lo[has], hi[has] - ys[has]]).clip(min=0.0)
+    ax.errorbar(xs[has], ys[has], yerr=err, fmt="none", ecolor="0.15", elinewidth=0.8, capsize=1.5)
+    return float(np.nanmax(hi[has]))
+
+
+def _floor_lines(ax, terrains: Sequence[str], split: str, floor: Mapping[tuple[str, str], float]) -> None:
+    """The floor (the ground truth's own velocities) as a black line across each terrain's group."""
+    for j, ter in enumerate(terrains):
+        fv = floor.get((ter, split))
+        if fv is not None and np.isfinite(fv):
+            ax.hlines(fv, j - 0.42, j + 0.42, colors="k", linewidth=1.2,
+                      label="floor (ground truth)" if j == 0 else None)  # fmt: skip
 
 
 # -- Fig. 5 -----------------------------------------------------------------------------------------

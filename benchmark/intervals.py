@@ -156,8 +156,8 @@ class Sample:
     """Everything a set of statistics is computed from: strata of windows, each with its blocks and the
     block sums of its columns (``add``), and the bootstrap weights of each stratum (``weights``)."""
 
-    def __init__(self, cfg: IntervalConfig | None = None) -> None:
-        self.cfg = cfg or IntervalConfig()
+    def __init__(self, settings: IntervalConfig | None = None) -> None:
+        self.cfg = settings or IntervalConfig()
         self.strata: dict[str, Stratum] = {}
         self._weights: dict[str, np.ndarray] = {}
 

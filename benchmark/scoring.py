@@ -150,7 +150,7 @@ def summarise(
 
 
 def metric_intervals(
-    windows: pd.DataFrame, split: str, horizon_s: float, cfg: IntervalConfig
+    windows: pd.DataFrame, split: str, horizon_s: float, settings: IntervalConfig
 ) -> dict[str, float]:
     """``<key>_ci_lo``, ``<key>_ci_hi`` (rounded as the value is) and the blocks behind each metric with a
     bootstrap, on the windows of one split at one horizon (:mod:`skidbench.benchmark.intervals`; a
@@ -164,7 +164,7 @@ def metric_intervals(
                 out.update({lo: float("nan"), hi: float("nan"), blocks: 0.0})
         return out
     key = stratum_key(split, horizon_s, windows["sequence"])
-    sample = Sample(cfg)
+    sample = Sample(settings)
     sample.add(key, windows["sequence"], windows["t0"].to_numpy(float),
                {m.name: m.bootstrap.scale * m.window_values(windows) for m in metrics}, horizon_s,
                {m.name: m.bootstrap.aggregation for m in metrics})  # fmt: skip

@@ -99,13 +99,12 @@ def _metrics_of(w: pd.DataFrame) -> list[mt.Metric]:
 def build(
     windows: Mapping[tuple[str, str], pd.DataFrame],
     horizon_s: float,
-    cfg: iv.IntervalConfig | None = None,
+    settings: iv.IntervalConfig | None = None,
     rank_by: str = AGGREGATE,
 ) -> Standings:
     """Every statistic of a board from its windows (:func:`read_windows`), ranked by ``rank_by``
     (:data:`AGGREGATE`, or ``<split>_<short>`` of a headline metric: its mean over terrains)."""
-    cfg = cfg or iv.IntervalConfig()
-    sample = iv.Sample(cfg)
+    sample = iv.Sample(settings or iv.IntervalConfig())
     terrains = sorted({t for _, t in windows})
     models = _order([m for m, _ in windows if m != FLOOR])
     has_floor = any(m == FLOOR for m, _ in windows)
@@ -158,18 +157,7 @@ def build(
         return (iv.mean_of(name, parts), "") if parts else (None, "no score")
 
     overall = _rank_rows(sample, models, has_floor, terrains, agg_stat, "overall")
-    for m_name in paper:  # the means over terrains of the paper's metrics, shown beside the aggregate
-        for split in SPLITS:
-            stats = {}
-            for model in everyone:
-                parts = [cell_stats.get((model, t, split, m_name)) for t in terrains]
-                if all(p is not None for p in parts) and parts:
-                    stats[model] = iv.mean_of(f"{model}|{m_name}|{split}", parts)
-            res = iv.estimate(sample, list(stats.values())).set_index("stat") if stats else None
-            for col in ("estimate", "lo", "hi"):
-                overall[f"{m_name}|{split}|{col}"] = [
-                    float(res.loc[stats[m].name, col]) if m in stats else np.nan for m in overall["model"]
-                ]
+    _terrain_means(sample, cell_stats, everyone, terrains, paper, overall)
     per_terrain = pd.concat(
         [_rank_rows(sample, models, has_floor, [t], agg_stat, t).assign(terrain=t) for t in terrains],
         ignore_index=True,
@@ -182,6 +170,23 @@ def build(
     for t in terrains:
         claim[t] = _claim(sample, cell_stats, models, [t])
     return Standings(cells, overall, per_terrain, verdicts, claim, rank_by)
+
+
+def _terrain_means(sample, cell_stats, everyone, terrains, paper, overall: pd.DataFrame) -> None:
+    """Adds to ``overall`` the means over terrains of the paper's metrics with their intervals
+    (``<metric>|<split>|estimate``, ``|lo``, ``|hi``), shown beside the aggregate."""
+    for m_name in paper:
+        for split in SPLITS:
+            stats = {}
+            for model in everyone:
+                parts = [cell_stats.get((model, t, split, m_name)) for t in terrains]
+                if all(p is not None for p in parts) and parts:
+                    stats[model] = iv.mean_of(f"{model}|{m_name}|{split}", parts)
+            res = iv.estimate(sample, list(stats.values())).set_index("stat") if stats else None
+            for col in ("estimate", "lo", "hi"):
+                overall[f"{m_name}|{split}|{col}"] = [
+                    float(res.loc[stats[m].name, col]) if m in stats else np.nan for m in overall["model"]
+                ]
 
 
 def _order(models: Sequence[str]) -> list[str]:

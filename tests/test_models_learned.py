@@ -295,7 +295,7 @@ def test_a_seeded_model_refits_with_another_seed_without_touching_its_saved_fit(
     """evaluate seeds=N (docs/intervals.md, "Seeds"): a model with a ``seed`` option is refitted with
     another seed on the same Train table; its inducing points differ, the saved fit stays the configured
     seed's, and a deterministic model declares no seed."""
-    from skidbench.models.fitting import fit_with_seed, is_seeded
+    from skidbench.models.fitting import is_seeded, refit_from_cfg
 
     write_train_splits(tmp_path, jackal, terrains=("tile",), n=800)
     cfg = compose_fit(
@@ -305,12 +305,13 @@ def test_a_seeded_model_refits_with_another_seed_without_touching_its_saved_fit(
     )  # fmt: skip
     res = fit_model(cfg, "gp_residual", "tile")
     saved = res.path.read_bytes()
-    other = fit_with_seed(cfg, "gp_residual", "tile", 1)
+    refit = refit_from_cfg(cfg, "gp_residual", "tile")
+    other = refit.fit(1)
     assert is_seeded(res.model) and other.options["seed"] == 1 and res.model.options["seed"] == 0
     assert set(other.arrays) == set(res.model.arrays)
     assert any(not np.array_equal(other.arrays[k], res.model.arrays[k]) for k in other.arrays)
     assert res.path.read_bytes() == saved and fit_model(cfg, "gp_residual", "tile").reused
-    same = fit_with_seed(cfg, "gp_residual", "tile", 0)  # the configured seed: the saved fit, again
+    same = refit.fit(0)  # the configured seed: the saved fit, again
     tab = command_table(jackal, 300, seed=5)
     assert np.allclose(same.predict(tab), res.model.predict(tab))
     edd_cfg = compose_fit(tmp_path, ["model=edd", "terrain=tile", "calibrate.use=false"])
