@@ -297,9 +297,8 @@ def detail_table(
     """One row per (model, terrain): every metric, the windows behind it, and for a metric with an interval
     its bounds and independent blocks (``<label> lo``, ``<label> hi``, ``<label> blocks``, as evaluate
     logged them); fit and predict numbers, the run, the reason of a failure. With ``standings``: the
-    ranking aggregate on the terrain with its interval, rank and standing, and the floor's rows."""
-    if standings is not None and FLOOR not in set(board["model"]):
-        board = _with_floor_rows(board, horizon_s, standings)
+    ranking aggregate on the terrain with its interval, rank and standing, and the floor of the row's
+    terrain (``floor <label>``: added columns; the report shows the floor's own rows: report_detail)."""
     models = [_marked(m, board.loc[[i]]) for i, m in zip(board.index, board["model"], strict=True)]
     out = pd.DataFrame({"model": models, "inputs": board["inputs"], "terrain": board["terrain"],
                         "status": board["status"]})  # fmt: skip
@@ -327,12 +326,28 @@ def detail_table(
             out[name] = [float(pt.loc[k, col]) if k in pt.index else np.nan for k in keys]
         out["rank on terrain"] = [str(pt.loc[k, "rank"]) if k in pt.index else "" for k in keys]
         out["standing on terrain"] = [str(pt.loc[k, "standing"]) if k in pt.index else "" for k in keys]
+        floor = standings.cells[standings.cells["model"] == FLOOR].set_index(["terrain", "split", "metric"])
+        for metric in mt.PAPER:  # the floor of the row's terrain, beside the model's value
+            for split in SPLITS:
+                at = [(t, split, metric.name) for t in board["terrain"]]
+                out[f"floor {metric.column_label(split)}"] = [
+                    float(floor.loc[k, "estimate"]) if k in floor.index else np.nan for k in at
+                ]
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]
     out["run"] = board["run_id"].str[:8]
     out["reason"] = board["reason"]
     return out
+
+
+def report_detail(board: pd.DataFrame, horizon_s: float, standings: st.Standings | None) -> pd.DataFrame:
+    """The report's per-terrain table: :func:`detail_table` with the floor's own rows (status
+    ``reference``) after the models'."""
+    if standings is None:
+        return detail_table(board, horizon_s)
+    detail = detail_table(_with_floor_rows(board, horizon_s, standings), horizon_s, standings)
+    return detail.drop(columns=[c for c in detail.columns if c.startswith("floor ")])
 
 
 def _with_floor_rows(board: pd.DataFrame, horizon_s: float, standings: st.Standings) -> pd.DataFrame:
@@ -642,10 +657,8 @@ def leaderboard_texts(
     (model, terrain) with every metric and the provenance of its run (:func:`boards.provenance`: run id,
     options digest, versions, ...); the Markdown ``header`` lines, the ranked means over terrains, then
     the rows with their run, options digest, model code and skidbench commit. With ``standings``: ranked
-    by the ranking rule, every cell with its interval (added CSV columns), and the floor's rows."""
+    by the ranking rule, every cell with its interval and the terrain's floor (added CSV columns)."""
     summary = summary_table(board, horizon_s, rank_by, standings)
-    if standings is not None:
-        board = _with_floor_rows(board, horizon_s, standings)
     detail = detail_table(board, horizon_s, standings).drop(columns=["run"])
     prov = brd.provenance(runs).drop(columns=["reproduce"])
     rows = pd.concat([detail, board[["run_id"]]], axis=1).merge(prov, on="run_id", how="left")
@@ -709,7 +722,7 @@ def run_compare(cfg: Any) -> CompareResult:
     summary = summary_table(board, horizon, str(cfg.rank_by), standings)
     parents = sel.Selection(protocol, horizon, runs).parents if parent is None else [parent]
     links = ui_links(cfg, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
-    detail = detail_table(board, horizon, standings)
+    detail = report_detail(board, horizon, standings)
     out = layout.reports
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []

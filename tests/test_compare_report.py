@@ -55,10 +55,11 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
                for line in lb)  # fmt: skip
     assert any(line.startswith("|  | floor |") and "reference" in line for line in lb)
     csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
-    assert set(csv["model"]) == {"chi", "ideal_t", "broken", "floor"} and len(csv) == 8
+    assert set(csv["model"]) == {"chi", "ideal_t", "broken"} and len(csv) == 6
     assert (csv[csv["model"] == "broken"]["status"] == "FAILED").all()
-    assert (csv[csv["model"] == "floor"]["status"] == "reference").all()
-    assert {"trans LD % lo", "trans LD % hi", "trans LD % blocks"} <= set(csv.columns)  # added columns
+    # added columns: each cell's interval and blocks, the terrain's floor
+    assert {"trans LD % lo", "trans LD % hi", "trans LD % blocks", "floor trans LD %"} <= set(csv.columns)
+    assert (csv["floor trans LD %"] < csv[csv["model"] == "chi"]["trans LD %"].min()).all()
     chi = csv[csv["model"] == "chi"]
     assert (chi["trans LD % lo"] <= chi["trans LD %"]).all() and (
         chi["trans LD %"] <= chi["trans LD % hi"]
@@ -133,7 +134,7 @@ def test_select_an_older_parent_a_filter_or_every_run(two_evaluations):
         compose("compare", out, ["parent_run_id=null", only, "figures.enabled=false", "log_to_mlflow=false"])
     )
     csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
-    assert len(csv) == 8  # the latest run of each (model, terrain) across both commanded evaluations, floor
+    assert len(csv) == 6  # the latest run of each (model, terrain) across both commanded evaluations
     assert set(csv["inputs"]) == {"commanded"}
 
 
