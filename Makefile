@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce test test-fast lint clean bench discover mlflow-ui lock
+.PHONY: setup reproduce readme-numbers test test-fast lint clean bench discover mlflow-ui lock
 
 setup: $(STAMP)
 
@@ -73,6 +73,13 @@ endif
 	$(SKB) evaluate $(SRC_ARGS)
 	$(SKB) evaluate $(SRC_ARGS) inputs=response
 	$(SKB) compare $(SRC_ARGS)
+
+# `make readme-numbers OUT=<dir>` after `make reproduce OUT=<dir>` (a fresh root, the default mini scale):
+# the record of that run's leaderboards (docs/results/reproduce-mini.json: per protocol and model the
+# README's four numbers, with the run ids, commit and versions) and the README block to paste after its
+# marker; tests/test_readme_numbers.py checks the README against the record.
+readme-numbers: setup
+	$(BIN)/python tests/readme_numbers.py $(OUT)
 
 # `make discover`: discrepancy discovery from the extended differential drive (model=edd) on the same data
 # (default: the simulated mini dataset) -> $(OUT)/<dataset>/discovery/{discovery.json,discovery.png}; then
