@@ -5,8 +5,9 @@
 
 Generates datasets whose truth is known (``tests/discover_data.py``: the extended differential drive plus
 exactly the hidden effects, in physical form) in two worlds, runs the search of ``skidbench discover``
-(base ``edd``, default settings, the split stage's own code between the generator and the search) on
-each, and counts per set how often the answer is exact:
+(base ``edd`` with the radius ``calibrate`` finds on the Train tables, default settings, the split
+stage's own code between the generator and the search) on each, and counts per set how often the answer
+is exact:
 
 * ``clean``: nothing hidden; exact = nothing named. Over seeds, noise levels of the ground truth (VO-like
   drift and jitter at 0.5x, 1x, 2x) and drive styles (the generator's mixed joystick, a gentle one);
@@ -159,6 +160,19 @@ def tables(c: dict[str, Any]) -> list[tuple[Any, dict]]:
     return out
 
 
+def calibrated(spec, train: list[tuple[Any, dict]]):
+    """The robot ``calibrate`` makes of these Train tables for ``edd`` (its effective radius; the split's
+    commands on settled straight rows, as for data without encoders), as ``skidbench discover`` on a
+    dataset's own splits gives it to the base model."""
+    from skidbench.models.base import calibrated_constants
+    from skidbench.models.specs import get_model_class
+    from skidbench.pipeline.calibration import CalibrationSettings, calibrate_table, calibrated_robot
+    from skidbench.pipeline.schema import concat_sequences
+
+    doc = calibrate_table(concat_sequences(train), spec, CalibrationSettings())
+    return calibrated_robot(spec, doc, calibrated_constants(get_model_class("edd")))
+
+
 def exact(c: dict[str, Any], effects: list[str], terms: list[str]) -> bool:
     """Whether the answer is the truth (module docstring)."""
     if c["set"].startswith("clean"):
@@ -183,8 +197,10 @@ def run_case(c: dict[str, Any]) -> dict[str, Any]:
     edd = get_model_class("edd")
     s = DiscoverSettings()
     try:
-        pool = prepare_pool(build_pool(tables(c), s), "commanded", jackal)
-        res = discover_terrain(pool, lambda: edd(jackal), jackal, s, "tile", "edd", progress=lambda m: None)
+        train = tables(c)
+        robot = calibrated(jackal, train)  # as discovery on a dataset's own splits takes its base's radius
+        pool = prepare_pool(build_pool(train, s), "commanded", jackal)
+        res = discover_terrain(pool, lambda: edd(robot), robot, s, "tile", "edd", progress=lambda m: None)
     except DiscoverError as exc:
         return {**c, "id": case_id(c), "error": str(exc)}
     steps = [

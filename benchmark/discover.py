@@ -401,10 +401,13 @@ def _score_catalogue(run: _Search, candidates: tuple[str, ...]) -> Scored:
 
 
 def _excluded_forms(run: _Search) -> tuple[str, ...]:
-    """Library forms not searched: the terms already added and the equivalents of the catalogue effects
-    already added (the same residual under another name)."""
-    eq = [f for f, e in termlib.CATALOGUE_EQUIVALENTS.items() if e in run.effects]
-    return tuple(t.form for t in run.terms) + tuple(eq)
+    """Library forms not searched: the terms already added, the equivalents of the catalogue effects
+    already added (the same residual under another name) and, when the held-out units are time blocks
+    of a few sequences, the forms that are functions of sequence time (:func:`terms.time_forms`: blocks
+    of one sequence share its ground truth's slow drift, so they cannot test a change over time)."""
+    eq = [f for e in run.effects for f in termlib.equivalent_forms(e)]
+    timed = termlib.time_forms() if run.pool.blocks else []
+    return tuple(t.form for t in run.terms) + tuple(eq) + tuple(timed)
 
 
 def _fold_screens(run: _Search) -> termlib.FoldScreens:
@@ -493,7 +496,7 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
     """The candidate to add, as (kind, id, equivalent terms) with kind "catalogue" or "term"; None when
     none passes. The interpretable name wins a tie: the passing catalogue effect of largest penalised gain
     is named unless a passing term is significantly better (:func:`significantly_better`); a term
-    that is a reparametrisation of a passing catalogue effect (``terms.CATALOGUE_EQUIVALENTS``) names
+    that states a passing catalogue effect in other words (``terms.catalogue_equivalent``) names
     that effect. The terms that explain the named effect's residual as well are listed as its
     equivalents."""
     best_c = _best_catalogue(scored, "passes")
@@ -505,7 +508,7 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
         ev_c, ho_c = scored[eid]
         out = []
         for k, (ev, ho, _, _) in scored_t.items():
-            same = termlib.CATALOGUE_EQUIVALENTS.get(k) == eid
+            same = termlib.catalogue_equivalent(k) == eid
             if same or (ev["passes"] and not significantly_better(ev, ho, ev_c, ho_c, run.settings)):
                 out.append({"term": k, "heldout_gain": ev["heldout_gain"], "p_search": ev.get("p_search"),
                             "reparametrisation": same})  # fmt: skip
@@ -519,9 +522,9 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
     if not better:
         return ("catalogue", best_c, equivalents(best_c))
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
-    eid = termlib.CATALOGUE_EQUIVALENTS.get(name)
+    eid = termlib.catalogue_equivalent(name)
     if eid is not None and eid in scored and scored[eid][0]["passes"]:
-        run.say(f"[{run.terrain}]   {name} is {eid} reparametrised: named {eid}")
+        run.say(f"[{run.terrain}]   {name} states {eid} in another form: named {eid}")
         return ("catalogue", eid, equivalents(eid))
     if best_c is not None:
         run.say(f"[{run.terrain}]   {best_c} not named: {name} is significantly better")

@@ -72,6 +72,38 @@ CATALOGUE_EQUIVALENTS = {
     "lin.rim_l.wz": "side_asymmetry",
     "lin.rim_r.wz": "side_asymmetry",
 }
+
+
+def catalogue_equivalent(form: str) -> str | None:
+    """The catalogue effect a library form (``family.signal.channel``) states in other words, if any: the
+    explicit reparametrisations of :data:`CATALOGUE_EQUIVALENTS`, and a yaw-rate change that is a
+    function of the commanded curvature and the speeds (``kappa`` in its signal, no acceleration or
+    time), which is ``curvature_dependent_icr``'s statement that chi depends on the turning radius
+    (1 / kappa) in another functional form."""
+    if form in CATALOGUE_EQUIVALENTS:
+        return CATALOGUE_EQUIVALENTS[form]
+    fam, rest = form.split(".", 1)
+    signal, channel = rest.rsplit(".", 1)
+    factors = signal.split("*")
+    static = {"kappa", "v", "w", "|v|", "|w|", "vx_pred", "wz_pred", "sgn_v", "sgn_w"}  # no rates, no time
+    if fam == "lin" and channel == "wz" and "kappa" in factors and set(factors) <= static:
+        return "curvature_dependent_icr"
+    return None
+
+
+def time_forms() -> list[str]:
+    """The library forms that are functions of time within the sequence (``t`` in the signal, the
+    ``after`` family): within one sequence a ground truth's own slow drift (a visual odometry's scale and
+    heading) is such a function too, so they are searched only when the held-out units are whole,
+    independent sequences."""
+    return [t.form for t in library_groups() if t.family == "after" or "t" in t.signal.split("*")]
+
+
+def equivalent_forms(effect: str) -> list[str]:
+    """Every library form that states the catalogue effect ``effect`` (:func:`catalogue_equivalent`)."""
+    return [t.form for t in library_groups() if catalogue_equivalent(t.form) == effect]
+
+
 _UNITS = {
     "v": "m/s",
     "|v|": "m/s",
