@@ -20,6 +20,7 @@ import datetime as dt
 import html
 import json
 import re
+import tempfile
 from dataclasses import dataclass, field
 from importlib.resources import files
 from pathlib import Path
@@ -36,6 +37,8 @@ from skidbench.pipeline.layout import Layout
 
 from . import boards as brd
 from . import compare as cmp
+from . import figures as figs
+from . import metrics as mt
 from . import tracking as trk
 
 PROTOCOL_TITLES = {
@@ -230,18 +233,12 @@ def _figure(path: Path, caption: str) -> str:
 
 
 def _protocol_figures(board: brd.Board, tmp: Path, dpi: int) -> list[str]:
-    from . import figures as figs
-
     out = []
     ok = board.rows
-    for kind, n in (("translational", 3), ("rotational", 4)):
-        path = tmp / f"fig{n}_{board.protocol}.png"
-        figs.rmsre_bars(ok, kind, board.horizon, cmp.SPLITS, path, dpi)
-        out.append(
-            _figure(
-                path, f"Fig. {n}: {kind} RMSRE per model, terrain and test split (inputs={board.protocol})"
-            )
-        )
+    for m in (m for m in mt.METRICS if m.figure is not None):  # Figs. 3, 4 and every metric with a figure
+        path = tmp / f"{Path(m.figure.file).stem}_{board.protocol}.png"
+        figs.metric_bars(ok, m, board.horizon, cmp.SPLITS, path, dpi)
+        out.append(_figure(path, f"{m.figure.caption} (inputs={board.protocol})"))
     return out
 
 
@@ -399,8 +396,6 @@ def write_index(site: Path) -> Path:
 def publish(cfg: Any, layout: Layout, rec: dict[str, Any], tracker: trk.Tracker, site: Path) -> PublishResult:
     """Writes ``<site>/<dataset>/index.html`` (and the board CSVs, ``site.json``) and
     ``<site>/index.html``."""
-    import tempfile
-
     boards = brd.all_boards(tracker)
     if not boards:
         raise PublishError(
