@@ -108,8 +108,13 @@ mlflow-ui: setup
 # The Ray tests need the optional `cluster` extra: installed best-effort, once per pyproject.toml change;
 # where it cannot be installed those tests are skipped with the reason.
 CLUSTER_STAMP := $(VENV)/.skidbench-cluster
-$(CLUSTER_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(LOCK)) -e '.[dev,cluster]' \
+# The lock's pins as constraints without their hashes (pip refuses an editable install beside hashed
+# constraints): the extra's own packages resolve freely, everything the lock pins keeps its version.
+CONSTRAINTS := $(VENV)/constraints.txt
+$(CONSTRAINTS): $(STAMP)
+	grep -E '^[A-Za-z0-9_.-]+==' $(LOCK) | sed 's/ *\\$$//' > $@
+$(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,cluster]' \
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 

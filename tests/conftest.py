@@ -109,7 +109,7 @@ XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
 #: curvature_dependent_icr case are the two longest units.
 XDIST_FIRST = (
     "readme_reproduce",
-    "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_first_and_shrinks_the_gap"
+    "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
     "[curvature_dependent_icr]",
 )
 
