@@ -385,6 +385,7 @@ def test_the_real_bag_copied_and_damaged(shared_real, tmp_path):
     assert code == 2 and "re-run skidbench extract" in line, err
 
 
+@pytest.mark.slow
 def test_a_refused_robot_leaves_the_dataset_as_it_was_and_the_right_one_runs(prepared, tmp_path):
     """A Husky recording extracted and split as a Husky, then extracted as a Warthog: refused in one line
     before anything is written, no failure recorded (nothing it left is stale), and `evaluate robot=husky`
