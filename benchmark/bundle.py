@@ -448,7 +448,7 @@ def import_bundle(
     (default name: the exported dataset's). Importing the same bundle again changes nothing; a folder
     holding another dataset is refused unless ``replace``."""
     folder = Path(folder).expanduser().resolve()
-    verify(folder)
+    sums = verify(folder)
     doc = _read_doc(folder)
     name = str(name or doc["dataset"]["name"])
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
@@ -473,6 +473,10 @@ def import_bundle(
     try:
         seqs = []
         for s in doc["sequences"]:
+            if s["file"] not in sums:
+                raise BundleError(
+                    f"{folder / 'bundle.json'}: sequence {s['name']}'s file {s['file']} is not in {SUMS}"
+                )
             src = _safe_rel(folder, s["file"])
             out = tmp.split_file(s["terrain"], s["split"], s["name"])
             out.parent.mkdir(parents=True, exist_ok=True)
