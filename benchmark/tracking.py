@@ -48,6 +48,7 @@ from skidbench.pipeline.io import process_alive
 from skidbench.pipeline.layout import Layout
 
 from .horizon import EvaluationError
+from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,6 @@ EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI
 TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
 #: what `make mlflow-ui` serves; links printed for a local (SQLite) store point there
 DEFAULT_UI_URL = "http://127.0.0.1:5000"
-SHORT = {"translational": "trans", "rotational": "rot"}
 
 
 @functools.cache
@@ -176,26 +176,6 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
             s = "null" if v is None else str(v)
             out[key] = s if len(s) <= MAX_PARAM_LEN else s[: MAX_PARAM_LEN - 3] + "..."
     return out
-
-
-def metric_key(kind: str, split: str, horizon_s: float) -> str:
-    """``ld_6s_trans_rmsre_pct``: RMSRE in percent of ``kind`` (translational | rotational) on a test split
-    at a horizon; the metric names evaluate logs and compare, the leaderboard and the UI's columns read."""
-    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_rmsre_pct"
-
-
-def windows_key(kind: str, split: str, horizon_s: float) -> str:
-    """``ld_6s_trans_windows``: how many windows the RMSRE :func:`metric_key` names is over."""
-    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_windows"
-
-
-def rank_key(rank_by: str, horizon_s: float) -> str:
-    """The metric of ``rank_by`` = ``<split>_<trans|rot>`` (e.g. ``ld_trans``) at ``horizon_s``."""
-    split, _, short = str(rank_by).partition("_")
-    kinds = {v: k for k, v in SHORT.items()}
-    if short not in kinds or not split:
-        raise EvaluationError(f"rank_by={rank_by!r}: expected <split>_<trans|rot>, e.g. ld_trans")
-    return metric_key(kinds[short], split, horizon_s)
 
 
 def source_tags() -> dict[str, str]:

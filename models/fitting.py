@@ -16,6 +16,7 @@ import copy
 import dataclasses
 import functools
 import json
+import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -38,6 +39,8 @@ from .base import KinematicModel, ModelError, calibrated_constants
 from .registry import DISCOVERED, discover
 from .saved import arrays_file, from_saved, save_arrays
 from .specs import get_model_class
+
+log = logging.getLogger(__name__)
 
 FIT_SCHEMA = 2  # 2: fitted under an input protocol (``inputs``, pipeline/protocol.py)
 
@@ -216,8 +219,21 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
             f"model {DISCOVERED}: {path} was found under inputs={found_under}, this run is inputs={inputs}; "
             f"run `skidbench discover inputs={inputs}` (or evaluate it under inputs={found_under})"
         )
+    sel = entry.get("selected_on") or {}
+    seen = [s for s in sel.get("splits", []) if s != "train"]
+    if seen or "added to the pool" in str((entry.get("base") or {}).get("pool_note") or ""):
+        raise ModelError(  # a discovery made before selection kept to Train (CV/LD added to its pool) too
+            f"model {DISCOVERED}: {path} selected terrain {terrain}'s effects on its "
+            f"{'/'.join(seen) or 'CV/LD'} sequences too, so its score there would not be held out; "
+            "run `skidbench discover` (it selects on Train only) again"
+        )
     spec = "+".join([base, *effects])
-    return spec, {"discovery": str(path), "spec": spec, "message": entry.get("message", "")}
+    return spec, {
+        "discovery": str(path),
+        "spec": spec,
+        "message": entry.get("message", ""),
+        "selected_on": sel.get("text", "train"),
+    }
 
 
 def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse | None]:
@@ -402,12 +418,38 @@ def fit_model(
         raise ModelError(f"model {model_name}: parameters are not JSON-serialisable ({exc})") from exc
     if not arrays and apath.is_file():
         apath.unlink()  # a refit without arrays leaves no stale file
+    for line in fit_findings(data):  # a fit at a bound is a finding (compare notes it too)
+        log.warning("%s on %s: %s", model_name, terrain, line)
     result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train)
     for hook in hooks:
         hook(result, cfg, model_name, terrain)
     # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date
     plan.stamp.record(plan.key, [path, *([apath] if arrays else [])])
     return result
+
+
+def fit_findings(data: dict[str, Any]) -> list[str]:
+    """What a saved fit (its JSON) records as findings: each parameter that ended at a bound
+    (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
+    out = []
+    for f in (data.get("fit_info") or {}).get("at_bound") or []:
+        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {f['bound']:g})")
+    return out
+
+
+def board_findings(layout: Any, rows: Sequence[tuple[str, str]], inputs: str = "commanded") -> list[str]:
+    """The findings of the fits behind a board's (model, terrain) rows, one line per model and finding
+    naming the terrains and values (``roc degenerates to edd on this data: b2 at its bound (grass: b2 =
+    6e-25; tile: ...)``): what ``compare`` notes under the board and in the report."""
+    found: dict[tuple[str, str], list[str]] = {}
+    for model, terrain in sorted(set(rows)):
+        try:
+            data = json.loads(layout.fit_file(model, terrain, inputs).read_text())
+        except (OSError, ValueError):
+            continue
+        for f in (data.get("fit_info") or {}).get("at_bound") or []:
+            found.setdefault((model, f["finding"]), []).append(f"{terrain}: {f['param']} = {f['value']:.2g}")
+    return [f"{finding} ({'; '.join(where)})" for (_, finding), where in found.items()]
 
 
 def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:

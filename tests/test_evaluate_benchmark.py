@@ -191,7 +191,7 @@ def _constant_twist_sequence(name: str, n: int, rate_hz: float, v: float, w: flo
     (no slip): the ideal model's prediction."""
     from _bench_data import JACKAL
 
-    from skidbench.benchmark.evaluate import TestSequence
+    from skidbench.benchmark.scoring import TestSequence
     from skidbench.pipeline.geometry import integrate_body_velocity
 
     t = np.arange(n) / rate_hz
@@ -212,8 +212,8 @@ def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_
     minimum rotation: no rotational window, RMSRE NaN); an arc of 0.5 rad/s turns by 3 rad in 6 s."""
     from _bench_data import JACKAL, IdealModel
 
-    from skidbench.benchmark.evaluate import predict_and_score
     from skidbench.benchmark.horizon import HorizonConfig
+    from skidbench.benchmark.scoring import predict_and_score
 
     rate, h = 30.0, 6.0
     tests = {

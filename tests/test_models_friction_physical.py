@@ -245,7 +245,7 @@ def test_drive_husky_fit_under_response_keeps_every_parameter_off_its_bounds(dri
 def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
     from types import SimpleNamespace
 
-    from skidbench.benchmark.evaluate import fit_quality_metrics
+    from skidbench.benchmark.fit_record import fit_quality_metrics
 
     info = {
         "param_bound_margin": {"mu_r": 0.3},
