@@ -21,6 +21,7 @@ import pytest
 from browser import CHROMIUM, console_messages, run_chromium, text_of
 from doc_blocks import REPO, doc_env
 
+from skidbench.benchmark import metrics as mt
 from skidbench.benchmark.bundle import BundleError, verify
 from skidbench.pipeline.protocol import INPUT_COLUMNS, TARGET_COLUMNS
 
@@ -32,7 +33,15 @@ MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_b
 #: solver, a learned one with fitted arrays): the cost of the test; every built-in model was measured by hand
 #: (docs/publishing.md, "Measured")
 ROUND_TRIP = ("ideal", "friction", "gp_residual")
+#: every metric evaluate logs at the 6 s horizon, and the window counts behind them (benchmark/metrics.py)
+CELLS = [
+    k for m in mt.METRICS for s in ("cv", "ld") for k in (m.metric_key(s, 6.0), m.windows_key(s, 6.0)) if k
+]
 SKB = str(Path(sys.executable).parent / "skidbench")
+#: every metric evaluate logs at the 6 s horizon, and the window counts behind them (benchmark/metrics.py)
+CELLS = [
+    k for m in mt.METRICS for s in ("cv", "ld") for k in (m.metric_key(s, 6.0), m.windows_key(s, 6.0)) if k
+]
 
 
 def skb(*args: str, out: Path, cwd: Path | None = None, ok: bool = True) -> subprocess.CompletedProcess:
@@ -144,11 +153,8 @@ def test_the_imported_bundle_evaluated_again_gives_the_exported_board_cell_for_c
     layout = Layout(imported, DS)
     tracker = Tracker(layout.mlflow_uri, f"skidbench-{DS}", dataset_id=read_record(layout)["fingerprint"])
     again = brd.protocol_board(tracker, "commanded").rows
-    cells = [
-        c
-        for c in exported.columns
-        if c.endswith(("_rmsre_pct", "_windows")) or c.startswith(("coverage", "nll"))
-    ]
+    cells = [c for c in CELLS if c in exported]
+    assert len(cells) >= 12  # RMSRE, end-position RMSE and their windows on CV and LD, at least
     key = ["model", "terrain"]
     a = exported[exported["model"].isin(ROUND_TRIP)].set_index(key).sort_index()
     b = again.set_index(key).sort_index()
@@ -196,8 +202,8 @@ def test_scored_predictions_of_the_ideal_model_equal_its_plugin_cell_for_cell(im
         ["sha256sum", str(ideal_predictions)], capture_output=True, text=True
     ).stdout.split()[0]
     assert set(ext["predictions_sha256"]) == {sha} and set(ext["version"]) == {"external"}
-    cells = [c for c in rows.columns if c.endswith(("_rmsre_pct", "_windows"))]
-    assert len(cells) == 8
+    cells = [c for c in CELLS if c in rows and plugin[c].notna().all()]  # the ideal model has no covariance
+    assert len(cells) >= 12
     for c in cells:
         assert ext[c].to_numpy(float).tolist() == plugin[c].to_numpy(float).tolist(), c
     # compare ranks it with the others
