@@ -27,6 +27,7 @@ import hashlib
 import logging
 import re
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_parquet_atomic
 from skidbench.pipeline.layout import Layout
@@ -202,8 +204,6 @@ def align(
 # -- the settings every row of the board is scored with -----------------------------------------------
 def evaluate_defaults() -> dict[str, Any]:
     """``splits``, ``horizons``, ``min_distance_m``, ``min_rotation_deg`` of the packaged evaluate.yaml."""
-    from importlib.resources import files
-
     from omegaconf import OmegaConf
 
     conf = OmegaConf.create((files("skidbench.conf") / "evaluate.yaml").read_text())
@@ -324,7 +324,8 @@ def _log(
     from mlflow.exceptions import MlflowException
 
     cmd = f"skidbench score {layout.dataset} --predictions {path} inputs={protocol} score.name={name}"
-    common = {trk.TAG_DATASET: layout.dataset, trk.TAG_GIT: trk.git_commit(), trk.TAG_INPUTS: protocol}
+    common = {trk.TAG_DATASET: layout.dataset, **provenance.run_tags(), trk.TAG_GIT: trk.git_commit(),
+              trk.TAG_INPUTS: protocol}  # fmt: skip
     params = {
         "splits": str(settings["splits"]),
         "horizons": str([float(h) for h in settings["horizons"]]),

@@ -13,11 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from skidbench.models import fitting
+from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.wheel_response import WheelResponse
 
 from . import tracking as trk
-from .horizon import EvaluationError
 from .scoring import TestSequence
 
 log = logging.getLogger(__name__)
@@ -47,12 +48,16 @@ def plugin_package(model_name: str, model: Any = None) -> str:
     return "unknown"
 
 
+def model_code(model_name: str, model: Any) -> provenance.CodeIdentity:
+    """The code of a fitted model (pipeline/provenance.py): its entry point's distribution, version and
+    the digest of its package's files."""
+    ep = installed_models().get(model_name)
+    dist = ep.dist if ep is not None else None
+    return provenance.code_identity(type(model), *((dist.name, dist.version) if dist else ()))
+
+
 def default_fit_fn() -> Callable[[Any, str, str], Any]:
-    try:
-        from skidbench.models.fitting import fit_model
-    except ImportError as exc:
-        raise EvaluationError(f"model fitting is not available ({exc})") from None
-    return fit_model
+    return fitting.fit_model
 
 
 def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str, Any]:
@@ -77,16 +82,12 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
         described.update({f"wheel_response.{k}": v for k, v in response.__dict__.items()})
     described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
     for f in (fit_json(fit).get("fit_info") or {}).get("at_bound") or []:  # a fit at a bound: a finding
-        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f['bound']:g}: {f['finding']}"
+        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f.get('bound', 'inf')}: {f['finding']}"
     return described
 
 
 def model_config(cfg, model_name: str) -> dict[str, Any] | None:
-    try:
-        from skidbench.models.fitting import model_config
-    except ImportError:  # pragma: no cover
-        return None
-    return model_config(cfg, model_name)
+    return fitting.model_config(cfg, model_name)
 
 
 def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path, seq: TestSequence) -> None:
@@ -108,7 +109,8 @@ def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path,
         example = seq.table.head(30).assign(sequence=seq.name)[list(INPUT_COLUMNS)]  # 1 s of a test sequence
         arrays = record_path.with_name(record_path.name.replace(".mlflow_model.json", ".arrays.npz"))
         arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None
-        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays)
+        requirements = provenance.requirements_of(model_code(model_name, model))  # what loading it needs
+        model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays, requirements)
     except Exception as exc:  # the benchmark's numbers stand without it: say why, on the run (and console)
         model_id = f"not logged: {type(exc).__name__}: {one_line(str(exc))[:300]}"
         if not isinstance(exc, ModelError):
@@ -150,3 +152,27 @@ def num(v: Any) -> float | None:
         return None if v is None else float(v)
     except (TypeError, ValueError):
         return None
+
+
+#: the settings of an evaluate a child run's numbers depend on (with the model's config and the protocol)
+OPTION_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "calibrate", "train_dataset",
+               "train_terrain")  # fmt: skip
+
+
+def options_tags(conf: dict[str, Any], model_conf: dict[str, Any], protocol: str) -> dict[str, str]:
+    """The run tag ``skidbench.options_digest`` (:func:`options_digest`)."""
+    from .boards import TAG_OPTIONS
+
+    return {TAG_OPTIONS: options_digest(conf, model_conf, protocol)}
+
+
+def options_digest(conf: dict[str, Any], model_conf: dict[str, Any], protocol: str) -> str:
+    """The digest (12 hex digits) of what a child run was made with besides its data and code: the
+    model's config (name, params, options), the input protocol and :data:`OPTION_KEYS` of the evaluate's
+    config. Two rows with one digest were made with the same options; it is the run's tag
+    ``skidbench.options_digest`` and a column of compare's leaderboard files."""
+    from skidbench.pipeline.io import fingerprint_obj
+
+    return fingerprint_obj(
+        {"model": model_conf, "inputs": protocol, **{k: conf.get(k) for k in OPTION_KEYS}}
+    )[:12]

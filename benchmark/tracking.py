@@ -32,7 +32,6 @@ import os
 import re
 import shlex
 import socket
-import subprocess
 import sys
 import time
 import urllib.error
@@ -46,6 +45,7 @@ from typing import Any
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import process_alive
 from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.provenance import git_commit, requirements_of
 
 from .horizon import EvaluationError
 from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
@@ -78,6 +78,7 @@ TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Ma
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
 TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
+INTERRUPTED = "interrupted (Ctrl-C): killed before it finished"
 #: what `make mlflow-ui` serves; links printed for a local (SQLite) store point there
 DEFAULT_UI_URL = "http://127.0.0.1:5000"
 
@@ -143,26 +144,6 @@ def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
             f"MLflow tracking server {uri} is unreachable ({reason}); start it "
             "(mlflow server --backend-store-uri ...) or unset MLFLOW_TRACKING_URI to use the local store"
         ) from None
-
-
-@functools.lru_cache(maxsize=1)
-def git_commit() -> str:
-    """The commit of the skidbench source tree ("+dirty" when it has local changes), or "unknown"."""
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
-        return sha + ("+dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -309,20 +290,6 @@ def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
                 os.environ[k] = v
 
 
-@functools.lru_cache(maxsize=1)
-def _requirements() -> list[str]:
-    """What a logged model needs to load: skidbench and MLflow at their installed versions."""
-    import importlib.metadata as md
-
-    out = []
-    for dist in ("skidbench", "mlflow"):
-        try:
-            out.append(f"{dist}=={md.version(dist)}")
-        except md.PackageNotFoundError:
-            out.append(dist)
-    return out
-
-
 class Tracker:
     """An MLflow client bound to one store and one experiment (created if absent)."""
 
@@ -464,18 +431,25 @@ class Tracker:
         self.log(run_id, tags={TAG_STATUS: "FAILED", TAG_REASON: one_line(reason)})
         self.end(run_id, "FAILED")
 
+    def kill(self, run_id: str, reason: str = INTERRUPTED) -> None:
+        """Ends a run ``KILLED`` with the reason (an interrupt: compare leaves it out, names it)."""
+        self.log(run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: one_line(reason)})
+        self.end(run_id, "KILLED")
+
     @contextlib.contextmanager
     def run(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> Iterator[str]:
-        """A run that ends FINISHED, or FAILED with the reason when the body raises (the error propagates)."""
+        """A run that ends FINISHED, FAILED with the reason when the body raises (the error propagates),
+        or KILLED when it is interrupted (Ctrl-C)."""
         run_id = self.start(run_name, tags, parent_id)
         try:
             yield run_id
-        except BaseException as exc:
-            reason = (
-                f"{type(exc).__name__}: {exc}" if not isinstance(exc, KeyboardInterrupt) else "interrupted"
-            )
+        except KeyboardInterrupt:
             with contextlib.suppress(Exception):
-                self.fail(run_id, reason)
+                self.kill(run_id)
+            raise
+        except BaseException as exc:
+            with contextlib.suppress(Exception):
+                self.fail(run_id, f"{type(exc).__name__}: {exc}")
             raise
         else:
             self.end(run_id, "FINISHED")
@@ -517,12 +491,19 @@ class Tracker:
         self.client.log_inputs(run_id, datasets=inputs)
 
     def log_model(
-        self, run_id: str, name: str, record: Path, example: Any = None, arrays: Path | None = None
+        self,
+        run_id: str,
+        name: str,
+        record: Path,
+        example: Any = None,
+        arrays: Path | None = None,
+        requirements: Sequence[str] | None = None,
     ) -> str:
         """Log a fitted model as an MLflow Model of ``run_id`` (pyfunc flavour with the protocol's
         signature, :mod:`skidbench.benchmark.mlflow_model`; ``record`` its JSON; ``example`` a few input
         rows, which MLflow stores and checks the model with); returns its model id.
-        Requirements are given, not inferred (inference loads the model in a subprocess: seconds)."""
+        Requirements are given, not inferred (inference loads the model in a subprocess: seconds):
+        ``requirements``, else skidbench's (:func:`skidbench.pipeline.provenance.requirements_of`)."""
         import mlflow
         from mlflow.models import Model
 
@@ -543,7 +524,7 @@ class Tracker:
                 artifacts={mm.ARTIFACT: str(record), **({mm.ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
                 signature=mm.signature(),
                 input_example=example,
-                pip_requirements=_requirements(),
+                pip_requirements=list(requirements or requirements_of()),
             )
         return info.model_id
 

@@ -10,11 +10,14 @@ from __future__ import annotations
 import errno
 import functools
 import importlib
+import json
 import logging
 import os
+import re
 import sys
 import tempfile
 from collections.abc import Callable
+from importlib.resources import files
 from pathlib import Path
 
 from .cache import (
@@ -26,10 +29,10 @@ from .cache import (
     inputs_changed,
     mark_failed,
 )
-from .config_schema import validate
-from .errors import ConfigError, SkidbenchError, one_line
+from .config_schema import check_value, validate
+from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
 from .imported import check_stage
-from .layout import register_resolvers
+from .layout import default_out_root, register_resolvers, remove_atomic
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -68,7 +71,7 @@ def exit_with_error(message: str, name: str | None = None) -> None:
     sys.exit(2)
 
 
-def stage(name: str, home: bool = True) -> Callable:
+def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "") -> Callable:
     """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2. The config is
     checked against the declared schema first. With ``home`` (a config with a ``source``), the dataset's
     identity is printed and its folder checked (:func:`skidbench.pipeline.dataset.open_home`), and the
@@ -77,7 +80,13 @@ def stage(name: str, home: bool = True) -> Callable:
     holding no data is removed (so ``skidbench datasets`` never lists it); a stage of ``LOCAL_PRODUCERS``
     that changed nothing in the folder (refused before its first write) while what it made before is
     still current leaves the dataset as it was;
-    otherwise the failure is recorded, and the stages downstream refuse to run until this one succeeds."""
+    otherwise the failure is recorded, and the stages downstream refuse to run until this one succeeds.
+
+    Exit statuses (pipeline/errors.py): a :class:`PartialFailure` (the stage ran to its end, some of its
+    runs failed) prints its summary and exits 3 without marking the stage failed. Ctrl-C prints one line
+    (``interrupted``: what the stage did about it) and exits 130, no traceback; the stage is marked failed
+    unless ``runs`` (its outputs are runs that record their own status, e.g. evaluate's MLflow runs marked
+    KILLED: what finished before the interrupt stays valid)."""
 
     # as Hydra's docs register resolvers: in the app, before @hydra.main composes (`python -m <app>` too)
     register_resolvers()
@@ -101,6 +110,19 @@ def stage(name: str, home: bool = True) -> Callable:
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
                 exit_with_error(str(exc), name)
+            except PartialFailure as exc:  # what succeeded is valid: downstream stages may use it
+                if root is not None:
+                    clear_failed(root, name)
+                print(f"skidbench {name}: {exc}", file=sys.stderr, flush=True)
+                sys.exit(EXIT_PARTIAL)
+            except KeyboardInterrupt:
+                if not runs:
+                    _after_failure(root, name, "interrupted (Ctrl-C)", before)
+                note = (
+                    f"; {interrupted}" if interrupted else "; re-run it to complete what it had not written"
+                )
+                print(f"\nskidbench {name}: interrupted (Ctrl-C){note}", file=sys.stderr, flush=True)
+                sys.exit(EXIT_INTERRUPTED)
             except SkidbenchError as exc:
                 _after_failure(root, name, str(exc), before)
                 exit_with_error(str(exc), name)
@@ -130,8 +152,6 @@ def _after_failure(root: Path | None, name: str, message: str, before: dict | No
     from .dataset import holds_data
 
     if not holds_data(root):
-        from .layout import remove_atomic
-
         remove_atomic(root)
         return
     if before is not None and data_state(root) == before and inputs_changed(root, name) is None:
@@ -191,7 +211,6 @@ def _preflight(name: str, args: list[str]) -> list[str]:
     with a note (so one ``ARGS`` serves every stage), every value checked against the declared schema
     (:mod:`skidbench.pipeline.config_schema`) and the output root checked writable. Returns the
     arguments to hand to Hydra; a problem is one line on stderr, exit 2."""
-    from .config_schema import check_value
     from .overrides import check_overrides, parse_value
 
     try:
@@ -256,8 +275,6 @@ def _positional_usage(name: str, keys, flags) -> str:
 
 def _quoted(value: str) -> str:
     """A value as a Hydra override reads it back unchanged (quoted when it holds grammar characters)."""
-    import re
-
     if re.fullmatch(r"[A-Za-z0-9_./:+@~-]+", value):
         return value
     return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
@@ -265,10 +282,6 @@ def _quoted(value: str) -> str:
 
 def _dataset_robot(overrides: list[str], dataset: str) -> str | None:
     """The robot of ``<out_root>/<dataset>/raw/manifest.json`` when it has a packaged config, else None."""
-    import json
-    from importlib.resources import files
-
-    from .layout import default_out_root
 
     root = next((o.split("=", 1)[1].strip("'") for o in overrides if o.startswith("out_root=")), None)
     manifest = Path(root or default_out_root()).expanduser() / dataset / "raw" / "manifest.json"

@@ -85,6 +85,10 @@ def test_metrics_params_tags_and_artifacts_of_a_child(bench):
     assert row["tags.skidbench.plugin_package"]
     assert len(row["tags.skidbench.dataset_fingerprint"]) == 32
     assert row["tags.skidbench.git_commit"]
+    # provenance: skidbench and the libraries it ran with, the platform and code paths, the model's code
+    assert row["tags.skidbench.version"] and row["tags.skidbench.env.numpy"] == np.__version__
+    assert row["tags.skidbench.env.platform"] and "openblas=" in row["tags.skidbench.env.code_paths"]
+    assert len(row["tags.skidbench.code.digest"]) == 32 and row["tags.skidbench.code.module"]
     client = mlflow.MlflowClient()
     arts = {a.path for d in ("fit", "windows", "figures") for a in client.list_artifacts(row["run_id"], d)}
     assert any(a.endswith(".params.json") for a in arts)

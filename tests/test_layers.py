@@ -1,7 +1,7 @@
 """The layers of the package run one way (CONTRIBUTING.md, "Layers"): every import, including one inside a
 function, goes to the same layer or one below, and no two modules import each other in a circle.
 
-    core        pipeline/{errors,geometry,io,cache,layout,manifest,schema,robot,protocol}
+    core        pipeline/{errors,geometry,io,cache,layout,manifest,schema,robot,protocol,constants}
     stages      the rest of pipeline/ (simulate, extract, groundtruth, splits, sources, calibration, ...)
     models      models/
     benchmark   benchmark/ (evaluation, tracking, comparison, discovery)
@@ -20,7 +20,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("pipeline", "models", "benchmark")
-CORE = {"errors", "geometry", "io", "cache", "layout", "manifest", "schema", "robot", "protocol"}
+CORE = {"errors", "geometry", "io", "cache", "layout", "manifest", "schema", "robot", "protocol", "constants"}
 #: modules of the app layer by their dotted name below ``skidbench.`` (beside every ``*_app``)
 APP_MODULES = {"pipeline.cli", "pipeline.api", "pipeline.overrides", "pipeline.stage", "models.app"}
 RANK = {"core": 0, "stages": 1, "models": 2, "benchmark": 3, "apps": 4}

@@ -53,7 +53,7 @@ def test_benchmark_logs_through_a_real_tracking_server(server, tmp_path, monkeyp
 
     ccfg = compose("compare", tmp_path, ["figures.enabled=false"])
     out = run_compare(ccfg)
-    assert out.parent_run_id == res.parent_run_id
+    assert out.parents == [res.parent_run_id]  # every row from that evaluate
     assert "| chi |" in out.leaderboard_md and "FAILED" in out.report.read_text()
     report_arts = [a.path for a in client.list_artifacts(res.parent_run_id, "report")]
     assert "report/report.md" in report_arts

@@ -8,8 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.models.friction import PARAM_RANGES, FrictionBased, bound_report
-from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve
+from skidbench.models.friction import FrictionBased
+from skidbench.models.friction_balance import FrictionGeometry, body_velocity
+from skidbench.models.friction_fit import PARAM_RANGES, bound_report
+from skidbench.models.friction_solver import solve
 from skidbench.models.synthetic import command_table, label_with
 from skidbench.pipeline import wheel_response as actuator
 from skidbench.pipeline.robot import load_robot

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,8 @@ RADIUS_RANGE = (0.65, 1.35)  # ground-truth metres per wheel radian / spec radiu
 STILL_RATIO = 0.15  # ... below this the robot does not move while its wheels turn (lifted, stuck)
 WHEEL_LIMIT_MARGIN = 1.2  # measured wheel rates up to 1.2x the robot's limit (encoder noise, overshoot)
 SHEET_MATCH = 0.1  # an identified command radius within 10 % of a spec sheet's is that sheet's (r, B)
+MIN_STRETCHES = 3  # straight stretches (windows, 6 s steps) the metres-per-radian check needs ...
+MIN_STRETCH_RAD = 1.5  # ... each turning the wheels by this much at least
 MIN_GAIN_WINDOWS = 3  # steady straight unsaturated windows needed to identify the command radius
 DISAGREE = 0.05  # a configured cmd_kinematics further than 5 % from the identified one is named
 RATE_HZ = 20.0
@@ -132,20 +135,20 @@ def _check_radius(path: Path, robot, d: np.ndarray, a: np.ndarray, out: dict) ->
     """Ground-truth metres per wheel radian over the spec radius: near zero, the robot does not move while
     its wheels turn; outside ``RADIUS_RANGE``, another robot's recording."""
     r = float(robot.wheel_radius)
-    use = np.isfinite(d) & np.isfinite(a) & (a > 2.0)
-    if use.sum() < 5:
+    use = np.isfinite(d) & np.isfinite(a) & (a > MIN_STRETCH_RAD)
+    if use.sum() < MIN_STRETCHES:
         return
     per_rad = float(np.median(d[use] / a[use]))
     ratio = per_rad / r
     out["implied_radius_ratio"] = ratio
     numbers = (
         f"the ground truth travels {per_rad:.3g} m per wheel radian (median of {int(use.sum())} straight "
-        f"stretches: {float(d[use].sum()):.2g} m while the wheels turn {float(a[use].sum()):.0f} rad)"
+        f"stretches: {float(d[use].sum()):.3g} m while the wheels turn {float(a[use].sum()):.0f} rad)"
     )
     if ratio < STILL_RATIO:
         raise SourceError(
             f"{path}: nothing can be scored: the robot does not move while its wheels turn: {numbers}, "
-            f"{ratio:.2f}x the wheel radius {r:g} m: lifted off the ground or stuck"
+            f"{ratio:.2g}x the wheel radius {r:g} m: lifted off the ground or stuck"
         )
     if not RADIUS_RANGE[0] <= ratio <= RADIUS_RANGE[1]:
         raise ConfigError(
@@ -179,8 +182,6 @@ def _speed_gain(path: Path, robot, ml, mr, v, limit, out: dict) -> None:
 # -- the command kinematics ---------------------------------------------------------------------------
 def spec_sheets() -> dict[str, tuple[float, float]]:
     """Every packaged robot's spec-sheet (wheel radius, track width), by name."""
-    from importlib.resources import files
-
     from ..robot import load_robot
 
     names = sorted(
