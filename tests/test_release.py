@@ -254,19 +254,19 @@ def test_the_published_page_renders_without_console_messages_with_the_leaderboar
     for heading in ("Leaderboard", "Per terrain and test split", "Provenance of each row", "Dataset card",
                     "Fig. 3", "Fig. 7", "Reproduce this page"):  # fmt: skip
         assert heading in words, heading
-    # every number of compare's leaderboard file (inputs=commanded, the last compare) is the page's
-    lb = pd.read_csv(quickstart / DS / "reports" / "leaderboard.csv")
-    section = dom[dom.index('id="commanded"') : dom.index('id="response"')]
-    n = 0
-    for r in lb.to_dict("records"):
-        m = re.search(
-            rf'<tr[^>]*data-model="{r["model"]}" data-terrain="{r["terrain"]}"[^>]*>(.*?)</tr>', section
-        )
-        assert m, (r["model"], r["terrain"])
-        values = [float(v) for v in re.findall(r'data-value="([^"]+)"', m.group(1))]
-        for col in ("trans CV %", "trans LD %", "rot CV %", "rot LD %"):
-            assert float(r[col]) in values, (r["model"], r["terrain"], col)
-            assert f">{float(r[col]):.2f}<" in m.group(1)
-            n += 1
-    assert n == 4 * len(lb) == 4 * 3 * len(MODELS)
+    # every number of compare's leaderboard file of each protocol is the page's, in that protocol's section
+    for protocol, end in (("commanded", 'id="response"'), ("response", 'id="figures"')):
+        lb = pd.read_csv(quickstart / DS / "reports" / f"leaderboard-{protocol}.csv")
+        section = dom[dom.index(f'id="{protocol}"') : dom.index(end)]
+        n = 0
+        for r in lb.to_dict("records"):
+            m = re.search(rf'<tr[^>]*data-model="{r["model"]}" data-terrain="{r["terrain"]}"[^>]*>(.*?)</tr>',
+                          section)  # fmt: skip
+            assert m, (protocol, r["model"], r["terrain"])
+            values = [float(v) for v in re.findall(r'data-value="([^"]+)"', m.group(1))]
+            for col in ("trans CV %", "trans LD %", "rot CV %", "rot LD %"):
+                assert float(r[col]) in values, (protocol, r["model"], r["terrain"], col)
+                assert f">{float(r[col]):.2f}<" in m.group(1)
+                n += 1
+        assert n == 4 * len(lb) == 4 * 3 * len(MODELS)
     assert page.stat().st_size < 5e6
