@@ -14,6 +14,7 @@ predicts nothing. A figure whose data is absent is skipped, with a note in the r
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
 
 from . import figures as figs
+from . import mlflow_ui as mu
 from . import report_data as rd
 from . import tracking as trk
 from .horizon import EvaluationError
@@ -46,26 +48,37 @@ class CompareError(EvaluationError):
 
 
 # -- selecting runs ---------------------------------------------------------------------------------
+ALL_USERS = "all"
+
+
+def whose(cfg: Any) -> str | None:
+    """The user whose runs compare reads (``user``: null = the caller, ``all`` = everyone -> None)."""
+    user = cfg.get("user")
+    if user in (None, ""):
+        return trk.current_user()
+    return None if str(user) == ALL_USERS else str(user)
+
+
 def select_runs(
-    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None
-) -> tuple[pd.DataFrame, str | None]:
+    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None,
+    user: str | None = None,
+) -> tuple[pd.DataFrame, str | None]:  # fmt: skip
     """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None);
-    ``inputs``: only runs of that input protocol."""
+    ``inputs``: only runs of that input protocol; ``user``: only that user's runs (None: anyone's)."""
     import mlflow
 
     parent = parent_run_id
     if parent == "latest":
-        parent = tracker.latest_parent(inputs)
+        parent = tracker.latest_parent(inputs, user)
         if parent is None:
-            raise CompareError(
-                f"no `skidbench evaluate` run{f' under inputs={inputs}' if inputs else ''} in experiment "
-                f"{tracker.experiment_name!r} at {tracker.uri}; run it first (or set mlflow.experiment)"
-            )
+            raise CompareError(_no_parent(tracker, inputs, user))
     clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
     if inputs:
         clauses.append(f"tags.`{trk.TAG_INPUTS}` = '{inputs}'")
     if parent:
         clauses.append(f"tags.`{trk.TAG_PARENT}` = '{parent}'")
+    elif user:
+        clauses.append(f"tags.`{trk.TAG_USER}` = '{user}'")
     if filter_string:
         clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
     mlflow.set_tracking_uri(tracker.uri)
@@ -82,6 +95,36 @@ def select_runs(
         what = f"parent run {parent}" if parent else f"experiment {tracker.experiment_name!r}"
         raise CompareError(f"no model runs match in {what} (filter: {filter_string or 'none'})")
     return runs, parent
+
+
+def _no_parent(tracker: trk.Tracker, inputs: str | None, user: str | None) -> str:
+    """Why there is no latest evaluate to compare (and whose there are, when the caller has none)."""
+    under = f" under inputs={inputs}" if inputs else ""
+    where = f"in experiment {tracker.experiment_name!r} at {tracker.uri}"
+    others = sorted({r.data.tags.get(trk.TAG_USER, "?") for r in tracker.parents(inputs)} - {user})
+    if user and others:
+        return (
+            f"no `skidbench evaluate` run of user {user}{under} {where}; runs of {', '.join(others)} exist: "
+            f"`skidbench compare user={others[0]}` (or user=all), or run evaluate first"
+        )
+    return f"no `skidbench evaluate` run{under} {where}; run it first (or set mlflow.experiment)"
+
+
+def newer_elsewhere(tracker: trk.Tracker, parent: str, inputs: str | None, user: str | None) -> str | None:
+    """One line when someone else evaluated this dataset (same protocol) after the caller's ``parent``."""
+    if not user:
+        return None
+    mine = tracker.client.get_run(parent).info.start_time
+    for run in tracker.parents(inputs, max_results=20):
+        if run.info.start_time <= mine:
+            break
+        who = run.data.tags.get(trk.TAG_USER, "?")
+        if who != user:
+            return (
+                f"{who} evaluated this dataset after you ({run.info.run_name}, run {run.info.run_id[:8]}, "
+                f"{run.info.status}); this report is yours, `skidbench compare user={who}` shows theirs"
+            )
+    return None
 
 
 def _col(runs: pd.DataFrame, name: str) -> pd.Series:
@@ -264,14 +307,15 @@ def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
 
 # -- the three protocols side by side ----------------------------------------------------------------
 def protocol_boards(
-    tracker: trk.Tracker, horizon_s: float, filter_string: str | None
+    tracker: trk.Tracker, horizon_s: float, filter_string: str | None, user: str | None = None
 ) -> dict[str, pd.DataFrame]:
-    """The board of the latest evaluate under each input protocol that has one (``{protocol: board}``)."""
+    """The board of the latest evaluate (of ``user``: None for anyone's) under each input protocol that has
+    one (``{protocol: board}``)."""
     out = {}
     for p in PROTOCOLS:
-        if tracker.latest_parent(p) is None:
+        if tracker.latest_parent(p, user) is None:
             continue
-        runs, _ = select_runs(tracker, "latest", filter_string, p)
+        runs, _ = select_runs(tracker, "latest", filter_string, p, user)
         out[p] = board_from_runs(runs, horizon_s)
     return out
 
@@ -450,9 +494,17 @@ def run_compare(cfg: Any) -> CompareResult:
     parent_arg = None if parent_cfg in (None, "", "null") else str(parent_cfg)
     # latest: the newest evaluate under cfg.inputs; a run id: that run (its protocol); null: every child
     # run, which must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
-    runs, parent = select_runs(
-        tracker, parent_arg, cfg.get("filter"), protocol_of(cfg) if parent_arg == "latest" else None
-    )
+    user = whose(cfg)
+    inputs = protocol_of(cfg) if parent_arg == "latest" else None
+    runs, parent = select_runs(tracker, parent_arg, cfg.get("filter"), inputs, user)
+    notes: list[str] = []
+    newer = newer_elsewhere(tracker, parent, inputs, user) if parent and parent_arg == "latest" else None
+    if newer:
+        notes.append(newer)
+    owner = tracker.client.get_run(parent).data.tags.get(trk.TAG_USER) if parent else None
+    own = parent is None or owner == trk.current_user()
+    if not own and cfg.get("log_to_mlflow", True):
+        notes.append(f"the report is logged to a compare run of yours, not to {owner}'s evaluate run")
     board = board_from_runs(runs, horizon)
     protocol = check_one_protocol(board)
     cfg = _with_inputs(cfg, protocol)
@@ -475,14 +527,13 @@ def run_compare(cfg: Any) -> CompareResult:
     write_text_atomic(out / "leaderboard.md", lb_md + "\n\n" + markdown_table(detail) + "\n")
     files += [out / "leaderboard.csv", out / "leaderboard.md"]
     try:
-        decomp = decomposition_table(protocol_boards(tracker, horizon, cfg.get("filter")), horizon)
+        decomp = decomposition_table(protocol_boards(tracker, horizon, cfg.get("filter"), user), horizon)
     except CompareError as exc:  # a protocol's latest evaluate matches no run under the filter
         log.warning("protocols side by side skipped: %s", one_line(str(exc)))
         decomp = pd.DataFrame()
     shown = decomp.attrs.get("protocols", []) if len(decomp) else []
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
-    notes: list[str] = []
     fig_md: list[str] = []
     fc = cfg.figures
     if fc.enabled:
@@ -552,7 +603,7 @@ def run_compare(cfg: Any) -> CompareResult:
     files.append(report)
     if cfg.get("log_to_mlflow", True):
         run_id = parent
-        if run_id is None:
+        if run_id is None or not own:  # another person's evaluate run is left as they made it
             run_id = tracker.start(
                 f"compare {cfg.dataset}",
                 {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset), trk.TAG_INPUTS: protocol},
@@ -564,19 +615,26 @@ def run_compare(cfg: Any) -> CompareResult:
 
 
 def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
-    """MLflow UI links: the parent run, the compare-runs page of the selected child runs, and (with a
-    parent) a saved view of the runs table showing its children with the RMSRE columns."""
+    """MLflow UI links (model-training pages, not the GenAI ones): the parent run's page, and a saved view
+    of the runs shown (the RMSRE columns first, best first; :mod:`mlflow_ui`) as a table and as charts of
+    the RMSRE per run."""
     ui = (cfg.get("mlflow") or {}).get("ui_url")
+    uri, exp = tracker.uri, tracker.experiment_id
+    cols = [trk.metric_key(k, s, horizon) for s in ("ld", "cv") for k in KINDS]
+    order = trk.rank_key(str(cfg.rank_by), horizon)
     links = {}
     if parent:
-        links["parent run"] = tracker.run_url(parent, ui)
-    links["compare its model runs"] = tracker.compare_url(board["run_id"].tolist(), ui)
-    if parent:
-        cols = [trk.metric_key(k, s, horizon) for s in ("ld", "cv") for k in KINDS]
-        name = tracker.client.get_run(parent).info.run_name
-        links["runs table (saved view)"] = tracker.save_view(
-            f"evaluate-{parent[:8]}", name, parent, cols, trk.rank_key(str(cfg.rank_by), horizon), ui
-        )
+        links["parent run"] = mu.run_url(uri, exp, parent, ui)
+        key, title = f"evaluate-{parent[:8]}", tracker.client.get_run(parent).info.run_name
+        search = mu.children_of(parent)
+    else:  # every child run compare selected: a view of those runs
+        ids = ", ".join(f"'{r}'" for r in board["run_id"])
+        digest = hashlib.sha256(ids.encode()).hexdigest()[:8]
+        key, title = f"compare-{digest}", f"compare {cfg.dataset}: {len(board)} runs"
+        search = f"attributes.run_id IN ({ids})"
+    mu.save_view(tracker.client, exp, key, title, mu.view_state(search, cols, order, mu.chart_title(horizon)))
+    links["runs table (saved view)"] = mu.view_url(uri, exp, key, ui)
+    links["charts of its model runs"] = mu.view_url(uri, exp, key, ui, charts=True)
     return links
 
 

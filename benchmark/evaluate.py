@@ -33,6 +33,7 @@ from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.schema import read_split
 from skidbench.pipeline.wheel_response import WheelResponse
 
+from . import mlflow_ui as mu
 from . import tracking as trk
 from .horizon import (
     CHI2_95_1DOF,
@@ -466,7 +467,7 @@ def run_benchmark(
                 metrics={"n_children": len(children), "n_failed": n_failed},
                 tags={trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED"},
             )
-            save_views(tracker, parent_id, splits, horizons)
+            save_views(tracker, parent_id, splits, horizons, protocol)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
@@ -877,6 +878,8 @@ def _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path
         arrays = record_path.with_name(record_path.name.replace(".mlflow_model.json", ".arrays.npz"))
         arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None
         model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays)
+    except trk.StoreUnreachable:  # the store is gone: nothing more can be logged
+        raise
     except Exception as exc:  # the benchmark's numbers stand without it: say why, on the run (and console)
         model_id = f"not logged: {type(exc).__name__}: {one_line(str(exc))[:300]}"
         if not isinstance(exc, ModelError):
@@ -884,17 +887,14 @@ def _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path
     tracker.log(run_id, tags={"skidbench.logged_model": model_id})
 
 
-def save_views(tracker, parent_id: str, splits, horizons) -> str:
-    """The UI's saved views of an evaluate (``latest`` and ``evaluate-<run id>``): its child runs with the
-    RMSRE columns of the first horizon (LD first), best LD translational first. Returns the URL."""
+def save_views(tracker, parent_id: str, splits, horizons, protocol: str) -> list[str]:
+    """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs with the
+    RMSRE columns of the first horizon (LD first), best LD translational first. Returns their keys."""
     h = horizons[0]
     order = sorted(splits, key=lambda s: s != "ld")
     cols = [trk.metric_key(k, s, h) for s in order for k in ("translational", "rotational")]
     name = tracker.client.get_run(parent_id).info.run_name
-    url = ""
-    for key, title in ((f"evaluate-{parent_id[:8]}", name), ("latest", f"latest: {name}")):
-        url = tracker.save_view(key, title, parent_id, cols, cols[0])
-    return url
+    return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol, h)
 
 
 #: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins,

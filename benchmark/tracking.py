@@ -1,42 +1,36 @@
-"""MLflow tracking for the benchmark: the one place that talks to an MLflow store.
+"""MLflow tracking for the benchmark: the store, its health and the :class:`Tracker` every stage logs
+through. Split by job: what a run is and who made it (tags, names, descriptions, params) in
+:mod:`~skidbench.benchmark.provenance`, ending every run and reaping the ones a dead process left open in
+:mod:`~skidbench.benchmark.bookkeeping`, the UI's links and saved views in
+:mod:`~skidbench.benchmark.mlflow_ui`.
 
 Store: ``mlflow.tracking_uri`` (config; ``MLFLOW_TRACKING_URI`` when set), else the SQLite file
 ``<out_root>/mlflow.db`` with artifacts under ``<out_root>/mlartifacts`` (no server needed). An
-``http(s)://`` URI (a ``mlflow server``) works the same; it is health-checked first so that an unreachable
-server is one clear line, not minutes of HTTP retries.
+``http(s)://`` URI (a ``mlflow server``, a lab's shared one) works the same; it is health-checked first
+so that an unreachable server is one clear line, and MLflow's own HTTP retry and timeout settings get
+bounded defaults (:data:`HTTP_DEFAULTS`) so that a server that goes away mid-run is given up within a
+minute, in one line naming the server and what to do (:class:`StoreUnreachable`), not after minutes of
+retries per request.
 
 Runs (SPEC.md "MLflow"): one *parent* run per ``skidbench evaluate`` invocation and one *child* run per
 (model, terrain), linked by the ``mlflow.parentRunId`` tag. Tags under ``skidbench.*`` say what a run is
-(``skidbench.role`` = parent | child, ``skidbench.model``, ``skidbench.terrain``, ...). A child whose
-model failed ends ``FAILED`` with ``skidbench.failure_reason``. Every run also records the process that
-started it (``skidbench.host``, ``skidbench.boot_id``, ``skidbench.pid``): a run left ``RUNNING`` by a
-process of this machine that is gone (killed, crashed) is marked ``KILLED``, with the reason, the next time
-a stage opens the store (:meth:`Tracker.reap_dead_runs`); runs of other machines are never touched.
-
-A job of a sweep tags its run with a key (``skidbench.run_key`` = ``<sweep id>/<job number>``, the same
-for every attempt of the job): :meth:`Tracker.claim_key`, called before the run starts, returns the run of
-an attempt that already FINISHED (log nothing more) and marks ``KILLED`` the runs a dead attempt left open,
-on any machine; so a job a cluster retried still yields exactly one FINISHED run.
+(``skidbench.role`` = parent | child, ``skidbench.model``, ``skidbench.terrain``, ...) and who made it
+(``mlflow.user``, host, output root, session). A child whose model failed ends ``FAILED`` with
+``skidbench.failure_reason``. A run left ``RUNNING`` by a process that is gone is marked ``KILLED``
+(:mod:`~skidbench.benchmark.bookkeeping`): by the next stage that opens the store on the same machine,
+or by ``skidbench runs --reap`` from any machine once its heartbeat is old.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import datetime as dt
 import functools
-import getpass
-import json
 import logging
 import os
 import re
-import shlex
-import socket
-import subprocess
-import sys
 import time
 import urllib.error
-import urllib.parse
 import urllib.request
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -44,63 +38,122 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.pipeline.errors import one_line
-from skidbench.pipeline.io import process_alive
 from skidbench.pipeline.layout import Layout
 
+from . import bookkeeping as bk
 from .horizon import EvaluationError
+
+# what a run is and who made it: callers use them as ``tracking.<name>`` (their home is provenance.py)
+from .provenance import (  # noqa: F401
+    MAX_PARAM_LEN,
+    MAX_TAG_LEN,
+    TAG_BOOT,
+    TAG_DATASET,
+    TAG_DATASET_ID,
+    TAG_FINGERPRINT,
+    TAG_GIT,
+    TAG_HEARTBEAT,
+    TAG_HOST,
+    TAG_INPUTS,
+    TAG_MODEL,
+    TAG_MODEL_VERSION,
+    TAG_NOTE,
+    TAG_OUT_ROOT,
+    TAG_PARENT,
+    TAG_PID,
+    TAG_PLUGIN,
+    TAG_REASON,
+    TAG_ROLE,
+    TAG_RUN_KEY,
+    TAG_SESSION,
+    TAG_STATUS,
+    TAG_TERRAIN,
+    TAG_USER,
+    config_params,
+    current_user,
+    describe,
+    flatten,
+    git_commit,
+    owner_tags,
+    parent_run_name,
+    process_tags,
+    reproduce_command,
+    source_tags,
+    task_overrides,
+    utc_now,
+)
 
 log = logging.getLogger(__name__)
 
-MAX_PARAM_LEN = 6000  # MLflow's limit on a param value
-MAX_TAG_LEN = 5000
-
-TAG_ROLE = "skidbench.role"
-TAG_MODEL = "skidbench.model"
-TAG_MODEL_VERSION = "skidbench.model_version"
-TAG_PLUGIN = "skidbench.plugin_package"
-TAG_TERRAIN = "skidbench.terrain"
-TAG_DATASET = "skidbench.dataset"
-TAG_FINGERPRINT = "skidbench.dataset_fingerprint"  # content of the split files a run read
-TAG_DATASET_ID = "skidbench.dataset_id"  # the dataset's identity (pipeline/dataset.py): runs never mix
-TAG_GIT = "skidbench.git_commit"
-TAG_STATUS = "skidbench.status"
-TAG_REASON = "skidbench.failure_reason"
-TAG_PARENT = "mlflow.parentRunId"
-TAG_HOST = "skidbench.host"
-TAG_BOOT = "skidbench.boot_id"
-TAG_PID = "skidbench.pid"
-TAG_RUN_KEY = "skidbench.run_key"
-TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
-TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
-TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
-#: what `make mlflow-ui` serves; links printed for a local (SQLite) store point there
-DEFAULT_UI_URL = "http://127.0.0.1:5000"
 SHORT = {"translational": "trans", "rotational": "rot"}
 
+#: MLflow's own HTTP settings (mlflow/environment_variables.py) that skidbench sets, unless they are set
+#: already, when it talks to a tracking server. A request is tried 4 times (3 retries, 0 / 4 / 8 s apart,
+#: plus up to 1 s of jitter each) with 10 s to connect and 10 s to wait for each answer: a server that is
+#: gone (connection refused) is given up after ~14 s, one that accepts and never answers after ~55 s
+#: (MLflow's defaults: 7 retries with a 120 s timeout, ~4 min and more per request). MLflow's "View run
+#: ... at: ..." lines (two per run) are not printed: `compare` prints the links worth opening.
+HTTP_DEFAULTS = {
+    "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "3",
+    "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "2",
+    "MLFLOW_HTTP_REQUEST_BACKOFF_JITTER": "1.0",
+    "MLFLOW_HTTP_REQUEST_TIMEOUT": "10",
+    "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
+}
 
-@functools.cache
-def _boot_id() -> str:
-    """This machine's boot id (Linux), which tells two machines of one host name apart; '' elsewhere."""
-    try:
-        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
-    except OSError:
-        return ""
+
+def use_http_defaults() -> None:
+    """Set :data:`HTTP_DEFAULTS` in this process's environment where the user has not set them (MLflow
+    reads them on every request)."""
+    for key, value in HTTP_DEFAULTS.items():
+        os.environ.setdefault(key, value)
 
 
-def process_tags() -> dict[str, str]:
-    """The tags that name the process starting a run."""
-    return {TAG_HOST: socket.gethostname(), TAG_BOOT: _boot_id(), TAG_PID: str(os.getpid())}
+class StoreUnreachable(EvaluationError):
+    """The tracking server stopped answering mid-run (one line: the server, what happened, what to do)."""
 
 
-def _quiet_mlflow_logs() -> None:
+def unreachable(exc: BaseException) -> str | None:
+    """The short reason when ``exc`` (or what caused it) is a tracking server that does not answer: no
+    connection, a timeout, or error answers (5xx) until the retries ran out; else None (an answer that
+    refuses the request is no outage)."""
+    import requests
+
+    seen = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, requests.exceptions.RetryError):
+            return "error answers until the retries ran out"
+        if isinstance(e, requests.exceptions.ConnectionError):
+            text = str(e)
+            if "Connection refused" in text:
+                return "connection refused"
+            if "timed out" in text.lower():
+                return "timed out"
+            return "no connection"
+        if isinstance(e, requests.exceptions.Timeout):
+            return "timed out"
+        e = e.__cause__ or e.__context__
+    message = str(getattr(exc, "message", exc))
+    if message.startswith("API request to ") and " failed with " in message:
+        low = message.lower()
+        return ("connection refused" if "refused" in low else "timed out" if "timed out" in low
+                else "too many error answers" if "too many" in low else "no answer")  # fmt: skip
+    return None
+
+
+def quiet_mlflow_logs() -> None:
     # a fresh SQLite store runs its schema migrations through alembic, which is chatty at INFO
     # and logging a model says at INFO that it validated the input example against the signature
     quiet = ["alembic", "alembic.runtime.migration", "mlflow.store.db.utils"]
     quiet += ["mlflow.pyfunc", "mlflow.models"]
     for name in quiet:
         logging.getLogger(name).setLevel(logging.WARNING)
+    # a warning per retry of a request to a server that is gone: StoreUnreachable's one line says it instead
+    logging.getLogger("urllib3.connectionpool").setLevel(logging.ERROR)
 
 
 def resolve_tracking_uri(cfg: Any, layout: Layout) -> str:
@@ -143,39 +196,6 @@ def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
-@functools.lru_cache(maxsize=1)
-def git_commit() -> str:
-    """The commit of the skidbench source tree ("+dirty" when it has local changes), or "unknown"."""
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
-        return sha + ("+dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
-    """Flatten a nested mapping to ``a.b.c`` -> str(value) (lists as their repr), for MLflow params."""
-    out: dict[str, str] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, Mapping):
-            out.update(flatten(v, key + "."))
-        else:
-            s = "null" if v is None else str(v)
-            out[key] = s if len(s) <= MAX_PARAM_LEN else s[: MAX_PARAM_LEN - 3] + "..."
-    return out
-
-
 def metric_key(kind: str, split: str, horizon_s: float) -> str:
     """``ld_6s_trans_rmsre_pct``: RMSRE in percent of ``kind`` (translational | rotational) on a test split
     at a horizon; the metric names evaluate logs and compare, the leaderboard and the UI's columns read."""
@@ -194,71 +214,6 @@ def rank_key(rank_by: str, horizon_s: float) -> str:
     if short not in kinds or not split:
         raise EvaluationError(f"rank_by={rank_by!r}: expected <split>_<trans|rot>, e.g. ld_trans")
     return metric_key(kinds[short], split, horizon_s)
-
-
-def source_tags() -> dict[str, str]:
-    """MLflow's own tags for who started a run and from what (the UI's "Created by" and "Source"):
-    ``mlflow.user``, ``mlflow.source.type`` LOCAL, ``mlflow.source.name`` the command line, the git
-    commit of the skidbench tree."""
-    try:
-        user = getpass.getuser()
-    except (KeyError, OSError):
-        user = "unknown"
-    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"  # e.g. "skidbench evaluate"
-    tags = {
-        "mlflow.user": user,
-        "mlflow.source.type": "LOCAL",
-        "mlflow.source.name": " ".join([prog, shlex.join(sys.argv[1:])]).strip()[:MAX_TAG_LEN],
-    }
-    commit = git_commit()
-    if commit != "unknown":
-        tags["mlflow.source.git.commit"] = commit.split("+")[0]
-    return tags
-
-
-def task_overrides() -> list[str]:
-    """The command-line overrides of the running Hydra app ([] outside one)."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return [str(o) for o in HydraConfig.get().overrides.task]
-    except (ImportError, ValueError):
-        return []
-
-
-def reproduce_command(stage: str, extra: Sequence[str] = (), drop: Sequence[str] = ()) -> str:
-    """``skidbench <stage> <this run's overrides> <extra>``; overrides of the keys ``drop`` (and of the keys
-    ``extra`` sets) are left out so that the command runs as printed."""
-    extra = list(extra)
-    keys = {o.split("=", 1)[0].lstrip("+~") for o in extra} | set(drop)
-    kept = [o for o in task_overrides() if o.split("=", 1)[0].lstrip("+~") not in keys]
-    return shlex.join(["skidbench", stage, *kept, *extra])
-
-
-def describe(title: str, facts: Mapping[str, Any], command: str) -> str:
-    """A run description (the ``mlflow.note.content`` tag; Markdown): a title line, facts, the command."""
-    lines = [title, ""]
-    lines += [f"- **{k}**: {v}" for k, v in facts.items() if v not in (None, "")]
-    lines += ["", "Reproduce:", "", "```", command, "```", ""]
-    return "\n".join(lines)[:MAX_TAG_LEN]
-
-
-def parent_run_name(stage: str, dataset: str, inputs: str, when: dt.datetime | None = None) -> str:
-    """``evaluate sim-mini commanded 2026-11-23 23:10:05``: stage, dataset, input protocol, UTC start time
-    (to the second; a parent run's name is unique and says what it is)."""
-    when = when or dt.datetime.now(dt.UTC)
-    return f"{stage} {dataset} {inputs} {when:%Y-%m-%d %H:%M:%S}"
-
-
-def config_params(conf: Mapping[str, Any], model: Mapping[str, Any] | None = None) -> dict[str, str]:
-    """A run's config as params: the stage config without any ``model`` node (a ``+model=...`` override
-    belongs to one model only), plus ``model.*`` of ``model`` (``{"name", "params", "options"}``: the
-    config of the run's own model, :func:`skidbench.models.fitting.model_config`) when given."""
-    conf = {k: v for k, v in conf.items() if k != "model"}
-    if model is not None:
-        conf["model"] = {"name": model.get("name"), "params": model.get("params") or {},
-                         "options": model.get("options") or {}}  # fmt: skip
-    return flatten(conf)
 
 
 def _safe_name(name: str) -> str:
@@ -341,8 +296,30 @@ def _requirements() -> list[str]:
     return out
 
 
+class _Guarded:
+    """An ``MlflowClient`` whose every call goes through :meth:`Tracker.call` (an outage: one line, once)."""
+
+    def __init__(self, client: Any, tracker: Tracker) -> None:
+        self._client, self._tracker = client, tracker
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._client, name)
+        if not callable(attr):
+            return attr
+
+        @functools.wraps(attr)
+        def call(*args, **kwargs):
+            return self._tracker.call(attr, *args, **kwargs)
+
+        return call
+
+
 class Tracker:
-    """An MLflow client bound to one store and one experiment (created if absent)."""
+    """An MLflow client bound to one store and one experiment (created if absent). It keeps the runs it
+    opened and has not ended: on a tracking server a heartbeat thread marks them alive, and when the
+    server stops answering (:meth:`call`) they are ended FAILED if it can still be reached at once, else
+    left to the reaping of :mod:`~skidbench.benchmark.bookkeeping`; every later call then fails at once
+    with the same line (:class:`StoreUnreachable`)."""
 
     def __init__(
         self,
@@ -351,23 +328,74 @@ class Tracker:
         artifact_root: Path | None = None,
         timeout_s: float = 5.0,
         dataset_id: str | None = None,
+        out_root: Path | str | None = None,
     ):
         """``dataset_id``: the dataset's fingerprint; every run started here is tagged with it and
-        :meth:`latest_parent` and compare's searches only see runs that carry it."""
-        _quiet_mlflow_logs()
+        :meth:`latest_parent` and compare's searches only see runs that carry it. ``out_root``: the output
+        root the runs' files go to (tag ``skidbench.out_root``)."""
+        quiet_mlflow_logs()
         self.dataset_id = dataset_id
+        self.out_root = out_root
         from mlflow.tracking import MlflowClient
 
         self.uri = uri
+        if is_server(uri):
+            use_http_defaults()
+        os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
         check_reachable(uri, timeout_s)
         if local_store_file(uri) is not None:
             local_store_file(uri).parent.mkdir(parents=True, exist_ok=True)
-        self.client = MlflowClient(tracking_uri=uri)
+        self._raw = MlflowClient(tracking_uri=uri)
+        self.client = _Guarded(self._raw, self)
         self.experiment_name = experiment
         self._datasets: dict[tuple[str, str], Any] = {}  # dataset entities already built
         self._artifact_root = artifact_root
         self._experiment_id: str | None = None
+        self._open: dict[str, None] = {}  # runs started here and not ended, in start order
+        self._heartbeat = bk.Heartbeat(self._raw) if is_server(uri) else None
+        self._down: str | None = None  # the one line of StoreUnreachable, once the server stopped answering
         self._existing_experiment()  # a deleted experiment or an unusable store: one line, now
+
+    # -- the store's health ------------------------------------------------------------------------
+    def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)``, a call to the store; a server that does not answer (:func:`unreachable`)
+        raises :class:`StoreUnreachable` after :meth:`_gone` (and at once on every later call)."""
+        if self._down:
+            raise StoreUnreachable(self._down)
+        t0 = time.monotonic()
+        try:
+            return fn(*args, **kwargs)
+        except Exception as exc:
+            reason = unreachable(exc) if is_server(self.uri) else None
+            if reason is None:
+                raise
+            self._gone(reason, time.monotonic() - t0)
+            raise StoreUnreachable(self._down) from None
+
+    def _gone(self, reason: str, waited_s: float) -> None:
+        """The server stopped answering: stop the heartbeat, try once (no retry, 5 s) to end every open run
+        FAILED with its PENDING models, and compose the one line every later call raises."""
+        if self._heartbeat is not None:
+            self._heartbeat.stop()
+        runs = list(reversed(self._open))  # children before their parent
+        why = f"the MLflow tracking server stopped answering ({reason})"
+        try:
+            with _env(MLFLOW_HTTP_REQUEST_MAX_RETRIES="0", MLFLOW_HTTP_REQUEST_TIMEOUT="5"):
+                bk.end_runs(self._raw, runs, "FAILED", why, [self._experiment_id or "0"])
+            self._open.clear()
+            left = "the runs this command opened were ended FAILED"
+        except Exception:  # noqa: BLE001 - still down: the runs are left to the reaping
+            left = (
+                f"the {len(runs)} run(s) this command opened stay RUNNING until the next skidbench command "
+                "that reaches the server from this machine, or `skidbench runs --reap` from any machine, "
+                "marks them KILLED"
+            )
+        tries = int(os.environ.get("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")) + 1
+        self._down = (
+            f"MLflow tracking server {self.uri} stopped answering ({reason}; gave up after {tries} tries in "
+            f"{waited_s:.0f} s, see MLFLOW_HTTP_REQUEST_MAX_RETRIES / _TIMEOUT); {left}; check the server "
+            f"({self.uri.rstrip('/')}/health) and run the command again"
+        )
 
     @property
     def experiment_id(self) -> str:
@@ -442,13 +470,17 @@ class Tracker:
 
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
-        t = {**source_tags(), **process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
+        t = {**source_tags(), **owner_tags(self.out_root), TAG_HEARTBEAT: utc_now(),
+             **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}  # fmt: skip
         if self.dataset_id:
             t[TAG_DATASET_ID] = self.dataset_id
         if parent_id:
             t[TAG_PARENT] = parent_id
-        run = self.client.create_run(self.experiment_id, run_name=run_name, tags=t)
-        return run.info.run_id
+        run_id = self.client.create_run(self.experiment_id, run_name=run_name, tags=t).info.run_id
+        self._open[run_id] = None
+        if self._heartbeat is not None:
+            self._heartbeat.add(run_id)
+        return run_id
 
     def log(
         self,
@@ -477,6 +509,9 @@ class Tracker:
 
     def end(self, run_id: str, status: str = "FINISHED") -> None:
         self.client.set_terminated(run_id, status=status)
+        self._open.pop(run_id, None)
+        if self._heartbeat is not None:
+            self._heartbeat.remove(run_id)
 
     def fail(self, run_id: str, reason: str) -> None:
         self.log(run_id, tags={TAG_STATUS: "FAILED", TAG_REASON: one_line(reason)})
@@ -552,7 +587,8 @@ class Tracker:
             _mlflow_current(self.uri, self.experiment_id),
             _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"),
         ):
-            info = Model.log(
+            info = self.call(
+                Model.log,
                 artifact_path=None,
                 name=_safe_name(name)[:100],
                 flavor=mlflow.pyfunc,
@@ -565,154 +601,45 @@ class Tracker:
             )
         return info.model_id
 
-    # -- links to the UI ------------------------------------------------------------------------
-    def ui_url(self, ui: str | None = None) -> str:
-        """The MLflow UI that shows this store: a tracking server's own URL, else ``ui`` (what
-        ``make mlflow-ui`` serves by default)."""
-        return self.uri.rstrip("/") if is_server(self.uri) else (ui or DEFAULT_UI_URL).rstrip("/")
-
-    def run_url(self, run_id: str, ui: str | None = None) -> str:
-        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs/{run_id}"
-
-    def compare_url(self, run_ids: Sequence[str], ui: str | None = None) -> str:
-        """The UI's compare-runs page of ``run_ids`` (params, metrics and charts side by side)."""
-        q = urllib.parse.urlencode(
-            {
-                "runs": json.dumps(list(run_ids), separators=(",", ":")),
-                "experiments": json.dumps([self.experiment_id], separators=(",", ":")),
-            }
-        )
-        return f"{self.ui_url(ui)}/#/compare-runs?{q}"
-
-    def save_view(
-        self,
-        key: str,
-        title: str,
-        parent_id: str,
-        columns: Sequence[str],
-        order_by: str,
-        ui: str | None = None,
-    ) -> str:
-        """Save a view of the runs table as an experiment tag (the UI's "Views" menu; MLflow 3.17 reads
-        ``mlflow.sharedViewState.<key>`` when the runs page is opened with ``?viewStateShareKey=<key>``):
-        the child runs of ``parent_id`` grouped by terrain (a group's row: the best, i.e. smallest, value),
-        the metric ``columns`` and the logged models visible, rows sorted by ``order_by`` ascending (the
-        best model of each terrain first). Returns its URL."""
-        metrics = [f"metrics.`{c}`" for c in columns]
-        state = {
-            "searchFilter": f"tags.`{TAG_PARENT}` = '{parent_id}'",
-            "orderByKey": f"metrics.`{order_by}`",
-            "orderByAsc": True,
-            "selectedColumns": [*metrics, "attributes.`Models`"],
-            # the metrics right after the run name, wide enough for their names (the UI's column ids)
-            "columnOrder": [
-                "attributes.`Run Name`",
-                *metrics,
-                "attributes.`Models`",
-                "runDateAndNestInfo",
-                "duration",
-            ],
-            "columnWidths": {m: 8 * len(c) + 24 for m, c in zip(metrics, columns, strict=True)},
-            # the chart view plots every run, not the first 10 (the UI's default) nor the groups' minima
-            "runsHiddenMode": "SHOW_ALL",
-            "useGroupedValuesInCharts": False,
-            "groupBy": {
-                "aggregateFunction": "min",
-                "groupByKeys": [{"mode": "tag", "groupByData": TAG_TERRAIN}],
-            },
-        }
-        now = int(time.time() * 1000)
-        envelope = {"name": title, "createdAt": now, "updatedAt": now, "state": json.dumps(state)}
-        self.client.set_experiment_tag(self.experiment_id, TAG_SAVED_VIEW + key, json.dumps(envelope))
-        q = urllib.parse.urlencode({"viewStateShareKey": key, "workflowType": "machine_learning"})
-        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs?{q}"
-
     def dataset_filter(self) -> list[str]:
         """The search clause that keeps this dataset's runs only (none without a dataset id)."""
         return [f"tags.`{TAG_DATASET_ID}` = '{self.dataset_id}'"] if self.dataset_id else []
 
+    # -- bookkeeping (benchmark/bookkeeping.py) ----------------------------------------------------
     def reap_dead_runs(self) -> list[str]:
-        """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process,
-        on this machine (same host name and boot id), is gone; returns their ids. A run of another
-        machine, or of a live process (a concurrent sweep), is left alone."""
-        me = process_tags()
-        if not me[TAG_BOOT]:  # cannot tell this machine from another of the same name
-            return []
-        quote = me[TAG_HOST].replace("'", "")
-        if not self.search_ids():
-            return []
-        runs = self.client.search_runs(
-            self.search_ids(),
-            filter_string=(
-                f"attributes.status = 'RUNNING' AND tags.`{TAG_HOST}` = '{quote}' "
-                f"AND tags.`{TAG_BOOT}` = '{me[TAG_BOOT]}'"
-            ),
-            max_results=1000,
-        )
-        reaped = []
-        for run in runs:
-            pid = run.data.tags.get(TAG_PID, "")
-            if not pid.isdigit() or process_alive(int(pid)):
-                continue
-            reason = f"process {pid} on {me[TAG_HOST]} ended without closing the run (killed or crashed)"
-            self.log(run.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
-            self.end(run.info.run_id, "KILLED")
-            reaped.append(run.info.run_id)
-        if reaped:
-            log.warning(
-                "MLflow: %d run(s) left RUNNING by a process that is gone marked KILLED: %s",
-                len(reaped), ", ".join(reaped),
-            )  # fmt: skip
-        return reaped
+        """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process, on
+        this machine, is gone (and their PENDING models FAILED); returns their ids."""
+        return [r.run_id for r in bk.reap(self.client, self.search_ids())]
 
     def claim_key(self, key: str) -> str | None:
-        """Before starting the run of one job of a sweep (``key``, the same for every attempt of it): the
-        id of a run of ``key`` that FINISHED (an earlier attempt completed: the job has nothing more to
-        log), else None, after marking ``KILLED`` each run of ``key`` left open and its open children (an
-        attempt whose worker or node died; the cluster retried the job). Open means RUNNING or SCHEDULED."""
-        quoted = key.replace("'", "")
-        if not self.search_ids():
-            return None
-        runs = self.client.search_runs(
-            self.search_ids(), filter_string=f"tags.`{TAG_RUN_KEY}` = '{quoted}'", max_results=100
-        )
-        done = [r for r in runs if r.info.status == "FINISHED"]
-        if done:
-            run_id = done[0].info.run_id
-            log.info("MLflow: job %s already has the finished run %s; not logged again", key, run_id)
-            return run_id
-        reason = f"superseded: job {key} was retried (this attempt's worker or node died)"
-        for run in runs:
-            if run.info.status not in ("RUNNING", "SCHEDULED"):
-                continue
-            children = self.client.search_runs(
-                [self.experiment_id],
-                filter_string=f"tags.`{TAG_PARENT}` = '{run.info.run_id}' AND attributes.status = 'RUNNING'",
-                max_results=1000,
-            )
-            for r in [*children, run]:
-                self.log(r.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
-                self.end(r.info.run_id, "KILLED")
-            log.warning("MLflow: run %s of job %s, left open by a dead attempt, marked KILLED",
-                        run.info.run_id, key)  # fmt: skip
-        return None
+        """:func:`bookkeeping.claim_key` in this experiment: the FINISHED run of a sweep job's earlier
+        attempt, else None after ending the runs a dead attempt left open."""
+        return bk.claim_key(self.client, self.search_ids(), key)
 
     # -- queries ----------------------------------------------------------------------------------
-    def latest_parent(self, inputs: str | None = None) -> str | None:
-        """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
-        a warning and passed over), else the newest parent of any status, else None. ``inputs``: only
-        parents of that input protocol (tag ``skidbench.inputs``)."""
+    def parents(self, inputs: str | None = None, user: str | None = None, max_results: int = 50) -> list[Any]:
+        """The parent runs of this dataset, newest first; ``inputs``: of that input protocol only;
+        ``user``: made by that user only (tag ``mlflow.user``)."""
         if not self.search_ids():
-            return None
+            return []
         clauses = [f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]
         if inputs:
             clauses.append(f"tags.`{TAG_INPUTS}` = '{inputs}'")
-        runs = self.client.search_runs(
+        if user:
+            clauses.append(f"tags.`{TAG_USER}` = '{user.replace(chr(39), '')}'")
+        found = self.client.search_runs(
             self.search_ids(),
-            filter_string=" AND ".join(clauses),
+            " AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
-            max_results=50,
+            max_results=max_results,
         )
+        return list(found)
+
+    def latest_parent(self, inputs: str | None = None, user: str | None = None) -> str | None:
+        """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
+        a warning and passed over), else the newest parent of any status, else None. ``inputs``: only
+        parents of that input protocol (tag ``skidbench.inputs``); ``user``: only that user's."""
+        runs = self.parents(inputs, user)
         if not runs:
             return None
         for k, run in enumerate(runs):
@@ -728,21 +655,35 @@ class Tracker:
         return runs[0].info.run_id
 
 
-def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
-    """For ``make mlflow-ui``: per skidbench experiment of the store, the URL of the saved view of its latest
-    evaluate (the runs table with the RMSRE columns) and of its runs page."""
+def store_client(uri: str, timeout_s: float = 5.0) -> Any | None:
+    """An ``MlflowClient`` of the store ``uri`` with skidbench's HTTP settings (a server health-checked
+    first), for commands that read a whole store; None for a local store that does not exist yet."""
+    if not has_store(uri):
+        return None
+    quiet_mlflow_logs()
+    if is_server(uri):
+        use_http_defaults()
+    check_reachable(uri, timeout_s)
     from mlflow.tracking import MlflowClient
 
-    _quiet_mlflow_logs()
-    if not has_store(uri):
-        print(f"no MLflow store at {uri} yet: run `make reproduce` (or `skidbench evaluate`) first")
-        return
-    for exp in MlflowClient(uri).search_experiments(filter_string="name LIKE 'skidbench-%'"):
-        base = f"{ui.rstrip('/')}/#/experiments/{exp.experiment_id}"
-        if TAG_SAVED_VIEW + "latest" in exp.tags:
-            print(f"{exp.name}: {base}/runs?viewStateShareKey=latest&workflowType=machine_learning")
-        else:
-            print(f"{exp.name}: {base}/runs?workflowType=machine_learning")
+    return MlflowClient(tracking_uri=uri)
+
+
+def call_store(uri: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+    """``fn(*args, **kwargs)`` (calls to the store ``uri``) with its errors as one line: a server that stops
+    answering names the server and what to do; another MLflow error its message."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        return fn(*args, **kwargs)
+    except MlflowException as exc:
+        reason = unreachable(exc)
+        if reason:
+            raise StoreUnreachable(
+                f"MLflow tracking server {uri} does not answer ({reason}); check it "
+                f"({uri.rstrip('/')}/health) and run the command again"
+            ) from None
+        raise EvaluationError(f"MLflow store {uri}: {one_line(exc.message)[:300]}") from None
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
@@ -760,6 +701,7 @@ def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
             artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
             timeout_s=float(node.get("timeout_s", 5.0)),
             dataset_id=dataset_id,
+            out_root=cfg.get("out_root"),
         )
         tracker.reap_dead_runs()
         return tracker

@@ -40,7 +40,13 @@ STAGES: dict[str, tuple[str, str]] = {
     "compare": ("skidbench.benchmark.compare_app:main", "leaderboard and the paper's figures"),
     "discover": ("skidbench.benchmark.discover_app:main", "find the missing physical effect"),
     "datasets": ("skidbench.pipeline.datasets_app:main", "list the datasets the output root holds"),
+    "runs": (
+        "skidbench.benchmark.runs_app:main",
+        "MLflow runs left open; --reap ends those whose process is gone",
+    ),
 }
+#: a stage's command-line flags and the override each stands for (``skidbench runs --reap``)
+FLAGS: dict[str, dict[str, str]] = {"runs": {"--reap": "reap=true"}}
 
 log = logging.getLogger("skidbench")
 
@@ -157,7 +163,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
     register_resolvers()  # before the override check and Hydra compose (and resolve) the stage's config
-    args = _preflight(name, argv[1:])
+    args = _preflight(name, [FLAGS.get(name, {}).get(a, a) for a in argv[1:]])
     sys.argv = [f"skidbench {name}", *args]
     register_launchers()
     fn()
