@@ -291,8 +291,8 @@ def runs_report(client: Any, experiments: Sequence[Any], reap_them: bool, stale_
             f"marked FAILED: logged model {m.name} ({m.model_id}) of run {m.source_run_id}" for m, _ in models
         ]
         lines.append(
-            f"{n_open} run(s) RUNNING, {len(reaped)} of them marked KILLED; {len(models)} PENDING logged model(s) of "
-            "ended runs marked FAILED"
+            f"{n_open} run(s) RUNNING, {len(reaped)} of them marked KILLED; {len(models)} PENDING logged "
+            "model(s) of ended runs marked FAILED"
         )
     else:
         gone = sum("gone: " in line for line in lines)

@@ -91,6 +91,8 @@ def select_runs(
         )
     except mlflow.exceptions.MlflowException as exc:
         raise CompareError(f"MLflow search_runs: {one_line(exc.message)[:300]} (check filter=...)") from None
+    if parent and not runs.empty:  # the external rows of `skidbench score` join every evaluate's board
+        runs = with_external_runs(tracker, runs, parent, inputs, filter_string)
     if runs.empty:
         what = f"parent run {parent}" if parent else f"experiment {tracker.experiment_name!r}"
         raise CompareError(f"no model runs match in {what} (filter: {filter_string or 'none'})")
@@ -127,6 +129,35 @@ def newer_elsewhere(tracker: trk.Tracker, parent: str, inputs: str | None, user:
     return None
 
 
+def with_external_runs(
+    tracker: trk.Tracker, runs: pd.DataFrame, parent: str, inputs: str | None, filter_string: str | None
+) -> pd.DataFrame:
+    """``runs`` (an evaluate's child runs) and the external runs (``skidbench score``, benchmark/external.py:
+    tag ``skidbench.external``) of the same dataset and protocol scored on the same split files (per terrain,
+    the split fingerprint of the runs)."""
+    import mlflow
+
+    if inputs is None:
+        inputs = tracker.client.get_run(parent).data.tags.get(trk.TAG_INPUTS)
+    clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'", f"tags.`{trk.TAG_EXTERNAL}` = 'true'"]
+    clauses += tracker.dataset_filter()
+    if inputs:
+        clauses.append(f"tags.`{trk.TAG_INPUTS}` = '{inputs}'")
+    if filter_string:
+        clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
+    ext = mlflow.search_runs(experiment_ids=tracker.search_ids(), filter_string=" AND ".join(clauses),
+                             order_by=["attributes.start_time DESC"], output_format="pandas")  # fmt: skip
+    if ext.empty:
+        return runs
+    terrain, fingerprint = f"tags.{trk.TAG_TERRAIN}", f"tags.{trk.TAG_FINGERPRINT}"
+    fp = dict(zip(_col(runs, terrain), _col(runs, fingerprint), strict=True))
+    same = [
+        fp.get(t) == f and r not in set(runs["run_id"])
+        for t, f, r in zip(_col(ext, terrain), _col(ext, fingerprint), ext["run_id"], strict=True)
+    ]  # fmt: skip
+    return pd.concat([runs, ext[same]], ignore_index=True) if any(same) else runs
+
+
 def _col(runs: pd.DataFrame, name: str) -> pd.Series:
     return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
 
@@ -144,6 +175,8 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             "reason": _col(runs, f"tags.{trk.TAG_REASON}").fillna(""),
             "version": _col(runs, f"tags.{trk.TAG_MODEL_VERSION}").fillna(""),
             "package": _col(runs, f"tags.{trk.TAG_PLUGIN}").fillna(""),
+            # a row scored from a predictions file (`skidbench score`, benchmark/external.py)
+            "external": _col(runs, f"tags.{trk.TAG_EXTERNAL}").fillna("false").eq("true"),
             "run_id": runs["run_id"],
             "start_time": runs["start_time"],
         }
@@ -221,7 +254,7 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
     rows = []
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
-        row: dict[str, Any] = {"model": model}
+        row: dict[str, Any] = {"model": _marked(model, g)}
         for kind in KINDS:
             for split in SPLITS:
                 vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
@@ -249,8 +282,14 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
     return out.drop(columns="_key").reset_index(drop=True)
 
 
+def _marked(model: str, rows: pd.DataFrame) -> str:
+    """A model's name on the leaderboard: ``<name> (external)`` for a row scored from a predictions file."""
+    return f"{model} (external)" if "external" in rows and rows["external"].any() else str(model)
+
+
 def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
-    out = pd.DataFrame({"model": board["model"], "inputs": board["inputs"], "terrain": board["terrain"],
+    models = [_marked(m, board.loc[[i]]) for i, m in zip(board.index, board["model"], strict=True)]
+    out = pd.DataFrame({"model": models, "inputs": board["inputs"], "terrain": board["terrain"],
                         "status": board["status"]})  # fmt: skip
     for kind in KINDS:
         for split in SPLITS:

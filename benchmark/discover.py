@@ -82,10 +82,11 @@ def load_pool(
     settings: DiscoverSettings,
     files_of: Callable[[str, str], list[Path]] | None = None,
 ) -> Pool:
-    """The held-out pool of a terrain: the ``settings.splits`` sequences (default Train). When they give
-    fewer than ``min_units`` held-out units (a significance test over fewer units cannot reject at
-    alpha), the terrain's other splits (CV, LD) are added, and ``pool.note`` says so. ``files_of(terrain,
-    split)``: the split files to read (the current manifest's); default every file under ``splits_root``."""
+    """The held-out pool of a terrain: its ``settings.splits`` sequences (default Train) and nothing else;
+    when they are fewer than ``min_units``, cut into time blocks (:func:`build_pool`). Discovery selects
+    and fits on these only: the test splits (CV, LD) are never read, so that the ``discovered`` model's
+    score there is a held-out one. ``files_of(terrain, split)``: the split files to read (the current
+    manifest's); default every file under ``splits_root``."""
 
     def load_split_tables(root: Path, terrain: str, split: str) -> list[tuple[pd.DataFrame, dict]]:
         if files_of is None:
@@ -98,16 +99,21 @@ def load_pool(
     if not tables:
         raise DiscoverError(f"{splits_root}/{terrain}: no split files for {'/'.join(settings.splits)}")
     pool = build_pool(tables, settings)
-    extra = [s for s in ("train", "cv", "ld") if s not in settings.splits]
-    if pool.n_units < settings.min_units and extra:
-        more = [t for s in extra for t in load_split_tables(Path(splits_root), terrain, s)]
-        if more:
-            pool = build_pool(tables + more, settings)
-            pool.note = (
-                f"{'/'.join(settings.splits)} gave fewer than {settings.min_units} held-out units; "
-                f"{'/'.join(extra)} sequences added to the pool"
-            )
+    pool.note = f"selected on {'/'.join(settings.splits)} only: " + pool.describe()
     return pool
+
+
+def too_small(pool: Pool, settings: DiscoverSettings) -> str | None:
+    """Why the pool cannot support a discovery (None when it can): fewer held-out units than the
+    sign-flip test needs to reject at ``alpha`` (2^-n > alpha), or no unit with a full horizon window."""
+    need = max(2, int(np.ceil(np.log2(1.0 / settings.alpha))))
+    if pool.n_units < need:
+        return (
+            f"{pool.describe()}: {pool.n_units} held-out unit(s) of at least {settings.horizon_s:g} s, and "
+            f"a sign-flip test over n units cannot reach alpha = {settings.alpha:g} with n < {need}; "
+            f"record at least {need * settings.horizon_s:g} s of {'/'.join(settings.splits)} driving"
+        )
+    return None
 
 
 def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None) -> Pool:
@@ -141,6 +147,29 @@ class TerrainDiscovery:
     seconds: float
     terms: list[str] = field(default_factory=list)  # open-ended terms added (keys of models/terms.py)
     unexplained: dict[str, Any] | None = None  # what is left when nothing more passes
+    selected_on: dict[str, Any] = field(default_factory=dict)  # the splits, sequences and units searched
+    refused: str | None = None  # why no search was run (a pool too small for the test)
+
+
+def selected_on(pool: Pool, settings: DiscoverSettings) -> dict[str, Any]:
+    """What a discovery selected and fitted on: the splits, their sequences, the held-out units."""
+    return {
+        "splits": list(settings.splits),
+        "sequences": list(pool.sequences),
+        "n_units": pool.n_units,
+        "units": "time blocks" if pool.blocks else "sequences",
+        "text": f"{'/'.join(settings.splits)} only: {pool.describe()}",
+    }
+
+
+def refused_terrain(pool: Pool, settings: DiscoverSettings, terrain: str, base_name: str, reason: str):
+    """The record of a terrain whose pool is too small to search (:func:`too_small`)."""
+    nan = {"translational": float("nan"), "rotational": float("nan")}
+    base = {"heldout_rmsre": nan, "n_sequences": len(pool.sequences), "n_heldout_units": pool.n_units}
+    return TerrainDiscovery(
+        terrain, base_name, [], [], base, {"effects": [], "terms": [], "heldout_rmsre": nan},
+        f"refused: {reason}", [], None, 0.0, selected_on=selected_on(pool, settings), refused=reason,
+    )  # fmt: skip
 
 
 def refine_knots(
@@ -297,6 +326,7 @@ def _fit_base(
         "n_heldout_units": pool.n_units,
         "n_samples": int(pool.valid.sum()),
         "pool_note": pool.note,
+        "selected_on": pool.describe(),
     }
     if pool.note:
         say(f"[{terrain}] note: {pool.note}")
@@ -554,6 +584,7 @@ def _result(run: _Search, base_name: str, t_start: float) -> TerrainDiscovery:
         time.perf_counter() - t_start,
         [t.key for t in run.terms],
         run.unexplained,
+        selected_on(run.pool, run.settings),
     )
 
 

@@ -26,6 +26,8 @@ from skidbench.benchmark.discover import (
     apply_protocol,
     discover_terrain,
     load_pool,
+    refused_terrain,
+    too_small,
 )
 from skidbench.models.effect_fit import DiscoverError, DiscoverSettings
 from skidbench.models.effects import CATALOGUE, EFFECT_IDS
@@ -164,6 +166,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     own_splits = root.resolve() == layout_from_cfg(cfg).splits.resolve()
     for terrain in _terrains(root, cfg, settings.splits, dataset):
         pool = load_pool(root, terrain, settings, files_of)
+        reason = too_small(pool, settings)
+        if reason is not None:
+            print(f"[{terrain}] refused: {reason}", flush=True)
+            results.append(refused_terrain(pool, settings, terrain, base_name, reason))
+            continue
         # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
         constants = calibrated_constants(get_model_class(base_name))
         robot_t = robot_for_model(cfg, constants, terrain)[0] if own_splits else robot
@@ -180,6 +187,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             progress=lambda m: print(m, flush=True),
         )
         results.append(res)
+    if all(r.refused for r in results):
+        raise DiscoverError(f"{root}: every terrain refused; {results[0].terrain}: {results[0].refused}")
     doc = to_document(results, base_name, settings, root, time.perf_counter() - t0)
     doc["inputs"] = inputs  # the input protocol every fit of the search was driven by
     out.mkdir(parents=True, exist_ok=True)
@@ -208,6 +217,8 @@ def to_document(
             "final": r.final,
             "rejected": r.rejected,
             "seconds": r.seconds,
+            "selected_on": r.selected_on,
+            **({"refused": r.refused} if r.refused else {}),
         }
     if len(results) == 1:
         r = results[0]
@@ -240,6 +251,11 @@ def to_document(
 def summary_text(doc: dict[str, Any]) -> str:
     lines = [f"discovery from base model {doc['base_model']}"]
     for terrain, r in doc["terrains"].items():
+        if r.get("selected_on"):
+            lines.append(f"[{terrain}] selected on {r['selected_on']['text']}")
+        if r.get("refused"):
+            lines.append(f"[{terrain}] refused: {r['refused']}")
+            continue
         b = r["base"]["heldout_rmsre"]
         lines.append(
             f"[{terrain}] base held-out RMSRE: translational {b['translational']:.4f}, "
@@ -287,9 +303,8 @@ def figure(results: list[TerrainDiscovery], path: Path) -> None:
         ax.set_xticklabels(["base"] + [f"+{e}" for e in labels[1:]], rotation=25, ha="right", fontsize=7)
         ax.set_ylabel("held-out 6 s RMSRE")
         ax.set_ylim(bottom=0)
-        ax.set_title(
-            f"{r.terrain}: {r.base_model}" + ("" if r.steps else f" ({NO_EFFECT_MESSAGE})"), fontsize=9
-        )
+        status = "refused: too little Train data" if r.refused else NO_EFFECT_MESSAGE
+        ax.set_title(f"{r.terrain}: {r.base_model}" + ("" if r.steps else f" ({status})"), fontsize=9)
         ax.legend(fontsize=7)
         for j, ax in enumerate(row[1:]):
             if j >= len(r.figure_data) or "bin_x" not in r.figure_data[j]:

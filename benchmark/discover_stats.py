@@ -59,12 +59,14 @@ def folds_of(pool: Pool, k: int) -> list[np.ndarray]:
 
 def horizon_metrics(pool: Pool, pred: np.ndarray, horizon_s: float) -> tuple[dict[str, float], pd.DataFrame]:
     """The ``horizon_s`` RMSRE (translational, rotational; fractions) of the body velocities ``pred`` (T, 3)
-    integrated over every unit of the pool, and the per-window errors (with their ``unit``)."""
+    integrated over every sequence of the pool, and the per-window errors, each with the ``unit`` its
+    first row belongs to (a window of a time-blocked sequence may run into the next block: every row's
+    prediction is still held out from its own unit's fit)."""
     frames = []
-    for u in range(pool.n_units):
-        m = pool.units == u
-        w = window_errors(pool.t[m], pool.pose[m], pred[m], horizon_s, valid=pool.valid[m])
-        w["unit"] = u
+    for g in range(len(pool.sequences)):
+        idx = np.flatnonzero(pool.groups == g)
+        w = window_errors(pool.t[idx], pool.pose[idx], pred[idx], horizon_s, valid=pool.valid[idx])
+        w["unit"] = pool.units[idx][w["start"].to_numpy(int)] if len(w) else np.zeros(0, int)
         frames.append(w)
     win = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     if win.empty:

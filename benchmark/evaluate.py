@@ -705,6 +705,10 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
         described[k] = v  # the options the model was built with (config and +model.options.*)
     if callable(getattr(model, "tracking_params", None)):
         described.update(model.tracking_params())
+    resolved = _fit_json(fit).get("resolved") or {}
+    if resolved.get("selected_on"):  # `discovered`: what its effects were selected on (Train only)
+        described["discovered.selected_on"] = resolved["selected_on"]
+        described["discovered.spec"] = resolved.get("spec")
     if response is not None:  # the calibration's wheel response that drove every model
         described.update({f"wheel_response.{k}": v for k, v in response.__dict__.items()})
     described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values

@@ -47,6 +47,8 @@ TAG_SESSION = "skidbench.session"  # one id per process: the runs one command op
 TAG_HEARTBEAT = "skidbench.heartbeat"  # UTC time a live process last said its open run is alive
 TAG_RUN_KEY = "skidbench.run_key"
 TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
+TAG_EXTERNAL = "skidbench.external"  # "true" on a run of `skidbench score` (benchmark/external.py)
+TAG_PREDICTIONS_SHA256 = "skidbench.predictions_sha256"  # the sha256 of the predictions file it scored
 TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
 #: who runs skidbench, when the login name does not say it (a lab's shared account)
 USER_ENV = "SKIDBENCH_USER"

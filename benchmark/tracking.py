@@ -50,6 +50,7 @@ from .provenance import (  # noqa: F401
     TAG_BOOT,
     TAG_DATASET,
     TAG_DATASET_ID,
+    TAG_EXTERNAL,
     TAG_FINGERPRINT,
     TAG_GIT,
     TAG_HEARTBEAT,
@@ -62,6 +63,7 @@ from .provenance import (  # noqa: F401
     TAG_PARENT,
     TAG_PID,
     TAG_PLUGIN,
+    TAG_PREDICTIONS_SHA256,
     TAG_REASON,
     TAG_ROLE,
     TAG_RUN_KEY,
@@ -686,11 +688,13 @@ def call_store(uri: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         raise EvaluationError(f"MLflow store {uri}: {one_line(exc.message)[:300]}") from None
 
 
-def tracker_from_cfg(cfg: Any, layout: Layout) -> Tracker:
+def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
+    """The store and experiment of ``cfg``, for ``layout``'s dataset; ``dataset_id``: its identity (default:
+    the configured source's, pipeline/dataset.py; a stage that names a dataset by its folder passes the
+    one its ``dataset.json`` records)."""
     node = cfg.mlflow
     uri = resolve_tracking_uri(cfg, layout)
-    dataset_id = None
-    if cfg.get("source") is not None:
+    if dataset_id is None and cfg.get("source") is not None:
         from skidbench.pipeline.dataset import identity_from_cfg
 
         dataset_id = identity_from_cfg(cfg).fingerprint

@@ -46,8 +46,8 @@ class DiscoverError(SkidbenchError):
 class DiscoverSettings:
     horizon_s: float = 6.0
     folds: int = 5
-    min_units: int = 8  # cut sequences into chunks when there are fewer sequences than this
-    chunk_s: float = 30.0  # chunk length when cutting (s); never shorter than 2 horizons
+    min_units: int = 8  # cut sequences into time blocks when there are fewer sequences than this
+    chunk_s: float = 30.0  # longest block when cutting (s); never shorter than one horizon
     alpha: float = 0.05
     penalty_per_param: float = 0.02
     min_gain: float = 0.02
@@ -67,9 +67,9 @@ class DiscoverSettings:
             f"n_params >= {self.min_gain:g}, whose per-held-out-unit gains pass a one-sided paired sign-flip "
             f"test at alpha = {self.alpha:g}, and whose held-out velocity residual (sum over vx, vy, wz of "
             f"log MSE_before/MSE_after) also improves with no changed channel worse by more than "
-            f"{self.channel_tolerance:g}; held out by {self.folds}-fold over whole sequences "
-            f"(contiguous chunks of >= {self.chunk_s:g} s when there are fewer than {self.min_units} "
-            "sequences)"
+            f"{self.channel_tolerance:g}; held out by {self.folds}-fold over whole {'/'.join(self.splits)} "
+            f"sequences (contiguous time blocks of {self.horizon_s:g} to {self.chunk_s:g} s when there are "
+            f"fewer than {self.min_units}); the test splits are never read"
         )
 
 
@@ -90,6 +90,21 @@ class Pool:
     t: np.ndarray  # (T,)
     sequences: list[str]
     note: str = ""
+    metas: list[dict] = field(default_factory=list)  # each sequence's split metadata, in ``groups`` order
+
+    @property
+    def blocks(self) -> bool:
+        """Whether the held-out units are time blocks of sequences (fewer sequences than ``min_units``)."""
+        return self.n_units > len(self.sequences)
+
+    def describe(self) -> str:
+        """What the units are, in words (what discovery selected on)."""
+        seconds = float(sum(self.t[self.groups == g][-1] - self.t[self.groups == g][0]
+                            for g in range(len(self.sequences))))  # fmt: skip
+        what = f"{len(self.sequences)} sequence{'s' if len(self.sequences) != 1 else ''} ({seconds:.0f} s)"
+        if self.blocks:
+            return f"{what} cut into {self.n_units} time blocks of {seconds / self.n_units:.1f} s"
+        return f"{what}, each a held-out unit"
 
     @property
     def n_units(self) -> int:
@@ -97,14 +112,17 @@ class Pool:
 
 
 def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettings) -> Pool:
-    """Concatenate split tables; cut them into contiguous chunks if there are too few sequences."""
+    """Concatenate split tables; the held-out units are whole sequences, or, when there are fewer sequences
+    than ``min_units``, contiguous time blocks of them: each sequence cut into blocks of equal length, at
+    least one horizon long (the horizon windows run across block boundaries: :func:`horizon_metrics` of
+    :mod:`skidbench.benchmark.discover_stats`), about ``total / min_units`` (at most ``chunk_s``) long."""
     tables = [(df, m) for df, m in tables if len(df) > 2]
     if not tables:
         raise DiscoverError("no training sequences with data")
     cut = len(tables) < settings.min_units
     total = sum(float(df["t"].iloc[-1] - df["t"].iloc[0]) for df, _ in tables)
-    # chunks long enough for several 6 s windows, short enough to give min_units held-out units
-    chunk = max(2.0 * settings.horizon_s + 1.0, min(settings.chunk_s, total / max(settings.min_units, 1)))
+    # blocks long enough for a horizon, short enough to give min_units held-out units
+    chunk = max(settings.horizon_s, min(settings.chunk_s, total / max(settings.min_units, 1)))
     frames, groups, units, unit_names, names = [], [], [], [], []
     for g, (df, meta) in enumerate(tables):
         name = str(meta.get("sequence", f"seq{g}"))
@@ -114,7 +132,8 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
         n = len(df)
         bounds = [0, n]
         if cut:
-            k = max(1, int((t[-1] - t[0]) // chunk))
+            dur = t[-1] - t[0]
+            k = max(1, min(int(round(dur / chunk)), int(dur // settings.horizon_s)))
             bounds = [int(round(i * n / k)) for i in range(k + 1)]
         for j, (a, b) in enumerate(itertools.pairwise(bounds)):
             unit_names.append(name if len(bounds) == 2 else f"{name}#{j}")
@@ -135,6 +154,7 @@ def build_pool(tables: list[tuple[pd.DataFrame, dict]], settings: DiscoverSettin
         pose=table[["x", "y", "yaw"]].to_numpy(float),
         t=table["t"].to_numpy(float),
         sequences=names,
+        metas=[dict(m) for _, m in tables],
     )
 
 

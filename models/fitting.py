@@ -216,8 +216,21 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
             f"model {DISCOVERED}: {path} was found under inputs={found_under}, this run is inputs={inputs}; "
             f"run `skidbench discover inputs={inputs}` (or evaluate it under inputs={found_under})"
         )
+    sel = entry.get("selected_on") or {}
+    seen = [s for s in sel.get("splits", []) if s != "train"]
+    if seen or "added to the pool" in str((entry.get("base") or {}).get("pool_note") or ""):
+        raise ModelError(  # a discovery made before selection kept to Train (CV/LD added to its pool) too
+            f"model {DISCOVERED}: {path} selected terrain {terrain}'s effects on its "
+            f"{'/'.join(seen) or 'CV/LD'} sequences too, so its score there would not be held out; "
+            "run `skidbench discover` (it selects on Train only) again"
+        )
     spec = "+".join([base, *effects])
-    return spec, {"discovery": str(path), "spec": spec, "message": entry.get("message", "")}
+    return spec, {
+        "discovery": str(path),
+        "spec": spec,
+        "message": entry.get("message", ""),
+        "selected_on": sel.get("text", "train"),
+    }
 
 
 def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse | None]:

@@ -221,6 +221,9 @@ PRODUCERS: dict[str, tuple[str, ...]] = {
     "evaluate": ("simulate", "extract", "groundtruth", "split", "calibrate"),
     "compare": ("simulate", "extract", "groundtruth", "split", "calibrate", "evaluate"),
     "discover": ("simulate", "extract", "groundtruth", "split"),
+    "export": ("simulate", "extract", "groundtruth", "split", "calibrate", "evaluate"),
+    "score": ("simulate", "extract", "groundtruth", "split"),
+    "publish": ("simulate", "extract", "groundtruth", "split", "calibrate", "evaluate", "compare"),
 }
 
 

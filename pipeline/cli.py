@@ -20,6 +20,7 @@ from pathlib import Path
 from .cache import StaleInputError, check_producers, clear_failed, mark_failed
 from .config_schema import validate
 from .errors import ConfigError, SkidbenchError, one_line
+from .imported import check_stage
 from .layout import register_resolvers
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
@@ -44,6 +45,10 @@ STAGES: dict[str, tuple[str, str]] = {
         "skidbench.benchmark.runs_app:main",
         "MLflow runs left open; --reap ends those whose process is gone",
     ),
+    "export": ("skidbench.benchmark.bundle_app:export_main", "<dataset> <dir>: dataset, board as a bundle"),
+    "import": ("skidbench.benchmark.bundle_app:import_main", "<dir>: verify a bundle, make a dataset of it"),
+    "score": ("skidbench.benchmark.score_app:main", "<dataset> --predictions <file>: score a model's output"),
+    "publish": ("skidbench.benchmark.publish_app:main", "<dataset> <dir>: the boards as a static web page"),
 }
 #: a stage's command-line flags and the override each stands for (``skidbench runs --reap``)
 FLAGS: dict[str, dict[str, str]] = {"runs": {"--reap": "reap=true"}}
@@ -87,6 +92,7 @@ def stage(name: str, home: bool = True) -> Callable:
 
                     root = open_home(cfg, name)[0].root
                     check_producers(root, name)
+                    check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
                 exit_with_error(str(exc), name)
@@ -163,7 +169,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
     register_resolvers()  # before the override check and Hydra compose (and resolve) the stage's config
-    args = _preflight(name, [FLAGS.get(name, {}).get(a, a) for a in argv[1:]])
+    args = [FLAGS.get(name, {}).get(a, a) for a in argv[1:]]  # `--reap` -> reap=true
+    args = _preflight(name, positional_overrides(name, fn, args))
     sys.argv = [f"skidbench {name}", *args]
     register_launchers()
     fn()
@@ -195,6 +202,72 @@ def _preflight(name: str, args: list[str]) -> list[str]:
     for line in dropped:
         kept.remove(line)
     return kept
+
+
+def positional_overrides(name: str, fn: Callable, args: list[str]) -> list[str]:
+    """The arguments of a stage that takes positional ones (``skidbench export <dataset> <dir>``) as Hydra
+    overrides. The stage's main declares them: ``fn.positional`` = (the keys the positional arguments set,
+    in order; ``{"--flag": key}`` for flags that take a value). A positional ``dataset`` also sets
+    ``robot=<the dataset's robot>`` (from its manifest) unless ``robot=`` is given. Other arguments pass
+    through. A missing or extra argument is one line with the usage, exit 2."""
+    spec = getattr(fn, "positional", None)
+    if not spec or any(a in ("-h", "--help", "--cfg", "-c", "--info") for a in args):
+        return args
+    keys, flags = spec
+    out, given = [], []
+    it = iter(args)
+    for a in it:
+        flag, eq, value = a.partition("=")
+        if flag in flags:
+            value = value if eq else next(it, None)
+            if value is None:
+                exit_with_error(f"{flag} needs a value; usage: {_positional_usage(name, keys, flags)}", name)
+            out.append(f"{flags[flag]}={_quoted(value)}")
+        elif "=" in a or a.startswith("-"):
+            out.append(a)
+        else:
+            given.append(a)
+    set_keys = {o.split("=", 1)[0].lstrip("+~") for o in out}
+    wanted = [k for k in keys if k not in set_keys]
+    if len(given) != len(wanted):
+        what = "missing" if len(given) < len(wanted) else f"unexpected {given[len(wanted)]!r}"
+        exit_with_error(f"{what} argument; usage: {_positional_usage(name, keys, flags)}", name)
+    out += [f"{k}={_quoted(v)}" for k, v in zip(wanted, given, strict=True)]
+    if "dataset" in wanted and "robot" not in set_keys:
+        robot = _dataset_robot(out, given[wanted.index("dataset")])
+        if robot:
+            out.append(f"robot={robot}")
+    return out
+
+
+def _positional_usage(name: str, keys, flags) -> str:
+    words = [f"<{k.split('.')[-1]}>" for k in keys] + [f"{f} <{k.split('.')[-1]}>" for f, k in flags.items()]
+    return f"skidbench {name} {' '.join(words)} [key=value ...]"
+
+
+def _quoted(value: str) -> str:
+    """A value as a Hydra override reads it back unchanged (quoted when it holds grammar characters)."""
+    import re
+
+    if re.fullmatch(r"[A-Za-z0-9_./:+@~-]+", value):
+        return value
+    return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _dataset_robot(overrides: list[str], dataset: str) -> str | None:
+    """The robot of ``<out_root>/<dataset>/raw/manifest.json`` when it has a packaged config, else None."""
+    import json
+    from importlib.resources import files
+
+    from .layout import default_out_root
+
+    root = next((o.split("=", 1)[1].strip("'") for o in overrides if o.startswith("out_root=")), None)
+    manifest = Path(root or default_out_root()).expanduser() / dataset / "raw" / "manifest.json"
+    try:
+        robot = str(json.loads(manifest.read_text()).get("robot") or "")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return robot if robot and (files("skidbench.conf") / "robot" / f"{robot}.yaml").is_file() else None
 
 
 def check_out_root(cfg) -> None:

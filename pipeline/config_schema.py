@@ -315,6 +315,18 @@ SCHEMA: dict[str, Spec] = {
     # -- runs.yaml --------------------------------------------------------------------------------------
     "reap": BOOL,
     "stale_after_s": number(gt=0, what="s"),
+    # -- export.yaml / import.yaml (benchmark/bundle.py) -------------------------------------------------
+    "bundle.dir": STR,
+    "bundle.licence": OPT_STR,
+    "bundle.provenance": OPT_STR,
+    "bundle.name": OPT_STR,
+    # -- score.yaml (benchmark/external.py) -------------------------------------------------------------
+    "score.predictions": STR,
+    "score.name": OPT_STR,
+    # -- publish.yaml (benchmark/publish.py) ------------------------------------------------------------
+    "publish.dir": STR,
+    "publish.figures": BOOL,
+    "publish.dpi": integer(20, 600),
     # -- discover.yaml ----------------------------------------------------------------------------------
     "discover.out": STR,
     "discover.splits": OPT_STR,

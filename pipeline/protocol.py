@@ -34,6 +34,9 @@ from .errors import SkidbenchError
 from .robot import Robot
 
 PROTOCOLS = ("commanded", "response", "measured")
+#: the version of this contract (the protocols, ``INPUT_COLUMNS``, how each protocol's columns are made); a
+#: released bundle records it (benchmark/bundle.py). Bump it when a protocol's inputs change.
+PROTOCOL_VERSION = 1
 INPUT_COLUMNS = ("t", "sequence", "cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 #: what ``fit`` gets besides the inputs: the ground-truth pose, body velocities and their validity
 TARGET_COLUMNS = ("x", "y", "yaw", "vx", "vy", "wz", "valid")

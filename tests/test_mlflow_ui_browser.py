@@ -6,46 +6,24 @@ and a parent run's page. Skipped, with the reason, where no Chromium is installe
 
 from __future__ import annotations
 
-import html
 import os
 import re
-import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
 from _bench_data import compose, fit_fn, write_splits
+from browser import CHROMIUM, chromium, text_of
 from mlflow_server import running_mlflow_server
 
 from skidbench.benchmark.compare import run_compare
 from skidbench.benchmark.evaluate import run_benchmark
 
 DS = "sim-mini"
-CHROMIUM = next((p for p in (shutil.which("chromium"), "/usr/bin/chromium") if p and Path(p).is_file()), None)
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(CHROMIUM is None, reason="no headless Chromium (/usr/bin/chromium) installed"),
 ]
 RMSRE = ("ld_6s_trans_rmsre_pct", "ld_6s_rot_rmsre_pct", "cv_6s_trans_rmsre_pct", "cv_6s_rot_rmsre_pct")
-
-
-def chromium(url: str, tmp: Path, *, screenshot: Path | None = None, budget_ms: int = 20000) -> str:
-    """The DOM of ``url`` after the page has run ``budget_ms`` of (virtual) time; or save a screenshot."""
-    profile = tmp / f"profile-{len(list(tmp.glob('profile-*')))}"
-    args = [
-        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        f"--user-data-dir={profile}", "--window-size=1600,1000", f"--virtual-time-budget={budget_ms}",
-    ]  # fmt: skip
-    args += [f"--screenshot={screenshot}"] if screenshot else ["--dump-dom"]
-    done = subprocess.run([*args, url], capture_output=True, text=True, timeout=180)
-    assert done.returncode == 0, done.stderr[-2000:]
-    return done.stdout
-
-
-def text_of(dom: str) -> str:
-    dom = re.sub(r"<(script|style)\b.*?</\1>", " ", dom, flags=re.S)
-    return re.sub(r"\s+", " ", html.unescape(re.sub(r"<[^>]+>", " ", dom)))
 
 
 @pytest.fixture(scope="module")

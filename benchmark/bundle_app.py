@@ -1,0 +1,48 @@
+"""``skidbench export <dataset> <dir>`` and ``skidbench import <dir>`` (benchmark/bundle.py) as Hydra apps
+(``conf/export.yaml``, ``conf/import.yaml``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from skidbench.pipeline.cli import stage
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="export")
+@stage("export", home=False)
+def export_main(cfg: DictConfig) -> None:
+    from skidbench.pipeline.imported import named_dataset
+
+    from . import tracking as trk
+    from .bundle import describe_export, export_bundle
+
+    layout, rec = named_dataset(cfg, "export")
+    tracker = None  # export reads the store: it does not create an empty one to find nothing in
+    if trk.has_store(trk.resolve_tracking_uri(cfg, layout)):
+        tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
+    print(describe_export(export_bundle(cfg, layout, Path(str(cfg.bundle.dir)), tracker)), flush=True)
+
+
+export_main.positional = (("dataset", "bundle.dir"), {})
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="import")
+@stage("import", home=False)
+def import_main(cfg: DictConfig) -> None:
+    from .bundle import describe_import, import_bundle
+
+    folder = Path(str(cfg.bundle.dir))
+    res = import_bundle(
+        folder, Path(str(cfg.out_root)), cfg.bundle.get("name"), bool(cfg.source.get("replace"))
+    )
+    print(describe_import(res, folder), flush=True)
+
+
+import_main.positional = (("bundle.dir",), {})
+
+
+if __name__ == "__main__":
+    export_main()

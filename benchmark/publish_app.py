@@ -1,0 +1,30 @@
+"""``skidbench publish <dataset> <dir>`` (benchmark/publish.py) as a Hydra app (``conf/publish.yaml``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from skidbench.pipeline.cli import stage
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="publish")
+@stage("publish", home=False)
+def main(cfg: DictConfig) -> None:
+    from skidbench.pipeline.imported import named_dataset
+
+    from . import tracking as trk
+    from .publish import describe, publish
+
+    layout, rec = named_dataset(cfg, "publish")
+    tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
+    print(describe(publish(cfg, layout, rec, tracker, Path(str(cfg.publish.dir)))), flush=True)
+
+
+main.positional = (("dataset", "publish.dir"), {})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,34 @@
+"""``skidbench score <dataset> --predictions <file>`` (benchmark/external.py) as a Hydra app
+(``conf/score.yaml``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from skidbench.pipeline.cli import stage
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="score")
+@stage("score", home=False)
+def main(cfg: DictConfig) -> None:
+    from skidbench.pipeline.imported import named_dataset
+    from skidbench.pipeline.protocol import protocol_of
+
+    from . import tracking as trk
+    from .external import format_score, score_predictions
+
+    layout, rec = named_dataset(cfg, "score")
+    tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
+    res = score_predictions(cfg, layout, tracker, Path(str(cfg.score.predictions)), cfg.score.get("name"),
+                            protocol_of(cfg))  # fmt: skip
+    print(format_score(res), flush=True)
+
+
+main.positional = (("dataset",), {"--predictions": "score.predictions"})
+
+
+if __name__ == "__main__":
+    main()
