@@ -462,10 +462,14 @@ def run_benchmark(
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
                 children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
+            board, board_metrics = leaderboard(children, splits, horizons, protocol)
             tracker.log(
                 parent_id,
-                metrics={"n_children": len(children), "n_failed": n_failed},
-                tags={trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED"},
+                metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
+                tags={
+                    trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED",
+                    trk.TAG_NOTE: board + _describe(cfg, models, terrains, splits, horizons),
+                },  # fmt: skip
             )
             save_views(tracker, parent_id, splits, horizons, protocol)
     except MlflowException as exc:
@@ -891,14 +895,34 @@ def _log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path
     tracker.log(run_id, tags={"skidbench.logged_model": model_id})
 
 
+def board_columns(splits, horizons) -> tuple[list[str], list[str]]:
+    """The RMSRE metrics of the first horizon (LD first, translational before rotational) and their labels:
+    the columns of an evaluate's saved views and of its parent run's leaderboard."""
+    h = horizons[0]
+    order = sorted(splits, key=lambda s: s != "ld")
+    pairs = [(s, k) for s in order for k in ("translational", "rotational")]
+    return [trk.metric_key(k, s, h) for s, k in pairs], [f"{s.upper()} {trk.SHORT[k]} %" for s, k in pairs]
+
+
+def leaderboard(
+    children: Sequence[ChildResult], splits, horizons, protocol: str
+) -> tuple[str, dict[str, float]]:
+    """The leaderboard of an evaluate for its parent run (:func:`mlflow_ui.leaderboard`): Markdown to put at
+    the top of its description, and per model its mean over terrains and gap to the next as metrics."""
+    cols, labels = board_columns(splits, horizons)
+    md, metrics = mu.leaderboard([(c.model, c.terrain, c.status, c.metrics) for c in children], cols, labels)
+    title = (f"**Leaderboard**, inputs={protocol}: {horizons[0]:g} s RMSRE in % (mean over terrains; lower "
+             "is better; ranked by the first column)")  # fmt: skip
+    return f"{title}\n\n{md}\n\n", metrics
+
+
 def save_views(tracker, parent_id: str, splits, horizons, protocol: str) -> list[str]:
     """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs with the
     RMSRE columns of the first horizon (LD first), best LD translational first. Returns their keys."""
-    h = horizons[0]
-    order = sorted(splits, key=lambda s: s != "ld")
-    cols = [trk.metric_key(k, s, h) for s in order for k in ("translational", "rotational")]
+    cols, _ = board_columns(splits, horizons)
     name = tracker.client.get_run(parent_id).info.run_name
-    return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol, h)
+    return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol,
+                                  horizons[0])  # fmt: skip
 
 
 #: per-parameter fit diagnostics a model may report in its fit JSON's ``fit_info`` (friction: bound margins,

@@ -19,8 +19,10 @@ from __future__ import annotations
 import json
 import time
 import urllib.parse
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
+
+import numpy as np
 
 from .provenance import TAG_PARENT, TAG_TERRAIN, current_user
 
@@ -66,11 +68,13 @@ def children_of(parent_id: str) -> str:
 
 def view_state(search_filter: str, columns: Sequence[str], order_by: str, chart_title: str) -> dict[str, Any]:
     """The runs table's state (MLflow 3.17's names): the runs ``search_filter`` finds (the child runs of an
-    evaluate: :func:`children_of`) grouped by terrain
-    (a group's row: the best, i.e. smallest, value), the metric ``columns`` right after the run name and
-    wide enough for their names, then the logged models; rows sorted by ``order_by`` ascending (the best
-    model of each terrain first); in chart mode one bar chart per column (section ``chart_title``) over
-    every run (not the UI's first 10, nor the groups' minima), before any chart the UI adds itself."""
+    evaluate: :func:`children_of`) grouped by terrain (a group's row: the best, i.e. smallest, value), the
+    metric ``columns`` right after the run name and its start time (the UI pins both left), wide enough for
+    their names (all four RMSRE columns fit a 1920 px wide window, next to the UI's assistant panel too,
+    no scrolling), then the logged models; rows sorted by ``order_by`` ascending (the best model of each
+    terrain first); in
+    chart mode one bar chart per column (section ``chart_title``) over every run (not the UI's first 10,
+    nor the groups' minima), before any chart the UI adds itself."""
     metrics = [f"metrics.`{c}`" for c in columns]
     section = "skidbench-errors"
     return {
@@ -151,3 +155,51 @@ def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
         if not mine:
             q = urllib.parse.urlencode(ML_MODE)
             print(f"{exp.name}: {ui_url(uri, ui)}/#/experiments/{exp.experiment_id}/runs?{q}")
+
+
+# -- the parent run's page: the leaderboard -------------------------------------------------------------
+def metric_safe(name: str) -> str:
+    """``name`` with the characters MLflow refuses in a metric key (an augmented spec's ``+``) as ``_``."""
+    return "".join(c if c.isalnum() or c in "_-. /:" else "_" for c in name)
+
+
+def leaderboard(
+    rows: Sequence[tuple[str, str, str, Mapping[str, float]]], columns: Sequence[str], labels: Sequence[str]
+) -> tuple[str, dict[str, float]]:
+    """The leaderboard an evaluate's parent run shows, from its child runs ``rows`` = (model, terrain,
+    status, metrics): per model the mean over the terrains it FINISHED of each metric of ``columns`` (lower
+    is better; ``labels`` their headers), ranked by the first. Returns its Markdown (for the run's
+    description) and the parent's metrics ``<model>.mean_<column>`` and ``<model>.gap_to_next_<column>``
+    (how far ahead of the next model on that column, in its unit; none for the last)."""
+    models = list(dict.fromkeys(r[0] for r in rows))
+    means: dict[str, dict[str, float]] = {}
+    ok: dict[str, tuple[int, int]] = {}
+    for m in models:
+        mine = [r for r in rows if r[0] == m]
+        done = [r[3] for r in mine if r[2] == "FINISHED"]
+        ok[m] = (len(done), len(mine))
+        means[m] = {}
+        for c in columns:
+            vals = np.array([d.get(c, np.nan) for d in done], float)
+            means[m][c] = float(np.nanmean(vals)) if np.isfinite(vals).any() else float("nan")
+    metrics: dict[str, float] = {}
+    gaps: dict[str, dict[str, float]] = {m: {} for m in models}
+    for c in columns:
+        ranked = sorted((m for m in models if np.isfinite(means[m][c])), key=lambda m: means[m][c])
+        for a, b in zip(ranked, ranked[1:], strict=False):
+            gaps[a][c] = round(means[b][c] - means[a][c], 3)
+        for m in ranked:
+            metrics[f"{metric_safe(m)}.mean_{c}"] = round(means[m][c], 3)
+            if c in gaps[m]:
+                metrics[f"{metric_safe(m)}.gap_to_next_{c}"] = gaps[m][c]
+    first = columns[0]
+    order = sorted(models, key=lambda m: (not np.isfinite(means[m][first]), means[m][first]))
+    cell = lambda v: "n/a" if not np.isfinite(v) else f"{v:.2f}"  # noqa: E731
+    head = ["rank", "model", *labels, f"gap to next ({labels[0]})", "terrains"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---:|---|" + "---:|" * (len(labels) + 1) + "---|"]
+    for k, m in enumerate(order, 1):
+        gap = gaps[m].get(first)
+        cells = [str(k), f"**{m}**" if k == 1 else m, *(cell(means[m][c]) for c in columns),
+                 "" if gap is None else f"{gap:.2f}", f"{ok[m][0]}/{ok[m][1]}"]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines), metrics
