@@ -13,16 +13,40 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce test test-fast lint clean bench discover mlflow-ui system-packages
+.PHONY: setup reproduce test test-fast lint clean bench discover mlflow-ui lock system-packages
 
 setup: $(STAMP)
 
-# Re-installs only when pyproject.toml changes; a no-op (well under a second) otherwise.
-$(STAMP): pyproject.toml
+# The exact versions (and hashes) of every package `setup` installs: two machines that run `make setup`
+# get the same NumPy, SciPy, Numba, OpenCV..., so the same inputs give the same numbers (pyproject.toml's
+# ranges alone let a fresh install resolve other versions). Made by `make lock` (pip-tools' pip-compile,
+# for CPython 3.11 on Linux x86-64); every MLflow run records the lock's digest and whether the installed
+# versions match it (benchmark provenance). LOCK= (empty) installs from pyproject.toml's ranges instead.
+LOCK ?= requirements.lock
+
+# Re-installs only when pyproject.toml or the lock changes; a no-op (well under a second) otherwise.
+$(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --disable-pip-version-check --upgrade pip
+ifneq ($(LOCK),)
+	$(BIN)/python -m pip install -q --disable-pip-version-check --require-hashes -r $(LOCK)
+	$(BIN)/python -m pip install -q --disable-pip-version-check --no-deps -e .
+else
 	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev]'
+endif
 	@touch $@
+
+# `make lock`: the lock again from pyproject.toml, keeping its pinned versions where they still fit (a new
+# dependency gets the newest allowed); `make lock UPGRADE=1`: every package at the newest version allowed
+# (then re-measure the README's and docs' tables). pip-tools runs in its own venv, not the project's.
+PIPTOOLS := .venv-lock
+UPGRADE ?=
+lock:
+	@test -x $(PIPTOOLS)/bin/pip-compile || { $(PYTHON) -m venv $(PIPTOOLS) && \
+		$(PIPTOOLS)/bin/python -m pip install -q --disable-pip-version-check 'pip-tools>=7.4,<8'; }
+	$(PIPTOOLS)/bin/pip-compile -q --allow-unsafe --extra=dev --generate-hashes --no-emit-find-links \
+		--no-emit-index-url --no-emit-trusted-host --strip-extras $(if $(UPGRADE),--upgrade) \
+		--output-file=requirements.lock pyproject.toml
 
 # `make reproduce`: the built-in simulated dataset; evaluate prints the leaderboard under the paper's
 # commanded inputs, then under the calibrated wheel response (inputs=response; a dataset without wheel
@@ -78,7 +102,7 @@ mlflow-ui: setup
 # where it cannot be installed those tests are skipped with the reason.
 CLUSTER_STAMP := $(VENV)/.skidbench-cluster
 $(CLUSTER_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev,cluster]' \
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(LOCK)) -e '.[dev,cluster]' \
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 
@@ -128,4 +152,4 @@ lint: setup
 	$(BIN)/python -m pytest -q tests/test_layers.py  # imports go down only, no cycles (CONTRIBUTING.md)
 
 clean:
-	rm -rf $(OUT) .pytest_cache .ruff_cache build *.egg-info
+	rm -rf $(OUT) .pytest_cache .ruff_cache build *.egg-info $(PIPTOOLS)

@@ -17,7 +17,8 @@ import time
 import numpy as np
 
 from skidbench.models.friction import DEFAULT_PARAMS
-from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve, solve_reference
+from skidbench.models.friction_balance import FrictionGeometry, body_velocity
+from skidbench.models.friction_solver import solve, solve_reference
 
 
 def _jackal():

@@ -77,7 +77,8 @@ def compare(n_seq: int) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     from skidbench.models.friction import FrictionBased
-    from skidbench.models.friction_solver import FrictionGeometry, solve
+    from skidbench.models.friction_balance import FrictionGeometry
+    from skidbench.models.friction_solver import solve
 
     from .friction_legacy import LegacyFrictionFit
 

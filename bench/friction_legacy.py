@@ -18,17 +18,17 @@ from scipy.optimize import least_squares
 
 from skidbench.models.base import ModelError
 from skidbench.models.columns import mse, targets, training_rows
-from skidbench.models.friction import ACCEL_SCALES, FALLBACK_ITER, PARAM_RANGES, FrictionBased
-from skidbench.models.friction_solver import (
+from skidbench.models.friction import ACCEL_SCALES, FALLBACK_ITER, FrictionBased
+from skidbench.models.friction_balance import (
     PARAM_NAMES,
     FrictionGeometry,
-    SolveResult,
-    _param_vector,
     body_velocity,
     free_mask,
-    low_slip_start,
+    param_vector,
     residual,
 )
+from skidbench.models.friction_fit import PARAM_RANGES
+from skidbench.models.friction_solver import SolveResult, low_slip_start
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ def solve_v15(
     """
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
     inp = (wl, wr, dwl, dwr)
-    p = _param_vector(params)
+    p = param_vector(params)
     T = wl.size
     mask = free_mask(wl, wr)
     zero_start = theta0 is None

@@ -7,7 +7,7 @@ extended differential drive with side slip and noise), written as Train and CV s
 4x = 8, 16x = 32 (48,000 rows). Fit is ``model.fit`` on the concatenated Train table, built
 as :func:`skidbench.models.fitting.fit_model` builds it (configured initial params and options; reading,
 config composition and fingerprinting are a constant ~0.3 s per fit and are not timed);
-evaluation is :func:`benchmark.evaluate.predict_split` + :func:`score_split` at the 6 s horizon on a CV
+evaluation is :func:`benchmark.scoring.predict_split` + :func:`score_split` at the 6 s horizon on a CV
 split of the same size, always of the model fitted at 1x: the same parameters at every size (a model
 fitted on other data is another problem; the friction model's count of unbalanced steps, which cost
 extra solves, depends on its parameters: evaluating each size's own fit gave 0.04 / 0.55 / 1.57 s).
@@ -90,8 +90,9 @@ def time_model(cfg, name: str, repeats: int, eval_params: tuple | None = None) -
     """Best-of CPU and wall seconds of fit (``model.fit`` on the Train table, as ``fit_model`` calls it)
     and evaluation (predict + score the CV split) of the model ``eval_params`` (``(to_json(), arrays)``;
     default the model just fitted); ``"fitted"``: the fitted model's ``(to_json(), arrays)``."""
-    from skidbench.benchmark.evaluate import load_test_split, predict_split, score_split, split_files
     from skidbench.benchmark.horizon import HorizonConfig
+    from skidbench.benchmark.scoring import predict_split, score_split
+    from skidbench.benchmark.testsets import load_test_split, split_files
     from skidbench.models.fitting import build_model
     from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.schema import concat_sequences, read_split

@@ -31,6 +31,7 @@ from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
 
 from . import figures as figs
+from . import metrics as mt
 from . import mlflow_ui as mu
 from . import report_data as rd
 from . import tracking as trk
@@ -39,8 +40,6 @@ from .horizon import EvaluationError
 log = logging.getLogger(__name__)
 
 SPLITS = ("cv", "ld")
-KINDS = ("translational", "rotational")
-SHORT = {"translational": "trans", "rotational": "rot"}
 
 
 class CompareError(EvaluationError):
@@ -164,8 +163,9 @@ def _col(runs: pd.DataFrame, name: str) -> pd.Series:
 
 # -- the leaderboard --------------------------------------------------------------------------------
 def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
-    """One row per (model, terrain), the latest run of each: model, terrain, status, reason, the four
-    RMSRE metrics at ``horizon_s`` (%), fit/predict numbers, run_id."""
+    """One row per (model, terrain), the latest run of each: model, terrain, status, reason, every metric
+    of :data:`~skidbench.benchmark.metrics.METRICS` at ``horizon_s`` (and its window count), fit/predict
+    numbers, run_id."""
     df = pd.DataFrame(
         {
             "model": _col(runs, f"tags.{trk.TAG_MODEL}"),
@@ -181,27 +181,19 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             "start_time": runs["start_time"],
         }
     )
-    for kind in KINDS:
+    for metric in mt.METRICS:  # an optional one (models with a predictive covariance): NaN for the others
         for split in SPLITS:
-            key = trk.metric_key(kind, split, horizon_s)
-            df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
-            n_key = window_count_key(kind, split, horizon_s)  # windows behind the RMSRE
-            df[n_key] = pd.to_numeric(_col(runs, f"metrics.{n_key}"), errors="coerce")
+            for key in (metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)):
+                if key is not None:  # the value, and the windows behind it
+                    df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
     for m in ("fit_loss", "fit_time_s", "predict_time_s"):
         df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
-    for key in uncertainty_keys(horizon_s):  # models with a predictive covariance only
-        df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
     df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
     df = df.sort_values("start_time", ascending=False)
     df = df.drop_duplicates(["model", "inputs", "terrain"], keep="first")
     order = {m: i for i, m in enumerate(figs.order_models(df["model"].dropna().unique().tolist()))}
     df = df.assign(_o=df["model"].map(order)).sort_values(["_o", "terrain"]).drop(columns="_o")
     return df.reset_index(drop=True)
-
-
-def window_count_key(kind: str, split: str, horizon_s: float) -> str:
-    """The metric evaluate logs with the number of windows behind an RMSRE (:func:`tracking.windows_key`)."""
-    return trk.windows_key(kind, split, horizon_s)
 
 
 def _windows(counts: pd.Series) -> str:
@@ -223,26 +215,23 @@ def check_one_protocol(board: pd.DataFrame) -> str:
     return found[0] if found else "unknown"
 
 
-#: the uncertainty metrics of evaluate (benchmark/evaluate.py summarise) and their column labels
-UNCERTAINTY_LABELS = {
-    "coverage95_position": "cov95 pos",
-    "coverage95_yaw": "cov95 yaw",
-    "nll_position": "NLL pos",
-}
+def _optional_cells(values: pd.Series, metric: mt.Metric) -> pd.Series:
+    """The cells of an optional metric (uncertainty): empty for a model without it (a deterministic
+    model), else the number as shown (``metric.scale``), to 0.1."""
+    return values.map(lambda v: "" if not np.isfinite(v) else f"{v * metric.scale:.1f}")
 
 
-def uncertainty_keys(horizon_s: float) -> dict[str, str]:
-    """``{"coverage95_position_cv_6s": "cov95 pos CV %", ...}``."""
-    return {
-        f"{m}_{split}_{horizon_s:g}s": f"{lab} {split.upper()}" + (" %" if m.startswith("coverage") else "")
-        for m, lab in UNCERTAINTY_LABELS.items()
-        for split in SPLITS
-    }
-
-
-def _uncertainty_cells(values: pd.Series, percent: bool) -> pd.Series:
-    """Uncertainty cells: empty for a deterministic model (no metric), else the number."""
-    return values.map(lambda v: "" if not np.isfinite(v) else f"{(100 * v if percent else v):.1f}")
+def _metric_cells(row: dict[str, Any], ok: pd.DataFrame, horizon_s: float) -> None:
+    """Per metric and split: the mean over terrains of the finished runs (``over_terrains``) and, for a
+    metric with a window count, the windows behind it summed over terrains."""
+    for metric in mt.METRICS:
+        for split in SPLITS:
+            key = metric.metric_key(split, horizon_s)
+            vals = ok[key].to_numpy(float) if key in ok else np.array([])
+            row[metric.column_label(split)] = metric.over_terrains(vals)
+            n_key = metric.windows_key(split, horizon_s)
+            if n_key is not None:
+                row[metric.count_label(split)] = _windows(ok[n_key] if n_key in ok else pd.Series([]))
 
 
 def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
@@ -255,18 +244,7 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
         row: dict[str, Any] = {"model": _marked(model, g)}
-        for kind in KINDS:
-            for split in SPLITS:
-                vals = ok[trk.metric_key(kind, split, horizon_s)].to_numpy(float)
-                row[f"{SHORT[kind]} {split.upper()} %"] = (
-                    np.nanmean(vals) if np.isfinite(vals).any() else np.nan
-                )
-                row[f"{SHORT[kind]} {split.upper()} n"] = _windows(
-                    ok[window_count_key(kind, split, horizon_s)]
-                )
-        for key, lab in uncertainty_keys(horizon_s).items():
-            vals = ok[key].to_numpy(float) if key in ok else np.array([])
-            row[lab] = np.nanmean(vals) if np.isfinite(vals).any() else np.nan
+        _metric_cells(row, ok, horizon_s)
         row["terrains"] = f"{len(ok)}/{len(g)}"
         bad = g[g["status"] != "FINISHED"]
         row["failed"] = (
@@ -277,8 +255,10 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
     out.insert(0, "rank", np.arange(1, len(out) + 1))
-    for lab in uncertainty_keys(horizon_s).values():
-        out[lab] = _uncertainty_cells(out[lab].astype(float), lab.endswith("%"))
+    for metric in (m for m in mt.METRICS if m.optional):
+        for split in SPLITS:
+            lab = metric.column_label(split)
+            out[lab] = _optional_cells(out[lab].astype(float), metric)
     return out.drop(columns="_key").reset_index(drop=True)
 
 
@@ -291,14 +271,14 @@ def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     models = [_marked(m, board.loc[[i]]) for i, m in zip(board.index, board["model"], strict=True)]
     out = pd.DataFrame({"model": models, "inputs": board["inputs"], "terrain": board["terrain"],
                         "status": board["status"]})  # fmt: skip
-    for kind in KINDS:
+    for metric in mt.METRICS:
         for split in SPLITS:
-            out[f"{SHORT[kind]} {split.upper()} %"] = board[trk.metric_key(kind, split, horizon_s)]
-            out[f"{SHORT[kind]} {split.upper()} n"] = [
-                _windows(pd.Series([v])) for v in board[window_count_key(kind, split, horizon_s)]
-            ]
-    for key, lab in uncertainty_keys(horizon_s).items():
-        out[lab] = _uncertainty_cells(board[key].astype(float), lab.endswith("%"))
+            values = board[metric.metric_key(split, horizon_s)]
+            lab = metric.column_label(split)
+            out[lab] = _optional_cells(values.astype(float), metric) if metric.optional else values
+            n_key = metric.windows_key(split, horizon_s)
+            if n_key is not None:
+                out[metric.count_label(split)] = [_windows(pd.Series([v])) for v in board[n_key]]
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]
@@ -329,9 +309,10 @@ def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
             "The friction-based model was not evaluated (or failed), so the paper's claim cannot be checked."
         ]
     lines = []
-    for kind in KINDS:
+    for metric in mt.PAPER:
+        kind = metric.name
         for split in SPLITS:
-            key = trk.metric_key(kind, split, horizon_s)
+            key = metric.metric_key(split, horizon_s)
             means = ok.groupby("model")[key].mean().dropna().sort_values()
             if "friction" not in means:
                 continue
@@ -360,8 +341,9 @@ def protocol_boards(
 
 
 def decomposition_table(boards: dict[str, pd.DataFrame], horizon_s: float) -> pd.DataFrame:
-    """Per model (mean over the terrains scored under every protocol shown): each RMSRE (%) under each
-    protocol, ``commanded / response / measured``; a comparison of one model's inputs, not a ranking."""
+    """Per model (mean over the terrains scored under every protocol shown): each headline metric under
+    each protocol, ``commanded / response / measured``; a comparison of one model's inputs, not a ranking.
+    The numbers are also in the hidden columns ``_<metric>_<split>_<protocol>`` (for the figure)."""
     shown = [p for p in PROTOCOLS if p in boards]
     if not shown:
         return pd.DataFrame()
@@ -371,19 +353,19 @@ def decomposition_table(boards: dict[str, pd.DataFrame], horizon_s: float) -> pd
     for m in models:
         terrains = set.intersection(*[set(ok[p][ok[p]["model"] == m]["terrain"]) for p in shown])
         row: dict[str, Any] = {"model": m, "terrains": len(terrains)}
-        for kind in KINDS:
+        for metric in mt.HEADLINE:
             for split in SPLITS:
-                key = trk.metric_key(kind, split, horizon_s)
+                key = metric.metric_key(split, horizon_s)
                 vals = []
                 for p in shown:
                     b = ok[p][(ok[p]["model"] == m) & ok[p]["terrain"].isin(terrains)]
                     v = b[key].to_numpy(float)
-                    vals.append(float(np.nanmean(v)) if np.isfinite(v).any() else np.nan)  # logged in %
-                row[f"{SHORT[kind]} {split.upper()} %"] = " / ".join(
+                    vals.append(metric.over_terrains(v))
+                row[metric.column_label(split)] = " / ".join(
                     "n/a" if not np.isfinite(v) else f"{v:.2f}" for v in vals
                 )
                 for p, v in zip(shown, vals, strict=True):
-                    row[f"_{kind}_{split}_{p}"] = v
+                    row[f"_{metric.name}_{split}_{p}"] = v
         rows.append(row)
     df = pd.DataFrame(rows)
     df.attrs["protocols"] = shown
@@ -548,8 +530,8 @@ def run_compare(cfg: Any) -> CompareResult:
     protocol = check_one_protocol(board)
     cfg = _with_inputs(cfg, protocol)
     if not any(
-        trk.metric_key(k, s, horizon) in runs.columns.str.removeprefix("metrics.")
-        for k in KINDS
+        m.metric_key(s, horizon) in runs.columns.str.removeprefix("metrics.")
+        for m in mt.PAPER
         for s in SPLITS
     ):
         raise CompareError(
@@ -573,6 +555,7 @@ def run_compare(cfg: Any) -> CompareResult:
     shown = decomp.attrs.get("protocols", []) if len(decomp) else []
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
+    notes += _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
     fig_md: list[str] = []
     fc = cfg.figures
     if fc.enabled:
@@ -581,18 +564,21 @@ def run_compare(cfg: Any) -> CompareResult:
         finished = board[board["status"] == "FINISHED"]
         terrains = sorted(finished["terrain"].unique())
         terrain = str(fc.terrain) if fc.get("terrain") else (terrains[0] if terrains else None)
-        jobs = [
-            ("fig3_translational_rmsre.png", "Fig. 3: translational RMSRE per model, terrain and test split",
-             lambda p: figs.rmsre_bars(board, "translational", horizon, SPLITS, p, dpi)),
-            ("fig4_rotational_rmsre.png", "Fig. 4: rotational RMSRE per model, terrain and test split",
-             lambda p: figs.rmsre_bars(board, "rotational", horizon, SPLITS, p, dpi)),
-        ]  # fmt: skip
+        jobs = [  # Figs. 3 and 4 and every other metric's bar chart
+            (
+                m.figure.file,
+                m.figure.caption,
+                lambda p, m=m: figs.metric_bars(board, m, horizon, SPLITS, p, dpi),
+            )
+            for m in mt.METRICS
+            if m.figure is not None
+        ]
         if len(shown) > 1:
             jobs.append(
                 ("fig_protocols.png",
-                 f"The input protocols side by side ({' / '.join(shown)}), {horizon:g} s RMSRE, mean over "
+                 f"The input protocols side by side ({' / '.join(shown)}), {horizon:g} s errors, mean over "
                  "terrains",
-                 lambda p: figs.protocol_bars(decomp, shown, f"{horizon:g} s RMSRE per input protocol", p,
+                 lambda p: figs.protocol_bars(decomp, shown, f"{horizon:g} s errors per input protocol", p,
                                               dpi)),
             )  # fmt: skip
         if terrain is not None:
@@ -653,13 +639,25 @@ def run_compare(cfg: Any) -> CompareResult:
     return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links)
 
 
+def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
+    """The findings of the board's fits (a parameter at its bound: ``roc degenerates to edd on this data:
+    b2 at its bound``), for the console notes and the report's Notes (models/fitting.py formats them)."""
+    try:
+        from skidbench.models.fitting import board_findings
+    except ImportError:  # pragma: no cover - the models package is part of the install
+        return []
+    done = board[board["status"] == "FINISHED"] if "status" in board else board
+    rows = list(zip(done["model"].astype(str), done["terrain"].astype(str), strict=True))
+    return board_findings(layout, rows, inputs)
+
+
 def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
     """MLflow UI links (model-training pages, not the GenAI ones): the parent run's page, and a saved view
     of the runs shown (the RMSRE columns first, best first; :mod:`mlflow_ui`) as a table and as charts of
     the RMSRE per run."""
     ui = (cfg.get("mlflow") or {}).get("ui_url")
     uri, exp = tracker.uri, tracker.experiment_id
-    cols = [trk.metric_key(k, s, horizon) for s in ("ld", "cv") for k in KINDS]
+    cols, _ = mu.board_columns(("ld", "cv"), horizon)
     order = trk.rank_key(str(cfg.rank_by), horizon)
     links = {}
     if parent:
@@ -689,6 +687,11 @@ def _report_md(
         "travelled) and rotational error (|yaw error| / absolute rotation), in %, lower is better. "
         "Models fitted per terrain on Train, scored on the constant-velocity (CV) and long-distance (LD) "
         "test splits.",
+        *[
+            f"Also `{m.short}` ({m.unit}): {m.description}, lower is better."
+            for m in mt.HEADLINE
+            if not m.paper
+        ],
         "",
         f"- dataset: {identity_from_cfg(cfg).describe()[len('dataset ') :]}",
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"

@@ -34,26 +34,18 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import write_parquet_atomic
 from skidbench.pipeline.layout import Layout
 from skidbench.pipeline.protocol import check_protocol
 
 from . import boards as brd
+from . import metrics as mt
 from . import tracking as trk
-from .evaluate import (
-    KINDS,
-    TRAIN,
-    TestSequence,
-    check_horizons,
-    find_terrains,
-    load_test_split,
-    score_split,
-    split_files,
-    split_fingerprint,
-    summarise,
-)
-from .horizon import HorizonConfig
+from .horizon import EvaluationError, HorizonConfig
+from .scoring import TestSequence, score_split, summarise
+from .testsets import TRAIN, check_horizons, find_terrains, load_test_split, split_files, split_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -260,7 +252,7 @@ def default_name(path: Path) -> str:
 def check_name(name: str) -> str:
     """``name`` for the board; PredictionsError when it is an installed model's (whose row it would
     replace) or not a plain name."""
-    from .evaluate import installed_models
+    from .fit_record import installed_models
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
         raise PredictionsError(f"score.name={name!r}: use letters, digits, '_', '.', '-'")
@@ -332,10 +324,9 @@ def _log(
 ) -> ScoreResult:
     from mlflow.exceptions import MlflowException
 
-    from .evaluate import EvaluationError
-
     cmd = f"skidbench score {layout.dataset} --predictions {path} inputs={protocol} score.name={name}"
-    common = {trk.TAG_DATASET: layout.dataset, trk.TAG_GIT: trk.git_commit(), trk.TAG_INPUTS: protocol}
+    common = {trk.TAG_DATASET: layout.dataset, **provenance.run_tags(), trk.TAG_GIT: trk.git_commit(),
+              trk.TAG_INPUTS: protocol}  # fmt: skip
     params = {
         "splits": str(settings["splits"]),
         "horizons": str([float(h) for h in settings["horizons"]]),
@@ -365,7 +356,7 @@ def _log(
                 "input protocol": f"`{protocol}`",
                 "terrain": terrain,
                 "settings from": source,
-                "metrics": "`<split>_<horizon>_<trans|rot>_rmsre_pct`: the RMSRE evaluate logs, in %",
+                "metrics": mt.describe() + " (what evaluate logs)",
             }
             run_id = tracker.start(
                 f"{name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]") + " (external)",
@@ -404,12 +395,12 @@ def format_score(res: ScoreResult) -> str:
         "from "
         f"{res.settings_from}; parent run {res.parent_run_id}",
     ]
-    keys = [trk.metric_key(k, s, horizon) for s in ("cv", "ld") for k in KINDS]
-    head = "terrain  " + "  ".join(k.replace("_rmsre_pct", " %") for k in keys)
-    lines.append(head)
+    cols = [(m.metric_key(s, horizon), f"{s}_{horizon:g}s_{m.short} {m.label_unit}".rstrip())
+            for s in ("cv", "ld") for m in mt.HEADLINE]  # fmt: skip
+    lines.append("terrain  " + "  ".join(lab for _, lab in cols))
     for r in res.rows:
         lines.append(
-            f"{r['terrain']:<8} " + "  ".join(f"{r.get(k, float('nan')):>{len(k) - 8}.2f}" for k in keys)
+            f"{r['terrain']:<8} " + "  ".join(f"{r.get(k, float('nan')):>{len(lab)}.2f}" for k, lab in cols)
         )
     lines.append("`skidbench compare` ranks it with the evaluated models (same dataset, same protocol).")
     return "\n".join(lines)

@@ -19,7 +19,7 @@ import pandas as pd  # noqa: E402
 
 from skidbench.pipeline.io import atomic_path  # noqa: E402
 
-from .tracking import metric_key  # noqa: E402
+from .metrics import HEADLINE, Metric  # noqa: E402
 
 #: display order and names of the built-in models (plugins follow in the order they come)
 MODEL_ORDER = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction")
@@ -59,20 +59,23 @@ def _save(fig, path: Path, dpi: int = 130) -> Path:
     return path
 
 
-# -- Figs. 3 and 4 ----------------------------------------------------------------------------------
-def rmsre_bars(
+# -- Figs. 3 and 4 (and every metric with a figure) ----------------------------------------------------
+def metric_bars(
     board: pd.DataFrame,
-    kind: str,
+    metric: Metric,
     horizon_s: float,
     splits: Sequence[str],
     path: Path,
     dpi: int = 130,
 ) -> Path:
-    """Bar chart of RMSRE per model (bars) and terrain (groups), one panel per test split.
+    """Bar chart of a metric (Fig. 3: translational RMSRE, Fig. 4: rotational; ``metric.figure``) per model
+    (bars) and terrain (groups), one panel per test split.
 
     ``board``: one row per (model, terrain) with columns ``model``, ``terrain``, ``status`` and the
-    RMSRE columns (%) named by :func:`skidbench.benchmark.tracking.metric_key`. FAILED runs are marked, not
-    dropped."""
+    metric's columns named by :meth:`Metric.metric_key`. FAILED runs are marked, not dropped."""
+    fig_spec = metric.figure
+    digits = fig_spec.digits if fig_spec else 1
+    small = 0.5 * 10.0**-digits
     models = order_models(board["model"].unique().tolist())
     terrains = sorted(board["terrain"].unique().tolist())
     nm, nt = len(models), len(terrains)
@@ -81,7 +84,7 @@ def rmsre_bars(
         1, len(splits), figsize=(1.2 + 1.9 * len(splits) * max(nt, 1.5), 3.8), squeeze=False
     )
     for ax, split in zip(axes[0], splits, strict=True):
-        col = metric_key(kind, split, horizon_s)
+        col = metric.metric_key(split, horizon_s)
         top = 0.0
         for i, m in enumerate(models):
             xs, ys = [], []
@@ -105,19 +108,20 @@ def rmsre_bars(
             )
             for b, y in zip(bars, ys_arr, strict=True):
                 if np.isfinite(y):
-                    txt = f"{y:.1f}" if y >= 0.05 else "<0.1"
+                    txt = f"{y:.{digits}f}" if y >= small else f"<{10.0**-digits:g}"
                     xy = (b.get_x() + b.get_width() / 2, b.get_height())
                     ax.annotate(txt, xy, xytext=(0, 2), textcoords="offset points", ha="center", va="bottom",
                                 fontsize=6, rotation=90)  # fmt: skip
         ax.set_xticks(range(nt), [t.capitalize() for t in terrains])
         ax.set_title(SPLIT_LABELS.get(split, split), fontsize=10)
-        ax.set_ylabel(f"{kind} RMSRE (%)")
+        ax.set_ylabel(fig_spec.axis if fig_spec else metric.column_label(""))
         ax.set_ylim(0, top * 1.18 if top > 0 else 1.0)
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
     handles, labels_ = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels_, loc="lower center", ncol=min(nm, 6), fontsize=8, frameon=False)
-    fig.suptitle(f"{kind.capitalize()} prediction error, {horizon_s:g} s horizon", fontsize=11)
+    title = fig_spec.title if fig_spec else metric.description
+    fig.suptitle(f"{title}, {horizon_s:g} s horizon", fontsize=11)
     fig.tight_layout(rect=(0, 0.08 if nm <= 6 else 0.14, 1, 1))
     return _save(fig, path, dpi)
 
@@ -381,15 +385,16 @@ def protocol_bars(
     """Per model, one bar per input protocol, one panel per metric: what the wheel response explains
     (commanded -> response) and what remains when the wheels are known (response -> measured).
 
-    ``values``: one row per model, column ``model`` and ``_<kind>_<split>_<protocol>`` RMSRE in %."""
+    ``values``: one row per model, column ``model`` and ``_<metric>_<split>_<protocol>`` (the headline
+    metrics of :mod:`skidbench.benchmark.metrics`)."""
     models = order_models(values["model"].tolist())
-    panels = [(k, s) for k in ("translational", "rotational") for s in ("cv", "ld")]
+    panels = [(m, s) for m in HEADLINE for s in ("cv", "ld")]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
     width = 0.8 / max(len(protocols), 1)
     shades = {"commanded": "0.25", "response": "tab:blue", "measured": "tab:green"}
-    for ax, (kind, split) in zip(axes[0], panels, strict=True):
+    for ax, (metric, split) in zip(axes[0], panels, strict=True):
         for i, p in enumerate(protocols):
-            col = f"_{kind}_{split}_{p}"
+            col = f"_{metric.name}_{split}_{p}"
             ys = [
                 float(values.loc[values["model"] == m, col].iloc[0]) if col in values else np.nan
                 for m in models
@@ -398,8 +403,8 @@ def protocol_bars(
             ax.bar(xs, np.nan_to_num(ys), width * 0.92, color=shades.get(p, _PALETTE[i]),
                    label=PROTOCOL_LABELS.get(p, p))  # fmt: skip
         ax.set_xticks(range(len(models)), [label(m) for m in models], rotation=45, ha="right", fontsize=7)
-        ax.set_title(f"{kind[:5]}. {split.upper()}", fontsize=10)
-        ax.set_ylabel("RMSRE (%)")
+        ax.set_title(f"{metric.short} {split.upper()}", fontsize=10)
+        ax.set_ylabel(metric.figure.axis if metric.figure else metric.column_label(""))
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
     handles, labels_ = axes[0][0].get_legend_handles_labels()

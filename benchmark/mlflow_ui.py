@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from . import metrics as mt
 from .provenance import TAG_PARENT, TAG_TERRAIN, current_user
 
 TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
@@ -59,6 +60,16 @@ def latest_key(protocol: str, user: str | None = None) -> str:
 
 def _key_part(text: str) -> str:
     return "".join(c if c.isalnum() or c in "_." else "_" for c in text)
+
+
+def board_columns(splits: Sequence[str], horizon_s: float) -> tuple[list[str], list[str]]:
+    """The headline metrics at ``horizon_s`` (:mod:`~skidbench.benchmark.metrics`) and their labels, the
+    paper's first, LD before CV (LD trans, LD rot, CV trans, CV rot, then the others): the columns of an
+    evaluate's saved views and of its parent run's leaderboard."""
+    order = sorted(splits, key=lambda s: s != "ld")
+    pairs = [(m, s) for s in order for m in mt.PAPER]
+    pairs += [(m, s) for s in order for m in mt.HEADLINE if m not in mt.PAPER]
+    return [m.metric_key(s, horizon_s) for m, s in pairs], [m.column_label(s) for m, s in pairs]
 
 
 def children_of(parent_id: str) -> str:
@@ -119,7 +130,7 @@ def save_view(client: Any, experiment_id: str, key: str, title: str, state: dict
 
 
 def chart_title(horizon_s: float) -> str:
-    return f"{horizon_s:g} s RMSRE (%), lower is better"
+    return f"{horizon_s:g} s errors, lower is better"
 
 
 def save_evaluate_views(

@@ -1,5 +1,6 @@
 """What an MLflow run is and who made it: the tags every run carries, its name and description, its
-config as params. No MLflow calls here (the store is :mod:`skidbench.benchmark.tracking`).
+config as params. No MLflow calls here (the store: :mod:`skidbench.benchmark.tracking`; the software a
+run ran, versions and commit: :mod:`skidbench.pipeline.provenance`).
 
 Who made a run (a lab shares one tracking server): ``mlflow.user`` (MLflow's own "Created by" column;
 ``SKIDBENCH_USER`` when set, else the login name), ``skidbench.host``, ``skidbench.out_root`` (the output
@@ -16,12 +17,13 @@ import getpass
 import os
 import shlex
 import socket
-import subprocess
 import sys
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from skidbench.pipeline.provenance import git_commit
 
 MAX_PARAM_LEN = 6000  # MLflow's limit on a param value
 MAX_TAG_LEN = 5000
@@ -109,26 +111,6 @@ def parse_utc(value: str | None) -> float | None:
         return dt.datetime.strptime(str(value), "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.UTC).timestamp()
     except ValueError:
         return None
-
-
-@functools.lru_cache(maxsize=1)
-def git_commit() -> str:
-    """The commit of the skidbench source tree ("+dirty" when it has local changes), or "unknown"."""
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
-        return sha + ("+dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:

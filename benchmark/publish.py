@@ -231,17 +231,14 @@ def _figure(path: Path, caption: str) -> str:
 
 def _protocol_figures(board: brd.Board, tmp: Path, dpi: int) -> list[str]:
     from . import figures as figs
+    from . import metrics as mt
 
     out = []
     ok = board.rows
-    for kind, n in (("translational", 3), ("rotational", 4)):
-        path = tmp / f"fig{n}_{board.protocol}.png"
-        figs.rmsre_bars(ok, kind, board.horizon, cmp.SPLITS, path, dpi)
-        out.append(
-            _figure(
-                path, f"Fig. {n}: {kind} RMSRE per model, terrain and test split (inputs={board.protocol})"
-            )
-        )
+    for m in (m for m in mt.METRICS if m.figure is not None):  # Figs. 3, 4 and every metric with a figure
+        path = tmp / f"{Path(m.figure.file).stem}_{board.protocol}.png"
+        figs.metric_bars(ok, m, board.horizon, cmp.SPLITS, path, dpi)
+        out.append(_figure(path, f"{m.figure.caption} (inputs={board.protocol})"))
     return out
 
 

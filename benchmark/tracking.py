@@ -39,9 +39,11 @@ from typing import Any
 
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.provenance import requirements_of
 
 from . import bookkeeping as bk
 from .horizon import EvaluationError
+from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
 
 # what a run is and who made it: callers use them as ``tracking.<name>`` (their home is provenance.py)
 from .provenance import (  # noqa: F401
@@ -89,7 +91,6 @@ log = logging.getLogger(__name__)
 
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
-SHORT = {"translational": "trans", "rotational": "rot"}
 
 #: MLflow's own HTTP settings (mlflow/environment_variables.py) that skidbench sets, unless they are set
 #: already, when it talks to a tracking server. A request is tried 4 times (3 retries, 0 / 4 / 8 s apart,
@@ -198,26 +199,6 @@ def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
-def metric_key(kind: str, split: str, horizon_s: float) -> str:
-    """``ld_6s_trans_rmsre_pct``: RMSRE in percent of ``kind`` (translational | rotational) on a test split
-    at a horizon; the metric names evaluate logs and compare, the leaderboard and the UI's columns read."""
-    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_rmsre_pct"
-
-
-def windows_key(kind: str, split: str, horizon_s: float) -> str:
-    """``ld_6s_trans_windows``: how many windows the RMSRE :func:`metric_key` names is over."""
-    return f"{split}_{horizon_s:g}s_{SHORT[kind]}_windows"
-
-
-def rank_key(rank_by: str, horizon_s: float) -> str:
-    """The metric of ``rank_by`` = ``<split>_<trans|rot>`` (e.g. ``ld_trans``) at ``horizon_s``."""
-    split, _, short = str(rank_by).partition("_")
-    kinds = {v: k for k, v in SHORT.items()}
-    if short not in kinds or not split:
-        raise EvaluationError(f"rank_by={rank_by!r}: expected <split>_<trans|rot>, e.g. ld_trans")
-    return metric_key(kinds[short], split, horizon_s)
-
-
 def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "default"
 
@@ -282,20 +263,6 @@ def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-
-
-@functools.lru_cache(maxsize=1)
-def _requirements() -> list[str]:
-    """What a logged model needs to load: skidbench and MLflow at their installed versions."""
-    import importlib.metadata as md
-
-    out = []
-    for dist in ("skidbench", "mlflow"):
-        try:
-            out.append(f"{dist}=={md.version(dist)}")
-        except md.PackageNotFoundError:
-            out.append(dist)
-    return out
 
 
 class _Guarded:
@@ -572,12 +539,19 @@ class Tracker:
         self.client.log_inputs(run_id, datasets=inputs)
 
     def log_model(
-        self, run_id: str, name: str, record: Path, example: Any = None, arrays: Path | None = None
+        self,
+        run_id: str,
+        name: str,
+        record: Path,
+        example: Any = None,
+        arrays: Path | None = None,
+        requirements: Sequence[str] | None = None,
     ) -> str:
         """Log a fitted model as an MLflow Model of ``run_id`` (pyfunc flavour with the protocol's
         signature, :mod:`skidbench.benchmark.mlflow_model`; ``record`` its JSON; ``example`` a few input
         rows, which MLflow stores and checks the model with); returns its model id.
-        Requirements are given, not inferred (inference loads the model in a subprocess: seconds)."""
+        Requirements are given, not inferred (inference loads the model in a subprocess: seconds):
+        ``requirements``, else skidbench's (:func:`skidbench.pipeline.provenance.requirements_of`)."""
         import mlflow
         from mlflow.models import Model
 
@@ -599,7 +573,7 @@ class Tracker:
                 artifacts={mm.ARTIFACT: str(record), **({mm.ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
                 signature=mm.signature(),
                 input_example=example,
-                pip_requirements=_requirements(),
+                pip_requirements=list(requirements or requirements_of()),
             )
         return info.model_id
 

@@ -62,6 +62,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
     the job's run key; a job retried after its run finished logs nothing more (returns that run's id)."""
     from skidbench.benchmark import tracking as trk
     from skidbench.benchmark.sweep import TAG_SWEEP, run_key, sweep_id
+    from skidbench.pipeline import provenance
 
     from .saved import arrays_file
 
@@ -78,6 +79,8 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         trk.TAG_DATASET: str(cfg.dataset),
         trk.TAG_MODEL_VERSION: str(getattr(res.model, "version", "unknown")),
         TAG_SWEEP: sweep_id(),
+        **provenance.run_tags(),  # skidbench's version and commit, libraries, lock, platform, code paths
+        **provenance.code_tags(res.code),
         trk.TAG_GIT: trk.git_commit(),
         **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
     }

@@ -85,3 +85,34 @@ def error_autocorrelation(
     rho[cnt < 10] = 0.0  # too few pairs to say
     rho[0] = 1.0
     return rho
+
+
+def bounds_reached(
+    names: list[str],
+    x: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    meanings: dict[str, str] | None = None,
+    active_mask: np.ndarray | None = None,
+    atol: float | list[float] = 1e-9,
+) -> list[dict]:
+    """The fitted parameters that ended at a bound of their box, for ``fit_info_["at_bound"]`` (the fit
+    JSON; ``compare`` and the MLflow run report it: a fit at a bound is a finding, not a number to hide):
+    ``[{"param", "value", "bound", "side", "finding"}]``. A parameter is at its bound when the optimizer
+    says so (``active_mask``, as ``scipy.optimize.least_squares`` returns it) or it is within ``atol`` of
+    it (one value, or one per parameter: how close makes no difference to the model's output on the
+    data). ``meanings``: parameter -> what the model becomes there (``"roc degenerates to edd on this data:
+    b2 at its bound"``); else a plain sentence."""
+    out = []
+    x, lower, upper = (np.asarray(a, dtype=float) for a in (x, lower, upper))
+    tol = np.broadcast_to(np.asarray(atol, dtype=float), x.shape)
+    for i, name in enumerate(names):
+        for side, bound, sign in (("lower", lower[i], -1), ("upper", upper[i], 1)):
+            if not np.isfinite(bound):
+                continue
+            active = active_mask is not None and int(active_mask[i]) == sign
+            if active or abs(x[i] - bound) <= tol[i]:
+                finding = (meanings or {}).get(name) or f"{name} at its {side} bound {bound:g}"
+                out.append({"param": name, "value": float(x[i]), "bound": float(bound), "side": side,
+                            "finding": finding})  # fmt: skip
+    return out

@@ -5,9 +5,10 @@
     w_slip    = p4 (f_lat/N) v_x + p5 v_x + p6 w
 
 with (v_x, w) the zero-slip (ideal) prediction and f_lon, f_lat the centrifugal plus gravitational forces at
-the CG in the body frame, N the normal force. Centrifugal: -M (w x v_CG) = (M w v_CGy, -M w v_CGx) with
-v_CG = (v_x - y_CG w, x_CG w). Gravity: zero on flat ground; options ``slope_pitch`` / ``slope_roll``
-(rad, constant) configure a slope. Linear in p, fitted by least squares per component.
+the CG in the body frame, N the normal force. Centrifugal: -M (w x v_CG) = (M w v_CGy, -M w v_CGx) with v_CG =
+(v_x - y_CG w, x_CG w). Gravity (standard gravity, ``pipeline/constants.py``): zero on flat ground; options
+``slope_pitch`` / ``slope_roll`` (rad, constant) configure a slope. Linear in p, fitted by least squares per
+component.
 
 Identifiability: on flat ground with the CG on the centre line (x_CG = 0) f_lon is zero, so p1 is not
 identifiable (the minimum-norm fit sets it to 0); it needs a slope or an x_CG offset.
@@ -18,9 +19,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from skidbench.pipeline.constants import STANDARD_GRAVITY
+
 from .base import KinematicModel
 from .columns import col, mse, targets, training_rows
-from .friction_solver import G
 
 PARAMS = ("p1", "p2", "p3", "p4", "p5", "p6")
 
@@ -41,9 +43,10 @@ class EnhancedKinematic(KinematicModel):
         x_cg, y_cg = self.robot.cg_offset
         pitch = float(self.options.get("slope_pitch", 0.0))
         roll = float(self.options.get("slope_roll", 0.0))
-        n = G * np.cos(pitch) * np.cos(roll)  # N / M
-        f_lon = (w * (x_cg * w) - G * np.sin(pitch)) / n
-        f_lat = (-w * (vx - y_cg * w) + G * np.cos(pitch) * np.sin(roll)) / n
+        g = STANDARD_GRAVITY
+        n = g * np.cos(pitch) * np.cos(roll)  # N / M
+        f_lon = (w * (x_cg * w) - g * np.sin(pitch)) / n
+        f_lat = (-w * (vx - y_cg * w) + g * np.cos(pitch) * np.sin(roll)) / n
         return vx, w, f_lon, f_lat
 
     def fit(self, table: pd.DataFrame) -> EnhancedKinematic:

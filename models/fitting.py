@@ -16,6 +16,7 @@ import copy
 import dataclasses
 import functools
 import json
+import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ from skidbench.pipeline.io import write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
+from skidbench.pipeline.provenance import CodeIdentity, code_identity
 from skidbench.pipeline.robot import Robot, robot_from_hydra
 from skidbench.pipeline.schema import concat_sequences, read_split
 from skidbench.pipeline.wheel_response import WheelResponse
@@ -38,6 +40,8 @@ from .base import KinematicModel, ModelError, calibrated_constants
 from .registry import DISCOVERED, discover
 from .saved import arrays_file, from_saved, save_arrays
 from .specs import get_model_class
+
+log = logging.getLogger(__name__)
 
 FIT_SCHEMA = 2  # 2: fitted under an input protocol (``inputs``, pipeline/protocol.py)
 
@@ -50,6 +54,7 @@ class FitResult:
     fit_time_s: float
     n_train: int  # training rows used (valid)
     reused: bool = False
+    code: CodeIdentity | None = None  # the model's code (pipeline/provenance.py), in the fit's fingerprint
 
 
 def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
@@ -275,6 +280,7 @@ class _FitPlan:
     response: WheelResponse | None
     robot: Robot  # the robot the model is built with (the calibrated constants it takes)
     constants: dict[str, Any]  # where each constant came from (robot_for_model)
+    code: CodeIdentity  # the model's code: distribution, version, digest of its package's files
     path: Path  # the fit JSON
     stamp: Stamp
     key: str
@@ -289,6 +295,7 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
     robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
     calibration = load_calibration(cfg, terrain)  # None with calibrate.use=false
     info = discover().get(spec.split("+")[0])
+    code = code_identity(cls, *((info.package, info.package_version) if info else ()))
     path = layout.fit_file(model_name, terrain, inputs)
     # one stamp per model, terrain and input protocol, as the fit file (a fit under one protocol is never
     # another's; pipeline/protocol.py)
@@ -298,8 +305,9 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
         {
             "model": model_config(cfg, spec),
             "version": getattr(cls, "version", "?"),
-            # a plugin release that forgets to bump its class version still invalidates its old fits
-            "package": [info.package, info.package_version] if info else None,
+            # the code itself (distribution, version and a digest of its package's files): a plugin
+            # edited in place, or a release that forgets to bump a version, still invalidates old fits
+            "code": code.key(),
             "robot": robot.to_dict(),  # as built, with the calibrated constants the model takes
             "spec_robot": spec_robot.to_dict(),
             "terrain": terrain,
@@ -311,14 +319,15 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
         },
     )
     return _FitPlan(
-        spec, resolved, cls, files, inputs, spec_robot, response, robot, constants, path, stamp, key
+        spec, resolved, cls, files, inputs, spec_robot, response, robot, constants, code, path, stamp, key
     )
 
 
 def fit_stamp(cfg: Any, model_name: str, terrain: str, split: str = "train") -> tuple[Stamp, str]:
     """The stamp of the fit of ``model_name`` on ``terrain``'s ``split`` (``<ds>/.stamps/fit/<model>/
     <terrain>[.<inputs>].json``) and the key of its current inputs: the split files (content), the model's
-    config, class version and plugin package version, the robot it is built with (calibrated constants
+    config, class version, its code (distribution, version and the digest of its package's files:
+    ``pipeline/provenance.py``), the robot it is built with (calibrated constants
     included) and the spec sheet's, terrain, split, input protocol, wheel response, the calibration's
     constants and ``FIT_SCHEMA``. ``stamp.is_fresh(key)``: the saved fit is up to date."""
     plan = _plan(cfg, model_name, terrain, split)
@@ -365,6 +374,7 @@ def fit_model(
                 saved.get("fit_time_s", 0.0),
                 int(saved.get("n_train", 0)),
                 reused=True,
+                code=plan.code,
             )
         except (OSError, ValueError, ModelError):
             pass  # unreadable: refit
@@ -403,6 +413,7 @@ def fit_model(
             **({"wheel_response": dataclasses.asdict(plan.response)} if plan.response is not None else {}),
             **({"resolved": plan.resolved} if plan.resolved else {}),
             "package": info.package if info else "?",
+            "code": plan.code.to_dict(),
         }
     )
     apath = arrays_file(path)
@@ -415,12 +426,38 @@ def fit_model(
         raise ModelError(f"model {model_name}: parameters are not JSON-serialisable ({exc})") from exc
     if not arrays and apath.is_file():
         apath.unlink()  # a refit without arrays leaves no stale file
-    result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train)
+    for line in fit_findings(data):  # a fit at a bound is a finding (compare notes it too)
+        log.warning("%s on %s: %s", model_name, terrain, line)
+    result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train, code=plan.code)
     for hook in hooks:
         hook(result, cfg, model_name, terrain)
     # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date
     plan.stamp.record(plan.key, [path, *([apath] if arrays else [])])
     return result
+
+
+def fit_findings(data: dict[str, Any]) -> list[str]:
+    """What a saved fit (its JSON) records as findings: each parameter that ended at a bound
+    (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
+    out = []
+    for f in (data.get("fit_info") or {}).get("at_bound") or []:
+        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {f['bound']:g})")
+    return out
+
+
+def board_findings(layout: Any, rows: Sequence[tuple[str, str]], inputs: str = "commanded") -> list[str]:
+    """The findings of the fits behind a board's (model, terrain) rows, one line per model and finding
+    naming the terrains and values (``roc degenerates to edd on this data: b2 at its bound (grass: b2 =
+    6e-25; tile: ...)``): what ``compare`` notes under the board and in the report."""
+    found: dict[tuple[str, str], list[str]] = {}
+    for model, terrain in sorted(set(rows)):
+        try:
+            data = json.loads(layout.fit_file(model, terrain, inputs).read_text())
+        except (OSError, ValueError):
+            continue
+        for f in (data.get("fit_info") or {}).get("at_bound") or []:
+            found.setdefault((model, f["finding"]), []).append(f"{terrain}: {f['param']} = {f['value']:.2g}")
+    return [f"{finding} ({'; '.join(where)})" for (_, finding), where in found.items()]
 
 
 def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:

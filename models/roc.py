@@ -4,7 +4,10 @@
 
 used in eq. (1). R_ICR is the commanded (ideal) radius of curvature v / w = (B/2)(wr + wl)/(wr - wl);
 straight driving (R infinite) gives chi = 1 and a turn on the spot (R = 0) chi = 1 + b1. b1 = 0 is the ideal
-model. Fitted by bounded nonlinear least squares on the yaw rate.
+model. Fitted by bounded nonlinear least squares on the yaw rate. A fit that ends at a bound is reported
+(``fit_info_["at_bound"]``): b2 = 0 makes chi = 1 + b1 constant, which is ``edd`` (chi = 1 + b1); b1 = 0
+is the ideal model. On data whose turning does not depend on the radius of curvature, roc is then edd to
+every digit, and the board says so instead of showing two equal rows.
 """
 
 from __future__ import annotations
@@ -14,7 +17,13 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from .base import KinematicModel, ModelError
-from .columns import col, mse, targets, training_rows
+from .columns import bounds_reached, col, mse, targets, training_rows
+
+#: what roc becomes with a parameter at its bound (0): the finding a fit there reports
+AT_BOUND = {
+    "b2": "roc degenerates to edd on this data: b2 at its bound",
+    "b1": "roc degenerates to the ideal model on this data: b1 at its bound",
+}
 
 
 class RocBased(KinematicModel):
@@ -52,6 +61,13 @@ class RocBased(KinematicModel):
         )
         self.params = {"b1": float(res.x[0]), "b2": float(res.x[1])}
         self.fit_loss_ = mse(self.predict(train), targets(train))
+        # at a bound when it changes chi by under 1e-4 anywhere on the training rows (b2 multiplies sqrt|R|)
+        sqrt_r = np.sqrt(
+            np.abs(self.robot.track_width / 2.0 * (wr + wl))[wl != wr] / np.abs(wr - wl)[wl != wr]
+        )
+        tol = [1e-4, 1e-4 / max(float(sqrt_r.max()), 1.0)]
+        at = bounds_reached(["b1", "b2"], res.x, [0.0, 0.0], [np.inf, np.inf], AT_BOUND, res.active_mask, tol)
+        self.fit_info_ = {"at_bound": at} if at else {}
         return self
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:

@@ -246,6 +246,45 @@ def mark_failed(dataset_root: str | os.PathLike, stage: str, message: str) -> No
         log.warning("could not record that %s failed (%s)", stage, exc)
 
 
+#: stages whose outputs all live under the dataset folder: a failed run of one that changed nothing there
+#: (a wrong setting refused before the first write) left nothing stale or partial, so it records no
+#: failure and blocks no reader (evaluate also writes MLflow runs: its failures are always recorded)
+LOCAL_PRODUCERS = ("simulate", "extract", "groundtruth", "split", "calibrate")
+
+
+def data_state(dataset_root: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
+    """``{relative path: (size, mtime_ns, inode)}`` of every file of a dataset folder except its identity
+    (``dataset.json``, rewritten by every stage), failure markers and temporary files: equal before and
+    after a stage when the stage wrote nothing there."""
+    root = Path(dataset_root)
+    out: dict[str, tuple[int, int, int]] = {}
+    for path in root.rglob("*"):
+        name = path.name
+        if name.startswith(".tmp-") or name.endswith(".failed.json") or not path.is_file():
+            continue
+        rel = path.relative_to(root).as_posix()
+        if rel != "dataset.json":
+            st = path.stat()
+            out[rel] = (st.st_size, st.st_mtime_ns, st.st_ino)
+    return out
+
+
+def inputs_changed(dataset_root: str | os.PathLike, stage: str) -> str | None:
+    """Why the outputs ``stage`` recorded no longer match their inputs (an input changed or went since its
+    stamp), or None: a failed run that wrote nothing leaves outputs that are still current only then (a
+    source damaged in place makes the old extraction stale even if the failed run wrote nothing)."""
+    for path in sorted(stamp_file(dataset_root, stage).rglob("*.json")):
+        stamp = Stamp(path, stage)
+        for recorded, fp in (stamp.data.get("inputs") or {}).items():
+            here = Path(stamp._here(recorded))
+            try:
+                if stamp.fp(here) != fp:
+                    return f"{here} changed since {path.name} was recorded"
+            except OSError:
+                return f"{here} is gone since {path.name} was recorded"
+    return None
+
+
 def clear_failed(dataset_root: str | os.PathLike, stage: str) -> None:
     failed_marker(dataset_root, stage).unlink(missing_ok=True)
 

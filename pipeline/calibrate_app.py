@@ -127,10 +127,13 @@ def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str
     interval and the ratio to the spec sheet as metrics, the JSON documents as artifacts."""
     from skidbench.benchmark import tracking as trk
 
+    from . import provenance
+
     tracker = trk.tracker_from_cfg(cfg, layout)
     tags = {
         trk.TAG_ROLE: "calibration",
         trk.TAG_DATASET: str(cfg.dataset),
+        **provenance.run_tags(),  # skidbench's version and commit, libraries, lock, platform, code paths
         trk.TAG_GIT: trk.git_commit(),
         "skidbench.robot": robot,
     }

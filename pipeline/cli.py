@@ -17,7 +17,15 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from .cache import StaleInputError, check_producers, clear_failed, mark_failed
+from .cache import (
+    LOCAL_PRODUCERS,
+    StaleInputError,
+    check_producers,
+    clear_failed,
+    data_state,
+    inputs_changed,
+    mark_failed,
+)
 from .config_schema import validate
 from .errors import ConfigError, SkidbenchError, one_line
 from .imported import check_stage
@@ -72,8 +80,10 @@ def stage(name: str, home: bool = True) -> Callable:
     identity is printed and its folder checked (:func:`skidbench.pipeline.dataset.open_home`), and the
     stage refuses to run when a stage it reads from failed on its last run
     (:func:`skidbench.pipeline.cache.check_producers`). When the stage fails, a dataset folder it leaves
-    holding no data is removed (so ``skidbench datasets`` never lists it); otherwise the failure is
-    recorded, and the stages downstream refuse to run until this one succeeds."""
+    holding no data is removed (so ``skidbench datasets`` never lists it); a stage of ``LOCAL_PRODUCERS``
+    that changed nothing in the folder (refused before its first write) while what it made before is
+    still current leaves the dataset as it was;
+    otherwise the failure is recorded, and the stages downstream refuse to run until this one succeeds."""
 
     # as Hydra's docs register resolvers: in the app, before @hydra.main composes (`python -m <app>` too)
     register_resolvers()
@@ -81,7 +91,7 @@ def stage(name: str, home: bool = True) -> Callable:
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
-            root = None
+            root = before = None
             register_resolvers()  # a sweep's job may run in a process that did not start at main()
             try:
                 cfg = args[0] if args else None
@@ -93,18 +103,19 @@ def stage(name: str, home: bool = True) -> Callable:
                     root = open_home(cfg, name)[0].root
                     check_producers(root, name)
                     check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
+                    before = data_state(root) if name in LOCAL_PRODUCERS else None
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
                 exit_with_error(str(exc), name)
             except SkidbenchError as exc:
-                _after_failure(root, name, str(exc))
+                _after_failure(root, name, str(exc), before)
                 exit_with_error(str(exc), name)
             except SystemExit as exc:  # a stage that exits by itself: a failure unless its status is 0
                 if exc.code not in (0, None):
-                    _after_failure(root, name, f"exit status {exc.code}")
+                    _after_failure(root, name, f"exit status {exc.code}", before)
                 raise
             except BaseException as exc:  # a bug or an interrupt: what was written may be partial too
-                _after_failure(root, name, f"{type(exc).__name__}: {exc}")
+                _after_failure(root, name, f"{type(exc).__name__}: {exc}", before)
                 raise
             if root is not None:
                 clear_failed(root, name)
@@ -115,9 +126,11 @@ def stage(name: str, home: bool = True) -> Callable:
     return deco
 
 
-def _after_failure(root: Path | None, name: str, message: str) -> None:
-    """A failed stage: remove its dataset folder when it holds no data (only ``dataset.json``), else
-    record the failure for the stages downstream."""
+def _after_failure(root: Path | None, name: str, message: str, before: dict | None = None) -> None:
+    """A failed stage: remove its dataset folder when it holds no data (only ``dataset.json``); leave it
+    as it was when the stage changed none of its files (``before``: :func:`data_state` when it started)
+    and what it made before is still current (:func:`inputs_changed`); else record the failure for the
+    stages downstream."""
     if root is None or not root.is_dir():
         return
     from .dataset import holds_data
@@ -126,6 +139,9 @@ def _after_failure(root: Path | None, name: str, message: str) -> None:
         from .layout import remove_atomic
 
         remove_atomic(root)
+        return
+    if before is not None and data_state(root) == before and inputs_changed(root, name) is None:
+        log.info("%s failed before writing anything: %s is as it was", name, root)
         return
     mark_failed(root, name, one_line(message))
 

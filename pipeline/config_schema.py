@@ -200,6 +200,7 @@ SCHEMA: dict[str, Spec] = {
     "source.split_fractions": listof(number(0, 1), 3),
     "source.groundtruth_method": choice("vo", "orbslam", "pose_topic"),
     "source.groundtruth_key": STR,
+    "source.identify_cmd_kinematics": BOOL,
     "source.cmd_kinematics.*": listof(number(gt=0), 2, what="[wheel radius m, track m]"),
     "source.cmd_limits.*": listof(number(gt=0), 2, what="[v_max m/s, w_max rad/s]"),
     "source.break_at_jumps": BOOL,

@@ -98,9 +98,12 @@ def _unwrap(exc: BaseException) -> BaseException:
 def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
     """At the start of a stage: the dataset's identity, printed; its folder checked against the recorded
     identity (DatasetError naming both roots unless ``source.replace=true``); ``dataset.json`` written;
-    outputs of sequences that are no longer in the manifest pruned."""
+    outputs of sequences that are no longer in the manifest pruned. A source's settings that contradict
+    each other (``check_settings`` of its reader, e.g. more terrains than files) are refused first, by
+    every stage, not only by the one that reads them."""
     from omegaconf.errors import OmegaConfBaseException
 
+    _check_source_settings(cfg)
     try:
         ident = identity_from_cfg(cfg)
     except OmegaConfBaseException as exc:
@@ -127,6 +130,20 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
     if layout.manifest.is_file():
         prune_stale(layout, Manifest.read(layout.manifest))
     return layout, ident
+
+
+def _check_source_settings(cfg: Any) -> None:
+    """``skidbench.pipeline.sources.<kind>.check_settings(cfg.source)`` when the source's reader has one."""
+    import importlib
+
+    kind = str(cfg.source.get("kind", "bag") or "bag")
+    try:
+        module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
+    except ImportError:  # the bag reader and the simulator's source have no module here
+        return
+    check = getattr(module, "check_settings", None)
+    if check is not None:
+        check(cfg.source)
 
 
 def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:

@@ -73,7 +73,9 @@ def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
     kept = list(overrides)
     while True:
         try:
-            return foreign, _compose(stage, kept)
+            cfg = _compose(stage, kept)
+            _check_source_keys(cfg, foreign)
+            return foreign, cfg
         except (HydraException, OmegaConfBaseException) as exc:
             key = _refused_key(exc)
             line = next((o for o in kept if key and _override_key(o) == key and o[:1] not in "+~"), None)
@@ -81,6 +83,41 @@ def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
                 raise ConfigError(_explain(stage, kept, exc)) from None
             foreign.append(line)
             kept.remove(line)
+
+
+def _check_source_keys(cfg: Any, foreign: list[str]) -> None:
+    """ConfigError for a ``source.*`` override the chosen source does not have: every stage reads the one
+    source a command names, so another source's setting (``source.topics`` with ``source=drive_df``) is
+    never another stage's, and ignoring it would hide a wrong setting."""
+    source = cfg.get("source") if hasattr(cfg, "get") else None
+    if source is None:
+        return
+    for line in foreign:
+        key = _override_key(line)
+        if not key.startswith("source."):
+            continue
+        owners = _source_options_with(key.removeprefix("source."))
+        name = source.get("name", "?")
+        whose = f" (a setting of {', '.join(f'source={o}' for o in owners)})" if owners else ""
+        raise ConfigError(f"{line}: source={name} has no setting {key}{whose}; drop it")
+
+
+@functools.cache
+def _source_options_with(key: str) -> tuple[str, ...]:
+    """The ``source`` options whose config (with its defaults) has ``key`` (dotted, below ``source``)."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    owners = []
+    for entry in sorted(resources.files(CONFIG_MODULE).joinpath("source").iterdir(), key=lambda e: e.name):
+        if not entry.name.endswith(".yaml"):
+            continue
+        option = entry.name[:-5]
+        with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
+            cfg = compose("extract", overrides=[f"source={option}"])
+        if OmegaConf.select(cfg.source, key, default=None, throw_on_resolution_failure=False) is not None:
+            owners.append(option)
+    return tuple(owners)
 
 
 def parse_value(line: str) -> tuple[str, Any]:

@@ -7,7 +7,8 @@ A real robot's wheels do not turn at the commanded rate the instant it is comman
 the motor controller late (dead time ``delay_s``) and the speed loop follows it through a lag (time
 constant ``tau_s``): ``tau dw/dt = w_cmd(t - delay) - w``. On DRIVE's Husky an encoder reaches half of a
 command step 0.7 s after it and 90 % after 1.2 s (Train split). The split's commanded accelerations are
-the derivatives of a held command: a step becomes a one-sample pulse of up to 270 rad/s^2, which no
+the derivatives of a held command: a step becomes a pulse two samples long (central differences, each
+sample half the step over one sample period) of up to 270 rad/s^2, which no
 friction can deliver and which forces a friction model given them to explain a pulse in M a the robot
 never had. Driving the force balance with the actuator's output instead (the rates the wheels can
 actually have, and their finite accelerations ``(w_cmd(t - delay) - w) / tau``) keeps the model a

@@ -56,7 +56,7 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     assert (csv[csv["model"] == "broken"]["status"] == "FAILED").all()
     text = res.report.read_text()
     assert "## Failed runs" in text and "singular normal equations" in text
-    for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png"):
+    for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png", "fig_end_position_rmse.png"):
         assert (out / DS / "reports" / f).stat().st_size > 5000 and f"]({f})" in text
     # Fig. 6 shows the friction model by default, which these runs do not have: skipped with a note
     assert any(n.startswith("Fig. 6 skipped") and "friction/grass.surfaces.npz: no Fig. 6 surfaces" in n
@@ -64,11 +64,41 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     # the protocols side by side per model (commanded / measured: the latest evaluate of each)
     assert "## The input protocols side by side (commanded / measured)" in text
     chi = next(line for line in res.decomposition_md.splitlines() if line.startswith("| chi |"))
-    assert chi.count(" / ") == 4  # one pair of values per metric
+    assert chi.count(" / ") == 6  # one pair of values per headline metric (trans, rot, endpos) and split
     assert (out / DS / "reports" / "fig_protocols.png").stat().st_size > 5000
     client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
     arts = {a.path for a in client.list_artifacts(second.parent_run_id, "report")}
     assert {"report/report.md", "report/leaderboard.csv", "report/fig3_translational_rmsre.png"} <= arts
+
+
+def test_the_end_position_error_is_logged_printed_and_on_the_leaderboard(two_evaluations):
+    """The registry's absolute end-position error (benchmark/metrics.py) reaches every output: each child
+    run's MLflow metrics, evaluate's console summary, compare's leaderboard files (the mean over terrains
+    of the logged values) and console."""
+    from skidbench.benchmark.evaluate import format_result
+
+    out, _, second = two_evaluations
+    client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
+    logged = {}
+    for c in second.children:
+        metrics = client.get_run(c.run_id).data.metrics
+        if c.status == "FINISHED":
+            assert metrics["ld_6s_endpos_rmse_m"] == c.metrics["ld_6s_endpos_rmse_m"] > 0
+            assert metrics["ld_6s_endpos_windows"] > 0
+            logged.setdefault(c.model, []).append(metrics["ld_6s_endpos_rmse_m"])
+    assert "endpos LD 6s m" in format_result(second)
+    res = run_compare(compose("compare", out, ["figures.enabled=false", "log_to_mlflow=false"]))
+    csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
+    assert {"endpos CV m", "endpos LD m", "endpos LD n"} <= set(csv.columns)
+    chi = csv[csv["model"] == "chi"]
+    assert sorted(chi["endpos LD m"]) == pytest.approx(sorted(logged["chi"]))
+    head = res.leaderboard_md.splitlines()[0]
+    assert "| endpos CV m | endpos CV n | endpos LD m | endpos LD n |" in head
+    row = next(line for line in res.leaderboard_md.splitlines() if line.startswith("| 1 | chi |"))
+    cells = [c.strip() for c in row.split("|")]
+    col = head.split("|").index(" endpos LD m ")
+    assert float(cells[col]) == pytest.approx(np.mean(logged["chi"]), abs=0.01)
+    assert "endpos LD m" in format_console(res)
 
 
 def test_select_an_older_parent_a_filter_or_every_run(two_evaluations):
@@ -238,7 +268,7 @@ def test_an_evaluates_parent_run_carries_its_leaderboard(two_evaluations):
     out, _, second = two_evaluations
     run = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}").get_run(second.parent_run_id)
     note = run.data.tags["mlflow.note.content"]
-    assert note.startswith("**Leaderboard**, inputs=commanded: 6 s RMSRE in %")
+    assert note.startswith("**Leaderboard**, inputs=commanded, 6 s horizon: mean over terrains")
     assert "| 1 | **chi** |" in note and "Benchmark of 3 models on 2 terrains" in note
     chi = [c.metrics["ld_6s_trans_rmsre_pct"] for c in second.children if c.model == "chi"]
     assert run.data.metrics["chi.mean_ld_6s_trans_rmsre_pct"] == pytest.approx(np.mean(chi), abs=1e-3)

@@ -85,6 +85,10 @@ def test_metrics_params_tags_and_artifacts_of_a_child(bench):
     assert row["tags.skidbench.plugin_package"]
     assert len(row["tags.skidbench.dataset_fingerprint"]) == 32
     assert row["tags.skidbench.git_commit"]
+    # provenance: skidbench and the libraries it ran with, the platform and code paths, the model's code
+    assert row["tags.skidbench.version"] and row["tags.skidbench.env.numpy"] == np.__version__
+    assert row["tags.skidbench.env.platform"] and "openblas=" in row["tags.skidbench.env.code_paths"]
+    assert len(row["tags.skidbench.code.digest"]) == 32 and row["tags.skidbench.code.module"]
     client = mlflow.MlflowClient()
     arts = {a.path for d in ("fit", "windows", "figures") for a in client.list_artifacts(row["run_id"], d)}
     assert any(a.endswith(".params.json") for a in arts)
@@ -191,7 +195,7 @@ def _constant_twist_sequence(name: str, n: int, rate_hz: float, v: float, w: flo
     (no slip): the ideal model's prediction."""
     from _bench_data import JACKAL
 
-    from skidbench.benchmark.evaluate import TestSequence
+    from skidbench.benchmark.scoring import TestSequence
     from skidbench.pipeline.geometry import integrate_body_velocity
 
     t = np.arange(n) / rate_hz
@@ -212,8 +216,8 @@ def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_
     minimum rotation: no rotational window, RMSRE NaN); an arc of 0.5 rad/s turns by 3 rad in 6 s."""
     from _bench_data import JACKAL, IdealModel
 
-    from skidbench.benchmark.evaluate import predict_and_score
     from skidbench.benchmark.horizon import HorizonConfig
+    from skidbench.benchmark.scoring import predict_and_score
 
     rate, h = 30.0, 6.0
     tests = {

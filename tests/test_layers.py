@@ -1,7 +1,7 @@
 """The layers of the package run one way (CONTRIBUTING.md, "Layers"): every import, including one inside a
 function, goes to the same layer or one below, and no two modules import each other in a circle.
 
-    core        pipeline/{errors,geometry,io,cache,layout,manifest,schema,robot,protocol}
+    core        pipeline/{errors,geometry,io,cache,layout,manifest,schema,robot,protocol,constants}
     stages      the rest of pipeline/ (simulate, extract, groundtruth, splits, sources, calibration, ...)
     models      models/
     benchmark   benchmark/ (evaluation, tracking, comparison, discovery)
@@ -20,7 +20,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("pipeline", "models", "benchmark")
-CORE = {"errors", "geometry", "io", "cache", "layout", "manifest", "schema", "robot", "protocol"}
+CORE = {"errors", "geometry", "io", "cache", "layout", "manifest", "schema", "robot", "protocol", "constants"}
 #: modules of the app layer by their dotted name below ``skidbench.`` (beside every ``*_app``)
 APP_MODULES = {"pipeline.cli", "pipeline.api", "pipeline.overrides", "pipeline.stage", "models.app"}
 RANK = {"core": 0, "stages": 1, "models": 2, "benchmark": 3, "apps": 4}
@@ -143,4 +143,25 @@ def test_the_installed_package_never_imports_the_bench_harness():
             else:
                 continue
             found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] == "bench"]
+    assert not found, "\n".join(found)
+
+
+#: the benchmark's pure modules: scoring and its metrics (no MLflow, no files, no figures); of the benchmark
+#: layer they import only each other, so that a server, a notebook or a test can score without a store
+PURE = {"benchmark.horizon", "benchmark.metrics", "benchmark.scoring"}
+IMPURE_LIBS = {"mlflow", "matplotlib", "pyarrow", "ray", "hydra", "omegaconf"}
+
+
+def test_scoring_and_metrics_are_pure(graph):
+    found = []
+    for mod in sorted(PURE):
+        path = REPO / (mod.replace(".", "/") + ".py")
+        found += [f"{mod}:{line} imports {dep} ({layer(dep)})" for line, dep in graph[mod]
+                  if layer(dep) == "benchmark" and dep not in PURE]  # fmt: skip
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import | ast.ImportFrom) and not getattr(node, "level", 0):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] in IMPURE_LIBS]
+            if isinstance(node, ast.Name) and node.id == "open":
+                found.append(f"{mod}:{node.lineno} opens a file")
     assert not found, "\n".join(found)

@@ -73,6 +73,22 @@ def test_a_logged_model_loads_and_predicts_in_a_plain_python_process(real_models
     np.testing.assert_allclose(np.array(got["values"]), expected, rtol=1e-12, atol=1e-12)
 
 
+def test_a_logged_models_requirements_pin_skidbench_and_the_libraries_it_ran_with(real_models):
+    from pathlib import Path
+
+    from skidbench.pipeline.provenance import version_of
+
+    out, cfg, res, client, runs = real_models
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
+    reqs = Path(
+        mlflow.pyfunc.get_model_dependencies(f"models:/{runs['roc'].data.tags['skidbench.logged_model']}")
+    )
+    lines = set(reqs.read_text().split())
+    for dist in ("skidbench", "mlflow", "numpy", "scipy", "pandas", "numba"):
+        assert f"{dist}=={version_of(dist)}" in lines, (dist, lines)
+    assert runs["roc"].data.tags["skidbench.code.distribution"] == "skidbench"
+
+
 def test_runs_describe_themselves_and_carry_only_their_own_models_config(real_models):
     out, cfg, res, client, runs = real_models
     roc_run, ideal = runs["roc"], runs["ideal"]

@@ -83,7 +83,7 @@ def test_the_linked_runs_table_shows_every_rmsre_column_without_scrolling(ui):
 def test_the_linked_charts_plot_the_rmsre_of_every_run_first(ui):
     root, res, links = ui
     text = text_of(chromium(links["charts of its model runs"], root, window=WINDOW))
-    section = text.index("6 s RMSRE (%), lower is better")  # the saved view's section, before the UI's own
+    section = text.index("6 s errors, lower is better")  # the saved view's section, before the UI's own
     assert all(text.index(m, section) > section for m in RMSRE)
     assert "fit_loss" not in text[:section]
     for child in ("chi/tile", "ideal_t/grass"):  # every run is plotted
@@ -96,8 +96,8 @@ def test_a_parent_runs_page_shows_the_leaderboard_who_made_it_and_its_datasets(u
     assert re.search(rf"evaluate {DS} commanded {re.escape(current_user())}@\S+ 20", text)  # what, whose
     assert "Model training" in text
     # its description opens with the leaderboard: per model the mean over terrains, the gap to the next
-    head = r"rank model LD trans % LD rot % CV trans % CV rot % gap to next \(LD trans %\) terrains"
-    assert re.search(rf"Leaderboard , inputs=commanded: 6 s RMSRE in %.* {head} 1 chi [0-9.]+ ", text)
+    head = r"rank model trans LD % rot LD % trans CV % rot CV % endpos LD m endpos CV m gap to next \(trans LD %\)"
+    assert re.search(rf"Leaderboard , inputs=commanded, 6 s horizon: .* {head} terrains 1 chi [0-9.]+ ", text)
     assert "Benchmark of 2 models on 2 terrains" in text
     assert "chi.mean_ld_6s_trans_rmsre_pct" in text and "chi.gap_to_next_ld_6s_trans_rmsre_pct" in text
     assert re.search(rf"Datasets {DS}/(grass|tile)/(train|cv|ld) ", text)  # its dataset inputs

@@ -12,7 +12,8 @@ from skidbench.benchmark.horizon import window_errors
 from skidbench.models.base import ModelError
 from skidbench.models.enhanced import EnhancedKinematic
 from skidbench.models.friction import FrictionBased
-from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve, solve_reference
+from skidbench.models.friction_balance import FrictionGeometry, body_velocity
+from skidbench.models.friction_solver import solve, solve_reference
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive, FullLinear
 from skidbench.models.roc import RocBased
@@ -96,6 +97,35 @@ def test_roc_recovers_b1_b2(jackal, table):
     fitted = RocBased(jackal).fit(label_with(table, truth.predict(table)))
     assert fitted.params["b1"] == pytest.approx(0.8, rel=1e-6)
     assert fitted.params["b2"] == pytest.approx(2.5, rel=1e-6)
+
+
+def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, table, tmp_path):
+    """Turning that does not depend on the radius of curvature (edd's constant chi = 1.6): roc's best fit
+    is b2 = 0, chi = 1 + b1 = edd's; the fit says so (fit_info_["at_bound"]), and compare's note names
+    it with the terrain and value. A roc-shaped truth reports nothing."""
+    from skidbench.benchmark.compare import _fit_findings
+    from skidbench.models.fitting import fit_findings
+    from skidbench.pipeline.layout import Layout
+
+    fitted = RocBased(jackal).fit(
+        label_with(table, ExtendedDifferentialDrive(jackal, {"chi": 1.6}).predict(table))
+    )
+    assert fitted.params["b1"] == pytest.approx(0.6, rel=1e-5) and fitted.params["b2"] < 1e-5
+    (found,) = fitted.fit_info_["at_bound"]
+    assert found["param"] == "b2" and found["side"] == "lower" and found["bound"] == 0.0
+    assert found["finding"] == "roc degenerates to edd on this data: b2 at its bound"
+    truth = RocBased(jackal, {"b1": 0.8, "b2": 2.5})
+    assert RocBased(jackal).fit(label_with(table, truth.predict(table))).fit_info_ == {}
+    layout = Layout(tmp_path, "ds")
+    path = layout.fit_file("roc", "grass")
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"fit_info": fitted.fit_info_}))
+    assert fit_findings(json.loads(path.read_text()))[0].startswith(
+        "roc degenerates to edd on this data: b2 at its bound (b2 = "
+    )
+    board = pd.DataFrame({"model": ["roc", "edd"], "terrain": ["grass", "grass"], "status": ["FINISHED"] * 2})
+    (note,) = _fit_findings(layout, board, "commanded")
+    assert note.startswith("roc degenerates to edd on this data: b2 at its bound (grass: b2 = ")
 
 
 def test_enhanced_recovers_p1_to_p6_with_a_cg_offset(cg_robot, table):

@@ -106,7 +106,7 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
 
 def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_path, jackal):
     """One split lookup (Layout.require_split_files): fit and evaluate say the same of a missing file."""
-    from skidbench.benchmark.evaluate import EvaluationError, split_files
+    from skidbench.benchmark.testsets import EvaluationError, split_files
     from skidbench.models.fitting import fit_model
     from skidbench.pipeline.layout import layout_from_cfg
 
@@ -197,7 +197,7 @@ def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
-    from skidbench.benchmark.evaluate import default_fit_fn
+    from skidbench.benchmark.fit_record import default_fit_fn
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     GlobalHydra.instance().clear()

@@ -8,8 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.models.friction import PARAM_RANGES, FrictionBased, bound_report
-from skidbench.models.friction_solver import FrictionGeometry, body_velocity, solve
+from skidbench.models.friction import FrictionBased
+from skidbench.models.friction_balance import FrictionGeometry, body_velocity
+from skidbench.models.friction_fit import PARAM_RANGES, bound_report
+from skidbench.models.friction_solver import solve
 from skidbench.models.synthetic import command_table, label_with
 from skidbench.pipeline import wheel_response as actuator
 from skidbench.pipeline.robot import load_robot
@@ -245,7 +247,7 @@ def test_drive_husky_fit_under_response_keeps_every_parameter_off_its_bounds(dri
 def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
     from types import SimpleNamespace
 
-    from skidbench.benchmark.evaluate import fit_quality_metrics
+    from skidbench.benchmark.fit_record import fit_quality_metrics
 
     info = {
         "param_bound_margin": {"mu_r": 0.3},

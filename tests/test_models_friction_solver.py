@@ -7,19 +7,20 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import scipy.constants
 
 from skidbench.models.friction import FrictionBased
-from skidbench.models.friction_solver import (
+from skidbench.models.friction_balance import (
     FrictionGeometry,
     balance_jacobians,
     body_velocity,
     free_mask,
     residual,
-    solve,
-    solve_reference,
     velocity_sensitivity,
 )
+from skidbench.models.friction_solver import solve, solve_reference
 from skidbench.models.synthetic import command_table, label_with
+from skidbench.pipeline.constants import STANDARD_GRAVITY
 
 PARAMS = np.array([0.05, 0.9, 0.6, 6.0, 0.3])  # mu_r, mu_x, mu_y, lambda, C
 
@@ -116,6 +117,24 @@ def test_sensitivity_of_steps_without_a_root_is_the_least_squares_one(jackal):
         S[:, 2], (geo.r * wl[:, None] * dth[:, 0] - geo.r * wr[:, None] * dth[:, 1]) / geo.B
     )
     assert free_mask(wl, wr).all()
+
+
+def test_a_world_of_other_gravity_is_the_same_model_with_its_force_coefficients_scaled(jackal):
+    """The models' g is standard gravity; a world of another g (the simulator's 9.81) costs nothing: every
+    ground force of eqs. (5)-(7) is a coefficient times N, N proportional to g, so the balance under g' with
+    mu_r, mu_x, mu_y, lambda scaled by g / g' (C unchanged) has the same roots (pipeline/constants.py)."""
+    assert STANDARD_GRAVITY == scipy.constants.g
+    std = FrictionGeometry.from_robot(jackal)
+    assert std.g == STANDARD_GRAVITY
+    world = FrictionGeometry.from_robot(jackal, g=9.81)
+    inp = random_steps(jackal, 200, seed=5)
+    scaled = PARAMS.copy()
+    scaled[:4] *= 9.81 / STANDARD_GRAVITY  # mu_r, mu_x, mu_y, lambda; not C
+    a = solve(*inp, scaled, std)
+    b = solve(*inp, PARAMS, world)
+    both = (a.status == 1) & (b.status == 1) & ~a.saturated(inp[0], inp[1], scaled)
+    assert both.sum() >= 180
+    np.testing.assert_allclose(a.theta[both], b.theta[both], rtol=0, atol=1e-9)
 
 
 def test_compiled_solve_agrees_with_the_per_step_reference_on_an_offset_cg(jackal, offset_geometry):

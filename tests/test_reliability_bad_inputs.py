@@ -14,6 +14,7 @@ sys.path.insert(0, str(Path(__file__).parent / "bad_inputs"))
 from make_corpus import make  # noqa: E402
 
 from skidbench.pipeline.errors import ExtractError, GroundTruthError, SourceError  # noqa: E402
+from skidbench.pipeline.sources.drive_files import UnsafePickleError  # noqa: E402
 
 E, R = "error", "repair"
 
@@ -25,6 +26,8 @@ CASES = [
     ("not a bag at all", "bag", "bag_not_a_bag.bag", {}, (E, ExtractError, "bag")),
     ("wrong message type", "bag", "bag_wrong_type.bag", {}, (E, ExtractError, "sensor_msgs/msg/Imu")),
     ("required topic missing", "bag", "bag_missing_topic.bag", {}, (E, ExtractError, "/cmd_vel not found")),
+    ("bag with neither camera nor pose topic", "vo", "bag_no_ground_truth_source.bag", {},
+     (E, GroundTruthError, "this bag has no ground-truth source: no camera image for groundtruth.method=vo")),
     # pose tables -> groundtruth.method=pose_topic
     ("reversed timestamps", "pose", "pose_reversed.parquet", {}, (E, GroundTruthError, "non-monotonic time")),
     ("duplicated timestamps", "pose", "pose_duplicated.parquet", {}, (R, "1 row(s) with a duplicated")),
@@ -74,6 +77,28 @@ CASES = [
      (E, SourceError, "non-monotonic ros_time")),
     ("DRIVE truncated Parquet", "drive", "drive_truncated_raw.parquet", {},
      (E, SourceError, "not a readable Parquet file")),
+    # DRIVE files as a user has them (robot=husky, the default source.cmd_kinematics.husky as fallback)
+    ("DRIVE pickle (torch_ready_dataframe.pkl)", "drive", "drive_torch_ready_dataframe.pkl", {},
+     (R, "drive_torch_ready_dataframe.pkl: DRIVE windows form")),
+    ("DRIVE pickle (raw_dataframe.pkl), stored as text", "drive", "drive_raw_dataframe.pkl", {},
+     (R, "zero-initialised placeholder row")),
+    ("DRIVE pickle calling os.system", "drive", "drive_unsafe.pkl", {},
+     (E, UnsafePickleError, "refused as unsafe: the pickle calls posix.system")),
+    ("DRIVE pickle of an array", "drive", "drive_not_a_frame.pkl", {},
+     (E, SourceError, "holds a ndarray, not a DRIVE dataframe")),
+    ("DRIVE Husky, commands in its own kinematics (gain 0.956)", "drive",
+     "drive_deflated_windows.parquet", {},
+     (R, "source.cmd_kinematics.husky=[0.3, 1.08] disagrees with the file")),
+    ("DRIVE windows, lifted robot", "drive", "drive_lifted_windows.parquet", {},
+     (E, SourceError, "the robot does not move while its wheels turn")),
+    ("DRIVE raw, lifted robot", "drive", "drive_lifted_raw.parquet", {},
+     (E, SourceError, "the robot does not move while its wheels turn")),
+    ("DRIVE windows, ICP constant", "drive", "drive_constant_icp_windows.parquet", {},
+     (E, SourceError, "no ground truth: the ICP pose never changes")),
+    ("DRIVE windows, wheels read zero", "drive", "drive_zero_wheels_windows.parquet", {},
+     (E, SourceError, "the wheels read zero throughout")),
+    ("DRIVE raw without commands", "drive", "drive_no_commands_raw.parquet", {},
+     (E, SourceError, "no commands: the raw form's cmd_vel_x / cmd_vel_omega are absent")),
 ]  # fmt: skip
 
 
@@ -93,6 +118,10 @@ def _read(reader: str, corpus: Path, name: str, opts: dict, tmp_path: Path) -> P
         from skidbench.pipeline.extract.app import run
 
         run(extract_cfg(tmp_path / "out", path, "source.terrain=tile", "source.category=cv"))
+    elif reader == "vo":
+        from skidbench.pipeline.groundtruth.vo import run_stereo_vo
+
+        run_stereo_vo(path, {"robot": {"name": "husky"}})
     elif reader == "pose":
         from skidbench.pipeline.groundtruth.pose_topic import read_pose_table
 
@@ -113,9 +142,13 @@ def _read(reader: str, corpus: Path, name: str, opts: dict, tmp_path: Path) -> P
         read_sequence(cmd, loc)
         return cmd
     elif reader == "drive":
-        from skidbench.pipeline.sources.drive_df import raw_to_sequences, read_frame
+        from omegaconf import OmegaConf
 
-        raw_to_sequences(read_frame(path), path, (0.6, 0.2, 0.2), "husky")
+        from skidbench.pipeline.robot import load_robot
+        from skidbench.pipeline.sources.drive_df import _read_file
+
+        src = OmegaConf.load(Path(__file__).parents[1] / "conf" / "source" / "drive_df.yaml")
+        _read_file(path, src, load_robot("husky"), "husky")
     return path
 
 

@@ -113,6 +113,27 @@ CASES = [
     ("DRIVE truncated Parquet", ["extract", "source=drive_df", "source.root={c}",
                                  "source.file=drive_truncated_raw.parquet", "out_root={fresh}"],
      ["drive_truncated_raw.parquet", "not a readable Parquet"]),
+    ("DRIVE file missing", ["extract", "source=drive_df", "source.root={c}/drive_ok",
+                            "source.file=nope.parquet", "robot=husky", NEW],
+     ["drive_ok/nope.parquet", "no such file", "husky_windows.parquet"]),
+    ("DRIVE root missing", ["extract", "source=drive_df", "source.root={c}/nothing", NEW],
+     ["source.root={c}/nothing", "no such folder"]),
+    ("DRIVE folder empty", ["extract", "source=drive_df", "source.root={c}/empty", NEW],
+     ["empty/husky_windows.parquet", "holds no DRIVE file"]),
+    ("DRIVE folder, source.file not set (make reproduce SOURCE=drive_df DATA=<dir>)",
+     ["extract", "source=drive_df", "source.root={c}/drive_renamed", NEW],
+     ["husky_windows.parquet: no such file", "it holds data.parquet", "set source.file"]),
+    ("DRIVE two terrains for one file", ["split", "source=drive_df", "source.root={c}/drive_ok",
+                                         "source.terrain=[a,b]", NEW],
+     ["source.terrain=", "one terrain per file"]),
+    ("DRIVE with a bag source's setting", ["extract", "source=drive_df", "source.root={c}/drive_ok",
+                                           "source.topics=atuo", NEW],
+     ["source.topics=atuo", "source=drive_df"]),
+    ("DRIVE pickle calling os.system", ["extract", "source=drive_df", "source.root={c}",
+                                        "source.file=drive_unsafe.pkl", NEW], ["drive_unsafe.pkl", "unsafe"]),
+    ("DRIVE lifted robot", ["extract", "source=drive_df", "source.root={c}", "robot=husky",
+                            "source.file=drive_lifted_windows.parquet", NEW],
+     ["does not move while its wheels turn"]),
     ("two roots at one dataset name", ["split", "source=amrl_txt", "source.root={amrl2}",
                                        "source.dataset={name}", "out_root={out}"],
      ["{amrl2}", "already holds"]),
@@ -361,3 +382,21 @@ def test_the_real_bag_copied_and_damaged(shared_real, tmp_path):
     code, err = _run(["groundtruth", *args, "groundtruth.method=orbslam", f"groundtruth.orbslam.dir={orb}"])
     (line,) = [ln for ln in err.splitlines() if ": error: " in ln]
     assert code == 2 and "re-run skidbench extract" in line, err
+
+
+def test_a_refused_robot_leaves_the_dataset_as_it_was_and_the_right_one_runs(prepared, tmp_path):
+    """A Husky recording extracted and split as a Husky, then extracted as a Warthog: refused in one line
+    before anything is written, no failure recorded (nothing it left is stale), and `evaluate robot=husky`
+    runs on the Husky extraction that is still there."""
+    out = tmp_path / "out"
+    args = ["source=drive_df", f"source.root={prepared['c']}/drive_ok", f"out_root={out}"]
+    for s in (["extract"], ["groundtruth"], ["split"], ["calibrate", "track=false"]):
+        code, err = _run([s[0], *args, "robot=husky", *s[1:]])
+        assert code == 0, err
+    before = snapshot(out)
+    code, err = _run(["extract", *args, "robot=warthog"])
+    (line,) = [ln for ln in err.splitlines() if ": error: " in ln]
+    assert code == 2 and "robot=warthog" in line and "per wheel radian" in line, err
+    assert snapshot(out) == before and not list(out.glob("*/.stamps/*.failed.json"))
+    code, err = _run(["evaluate", *args, "robot=husky", "models=[edd]", "horizons=[2.0]"])
+    assert code == 0, err

@@ -14,7 +14,7 @@ import yaml
 
 from skidbench.pipeline.errors import SimulateError
 from skidbench.pipeline.robot import Robot
-from skidbench.pipeline.simulate.physics import SkidSteerSim, brush_force, load_physics
+from skidbench.pipeline.simulate.physics import WORLD_GRAVITY, SkidSteerSim, brush_force, load_physics
 
 TERRAINS = ("tile", "asphalt", "grass")
 DT = 0.001
@@ -126,7 +126,7 @@ def test_load_transfers_to_the_rear_under_acceleration_and_outward_in_turns(robo
     drive(sim, robot, 1.5, 0.0, 0.15)
     fl, rl, fr, rr = sim.normal_load
     assert sim.ax > 1.0 and rl > fl and rr > fr
-    assert sum(sim.normal_load) == pytest.approx(robot.mass * 9.81)
+    assert sum(sim.normal_load) == pytest.approx(robot.mass * WORLD_GRAVITY)
     sim = make(robot, physics, "asphalt")
     drive(sim, robot, 1.0, 1.0, 3.0)  # left turn: centripetal acceleration to the left, load to the right
     fl, rl, fr, rr = sim.normal_load
@@ -139,7 +139,7 @@ def test_motor_limits_cap_speed_and_acceleration(robot, physics):
     peak_accel = sim.vx / 0.2
     drive(sim, robot, 5.0, 0.0, 4.0)
     assert 1.9 < sim.vx < 2.3  # back-EMF: the Jackal tops out near 2 m/s
-    assert peak_accel < 9.81 * 0.85 * 1.05  # never more than friction allows
+    assert peak_accel < WORLD_GRAVITY * 0.85 * 1.05  # never more than friction allows
     assert max(abs(t) for t in sim.motor_torque) <= physics[1].torque_limit + 1e-9
 
 

@@ -24,11 +24,14 @@ def _wrap(a):
 WHEEL_TAU = 0.05  # s: the synthetic encoders follow each step through a first-order lag (wheels cannot jump)
 
 
-def drive_like_frame(steps, rate=20.0, hold_icp=True, from_rest=False):
+def drive_like_frame(
+    steps, rate=20.0, hold_icp=True, from_rest=False, cmd_kin=(R_CMD, B_CMD), wheel_gain=1.0
+):
     """Windows of constant-twist steps [(v, w)] * 3 windows each, as DRIVE writes them: poses relative
     to each window start in its body frame, yaw the difference of wrapped world yaws, ICP held 2 samples.
-    The encoders follow the steps' wheel rates through a lag (``WHEEL_TAU``), continuous across windows;
-    ``from_rest``: they start at 0 (else at the first step's rates)."""
+    The encoders follow ``wheel_gain`` x the steps' Husky wheel rates through a lag (``WHEEL_TAU``),
+    continuous across windows; ``from_rest``: they start at 0 (else at the first step's rates). The
+    commands are the steps converted to wheel rates with ``cmd_kin`` (DRIVE's configured [r, B])."""
     dt = 1.0 / rate
     nwin = len(steps) * 3
     # window i covers poses i*(K-1) .. i*(K-1)+K-1: it starts on the previous window's last pose, which
@@ -44,7 +47,7 @@ def drive_like_frame(steps, rate=20.0, hold_icp=True, from_rest=False):
     # a window's encoders follow its own step from its second sample (its first is the previous window's last)
     own = np.minimum(np.maximum(np.arange(n) - 1, 0) // (WINDOW - 1), nwin - 1)
     vo, wo = np.array([steps[i // 3][0] for i in own]), np.array([steps[i // 3][1] for i in own])
-    target = np.column_stack([(vo - wo * 0.55 / 2) / 0.165, (vo + wo * 0.55 / 2) / 0.165])
+    target = wheel_gain * np.column_stack([(vo - wo * 0.55 / 2) / 0.165, (vo + wo * 0.55 / 2) / 0.165])
     wheels = np.zeros_like(target)
     wheels[0] = 0.0 if from_rest else target[0]
     alpha = 1.0 - np.exp(-dt / WHEEL_TAU)
@@ -52,7 +55,7 @@ def drive_like_frame(steps, rate=20.0, hold_icp=True, from_rest=False):
         wheels[k] = wheels[k - 1] + alpha * (target[k] - wheels[k - 1])
     world = pose.copy()
     if hold_icp:  # ICP at 10 Hz: every odd sample repeats the previous one
-        world[1::2] = world[0::2]
+        world[1::2] = world[0::2][: len(world[1::2])]
     rows = []
     for i in range(nwin):
         sl = slice(i * (WINDOW - 1), i * (WINDOW - 1) + WINDOW)
@@ -64,8 +67,8 @@ def drive_like_frame(steps, rate=20.0, hold_icp=True, from_rest=False):
         row = {"calib_step": float(i // 3)}
         vv, ww = steps[i // 3]
         for k in range(WINDOW):
-            row[f"cmd_left_{k}"] = (vv - ww * B_CMD / 2) / R_CMD
-            row[f"cmd_right_{k}"] = (vv + ww * B_CMD / 2) / R_CMD
+            row[f"cmd_left_{k}"] = (vv - ww * cmd_kin[1] / 2) / cmd_kin[0]
+            row[f"cmd_right_{k}"] = (vv + ww * cmd_kin[1] / 2) / cmd_kin[0]
             row[f"left_wheel_vel_{k}"], row[f"right_wheel_vel_{k}"] = wheels[sl.start + k]
             row[f"icp_x_{k}"], row[f"icp_y_{k}"], row[f"icp_yaw_{k}"] = rel_x[k], rel_y[k], rel_yaw[k]
         rows.append(row)

@@ -119,9 +119,11 @@ def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
     windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08),
                          robot=load_robot("husky"), checks=checks)  # fmt: skip
     assert 0.7 < checks["speed_gain"] < 1.1 and 0.8 < checks["implied_radius_ratio"] < 1.1
-    with pytest.raises(ConfigError, match=r"robot=warthog: the measured wheel speed .* is 1\.4\dx"):
+    # the geometry refuses it as a Warthog's (not the speed gain, which the command conversion also moves)
+    refused = r"robot=warthog: the ground truth travels 0\.15\d m per wheel radian.* 0\.50x the spec sheet's"
+    with pytest.raises(ConfigError, match=refused):
         windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08),
-                             robot=load_robot("warthog"))  # fmt: skip
+                             robot=load_robot("warthog"), identify=True)  # fmt: skip
 
 
 def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_real, tmp_path):
@@ -138,3 +140,77 @@ def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_rea
         with pytest.raises(ConfigError, match="warthog_day2.parquet: robot=warthog: .*not this robot's") as e:
             extract(compose("extract", over))
     assert "\n" not in str(e.value)
+
+
+IDENT_STEPS = [(0.5, 0.0), (0.6, 0.05), (-0.4, 0.0), (0.3, 0.4), (0.7, -0.05), (0.45, 0.0), (0.2, -0.5)]
+
+
+def _arrays(df: pd.DataFrame) -> dict:
+    from skidbench.pipeline.sources.drive_windows import window_arrays
+
+    return window_arrays(df, Path("w.parquet"))
+
+
+def test_command_kinematics_are_identified_from_the_gain_and_matched_to_a_spec_sheet():
+    from skidbench.pipeline.sources.drive_checks import identify_cmd_kinematics
+
+    husky = load_robot("husky")
+    # the published Husky file's case: commands converted with the Warthog's [0.3, 1.08] (gain 0.3/0.165)
+    df, _, _ = drive_like_frame(IDENT_STEPS)
+    kin, report = identify_cmd_kinematics(Path("w.parquet"), husky, _arrays(df), None, "k")
+    assert kin == (0.3, 1.08) and "warthog's spec sheet" in report["how"] and "gain 1.818" in report["how"]
+    # a Husky whose commands were converted with its own [0.165, 0.55], its wheels at 0.956 of them
+    df, _, _ = drive_like_frame(IDENT_STEPS, cmd_kin=(0.165, 0.55), wheel_gain=0.956)
+    kin, report = identify_cmd_kinematics(
+        Path("w.parquet"), husky, _arrays(df), (0.3, 1.08), "source.ck.husky"
+    )
+    assert kin == (0.165, 0.55) and "husky's spec sheet" in report["how"]
+    assert report["disagrees"].startswith("source.ck.husky=[0.3, 1.08] disagrees with the file")
+    # a conversion no spec sheet has: the identified radius itself, the track scaled alike
+    df, _, _ = drive_like_frame(IDENT_STEPS, cmd_kin=(0.21, 0.7))
+    kin, report = identify_cmd_kinematics(Path("w.parquet"), husky, _arrays(df), None, "k")
+    assert kin[0] == pytest.approx(0.21, rel=1e-3) and kin[1] == pytest.approx(0.55 * kin[0] / 0.165)
+    # too few steady straight windows: the configured fallback, said
+    df, _, _ = drive_like_frame([(0.3, 0.4), (0.2, -0.5)])
+    kin, report = identify_cmd_kinematics(Path("w.parquet"), husky, _arrays(df), (0.3, 1.08), "k")
+    assert kin == (0.3, 1.08) and "only 0 steady straight windows" in report["how"]
+
+
+def test_the_slip_version_gives_the_kinematics_exactly():
+    from skidbench.pipeline.sources.drive_checks import kinematics_from_idd
+
+    rng = np.random.default_rng(3)
+    tl, tr = rng.normal(size=(5, WINDOW)), rng.normal(size=(5, WINDOW))
+    blocks = {"transitory_vel_left": tl, "transitory_vel_right": tr, "idd_vel_x": 0.3 * (tl + tr) / 2,
+              "idd_vel_yaw": 0.3 * (tr - tl) / 1.08}  # fmt: skip
+    assert kinematics_from_idd(blocks) == pytest.approx((0.3, 1.08), rel=1e-12)
+    blocks["idd_vel_x"] = blocks["idd_vel_x"] + rng.normal(0, 0.01, size=(5, WINDOW))  # not that relation
+    assert kinematics_from_idd(blocks) is None
+
+
+def test_a_husky_with_its_own_command_kinematics_is_scored_with_them(tmp_path, caplog):
+    """A deflated-tyre-like Husky file (commands in the Husky's own [0.165, 0.55], measured/commanded
+    gain 0.956, not the default's 1.82): extracted and split as a Husky, with the identified kinematics
+    reported and the default named in a warning; its commanded body speed then matches the ground truth's
+    (under the default [0.3, 1.08] it would be 1.82x)."""
+    import json
+    import logging
+
+    from drive_data import drive_splits, split_table
+
+    data = tmp_path / "data"
+    data.mkdir()
+    steps = IDENT_STEPS * 2
+    drive_like_frame(steps, cmd_kin=(0.165, 0.55), wheel_gain=0.956)[0].to_parquet(
+        data / "husky_windows.parquet"
+    )
+    with caplog.at_level(logging.WARNING):
+        splits = drive_splits(data, tmp_path / "out", "husky", "split.allow_flagged=true")
+    assert "source.cmd_kinematics.husky=[0.3, 1.08] disagrees with the file" in caplog.text
+    info = json.loads(next((tmp_path / "out").glob("*/extracted/husky_train_00/_extract.json")).read_text())
+    assert info["robot_checks"]["cmd_kinematics"]["value"] == [0.165, 0.55]
+    assert info["robot_checks"]["cmd_kinematics"]["configured"] == [0.3, 1.08]
+    t = split_table(splits)
+    moving = t["valid"].astype(bool) & (t["cmd_v"].abs() > 0.2) & (t["cmd_w"].abs() < 0.1)
+    ratio = float(np.median(t.loc[moving, "vx"] / t.loc[moving, "cmd_v"]))
+    assert 0.9 < ratio < 1.1, ratio

@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..cache import Stamp, stamp_file
 from ..cli import stage
+from ..cpu import code_paths
 from ..errors import ConfigError, GroundTruthError
 from ..geometry import se3_from_xyz_rpy
 from ..io import fingerprint_file, write_json_atomic, write_text_atomic
@@ -61,6 +62,7 @@ def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: S
 
         cv2.setNumThreads(threads)
     traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
+    report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/cpu.py)
     return seq.name, traj, report
 
 

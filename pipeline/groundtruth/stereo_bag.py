@@ -58,8 +58,35 @@ def read_stereo_camera(reader, bag_path: Path, vo: VOConfig) -> StereoCamera:
         raise GroundTruthError(f"{bag_path}: unusable camera_info ({one_line(exc)})") from exc
 
 
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+#: message types a ground-truth pose can come from (``groundtruth.method=pose_topic``)
+POSE_TYPES = (
+    "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/TransformStamped", "tf2_msgs/msg/TFMessage",
+)  # fmt: skip
+
+
+def _norm(msgtype: str) -> str:
+    """``sensor_msgs/Image`` (ROS1) -> ``sensor_msgs/msg/Image``."""
+    return msgtype if "/msg/" in msgtype else msgtype.replace("/", "/msg/", 1)
+
+
 def check_image_topics(reader, bag_path: Path, vo: VOConfig) -> None:
-    topics = {c.topic for c in reader.connections}
+    """GroundTruthError when VO's image topics are not in the bag: "no ground-truth source" with the
+    settings that would give one when the bag holds no camera image at all, else the topic to set."""
+    types = {c.topic: _norm(c.msgtype) for c in reader.connections}
+    topics = set(types)
+    if not any(t in IMAGE_TYPES for t in types.values()):
+        poses = [f"{k} [{t}]" for k, t in sorted(types.items()) if t in POSE_TYPES]
+        from_pose = f"; its pose topics: {', '.join(poses)}" if poses else "; it has no pose topic either"
+        raise GroundTruthError(
+            f"{bag_path}: this bag has no ground-truth source: no camera image for groundtruth.method=vo "
+            f"(it has no Image/CompressedImage topic){from_pose}. Give one: groundtruth.method=pose_topic "
+            "groundtruth.pose_topic.key=<the extracted table of an external pose: motion capture, a "
+            "localizer, lidar ICP; key=tf with .parent/.child for /tf>, or groundtruth.method=orbslam "
+            "groundtruth.orbslam.dir=<folder of ORB-SLAM trajectories>, or record a stereo pair "
+            "(source.topics.left_image.topic, right_image, left_info, right_info and robot.camera)"
+        )
     for key, topic in (("left_topic", vo.left_topic), ("right_topic", vo.right_topic)):
         if topic not in topics:
             raise GroundTruthError(

@@ -123,12 +123,15 @@ def run_stereo_vo(
     bag_path = Path(bag_path)
     vocfg = _vo_config(cfg, vo, extracted)
     camera_cfg = _get(cfg, "robot.camera")
-    if camera_cfg is None:
-        raise GroundTruthError(f"{bag_path}: robot.camera (the stereo extrinsic) is not configured")
-    T_b_c = camera_extrinsic(camera_cfg)
     try:
         with _open(bag_path, cfg) as reader:
-            check_image_topics(reader, bag_path, vocfg)
+            check_image_topics(reader, bag_path, vocfg)  # a bag without images: no ground-truth source
+            if camera_cfg is None:
+                raise GroundTruthError(
+                    f"{bag_path}: robot.camera (the stereo extrinsic) is not configured; set "
+                    "robot.camera.xyz and robot.camera.rpy (the left camera's pose in the base frame)"
+                )
+            T_b_c = camera_extrinsic(camera_cfg)
             camera = read_stereo_camera(reader, bag_path, vocfg)
             engine = StereoVO(camera, vocfg, T_b_c)
             traj = engine.run(iter_stereo_frames(reader, bag_path, vocfg), T_b_c)

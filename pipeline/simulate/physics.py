@@ -33,7 +33,9 @@ from typing import Any
 from ..errors import SimulateError
 from ..robot import Robot
 
-GRAVITY = 9.81  # m/s^2
+#: the simulated world's gravity (m/s^2): a property of this world, not the models' standard gravity
+#: (``pipeline/constants.py``); every simulated dataset was made with it
+WORLD_GRAVITY = 9.81
 
 
 def _from_mapping(cls, cfg: Mapping[str, Any], what: str):
@@ -135,7 +137,7 @@ class SkidSteerSim:
         self.wheel_side = (0, 0, 1, 1)
         front = (self.half_base + xc) / robot.wheelbase  # static front share of the weight
         left = (self.half_track + yc) / robot.track_width
-        w = self.mass * GRAVITY
+        w = self.mass * WORLD_GRAVITY
         self.static_load = [
             w * front * left,
             w * (1 - front) * left,

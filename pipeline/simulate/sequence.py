@@ -17,7 +17,7 @@ import numpy as np
 
 from ..robot import Robot
 from .bag import POSE_COV, TRUTH_COV, TWIST_COV, BagSink
-from .physics import GRAVITY, DriveParams, SkidSteerSim, TerrainParams, TyreParams
+from .physics import WORLD_GRAVITY, DriveParams, SkidSteerSim, TerrainParams, TyreParams
 from .scenarios import SequenceSpec, make_driver, sequence_rng
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000  # bag clock of the first sequence (a fixed date: same bytes)
@@ -190,7 +190,8 @@ def simulate_sequence(
                 accel = (
                     sim.ax + accel_bias[0] + sensor_rng.normal(0.0, accel_sigma),
                     sim.ay + accel_bias[1] + sensor_rng.normal(0.0, accel_sigma),
-                    GRAVITY + sensor_rng.normal(0.0, accel_sigma),  # specific force: the ground pushes up
+                    WORLD_GRAVITY
+                    + sensor_rng.normal(0.0, accel_sigma),  # specific force: the ground pushes up
                 )
                 sink.imu(t_ns, imu_yaw, gyro, accel, gyro_sigma**2, accel_sigma**2)
             count["imu"] += 1

@@ -5,14 +5,15 @@ the last ground-truth pose.
 
 Commands: zero-order hold of the last command, as the robot's controller applies it; a command older than
 ``cmd_timeout`` s is zero (the Jackal's controller stops after 0.25 s without a command). Body commands
-(``cmd_v``, ``cmd_w``) and wheel commands (``cmd_wl``, ``cmd_wr``, rad/s) are converted into each other
-with the robot's ideal kinematics (r, B). ``cmd_dwl``/``cmd_dwr``: central differences of the held wheel
-commands on the grid (a step command becomes a one-sample acceleration pulse, as the paper's commanded
-acceleration). When the robot config sets ``max_wheel_rate`` (rad/s), the wheel commands are clipped to
-+-max_wheel_rate, as the platform's motor controller does, and ``cmd_v``/``cmd_w`` are recomputed from
-the clipped wheel commands so the columns stay consistent: a wheel cannot be commanded faster than its
-motors turn, and a model given the unclipped rate would have to explain the shortfall as slip (DRIVE's
-Husky is commanded up to 9.2 rad/s and its encoders saturate at 5.9-6.1 rad/s = 1.0 m/s / r).
+(``cmd_v``, ``cmd_w``) and wheel commands (``cmd_wl``, ``cmd_wr``, rad/s) are converted into each other with
+the robot's ideal kinematics (r, B). ``cmd_dwl``/``cmd_dwr``: central differences of the held wheel commands
+on the grid (``np.gradient``: a step of the command becomes an acceleration pulse two samples long, each
+sample half the step over one sample period; the paper's commanded acceleration). When the robot config sets
+``max_wheel_rate`` (rad/s), the wheel commands are clipped to +-max_wheel_rate, as the platform's motor
+controller does, and ``cmd_v``/``cmd_w`` are recomputed from the clipped wheel commands so the columns stay
+consistent: a wheel cannot be commanded faster than its motors turn, and a model given the unclipped rate
+would have to explain the shortfall as slip (DRIVE's Husky is commanded up to 9.2 rad/s and its encoders
+saturate at 5.9-6.1 rad/s = 1.0 m/s / r).
 
 Encoders: linear interpolation of the measured wheel rates; null outside their coverage or where two
 samples are over ``max_gap`` apart.

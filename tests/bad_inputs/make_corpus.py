@@ -57,6 +57,69 @@ def _drive_raw(n_steps: int = 3, per_step: int = 20) -> pd.DataFrame:
     )  # fmt: skip
 
 
+HUSKY = (0.165, 0.55)  # the Husky's spec sheet (wheel radius, track width)
+STEPS = [(0.5, 0.0), (0.6, 0.05), (-0.4, 0.0), (0.3, 0.4), (0.7, -0.05), (0.5, 0.0)]
+
+
+def _drive_windows(cmd_kin=(0.3, 1.08), gain: float = 1.0, icp: str = "moves", wheels: bool = True):
+    """A small window-form frame (DRIVE's torch_ready blocks) of a Husky driving ``STEPS`` (v, w), three
+    2 s windows of 40 samples at 20 Hz each. Commands: the steps converted to wheel rates with ``cmd_kin``
+    (DRIVE's configured [r, B]); encoders: ``gain`` x the Husky's own wheel rates of the steps (settled at
+    once); ICP: the pose relative to each window start (``icp``: ``moves``, ``still`` (millimetre noise:
+    lifted off the ground) or ``constant`` (ICP did not run))."""
+    rng = np.random.default_rng(1)
+    rows = []
+    for i in range(3 * len(STEPS)):
+        v, w = STEPS[i // 3]
+        t = np.arange(40) / 20.0
+        yaw = w * t
+        x = np.where(abs(w) > 1e-9, v / (w if w else 1) * np.sin(yaw), v * t)
+        y = np.where(abs(w) > 1e-9, v / (w if w else 1) * (1 - np.cos(yaw)), 0.0)
+        if icp == "still":
+            x, y, yaw = (rng.normal(0, 1e-3, 40) for _ in range(3))
+        elif icp == "constant":
+            x, y, yaw = np.zeros(40), np.zeros(40), np.zeros(40)
+        row = {"calib_step": float(i // 3)}
+        for k in range(40):
+            row[f"cmd_left_{k}"] = (v - w * cmd_kin[1] / 2) / cmd_kin[0]
+            row[f"cmd_right_{k}"] = (v + w * cmd_kin[1] / 2) / cmd_kin[0]
+            row[f"left_wheel_vel_{k}"] = gain * (v - w * HUSKY[1] / 2) / HUSKY[0] if wheels else 0.0
+            row[f"right_wheel_vel_{k}"] = gain * (v + w * HUSKY[1] / 2) / HUSKY[0] if wheels else 0.0
+            row[f"icp_x_{k}"], row[f"icp_y_{k}"], row[f"icp_yaw_{k}"] = x[k], y[k], yaw[k]
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+class _RunsCode:
+    """Pickled as a call of ``os.system``: what an unpickler must never look up."""
+
+    def __reduce__(self):
+        import os
+
+        return (os.system, ("true",))
+
+
+def _drive(out: Path) -> None:
+    """DRIVE files of every new form and failure (the window cases from :func:`_drive_windows`)."""
+    import pickle
+
+    _drive_windows(cmd_kin=HUSKY, gain=0.956).to_parquet(out / "drive_deflated_windows.parquet")
+    _drive_windows(icp="still").to_parquet(out / "drive_lifted_windows.parquet")
+    _drive_windows(icp="constant").to_parquet(out / "drive_constant_icp_windows.parquet")
+    _drive_windows(wheels=False).to_parquet(out / "drive_zero_wheels_windows.parquet")
+    _drive_windows().to_pickle(out / "drive_torch_ready_dataframe.pkl")
+    raw = _drive_raw()
+    text = raw.astype(str).assign(ros_time=raw["ros_time"].astype(np.int64).astype(str), calib_state="calib")
+    head = pd.DataFrame({c: ["0.0"] for c in text.columns})  # DRIVE's logger: text, a zero first row
+    pd.concat([head, text], ignore_index=True).to_pickle(out / "drive_raw_dataframe.pkl")
+    raw.drop(columns=["cmd_vel_x", "cmd_vel_omega"]).to_parquet(out / "drive_no_commands_raw.parquet")
+    lifted = _drive_raw(n_steps=6)
+    lifted[["icp_pos_x", "icp_pos_y"]] = np.random.default_rng(2).normal(0, 1e-3, (len(lifted), 2))
+    lifted.to_parquet(out / "drive_lifted_raw.parquet")
+    (out / "drive_unsafe.pkl").write_bytes(pickle.dumps({"frame": raw, "x": _RunsCode()}))
+    (out / "drive_not_a_frame.pkl").write_bytes(pickle.dumps(raw["cmd_vel_x"].to_numpy()))
+
+
 def _bags(out: Path) -> None:
     from skidbench.pipeline.extract.synthetic import JACKAL_TOPICS, write_bag
 
@@ -72,6 +135,8 @@ def _bags(out: Path) -> None:
     write_bag(out / "bag_wrong_type.bag", "ros1", 0.5, wrong)
     missing = {k: v for k, v in JACKAL_TOPICS.items() if k != "/cmd_vel"}
     write_bag(out / "bag_missing_topic.bag", "ros1", 0.5, missing)
+    blind = {k: v for k, v in JACKAL_TOPICS.items() if "Image" not in v[0] and "Odometry" not in v[0]}
+    write_bag(out / "bag_no_ground_truth_source.bag", "ros1", 0.5, blind)  # no camera, no pose topic
     good.unlink()
 
 
@@ -154,6 +219,7 @@ def make(out: Path) -> dict[str, Path]:
     data = (out / "drive_ok_raw.parquet").read_bytes()
     (out / "drive_truncated_raw.parquet").write_bytes(data[: len(data) // 2])
     (out / "drive_ok_raw.parquet").unlink()
+    _drive(out)
     return {p.name: p for p in sorted(out.iterdir())}
 
 

@@ -1,0 +1,132 @@
+"""The test data of an evaluate: the dataset's terrains and split files (from its manifest), the test
+splits' sequences and the checks that make a benchmark meaningful (a split with rows, a horizon shorter than
+some sequence), each failure one :class:`EvaluationError` line, raised before any run is created."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from skidbench.pipeline.cache import Fingerprints
+from skidbench.pipeline.calibration import response_for
+from skidbench.pipeline.errors import SkidbenchError, one_line
+from skidbench.pipeline.io import fingerprint_obj
+from skidbench.pipeline.layout import Layout, split_terrains
+from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.protocol import sequences_without_encoders
+from skidbench.pipeline.robot import robot_from_hydra
+from skidbench.pipeline.schema import read_split
+
+from .horizon import EvaluationError, horizon_steps
+from .scoring import Inputs, TestSequence
+
+TRAIN = "train"
+
+
+def current_manifest(layout: Layout) -> Manifest:
+    """The dataset's current manifest: the one source of its terrains and sequences."""
+    if not layout.manifest.is_file():
+        raise EvaluationError(
+            f"{layout.splits}: no splits; run `skidbench split` first ({layout.manifest} is absent)"
+        )
+    try:
+        return Manifest.read(layout.manifest)
+    except SkidbenchError as exc:
+        raise EvaluationError(one_line(str(exc))) from None
+
+
+def split_files(
+    layout: Layout, terrain: str, split: str | None, manifest: Manifest | None = None
+) -> list[Path]:
+    """The split files of the manifest's ``terrain``/``split`` sequences; EvaluationError if one is
+    missing."""
+    return layout.require_split_files(manifest or current_manifest(layout), terrain, split, EvaluationError)
+
+
+def find_terrains(layout: Layout) -> list[str]:
+    """The manifest's terrains with train/cv/ld sequences, sorted."""
+    terrains = split_terrains(current_manifest(layout))
+    if not terrains:
+        raise EvaluationError(f"{layout.manifest}: no train/cv/ld sequences; nothing to evaluate")
+    return terrains
+
+
+def load_test_split(layout: Layout, terrain: str, split: str) -> list[TestSequence]:
+    """The sequences of one test split; EvaluationError when there are none or all are empty."""
+    where = layout.splits / terrain / split
+    files = split_files(layout, terrain, split)
+    if not files:
+        raise EvaluationError(
+            f"{where}: empty {split} split (no sequences) for terrain {terrain}; re-run `skidbench split`, "
+            f"or leave it out with splits=[...] / terrains=[...]"
+        )
+    seqs = []
+    for p in files:
+        try:
+            df, meta = read_split(p)
+        except SkidbenchError as exc:
+            raise EvaluationError(one_line(str(exc))) from None
+        seqs.append(TestSequence(str(meta.get("sequence") or p.stem), p, df, meta))
+    if all(len(s.table) == 0 for s in seqs):
+        raise EvaluationError(
+            f"{where}: empty {split} split (every sequence has 0 rows) for terrain {terrain}"
+        )
+    return seqs
+
+
+def check_horizons(terrain: str, split: str, seqs: Sequence[TestSequence], horizons: Sequence[float]) -> None:
+    """EvaluationError when a horizon is longer than every sequence of a split (no window at all)."""
+    for h in horizons:
+        if not h > 0:
+            raise EvaluationError(f"horizon {h} s is not positive; set horizons=[6.0]")
+        if not any(len(s.table) > horizon_steps(s.table["t"].to_numpy(), h) >= 1 for s in seqs):
+            longest = max(s.duration_s for s in seqs)
+            raise EvaluationError(
+                f"splits/{terrain}/{split}: horizon {h:g} s is longer than every sequence "
+                f"(longest {longest:.1f} s); lower horizons=[...]"
+            )
+
+
+def split_fingerprint(files: Sequence[Path], root: Path) -> str:
+    """Fingerprint of a set of split files: the content fingerprints recorded by the split stage in
+    the file metadata when present, else the files' own content hashes."""
+    fp = Fingerprints()
+    return fingerprint_obj({str(Path(p).relative_to(root)): fp(p) for p in sorted(files)})
+
+
+def protocol_unavailable(
+    cfg: Any, layout: Layout, protocol: str, terrain: str, train_files: Sequence[Path],
+    tests: dict[str, list[TestSequence]], inputs_of: dict[str, Inputs],
+) -> list[str]:  # fmt: skip
+    """Checks the protocol can drive the models on ``terrain``: sets ``inputs_of[terrain]``, drops from
+    ``tests`` the test splits it cannot drive (``measured`` on a split without encoders) and returns one
+    line per (terrain, split) skipped (the whole terrain: no response identified, no Train encoders)."""
+    where = f"{layout.splits / terrain}"
+    response = None
+    if protocol == "response":
+        response = response_for(cfg, terrain)
+        if response is None:
+            return [f"inputs=response: {where}: no wheel response identified (no wheel encoders in its Train "
+                    "split, see `skidbench calibrate`); terrain skipped under this protocol"]  # fmt: skip
+    if protocol == "measured":
+        for p in train_files:
+            df, _ = read_split(p)
+            if sequences_without_encoders(df):
+                return [
+                    f"inputs=measured: {p}: no wheel encoders; terrain {terrain} skipped under this protocol"
+                ]
+        lines = []
+        for split in list(tests):
+            lacking = [s.name for s in tests[split] if len(s.table) and sequences_without_encoders(s.table)]
+            if lacking:
+                lines.append(f"inputs=measured: {where}/{split}: no wheel encoders in {lacking[0]}"
+                             f"{f' (and {len(lacking) - 1} more)' if len(lacking) > 1 else ''}; "
+                             "split skipped under this protocol")  # fmt: skip
+                del tests[split]
+        if not tests:
+            return lines
+        inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), None)
+        return lines
+    inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), response)
+    return []
