@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ast
 import datetime as dt
+import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -168,8 +169,6 @@ def write_board(board: Board, folder: Path, extra: dict[str, Any] | None = None)
 
 def read_board(path: Path) -> Board:
     """A board written by :func:`write_board` (its ``.json``)."""
-    import json
-
     doc = json.loads(Path(path).read_text())
     rows = pd.DataFrame(doc.get("rows") or [])
     return Board(str(doc["protocol"]), str(doc.get("parent_run_id") or ""), float(doc.get("horizon_s", 6.0)),

@@ -14,6 +14,7 @@ predicts nothing. A figure whose data is absent is skipped, with a note in the r
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 from collections.abc import Sequence
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from skidbench.models.fitting import board_findings
 from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_text_atomic
@@ -467,8 +469,6 @@ class CompareResult:
 
 def _with_inputs(cfg: Any, protocol: str) -> Any:
     """``cfg`` with ``inputs`` set to the protocol of the runs shown (the files evaluate wrote for them)."""
-    import copy
-
     from omegaconf import OmegaConf, open_dict
 
     if not OmegaConf.is_config(cfg) or protocol not in PROTOCOLS or cfg.get("inputs") == protocol:
@@ -642,10 +642,6 @@ def run_compare(cfg: Any) -> CompareResult:
 def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
     """The findings of the board's fits (a parameter at its bound: ``roc degenerates to edd on this data:
     b2 at its bound``), for the console notes and the report's Notes (models/fitting.py formats them)."""
-    try:
-        from skidbench.models.fitting import board_findings
-    except ImportError:  # pragma: no cover - the models package is part of the install
-        return []
     done = board[board["status"] == "FINISHED"] if "status" in board else board
     rows = list(zip(done["model"].astype(str), done["terrain"].astype(str), strict=True))
     return board_findings(layout, rows, inputs)

@@ -33,7 +33,7 @@ from skidbench.models.effect_fit import DiscoverError, DiscoverSettings
 from skidbench.models.effects import CATALOGUE, EFFECT_IDS
 from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
-from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import protocol_of
 from skidbench.pipeline.robot import robot_from_hydra
@@ -161,7 +161,6 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from skidbench.models.base import calibrated_constants
     from skidbench.models.specs import get_model_class
     from skidbench.pipeline.calibration import robot_for_model
-    from skidbench.pipeline.layout import layout_from_cfg
 
     own_splits = root.resolve() == layout_from_cfg(cfg).splits.resolve()
     for terrain in _terrains(root, cfg, settings.splits, dataset):

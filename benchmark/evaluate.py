@@ -27,7 +27,7 @@ from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import ProtocolError, protocol_of
-from skidbench.pipeline.schema import read_split
+from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import metrics as mt
 from . import mlflow_ui as mu
@@ -532,8 +532,6 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
 
 def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
     """The Train split and the test splits of one terrain as MLflow dataset inputs."""
-    from skidbench.pipeline.schema import concat_sequences
-
     out = []
     for split in [TRAIN, *tests]:
         fs = [p for p in files if p.parent.name == split]

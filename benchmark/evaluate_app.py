@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import logging
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from skidbench.pipeline.cli import stage
 
@@ -62,8 +63,6 @@ def run(cfg: DictConfig):
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
     each model's version and config."""
-    from omegaconf import OmegaConf
-
     from skidbench.models.fitting import model_config
     from skidbench.models.registry import discover
     from skidbench.models.saved import arrays_file
@@ -99,8 +98,6 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
 def _cached_result(cfg: DictConfig, layout, stamp):
     """The last result when its parent run still exists in the configured MLflow store, else None."""
-    import json
-
     from . import tracking as trk
     from .evaluate import BenchmarkResult, ChildResult
 

@@ -27,6 +27,7 @@ import hashlib
 import logging
 import re
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -203,8 +204,6 @@ def align(
 # -- the settings every row of the board is scored with -----------------------------------------------
 def evaluate_defaults() -> dict[str, Any]:
     """``splits``, ``horizons``, ``min_distance_m``, ``min_rotation_deg`` of the packaged evaluate.yaml."""
-    from importlib.resources import files
-
     from omegaconf import OmegaConf
 
     conf = OmegaConf.create((files("skidbench.conf") / "evaluate.yaml").read_text())

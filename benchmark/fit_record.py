@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from skidbench.models import fitting
 from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.wheel_response import WheelResponse
 
 from . import tracking as trk
-from .horizon import EvaluationError
 from .scoring import TestSequence
 
 log = logging.getLogger(__name__)
@@ -57,11 +57,7 @@ def model_code(model_name: str, model: Any) -> provenance.CodeIdentity:
 
 
 def default_fit_fn() -> Callable[[Any, str, str], Any]:
-    try:
-        from skidbench.models.fitting import fit_model
-    except ImportError as exc:
-        raise EvaluationError(f"model fitting is not available ({exc})") from None
-    return fit_model
+    return fitting.fit_model
 
 
 def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str, Any]:
@@ -86,16 +82,12 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
         described.update({f"wheel_response.{k}": v for k, v in response.__dict__.items()})
     described.update(trk.flatten(getattr(model, "params", None) or {}, "fitted."))  # the fitted values
     for f in (fit_json(fit).get("fit_info") or {}).get("at_bound") or []:  # a fit at a bound: a finding
-        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f['bound']:g}: {f['finding']}"
+        described[f"at_bound.{f['param']}"] = f"{f['side']} bound {f.get('bound', 'inf')}: {f['finding']}"
     return described
 
 
 def model_config(cfg, model_name: str) -> dict[str, Any] | None:
-    try:
-        from skidbench.models.fitting import model_config
-    except ImportError:  # pragma: no cover
-        return None
-    return model_config(cfg, model_name)
+    return fitting.model_config(cfg, model_name)
 
 
 def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path, seq: TestSequence) -> None:

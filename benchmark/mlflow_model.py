@@ -24,12 +24,8 @@ from mlflow.pyfunc import PythonModel
 from mlflow.types import ColSpec, Schema
 
 from skidbench.models.specs import get_model_class
+from skidbench.pipeline.protocol import INPUT_COLUMNS  # what a model sees at predict time
 from skidbench.pipeline.robot import Robot
-
-try:  # the input protocol's columns (decision of the team: what a model sees at predict time)
-    from skidbench.pipeline.protocol import INPUT_COLUMNS
-except ImportError:  # a tree without the protocol module: the same columns
-    INPUT_COLUMNS = ("t", "sequence", "cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
 
 OUTPUT_COLUMNS = ("vx", "vy", "wz")
 ARRAYS_ARTIFACT = "fitted_arrays"  # a learned model's .npz (models/saved.py save_arrays), when it has one

@@ -20,6 +20,7 @@ import datetime as dt
 import html
 import json
 import re
+import tempfile
 from dataclasses import dataclass, field
 from importlib.resources import files
 from pathlib import Path
@@ -36,6 +37,8 @@ from skidbench.pipeline.layout import Layout
 
 from . import boards as brd
 from . import compare as cmp
+from . import figures as figs
+from . import metrics as mt
 from . import tracking as trk
 
 PROTOCOL_TITLES = {
@@ -230,9 +233,6 @@ def _figure(path: Path, caption: str) -> str:
 
 
 def _protocol_figures(board: brd.Board, tmp: Path, dpi: int) -> list[str]:
-    from . import figures as figs
-    from . import metrics as mt
-
     out = []
     ok = board.rows
     for m in (m for m in mt.METRICS if m.figure is not None):  # Figs. 3, 4 and every metric with a figure
@@ -396,8 +396,6 @@ def write_index(site: Path) -> Path:
 def publish(cfg: Any, layout: Layout, rec: dict[str, Any], tracker: trk.Tracker, site: Path) -> PublishResult:
     """Writes ``<site>/<dataset>/index.html`` (and the board CSVs, ``site.json``) and
     ``<site>/index.html``."""
-    import tempfile
-
     boards = brd.all_boards(tracker)
     if not boards:
         raise PublishError(

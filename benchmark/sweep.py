@@ -10,6 +10,7 @@ to create it and a retried job is logged once.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
@@ -34,8 +35,6 @@ class CreateExperiment(Callback):
 
 def sweep_id() -> str:
     """The current Hydra sweep's id (its output folder's name), or the run folder's name for a single run."""
-    from pathlib import Path
-
     from hydra.core.hydra_config import HydraConfig
 
     try:

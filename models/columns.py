@@ -98,7 +98,8 @@ def bounds_reached(
 ) -> list[dict]:
     """The fitted parameters that ended at a bound of their box, for ``fit_info_["at_bound"]`` (the fit
     JSON; ``compare`` and the MLflow run report it: a fit at a bound is a finding, not a number to hide):
-    ``[{"param", "value", "bound", "side", "finding"}]``. A parameter is at its bound when the optimizer
+    ``[{"param", "value", "bound", "side", "finding"}]`` (``bound`` null for one that runs off to
+    infinity, which a model reports itself). A parameter is at its bound when the optimizer
     says so (``active_mask``, as ``scipy.optimize.least_squares`` returns it) or it is within ``atol`` of
     it (one value, or one per parameter: how close makes no difference to the model's output on the
     data). ``meanings``: parameter -> what the model becomes there (``"roc degenerates to edd on this data:

@@ -30,7 +30,7 @@ from skidbench.pipeline.calibration import CONSTANTS, load_calibration, response
 from skidbench.pipeline.io import write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
-from skidbench.pipeline.protocol import INPUT_COLUMNS, fit_table, protocol_of
+from skidbench.pipeline.protocol import INPUT_COLUMNS, ProtocolError, fit_table, protocol_of
 from skidbench.pipeline.provenance import CodeIdentity, code_identity
 from skidbench.pipeline.robot import Robot, robot_from_hydra
 from skidbench.pipeline.schema import concat_sequences, read_split
@@ -243,8 +243,6 @@ def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse |
     protocol ``cfg.inputs``; the spec sheet's robot (the split's own commanded ``cmd_v``/``cmd_w`` come
     from it); the response ``calibrate`` identified (``response`` protocol only; ProtocolError when
     there is none)."""
-    from skidbench.pipeline.protocol import ProtocolError
-
     inputs = protocol_of(cfg)
     response = None
     if inputs == "response":
@@ -441,7 +439,8 @@ def fit_findings(data: dict[str, Any]) -> list[str]:
     (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
     out = []
     for f in (data.get("fit_info") or {}).get("at_bound") or []:
-        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {f['bound']:g})")
+        bound = "inf" if f.get("bound") is None else f"{f['bound']:g}"
+        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {bound})")
     return out
 
 

@@ -67,6 +67,13 @@ class RocBased(KinematicModel):
         )
         tol = [1e-4, 1e-4 / max(float(sqrt_r.max()), 1.0)]
         at = bounds_reached(["b1", "b2"], res.x, [0.0, 0.0], [np.inf, np.inf], AT_BOUND, res.active_mask, tol)
+        b1, b2 = (float(v) for v in res.x)
+        positive = sqrt_r[sqrt_r > 0]
+        if positive.size and b2 * float(positive.min()) > 1e4:  # the upper "bound": both run off together
+            why = (
+                f"roc's b1 and b2 grow without bound together on this data: chi = 1 + {b1 / b2:.3g} / sqrt|R|"
+            )
+            at.append({"param": "b2", "value": b2, "bound": None, "side": "upper", "finding": why})
         self.fit_info_ = {"at_bound": at} if at else {}
         return self
 

@@ -8,11 +8,13 @@ model on the table must recover its parameters.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
 from skidbench.pipeline.geometry import integrate_body_velocity
-from skidbench.pipeline.schema import SPLIT_COLUMNS
+from skidbench.pipeline.schema import SPLIT_COLUMNS, write_split
 
 
 def command_table(
@@ -84,10 +86,7 @@ def write_train_splits(
     """Write ``<root>/<dataset>/splits/<terrain>/train/<terrain>_train_0{0,1}.parquet`` (two sequences per
     terrain, labelled by an extended differential drive with ``chi``) and the manifest that lists them
     (``<root>/<dataset>/raw/manifest.json``: stages read their sequences from it). Returns ``root``."""
-    from pathlib import Path
-
     from skidbench.pipeline.manifest import Manifest, Sequence
-    from skidbench.pipeline.schema import write_split
 
     from .linear import ExtendedDifferentialDrive
 

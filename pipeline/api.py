@@ -7,6 +7,7 @@ section (``groundtruth``, ``split``, ``extract``) gets the defaults of that stag
 
 from __future__ import annotations
 
+import importlib.resources
 import logging
 from pathlib import Path
 
@@ -23,7 +24,6 @@ def _with_stage(cfg: DictConfig, stage: str) -> DictConfig:
     """``cfg`` plus the stage's own section from ``conf/<stage>.yaml`` when ``cfg`` lacks it."""
     if stage in cfg:
         return cfg
-    import importlib.resources
 
     text = (importlib.resources.files("skidbench.conf") / f"{stage}.yaml").read_text()
     section = OmegaConf.create(text).get(stage)

@@ -21,6 +21,7 @@ reused while its (size, mtime_ns, inode) is unchanged (memo kept in the stamp).
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import logging
 import os
@@ -237,8 +238,6 @@ def failed_marker(dataset_root: str | os.PathLike, stage: str) -> Path:
 
 def mark_failed(dataset_root: str | os.PathLike, stage: str, message: str) -> None:
     """Record that ``stage`` failed on this dataset (its outputs may be partial or stale)."""
-    import datetime as dt
-
     doc = {"stage": stage, "error": message, "time": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
     try:
         write_json_atomic(failed_marker(dataset_root, stage), doc)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
+import shutil
 from typing import Any
 
 import hydra
@@ -22,6 +23,7 @@ from skidbench.models.registry import calibration_usage
 from .cache import Fingerprints, stamp_file
 from .calibration import (
     CONSTANTS,
+    CalibrationError,
     calibrate_terrain,
     settings_from_cfg,
     train_files,
@@ -92,14 +94,10 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     s = settings_from_cfg(cfg)
     terrains = sorted({p.parents[1].name for p in train_files(layout)})
     if not terrains:
-        from .calibration import CalibrationError
-
         raise CalibrationError(
             f"{layout.splits}: no Train split files to calibrate from; run `skidbench split`"
         )
     if bool(cfg.get("force", False)):
-        import shutil
-
         shutil.rmtree(stamp_file(layout.root, "calibrate"), ignore_errors=True)
     usage = calibration_usage()  # the models say how they take the constants; the calibration knows none
     docs, recomputed = {}, []

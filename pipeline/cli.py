@@ -10,11 +10,14 @@ from __future__ import annotations
 import errno
 import functools
 import importlib
+import json
 import logging
 import os
+import re
 import sys
 import tempfile
 from collections.abc import Callable
+from importlib.resources import files
 from pathlib import Path
 
 from .cache import (
@@ -26,10 +29,10 @@ from .cache import (
     inputs_changed,
     mark_failed,
 )
-from .config_schema import validate
+from .config_schema import check_value, validate
 from .errors import ConfigError, SkidbenchError, one_line
 from .imported import check_stage
-from .layout import register_resolvers
+from .layout import default_out_root, register_resolvers, remove_atomic
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -136,8 +139,6 @@ def _after_failure(root: Path | None, name: str, message: str, before: dict | No
     from .dataset import holds_data
 
     if not holds_data(root):
-        from .layout import remove_atomic
-
         remove_atomic(root)
         return
     if before is not None and data_state(root) == before and inputs_changed(root, name) is None:
@@ -198,7 +199,6 @@ def _preflight(name: str, args: list[str]) -> list[str]:
     with a note (so one ``ARGS`` serves every stage), every value checked against the declared schema
     (:mod:`skidbench.pipeline.config_schema`) and the output root checked writable. Returns the
     arguments to hand to Hydra; a problem is one line on stderr, exit 2."""
-    from .config_schema import check_value
     from .overrides import check_overrides, parse_value
 
     try:
@@ -263,8 +263,6 @@ def _positional_usage(name: str, keys, flags) -> str:
 
 def _quoted(value: str) -> str:
     """A value as a Hydra override reads it back unchanged (quoted when it holds grammar characters)."""
-    import re
-
     if re.fullmatch(r"[A-Za-z0-9_./:+@~-]+", value):
         return value
     return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
@@ -272,10 +270,6 @@ def _quoted(value: str) -> str:
 
 def _dataset_robot(overrides: list[str], dataset: str) -> str | None:
     """The robot of ``<out_root>/<dataset>/raw/manifest.json`` when it has a packaged config, else None."""
-    import json
-    from importlib.resources import files
-
-    from .layout import default_out_root
 
     root = next((o.split("=", 1)[1].strip("'") for o in overrides if o.startswith("out_root=")), None)
     manifest = Path(root or default_out_root()).expanduser() / dataset / "raw" / "manifest.json"

@@ -24,6 +24,8 @@ but carry the old fingerprint in ``skidbench.dataset_id``, so compare never mixe
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
+import importlib
 import json
 import logging
 from dataclasses import asdict, dataclass
@@ -134,8 +136,6 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
 
 def _check_source_settings(cfg: Any) -> None:
     """``skidbench.pipeline.sources.<kind>.check_settings(cfg.source)`` when the source's reader has one."""
-    import importlib
-
     kind = str(cfg.source.get("kind", "bag") or "bag")
     try:
         module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
@@ -185,8 +185,6 @@ def list_datasets(out_root: Path) -> list[dict[str, Any]]:
     """One row per dataset folder under ``out_root`` (a folder with ``dataset.json`` or a manifest, and at
     least one extracted table):
     name, source, root, terrains, fingerprint, last evaluate (UTC time and parent run id)."""
-    import datetime as dt
-
     rows = []
     root = Path(out_root)
     if not root.is_dir():

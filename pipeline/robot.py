@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
+from importlib.resources import files
 from typing import Any
 
 import numpy as np
@@ -112,8 +113,6 @@ def robot_from_hydra(cfg: Any) -> Robot:
 
 def load_robot(name: str = "jackal") -> Robot:
     """The robot of the packaged config ``conf/robot/<name>.yaml`` (jackal, husky, warthog)."""
-    from importlib.resources import files
-
     from omegaconf import OmegaConf
 
     path = files("skidbench.conf") / "robot" / f"{name}.yaml"

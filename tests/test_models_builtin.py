@@ -116,6 +116,10 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     assert found["finding"] == "roc degenerates to edd on this data: b2 at its bound"
     truth = RocBased(jackal, {"b1": 0.8, "b2": 2.5})
     assert RocBased(jackal).fit(label_with(table, truth.predict(table))).fit_info_ == {}
+    # chi = 1 + 5 / sqrt|R| (b1, b2 -> infinity, b1/b2 = 5: the warthog_grass2_raw case): said too
+    runaway = RocBased(jackal, {"b1": 5e7, "b2": 1e7})
+    (off,) = RocBased(jackal).fit(label_with(table, runaway.predict(table))).fit_info_["at_bound"]
+    assert off["side"] == "upper" and off["bound"] is None and "chi = 1 + 5 / sqrt|R|" in off["finding"]
     layout = Layout(tmp_path, "ds")
     path = layout.fit_file("roc", "grass")
     path.parent.mkdir(parents=True)

@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import ExtractError, SkidbenchError, one_line
 from ..layout import register_resolvers
 from .convert import normalize_msgtype, schema_for
-from .reader import _BAG_ERRORS, DEFAULT_STORES, _bag_error, bag_format, find_bags, open_bag
+from .reader import _BAG_ERRORS, DEFAULT_STORES, TopicSpec, _bag_error, bag_format, find_bags, open_bag
 
 log = logging.getLogger("skidbench.extract")
 
@@ -254,8 +254,6 @@ def auto_specs(bag: Path, stores: Mapping[str, str]) -> list:
     """``source.topics=auto``: the specs of the proposed mapping for ``bag`` (connections only; no
     message is read). Logs the choice; ExtractError (one line) when a required role is absent or
     ambiguous."""
-    from .reader import TopicSpec
-
     with open_bag(bag, stores) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
     proposal = propose(topics)

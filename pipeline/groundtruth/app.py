@@ -193,16 +193,12 @@ def stage_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _write_if_changed(path: Path, obj: Any) -> None:
-    import json
-
     text = json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n"
     if not path.is_file() or path.read_text() != text:
         write_text_atomic(path, text)
 
 
 def _extract_notes(ext: Path) -> str:
-    import json
-
     info = ext / "_extract.json"
     if info.is_file():
         return "; ".join(json.loads(info.read_text()).get("notes", []))

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import SourceError
 from ..manifest import Manifest, Sequence
-from .common import TWIST_COLUMNS, stamped, write_sequence
+from .common import TWIST_COLUMNS, record_stamp, source_stamp, stamped, write_sequence
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +118,6 @@ def extract_source(cfg, layout) -> list[dict]:
     """Extract every AMRL sequence under ``source.root`` into ``<ds>/extracted`` and write the manifest."""
     root = Path(str(cfg.source.root)).expanduser().absolute()
     found = discover(root)
-    from .common import record_stamp, source_stamp
 
     records = []
     skipped = 0

@@ -8,6 +8,7 @@ atomic rename; ``_extract.json`` is written last, so a folder without it is inco
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -64,8 +65,6 @@ def category_by_rank(keys: list, fractions: tuple[float, float, float]) -> dict:
 def source_stamp(layout, unit: str, inputs: list[Path], config: Any) -> tuple[Stamp, str, list[dict] | None]:
     """The stamp of one raw-source unit (a file or a sequence): ``(stamp, key, records)`` where
     ``records`` (the ``_extract.json`` records) is not None when the unit is up to date."""
-    import json
-
     stamp = Stamp(stamp_file(layout.root, "extract", f"{unit}.json"), "extract")
     key = stamp.key(inputs, config)
     if stamp.is_fresh(key):

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -181,8 +182,6 @@ def _speed_gain(path: Path, robot, ml, mr, v, limit, out: dict) -> None:
 # -- the command kinematics ---------------------------------------------------------------------------
 def spec_sheets() -> dict[str, tuple[float, float]]:
     """Every packaged robot's spec-sheet (wheel radius, track width), by name."""
-    from importlib.resources import files
-
     from ..robot import load_robot
 
     names = sorted(

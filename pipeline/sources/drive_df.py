@@ -86,7 +86,7 @@ import pandas as pd
 from ..errors import ConfigError, SourceError
 from ..geometry import yaw_from_quaternion
 from ..manifest import Manifest, Sequence
-from .common import TWIST_COLUMNS, category_by_rank, stamped, write_sequence
+from .common import TWIST_COLUMNS, category_by_rank, record_stamp, source_stamp, stamped, write_sequence
 from .drive_checks import Recording, check_recording, robot_checks
 from .drive_files import (  # noqa: F401 - re-exported: the reader's public names
     RAW_COLUMNS,
@@ -367,7 +367,6 @@ def extract_source(cfg, layout) -> list[dict]:
 
     from ..io import write_json_atomic
     from ..robot import robot_from_hydra
-    from .common import record_stamp, source_stamp
 
     src = cfg.source
     root = Path(str(src.root)).expanduser().absolute()

@@ -27,7 +27,7 @@ from ..cli import stage
 from ..errors import SplitError
 from ..groundtruth.consistency import GateConfig, consistency, describe
 from ..groundtruth.trajectory import read_tum
-from ..io import fingerprint_file, write_text_atomic
+from ..io import fingerprint_file, read_parquet_metadata, write_text_atomic
 from ..layout import Layout, layout_from_cfg, prune_stale
 from ..manifest import SPLITS, Manifest, Sequence
 from ..robot import Robot, robot_from_hydra
@@ -229,8 +229,6 @@ def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
 
 def gate_section(files: list[Path]) -> str:
     """Markdown: each split file's ground-truth consistency numbers (its metadata's ``consistency``)."""
-    from ..io import read_parquet_metadata
-
     rows = []
     for p in files:
         rep = read_parquet_metadata(p).get("consistency")
