@@ -1,14 +1,21 @@
-"""A dataset's board under one input protocol, every row with its provenance: what ``skidbench export``
-puts in a bundle (``board/<protocol>.csv|json``) and ``skidbench publish`` shows.
+"""A dataset's board under one input protocol, every row with its provenance: compare's leaderboard files
+(``reports/leaderboard-<protocol>[-<UTC stamp>].csv|.md``), what ``skidbench export`` puts in a bundle
+(``board/<protocol>.csv|json``) and what ``skidbench publish`` shows.
 
-The rows are compare's (:func:`skidbench.benchmark.compare.select_runs` and ``board_from_runs``: the
-child runs of the latest evaluate under the protocol, external rows of ``skidbench score`` included, the
-newest run per (model, terrain)), so a board here and compare's leaderboard files hold the same numbers.
-Each row adds where it comes from: its run and parent run, the skidbench commit, the dataset's identity
-and the fingerprint of the split files it was scored on, whether it is an external row (and its
-predictions file's sha256), its start time and the command that reproduces it (from the run's
-description). The settings every row was scored with (horizons, test splits, the metric's minimum
-distance and rotation) are the parent evaluate's parameters.
+The rows are compare's (:func:`skidbench.benchmark.selection.latest_complete`: the newest complete run of
+each (model, terrain) under the protocol, across evaluates, external rows of ``skidbench score``
+included), so a board here and compare's leaderboard files hold the same numbers. Each row adds where it
+comes from: its run and parent run, the digest of the options it was made with (the model's config, the
+protocol, the scoring and calibration settings: tag ``skidbench.options_digest``), the model's version
+and code, skidbench's version and commit, the libraries' versions, the dataset's identity and the
+fingerprint of the split files it was scored on, whether it is an external row (and its predictions
+file's sha256), its start time and the command that reproduces it (from the run's description). The
+settings every row was scored with (horizons, test splits, the metric's minimum distance and rotation) are
+those of the newest evaluate the rows come from.
+
+Leaderboard files are never overwritten silently: each compare writes ``leaderboard-<protocol>-<UTC
+stamp>.csv|.md`` (unless the rows are those of the latest file: then it says so) and a ``latest`` copy,
+``leaderboard-<protocol>.csv|.md``, beside them.
 """
 
 from __future__ import annotations
@@ -29,17 +36,29 @@ from skidbench.pipeline.protocol import PROTOCOLS
 
 from . import tracking as trk
 
-#: the columns a board adds to compare's, in this order
+#: the columns a board adds to compare's, in this order (then ``env.<library>`` columns: the versions)
 PROVENANCE_COLUMNS = (
     "parent_run_id",
+    "start_time_utc",
+    "options_digest",
+    "model_version",
+    "package",
+    "code_version",
+    "code_digest",
+    "skidbench_version",
     "git_commit",
     "dataset_id",
     "splits_fingerprint",
     "external",
     "predictions_sha256",
-    "start_time_utc",
     "reproduce",
 )
+TAG_OPTIONS = "skidbench.options_digest"  # the options a child run was made with (evaluate's _start_child)
+TAG_SKIDBENCH_VERSION = "skidbench.version"
+TAG_CODE = "skidbench.code."  # + version, digest, ...: the model's code (its distribution and files)
+TAG_ENV = "skidbench.env."  # + library: the versions and platform a run was made with
+#: the versions a leaderboard row always has a column for (empty when its run did not record them)
+ENV_COLUMNS = ("python", "numpy", "scipy", "numba", "pandas", "pyarrow", "mlflow")
 #: the parent evaluate's parameters every row of its board was scored with (and their defaults)
 SETTING_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "models")
 
@@ -86,27 +105,54 @@ def _col(runs: pd.DataFrame, name: str) -> pd.Series:
     return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
 
 
+def _tags(runs: pd.DataFrame, prefix: str) -> list[str]:
+    """The names after ``prefix`` of the tags some run has (``tags.<prefix><name>`` columns)."""
+    head = f"tags.{prefix}"
+    return [c[len(head) :] for c in runs.columns if c.startswith(head)]
+
+
 def provenance(runs: pd.DataFrame) -> pd.DataFrame:
-    """Per run (``run_id`` then :data:`PROVENANCE_COLUMNS`) from the runs' tags (a search_runs frame)."""
+    """Per run (``run_id``, :data:`PROVENANCE_COLUMNS`, then ``env.<name>`` for :data:`ENV_COLUMNS` and
+    every other environment tag a run has) from the runs' tags (a search_runs frame)."""
     start = pd.to_datetime(runs["start_time"], utc=True, errors="coerce")
-    return pd.DataFrame(
+    tag = lambda name: _col(runs, f"tags.{name}").fillna("").astype(str)  # noqa: E731
+    out = pd.DataFrame(
         {
             "run_id": runs["run_id"],
-            "parent_run_id": _col(runs, f"tags.{trk.TAG_PARENT}").fillna(""),
-            "git_commit": _col(runs, f"tags.{trk.TAG_GIT}").fillna(""),
-            "dataset_id": _col(runs, f"tags.{trk.TAG_DATASET_ID}").fillna(""),
-            "splits_fingerprint": _col(runs, f"tags.{trk.TAG_FINGERPRINT}").fillna(""),
-            "external": _col(runs, f"tags.{trk.TAG_EXTERNAL}").fillna("false").eq("true"),
-            "predictions_sha256": _col(runs, f"tags.{trk.TAG_PREDICTIONS_SHA256}").fillna(""),
+            "parent_run_id": tag(trk.TAG_PARENT),
             "start_time_utc": start.dt.strftime("%Y-%m-%d %H:%M:%S").fillna(""),
+            "options_digest": tag(TAG_OPTIONS),
+            "model_version": tag(trk.TAG_MODEL_VERSION),
+            "package": tag(trk.TAG_PLUGIN),
+            "code_version": tag(TAG_CODE + "version"),
+            "code_digest": tag(TAG_CODE + "digest"),
+            "skidbench_version": tag(TAG_SKIDBENCH_VERSION),
+            "git_commit": tag(trk.TAG_GIT),
+            "dataset_id": tag(trk.TAG_DATASET_ID),
+            "splits_fingerprint": tag(trk.TAG_FINGERPRINT),
+            "external": _col(runs, f"tags.{trk.TAG_EXTERNAL}").fillna("false").eq("true"),
+            "predictions_sha256": tag(trk.TAG_PREDICTIONS_SHA256),
             "reproduce": _col(runs, f"tags.{trk.TAG_NOTE}").map(_reproduce),
         }
     )
+    for name in dict.fromkeys([*ENV_COLUMNS, *_tags(runs, TAG_ENV)]):
+        out[f"env.{name}"] = tag(TAG_ENV + name)
+    return out
+
+
+def with_provenance(board: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
+    """compare's board rows (``board_from_runs``) and the provenance of each row's run."""
+    prov = provenance(runs)
+    prov = prov.drop(columns=[c for c in prov.columns if c in board.columns and c != "run_id"])
+    rows = board.merge(prov, on="run_id", how="left")
+    rows["start_time"] = rows["start_time"].astype(str)
+    return rows.reset_index(drop=True)
 
 
 def protocol_board(tracker: trk.Tracker, protocol: str, filter_string: str | None = None) -> Board | None:
-    """The board of the latest evaluate under ``protocol`` (None when there is none), with provenance."""
-    from .compare import board_from_runs, select_runs
+    """The board of ``protocol`` (None when it has no evaluate), with provenance: the newest complete
+    run of each (model, terrain) at the first horizon of the protocol's latest evaluate."""
+    from .selection import NoRuns, board_from_runs, latest_complete
 
     parent = tracker.latest_parent(protocol)
     if parent is None:
@@ -114,13 +160,15 @@ def protocol_board(tracker: trk.Tracker, protocol: str, filter_string: str | Non
     settings = parent_settings(tracker, parent)
     horizons = settings.get("horizons") or [6.0]
     horizon = float(horizons[0] if isinstance(horizons, list | tuple) else horizons)
-    runs, _ = select_runs(tracker, parent, filter_string, protocol)
-    board = board_from_runs(runs, horizon)
-    prov = provenance(runs)
-    prov = prov.drop(columns=[c for c in prov.columns if c in board.columns and c != "run_id"])
-    rows = board.merge(prov, on="run_id", how="left")
-    rows["start_time"] = rows["start_time"].astype(str)
-    return Board(protocol, parent, horizon, settings, rows.reset_index(drop=True))
+    try:
+        sel = latest_complete(tracker, protocol, horizon, filter_string)
+    except NoRuns:
+        return None
+    board = board_from_runs(sel.runs, horizon)
+    newest = sel.parents[0] if sel.parents else parent
+    if newest != parent:
+        settings = parent_settings(tracker, newest)
+    return Board(protocol, newest, horizon, settings, with_provenance(board, sel.runs))
 
 
 def all_boards(tracker: trk.Tracker, filter_string: str | None = None) -> dict[str, Board]:
@@ -131,6 +179,41 @@ def all_boards(tracker: trk.Tracker, filter_string: str | None = None) -> dict[s
         if b is not None:
             out[p] = b
     return out
+
+
+# -- compare's leaderboard files ----------------------------------------------------------------------
+def utc_stamp(when: dt.datetime | None = None) -> str:
+    """``20261125T101500Z``: a file name's UTC time stamp."""
+    return (when or dt.datetime.now(dt.UTC)).strftime("%Y%m%dT%H%M%SZ")
+
+
+def leaderboard_paths(folder: Path, protocol: str, stamp: str | None = None) -> tuple[Path, Path]:
+    """``(<folder>/leaderboard-<protocol>[-<stamp>].csv, .md)``; no stamp: the latest copy."""
+    stem = f"leaderboard-{protocol}" + (f"-{stamp}" if stamp else "")
+    return Path(folder) / f"{stem}.csv", Path(folder) / f"{stem}.md"
+
+
+def write_leaderboard(folder: Path, protocol: str, csv_text: str, md_text: str) -> tuple[list[Path], str]:
+    """Writes one protocol's leaderboard: ``leaderboard-<protocol>-<UTC stamp>.csv|.md`` (kept) and the
+    latest copy ``leaderboard-<protocol>.csv|.md``, each atomically. When the rows (the CSV) are those of
+    the latest copy, no new stamped pair is written and the latest ``.md`` is rewritten only. Returns the
+    files written and a line saying what happened."""
+    folder = Path(folder)
+    latest_csv, latest_md = leaderboard_paths(folder, protocol)
+    if latest_csv.is_file() and latest_csv.read_text() == csv_text:
+        write_text_atomic(latest_md, md_text)
+        return [latest_csv, latest_md], f"{latest_csv.name}: the same rows as before (no new stamped copy)"
+    stamp = utc_stamp()
+    csv, md = leaderboard_paths(folder, protocol, stamp)
+    k = 1
+    while csv.exists() or md.exists():  # two compares within one second: never overwrite a kept file
+        k += 1
+        csv, md = leaderboard_paths(folder, protocol, f"{stamp}-{k}")
+    write_text_atomic(csv, csv_text)
+    write_text_atomic(md, md_text)
+    write_text_atomic(latest_csv, csv_text)
+    write_text_atomic(latest_md, md_text)
+    return [csv, md, latest_csv, latest_md], f"{csv.name} (latest: {latest_csv.name})"
 
 
 def _plain(v: Any) -> Any:
@@ -173,3 +256,32 @@ def read_board(path: Path) -> Board:
     rows = pd.DataFrame(doc.get("rows") or [])
     return Board(str(doc["protocol"]), str(doc.get("parent_run_id") or ""), float(doc.get("horizon_s", 6.0)),
                  dict(doc.get("settings") or {}), rows)  # fmt: skip
+
+
+def leaderboard_header(
+    dataset: str, dataset_id: str | None, experiment: str, protocol: str, parent: str | None,
+    horizon: float, rank_key: str, when: str, left_out: list[str],
+) -> list[str]:  # fmt: skip
+    """The lines above a leaderboard file's tables: what it is, the command that wrote it and when, which
+    runs its rows are (``parent``: one evaluate's; None: the newest complete ones), the newer runs left
+    out."""
+    which = (
+        f"the child runs of evaluate run {parent}"
+        if parent
+        else "the newest complete (FINISHED) run of each (model, terrain) of this dataset under this "
+        "protocol, across evaluates"
+    )
+    cmd = f"skidbench compare dataset={dataset} inputs={protocol}" + (
+        f" parent_run_id={parent}" if parent else ""
+    )
+    lines = [
+        f"# Leaderboard: dataset {dataset}, inputs={protocol}, {horizon:g} s horizon",
+        "",
+        f"Written by `{cmd}` on {when}. Rows: {which}. Ranked by the mean over terrains of `{rank_key}` "
+        f"(lower is better). Dataset identity `{dataset_id or '?'}`; MLflow experiment `{experiment}`. "
+        "The CSV beside this file has every row's run id, options digest, versions and commit.",
+    ]
+    if left_out:
+        lines += ["", "Newer runs left out (the board keeps the complete run named):", ""]
+        lines += [f"- {line}" for line in left_out]
+    return lines

@@ -1,12 +1,21 @@
 """`skidbench compare`: the leaderboard from ``mlflow.search_runs`` and the paper's Figs. 3-7, written to
-``<out_root>/<dataset>/reports/`` (report.md, leaderboard.md/.csv, fig*.png) and logged to MLflow.
+``<out_root>/<dataset>/reports/`` (report.md, leaderboard-<protocol>.md/.csv and their time-stamped copies,
+fig*.png) and logged to MLflow.
 
-Runs are selected by experiment (``mlflow.experiment``), input protocol (``inputs``, pipeline/protocol.py:
-only runs of that protocol are ranked; runs of different protocols are never ranked together), parent run
-(``parent_run_id``: ``latest`` = the most recent ``skidbench evaluate`` under that protocol, a run id, or
-null for every child run) and an MLflow ``filter`` string. The report also sets the three protocols side
-by side per model (the latest evaluate of each): what the wheel response explains (commanded -> response)
-and what remains when the wheels are known (response -> measured).
+The dataset is ``dataset=<name>`` (any dataset of the output root; its ``dataset.json`` gives the identity
+its runs carry, so no source arguments are needed), the dataset of ``parent_run_id=<run id>``, or of the
+runs of ``mlflow.experiment=<name>`` (benchmark/selection.py ``resolve_target``). The rows: by default
+(``parent_run_id=latest``) the newest complete run of each (model, terrain) under the input protocol
+(``inputs``), across evaluates (``selection.latest_complete``): a model evaluated alone joins the board
+beside the others, and the newer runs that are not complete (failed, killed, running, other split files)
+are left out and named; of the caller's own runs (``user``: null = yours, i.e. ``mlflow.user``, a name, or
+``all``), and when someone else evaluated the dataset after you a note says so. ``parent_run_id=<run
+id>``: one evaluate's runs; null: every child run (which must
+then be of one protocol); ``filter``: an MLflow filter string on top. Runs of different protocols are
+never ranked together: compare writes one leaderboard per protocol (benchmark/boards.py, every row with
+its run id, options digest and versions) and the report sets the protocols side by side per model: what
+the wheel response explains (commanded -> response) and what remains when the wheels are known (response
+-> measured).
 Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 and the wheel response from what evaluate wrote
 next to each run's per-window table (benchmark/report_data.py): compare reads no split, loads no fit and
 predicts nothing. A figure whose data is absent is skipped, with a note in the report.
@@ -15,6 +24,7 @@ predicts nothing. A figure whose data is absent is skipped, with a note in the r
 from __future__ import annotations
 
 import copy
+import datetime as dt
 import hashlib
 import logging
 from collections.abc import Sequence
@@ -26,18 +36,20 @@ import numpy as np
 import pandas as pd
 
 from skidbench.models.fitting import board_findings
-from skidbench.pipeline.dataset import identity_from_cfg
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
 
+from . import boards as brd
 from . import figures as figs
 from . import metrics as mt
 from . import mlflow_ui as mu
 from . import report_data as rd
+from . import selection as sel
 from . import tracking as trk
 from .horizon import EvaluationError
+from .selection import board_from_runs  # noqa: F401 (compare's board rows; kept importable here)
 
 log = logging.getLogger(__name__)
 
@@ -60,26 +72,70 @@ def whose(cfg: Any) -> str | None:
     return None if str(user) == ALL_USERS else str(user)
 
 
+def others_runs(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> pd.DataFrame:
+    """The dataset's child runs under ``inputs`` made by anyone but ``user``, newest first."""
+    runs = sel.search_children(tracker, inputs, filter_string)
+    if runs.empty:
+        return runs
+    return runs[sel._col(runs, f"tags.{trk.TAG_USER}").fillna("?") != user]
+
+
+def not_yours(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> str | None:
+    """When ``user`` has no run under ``inputs`` but others have: the line that says whose and what to
+    type; else None."""
+    others = others_runs(tracker, inputs, filter_string, user)
+    if others.empty:
+        return None
+    names = list(dict.fromkeys(sel._col(others, f"tags.{trk.TAG_USER}").fillna("?")))
+    return (
+        f"no model run of user {user} under inputs={inputs} in experiment {tracker.experiment_name!r} at "
+        f"{tracker.uri}; runs of {', '.join(names)} exist: `skidbench compare user={names[0]}` (or "
+        "user=all), or run `skidbench evaluate` first"
+    )
+
+
+def newer_elsewhere(
+    tracker: trk.Tracker, runs: pd.DataFrame, inputs: str, filter_string: str | None, user: str | None
+) -> str | None:
+    """One line when someone other than ``user`` evaluated this dataset (same protocol) after the newest of
+    the board's ``runs``."""
+    if not user or runs.empty:
+        return None
+    others = others_runs(tracker, inputs, filter_string, user)
+    if others.empty or others["start_time"].iloc[0] <= runs["start_time"].max():
+        return None
+    who = str(sel._col(others, f"tags.{trk.TAG_USER}").fillna("?").iloc[0])
+    parent = sel._col(others, f"tags.{trk.TAG_PARENT}").iloc[0]
+    what = f"run {others['run_id'].iloc[0][:8]}"
+    if isinstance(parent, str) and parent:
+        run = tracker.client.get_run(parent)
+        what = f"{run.info.run_name}, run {parent[:8]}, {run.info.status}"
+    return (
+        f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "
+        f"user={who}` shows theirs"
+    )
+
+
 def select_runs(
-    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None,
-    user: str | None = None,
-) -> tuple[pd.DataFrame, str | None]:  # fmt: skip
+    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None
+) -> tuple[pd.DataFrame, str | None]:
     """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None);
-    ``inputs``: only runs of that input protocol; ``user``: only that user's runs (None: anyone's)."""
+    ``inputs``: only runs of that input protocol."""
     import mlflow
 
     parent = parent_run_id
     if parent == "latest":
-        parent = tracker.latest_parent(inputs, user)
+        parent = tracker.latest_parent(inputs)
         if parent is None:
-            raise CompareError(_no_parent(tracker, inputs, user))
+            raise CompareError(
+                f"no `skidbench evaluate` run{f' under inputs={inputs}' if inputs else ''} in experiment "
+                f"{tracker.experiment_name!r} at {tracker.uri}; run it first (or set mlflow.experiment)"
+            )
     clauses = [f"tags.`{trk.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
     if inputs:
         clauses.append(f"tags.`{trk.TAG_INPUTS}` = '{inputs}'")
     if parent:
         clauses.append(f"tags.`{trk.TAG_PARENT}` = '{parent}'")
-    elif user:
-        clauses.append(f"tags.`{trk.TAG_USER}` = '{user}'")
     if filter_string:
         clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
     mlflow.set_tracking_uri(tracker.uri)
@@ -98,36 +154,6 @@ def select_runs(
         what = f"parent run {parent}" if parent else f"experiment {tracker.experiment_name!r}"
         raise CompareError(f"no model runs match in {what} (filter: {filter_string or 'none'})")
     return runs, parent
-
-
-def _no_parent(tracker: trk.Tracker, inputs: str | None, user: str | None) -> str:
-    """Why there is no latest evaluate to compare (and whose there are, when the caller has none)."""
-    under = f" under inputs={inputs}" if inputs else ""
-    where = f"in experiment {tracker.experiment_name!r} at {tracker.uri}"
-    others = sorted({r.data.tags.get(trk.TAG_USER, "?") for r in tracker.parents(inputs)} - {user})
-    if user and others:
-        return (
-            f"no `skidbench evaluate` run of user {user}{under} {where}; runs of {', '.join(others)} exist: "
-            f"`skidbench compare user={others[0]}` (or user=all), or run evaluate first"
-        )
-    return f"no `skidbench evaluate` run{under} {where}; run it first (or set mlflow.experiment)"
-
-
-def newer_elsewhere(tracker: trk.Tracker, parent: str, inputs: str | None, user: str | None) -> str | None:
-    """One line when someone else evaluated this dataset (same protocol) after the caller's ``parent``."""
-    if not user:
-        return None
-    mine = tracker.client.get_run(parent).info.start_time
-    for run in tracker.parents(inputs, max_results=20):
-        if run.info.start_time <= mine:
-            break
-        who = run.data.tags.get(trk.TAG_USER, "?")
-        if who != user:
-            return (
-                f"{who} evaluated this dataset after you ({run.info.run_name}, run {run.info.run_id[:8]}, "
-                f"{run.info.status}); this report is yours, `skidbench compare user={who}` shows theirs"
-            )
-    return None
 
 
 def with_external_runs(
@@ -164,40 +190,6 @@ def _col(runs: pd.DataFrame, name: str) -> pd.Series:
 
 
 # -- the leaderboard --------------------------------------------------------------------------------
-def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
-    """One row per (model, terrain), the latest run of each: model, terrain, status, reason, every metric
-    of :data:`~skidbench.benchmark.metrics.METRICS` at ``horizon_s`` (and its window count), fit/predict
-    numbers, run_id."""
-    df = pd.DataFrame(
-        {
-            "model": _col(runs, f"tags.{trk.TAG_MODEL}"),
-            "inputs": _col(runs, f"tags.{trk.TAG_INPUTS}").fillna("unknown"),
-            "terrain": _col(runs, f"tags.{trk.TAG_TERRAIN}"),
-            "status": runs["status"],
-            "reason": _col(runs, f"tags.{trk.TAG_REASON}").fillna(""),
-            "version": _col(runs, f"tags.{trk.TAG_MODEL_VERSION}").fillna(""),
-            "package": _col(runs, f"tags.{trk.TAG_PLUGIN}").fillna(""),
-            # a row scored from a predictions file (`skidbench score`, benchmark/external.py)
-            "external": _col(runs, f"tags.{trk.TAG_EXTERNAL}").fillna("false").eq("true"),
-            "run_id": runs["run_id"],
-            "start_time": runs["start_time"],
-        }
-    )
-    for metric in mt.METRICS:  # an optional one (models with a predictive covariance): NaN for the others
-        for split in SPLITS:
-            for key in (metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)):
-                if key is not None:  # the value, and the windows behind it
-                    df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
-    for m in ("fit_loss", "fit_time_s", "predict_time_s"):
-        df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
-    df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
-    df = df.sort_values("start_time", ascending=False)
-    df = df.drop_duplicates(["model", "inputs", "terrain"], keep="first")
-    order = {m: i for i, m in enumerate(figs.order_models(df["model"].dropna().unique().tolist()))}
-    df = df.assign(_o=df["model"].map(order)).sort_values(["_o", "terrain"]).drop(columns="_o")
-    return df.reset_index(drop=True)
-
-
 def _windows(counts: pd.Series) -> str:
     """The windows behind an RMSRE, summed over terrains, as text ("?" when the runs did not log it)."""
     vals = pd.to_numeric(counts, errors="coerce").to_numpy(float)
@@ -328,20 +320,6 @@ def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
 
 
 # -- the three protocols side by side ----------------------------------------------------------------
-def protocol_boards(
-    tracker: trk.Tracker, horizon_s: float, filter_string: str | None, user: str | None = None
-) -> dict[str, pd.DataFrame]:
-    """The board of the latest evaluate (of ``user``: None for anyone's) under each input protocol that has
-    one (``{protocol: board}``)."""
-    out = {}
-    for p in PROTOCOLS:
-        if tracker.latest_parent(p, user) is None:
-            continue
-        runs, _ = select_runs(tracker, "latest", filter_string, p, user)
-        out[p] = board_from_runs(runs, horizon_s)
-    return out
-
-
 def decomposition_table(boards: dict[str, pd.DataFrame], horizon_s: float) -> pd.DataFrame:
     """Per model (mean over the terrains scored under every protocol shown): each headline metric under
     each protocol, ``commanded / response / measured``; a comparison of one model's inputs, not a ranking.
@@ -465,6 +443,10 @@ class CompareResult:
     inputs: str = "commanded"
     decomposition_md: str = ""
     links: dict[str, str] = field(default_factory=dict)  # what -> MLflow UI URL
+    left_out: list[str] = field(default_factory=list)  # newer runs not on the board, and why (one line each)
+    written: list[str] = field(default_factory=list)  # the leaderboard files, one line per protocol
+    dataset: str = ""
+    parents: list[str] = field(default_factory=list)  # the evaluate runs the board's rows hang from
 
 
 def _with_inputs(cfg: Any, protocol: str) -> Any:
@@ -501,31 +483,110 @@ def calibration_windows(
     return out
 
 
-def run_compare(cfg: Any) -> CompareResult:
-    layout = layout_from_cfg(cfg)
-    uri = trk.resolve_tracking_uri(cfg, layout)
+def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
+    """The dataset compare reads, its store and experiment: ``(cfg with that dataset and experiment,
+    target, tracker)`` (:func:`selection.target_from_cfg`). CompareError (one line) when there is no store,
+    no such dataset or run; StaleInputError when the dataset's last evaluate failed as a stage (a model run
+    that failed does not count)."""
+    from mlflow.tracking import MlflowClient
+    from omegaconf import OmegaConf, open_dict
+
+    from skidbench.pipeline.cache import check_producers
+    from skidbench.pipeline.imported import check_stage
+
+    uri = trk.resolve_tracking_uri(cfg, layout_from_cfg(cfg))
     if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
         raise CompareError(
             f"no MLflow store at {uri}: nothing was evaluated under this output root; "
             "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
         )
-    tracker = trk.tracker_from_cfg(cfg, layout)
+    trk.check_reachable(uri, float((cfg.get("mlflow") or {}).get("timeout_s", 5.0)))
+    try:
+        target = sel.target_from_cfg(cfg, MlflowClient(tracking_uri=uri))
+    except sel.SelectionError as exc:
+        raise CompareError(str(exc)) from None
+    if target.note:
+        log.info("compare: %s", target.note)
+    if OmegaConf.is_config(cfg) and (cfg.dataset, cfg.mlflow.experiment) != (target.name, target.experiment):
+        cfg = copy.deepcopy(cfg)
+        with open_dict(cfg):
+            cfg.dataset = target.name
+            cfg.mlflow.experiment = target.experiment
+    if target.layout.root.is_dir():
+        check_producers(target.layout.root, "compare")
+        check_stage(cfg, "compare", target.layout.root)
+    return cfg, target, trk.tracker_from_cfg(cfg, target.layout, dataset_id=target.dataset_id or "")
+
+
+def protocol_selections(
+    tracker: trk.Tracker, horizon_s: float, filter_string: str | None, user: str | None = None
+) -> dict[str, sel.Selection]:
+    """``{protocol: selection}`` of every input protocol the dataset has runs under (the newest complete
+    run of each (model, terrain): :func:`selection.latest_complete`), in the order of ``PROTOCOLS``."""
+    out = {}
+    for p in PROTOCOLS:
+        try:
+            out[p] = sel.latest_complete(tracker, p, horizon_s, filter_string, user)
+        except sel.NoRuns:
+            continue
+    return out
+
+
+def leaderboard_texts(
+    board: pd.DataFrame, runs: pd.DataFrame, horizon_s: float, rank_by: str, header: Sequence[str]
+) -> tuple[str, str, str]:
+    """One protocol's leaderboard as ``(csv, md, the ranked table's md)``: the CSV holds one row per
+    (model, terrain) with every metric and the provenance of its run (:func:`boards.provenance`: run id,
+    options digest, versions, ...); the Markdown ``header`` lines, the ranked means over terrains, then
+    the rows with their run, options digest, model code and skidbench commit."""
+    summary = summary_table(board, horizon_s, rank_by)
+    detail = detail_table(board, horizon_s).drop(columns=["run"])
+    prov = brd.provenance(runs).drop(columns=["reproduce"])
+    rows = pd.concat([detail, board[["run_id"]]], axis=1).merge(prov, on="run_id", how="left")
+    short = lambda col, n=8: rows[col].fillna("").astype(str).str[:n]  # noqa: E731
+    shown = detail.assign(
+        run=short("run_id"),
+        options=short("options_digest"),
+        code=(rows["model_version"].fillna("").astype(str) + " " + short("code_digest")).str.strip(),
+        commit=short("git_commit", 12),
+    )
+    lb_md = markdown_table(summary)
+    md = "\n".join([*header, "", lb_md, "", markdown_table(shown), ""])
+    return rows.to_csv(index=False), md, lb_md
+
+
+def run_compare(cfg: Any) -> CompareResult:
+    cfg, target, tracker = open_target_from_cfg(cfg)
+    layout = target.layout
     horizon = float(cfg.horizon)
     parent_cfg = cfg.get("parent_run_id", "latest")
     parent_arg = None if parent_cfg in (None, "", "null") else str(parent_cfg)
-    # latest: the newest evaluate under cfg.inputs; a run id: that run (its protocol); null: every child
-    # run, which must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
-    user = whose(cfg)
-    inputs = protocol_of(cfg) if parent_arg == "latest" else None
-    runs, parent = select_runs(tracker, parent_arg, cfg.get("filter"), inputs, user)
-    notes: list[str] = []
-    newer = newer_elsewhere(tracker, parent, inputs, user) if parent and parent_arg == "latest" else None
-    if newer:
-        notes.append(newer)
-    owner = tracker.client.get_run(parent).data.tags.get(trk.TAG_USER) if parent else None
-    own = parent is None or owner == trk.current_user()
-    if not own and cfg.get("log_to_mlflow", True):
-        notes.append(f"the report is logged to a compare run of yours, not to {owner}'s evaluate run")
+    user = whose(cfg)  # the caller's own runs unless user=<name> | all
+    # latest: the newest complete run of each (model, terrain) under cfg.inputs, across evaluates; a run
+    # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
+    # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
+    try:
+        selections = protocol_selections(tracker, horizon, cfg.get("filter"), user)
+    except sel.SelectionError as exc:
+        raise CompareError(str(exc)) from None
+    left_out: list[str] = []
+    if parent_arg == "latest":
+        protocol = protocol_of(cfg)
+        if protocol not in selections and user and not_yours(tracker, protocol, cfg.get("filter"), user):
+            raise CompareError(not_yours(tracker, protocol, cfg.get("filter"), user))
+        if protocol not in selections:
+            others = f" (runs exist under inputs={', '.join(selections)})" if selections else ""
+            if cfg.get("filter"):
+                others = f" matching filter {cfg.get('filter')}" + others
+            raise CompareError(
+                f"no complete model run under inputs={protocol} of dataset {target.name} in experiment "
+                f"{tracker.experiment_name!r} at {tracker.uri}{others}; run `skidbench evaluate"
+                f"{'' if protocol == 'commanded' else f' inputs={protocol}'}` first"
+            )
+        runs, parent = selections[protocol].runs, None
+        left_out = selections[protocol].left_out
+    else:
+        runs, parent = select_runs(tracker, parent_arg, cfg.get("filter"), None)
     board = board_from_runs(runs, horizon)
     protocol = check_one_protocol(board)
     cfg = _with_inputs(cfg, protocol)
@@ -538,24 +599,50 @@ def run_compare(cfg: Any) -> CompareResult:
             f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
         )
     summary = summary_table(board, horizon, str(cfg.rank_by))
-    links = ui_links(cfg, tracker, parent, board, horizon)
+    parents = sel.Selection(protocol, horizon, runs).parents if parent is None else [parent]
+    links = ui_links(cfg, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
     detail = detail_table(board, horizon)
     out = layout.reports
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
-    write_text_atomic(out / "leaderboard.csv", detail.to_csv(index=False))
+    written: list[str] = []
+    when = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    shown_boards = {protocol: (board, runs, left_out)}
+    if parent is None:  # every protocol's board of the dataset, from the same selection
+        for p, s in selections.items():
+            if p != protocol:
+                shown_boards[p] = (board_from_runs(s.runs, horizon), s.runs, s.left_out)
     lb_md = markdown_table(summary)
-    write_text_atomic(out / "leaderboard.md", lb_md + "\n\n" + markdown_table(detail) + "\n")
-    files += [out / "leaderboard.csv", out / "leaderboard.md"]
-    try:
-        decomp = decomposition_table(protocol_boards(tracker, horizon, cfg.get("filter"), user), horizon)
-    except CompareError as exc:  # a protocol's latest evaluate matches no run under the filter
-        log.warning("protocols side by side skipped: %s", one_line(str(exc)))
-        decomp = pd.DataFrame()
+    for p, (b, r, lo) in shown_boards.items():
+        rank_key = trk.rank_key(str(cfg.rank_by), horizon)
+        header = brd.leaderboard_header(target.name, target.dataset_id, tracker.experiment_name, p, parent,
+                                        horizon, rank_key, when, lo)  # fmt: skip
+        csv_text, md_text, md_ranked = leaderboard_texts(b, r, horizon, str(cfg.rank_by), header)
+        paths, line = brd.write_leaderboard(out, p, csv_text, md_text)
+        files += paths
+        written.append(f"leaderboard inputs={p}: {line}")
+        if p == protocol:
+            lb_md = md_ranked
+    boards_of = (  # the protocols side by side: the dataset's board of each
+        {p: b for p, (b, _r, _lo) in shown_boards.items()}
+        if parent is None
+        else {p: board_from_runs(s.runs, horizon) for p, s in selections.items()}
+    )
+    decomp = decomposition_table(boards_of, horizon)
     shown = decomp.attrs.get("protocols", []) if len(decomp) else []
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
-    notes += _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
+    notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
+    newer = (
+        newer_elsewhere(tracker, runs, protocol, cfg.get("filter"), user) if parent_arg == "latest" else None
+    )
+    notes += [newer] if newer else []
+    log_to = parent or (parents[0] if len(parents) == 1 else None)  # the evaluate run every row hangs from
+    owner = tracker.client.get_run(log_to).data.tags.get(trk.TAG_USER) if log_to else None
+    if log_to and owner != trk.current_user():  # another person's evaluate run is left as they made it
+        log_to = None
+        if cfg.get("log_to_mlflow", True):
+            notes.append(f"the report is logged to a compare run of yours, not to {owner}'s evaluate run")
     fig_md: list[str] = []
     fc = cfg.figures
     if fc.enabled:
@@ -623,12 +710,13 @@ def run_compare(cfg: Any) -> CompareResult:
     write_text_atomic(
         report,
         _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol, decomp_md,
-                   shown, links),
+                   shown, links, target=target, parents=parents, left_out=left_out),
     )  # fmt: skip
     files.append(report)
     if cfg.get("log_to_mlflow", True):
-        run_id = parent
-        if run_id is None or not own:  # another person's evaluate run is left as they made it
+        # to your evaluate run every row hangs from; else (several evaluates, another person's): a compare run
+        run_id = log_to
+        if run_id is None:
             run_id = tracker.start(
                 f"compare {cfg.dataset}",
                 {trk.TAG_ROLE: "compare", trk.TAG_DATASET: str(cfg.dataset), trk.TAG_INPUTS: protocol},
@@ -636,7 +724,8 @@ def run_compare(cfg: Any) -> CompareResult:
             tracker.end(run_id)
         for f in files:
             tracker.artifact(run_id, f, "report")
-    return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links)
+    return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links, left_out, written,
+                         target.name, parents)  # fmt: skip
 
 
 def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
@@ -673,9 +762,16 @@ def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataF
 
 def _report_md(
     cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol="commanded", decomp_md="",
-    shown=(), links=None,
+    shown=(), links=None, target=None, parents=(), left_out=(),
 ) -> str:  # fmt: skip
     failed = board[board["status"] != "FINISHED"]
+    rec = (target.record if target is not None else None) or {}
+    runs_line = (
+        f", parent run `{parent}`"
+        if parent
+        else f", the newest complete run of each (model, terrain) from {len(parents)} evaluate run(s): "
+        + ", ".join(f"`{p}`" for p in parents)
+    )
     parts = [
         f"# skidbench report: {cfg.dataset}",
         "",
@@ -689,9 +785,9 @@ def _report_md(
             if not m.paper
         ],
         "",
-        f"- dataset: {identity_from_cfg(cfg).describe()[len('dataset ') :]}",
-        f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`"
-        + (f", parent run `{parent}`" if parent else ", all evaluate runs"),
+        f"- dataset: {cfg.dataset} ({rec.get('source', '?')} {rec.get('root', '?')}, fingerprint "
+        f"{rec.get('fingerprint', '?')})",
+        f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`" + runs_line,
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
         *[f"- MLflow UI, {what}: <{url}>" for what, url in (links or {}).items()],
         f"- ranked by the mean over terrains of `{trk.rank_key(str(cfg.rank_by), horizon)}`",
@@ -713,6 +809,10 @@ def _report_md(
             f"- **{r.model} / {r.terrain}**: {r.status}: {r.reason or 'no reason recorded'}"
             for r in failed.itertuples()
         ]
+        parts.append("")
+    if left_out:
+        parts += ["## Newer runs left out", "", "The board keeps the complete run named in each line.", ""]
+        parts += [f"- {line}" for line in left_out]
         parts.append("")
     parts += [
         "## The paper's claim (friction-based best on LD, comparable on CV)",
@@ -749,7 +849,8 @@ def _report_md(
         "",
         "```",
         "make reproduce            # or: skidbench evaluate && skidbench compare",
-        f"skidbench compare parent_run_id={parent or 'null'}",
+        f"skidbench compare dataset={cfg.dataset} inputs={protocol}"
+        + (f" parent_run_id={parent}" if parent else ""),
         "```",
         "",
     ]
@@ -761,7 +862,12 @@ def format_console(result: CompareResult) -> str:
     if result.decomposition_md:
         lines += ["Input protocols side by side (commanded / response / measured, RMSRE %):",
                   result.decomposition_md, ""]  # fmt: skip
+    if result.left_out:
+        lines.append(f"Left out: {len(result.left_out)} newer run(s) that are not complete (the board keeps "
+                     "the complete run named):")  # fmt: skip
+        lines += [f"  {line}" for line in result.left_out]
     lines.append(f"report: {result.report}")
+    lines += result.written
     lines += [f"MLflow {what}: {url}" for what, url in result.links.items()]
     lines += [f"note: {n}" for n in result.notes]
     return "\n".join(lines)

@@ -9,7 +9,7 @@ from skidbench.pipeline.cli import stage
 
 
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="compare")
-@stage("compare")
+@stage("compare", home=False)  # the dataset is the one named (benchmark/selection.py)
 def main(cfg: DictConfig) -> None:
     from .compare import format_console, run_compare
 

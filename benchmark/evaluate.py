@@ -12,7 +12,6 @@ predict gets its child run marked FAILED with the reason, and the others carry o
 from __future__ import annotations
 
 import logging
-import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +31,7 @@ from skidbench.pipeline.schema import concat_sequences, read_split
 from . import metrics as mt
 from . import mlflow_ui as mu
 from . import tracking as trk
+from .failures import fail_run, kill_run
 from .fit_record import (
     default_fit_fn,
     fit_description,
@@ -41,6 +41,7 @@ from .fit_record import (
     model_code,
     model_config,
     num,
+    options_tags,
     plugin_package,
 )
 from .horizon import EvaluationError, HorizonConfig, count_windows
@@ -76,6 +77,7 @@ class ChildResult:
     metrics: dict[str, float] = field(default_factory=dict)
     reason: str = ""
     inputs: str = "commanded"
+    traceback: str = ""  # where a FAILED run's traceback is (MLflow artifact, file, stage log)
 
 
 @dataclass
@@ -347,12 +349,13 @@ class _Stage:
 def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResult:
     """Fit ``model_name`` on ``td.terrain``'s Train split, score it on every test split and log it all to
     one child run; an exception of the model (fit, predict, scoring, its outputs) ends that run FAILED with
-    the reason and the benchmark carries on (an MLflow store error or an interrupt does not)."""
+    the reason and its traceback (benchmark/failures.py) and the benchmark carries on (an MLflow store
+    error does not; an interrupt ends the run KILLED and stops the benchmark)."""
     protocol = td.inputs.protocol
     run_id = _start_child(ctx, model_name, td)
     stage = _Stage("fit")
+    stem = ctx.layout.eval_stem(model_name, td.terrain, protocol)
     try:
-        stem = ctx.layout.eval_stem(model_name, td.terrain, protocol)
         fit = _fit_and_log(ctx, run_id, model_name, td, stem)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
@@ -370,31 +373,31 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         log.info("%s/%s: %s", model_name, td.terrain, _brief(metrics))
         return ChildResult(model_name, td.terrain, run_id, "FINISHED", metrics, inputs=protocol)
     except KeyboardInterrupt:
-        ctx.tracker.fail(run_id, "interrupted")
+        kill_run(ctx.tracker, run_id)
         raise
     except Exception as exc:
         from mlflow.exceptions import MlflowException
 
         if isinstance(exc, MlflowException):
             raise
-        reason = f"{stage.name} failed: {type(exc).__name__}: {one_line(str(exc))}"
-        log.warning("%s/%s FAILED: %s", model_name, td.terrain, reason)
-        log.debug("%s", traceback.format_exc())
-        ctx.tracker.fail(run_id, reason)
-        return ChildResult(model_name, td.terrain, run_id, "FAILED", reason=reason, inputs=protocol)
+        reason, where = fail_run(ctx.tracker, run_id, stem, f"{model_name}/{td.terrain}", stage.name, exc)
+        return ChildResult(model_name, td.terrain, run_id, "FAILED", reason=reason, inputs=protocol,
+                           traceback=where)  # fmt: skip
 
 
 def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
     protocol = td.inputs.protocol
+    model_conf = model_config(ctx.cfg, model_name)
     run_id = ctx.tracker.start(
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {**ctx.tags, trk.TAG_FINGERPRINT: td.fingerprint, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name,
          trk.TAG_TERRAIN: td.terrain, trk.TAG_INPUTS: protocol,
+         **options_tags(ctx.conf, model_conf, protocol),
          trk.TAG_NOTE: _describe(ctx.cfg, [model_name], [td.terrain], list(td.tests), ctx.horizons)},
         ctx.parent_id,
     )  # fmt: skip
-    params = trk.config_params(ctx.conf, model_config(ctx.cfg, model_name))  # this model's config only
+    params = trk.config_params(ctx.conf, model_conf)  # this model's config only
     ctx.tracker.log(run_id, params={**params, "model": model_name, "terrain": td.terrain, "inputs": protocol})
     ctx.tracker.log_datasets(run_id, td.datasets)
     return run_id
@@ -599,4 +602,6 @@ def format_result(result: BenchmarkResult) -> str:
     ]
     for c in result.failed:
         lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
+        if c.traceback:
+            lines.append(f"  traceback: {c.traceback}")
     return "\n".join(lines)

@@ -13,10 +13,33 @@ from skidbench.pipeline.cli import stage
 log = logging.getLogger(__name__)
 
 
+INTERRUPTED = (
+    "its open MLflow runs are marked KILLED; what finished before stays, and `skidbench compare` ranks the "
+    "complete runs (re-run evaluate to complete the others)"
+)
+
+
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="evaluate")
-@stage("evaluate")
+@stage("evaluate", runs=True, interrupted=INTERRUPTED)
 def main(cfg: DictConfig) -> None:
-    run(cfg)
+    from skidbench.pipeline.errors import PartialFailure
+
+    from .failures import failure_summary
+
+    result, _ = run(cfg)
+    if result is not None and result.failed and not _in_sweep():
+        raise PartialFailure(failure_summary(result))  # exit status 3 (pipeline/errors.py)
+
+
+def _in_sweep() -> bool:
+    """Is this a job of a Hydra multirun (``-m``)? Its failed runs do not stop the other jobs."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        return HydraConfig.get().mode == RunMode.MULTIRUN
+    except (ImportError, ValueError):
+        return False
 
 
 def run(cfg: DictConfig):

@@ -154,3 +154,27 @@ def num(v: Any) -> float | None:
         return None if v is None else float(v)
     except (TypeError, ValueError):
         return None
+
+
+#: the settings of an evaluate a child run's numbers depend on (with the model's config and the protocol)
+OPTION_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "calibrate", "train_dataset",
+               "train_terrain")  # fmt: skip
+
+
+def options_tags(conf: dict[str, Any], model_conf: dict[str, Any], protocol: str) -> dict[str, str]:
+    """The run tag ``skidbench.options_digest`` (:func:`options_digest`)."""
+    from .boards import TAG_OPTIONS
+
+    return {TAG_OPTIONS: options_digest(conf, model_conf, protocol)}
+
+
+def options_digest(conf: dict[str, Any], model_conf: dict[str, Any], protocol: str) -> str:
+    """The digest (12 hex digits) of what a child run was made with besides its data and code: the
+    model's config (name, params, options), the input protocol and :data:`OPTION_KEYS` of the evaluate's
+    config. Two rows with one digest were made with the same options; it is the run's tag
+    ``skidbench.options_digest`` and a column of compare's leaderboard files."""
+    from skidbench.pipeline.io import fingerprint_obj
+
+    return fingerprint_obj(
+        {"model": model_conf, "inputs": protocol, **{k: conf.get(k) for k in OPTION_KEYS}}
+    )[:12]

@@ -91,6 +91,7 @@ log = logging.getLogger(__name__)
 
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
+INTERRUPTED = "interrupted (Ctrl-C): killed before it finished"
 
 #: MLflow's own HTTP settings (mlflow/environment_variables.py) that skidbench sets, unless they are set
 #: already, when it talks to a tracking server. A request is tried 4 times (3 retries, 0 / 4 / 8 s apart,
@@ -486,18 +487,25 @@ class Tracker:
         self.log(run_id, tags={TAG_STATUS: "FAILED", TAG_REASON: one_line(reason)})
         self.end(run_id, "FAILED")
 
+    def kill(self, run_id: str, reason: str = INTERRUPTED) -> None:
+        """Ends a run ``KILLED`` with the reason (an interrupt: compare leaves it out, names it)."""
+        self.log(run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: one_line(reason)})
+        self.end(run_id, "KILLED")
+
     @contextlib.contextmanager
     def run(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> Iterator[str]:
-        """A run that ends FINISHED, or FAILED with the reason when the body raises (the error propagates)."""
+        """A run that ends FINISHED, FAILED with the reason when the body raises (the error propagates),
+        or KILLED when it is interrupted (Ctrl-C)."""
         run_id = self.start(run_name, tags, parent_id)
         try:
             yield run_id
-        except BaseException as exc:
-            reason = (
-                f"{type(exc).__name__}: {exc}" if not isinstance(exc, KeyboardInterrupt) else "interrupted"
-            )
+        except KeyboardInterrupt:
             with contextlib.suppress(Exception):
-                self.fail(run_id, reason)
+                self.kill(run_id)
+            raise
+        except BaseException as exc:
+            with contextlib.suppress(Exception):
+                self.fail(run_id, f"{type(exc).__name__}: {exc}")
             raise
         else:
             self.end(run_id, "FINISHED")

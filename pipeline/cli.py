@@ -30,7 +30,7 @@ from .cache import (
     mark_failed,
 )
 from .config_schema import check_value, validate
-from .errors import ConfigError, SkidbenchError, one_line
+from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
 from .imported import check_stage
 from .layout import default_out_root, register_resolvers, remove_atomic
 
@@ -77,7 +77,7 @@ def exit_with_error(message: str, name: str | None = None) -> None:
     sys.exit(2)
 
 
-def stage(name: str, home: bool = True) -> Callable:
+def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "") -> Callable:
     """Decorator for a stage's task function: SkidbenchError -> one line on stderr, exit 2. The config is
     checked against the declared schema first. With ``home`` (a config with a ``source``), the dataset's
     identity is printed and its folder checked (:func:`skidbench.pipeline.dataset.open_home`), and the
@@ -86,7 +86,13 @@ def stage(name: str, home: bool = True) -> Callable:
     holding no data is removed (so ``skidbench datasets`` never lists it); a stage of ``LOCAL_PRODUCERS``
     that changed nothing in the folder (refused before its first write) while what it made before is
     still current leaves the dataset as it was;
-    otherwise the failure is recorded, and the stages downstream refuse to run until this one succeeds."""
+    otherwise the failure is recorded, and the stages downstream refuse to run until this one succeeds.
+
+    Exit statuses (pipeline/errors.py): a :class:`PartialFailure` (the stage ran to its end, some of its
+    runs failed) prints its summary and exits 3 without marking the stage failed. Ctrl-C prints one line
+    (``interrupted``: what the stage did about it) and exits 130, no traceback; the stage is marked failed
+    unless ``runs`` (its outputs are runs that record their own status, e.g. evaluate's MLflow runs marked
+    KILLED: what finished before the interrupt stays valid)."""
 
     # as Hydra's docs register resolvers: in the app, before @hydra.main composes (`python -m <app>` too)
     register_resolvers()
@@ -110,6 +116,19 @@ def stage(name: str, home: bool = True) -> Callable:
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
                 exit_with_error(str(exc), name)
+            except PartialFailure as exc:  # what succeeded is valid: downstream stages may use it
+                if root is not None:
+                    clear_failed(root, name)
+                print(f"skidbench {name}: {exc}", file=sys.stderr, flush=True)
+                sys.exit(EXIT_PARTIAL)
+            except KeyboardInterrupt:
+                if not runs:
+                    _after_failure(root, name, "interrupted (Ctrl-C)", before)
+                note = (
+                    f"; {interrupted}" if interrupted else "; re-run it to complete what it had not written"
+                )
+                print(f"\nskidbench {name}: interrupted (Ctrl-C){note}", file=sys.stderr, flush=True)
+                sys.exit(EXIT_INTERRUPTED)
             except SkidbenchError as exc:
                 _after_failure(root, name, str(exc), before)
                 exit_with_error(str(exc), name)

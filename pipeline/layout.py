@@ -263,18 +263,91 @@ def data_path(source: Any) -> Path:
     return path
 
 
-def data_key(source: Any) -> dict[str, str]:
-    """The identity key of a source's data: its name and resolved path."""
+#: a file up to this size is hashed whole for the dataset's identity; a larger one by its size and three
+#: blocks of ``CONTENT_BLOCK`` bytes (start, middle, end): a 4 GB bag costs 192 KiB of reading, not 4 GB
+#: (recordings differ in their first bytes already: headers, time stamps). The stages' own stamps still
+#: hash every file they read in full (pipeline/cache.py), so an edit the sample misses is still re-run.
+CONTENT_FULL_MAX = 1 << 20
+CONTENT_BLOCK = 64 << 10
+_content_memo: dict[str, tuple[tuple[int, int, int], str]] = {}
+
+
+def _content_hash(path: Path) -> str:
+    """BLAKE2b-128 of a file's content (a large file: of its size and three blocks), memoised by
+    (size, mtime, inode) for the life of the process."""
+    st = path.stat()
+    stat_key = (st.st_size, st.st_mtime_ns, st.st_ino)
+    hit = _content_memo.get(str(path))
+    if hit and hit[0] == stat_key:
+        return hit[1]
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        if st.st_size <= CONTENT_FULL_MAX:
+            while block := fh.read(CONTENT_BLOCK):
+                h.update(block)
+        else:
+            h.update(str(st.st_size).encode())
+            for offset in (0, (st.st_size - CONTENT_BLOCK) // 2, st.st_size - CONTENT_BLOCK):
+                fh.seek(offset)
+                h.update(fh.read(CONTENT_BLOCK))
+    _content_memo[str(path)] = (stat_key, h.hexdigest())
+    return h.hexdigest()
+
+
+def data_files(source: Any, exclude: Path | None = None) -> list[tuple[str, Path]]:
+    """The files that are a source's data, as (path relative to ``source.root``, path), sorted: the files
+    ``source.file`` names, else every file under ``source.root`` (hidden names and the output root
+    ``exclude``, when it lies inside, left out)."""
+    data_path(source)  # the one-line error of a missing root
+    root = Path(str(source.get("root"))).expanduser().resolve()
+    file = source.get("file")
+    if file:
+        names = (
+            [str(file)] if isinstance(file, str) or not hasattr(file, "__len__") else [str(f) for f in file]
+        )
+        return sorted((Path(n).as_posix(), (root / n).resolve()) for n in names)
+    if root.is_file():
+        return [(root.name, root)]
+    skip = Path(exclude).expanduser().resolve() if exclude is not None else None
+    out = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        here = Path(dirpath)
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and (here / d).resolve() != skip)
+        out += [
+            ((here / f).relative_to(root).as_posix(), here / f) for f in filenames if not f.startswith(".")
+        ]
+    return sorted(out)
+
+
+def data_key(source: Any, exclude: Path | None = None) -> dict[str, Any]:
+    """The identity key of a source's data: the source kind and its content, i.e. each file's path
+    relative to the root, size and content hash (:func:`data_files`), never where it is mounted: the same
+    files under two mount points, or on two machines, are one dataset. A missing file counts as such (the
+    reader says so in its own words)."""
+    files = []
+    for rel, path in data_files(source, exclude):
+        try:
+            files.append([rel, path.stat().st_size, _content_hash(path)])
+        except OSError:
+            files.append([rel, None, None])
+    return {"source": str(source.get("name")), "content": files}
+
+
+def path_key(source: Any) -> dict[str, str]:
+    """The key a dataset's folder name is made from: the source kind and the data's resolved path. The
+    folder is the data's home on this machine (it survives edits of the files: the stages' stamps re-run
+    what depends on a changed file); the identity is :func:`data_key`."""
     return {"source": str(source.get("name")), "root": str(data_path(source))}
 
 
 def auto_name(prefix: str, source: Any) -> str:
-    """``<prefix>-<root name>-<fingerprint[:6]>`` (``<prefix>-<label>`` when ``source.label`` is set)."""
+    """``<prefix>-<root name>-<fingerprint[:6]>`` (``<prefix>-<label>`` when ``source.label`` is set), the
+    fingerprint of :func:`path_key`."""
     if source.get("label"):
         return f"{prefix}-{_safe(str(source.get('label')))}"
     path = data_path(source)
     stem = path.stem if path.is_file() else path.name
-    return f"{prefix}-{_safe(stem)}-{fingerprint_of(data_key(source))[:NAME_FP_LEN]}"
+    return f"{prefix}-{_safe(stem)}-{fingerprint_of(path_key(source))[:NAME_FP_LEN]}"
 
 
 def sim_name(scale: str, seed: Any) -> str:

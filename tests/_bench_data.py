@@ -124,7 +124,16 @@ class NaNModel(ChiModel):
         return out
 
 
-MODELS = {m.name: m for m in (ChiModel, IdealModel, BrokenModel, NaNModel)}
+class RaisingModel(ChiModel):
+    """Fits, then raises in ``predict`` (a plugin that reads a column it is never given)."""
+
+    name = "raiser"
+
+    def predict(self, table):
+        return table["vx"].to_numpy()  # KeyError: a model sees the input columns only
+
+
+MODELS = {m.name: m for m in (ChiModel, IdealModel, BrokenModel, NaNModel, RaisingModel)}
 
 
 class Fit:

@@ -46,12 +46,13 @@ def two_evaluations(tmp_path_factory):
 def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     out, _, second = two_evaluations
     res = run_compare(compose("compare", out))
-    assert res.parent_run_id == second.parent_run_id  # the latest under inputs=commanded (the default)
+    # the newest complete run of each (model, terrain) under inputs=commanded (the default): the second's
+    assert res.parent_run_id is None and res.parents == [second.parent_run_id]
     assert res.inputs == "commanded"
     lb = res.leaderboard_md.splitlines()
     assert lb[2].startswith("| 1 | chi |")  # best first
     assert any(line.startswith("| 3 | broken |") and "grass (FAILED)" in line for line in lb)
-    csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
+    csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
     assert set(csv["model"]) == {"chi", "ideal_t", "broken"} and len(csv) == 6
     assert (csv[csv["model"] == "broken"]["status"] == "FAILED").all()
     text = res.report.read_text()
@@ -68,7 +69,11 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     assert (out / DS / "reports" / "fig_protocols.png").stat().st_size > 5000
     client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
     arts = {a.path for a in client.list_artifacts(second.parent_run_id, "report")}
-    assert {"report/report.md", "report/leaderboard.csv", "report/fig3_translational_rmsre.png"} <= arts
+    assert {
+        "report/report.md",
+        "report/leaderboard-commanded.csv",
+        "report/fig3_translational_rmsre.png",
+    } <= arts
 
 
 def test_the_end_position_error_is_logged_printed_and_on_the_leaderboard(two_evaluations):
@@ -88,7 +93,7 @@ def test_the_end_position_error_is_logged_printed_and_on_the_leaderboard(two_eva
             logged.setdefault(c.model, []).append(metrics["ld_6s_endpos_rmse_m"])
     assert "endpos LD 6s m" in format_result(second)
     res = run_compare(compose("compare", out, ["figures.enabled=false", "log_to_mlflow=false"]))
-    csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
+    csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
     assert {"endpos CV m", "endpos LD m", "endpos LD n"} <= set(csv.columns)
     chi = csv[csv["model"] == "chi"]
     assert sorted(chi["endpos LD m"]) == pytest.approx(sorted(logged["chi"]))
@@ -110,7 +115,7 @@ def test_select_an_older_parent_a_filter_or_every_run(two_evaluations):
     res = run_compare(
         compose("compare", out, ["figures.enabled=false", "filter=\"tags.`skidbench.terrain` = 'tile'\""])
     )
-    csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
+    csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
     assert set(csv["terrain"]) == {"tile"}
     # every child run: of two protocols here, which compare refuses to rank together
     with pytest.raises(CompareError, match=r"different input protocols \['commanded', 'measured'\]"):
@@ -119,7 +124,7 @@ def test_select_an_older_parent_a_filter_or_every_run(two_evaluations):
     res = run_compare(
         compose("compare", out, ["parent_run_id=null", only, "figures.enabled=false", "log_to_mlflow=false"])
     )
-    csv = pd.read_csv(out / DS / "reports" / "leaderboard.csv")
+    csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
     assert len(csv) == 6  # the latest run of each (model, terrain) across both commanded evaluations
     assert set(csv["inputs"]) == {"commanded"}
 
@@ -144,12 +149,12 @@ def test_a_board_of_two_protocols_is_refused():
 
 def test_no_match_and_bad_filter_are_one_line_errors(two_evaluations):
     out, _, _ = two_evaluations
-    with pytest.raises(CompareError, match="no model runs match"):
+    with pytest.raises(CompareError, match="no complete model run under inputs=commanded .* matching filter"):
         run_compare(compose("compare", out, ["filter=\"tags.`skidbench.model` = 'nope'\""]))
     with pytest.raises(CompareError, match="search_runs"):
         run_compare(compose("compare", out, ["filter='metrics.x >>> 1'"]))
     with pytest.raises(
-        CompareError, match="no `skidbench evaluate` run under inputs=commanded in experiment"
+        CompareError, match="no complete model run under inputs=commanded .* experiment 'empty-one'"
     ):
         run_compare(compose("compare", out, ["mlflow.experiment=empty-one"]))
 
@@ -232,20 +237,19 @@ def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluat
         assert len(run.data.tags["skidbench.session"]) == 12 and run.data.tags["skidbench.heartbeat"]
     monkeypatch.setenv("SKIDBENCH_USER", "alice")
     res = run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))
-    assert res.parent_run_id == runs["alice"]
+    assert res.parents == [runs["alice"]]
     assert "| ideal_t |" in res.leaderboard_md  # alice's board (bob evaluated chi only)
     assert [n for n in res.notes if n.startswith("bob evaluated this dataset after you")]
     assert not client.list_artifacts(runs["alice"], "report") == []  # her own run holds her report
     bob = run_compare(compose("compare", tmp_path, ["figures.enabled=false", "user=bob"]))
-    assert bob.parent_run_id == runs["bob"] and "| ideal_t |" not in bob.leaderboard_md
+    assert bob.parents == [runs["bob"]] and "| ideal_t |" not in bob.leaderboard_md
     assert client.list_artifacts(runs["bob"], "report") == []  # alice never writes into bob's run
     assert any("not to bob's evaluate run" in n for n in bob.notes)
-    assert (
-        run_compare(compose("compare", tmp_path, ["figures.enabled=false", "user=all"])).parent_run_id
-        == runs["bob"]
-    )
+    # everyone's: the newest complete run of each (model, terrain): bob's chi beside alice's ideal_t
+    anyone = run_compare(compose("compare", tmp_path, ["figures.enabled=false", "user=all"]))
+    assert set(anyone.parents) == {runs["alice"], runs["bob"]}
     monkeypatch.setenv("SKIDBENCH_USER", "carol")
-    with pytest.raises(CompareError, match="no `skidbench evaluate` run of user carol .* user=alice"):
+    with pytest.raises(CompareError, match="no model run of user carol .* user=bob"):
         run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))
 
 

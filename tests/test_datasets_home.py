@@ -104,7 +104,7 @@ def assert_both_intact(out: Path, a: tuple, b: tuple, results: dict) -> None:
         assert len(runs) == 2 * len(results[ident.name])  # ideal, edd per evaluate run
         shown, _ = select_runs(trk.tracker_from_cfg(c, layout), "latest", None)
         assert set(shown["tags.skidbench.terrain"]) == {terrain}
-        report = (layout.reports / "leaderboard.csv").read_text()
+        report = (layout.reports / "leaderboard-commanded.csv").read_text()
         assert terrain in report and other not in report
         doc = json.loads((layout.discovery / "discovery.json").read_text())
         assert set(doc["terrains"]) == {terrain}
@@ -173,16 +173,22 @@ def test_two_bag_folders_run_one_after_the_other_keep_their_own_homes(tmp_path, 
     assert skipped
 
 
-def test_the_same_root_maps_to_one_name_and_different_roots_never_share_one(tmp_path):
-    (tmp_path / "x" / "data").mkdir(parents=True)
-    (tmp_path / "y" / "data").mkdir(parents=True)
+def test_a_dataset_is_named_by_its_place_and_identified_by_its_content(tmp_path):
+    for where, value in (("x", "1"), ("y", "2"), ("mnt", "1")):
+        (tmp_path / where / "data" / "Tile").mkdir(parents=True)
+        (tmp_path / where / "data" / "Tile" / "a.txt").write_text(value)
+    (tmp_path / "mnt" / "data" / ".DS_Store").write_text("hidden: not data")
     os.symlink(tmp_path / "x" / "data", tmp_path / "link")
-    name = lambda root: str(cfg("split", tmp_path, "source=amrl_txt", f"source.root={root}").dataset)  # noqa: E731
-    assert (
-        name(tmp_path / "x" / "data") == name(tmp_path / "link") == name(tmp_path / "x" / ".." / "x" / "data")
-    )
-    assert name(tmp_path / "x" / "data") != name(tmp_path / "y" / "data")
-    assert name(tmp_path / "x" / "data").startswith("amrl-data-")
+    ident = lambda root: identity_from_cfg(cfg("split", tmp_path, "source=amrl_txt", f"source.root={root}"))  # noqa: E731
+    x = ident(tmp_path / "x" / "data")
+    assert x == ident(tmp_path / "link") == ident(tmp_path / "x" / ".." / "x" / "data")
+    assert x.name.startswith("amrl-data-")
+    mnt, y = ident(tmp_path / "mnt" / "data"), ident(tmp_path / "y" / "data")
+    assert mnt.fingerprint == x.fingerprint and mnt.name != x.name  # the same files elsewhere: one id
+    assert y.fingerprint != x.fingerprint and y.name != x.name  # other content: never the same
+    (tmp_path / "x" / "data" / "Tile" / "b.txt").write_text("3")  # edited data: the same home, another id
+    edited = ident(tmp_path / "x" / "data")
+    assert edited.name == x.name and edited.fingerprint != x.fingerprint
     assert (
         str(cfg("split", tmp_path, "source=amrl_txt", "source.root=/a", "source.dataset=lab").dataset)
         == "lab"
@@ -194,12 +200,59 @@ def test_the_same_root_maps_to_one_name_and_different_roots_never_share_one(tmp_
     assert sim0.fingerprint != sim1.fingerprint
 
 
+def test_two_mount_points_of_one_dataset_are_one_dataset_id(tmp_path, capsys):
+    out = tmp_path / "out"
+    for mount in ("mnt1", "mnt2"):
+        shutil.copytree(FIXTURE / "Tile", tmp_path / mount / "amrl" / "Tile")
+    a, b = (["source=amrl_txt", f"source.root={tmp_path / m / 'amrl'}"] for m in ("mnt1", "mnt2"))
+    for args in (a, b):
+        run_stage("extract", out, *args)
+    ida, idb = (identity_from_cfg(cfg("extract", out, *s)) for s in (a, b))
+    assert ida.fingerprint == idb.fingerprint and ida.root != idb.root
+    recs = [json.loads((out / i.name / "dataset.json").read_text()) for i in (ida, idb)]
+    assert [r["fingerprint"] for r in recs] == [ida.fingerprint] * 2 and recs[0]["schema"] == 2
+    # named: one home, taken over by the other mount point of the same files (no error), its root updated
+    for args in (a, b):
+        run_stage("extract", out, *args, "source.dataset=lab")
+    rec = json.loads((out / "lab" / "dataset.json").read_text())
+    assert rec["fingerprint"] == ida.fingerprint and rec["root"] == idb.root
+    # an output root inside the data's root is not part of the data
+    inside = tmp_path / "mnt1" / "amrl" / "outputs"
+    run_stage("extract", inside, *a)
+    assert identity_from_cfg(cfg("extract", inside, *a)).fingerprint == ida.fingerprint
+    capsys.readouterr()
+
+
+def test_a_folder_recorded_by_its_path_by_an_earlier_release_is_upgraded_with_a_note(tmp_path, capsys):
+    from skidbench.pipeline.layout import NAME_FP_LEN, fingerprint_of
+
+    out, root = tmp_path / "out", tmp_path / "day1"
+    shutil.copytree(FIXTURE / "Tile", root / "Tile")
+    args = ["source=amrl_txt", f"source.root={root}"]
+    old_fp = fingerprint_of({"source": "amrl_txt", "root": str(root)})
+    legacy = out / f"amrl-day1-{old_fp[:NAME_FP_LEN]}"
+    legacy.mkdir(parents=True)
+    old = {"schema": 1, "name": legacy.name, "source": "amrl_txt", "root": str(root), "fingerprint": old_fp}
+    (legacy / "dataset.json").write_text(json.dumps({**old, "terrains": [], "sequences": 0}))
+    run_stage("extract", out, *args)
+    ident = identity_from_cfg(cfg("extract", out, *args))
+    assert ident.name == legacy.name and ident.fingerprint != old_fp
+    assert "recorded by its path by an earlier release" in capsys.readouterr().out
+    rec = json.loads((legacy / "dataset.json").read_text())
+    assert rec["schema"] == 2 and rec["fingerprint"] == ident.fingerprint
+    assert (legacy / "extracted" / "tile_train_01").is_dir()
+    run_stage("extract", out, *args)  # upgraded: no note any more
+    assert [p.name for p in out.iterdir() if p.is_dir()] == [legacy.name]
+    assert "note:" not in capsys.readouterr().out
+
+
 def test_two_roots_at_one_explicit_name_are_one_line_error_unless_replace(tmp_path):
     out = tmp_path / "out"
     roots = []
     for day in ("day1", "day2"):
         shutil.copytree(FIXTURE / "Tile", tmp_path / day / "Tile")
         roots.append(tmp_path / day)
+    (roots[1] / "notes.txt").write_text("another day's recording")  # other content (the same: one dataset)
     args = lambda root: ["source=amrl_txt", f"source.root={root}", "source.dataset=lab"]  # noqa: E731
     run_stage("extract", out, *args(roots[0]))
     lab = out / "lab"

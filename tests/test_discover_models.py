@@ -96,7 +96,7 @@ def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderb
     # compare's leaderboard has the rows
     cmp_cfg = _compose_compare(hidden_root)
     run_compare(cmp_cfg)
-    board = (hidden_root / "hidden" / "reports" / "leaderboard.csv").read_text()
+    board = (hidden_root / "hidden" / "reports" / "leaderboard-commanded.csv").read_text()
     assert SPEC in board and "discovered" in board
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -105,7 +106,15 @@ def test_compare_writes_the_report_with_figures_and_prints_the_leaderboard(pipel
     ):
         assert (reports / fig).stat().st_size > 10_000, fig
         assert f"]({fig})" in text
-    assert (reports / "leaderboard.csv").is_file()
+    # one leaderboard per protocol, every model, each row with its run and options digest; a stamped copy
+    for protocol in ("commanded", "response"):
+        board = pd.read_csv(reports / f"leaderboard-{protocol}.csv", dtype=str)
+        assert sorted(board["model"].unique()) == sorted(MODELS) and (board["inputs"] == protocol).all()
+        assert board["run_id"].str.fullmatch(r"[0-9a-f]{32}").all()
+        assert board["options_digest"].str.fullmatch(r"[0-9a-f]{12}").all()
+        (stamped,) = reports.glob(f"leaderboard-{protocol}-*.csv")
+        assert stamped.read_text() == (reports / f"leaderboard-{protocol}.csv").read_text()
+        assert f"leaderboard inputs={protocol}: {stamped.name}" in stdout
     assert "Leaderboard" in stdout and f"report: {report}" in stdout
     for m in MODELS:
         assert f"| {m} |" in stdout

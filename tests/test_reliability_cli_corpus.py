@@ -181,7 +181,8 @@ def prepared(tmp_path_factory) -> dict[str, str]:
     base = tmp_path_factory.mktemp("cli_corpus")
     amrl, out, c = base / "amrl", base / "out", base / "corpus"
     shutil.copytree(FIXTURE, amrl)
-    shutil.copytree(FIXTURE, base / "amrl2")
+    shutil.copytree(FIXTURE, base / "amrl2")  # another recording (a copy would be the same dataset)
+    (base / "amrl2" / "notes.txt").write_text("recorded on another day")
     c.mkdir()
     _write_corpus(c)
     for stage_args in (["extract"], ["groundtruth"], ["split"], ["calibrate", "track=false"]):
@@ -384,6 +385,7 @@ def test_the_real_bag_copied_and_damaged(shared_real, tmp_path):
     assert code == 2 and "re-run skidbench extract" in line, err
 
 
+@pytest.mark.slow
 def test_a_refused_robot_leaves_the_dataset_as_it_was_and_the_right_one_runs(prepared, tmp_path):
     """A Husky recording extracted and split as a Husky, then extracted as a Warthog: refused in one line
     before anything is written, no failure recorded (nothing it left is stale), and `evaluate robot=husky`

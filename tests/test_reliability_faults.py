@@ -9,7 +9,9 @@ the temporary file is written, before its rename).
 
 from __future__ import annotations
 
+import os
 import signal
+from pathlib import Path
 
 import pandas as pd
 import pyarrow.parquet as pq
@@ -163,18 +165,117 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
     assert tmp_files(root) == []
 
     skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
-    board = pd.read_csv(root / DATASET / "reports" / "leaderboard.csv")
+    board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
     assert sorted(board["model"]) == ["edd", "ideal"] and (board["status"] == "FINISHED").all()
     (parent,) = [r for r in new if r.data.tags[trk.TAG_ROLE] == "parent"]
-    assert f"parent run `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
+    assert set(board["parent_run_id"]) == {parent.info.run_id}
+    assert (
+        f"1 evaluate run(s): `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
+    )
 
-    # a newer evaluate killed after a finished one: compare marks its runs KILLED and reads the finished one
+    # a newer evaluate killed after a finished one: compare marks its runs KILLED, reads the finished ones
+    # and names the killed run it left out
     killed = skidbench(
         "evaluate", root, "force=true", env={"SKIDBENCH_FAULT": "kill@1:.params.json"}, check=False
     )
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
     proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
-    assert "is KILLED; using the newest finished one, " + parent.info.run_id in proc.stdout + proc.stderr
-    assert f"parent run `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
-    statuses = sorted(r.info.status for k, r in runs().items() if k not in after)
-    assert statuses == ["KILLED", "KILLED"]  # the parent and its first child
+    statuses = {r.info.run_id: r.info.status for k, r in runs().items() if k not in after}
+    assert sorted(statuses.values()) == ["KILLED", "KILLED"]  # the parent and its first child
+    board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
+    assert set(board["parent_run_id"]) == {parent.info.run_id} and (board["status"] == "FINISHED").all()
+    (left,) = [line for line in proc.stdout.splitlines() if " left out: KILLED" in line]
+    assert left.strip().startswith("ideal/tile: run ") and any(f"run {k[:8]}" in left for k in statuses)
+
+
+def _raising_plugin(folder):
+    """An installed model plugin (a distribution on ``sys.path``, entry point ``skidbench.models``) that
+    fits and then raises in ``predict``: it reads a column no model is given."""
+    (folder / "raising_plugin.py").write_text(
+        "import numpy as np\n"
+        "from skidbench.models.base import KinematicModel\n\n\n"
+        "class Raiser(KinematicModel):\n"
+        "    name = 'raiser'\n"
+        "    version = '0.1'\n\n"
+        "    def fit(self, table):\n"
+        "        self.params, self.fit_loss_ = {}, 0.0\n"
+        "        return self\n\n"
+        "    def predict(self, table):\n"
+        "        return np.column_stack([table['vx'], table['vx'], table['vx']])\n"
+    )
+    info = folder / "raising_plugin-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: raising-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[skidbench.models]\nraiser = raising_plugin:Raiser\n")
+    return folder
+
+
+def test_a_plugin_that_raises_in_predict_fails_loudly_and_compare_ranks_the_others(micro_root, tmp_path):
+    """evaluate with a plugin that raises in predict: exit status 3 with a one-line summary, the console
+    line says where the traceback is, the traceback is the FAILED run's artifact and in the stage log;
+    the stage is not marked failed: compare ranks the other model and shows the failure."""
+    from mlflow import MlflowClient
+
+    root = tmp_path / "out"
+    copy_splits(micro_root, root)
+    env = {
+        "PYTHONPATH": os.pathsep.join(
+            filter(None, [str(_raising_plugin(tmp_path)), os.environ.get("PYTHONPATH")])
+        )
+    }
+    args = [*STAGE_ARGS["split"], "models=[ideal,raiser]", "log_figures=false", "calibrate.use=false"]
+    proc = skidbench("evaluate", root, env=env, base=args, check=False)
+    assert proc.returncode == 3, proc.stderr[-3000:]
+    (summary,) = [line for line in proc.stderr.splitlines() if "FAILED under inputs=" in line]
+    assert summary.startswith(
+        "skidbench evaluate: 1 of 2 model run(s) FAILED under inputs=commanded: raiser/tile"
+    )
+    assert "Traceback" not in proc.stderr
+    assert "FAILED raiser/tile: predict failed: KeyError: 'vx'" in proc.stdout
+    (where,) = [line for line in proc.stdout.splitlines() if line.startswith("  traceback: MLflow run ")]
+    run_id = where.split("MLflow run ")[1].split()[0]
+    client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
+    assert client.get_run(run_id).info.status == "FAILED"
+    text = open(client.download_artifacts(run_id, "error/traceback.txt", str(tmp_path))).read()
+    assert "raising_plugin.py" in text and "in predict" in text and text.rstrip().endswith("KeyError: 'vx'")
+    log_file = Path(where.split("stage log ")[1])  # Hydra's job log of this evaluate
+    assert log_file.is_relative_to(root / "hydra") and "raising_plugin.py" in log_file.read_text()
+
+    proc = skidbench("compare", root, env=env, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv").set_index("model")
+    assert board.loc["ideal", "status"] == "FINISHED" and board.loc["raiser", "status"] == "FAILED"
+
+
+def test_ctrl_c_during_evaluate_is_one_line_its_runs_killed_and_compare_keeps_the_complete_ones(
+    micro_root, tmp_path
+):
+    """Ctrl-C (SIGINT) in the middle of an evaluate that follows a complete one: one line, no traceback,
+    exit status 130, its runs marked KILLED; compare then ranks the complete runs and names the killed one
+    it left out (it refuses nothing)."""
+    from mlflow import MlflowClient
+
+    root = tmp_path / "out"
+    copy_splits(micro_root, root)
+    skidbench("evaluate", root)
+    proc = skidbench(
+        "evaluate", root, "force=true", env={"SKIDBENCH_FAULT": "int@2:.params.json"}, check=False
+    )
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr
+    assert (
+        proc.stderr.strip().splitlines()[-1].startswith("skidbench evaluate: interrupted (Ctrl-C); its open")
+    )
+    client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
+    (exp,) = [e for e in client.search_experiments() if e.name != "Default"]
+    runs = sorted(client.search_runs([exp.experiment_id]), key=lambda r: r.info.start_time)
+    assert [r.info.status for r in runs[3:]] == [
+        "KILLED",
+        "FINISHED",
+        "KILLED",
+    ]  # parent, first child, second
+    proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv").set_index("model")
+    assert (board["status"] == "FINISHED").all() and board.loc["edd", "run_id"] == runs[2].info.run_id
+    assert board.loc["ideal", "run_id"] == runs[4].info.run_id  # the newer complete one
+    (left,) = [line for line in proc.stdout.splitlines() if " left out: KILLED" in line]
+    assert left.strip().startswith(f"edd/tile: run {runs[5].info.run_id[:8]}")
