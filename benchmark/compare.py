@@ -61,61 +61,6 @@ class CompareError(EvaluationError):
 
 
 # -- selecting runs ---------------------------------------------------------------------------------
-ALL_USERS = "all"
-
-
-def whose(cfg: Any) -> str | None:
-    """The user whose runs compare reads (``user``: null = the caller, ``all`` = everyone -> None)."""
-    user = cfg.get("user")
-    if user in (None, ""):
-        return trk.current_user()
-    return None if str(user) == ALL_USERS else str(user)
-
-
-def others_runs(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> pd.DataFrame:
-    """The dataset's child runs under ``inputs`` made by anyone but ``user``, newest first."""
-    runs = sel.search_children(tracker, inputs, filter_string)
-    if runs.empty:
-        return runs
-    return runs[sel._col(runs, f"tags.{trk.TAG_USER}").fillna("?") != user]
-
-
-def not_yours(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> str | None:
-    """When ``user`` has no run under ``inputs`` but others have: the line that says whose and what to
-    type; else None."""
-    others = others_runs(tracker, inputs, filter_string, user)
-    if others.empty:
-        return None
-    names = list(dict.fromkeys(sel._col(others, f"tags.{trk.TAG_USER}").fillna("?")))
-    return (
-        f"no model run of user {user} under inputs={inputs} in experiment {tracker.experiment_name!r} at "
-        f"{tracker.uri}; runs of {', '.join(names)} exist: `skidbench compare user={names[0]}` (or "
-        "user=all), or run `skidbench evaluate` first"
-    )
-
-
-def newer_elsewhere(
-    tracker: trk.Tracker, runs: pd.DataFrame, inputs: str, filter_string: str | None, user: str | None
-) -> str | None:
-    """One line when someone other than ``user`` evaluated this dataset (same protocol) after the newest of
-    the board's ``runs``."""
-    if not user or runs.empty:
-        return None
-    others = others_runs(tracker, inputs, filter_string, user)
-    if others.empty or others["start_time"].iloc[0] <= runs["start_time"].max():
-        return None
-    who = str(sel._col(others, f"tags.{trk.TAG_USER}").fillna("?").iloc[0])
-    parent = sel._col(others, f"tags.{trk.TAG_PARENT}").iloc[0]
-    what = f"run {others['run_id'].iloc[0][:8]}"
-    if isinstance(parent, str) and parent:
-        run = tracker.client.get_run(parent)
-        what = f"{run.info.run_name}, run {parent[:8]}, {run.info.status}"
-    return (
-        f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "
-        f"user={who}` shows theirs"
-    )
-
-
 def select_runs(
     tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None
 ) -> tuple[pd.DataFrame, str | None]:
@@ -561,7 +506,7 @@ def run_compare(cfg: Any) -> CompareResult:
     horizon = float(cfg.horizon)
     parent_cfg = cfg.get("parent_run_id", "latest")
     parent_arg = None if parent_cfg in (None, "", "null") else str(parent_cfg)
-    user = whose(cfg)  # the caller's own runs unless user=<name> | all
+    user = sel.whose(cfg.get("user"))  # the caller's own runs unless user=<name> | all
     # latest: the newest complete run of each (model, terrain) under cfg.inputs, across evaluates; a run
     # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
     # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
@@ -572,8 +517,8 @@ def run_compare(cfg: Any) -> CompareResult:
     left_out: list[str] = []
     if parent_arg == "latest":
         protocol = protocol_of(cfg)
-        if protocol not in selections and user and not_yours(tracker, protocol, cfg.get("filter"), user):
-            raise CompareError(not_yours(tracker, protocol, cfg.get("filter"), user))
+        if protocol not in selections and user and sel.not_yours(tracker, protocol, cfg.get("filter"), user):
+            raise CompareError(sel.not_yours(tracker, protocol, cfg.get("filter"), user))
         if protocol not in selections:
             others = f" (runs exist under inputs={', '.join(selections)})" if selections else ""
             if cfg.get("filter"):
@@ -634,7 +579,9 @@ def run_compare(cfg: Any) -> CompareResult:
 
     notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
     newer = (
-        newer_elsewhere(tracker, runs, protocol, cfg.get("filter"), user) if parent_arg == "latest" else None
+        sel.newer_elsewhere(tracker, runs, protocol, cfg.get("filter"), user)
+        if parent_arg == "latest"
+        else None
     )
     notes += [newer] if newer else []
     log_to = parent or (parents[0] if len(parents) == 1 else None)  # the evaluate run every row hangs from

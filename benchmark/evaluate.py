@@ -247,7 +247,8 @@ def run_benchmark(
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
                 children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
-            board, board_metrics = leaderboard(children, splits, horizons, protocol)
+            rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
+            board, board_metrics = mu.evaluate_leaderboard(rows, splits, horizons[0], protocol)
             tracker.log(
                 parent_id,
                 metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
@@ -546,16 +547,6 @@ def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
         out.append(trk.SplitData(f"{cfg.dataset}/{terrain}/{split}", split, layout.splits / terrain / split,
                                  split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
     return out
-
-
-def leaderboard(children: Sequence[ChildResult], splits, horizons, protocol: str) -> tuple[str, dict]:
-    """The leaderboard of an evaluate for its parent run (:func:`mlflow_ui.leaderboard`): Markdown to put at
-    the top of its description, and per model its mean over terrains and gap to the next as metrics."""
-    cols, labels = mu.board_columns(splits, horizons[0])
-    md, metrics = mu.leaderboard([(c.model, c.terrain, c.status, c.metrics) for c in children], cols, labels)
-    title = (f"**Leaderboard**, inputs={protocol}, {horizons[0]:g} s horizon: mean over terrains, lower is "
-             "better, ranked by the first column")  # fmt: skip
-    return f"{title}\n\n{md}\n\n", metrics
 
 
 def save_views(tracker, parent_id: str, splits, horizons, protocol: str) -> list[str]:

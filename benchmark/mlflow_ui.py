@@ -214,3 +214,16 @@ def leaderboard(
                  "" if gap is None else f"{gap:.2f}", f"{ok[m][0]}/{ok[m][1]}"]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines), metrics
+
+
+def evaluate_leaderboard(
+    rows: Sequence[tuple[str, str, str, Mapping[str, float]]], splits: Sequence[str], horizon_s: float,
+    protocol: str,
+) -> tuple[str, dict[str, float]]:  # fmt: skip
+    """An evaluate's :func:`leaderboard` over :func:`board_columns`: the Markdown that opens its parent
+    run's description (with a title line) and the parent's per-model metrics."""
+    cols, labels = board_columns(splits, horizon_s)
+    md, metrics = leaderboard(rows, cols, labels)
+    title = (f"**Leaderboard**, inputs={protocol}, {horizon_s:g} s horizon: mean over terrains, lower is "
+             "better, ranked by the first column")  # fmt: skip
+    return f"{title}\n\n{md}\n\n", metrics

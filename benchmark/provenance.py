@@ -25,6 +25,50 @@ from typing import Any
 
 from skidbench.pipeline.provenance import git_commit
 
+__all__ = [  # what tracking.py re-exports
+    "MAX_PARAM_LEN",
+    "MAX_TAG_LEN",
+    "TAG_ROLE",
+    "TAG_MODEL",
+    "TAG_MODEL_VERSION",
+    "TAG_PLUGIN",
+    "TAG_TERRAIN",
+    "TAG_DATASET",
+    "TAG_FINGERPRINT",
+    "TAG_DATASET_ID",
+    "TAG_GIT",
+    "TAG_STATUS",
+    "TAG_REASON",
+    "TAG_PARENT",
+    "TAG_USER",
+    "TAG_HOST",
+    "TAG_BOOT",
+    "TAG_PID",
+    "TAG_OUT_ROOT",
+    "TAG_SESSION",
+    "TAG_HEARTBEAT",
+    "TAG_RUN_KEY",
+    "TAG_INPUTS",
+    "TAG_EXTERNAL",
+    "TAG_PREDICTIONS_SHA256",
+    "TAG_NOTE",
+    "USER_ENV",
+    "current_user",
+    "session_id",
+    "process_tags",
+    "owner_tags",
+    "utc_now",
+    "parse_utc",
+    "flatten",
+    "source_tags",
+    "task_overrides",
+    "reproduce_command",
+    "describe",
+    "parent_run_name",
+    "config_params",
+    "git_commit",
+]
+
 MAX_PARAM_LEN = 6000  # MLflow's limit on a param value
 MAX_TAG_LEN = 5000
 

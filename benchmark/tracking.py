@@ -1,24 +1,14 @@
 """MLflow tracking for the benchmark: the store, its health and the :class:`Tracker` every stage logs
-through. Split by job: what a run is and who made it (tags, names, descriptions, params) in
-:mod:`~skidbench.benchmark.provenance`, ending every run and reaping the ones a dead process left open in
+through. Split by job: what a run is and who made it in :mod:`~skidbench.benchmark.provenance`
+(re-exported here), ending every run and reaping the ones a dead process left open in
 :mod:`~skidbench.benchmark.bookkeeping`, the UI's links and saved views in
-:mod:`~skidbench.benchmark.mlflow_ui`.
+:mod:`~skidbench.benchmark.mlflow_ui`; logging a fitted model: :mod:`~skidbench.benchmark.mlflow_model`.
 
-Store: ``mlflow.tracking_uri`` (config; ``MLFLOW_TRACKING_URI`` when set), else the SQLite file
-``<out_root>/mlflow.db`` with artifacts under ``<out_root>/mlartifacts`` (no server needed). An
-``http(s)://`` URI (a ``mlflow server``, a lab's shared one) works the same; it is health-checked first
-so that an unreachable server is one clear line, and MLflow's own HTTP retry and timeout settings get
-bounded defaults (:data:`HTTP_DEFAULTS`) so that a server that goes away mid-run is given up within a
-minute, in one line naming the server and what to do (:class:`StoreUnreachable`), not after minutes of
-retries per request.
-
-Runs (SPEC.md "MLflow"): one *parent* run per ``skidbench evaluate`` invocation and one *child* run per
-(model, terrain), linked by the ``mlflow.parentRunId`` tag. Tags under ``skidbench.*`` say what a run is
-(``skidbench.role`` = parent | child, ``skidbench.model``, ``skidbench.terrain``, ...) and who made it
-(``mlflow.user``, host, output root, session). A child whose model failed ends ``FAILED`` with
-``skidbench.failure_reason``. A run left ``RUNNING`` by a process that is gone is marked ``KILLED``
-(:mod:`~skidbench.benchmark.bookkeeping`): by the next stage that opens the store on the same machine,
-or by ``skidbench runs --reap`` from any machine once its heartbeat is old.
+Store: ``mlflow.tracking_uri`` (``MLFLOW_TRACKING_URI`` when set), else the SQLite file
+``<out_root>/mlflow.db`` with artifacts under ``<out_root>/mlartifacts``. An ``http(s)://`` URI (a
+``mlflow server``, a lab's shared one) works the same: health-checked first (one clear line), MLflow's
+HTTP retry and timeout settings bounded by default (:data:`HTTP_DEFAULTS`), and a server that stops
+answering mid-run ends the command in one line naming the server and what to do (:class:`StoreUnreachable`).
 """
 
 from __future__ import annotations
@@ -45,47 +35,24 @@ from . import bookkeeping as bk
 from .horizon import EvaluationError
 from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
 
-# what a run is and who made it: callers use them as ``tracking.<name>`` (their home is provenance.py)
-from .provenance import (  # noqa: F401
+# what a run is and who made it (every name of provenance.__all__): callers use them as ``tracking.<name>``
+from .provenance import *  # noqa: F403
+from .provenance import (
     MAX_PARAM_LEN,
     MAX_TAG_LEN,
-    TAG_BOOT,
-    TAG_DATASET,
     TAG_DATASET_ID,
-    TAG_EXTERNAL,
-    TAG_FINGERPRINT,
-    TAG_GIT,
     TAG_HEARTBEAT,
-    TAG_HOST,
     TAG_INPUTS,
-    TAG_MODEL,
-    TAG_MODEL_VERSION,
     TAG_NOTE,
-    TAG_OUT_ROOT,
     TAG_PARENT,
-    TAG_PID,
-    TAG_PLUGIN,
-    TAG_PREDICTIONS_SHA256,
     TAG_REASON,
     TAG_ROLE,
-    TAG_RUN_KEY,
-    TAG_SESSION,
     TAG_STATUS,
-    TAG_TERRAIN,
     TAG_USER,
-    config_params,
-    current_user,
-    describe,
-    flatten,
-    git_commit,
     owner_tags,
-    parent_run_name,
-    process_tags,
-    reproduce_command,
     source_tags,
-    task_overrides,
     utc_now,
-)
+)  # fmt: skip
 
 log = logging.getLogger(__name__)
 
@@ -235,31 +202,6 @@ def _env(**values: str) -> Iterator[None]:
         yield
     finally:
         for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-@contextlib.contextmanager
-def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
-    """MLflow's current tracking URI and experiment set for a block, then restored with the environment
-    variables ``mlflow.set_tracking_uri``/``set_experiment`` export (the config reads
-    MLFLOW_TRACKING_URI: left set, a stage's cache key would change after its run)."""
-    import mlflow
-    from mlflow.tracking import fluent
-    from mlflow.tracking._tracking_service import utils as tracking_utils
-
-    names = ("MLFLOW_TRACKING_URI", "MLFLOW_EXPERIMENT_ID")
-    env = {k: os.environ.get(k) for k in names}
-    saved = (tracking_utils._tracking_uri, fluent._active_experiment_id)
-    mlflow.set_tracking_uri(uri)
-    mlflow.set_experiment(experiment_id=experiment_id)
-    try:
-        yield
-    finally:
-        tracking_utils._tracking_uri, fluent._active_experiment_id = saved
-        for k, v in env.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
@@ -560,30 +502,11 @@ class Tracker:
         rows, which MLflow stores and checks the model with); returns its model id.
         Requirements are given, not inferred (inference loads the model in a subprocess: seconds):
         ``requirements``, else skidbench's (:func:`skidbench.pipeline.provenance.requirements_of`)."""
-        import mlflow
-        from mlflow.models import Model
-
         from . import mlflow_model as mm
 
-        # Model.log talks to the current tracking URI and creates the model in the current experiment:
-        # both set for the call only (they are process-wide, and MLFLOW_TRACKING_URI is part of the config)
-        with (
-            _mlflow_current(self.uri, self.experiment_id),
-            _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"),
-        ):
-            info = self.call(
-                Model.log,
-                artifact_path=None,
-                name=_safe_name(name)[:100],
-                flavor=mlflow.pyfunc,
-                run_id=run_id,
-                python_model=str(Path(mm.__file__).with_name("mlflow_model_code.py")),  # models from code
-                artifacts={mm.ARTIFACT: str(record), **({mm.ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
-                signature=mm.signature(),
-                input_example=example,
-                pip_requirements=list(requirements or requirements_of()),
-            )
-        return info.model_id
+        with _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"):
+            return self.call(mm.log_pyfunc, self.uri, self.experiment_id, run_id, _safe_name(name)[:100],
+                             record, example, arrays, list(requirements or requirements_of()))  # fmt: skip
 
     def dataset_filter(self) -> list[str]:
         """The search clause that keeps this dataset's runs only (none without a dataset id)."""
@@ -637,37 +560,6 @@ class Tracker:
                     )
                 return run.info.run_id
         return runs[0].info.run_id
-
-
-def store_client(uri: str, timeout_s: float = 5.0) -> Any | None:
-    """An ``MlflowClient`` of the store ``uri`` with skidbench's HTTP settings (a server health-checked
-    first), for commands that read a whole store; None for a local store that does not exist yet."""
-    if not has_store(uri):
-        return None
-    quiet_mlflow_logs()
-    if is_server(uri):
-        use_http_defaults()
-    check_reachable(uri, timeout_s)
-    from mlflow.tracking import MlflowClient
-
-    return MlflowClient(tracking_uri=uri)
-
-
-def call_store(uri: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
-    """``fn(*args, **kwargs)`` (calls to the store ``uri``) with its errors as one line: a server that stops
-    answering names the server and what to do; another MLflow error its message."""
-    from mlflow.exceptions import MlflowException
-
-    try:
-        return fn(*args, **kwargs)
-    except MlflowException as exc:
-        reason = unreachable(exc)
-        if reason:
-            raise StoreUnreachable(
-                f"MLflow tracking server {uri} does not answer ({reason}); check it "
-                f"({uri.rstrip('/')}/health) and run the command again"
-            ) from None
-        raise EvaluationError(f"MLflow store {uri}: {one_line(exc.message)[:300]}") from None
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
