@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce test test-fast lint clean bench discover mlflow-ui lock system-packages
+.PHONY: setup reproduce readme-numbers test test-fast lint clean bench discover mlflow-ui lock system-packages
 
 setup: $(STAMP)
 
@@ -74,6 +74,13 @@ endif
 	$(SKB) evaluate $(SRC_ARGS) inputs=response
 	$(SKB) compare $(SRC_ARGS)
 
+# `make readme-numbers OUT=<dir>` after `make reproduce OUT=<dir>` (a fresh root, the default mini scale):
+# the record of that run's leaderboards (docs/results/reproduce-mini.json: per protocol and model the
+# README's four numbers, with the run ids, commit and versions) and the README block to paste after its
+# marker; tests/test_readme_numbers.py checks the README against the record.
+readme-numbers: setup
+	$(BIN)/python tests/readme_numbers.py $(OUT)
+
 # `make discover`: discrepancy discovery from the extended differential drive (model=edd) on the same data
 # (default: the simulated mini dataset) -> $(OUT)/<dataset>/discovery/{discovery.json,discovery.png}; then
 # the benchmark scores the base and the discovered model (fitted on Train, scored on CV/LD) side by side.
@@ -101,8 +108,13 @@ mlflow-ui: setup
 # The Ray tests need the optional `cluster` extra: installed best-effort, once per pyproject.toml change;
 # where it cannot be installed those tests are skipped with the reason.
 CLUSTER_STAMP := $(VENV)/.skidbench-cluster
-$(CLUSTER_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(LOCK)) -e '.[dev,cluster]' \
+# The lock's pins as constraints without their hashes (pip refuses an editable install beside hashed
+# constraints): the extra's own packages resolve freely, everything the lock pins keeps its version.
+CONSTRAINTS := $(VENV)/constraints.txt
+$(CONSTRAINTS): $(STAMP)
+	grep -E '^[A-Za-z0-9_.-]+==' $(LOCK) | sed 's/ *\\$$//' > $@
+$(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,cluster]' \
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 

@@ -49,7 +49,7 @@ class Comparison:
 
 
 COMPARISONS: dict[str, Comparison] = {}
-_NOT_COMPARISONS = {"harness", "__main__"}
+_NOT_COMPARISONS = {"harness", "__main__", "discover_fdr"}
 
 
 def register(name: str, description: str, targets: dict[str, tuple[str, float]] | None = None):

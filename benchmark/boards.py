@@ -74,10 +74,6 @@ class Board:
     settings: dict[str, Any] = field(default_factory=dict)
     rows: pd.DataFrame = field(default_factory=pd.DataFrame)
 
-    def metric_columns(self) -> list[str]:
-        """The RMSRE columns (%) of the horizon shown: ``<split>_<h>s_<trans|rot>_rmsre_pct``."""
-        return [c for c in self.rows.columns if c.endswith("_rmsre_pct")]
-
 
 def _literal(text: Any) -> Any:
     """An MLflow param (a string) back to its value: ``"[6.0]"`` -> [6.0], ``"0.5"`` -> 0.5."""

@@ -1,26 +1,29 @@
 """Discrepancy discovery: find where a model and the measured data disagree and name the missing
 physical effect (SPEC.md "Discrepancy discovery").
 
-Workflow, per terrain, on the Train split:
+Workflow, per terrain, on the Train split only (the test splits are never read):
 
+0. The pool: the Train sequences, each a held-out unit (time blocks of them when there are fewer than
+   ``min_units``; a terrain too small for the test is refused), the commands aligned with the grid
+   (:func:`align_commands`: the split's hold of 45 Hz commands on its 30 Hz grid is up to a quarter
+   command period older or younger than what the velocities see).
 1. Fit the base model (default: extended differential drive, ``edd``) and take its residuals: body
    velocities (vx, vy, wz) against ground truth, and 6 s horizon pose errors (RMSRE).
 2. For every effect of the catalogue (:mod:`skidbench.models.effects`) not yet in the model, fit the
    augmented model (base model refitted together with the effect's parameters, by alternation) on the
-   training folds and predict the held-out fold. Folds are whole sequences (k-fold over sequences;
-   long sequences are cut into contiguous chunks when there are too few of them), never random rows.
-3. Score each candidate against the current model on the held-out predictions.
-4. Add the best candidate that passes the significance rule, refit, and repeat; stop when none passes
-   ("no missing effect found").
+   training folds and predict the held-out fold; likewise the library terms (:mod:`skidbench.models.terms`)
+   that a majority of the folds' own screens select, each fold with its own knots.
+3. Score each candidate against the current model on the held-out predictions, and every candidate of the
+   step together by the search-wide test (the best of them against what a dataset with nothing missing
+   gives).
+4. Add the best candidate that passes (a catalogue name unless a term is significantly better), refit,
+   and repeat; stop when none passes ("no missing effect found").
 
-The held-out evaluation and the significance rule (a penalised held-out 6 s gain, a paired sign-flip
-test over held-out units, velocity residuals that agree) are in :mod:`skidbench.benchmark.discover_stats`;
-the figure data in :mod:`skidbench.benchmark.discover_panels`.
+The held-out evaluation and the significance rule are in :mod:`skidbench.benchmark.discover_stats`; the
+figure data in :mod:`skidbench.benchmark.discover_panels`.
 
 Effects keep their physical direction (parameter bounds in the catalogue: slips are shortfalls, the
 side slip is outward, chi grows in tight turns, the turn deficit grows with speed).
-
-Among the candidates that pass, the one with the largest penalised gain is added.
 """
 
 from __future__ import annotations
@@ -48,6 +51,9 @@ from skidbench.benchmark.discover_stats import (
     compare,
     cross_validate,
     explains_better,
+    folds_of,
+    search_test,
+    sign_flip_pvalue,
 )
 from skidbench.models import terms as termlib
 from skidbench.models.effect_fit import (
@@ -116,6 +122,35 @@ def too_small(pool: Pool, settings: DiscoverSettings) -> str | None:
     return None
 
 
+def align_commands(pool: Pool, robot: Robot) -> Pool:
+    """The pool with each sequence's commands shifted by the timing error of their association with the
+    grid (``cmd_association.offset_s`` of its split metadata, :mod:`skidbench.pipeline.splits.build`):
+    the wheel commands read at ``t + offset`` (linear interpolation between grid samples, the ends held),
+    ``cmd_v``/``cmd_w`` recomputed from them with the robot's ideal kinematics (as the split does) and
+    their derivatives taken as the split takes them. Without it a commensurate command rate (45 Hz on the
+    30 Hz grid) shows as a lag or a lead of up to a quarter command period, which the search would name
+    (``lin.dw*|v|.wz`` for a lead: the catalogue's slips only take a lag). Sequences without the record
+    are left as they are; ``pool.alignment`` lists what was applied."""
+    table = pool.table.copy()
+    applied = {}
+    for g, meta in enumerate(pool.metas):
+        off = float(((meta or {}).get("cmd_association") or {}).get("offset_s") or 0.0)
+        if off == 0.0:
+            continue
+        rows = np.flatnonzero(pool.groups == g)
+        t = pool.t[rows]
+        wl = np.interp(t + off, t, table["cmd_wl"].to_numpy(float)[rows])
+        wr = np.interp(t + off, t, table["cmd_wr"].to_numpy(float)[rows])
+        v, w = robot.twist_from_wheel_rates(wl, wr)  # (linear: the same as shifting cmd_v, cmd_w)
+        cols = {"cmd_v": v, "cmd_w": w, "cmd_wl": wl, "cmd_wr": wr}
+        if len(t) >= 2:
+            cols |= {"cmd_dwl": np.gradient(wl, t), "cmd_dwr": np.gradient(wr, t)}
+        for c, x in cols.items():
+            table.loc[rows, c] = x
+        applied[pool.sequences[g]] = off
+    return dataclasses.replace(pool, table=table, alignment=applied)
+
+
 def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None) -> Pool:
     """The pool with its inputs replaced by those of the input protocol (pipeline/protocol.py), computed
     per original sequence (``pool.groups``), targets and held-out units kept: discovery then searches
@@ -124,6 +159,16 @@ def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None
     table = fit_table(pool.table.assign(sequence=pool.groups), protocol, robot, response)
     table["sequence"] = pool.units
     return dataclasses.replace(pool, table=table)
+
+
+def prepare_pool(pool: Pool, inputs: str, robot: Robot, response: Any = None) -> Pool:
+    """The pool as the search sees it under the input protocol ``inputs``: the commands aligned with
+    the grid (:func:`align_commands`) under ``commanded``; the protocol's inputs otherwise
+    (:func:`apply_protocol`: the calibrated wheel response already holds the association's timing, the
+    encoders have none)."""
+    if inputs == "commanded":
+        return align_commands(pool, robot)
+    return apply_protocol(pool, inputs, robot, response)
 
 
 # -- the result, and the parts of a step -----------------------------------------------------------
@@ -210,21 +255,22 @@ def _term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
     return p
 
 
-def _naming(kind: str, ev: dict, scored_t: dict, scored_c: dict, n_params: int) -> dict[str, Any]:
+def _naming(
+    kind: str, ev: dict, scored_t: ScoredTerms, scored_c: Scored, n_params: int, equivalents: list[dict]
+) -> dict[str, Any]:
     """The check behind a name: a catalogue effect against the best open-ended term of no more
-    parameters; a term against the best catalogue effect."""
+    parameters (and the terms listed as its equivalents); a term against the best catalogue effect."""
     if kind == "catalogue":
-        rivals = {k: e for k, (e, _, t) in scored_t.items() if t.n_params <= n_params}
+        rivals = {k: v[0] for k, v in scored_t.items() if v[2].n_params_with_knots <= n_params}
     else:
-        rivals = {k: e for k, (e, _) in scored_c.items()}
-    if not rivals:
-        return {"rival": None, "rival_heldout_gain": None, "heldout_gain": ev["heldout_gain"]}
-    best = max(rivals, key=lambda k: rivals[k]["heldout_gain"])
-    return {
-        "rival": best,
-        "rival_heldout_gain": rivals[best]["heldout_gain"],
-        "heldout_gain": ev["heldout_gain"],
-    }
+        rivals = {k: v[0] for k, v in scored_c.items()}
+    out: dict[str, Any] = {"rival": None, "rival_heldout_gain": None, "heldout_gain": ev["heldout_gain"]}
+    if rivals:
+        best = max(rivals, key=lambda k: rivals[k]["heldout_gain"])
+        out |= {"rival": best, "rival_heldout_gain": rivals[best]["heldout_gain"]}
+    if kind == "catalogue":
+        out["equivalent_terms"] = equivalents
+    return out
 
 
 def unexplained_report(pool: Pool, aug: Augmenter, state: FitState, ho: HeldOut) -> dict[str, Any]:
@@ -256,7 +302,8 @@ def unexplained_report(pool: Pool, aug: Augmenter, state: FitState, ho: HeldOut)
 # -- the search, step by step -----------------------------------------------------------------------
 
 Scored = dict[str, tuple[dict[str, Any], HeldOut]]  # catalogue effect -> (evidence, held-out evaluation)
-ScoredTerms = dict[str, tuple[dict[str, Any], HeldOut, termlib.Term]]  # term key -> (..., the term)
+#: library form -> (evidence, held-out evaluation, the form (no knots), each fold's term with its knots)
+ScoredTerms = dict[str, tuple[dict[str, Any], HeldOut, termlib.Term, list[termlib.Term]]]
 
 
 @dataclass
@@ -286,11 +333,13 @@ class _Search:
 
 
 def _show(run: _Search, name: str, ev: dict[str, Any]) -> None:
-    """One progress line: a candidate's held-out gains and whether it passes the rule."""
+    """One progress line: a candidate's held-out gains, its own and its search-wide p-value, and whether
+    it passes the rule."""
     run.say(
         f"[{run.terrain}]   {name:28s} gain {ev['heldout_gain']:+.4f} (penalised "
-        f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} "
-        f"velocity gain {ev['velocity_gain']:+.4f}{'  PASS' if ev['passes'] else ''}"
+        f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} p_search={ev.get('p_search', 1.0):.3g} "
+        f"velocity gain {ev['velocity_gain']:+.4f}{'' if ev['stable_across_folds'] else ' unstable'}"
+        f"{'  PASS' if ev['passes'] else ''}"
     )
 
 
@@ -327,6 +376,7 @@ def _fit_base(
         "n_samples": int(pool.valid.sum()),
         "pool_note": pool.note,
         "selected_on": pool.describe(),
+        "command_alignment_s": dict(pool.alignment),  # align_commands: each sequence's command shift
     }
     if pool.note:
         say(f"[{terrain}] note: {pool.note}")
@@ -346,90 +396,139 @@ def _score_catalogue(run: _Search, candidates: tuple[str, ...]) -> Scored:
         if eid in run.effects:
             continue
         ho = cross_validate(run.aug, run.effects + [eid], run.warm, run.terms)
-        ev = compare(run.cur, ho, CATALOGUE[eid].n_params, run.settings)
-        scored[eid] = (ev, ho)
-        _show(run, eid, ev)
+        scored[eid] = (compare(run.cur, ho, CATALOGUE[eid].n_params, run.settings), ho)
     return scored
 
 
-def _score_terms(run: _Search) -> tuple[ScoredTerms, dict[str, Any], termlib.Screen | None]:
-    """The open-ended terms (``discover.open_ended``): the sparse regression on the current model's
-    held-out residual picks up to ``max_terms`` candidates, each scored held out like a catalogue effect.
-    Returns the scores, what the screen selected (for the record) and the screen (none when off)."""
+def _excluded_forms(run: _Search) -> tuple[str, ...]:
+    """Library forms not searched: the terms already added, the equivalents of the catalogue effects
+    already added (the same residual under another name) and, when the held-out units are time blocks
+    of a few sequences, the forms that are functions of sequence time (:func:`terms.time_forms`: blocks
+    of one sequence share its ground truth's slow drift, so they cannot test a change over time)."""
+    eq = [f for e in run.effects for f in termlib.equivalent_forms(e)]
+    timed = termlib.time_forms() if run.pool.blocks else []
+    return tuple(t.form for t in run.terms) + tuple(eq) + tuple(timed)
+
+
+def _fold_screens(run: _Search) -> termlib.FoldScreens:
+    """The library screened once per fold, each on its training units only: the current model fitted on
+    them (as :func:`cross_validate` fits it) and the sparse regression on what it leaves there. A form
+    is a candidate when a majority of the folds select it, and each fold's held-out evaluation uses the
+    knots its own screen chose, so no held-out unit takes part in choosing what it is scored on."""
+    pool, aug = run.pool, run.aug
+    screens = []
+    for held in folds_of(pool, run.settings.folds):
+        train = np.setdiff1d(np.arange(pool.n_units), held)
+        st = aug.fit(run.effects, train, run.warm, fixed_tau=True, terms=run.terms)
+        rows = np.isin(pool.units, train) & pool.valid
+        sig = aug.signals(st.feats, st.base_pred)
+        screens.append(
+            termlib.screen(
+                sig,
+                termlib.base_gains(sig, rows),
+                run.robot.track_width,
+                pool.target - st.pred,
+                rows,
+                aug.weights,
+                exclude=_excluded_forms(run),
+                max_candidates=run.settings.max_terms,
+            )
+        )
+    return termlib.FoldScreens(screens, min_folds=len(screens) // 2 + 1)
+
+
+def _score_form(run: _Search, fs: termlib.FoldScreens, template: termlib.Term, scored_t: ScoredTerms) -> None:
+    """One library form added to the current model, each fold with its own screen's knots, scored held
+    out against the current model (into ``scored_t``)."""
+    fold_terms = fs.fold_terms(template)
+    ho = cross_validate(run.aug, run.effects, run.warm, run.terms, fold_terms=fold_terms)
+    ev = compare(run.cur, ho, template.n_params_with_knots, run.settings, template.touched, "candidate_term")
+    ev["fold_votes"] = fs.votes(template.form)
+    ev["fold_knots"] = [list(t.knots) for t in fold_terms]
+    scored_t[template.form] = (ev, ho, template, fold_terms)
+
+
+def _score_terms(run: _Search) -> tuple[ScoredTerms, dict[str, Any], termlib.FoldScreens | None]:
+    """The open-ended terms (``discover.open_ended``): the forms a majority of the folds' screens select
+    (:func:`_fold_screens`), at most ``max_terms``, each scored held out like a catalogue effect.
+    Returns the scores, what the screens selected (for the record) and the screens (none when off)."""
     scored_t: ScoredTerms = {}
     if not run.settings.open_ended:
         return scored_t, {}, None
-    sig = run.aug.signals(run.state.feats, run.state.base_pred)
-    gains = termlib.base_gains(sig, run.pool.valid)
-    scr = termlib.screen(
-        sig,
-        gains,
-        run.robot.track_width,
-        run.pool.target - run.cur.pred,
-        run.pool.valid,
-        run.aug.weights,
-        exclude=tuple(t.key for t in run.terms),
-        max_candidates=run.settings.max_terms,
-    )
-    screen_info = {"stlsq_support": scr.selected, "candidates": [t.key for t in scr.candidates]}
-    for term in scr.candidates:
-        ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [term])
-        ev = compare(run.cur, ho, term.n_params, run.settings, term.touched)
-        scored_t[term.key] = (ev, ho, term)
-        _show(run, term.key, ev)
-    return scored_t, screen_info, scr
-
-
-def _score_rival(
-    run: _Search, best_c: str, scored_t: ScoredTerms, table_t: dict[str, Any], scr: termlib.Screen
-) -> str | None:
-    """The catalogue's best must beat the library's best term of no more parameters on its channels:
-    that rival, when the screen has one not yet scored, is scored and recorded (``scored_t``,
-    ``table_t``). Returns its key when it passes."""
-    chans = tuple(CHANNELS.index(c) for c in channels_of(best_c))
-    rival = scr.rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t))
-    if rival is None:
-        return None
-    ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [rival])
-    ev = compare(run.cur, ho, rival.n_params, run.settings, rival.touched)
-    scored_t[rival.key] = (ev, ho, rival)
-    table_t[rival.key] = _evidence_row(ev)
-    _show(run, rival.key, ev)
-    return rival.key if ev["passes"] else None
-
-
-def _choose(
-    run: _Search, scored: Scored, scored_t: ScoredTerms, table_t: dict[str, Any], scr: termlib.Screen | None
-) -> tuple[str, str] | None:
-    """The candidate to add, as (kind, id) with kind "catalogue" or "term"; None when none passes. The
-    passing catalogue effect of largest penalised gain is named unless a passing term explains the
-    held-out velocity residual significantly better, unit by unit (the same sign-flip test), and is no
-    more complex or has the larger penalised gain too; with no passing effect, the best passing term."""
-    passing = [e for e, (ev, _) in scored.items() if ev["passes"]]
-    passing_t = [k for k, (ev, _, _) in scored_t.items() if ev["passes"]]
-    if not passing:
-        return ("term", max(passing_t, key=lambda k: scored_t[k][0]["penalised_gain"])) if passing_t else None
-    best_c = max(passing, key=lambda e: scored[e][0]["penalised_gain"])
-    if run.settings.open_ended and scr is not None:
-        rival = _score_rival(run, best_c, scored_t, table_t, scr)
-        if rival is not None:
-            passing_t.append(rival)
-    cat_ev, cat_ho = scored[best_c]
-    better = {
-        k: explains_better(scored_t[k][1], cat_ho, run.settings)
-        for k in passing_t
-        if scored_t[k][2].n_params <= CATALOGUE[best_c].n_params
-        or scored_t[k][0]["penalised_gain"] > cat_ev["penalised_gain"]
+    fs = _fold_screens(run)
+    stable = fs.stable(run.settings.max_terms)
+    screen_info = {
+        "fold_supports": [sc.selected for sc in fs.screens],
+        "candidates": [t.form for t in stable],
+        "min_folds": fs.min_folds,
     }
-    winners = [k for k, (ok, _) in better.items() if ok]
-    if not winners:
-        return ("catalogue", best_c)
-    name = max(winners, key=lambda k: scored_t[k][0]["penalised_gain"])
-    run.say(
-        f"[{run.terrain}]   {best_c} not named: {name} explains the held-out residual better "
-        f"(p = {better[name][1]:.3g})"
-    )
-    return ("term", name)
+    for template in stable:
+        _score_form(run, fs, template, scored_t)
+    return scored_t, screen_info, fs
+
+
+def _score_rival(run: _Search, best_c: str, scored_t: ScoredTerms, fs: termlib.FoldScreens) -> None:
+    """The catalogue's best must beat the library's best form of no more parameters on its channels
+    (best mean share over the folds' screens): that rival, when not scored yet, is scored too."""
+    chans = tuple(CHANNELS.index(c) for c in channels_of(best_c))
+    rival = fs.best_rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t) + _excluded_forms(run))
+    if rival is not None:
+        _score_form(run, fs, rival, scored_t)
+
+
+def _best_catalogue(scored: Scored, key: str = "rule_ok") -> str | None:
+    ok = [e for e, (ev, _) in scored.items() if ev[key]]
+    return max(ok, key=lambda e: scored[e][0]["penalised_gain"]) if ok else None
+
+
+def significantly_better(a: dict[str, Any], ho_a: HeldOut, b: dict[str, Any], ho_b: HeldOut, s) -> bool:
+    """Whether candidate a beats candidate b beyond their uncertainty: its per-unit held-out 6 s gains are
+    larger (one-sided sign-flip test of the differences at ``alpha``) and its held-out velocity residual
+    is smaller unit by unit (:func:`explains_better`). Otherwise the two explain the residual equally."""
+    da = np.array([np.nan if x is None else x for x in a["unit_gains"]], float)
+    db = np.array([np.nan if x is None else x for x in b["unit_gains"]], float)
+    diff = da - db
+    pose_ok = bool(np.nanmean(diff) > 0 and sign_flip_pvalue(diff, s.seed) <= s.alpha)
+    return pose_ok and explains_better(ho_a, ho_b, s)[0]
+
+
+def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, str, list[dict]] | None:
+    """The candidate to add, as (kind, id, equivalent terms) with kind "catalogue" or "term"; None when
+    none passes. The interpretable name wins a tie: the passing catalogue effect of largest penalised gain
+    is named unless a passing term is significantly better (:func:`significantly_better`); a term
+    that states a passing catalogue effect in other words (``terms.catalogue_equivalent``) names
+    that effect. The terms that explain the named effect's residual as well are listed as its
+    equivalents."""
+    best_c = _best_catalogue(scored, "passes")
+    passing_t = [k for k, v in scored_t.items() if v[0]["passes"]]
+    if best_c is None and not passing_t:
+        return None
+
+    def equivalents(eid: str) -> list[dict]:
+        ev_c, ho_c = scored[eid]
+        out = []
+        for k, (ev, ho, _, _) in scored_t.items():
+            same = termlib.catalogue_equivalent(k) == eid
+            if same or (ev["passes"] and not significantly_better(ev, ho, ev_c, ho_c, run.settings)):
+                out.append({"term": k, "heldout_gain": ev["heldout_gain"], "p_search": ev.get("p_search"),
+                            "reparametrisation": same})  # fmt: skip
+        return out
+
+    better = [
+        k
+        for k in passing_t
+        if best_c is None or significantly_better(*scored_t[k][:2], *scored[best_c], run.settings)
+    ]
+    if not better:
+        return ("catalogue", best_c, equivalents(best_c))
+    name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
+    eid = termlib.catalogue_equivalent(name)
+    if eid is not None and eid in scored and scored[eid][0]["passes"]:
+        run.say(f"[{run.terrain}]   {name} states {eid} in another form: named {eid}")
+        return ("catalogue", eid, equivalents(eid))
+    if best_c is not None:
+        run.say(f"[{run.terrain}]   {best_c} not named: {name} is significantly better")
+    return ("term", name, [])
 
 
 def _report_unexplained(
@@ -451,7 +550,12 @@ def _report_unexplained(
 
 
 def _add_effect(
-    run: _Search, name: str, scored: Scored, scored_t: ScoredTerms, evidence: dict[str, Any]
+    run: _Search,
+    name: str,
+    scored: Scored,
+    scored_t: ScoredTerms,
+    evidence: dict[str, Any],
+    equivalents: list[dict],
 ) -> HeldOut:
     """Add the catalogue effect ``name``: refit on every training unit, record the step (its explanation,
     evidence, naming check and parameters) and its residual panel. Returns its held-out evaluation."""
@@ -468,12 +572,14 @@ def _add_effect(
             "explanation": e.explanation,
             "formula": e.formula,
             "evidence": {**ev, **evidence},
-            "naming": _naming("catalogue", ev, scored_t, scored, e.n_params),
+            "naming": _naming("catalogue", ev, scored_t, scored, e.n_params, equivalents),
             "params": jsonable_params(run.state.params),
             "heldout_rmsre_before": run.cur.rmsre,
             "heldout_rmsre_after": ho.rmsre,
         }
     )
+    if equivalents:
+        run.say(f"[{run.terrain}]   {name}: equivalent terms " + ", ".join(q["term"] for q in equivalents))
     run.figure_data.append(residual_panel(run.pool, prev_state, name, run.cur, run.state))
     return ho
 
@@ -481,15 +587,16 @@ def _add_effect(
 def _add_term(
     run: _Search, name: str, scored: Scored, scored_t: ScoredTerms, evidence: dict[str, Any]
 ) -> tuple[HeldOut, termlib.Term]:
-    """Add the open-ended term ``name``: its knots refined with the model (and its held-out evidence
-    re-taken when they moved), refit on every training unit, record the step (the term described with
-    its constants) and its panel. Returns its held-out evaluation and the term as added."""
-    ev, ho, term = scored_t[name]
-    refined = refine_knots(run.aug, run.effects, run.warm, run.terms, term, run.all_units)
-    if refined != term:  # the held-out evidence of the model as it is added
-        ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [refined])
-        ev = compare(run.cur, ho, refined.n_params, run.settings, refined.touched)
-        term = refined
+    """Add the library form ``name``: its knots (the median of the folds' screens) refined with the model
+    on every training unit, refit, record the step (the term described with its constants; the evidence
+    is the one the choice was made on, each fold with its own knots) and its panel. Returns the held-out
+    evaluation of the model as added (the knots fixed) and the term."""
+    ev, ho, template, fold_terms = scored_t[name]
+    term = template
+    if fold_terms and fold_terms[0].knots:
+        term = template.with_knots(np.median([t.knots for t in fold_terms], axis=0))
+        term = refine_knots(run.aug, run.effects, run.warm, run.terms, term, run.all_units)
+        ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [term])
     prev_state = run.state
     run.state = run.aug.fit(run.effects, run.all_units, run.warm, terms=run.terms + [term])
     run.warm = {k: v for k, v in run.state.params.items()}
@@ -503,7 +610,7 @@ def _add_term(
             "formula": f"{'vx, wz' if term.channel < 0 else CHANNELS[term.channel]} += theta * g, "
             f"g = {term.key}",
             "evidence": {**ev, **evidence},
-            "naming": _naming("term", ev, scored_t, scored, term.n_params),
+            "naming": _naming("term", ev, scored_t, scored, term.n_params, []),
             "params": {term.key: _term_step_params(run.state, term)},
             "heldout_rmsre_before": run.cur.rmsre,
             "heldout_rmsre_after": ho.rmsre,
@@ -609,21 +716,29 @@ def discover_terrain(
     run = _fit_base(pool, factory, robot, settings, terrain, base_name, say)
     while len(run.effects) + len(run.terms) < settings.max_effects:
         scored = _score_catalogue(run, candidates)
-        scored_t, screen_info, scr = _score_terms(run)
+        scored_t, screen_info, fs = _score_terms(run)
+        best_c = _best_catalogue(scored)
+        if best_c is not None and fs is not None:
+            _score_rival(run, best_c, scored_t, fs)
+        # the search-wide test: every candidate of the step against the best a clean dataset would give
+        every = {**{e: v[0] for e, v in scored.items()}, **{k: v[0] for k, v in scored_t.items()}}
+        search_test(every, settings)
+        for name, v in [*scored.items(), *scored_t.items()]:
+            _show(run, name, v[0])
         evidence = {
-            "candidates": {e: _evidence_row(ev) for e, (ev, _) in scored.items()},
-            "terms": {k: _evidence_row(ev) for k, (ev, _, _) in scored_t.items()},
+            "candidates": {e: _evidence_row(v[0]) for e, v in scored.items()},
+            "terms": {k: _evidence_row(v[0]) for k, v in scored_t.items()},
             "screen": screen_info,
         }
-        choice = _choose(run, scored, scored_t, evidence["terms"], scr)
+        choice = _choose(run, scored, scored_t)
         if choice is None:
             _report_unexplained(run, scored, scored_t, evidence)
             break
-        kind, name = choice
+        kind, name, equivalents = choice
         if kind == "catalogue":
-            ho, term = _add_effect(run, name, scored, scored_t, evidence), None
+            ho, term = _add_effect(run, name, scored, scored_t, evidence, equivalents), None
         else:
             ho, term = _add_term(run, name, scored, scored_t, evidence)
-        _accept(run, name, kind, ho)
+        _accept(run, name if kind == "catalogue" else term.key, kind, ho)
         _reweight(run, kind, term)
     return _result(run, base_name, t_start)

@@ -23,9 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from skidbench.benchmark.discover import (
     NO_EFFECT_MESSAGE,
     TerrainDiscovery,
-    apply_protocol,
     discover_terrain,
     load_pool,
+    prepare_pool,
     refused_terrain,
     too_small,
 )
@@ -173,8 +173,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
         constants = calibrated_constants(get_model_class(base_name))
         robot_t = robot_for_model(cfg, constants, terrain)[0] if own_splits else robot
-        if inputs != "commanded":
-            pool = apply_protocol(pool, inputs, robot, _response(cfg, terrain, pool, inputs, own_splits))
+        response = _response(cfg, terrain, pool, inputs, own_splits)
+        pool = prepare_pool(pool, inputs, robot, response)
         res = discover_terrain(
             pool,
             lambda r=robot_t: build_model(cfg, base_name, r),

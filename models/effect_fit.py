@@ -62,14 +62,18 @@ class DiscoverSettings:
 
     def rule(self) -> str:
         return (
-            f"add the best effect whose held-out {self.horizon_s:g} s gain G = sum over (translational, "
+            f"add the best candidate whose held-out {self.horizon_s:g} s gain G = sum over (translational, "
             f"rotational) of log(RMSRE_before^2 / RMSRE_after^2) satisfies G - {self.penalty_per_param:g} * "
-            f"n_params >= {self.min_gain:g}, whose per-held-out-unit gains pass a one-sided paired sign-flip "
-            f"test at alpha = {self.alpha:g}, and whose held-out velocity residual (sum over vx, vy, wz of "
-            f"log MSE_before/MSE_after) also improves with no changed channel worse by more than "
-            f"{self.channel_tolerance:g}; held out by {self.folds}-fold over whole {'/'.join(self.splits)} "
+            f"n_params >= {self.min_gain:g}, whose per-held-out-unit gains pass the search-wide test (a "
+            f"max-statistic sign-flip test over every candidate of the step, catalogue effects and library "
+            f"terms together: p_search <= alpha = {self.alpha:g}), whose fitted parameter has one sign in "
+            f"every fold, and whose held-out velocity residual (sum over vx, vy, wz of log "
+            f"MSE_before/MSE_after) also improves with no changed channel worse by more than "
+            f"{self.channel_tolerance:g}; library terms are the forms a majority of the folds' screens "
+            f"(each on its training units only) select; a catalogue name wins unless a term is "
+            f"significantly better; held out by {self.folds}-fold over whole {'/'.join(self.splits)} "
             f"sequences (contiguous time blocks of {self.horizon_s:g} to {self.chunk_s:g} s when there are "
-            f"fewer than {self.min_units}); the test splits are never read"
+            f"fewer than {self.min_units}); the test splits are never read; commands aligned with the grid"
         )
 
 
@@ -91,6 +95,7 @@ class Pool:
     sequences: list[str]
     note: str = ""
     metas: list[dict] = field(default_factory=list)  # each sequence's split metadata, in ``groups`` order
+    alignment: dict[str, float] = field(default_factory=dict)  # sequence -> command shift applied (s)
 
     @property
     def blocks(self) -> bool:

@@ -61,6 +61,49 @@ CATALOGUE_FORMS = {
     (2, "wz_pred*|v|"),  # speed_dependent_turn_slip (either sign: the catalogue bounds the physical one)
     (2, "w*|v|"),
 }
+#: library forms that are reparametrisations of a catalogue effect: there the catalogue's name is reported
+#: and the form listed as its equivalent. One side's slip ratio s (eq. (8)) is a left/right effective
+#: radius ratio 1 - s (``side_asymmetry``'s yaw rate proportional to speed), plus a common radius change
+#: the base model's calibrated radius already holds; a yaw rate proportional to one side's rim speed
+#: r w_l = v - w B/2 is the same yaw rate proportional to speed plus a change of chi.
+CATALOGUE_EQUIVALENTS = {
+    "slip.l.wheels": "side_asymmetry",
+    "slip.r.wheels": "side_asymmetry",
+    "lin.rim_l.wz": "side_asymmetry",
+    "lin.rim_r.wz": "side_asymmetry",
+}
+
+
+def catalogue_equivalent(form: str) -> str | None:
+    """The catalogue effect a library form (``family.signal.channel``) states in other words, if any: the
+    explicit reparametrisations of :data:`CATALOGUE_EQUIVALENTS`, and a yaw-rate change that is a
+    function of the commanded curvature and the speeds (``kappa`` in its signal, no acceleration or
+    time), which is ``curvature_dependent_icr``'s statement that chi depends on the turning radius
+    (1 / kappa) in another functional form."""
+    if form in CATALOGUE_EQUIVALENTS:
+        return CATALOGUE_EQUIVALENTS[form]
+    fam, rest = form.split(".", 1)
+    signal, channel = rest.rsplit(".", 1)
+    factors = signal.split("*")
+    static = {"kappa", "v", "w", "|v|", "|w|", "vx_pred", "wz_pred", "sgn_v", "sgn_w"}  # no rates, no time
+    if fam == "lin" and channel == "wz" and "kappa" in factors and set(factors) <= static:
+        return "curvature_dependent_icr"
+    return None
+
+
+def time_forms() -> list[str]:
+    """The library forms that are functions of time within the sequence (``t`` in the signal, the
+    ``after`` family): within one sequence a ground truth's own slow drift (a visual odometry's scale and
+    heading) is such a function too, so they are searched only when the held-out units are whole,
+    independent sequences."""
+    return [t.form for t in library_groups() if t.family == "after" or "t" in t.signal.split("*")]
+
+
+def equivalent_forms(effect: str) -> list[str]:
+    """Every library form that states the catalogue effect ``effect`` (:func:`catalogue_equivalent`)."""
+    return [t.form for t in library_groups() if catalogue_equivalent(t.form) == effect]
+
+
 _UNITS = {
     "v": "m/s",
     "|v|": "m/s",
@@ -102,26 +145,46 @@ class Term:
         return int(self.free_theta) + len(self.knots)
 
     @property
+    def n_params_with_knots(self) -> int:
+        """:attr:`n_params` of the form with its knots (a template has none yet)."""
+        return int(self.free_theta) + KNOTS[self.family]
+
+    @property
     def touched(self) -> tuple[int, ...]:
         return (0, 2) if self.channel < 0 else (self.channel,)
 
     def with_knots(self, knots) -> Term:
         return Term(self.family, self.signal, self.channel, tuple(float(k) for k in knots))
 
+    @property
+    def template(self) -> Term:
+        """The term without its knots: its (family, signal, channel), what the folds' screens agree on."""
+        return Term(self.family, self.signal, self.channel)
+
+    @property
+    def form(self) -> str:
+        """``family.signal.channel``: the key without the knots."""
+        return self.template.key
+
     def columns(
         self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float
     ) -> np.ndarray:
         """(T, 3) the term's direction g: the correction is theta * g."""
-        T = len(sig["v"])
-        g = np.zeros((T, 3))
+        g = np.zeros((len(sig["v"]), 3))
+        for c, col in self.channel_columns(sig, gains, track_width).items():
+            g[:, c] = col
+        return g
+
+    def channel_columns(
+        self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float
+    ) -> dict[int, np.ndarray]:
+        """The non-zero columns of :meth:`columns`, by channel."""
         if self.channel >= 0:
-            g[:, self.channel] = _channel_column(self.family, self.signal, self.knots, sig)
-            return g
+            return {self.channel: _channel_column(self.family, self.signal, self.knots, sig)}
         dl, dr = _wheel_deltas(self.family, self.signal, self.knots, sig)
         c_v, c_w = gains
-        g[:, 0] = c_v * (dl + dr) / 2.0  # eq. (8) with the base model's gains
-        g[:, 2] = c_w * (dr - dl) / track_width
-        return g
+        # eq. (8) with the base model's gains
+        return {0: c_v * (dl + dr) / 2.0, 2: c_w * (dr - dl) / track_width}
 
     def passive(self, sig: dict[str, np.ndarray]) -> np.ndarray:
         """(T,) rows where a hinge replaces the base model's output (beyond a limit, inside a dead zone):
@@ -291,19 +354,19 @@ def library_groups() -> list[Term]:
     return out
 
 
-def _knot_grid(term: Term, sig: dict[str, np.ndarray], rows: np.ndarray) -> list[tuple[float, ...]]:
+def _knot_grid(term: Term, sig: dict[str, np.ndarray]) -> list[tuple[float, ...]]:
     q = _quantiles(term.family)
     if term.family == "after":
-        return [(float(k),) for k in np.unique(np.quantile(sig["t"][rows], np.linspace(0.1, 0.9, 17)))]
+        return [(float(k),) for k in np.unique(np.quantile(sig["t"], np.linspace(0.1, 0.9, 17)))]
     if term.channel < 0:
-        rim = np.abs(np.concatenate([sig["rim_l"][rows], sig["rim_r"][rows]]))
+        rim = np.abs(np.concatenate([sig["rim_l"], sig["rim_r"]]))
         ks = np.unique(np.quantile(rim, q))
         if term.family == "wload":
-            scale = float(np.quantile(rim, 0.9)) / max(float(np.quantile(sig["|w|"][rows], 0.9)), 1e-6)
+            scale = float(np.quantile(rim, 0.9)) / max(float(np.quantile(sig["|w|"], 0.9)), 1e-6)
             k1s = scale * np.array([0.05, 0.1, 0.2, 0.35, 0.5])
             return [(float(a), float(b)) for a in ks for b in k1s]
         return [(float(k),) for k in ks if k > 0]
-    x = np.abs(_signal(term.signal, sig)[rows])
+    x = np.abs(_signal(term.signal, sig))
     return [(float(k),) for k in np.unique(np.quantile(x, q)) if k > 0]
 
 
@@ -315,11 +378,14 @@ def _quantiles(family: str) -> np.ndarray:
     return np.linspace(0.3, 0.99, 16)
 
 
-def _one_term_gain(g: np.ndarray, r: np.ndarray, wts: np.ndarray, free: bool = True) -> tuple[float, float]:
+def _one_term_gain(
+    g: dict[int, np.ndarray], r: np.ndarray, wts: np.ndarray, free: bool = True
+) -> tuple[float, float]:
     """(weighted SSE reduction, theta) of fitting theta * g to the residual r alone (``free``; else theta
-    = 1); g, r (n, 3)."""
-    num = float(np.sum(wts * g * r))
-    den = float(np.sum(wts * g * g))
+    = 1); g: the term's columns by channel (:meth:`Term.channel_columns`), r (n, 3), wts (3,) the
+    channel weights."""
+    num = sum(float(wts[c] * np.dot(col, r[:, c])) for c, col in g.items())
+    den = sum(float(wts[c] * np.dot(col, col)) for c, col in g.items())
     if den <= 1e-18:
         return 0.0, 0.0
     if not free:
@@ -327,12 +393,17 @@ def _one_term_gain(g: np.ndarray, r: np.ndarray, wts: np.ndarray, free: bool = T
     return num * num / den, num / den
 
 
-def _best_knots(term, sig, gains, B, r, rows, wts) -> tuple[Term, float]:
-    grid = _knot_grid(term, sig, rows)
+def _best_knots(term, sig, gains, B, r, wts) -> tuple[Term, float]:
+    """The knots of a template that explain most of ``r`` alone (``sig`` and ``r`` on the screened rows)."""
+    grid = _knot_grid(term, sig)
     if not grid:
         return term, 0.0
     free = term.free_theta
-    scores = [_one_term_gain(term.with_knots(k).columns(sig, gains, B)[rows], r, wts, free)[0] for k in grid]
+
+    def gain(kn) -> float:
+        return _one_term_gain(term.with_knots(kn).channel_columns(sig, gains, B), r, wts, free)[0]
+
+    scores = [gain(k) for k in grid]
     i = int(np.argmax(scores))
     best = list(grid[i])
     best_score = scores[i]
@@ -348,7 +419,7 @@ def _best_knots(term, sig, gains, B, r, rows, wts) -> tuple[Term, float]:
             def f(x, j=j):
                 kn = list(best)
                 kn[j] = x
-                return -_one_term_gain(term.with_knots(kn).columns(sig, gains, B)[rows], r, wts, free)[0]
+                return -gain(kn)
 
             res = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4 * (hi - lo)})
             if -res.fun > best_score:
@@ -419,45 +490,95 @@ def screen(
     then STLSQ over all templates jointly (channels weighted by ``weights``, (3,)); the support ranked by
     what each term explains alone, at most ``max_candidates``."""
     r = np.asarray(resid, float)[rows]
-    wts = np.broadcast_to(np.asarray(weights, float), r.shape)
-    total = float(np.sum(wts * r * r)) or 1.0
-    skip = {
-        parse_term(k).family + parse_term(k).signal + str(parse_term(k).channel)
-        for k in exclude
-        if parse_term(k)
-    }
+    w3 = np.asarray(weights, float)
+    total = float(np.sum(w3 * np.sum(r * r, axis=0))) or 1.0
+    sig = {k: np.asarray(v)[rows] for k, v in sig.items()}  # every column below on the screened rows only
+    skip = {k.split("@")[0] for k in exclude}  # term keys or forms: the form is what is left out
     best: list[tuple[Term, float]] = []
     for tmpl in library_groups():
-        if tmpl.family + tmpl.signal + str(tmpl.channel) in skip:
+        if tmpl.form in skip:
             continue
         if KNOTS[tmpl.family]:
-            term, score = _best_knots(tmpl, sig, gains, track_width, r, rows, wts)
+            term, score = _best_knots(tmpl, sig, gains, track_width, r, w3)
         else:
             term = tmpl
-            score = _one_term_gain(term.columns(sig, gains, track_width)[rows], r, wts)[0]
+            score = _one_term_gain(term.channel_columns(sig, gains, track_width), r, w3)[0]
         if score > 0 and math.isfinite(score):
             best.append((term, score / total))
     if not best:
         return Screen([], {}, [], [])
     # the normal equations channel by channel: a term's column is zero on the channels it does not touch
-    sw = np.sqrt(wts)
+    sw = np.sqrt(w3)
     P = len(best)
     G, bvec = np.zeros((P, P)), np.zeros(P)
-    cols = [t.columns(sig, gains, track_width)[rows] * sw for t, _ in best]
+    cols = [t.channel_columns(sig, gains, track_width) for t, _ in best]
     for c in range(3):
         idx = [i for i, (t, _) in enumerate(best) if c in t.touched]
         if not idx:
             continue
-        Xc = np.column_stack([cols[i][:, c] for i in idx])
+        Xc = np.column_stack([cols[i][c] * sw[c] for i in idx])
         # einsum without BLAS: a multi-threaded BLAS product of this size stalls on a loaded machine
         G[np.ix_(idx, idx)] += np.einsum("ti,tj->ij", Xc, Xc, optimize=False)
-        bvec[idx] += np.einsum("ti,t->i", Xc, r[:, c] * sw[:, c], optimize=False)
-    coef = stlsq_gram(G, bvec, float(np.sum(wts * r * r)), threshold)
+        bvec[idx] += np.einsum("ti,t->i", Xc, r[:, c] * sw[c], optimize=False)
+    coef = stlsq_gram(G, bvec, total, threshold)
     selected = [t for (t, _), c in zip(best, coef, strict=True) if c != 0.0]
     scores = {t.key: s for t, s in best}
     ranked = sorted(selected, key=lambda t: -scores[t.key])
     every = [t for t, _ in sorted(best, key=lambda p: -p[1])]
     return Screen(ranked[:max_candidates], scores, [t.key for t in ranked], every)
+
+
+@dataclass
+class FoldScreens:
+    """The screens of the k training sets of a k-fold split (each screen sees its training units only):
+    the forms at least ``min_folds`` of them put in their STLSQ support (:meth:`stable`, ranked by their
+    mean explained share) and each fold's own knots of a form (:meth:`fold_terms`)."""
+
+    screens: list[Screen]
+    min_folds: int
+
+    def votes(self, form: str) -> int:
+        """In how many folds' candidates the form is."""
+        return sum(any(t.form == form for t in scr.candidates) for scr in self.screens)
+
+    def mean_share(self, form: str) -> float:
+        """The mean over folds of the share of the residual the form explains alone (0 where absent)."""
+        shares = [sum(v for k, v in scr.scores.items() if k.split("@")[0] == form) for scr in self.screens]
+        return float(np.mean(shares)) if shares else 0.0
+
+    def stable(self, max_candidates: int) -> list[Term]:
+        """Forms among the candidates of at least ``min_folds`` folds, best mean share first (templates)."""
+        forms = {t.form for scr in self.screens for t in scr.candidates}
+        forms = [f for f in forms if self.votes(f) >= self.min_folds]
+        forms.sort(key=lambda f: (-self.mean_share(f), f))
+        return [parse_form(f) for f in forms[:max_candidates]]
+
+    def fold_terms(self, template: Term) -> list[Term]:
+        """The form with each fold's knots (a fold whose screen lacks it takes the median of the others')."""
+        found = [{t.form: t for t in scr.ranked}.get(template.form) for scr in self.screens]
+        known = [t for t in found if t is not None]
+        if not known:
+            return [template] * len(self.screens)
+        fill = (
+            template.with_knots(np.median([t.knots for t in known], axis=0)) if known[0].knots else template
+        )
+        return [t if t is not None else fill for t in found]
+
+    def best_rival(
+        self, channels: tuple[int, ...], max_params: int, skip: tuple[str, ...] = ()
+    ) -> Term | None:
+        """The form of best mean share that changes one of ``channels`` with at most ``max_params``."""
+        forms = sorted({t.form for scr in self.screens for t in scr.ranked} - set(skip))
+        ok = [parse_form(f) for f in forms]
+        ok = [t for t in ok if set(t.touched) & set(channels) and t.n_params_with_knots <= max_params]
+        return max(ok, key=lambda t: self.mean_share(t.form)) if ok else None
+
+
+def parse_form(form: str) -> Term:
+    """The knot-free template of a form ``family.signal.channel``."""
+    fam, rest = form.split(".", 1)
+    sig, ch = rest.rsplit(".", 1)
+    return Term(fam, sig, -1 if ch == "wheels" else CHANNELS.index(ch))
 
 
 def fit_thetas(

@@ -96,6 +96,8 @@ def readme_reproduce(tmp_path_factory) -> dict:
 XDIST_GROUPS = {
     "tests/test_docs_commands.py": "readme_reproduce",
     "tests/test_e2e.py": "readme_reproduce",
+    "tests/test_release.py": "readme_reproduce",
+    "tests/test_readme_numbers.py": "readme_reproduce",
     "tests/test_datasets_home.py": "micro_root",
     "tests/test_reliability_determinism.py": "micro_root",
     "tests/test_reliability_faults.py": "micro_root",
@@ -108,7 +110,7 @@ XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
 #: curvature_dependent_icr case are the two longest units.
 XDIST_FIRST = (
     "readme_reproduce",
-    "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_first_and_shrinks_the_gap"
+    "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
     "[curvature_dependent_icr]",
 )
 

@@ -9,7 +9,7 @@ the form discovery fits (wheel radii that differ, a motor lag per wheel, chi com
 system would deliver: poses at 20 Hz with a slowly drifting scale/heading error (about 0.4 % of
 distance, as the paper's loop-closure check) and white jitter (3 mm, 0.2 deg).
 
-Two outputs: split-like tables (what the split stage writes) and the AMRL text layout
+Two outputs: split tables (made by the split stage's own code) and the AMRL text layout
 (``<root>/<Terrain>/<Train|ConstantVel|LongDistance>/<cmd|loc>/N.txt``).
 """
 
@@ -52,8 +52,10 @@ OUTSIDE = {
 }
 
 
-def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "train"):
-    """Commands (t, v, w) on a fine clock: targets held for a while, reached under varying limits."""
+def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "train", style: str = "mixed"):
+    """Commands (t, v, w) on a fine clock: targets held for a while, reached under varying limits.
+    ``style``: ``mixed`` (gentle and aggressive starts, spins) or ``gentle`` (slower targets and lower
+    acceleration limits, no spins, longer holds)."""
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
     v = np.zeros(n)
@@ -80,6 +82,9 @@ def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "
                 hold = rng.uniform(0.7, 3.5)
             av = rng.uniform(0.5, 4.0)
             aw = rng.uniform(1.0, 9.0)
+            if style == "gentle" and kind != "cv":
+                tv, tw = 0.6 * abs(tv) + 0.1, float(np.clip(0.5 * tw, -1.0, 1.0))
+                av, aw, hold = 0.3 * av, 0.3 * aw, 1.5 * hold
             t_next = t[i] + hold
         v[i] = v[i - 1] + np.clip(tv - v[i - 1], -av * dt, av * dt)
         w[i] = w[i - 1] + np.clip(tw - w[i - 1], -aw * dt, aw * dt)
@@ -185,10 +190,10 @@ def vo_poses(rng, t_true, pose, rate_hz=20.0, drift=0.004, jitter_m=0.003, jitte
     return t, est
 
 
-def sequence(rng, effects, duration=45.0, kind="train", cmd_hz=45.0):
+def sequence(rng, effects, duration=45.0, kind="train", cmd_hz=45.0, style="mixed"):
     """One sequence: commands at ``cmd_hz`` and VO poses at 20 Hz (both with times in s)."""
     dt = 1.0 / 180.0
-    t, v, w = joystick(rng, duration, dt, kind)
+    t, v, w = joystick(rng, duration, dt, kind, style)
     step = int(round(1.0 / (cmd_hz * dt)))
     hold = (np.arange(len(t)) // step) * step  # the robot executes each command message until the next
     vx, vy, wz = true_velocity(t, v[hold], w[hold], effects, accel=(np.gradient(v, t), np.gradient(w, t)))
@@ -199,46 +204,25 @@ def sequence(rng, effects, duration=45.0, kind="train", cmd_hz=45.0):
 
 
 def to_split(cmd: pd.DataFrame, loc: pd.DataFrame, rate_hz: float = 30.0) -> pd.DataFrame:
-    """What the split stage makes of one sequence: uniform clock, ZOH commands, smoothed
-    ground-truth velocities from the poses (central differences over +-2 samples)."""
-    from scipy.signal import savgol_filter
+    """What the split stage makes of one sequence (:func:`skidbench.pipeline.splits.build.build_split_table`
+    on the Jackal: the 30 Hz clock, the zero-order hold of the commands, the Savitzky-Golay velocities of
+    the poses); ``attrs["cmd_association"]``: the timing of the hold, as the split file's metadata has it."""
+    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.splits.build import build_split_table
 
-    t0 = max(cmd.t.iloc[0], loc.t.iloc[0])
-    t1 = min(cmd.t.iloc[-1], loc.t.iloc[-1])
-    t = np.arange(t0, t1, 1.0 / rate_hz)
-    idx = np.clip(np.searchsorted(cmd.t.to_numpy(), t, side="right") - 1, 0, len(cmd) - 1)
-    v, w = cmd.v.to_numpy()[idx], cmd.w.to_numpy()[idx]
-    x = np.interp(t, loc.t, loc.x)
-    y = np.interp(t, loc.t, loc.y)
-    yaw = np.interp(t, loc.t, np.unwrap(loc.yaw))
-    win = 9
-    dx = savgol_filter(x, win, 2, deriv=1, delta=1 / rate_hz)
-    dy = savgol_filter(y, win, 2, deriv=1, delta=1 / rate_hz)
-    wz = savgol_filter(yaw, win, 2, deriv=1, delta=1 / rate_hz)
-    c, s = np.cos(yaw), np.sin(yaw)
-    wl = (v - w * TRACK / 2) / R_WHEEL
-    wr = (v + w * TRACK / 2) / R_WHEEL
-    return pd.DataFrame(
-        {
-            "t": t - t[0],
-            "stamp_ns": (t * 1e9).astype(np.int64),
-            "cmd_v": v,
-            "cmd_w": w,
-            "cmd_wl": wl,
-            "cmd_wr": wr,
-            "cmd_dwl": np.gradient(wl, t),
-            "cmd_dwr": np.gradient(wr, t),
-            "enc_wl": np.full(len(t), np.nan),
-            "enc_wr": np.full(len(t), np.nan),
-            "x": x,
-            "y": y,
-            "yaw": yaw,
-            "vx": c * dx + s * dy,
-            "vy": -s * dx + c * dy,
-            "wz": wz,
-            "valid": np.ones(len(t), bool),
-        }
+    def ns(t) -> np.ndarray:
+        return np.round(np.asarray(t, float) * 1e9).astype(np.int64)
+
+    pose = np.column_stack([loc.x, loc.y, np.unwrap(loc.yaw.to_numpy(float))])
+    cmd_uv = np.column_stack([cmd.v, cmd.w])
+    return build_split_table(
+        load_robot("jackal"), ns(loc.t), pose, [], ns(cmd.t), cmd_uv, "twist", rate_hz=rate_hz
     )
+
+
+def split_meta(df: pd.DataFrame, name: str, **more) -> dict:
+    """The split file metadata discovery reads (the sequence's name, the hold's timing)."""
+    return {"sequence": name, "cmd_association": df.attrs.get("cmd_association"), **more}
 
 
 def dataset(effects: dict[str, object], seed: int, n_train: int = 10, duration: float = 40.0):
@@ -256,7 +240,11 @@ def hidden(names: list[str] | tuple[str, ...]) -> dict[str, object]:
 
 
 def split_tables(raw) -> list[tuple[pd.DataFrame, dict]]:
-    return [(to_split(c, lo), {"sequence": f"train_{i:02d}"}) for i, (c, lo) in enumerate(raw["train"])]
+    out = []
+    for i, (c, lo) in enumerate(raw["train"]):
+        df = to_split(c, lo)
+        out.append((df, split_meta(df, f"train_{i:02d}")))
+    return out
 
 
 def write_splits(raw, root: Path, terrain: str = "tile") -> Path:
@@ -273,15 +261,9 @@ def write_splits(raw, root: Path, terrain: str = "tile") -> Path:
         for i, (c, lo) in enumerate(seqs):
             name = f"{terrain}_{cat}_{i:02d}"
             listed.append(Sequence(name, terrain, cat, f"{name}.bag"))
-            meta = {
-                "sequence": name,
-                "terrain": terrain,
-                "split": cat,
-                "robot": "jackal",
-                "sources": {},
-                "rate_hz": 30.0,
-            }
-            write_split(to_split(c, lo), Path(root) / terrain / cat / f"{name}.parquet", meta)
+            df = to_split(c, lo)
+            meta = split_meta(df, name, terrain=terrain, split=cat, robot="jackal", sources={}, rate_hz=30.0)
+            write_split(df, Path(root) / terrain / cat / f"{name}.parquet", meta)
     Manifest(listed, base=manifest_path.parent).write(manifest_path)
     return Path(root)
 

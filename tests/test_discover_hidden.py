@@ -21,7 +21,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.models.effects import EFFECT_IDS  # noqa: E402
 
@@ -36,7 +36,7 @@ def _discover(effects: list[str], seed: int, jackal):
     edd = get_model_class("edd")
     raw = dd.dataset(dd.hidden(effects), seed, n_train=N_TRAIN, duration=DURATION)
     s = DiscoverSettings()
-    pool = build_pool(dd.split_tables(raw), s)
+    pool = prepare_pool(build_pool(dd.split_tables(raw), s), "commanded", jackal)
     return discover_terrain(pool, lambda: edd(jackal), jackal, s, "tile", "edd", progress=print)
 
 
@@ -53,17 +53,23 @@ def _assert_shrinks(step: dict) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("effect", [e for e in EFFECT_IDS if e != CLI_EFFECT])
-def test_discover_names_the_hidden_effect_first_and_shrinks_the_gap(effect, jackal):
+def test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap(effect, jackal):
     res = _discover([effect], seed=100 + EFFECT_IDS.index(effect), jackal=jackal)
     assert res.effects, f"{effect}: nothing found ({res.message})"
-    assert res.effects[0] == effect, res.effects
+    assert res.effects == [effect] and res.terms == [], (res.effects, res.terms)  # nothing false after it
     _assert_shrinks(res.steps[0])
+    ev = res.steps[0]["evidence"]
+    assert ev["p_search"] <= 0.05 and ev["heldout_gain"] > 0  # the name's gain and its search-wide p
+    if effect == "side_asymmetry":  # one side's slip ratio is the same thing: listed as its equivalent
+        eq = {q["term"]: q for q in res.steps[0]["naming"]["equivalent_terms"]}
+        assert any(k.startswith("slip.") and q["reparametrisation"] for k, q in eq.items()), eq
 
 
 @pytest.mark.slow
-def test_discover_finds_no_missing_effect_when_there_is_none(jackal):
-    res = _discover([], seed=7, jackal=jackal)
-    assert res.effects == [], res.effects
+@pytest.mark.parametrize("seed", [7, 17, 27])
+def test_discover_finds_no_missing_effect_when_there_is_none(seed, jackal):
+    res = _discover([], seed=seed, jackal=jackal)
+    assert res.effects == [] and res.terms == [], (res.effects, res.terms)
     assert res.message == "no missing effect found"
 
 

@@ -15,7 +15,7 @@ from scipy.signal import lfilter
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import apply_protocol, discover_terrain  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.pipeline.schema import concat_sequences  # noqa: E402
 from skidbench.pipeline.wheel_response import identify_response  # noqa: E402
@@ -37,7 +37,9 @@ def _with_encoders(cmd: pd.DataFrame, loc: pd.DataFrame) -> pd.DataFrame:
         wheels.append(lfilter([a], [1, a - 1], u, zi=[(1 - a) * u[0]])[0])
     t_split = table["t"].to_numpy() + max(cmd.t.iloc[0], loc.t.iloc[0])
     k = np.clip(np.searchsorted(t, t_split + 1e-9, side="right") - 1, 0, len(t) - 1)
-    return table.assign(enc_wl=wheels[0][k], enc_wr=wheels[1][k])
+    out = table.assign(enc_wl=wheels[0][k], enc_wr=wheels[1][k])
+    out.attrs = dict(table.attrs)  # the hold's timing, as the split file's metadata has it
+    return out
 
 
 @pytest.mark.slow
@@ -46,19 +48,20 @@ def test_actuator_lag_is_named_under_commanded_and_not_again_under_response(jack
 
     edd = get_model_class("edd")
     raw = dd.dataset(dd.hidden(["actuator_lag"]), 104, n_train=8, duration=36.0)
-    tables = [
-        (_with_encoders(c, lo), {"sequence": f"train_{i:02d}"}) for i, (c, lo) in enumerate(raw["train"])
-    ]
+    tables = []
+    for i, (c, lo) in enumerate(raw["train"]):
+        table = _with_encoders(c, lo)
+        tables.append((table, dd.split_meta(table, f"train_{i:02d}")))
     s = DiscoverSettings()
     pool = build_pool(tables, s)
 
     cmd = discover_terrain(
-        apply_protocol(pool, "commanded", jackal), lambda: edd(jackal), jackal, s, "tile", "edd"
+        prepare_pool(pool, "commanded", jackal), lambda: edd(jackal), jackal, s, "tile", "edd"
     )
     assert cmd.effects[:1] == ["actuator_lag"], cmd.effects
 
     fit = identify_response(concat_sequences(tables))
     assert fit.response.tau_s == pytest.approx(TAU, rel=0.3)  # the one implementation finds the lag
-    resp = apply_protocol(pool, "response", jackal, fit.response)
+    resp = prepare_pool(pool, "response", jackal, fit.response)
     res = discover_terrain(resp, lambda: edd(jackal), jackal, s, "tile", "edd")
     assert "actuator_lag" not in res.effects, res.effects

@@ -18,7 +18,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
 from skidbench.models import terms as tl  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.models.specs import get_model_class  # noqa: E402
@@ -116,7 +116,7 @@ def _discover(effects: dict, seed: int, jackal):
     edd = get_model_class("edd")
     raw = dd.dataset(effects, seed, n_train=N_TRAIN, duration=DURATION)
     s = DiscoverSettings()
-    pool = build_pool(dd.split_tables(raw), s)
+    pool = prepare_pool(build_pool(dd.split_tables(raw), s), "commanded", jackal)
     return discover_terrain(pool, lambda: edd(jackal), jackal, s, "tile", "edd", progress=print)
 
 

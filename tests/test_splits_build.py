@@ -115,3 +115,31 @@ def test_a_bad_max_wheel_rate_fails_when_the_robot_is_loaded(bad):
     assert Robot.from_config({**base, "max_wheel_rate": 6}).max_wheel_rate == 6.0
     with pytest.raises(ConfigError, match="max_wheel_rate"):
         Robot.from_config({**base, "max_wheel_rate": bad})
+
+
+def test_command_association_offset_is_the_excess_age_of_the_sampled_hold():
+    from skidbench.pipeline.splits.build import command_association
+
+    cmd = np.round(np.arange(0, 20 * 45) * S / 45).astype(np.int64)  # 45 Hz for 20 s
+    for phase in (0.0, 0.004, 0.010):  # where the 30 Hz grid starts within the first command period
+        grid = np.round((phase + np.arange(0, 19 * 30) / 30) * S).astype(np.int64)
+        a = command_association(cmd, grid)
+        # two phases per command period: ages phase and phase + T/2 (mod T); a steady hold is T/2 old
+        ages = np.mod(np.array([phase, phase + 1 / 90]), 1 / 45)
+        assert a["mean_age_s"] == pytest.approx(ages.mean(), abs=2e-6)
+        assert a["time_average_age_s"] == pytest.approx(1 / 90, abs=1e-5)  # (partial periods at the ends)
+        assert a["offset_s"] == pytest.approx(ages.mean() - 1 / 90, abs=1e-5)
+    # incommensurate rates sample every age: no offset
+    grid = np.round(np.arange(0, 19 * 31.7) / 31.7 * S).astype(np.int64)
+    assert abs(command_association(cmd, grid)["offset_s"]) < 2e-4
+    # the split records it; the table's values do not depend on it
+    t = np.arange(0, 20, 1 / 50)
+    df = build_split_table(load_robot_jackal(), np.round(t * S).astype(np.int64), arc(t), [], cmd,
+                           np.tile([[1.2, 0.7]], (len(cmd), 1)), "twist")  # fmt: skip
+    assert df.attrs["cmd_association"]["offset_s"] == pytest.approx(-1 / 180, abs=1e-5)
+
+
+def load_robot_jackal():
+    from skidbench.pipeline.robot import load_robot
+
+    return load_robot("jackal")

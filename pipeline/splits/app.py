@@ -145,6 +145,7 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
         "differentiator": {"kind": "savitzky_golay", "window": window, "order": order_},
         "max_wheel_rate": robot.max_wheel_rate,
         "clipped_rows": df.attrs.get("clipped_rows", 0),
+        "cmd_association": df.attrs.get("cmd_association"),
     }
     write_split(df, path, meta)
     log.info("%s -> %s (%d rows, %.0f%% valid)", seq.name, path, len(df), 100 * df["valid"].mean())

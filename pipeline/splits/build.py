@@ -15,6 +15,18 @@ consistent: a wheel cannot be commanded faster than its motors turn, and a model
 would have to explain the shortfall as slip (DRIVE's Husky is commanded up to 9.2 rad/s and its encoders
 saturate at 5.9-6.1 rad/s = 1.0 m/s / r).
 
+The association's timing (``command_association``, recorded in the split file's metadata as
+``cmd_association``; the table's values do not depend on it): the ground-truth velocities are centred
+estimates over a window of a robot that executes each command from its stamp until the next, so they
+see the held command at its time-average age (half the command period for a steady stream); the grid
+samples the held command at the ages its phase against the command stamps gives. When the two rates are
+commensurate (45 Hz commands on a 30 Hz grid: two phases only) the sampled commands are on average up to
+a quarter command period (+-5.6 ms) older or younger than what the velocities see, set by sub-sample
+rounding of where the grid starts; a model sees that as a lag or a lead of the commands. ``offset_s`` =
+mean sampled age - time-average age (s; positive: the sampled commands are older). Discovery shifts its
+command regressors by it (:func:`skidbench.benchmark.discover.align_commands`); the benchmark's models
+take the table as it is.
+
 Encoders: linear interpolation of the measured wheel rates; null outside their coverage or where two
 samples are over ``max_gap`` apart.
 
@@ -66,6 +78,37 @@ def body_velocities(
         vel[a:b, 1] = -s * d[:, 0] + c * d[:, 1]
         vel[a:b, 2] = d[:, 2]
     return vel
+
+
+def command_association(
+    cmd_stamp_ns: np.ndarray, grid_ns: np.ndarray, timeout_ns: int | None = None
+) -> dict[str, float]:
+    """The timing of the zero-order hold of commands stamped ``cmd_stamp_ns`` on the grid ``grid_ns`` (module
+    docstring): ``mean_age_s`` of the held command at the grid times, ``time_average_age_s`` over the
+    grid's span, ``offset_s`` their difference (0.0 when there is no live command). Stale stretches (a
+    command older than ``timeout_ns``) are left out of both."""
+    stamps = np.asarray(cmd_stamp_ns, dtype=np.int64)
+    grid = np.asarray(grid_ns, dtype=np.int64)
+    i = np.searchsorted(stamps, grid, side="right") - 1
+    age = (grid - stamps[np.clip(i, 0, None)]).astype(float)
+    live = (i >= 0) & ((age <= timeout_ns) if timeout_ns is not None else True)
+    if not np.any(live) or len(grid) < 2:
+        return {"mean_age_s": 0.0, "time_average_age_s": 0.0, "offset_s": 0.0}
+    # the age is a sawtooth in time: integrate it exactly between consecutive breakpoints
+    inside = stamps[(stamps > grid[0]) & (stamps < grid[-1])]
+    cuts = np.concatenate([[grid[0]], inside, [grid[-1]]])
+    a, b = cuts[:-1], cuts[1:]
+    j = np.searchsorted(stamps, a, side="right") - 1
+    ok = j >= 0
+    s0 = stamps[np.clip(j, 0, None)]
+    lo, hi = (a - s0).astype(float), (b - s0).astype(float)
+    if timeout_ns is not None:
+        hi = np.minimum(hi, float(timeout_ns))
+        ok &= lo < hi
+    span = float(np.sum((hi - lo)[ok]))
+    avg = float(np.sum(((hi**2 - lo**2) / 2.0)[ok]) / span) if span > 0 else 0.0
+    mean = float(np.mean(age[live]))
+    return {"mean_age_s": mean * 1e-9, "time_average_age_s": avg * 1e-9, "offset_s": (mean - avg) * 1e-9}
 
 
 def build_split_table(
@@ -140,4 +183,6 @@ def build_split_table(
         }
     )
     df.attrs["clipped_rows"] = int(over.sum())  # rows whose wheel commands were over max_wheel_rate
+    timeout_ns = int(cmd_timeout_s * 1e9) if cmd_timeout_s else None
+    df.attrs["cmd_association"] = command_association(cmd_stamp_ns, grid, timeout_ns)
     return df

@@ -1,0 +1,322 @@
+"""How often discovery names something that is not there (docs/discovery.md, "False discoveries").
+
+    python -m bench.discover_fdr                      # every set, the seeds below (from the repository root)
+    python -m bench.discover_fdr --sets clean --seeds 20 --jobs 1 --out outputs/discover_fdr
+
+Generates datasets whose truth is known (``tests/discover_data.py``: the extended differential drive plus
+exactly the hidden effects, in physical form) in two worlds, runs the search of ``skidbench discover``
+(base ``edd`` with the radius ``calibrate`` finds on the Train tables, default settings, the split
+stage's own code between the generator and the search) on each, and counts per set how often the answer
+is exact:
+
+* ``clean``: nothing hidden; exact = nothing named. Over seeds, noise levels of the ground truth (VO-like
+  drift and jitter at 0.5x, 1x, 2x) and drive styles (the generator's mixed joystick, a gentle one);
+* ``clean_sim``: nothing hidden, the built-in simulator's operator (``JoystickDriver`` of
+  ``pipeline/simulate/scenarios.py``, aggressive Train style) and its clock (45 Hz commands stamped on
+  its 1 ms integrator steps, 50 Hz poses of a motion-capture-like truth); the simulator's force physics
+  is not used (it has no effect-free setting: its slip, lag and load transfer are the effects);
+* ``clean_blocks``: nothing hidden, one Train sequence of 60 s (held out by time blocks, as on ``mini``);
+* ``single``: each catalogue effect alone at its default size; exact = that effect named first and
+  nothing after it;
+* ``outside``: each effect outside the catalogue alone; exact = no catalogue name and a matching term
+  (the test's families), nothing after it.
+
+Writes ``<out>/cases.jsonl`` (one line per dataset: what was named, each name's held-out gain and
+``p_search``) as it goes (a re-run skips the cases already there) and ``<out>/summary.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Iterable
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: the library families that match each outside effect (as tests/test_discover_terms.py checks)
+OUTSIDE_MATCH = {
+    "command_dead_zone": ("wdz", "rim", "wheels"),
+    "payload_change": ("after", "wz_pred", "wz"),
+    "yaw_rate_limit": ("sat", "wz_pred", "wz"),
+    "one_side_slip": ("slip", None, "wheels"),
+    "load_wheel_limit": ("wload", "rim", "wheels"),
+}
+NOISE = {"low": 0.5, "default": 1.0, "high": 2.0}
+
+
+def _dd():
+    sys.path.insert(0, str(REPO / "tests"))
+    import discover_data as dd
+
+    return dd
+
+
+def cases(sets: Iterable[str], seeds: int) -> list[dict[str, Any]]:
+    """Every dataset to run: set, world, effect, seed, noise, style, Train size."""
+    dd = _dd()
+    out: list[dict[str, Any]] = []
+    base = {
+        "world": "kinematic",
+        "effect": None,
+        "noise": "default",
+        "style": "mixed",
+        "n_train": 8,
+        "duration": 36.0,
+    }
+    for s in sets:
+        if s == "clean":
+            for i in range(seeds):
+                out.append({**base, "set": s, "seed": 1000 + i, "noise": list(NOISE)[i % 3],
+                            "style": "gentle" if i % 2 else "mixed"})  # fmt: skip
+        elif s == "clean_sim":
+            out += [
+                {**base, "set": s, "world": "simclock", "seed": 2000 + i} for i in range(max(seeds // 2, 1))
+            ]
+        elif s == "clean_blocks":
+            out += [
+                {**base, "set": s, "seed": 3000 + i, "n_train": 1, "duration": 60.0}
+                for i in range(max(seeds // 2, 1))
+            ]
+        elif s == "single":
+            k = max(seeds // 6, 1)
+            out += [{**base, "set": s, "effect": e, "seed": 4000 + 10 * j + i}
+                    for j, e in enumerate(dd.DEFAULT_SIZES) for i in range(k)]  # fmt: skip
+        elif s == "outside":
+            k = max(seeds // 10, 1)
+            out += [{**base, "set": s, "effect": e, "seed": 5000 + 10 * j + i}
+                    for j, e in enumerate(dd.OUTSIDE) for i in range(k)]  # fmt: skip
+        else:
+            raise SystemExit(f"unknown set {s!r} (clean, clean_sim, clean_blocks, single, outside)")
+    return out
+
+
+def case_id(c: dict[str, Any]) -> str:
+    return (
+        f"{c['set']}/{c['world']}/{c['effect'] or '-'}/{c['seed']}/{c['noise']}/{c['style']}/{c['n_train']}"
+    )
+
+
+def _sim_sequence(dd, rng: np.random.Generator, effects: dict, duration: float):
+    """One sequence with the built-in simulator's operator and clock (module docstring)."""
+    from skidbench.pipeline.simulate.scenarios import JoystickDriver
+
+    step = 0.001
+    drv = JoystickDriver(rng, "asphalt", aggressive=True, rate=45.0)
+    n = int(round(duration / step)) + 1
+    period = 1.0 / 45.0 / step
+    stamps = [math.ceil(k * period - 1e-9) for k in range(int(duration * 45.0) + 1)]
+    stamps = [s for s in stamps if s < n]
+    pose = np.zeros(3)
+    cv, cw = np.zeros(len(stamps)), np.zeros(len(stamps))
+    for k, s in enumerate(stamps):  # the operator steers by the (ideal) pose, as the simulator's does
+        cv[k], cw[k] = drv.command(s * step, tuple(pose))
+        dt = ((stamps[k + 1] if k + 1 < len(stamps) else n) - s) * step
+        pose = pose + dt * np.array([cv[k] * math.cos(pose[2]), cv[k] * math.sin(pose[2]), cw[k]])
+    t = np.arange(n) * step
+    idx = np.searchsorted(np.asarray(stamps), np.arange(n), side="right") - 1
+    v, w = cv[idx], cw[idx]
+    ts = np.asarray(stamps) * step
+    accel = (np.gradient(np.interp(t, ts, cv), t), np.gradient(np.interp(t, ts, cw), t))
+    vx, vy, wz = dd.true_velocity(t, v, w, effects, accel=accel)
+    truth = dd.integrate(t, vx, vy, wz)
+    tl, loc = dd.vo_poses(rng, t, truth, rate_hz=50.0, drift=0.0, jitter_m=0.001, jitter_rad=0.0017)
+    import pandas as pd
+
+    cmd = pd.DataFrame({"t": ts, "v": cv, "w": cw})
+    return cmd, pd.DataFrame({"t": tl, "x": loc[:, 0], "y": loc[:, 1], "yaw": loc[:, 2]})
+
+
+def tables(c: dict[str, Any]) -> list[tuple[Any, dict]]:
+    """The split tables (and their metadata) of a case's Train sequences."""
+    dd = _dd()
+    rng = np.random.default_rng(c["seed"])
+    effects = {} if not c["effect"] else dd.hidden([c["effect"]])
+    if c["world"] == "simclock":
+        raw = [_sim_sequence(dd, rng, effects, c["duration"]) for _ in range(c["n_train"])]
+    else:
+        k = NOISE[c["noise"]]
+        orig = dd.vo_poses
+
+        def vo(rng, t, pose, rate_hz=20.0, drift=0.004, jitter_m=0.003, jitter_rad=0.0035):
+            return orig(rng, t, pose, rate_hz, drift * k, jitter_m * k, jitter_rad * k)
+
+        dd.vo_poses = vo
+        try:
+            raw = [dd.sequence(rng, effects, c["duration"], style=c["style"]) for _ in range(c["n_train"])]
+        finally:
+            dd.vo_poses = orig
+    out = []
+    for i, (cmd, loc) in enumerate(raw):
+        df = dd.to_split(cmd, loc)
+        out.append((df, dd.split_meta(df, f"train_{i:02d}")))
+    return out
+
+
+def calibrated(spec, train: list[tuple[Any, dict]]):
+    """The robot ``calibrate`` makes of these Train tables for ``edd`` (its effective radius; the split's
+    commands on settled straight rows, as for data without encoders), as ``skidbench discover`` on a
+    dataset's own splits gives it to the base model."""
+    from skidbench.models.base import calibrated_constants
+    from skidbench.models.specs import get_model_class
+    from skidbench.pipeline.calibration import CalibrationSettings, calibrate_table, calibrated_robot
+    from skidbench.pipeline.schema import concat_sequences
+
+    doc = calibrate_table(concat_sequences(train), spec, CalibrationSettings())
+    return calibrated_robot(spec, doc, calibrated_constants(get_model_class("edd")))
+
+
+def exact(c: dict[str, Any], effects: list[str], terms: list[str]) -> bool:
+    """Whether the answer is the truth (module docstring)."""
+    if c["set"].startswith("clean"):
+        return not effects and not terms
+    if c["set"] == "single":
+        return effects == [c["effect"]] and not terms
+    fam, sig, ch = OUTSIDE_MATCH[c["effect"]]
+    if effects or len(terms) != 1:
+        return False
+    f, s_, chan = terms[0].split("@")[0].split(".")
+    return f == fam and (sig is None or s_ == sig) and chan == ch
+
+
+def run_case(c: dict[str, Any]) -> dict[str, Any]:
+    from skidbench.benchmark.discover import discover_terrain, prepare_pool
+    from skidbench.models.effect_fit import DiscoverError, DiscoverSettings, build_pool
+    from skidbench.models.specs import get_model_class
+    from skidbench.pipeline.robot import load_robot
+
+    started = time.process_time()
+    jackal = load_robot("jackal")
+    edd = get_model_class("edd")
+    s = DiscoverSettings()
+    try:
+        train = tables(c)
+        robot = calibrated(jackal, train)  # as discovery on a dataset's own splits takes its base's radius
+        pool = prepare_pool(build_pool(train, s), "commanded", jackal)
+        res = discover_terrain(pool, lambda: edd(robot), robot, s, "tile", "edd", progress=lambda m: None)
+    except DiscoverError as exc:
+        return {**c, "id": case_id(c), "error": str(exc)}
+    steps = [
+        {
+            "name": st["effect"],
+            "kind": st["kind"],
+            "heldout_gain": st["evidence"]["heldout_gain"],
+            "p_search": st["evidence"].get("p_search"),
+            "equivalent_terms": [q["term"] for q in st["naming"].get("equivalent_terms", [])],
+        }
+        for st in res.steps
+    ]
+    best = (res.rejected or {}).get("best_candidate")
+    return {
+        **c,
+        "id": case_id(c),
+        "effects": res.effects,
+        "terms": res.terms,
+        "steps": steps,
+        "exact": exact(c, res.effects, res.terms),
+        "rejected_best": best,
+        "cpu_s": round(time.process_time() - started, 1),
+    }
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % Wilson interval of a proportion k / n."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = k / n
+    d = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / d
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return (max(0.0, c - h), min(1.0, c + h))
+
+
+def summary(rows: list[dict[str, Any]], command: str) -> str:
+    lines = [
+        f"discovery false-discovery measurement ({time.strftime('%Y-%m-%d')}): `{command}`",
+        "",
+        "| set | datasets | exact | exact % (95 % interval) | something false named |",
+        "|---|---:|---:|---|---:|",
+    ]
+    for s in dict.fromkeys(r["set"] for r in rows):
+        rs = [r for r in rows if r["set"] == s and "error" not in r]
+        k = sum(r["exact"] for r in rs)
+        lo, hi = wilson(k, len(rs))
+        false = sum(1 for r in rs if not r["exact"])
+        lines.append(
+            f"| {s} | {len(rs)} | {k} | {100 * k / max(len(rs), 1):.0f} ({100 * lo:.0f}-{100 * hi:.0f}) "
+            f"| {false} |"
+        )
+    lines += ["", "Not exact:"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"- {r['id']}: error {r['error']}")
+        elif not r["exact"]:
+            named = ", ".join(
+                f"{st['name']} (gain {st['heldout_gain']:.3f}, p_search {st['p_search']:.3g})"
+                for st in r["steps"]
+            )
+            lines.append(f"- {r['id']}: {named or 'nothing named'}")
+    named = [st for r in rows for st in r.get("steps", [])]
+    if named:
+        lines += [
+            "",
+            "Every name given: held-out gain and p_search (the share of sign flips whose best candidate "
+            "gains as much)",
+        ]
+        for r in rows:
+            for st in r.get("steps", []):
+                eq = f" (equivalent: {', '.join(st['equivalent_terms'])})" if st["equivalent_terms"] else ""
+                lines.append(
+                    f"- {r['id']}: {st['name']}{eq} gain {st['heldout_gain']:.3f} "
+                    f"p_search {st['p_search']:.3g}"
+                )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench.discover_fdr", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sets", default="clean,clean_sim,clean_blocks,single,outside")
+    ap.add_argument("--seeds", type=int, default=20, help="clean datasets (the other sets scale from it)")
+    ap.add_argument("--jobs", type=int, default=1, help="processes (the machine's cores are shared)")
+    ap.add_argument("--out", default="outputs/discover_fdr")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "cases.jsonl"
+    done = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            r = json.loads(line)
+            done[r["id"]] = r
+    todo = [c for c in cases(a.sets.split(","), a.seeds) if case_id(c) not in done]
+    print(f"{len(todo)} datasets to run ({len(done)} done) -> {path}", flush=True)
+    with path.open("a") as fh:
+        runs = (
+            map(run_case, todo)
+            if a.jobs <= 1
+            else get_context("fork").Pool(a.jobs).imap_unordered(run_case, todo)
+        )
+        for r in runs:
+            fh.write(json.dumps(r) + "\n")
+            fh.flush()
+            done[r["id"]] = r
+            verdict = "exact" if r.get("exact") else "NOT exact"
+            print(f"{r['id']}: {verdict} {r.get('effects')} {r.get('terms')} "
+                  f"{r.get('cpu_s')} CPU-s", flush=True)  # fmt: skip
+    wanted = {case_id(c) for c in cases(a.sets.split(","), a.seeds)}
+    rows = [r for k, r in done.items() if k in wanted]
+    command = "python -m bench.discover_fdr " + " ".join(sys.argv[1:] if argv is None else argv)
+    text = summary(rows, command.strip())
+    (out / "summary.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
