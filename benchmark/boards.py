@@ -131,7 +131,7 @@ def provenance(runs: pd.DataFrame) -> pd.DataFrame:
             "reproduce": _col(runs, f"tags.{trk.TAG_NOTE}").map(_reproduce),
         }
     )
-    for name in dict.fromkeys([*ENV_COLUMNS, *_tags(runs, TAG_ENV)]):
+    for name in dict.fromkeys([*ENV_COLUMNS, *sorted(_tags(runs, TAG_ENV))]):  # one order, whatever the runs
         out[f"env.{name}"] = tag(TAG_ENV + name)
     return out
 
