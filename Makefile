@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce readme-numbers test test-fast lint clean bench discover mlflow-ui lock
+.PHONY: setup reproduce readme-numbers test test-fast lint clean bench discover mlflow-ui lock system-packages
 
 setup: $(STAMP)
 
@@ -101,7 +101,7 @@ endif
 # The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set). First
 # prints, per dataset, the page to open: the runs of its latest evaluate with the RMSRE columns.
 mlflow-ui: setup
-	@$(BIN)/python -c 'from skidbench.benchmark.tracking import print_ui_links as p; \
+	@$(BIN)/python -c 'from skidbench.benchmark.mlflow_ui import print_ui_links as p; \
 		p("sqlite:///$(SKIDBENCH_OUT)/mlflow.db", "http://127.0.0.1:5000")'
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(SKIDBENCH_OUT)/mlflow.db --port 5000
 
@@ -118,13 +118,36 @@ $(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 
+# The tests of a lab's MLflow server (PostgreSQL behind `mlflow server`, tests/mlflow_server.py) and of its
+# UI (headless Chromium, tests/test_mlflow_ui_browser.py) need two Debian packages, `postgresql` and
+# `chromium`: installed here, where missing, when make runs as root with apt-get (a fresh CI machine);
+# best-effort: where they cannot be installed those tests skip with the reason. A cheap check when both
+# are there. The `server` extra (psycopg, the PostgreSQL driver): once per pyproject.toml change.
+SERVER_STAMP := $(VENV)/.skidbench-server
+system-packages:
+	@missing=""; \
+	ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || command -v initdb >/dev/null || missing="postgresql"; \
+	command -v chromium >/dev/null || test -x /usr/bin/chromium || missing="$$missing chromium"; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "make test: installing the Debian packages $$missing (apt-get)"; \
+		{ apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; } >/dev/null \
+			|| echo "make test: apt-get could not install $$missing; the tests that need it will be skipped"; \
+	else \
+		echo "make test: $$missing not installed (installing needs root and apt-get); the tests that need it will be skipped"; \
+	fi
+$(SERVER_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev,server]' \
+		|| echo "make test: the server extra (psycopg) did not install; the PostgreSQL tests will be skipped"
+	@touch $@
+
 # The suite on two workers (pytest-xdist). Work units (tests/conftest.py `xdist_unit`): a test file, so
 # that its shared fixtures (a simulated dataset, an MLflow store) are built once; the files that share a
 # session fixture (the README's `make reproduce`, built once under a file lock) as one unit; the long
 # independent discovery tests one by one. `make test-fast`: the unit tests only (no test marked slow: no
 # end-to-end pipelines, sweeps, virtual environments or browsers), for the edit loop.
 PYTEST := $(BIN)/python -m pytest -q -n 2 --dist loadgroup
-test: setup $(CLUSTER_STAMP)
+test: setup $(CLUSTER_STAMP) $(SERVER_STAMP) system-packages
 	$(PYTEST)
 
 test-fast: setup
