@@ -130,11 +130,14 @@ def align_commands(pool: Pool, robot: Robot) -> Pool:
     their derivatives taken as the split takes them. Without it a commensurate command rate (45 Hz on the
     30 Hz grid) shows as a lag or a lead of up to a quarter command period, which the search would name
     (``lin.dw*|v|.wz`` for a lead: the catalogue's slips only take a lag). Sequences without the record
-    are left as they are; ``pool.alignment`` lists what was applied."""
+    are left as they are, and ``pool.note`` names them; ``pool.alignment`` lists what was applied."""
     table = pool.table.copy()
-    applied = {}
+    applied, unrecorded = {}, []
     for g, meta in enumerate(pool.metas):
-        off = float(((meta or {}).get("cmd_association") or {}).get("offset_s") or 0.0)
+        rec = (meta or {}).get("cmd_association")
+        if not rec:
+            unrecorded.append(pool.sequences[g])
+        off = float((rec or {}).get("offset_s") or 0.0)
         if off == 0.0:
             continue
         rows = np.flatnonzero(pool.groups == g)
@@ -148,7 +151,13 @@ def align_commands(pool: Pool, robot: Robot) -> Pool:
         for c, x in cols.items():
             table.loc[rows, c] = x
         applied[pool.sequences[g]] = off
-    return dataclasses.replace(pool, table=table, alignment=applied)
+    note = pool.note
+    if unrecorded:  # split files written before the split recorded it
+        note += (
+            f"; commands not aligned with the grid in {len(unrecorded)} sequence(s) whose split file has "
+            f"no cmd_association record (e.g. {unrecorded[0]}; `skidbench split` writes it)"
+        )
+    return dataclasses.replace(pool, table=table, alignment=applied, note=note)
 
 
 def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None) -> Pool:
@@ -496,9 +505,9 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
     """The candidate to add, as (kind, id, equivalent terms) with kind "catalogue" or "term"; None when
     none passes. The interpretable name wins a tie: the passing catalogue effect of largest penalised gain
     is named unless a passing term is significantly better (:func:`significantly_better`); a term
-    that states a passing catalogue effect in other words (``terms.catalogue_equivalent``) names
-    that effect. The terms that explain the named effect's residual as well are listed as its
-    equivalents."""
+    that states a passing catalogue effect in other words on the effect's own channels
+    (``terms.catalogue_equivalent``) names that effect. The terms that explain the named effect's residual
+    as well are listed as its equivalents."""
     best_c = _best_catalogue(scored, "passes")
     passing_t = [k for k, v in scored_t.items() if v[0]["passes"]]
     if best_c is None and not passing_t:
@@ -523,7 +532,13 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
         return ("catalogue", best_c, equivalents(best_c))
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
     eid = termlib.catalogue_equivalent(name)
-    if eid is not None and eid in scored and scored[eid][0]["passes"]:
+    same_channels = eid is not None and set(scored_t[name][2].touched) <= {
+        CHANNELS.index(c) for c in channels_of(eid)
+    }
+    if same_channels and eid in scored and scored[eid][0]["passes"]:
+        # the same statement about the same channels, in a form that fits better: the catalogue's name
+        # (a form that also changes a channel the effect does not, e.g. one side's slip, which takes
+        # forward speed too, states something more: it is named by itself when significantly better)
         run.say(f"[{run.terrain}]   {name} states {eid} in another form: named {eid}")
         return ("catalogue", eid, equivalents(eid))
     if best_c is not None:
