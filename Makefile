@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce test test-fast lint clean bench discover mlflow-ui lock
+.PHONY: setup reproduce readme-numbers test test-fast lint clean bench discover mlflow-ui lock system-packages
 
 setup: $(STAMP)
 
@@ -74,6 +74,13 @@ endif
 	$(SKB) evaluate $(SRC_ARGS) inputs=response
 	$(SKB) compare $(SRC_ARGS)
 
+# `make readme-numbers OUT=<dir>` after `make reproduce OUT=<dir>` (a fresh root, the default mini scale):
+# the record of that run's leaderboards (docs/results/reproduce-mini.json: per protocol and model the
+# README's four numbers, with the run ids, commit and versions) and the README block to paste after its
+# marker; tests/test_readme_numbers.py checks the README against the record.
+readme-numbers: setup
+	$(BIN)/python tests/readme_numbers.py $(OUT)
+
 # `make discover`: discrepancy discovery from the extended differential drive (model=edd) on the same data
 # (default: the simulated mini dataset) -> $(OUT)/<dataset>/discovery/{discovery.json,discovery.png}; then
 # the benchmark scores the base and the discovered model (fitted on Train, scored on CV/LD) side by side.
@@ -94,16 +101,44 @@ endif
 # The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set). First
 # prints, per dataset, the page to open: the runs of its latest evaluate with the RMSRE columns.
 mlflow-ui: setup
-	@$(BIN)/python -c 'from skidbench.benchmark.tracking import print_ui_links as p; \
+	@$(BIN)/python -c 'from skidbench.benchmark.mlflow_ui import print_ui_links as p; \
 		p("sqlite:///$(SKIDBENCH_OUT)/mlflow.db", "http://127.0.0.1:5000")'
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(SKIDBENCH_OUT)/mlflow.db --port 5000
 
 # The Ray tests need the optional `cluster` extra: installed best-effort, once per pyproject.toml change;
 # where it cannot be installed those tests are skipped with the reason.
 CLUSTER_STAMP := $(VENV)/.skidbench-cluster
-$(CLUSTER_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(LOCK)) -e '.[dev,cluster]' \
+# The lock's pins as constraints without their hashes (pip refuses an editable install beside hashed
+# constraints): the extra's own packages resolve freely, everything the lock pins keeps its version.
+CONSTRAINTS := $(VENV)/constraints.txt
+$(CONSTRAINTS): $(STAMP)
+	grep -E '^[A-Za-z0-9_.-]+==' $(LOCK) | sed 's/ *\\$$//' > $@
+$(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,cluster]' \
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
+	@touch $@
+
+# The tests of a lab's MLflow server (PostgreSQL behind `mlflow server`, tests/mlflow_server.py) and of its
+# UI (headless Chromium, tests/test_mlflow_ui_browser.py) need two Debian packages, `postgresql` and
+# `chromium`: installed here, where missing, when make runs as root with apt-get (a fresh CI machine);
+# best-effort: where they cannot be installed those tests skip with the reason. A cheap check when both
+# are there. The `server` extra (psycopg, the PostgreSQL driver): once per pyproject.toml change.
+SERVER_STAMP := $(VENV)/.skidbench-server
+system-packages:
+	@missing=""; \
+	ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || command -v initdb >/dev/null || missing="postgresql"; \
+	command -v chromium >/dev/null || test -x /usr/bin/chromium || missing="$$missing chromium"; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "make test: installing the Debian packages $$missing (apt-get)"; \
+		{ apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; } >/dev/null \
+			|| echo "make test: apt-get could not install $$missing; the tests that need it will be skipped"; \
+	else \
+		echo "make test: $$missing not installed (installing needs root and apt-get); the tests that need it will be skipped"; \
+	fi
+$(SERVER_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev,server]' \
+		|| echo "make test: the server extra (psycopg) did not install; the PostgreSQL tests will be skipped"
 	@touch $@
 
 # The suite on two workers (pytest-xdist). Work units (tests/conftest.py `xdist_unit`): a test file, so
@@ -112,7 +147,7 @@ $(CLUSTER_STAMP): $(STAMP)
 # independent discovery tests one by one. `make test-fast`: the unit tests only (no test marked slow: no
 # end-to-end pipelines, sweeps, virtual environments or browsers), for the edit loop.
 PYTEST := $(BIN)/python -m pytest -q -n 2 --dist loadgroup
-test: setup $(CLUSTER_STAMP)
+test: setup $(CLUSTER_STAMP) $(SERVER_STAMP) system-packages
 	$(PYTEST)
 
 test-fast: setup

@@ -74,10 +74,6 @@ class Board:
     settings: dict[str, Any] = field(default_factory=dict)
     rows: pd.DataFrame = field(default_factory=pd.DataFrame)
 
-    def metric_columns(self) -> list[str]:
-        """The RMSRE columns (%) of the horizon shown: ``<split>_<h>s_<trans|rot>_rmsre_pct``."""
-        return [c for c in self.rows.columns if c.endswith("_rmsre_pct")]
-
 
 def _literal(text: Any) -> Any:
     """An MLflow param (a string) back to its value: ``"[6.0]"`` -> [6.0], ``"0.5"`` -> 0.5."""
@@ -135,7 +131,7 @@ def provenance(runs: pd.DataFrame) -> pd.DataFrame:
             "reproduce": _col(runs, f"tags.{trk.TAG_NOTE}").map(_reproduce),
         }
     )
-    for name in dict.fromkeys([*ENV_COLUMNS, *_tags(runs, TAG_ENV)]):
+    for name in dict.fromkeys([*ENV_COLUMNS, *sorted(_tags(runs, TAG_ENV))]):  # one order, whatever the runs
         out[f"env.{name}"] = tag(TAG_ENV + name)
     return out
 

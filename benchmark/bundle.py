@@ -37,7 +37,6 @@ import json
 import os
 import re
 import shutil
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +54,7 @@ from skidbench.pipeline.protocol import INPUT_COLUMNS, PROTOCOL_VERSION, model_i
 from skidbench.pipeline.schema import read_split
 
 from . import boards as brd
+from . import metrics as mt
 from . import tracking as trk
 
 BUNDLE_FORMAT = "skidbench-bundle"
@@ -258,6 +258,7 @@ def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | N
             f"{layout.root}: no dataset here (no {layout.manifest}); `skidbench datasets` lists them"
         )
     rec = read_record(layout) or {}
+    lic = licence_of(cfg, str(rec.get("source", "?")))
     manifest = Manifest.read(layout.manifest)
     terrains = split_terrains(manifest)
     if not terrains:
@@ -276,7 +277,6 @@ def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | N
             "run it first (a bundle ships the board)"
         )
     protocol = str(cfg.get("inputs") or "commanded")
-    lic = licence_of(cfg, str(rec.get("source", "?")))
 
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".tmp-export-{dest.name}.{os.getpid()}")
@@ -344,6 +344,17 @@ def _bundle_doc(cfg, layout, rec, manifest, boards, protocol, lic, calib_setting
             **{
                 k: first.settings.get(k) for k in ("horizons", "splits", "min_distance_m", "min_rotation_deg")
             },
+            # every metric the boards hold (benchmark/metrics.py): its MLflow name, unit and definition
+            "metrics": [
+                {
+                    "name": m.name,
+                    "key": m.pattern(),
+                    "unit": m.unit,
+                    "definition": m.description,
+                    "optional": m.optional,
+                }
+                for m in mt.METRICS
+            ],
         },  # fmt: skip
         "calibration_settings": calib_settings,
         "licence": lic,
@@ -448,7 +459,7 @@ def import_bundle(
     (default name: the exported dataset's). Importing the same bundle again changes nothing; a folder
     holding another dataset is refused unless ``replace``."""
     folder = Path(folder).expanduser().resolve()
-    verify(folder)
+    sums = verify(folder)
     doc = _read_doc(folder)
     name = str(name or doc["dataset"]["name"])
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
@@ -473,6 +484,10 @@ def import_bundle(
     try:
         seqs = []
         for s in doc["sequences"]:
+            if s["file"] not in sums:
+                raise BundleError(
+                    f"{folder / 'bundle.json'}: sequence {s['name']}'s file {s['file']} is not in {SUMS}"
+                )
             src = _safe_rel(folder, s["file"])
             out = tmp.split_file(s["terrain"], s["split"], s["name"])
             out.parent.mkdir(parents=True, exist_ok=True)
@@ -536,12 +551,6 @@ def next_commands(doc: dict[str, Any], name: str) -> list[str]:
     ]
 
 
-def exported_board(root: Path, protocol: str) -> brd.Board | None:
-    """The board an imported dataset's bundle shipped for ``protocol`` (``<ds>/bundle/board/``), else None."""
-    path = Path(root) / RECORD_DIR / "board" / f"{protocol}.json"
-    return brd.read_board(path) if path.is_file() else None
-
-
 def describe_export(res: ExportResult) -> str:
     return (
         f"export: {res.folder}: {res.files} files, {res.bytes / 1e6:.1f} MB; boards {', '.join(res.boards)}; "
@@ -559,10 +568,3 @@ def describe_import(res: ImportResult, bundle: Path) -> str:
         *[f"  {c}" for c in res.commands],
     ]
     return "\n".join(lines)
-
-
-def summary_rows(board: brd.Board, keys: Sequence[str]) -> list[dict[str, Any]]:
-    """``[{model, terrain, <keys>...}]`` of a board's FINISHED rows (for comparing two boards)."""
-    ok = board.rows[board.rows["status"] == "FINISHED"]
-    return [{"model": r["model"], "terrain": r["terrain"], **{k: r.get(k) for k in keys}}
-            for r in ok.to_dict("records")]  # fmt: skip

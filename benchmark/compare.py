@@ -8,7 +8,9 @@ runs of ``mlflow.experiment=<name>`` (benchmark/selection.py ``resolve_target``)
 (``parent_run_id=latest``) the newest complete run of each (model, terrain) under the input protocol
 (``inputs``), across evaluates (``selection.latest_complete``): a model evaluated alone joins the board
 beside the others, and the newer runs that are not complete (failed, killed, running, other split files)
-are left out and named. ``parent_run_id=<run id>``: one evaluate's runs; null: every child run (which must
+are left out and named; of the caller's own runs (``user``: null = yours, i.e. ``mlflow.user``, a name, or
+``all``), and when someone else evaluated the dataset after you a note says so. ``parent_run_id=<run
+id>``: one evaluate's runs; null: every child run (which must
 then be of one protocol); ``filter``: an MLflow filter string on top. Runs of different protocols are
 never ranked together: compare writes one leaderboard per protocol (benchmark/boards.py, every row with
 its run id, options digest and versions) and the report sets the protocols side by side per model: what
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import datetime as dt
+import hashlib
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -41,6 +44,7 @@ from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
 from . import boards as brd
 from . import figures as figs
 from . import metrics as mt
+from . import mlflow_ui as mu
 from . import report_data as rd
 from . import selection as sel
 from . import tracking as trk
@@ -502,7 +506,7 @@ def run_compare(cfg: Any) -> CompareResult:
     horizon = float(cfg.horizon)
     parent_cfg = cfg.get("parent_run_id", "latest")
     parent_arg = None if parent_cfg in (None, "", "null") else str(parent_cfg)
-    user = None  # every user's runs (a user filter is the runs' `mlflow.user`: selection.search_children)
+    user = sel.whose(cfg.get("user"))  # the caller's own runs unless user=<name> | all
     # latest: the newest complete run of each (model, terrain) under cfg.inputs, across evaluates; a run
     # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
     # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
@@ -513,6 +517,8 @@ def run_compare(cfg: Any) -> CompareResult:
     left_out: list[str] = []
     if parent_arg == "latest":
         protocol = protocol_of(cfg)
+        if protocol not in selections and user and sel.not_yours(tracker, protocol, cfg.get("filter"), user):
+            raise CompareError(sel.not_yours(tracker, protocol, cfg.get("filter"), user))
         if protocol not in selections:
             others = f" (runs exist under inputs={', '.join(selections)})" if selections else ""
             if cfg.get("filter"):
@@ -572,6 +578,18 @@ def run_compare(cfg: Any) -> CompareResult:
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
     notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
+    newer = (
+        sel.newer_elsewhere(tracker, runs, protocol, cfg.get("filter"), user)
+        if parent_arg == "latest"
+        else None
+    )
+    notes += [newer] if newer else []
+    log_to = parent or (parents[0] if len(parents) == 1 else None)  # the evaluate run every row hangs from
+    owner = tracker.client.get_run(log_to).data.tags.get(trk.TAG_USER) if log_to else None
+    if log_to and owner != trk.current_user():  # another person's evaluate run is left as they made it
+        log_to = None
+        if cfg.get("log_to_mlflow", True):
+            notes.append(f"the report is logged to a compare run of yours, not to {owner}'s evaluate run")
     fig_md: list[str] = []
     fc = cfg.figures
     if fc.enabled:
@@ -643,8 +661,8 @@ def run_compare(cfg: Any) -> CompareResult:
     )  # fmt: skip
     files.append(report)
     if cfg.get("log_to_mlflow", True):
-        # to the evaluate run every row hangs from; a board of several evaluates: a compare run of its own
-        run_id = parent or (parents[0] if len(parents) == 1 else None)
+        # to your evaluate run every row hangs from; else (several evaluates, another person's): a compare run
+        run_id = log_to
         if run_id is None:
             run_id = tracker.start(
                 f"compare {cfg.dataset}",
@@ -666,19 +684,26 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
 
 
 def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
-    """MLflow UI links: the parent run, the compare-runs page of the selected child runs, and (with a
-    parent) a saved view of the runs table showing its children with the RMSRE columns."""
+    """MLflow UI links (model-training pages, not the GenAI ones): the parent run's page, and a saved view
+    of the runs shown (the RMSRE columns first, best first; :mod:`mlflow_ui`) as a table and as charts of
+    the RMSRE per run."""
     ui = (cfg.get("mlflow") or {}).get("ui_url")
+    uri, exp = tracker.uri, tracker.experiment_id
+    cols, _ = mu.board_columns(("ld", "cv"), horizon)
+    order = trk.rank_key(str(cfg.rank_by), horizon)
     links = {}
     if parent:
-        links["parent run"] = tracker.run_url(parent, ui)
-    links["compare its model runs"] = tracker.compare_url(board["run_id"].tolist(), ui)
-    if parent:
-        cols = [m.metric_key(s, horizon) for s in ("ld", "cv") for m in mt.HEADLINE]
-        name = tracker.client.get_run(parent).info.run_name
-        links["runs table (saved view)"] = tracker.save_view(
-            f"evaluate-{parent[:8]}", name, parent, cols, trk.rank_key(str(cfg.rank_by), horizon), ui
-        )
+        links["parent run"] = mu.run_url(uri, exp, parent, ui)
+        key, title = f"evaluate-{parent[:8]}", tracker.client.get_run(parent).info.run_name
+        search = mu.children_of(parent)
+    else:  # every child run compare selected: a view of those runs
+        ids = ", ".join(f"'{r}'" for r in board["run_id"])
+        digest = hashlib.sha256(ids.encode()).hexdigest()[:8]
+        key, title = f"compare-{digest}", f"compare {cfg.dataset}: {len(board)} runs"
+        search = f"attributes.run_id IN ({ids})"
+    mu.save_view(tracker.client, exp, key, title, mu.view_state(search, cols, order, mu.chart_title(horizon)))
+    links["runs table (saved view)"] = mu.view_url(uri, exp, key, ui)
+    links["charts of its model runs"] = mu.view_url(uri, exp, key, ui, charts=True)
     return links
 
 

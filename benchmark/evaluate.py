@@ -29,6 +29,7 @@ from skidbench.pipeline.protocol import ProtocolError, protocol_of
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import metrics as mt
+from . import mlflow_ui as mu
 from . import tracking as trk
 from .failures import fail_run, kill_run
 from .fit_record import (
@@ -246,12 +247,17 @@ def run_benchmark(
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
                 children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
+            rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
+            board, board_metrics = mu.evaluate_leaderboard(rows, splits, horizons[0], protocol)
             tracker.log(
                 parent_id,
-                metrics={"n_children": len(children), "n_failed": n_failed},
-                tags={trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED"},
+                metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
+                tags={
+                    trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED",
+                    trk.TAG_NOTE: board + _describe(cfg, models, terrains, splits, horizons),
+                },  # fmt: skip
             )
-            save_views(tracker, parent_id, splits, horizons)
+            save_views(tracker, parent_id, splits, horizons, protocol)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
@@ -543,18 +549,13 @@ def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
     return out
 
 
-def save_views(tracker, parent_id: str, splits, horizons) -> str:
-    """The UI's saved views of an evaluate (``latest`` and ``evaluate-<run id>``): its child runs with the
-    headline metrics' columns of the first horizon (LD first), best LD translational first. Returns the
-    URL."""
-    h = horizons[0]
-    order = sorted(splits, key=lambda s: s != "ld")
-    cols = [m.metric_key(s, h) for s in order for m in mt.HEADLINE]
+def save_views(tracker, parent_id: str, splits, horizons, protocol: str) -> list[str]:
+    """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs with the
+    columns of :func:`mlflow_ui.board_columns`, best LD translational first. Returns their keys."""
+    cols, _ = mu.board_columns(splits, horizons[0])
     name = tracker.client.get_run(parent_id).info.run_name
-    url = ""
-    for key, title in ((f"evaluate-{parent_id[:8]}", name), ("latest", f"latest: {name}")):
-        url = tracker.save_view(key, title, parent_id, cols, cols[0])
-    return url
+    return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol,
+                                  horizons[0])  # fmt: skip
 
 
 def _brief(metrics: dict[str, float]) -> str:

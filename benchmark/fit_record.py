@@ -111,6 +111,8 @@ def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path,
         arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None
         requirements = provenance.requirements_of(model_code(model_name, model))  # what loading it needs
         model_id = tracker.log_model(run_id, f"{model_name}-{terrain}", record, example, arrays, requirements)
+    except trk.StoreUnreachable:  # the store is gone: nothing more can be logged
+        raise
     except Exception as exc:  # the benchmark's numbers stand without it: say why, on the run (and console)
         model_id = f"not logged: {type(exc).__name__}: {one_line(str(exc))[:300]}"
         if not isinstance(exc, ModelError):

@@ -13,7 +13,10 @@ step; output: a DataFrame ``vx vy wz`` (m/s, m/s, rad/s; body frame), one row pe
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -80,3 +83,56 @@ class SkidbenchModel(PythonModel):
             table["sequence"] = "0"
         vel = np.asarray(self.model.predict(table[list(INPUT_COLUMNS)]), dtype=float)
         return pd.DataFrame(vel, columns=list(OUTPUT_COLUMNS))
+
+
+@contextlib.contextmanager
+def mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
+    """MLflow's current tracking URI and experiment set for a block, then restored with the environment
+    variables ``mlflow.set_tracking_uri``/``set_experiment`` export (the config reads
+    MLFLOW_TRACKING_URI: left set, a stage's cache key would change after its run)."""
+    import mlflow
+    from mlflow.tracking import fluent
+    from mlflow.tracking._tracking_service import utils as tracking_utils
+
+    names = ("MLFLOW_TRACKING_URI", "MLFLOW_EXPERIMENT_ID")
+    env = {k: os.environ.get(k) for k in names}
+    saved = (tracking_utils._tracking_uri, fluent._active_experiment_id)
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_experiment(experiment_id=experiment_id)
+    try:
+        yield
+    finally:
+        tracking_utils._tracking_uri, fluent._active_experiment_id = saved
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def log_pyfunc(
+    uri: str, experiment_id: str, run_id: str, name: str, record: Path, example: Any, arrays: Path | None,
+    requirements: Sequence[str],
+) -> str:  # fmt: skip
+    """Log a fitted model as an MLflow Model of ``run_id`` in the store ``uri`` (pyfunc flavour from the code
+    of ``mlflow_model_code.py``, with the protocol's :func:`signature`; ``record`` its JSON, ``arrays`` a
+    learned model's arrays, ``example`` a few input rows MLflow stores and checks the model with,
+    ``requirements`` given, not inferred: inference loads the model in a subprocess); returns its id.
+    Model.log talks to the current tracking URI and creates the model in the current experiment: both set
+    for the call only (they are process-wide, and MLFLOW_TRACKING_URI is part of the config)."""
+    import mlflow
+    from mlflow.models import Model
+
+    with mlflow_current(uri, experiment_id):
+        info = Model.log(
+            artifact_path=None,
+            name=name,
+            flavor=mlflow.pyfunc,
+            run_id=run_id,
+            python_model=str(Path(__file__).with_name("mlflow_model_code.py")),  # models from code
+            artifacts={ARTIFACT: str(record), **({ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
+            signature=signature(),
+            input_example=example,
+            pip_requirements=list(requirements),
+        )
+    return info.model_id

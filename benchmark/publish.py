@@ -166,15 +166,18 @@ def html_table(df: pd.DataFrame, cls: str = "sortable", row_classes: list[str] |
     return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
 
 
-def interval_columns(rows: pd.DataFrame) -> dict[str, tuple[str, str]]:
-    """``{metric column: (low column, high column)}`` of the bootstrap intervals the runs logged, if any
-    (columns ``<metric>_lo``/``<metric>_hi`` or ``<metric>_ci_lo``/``<metric>_ci_hi``)."""
+def interval_columns(rows: pd.DataFrame, horizon: float) -> dict[str, tuple[str, str, str]]:
+    """``{metric column: (low column, high column, label)}`` of the 95 % intervals the runs logged
+    (``<metric key>_ci_lo``/``_ci_hi``, docs/intervals.md), for every metric of the registry that has them."""
+    from . import metrics as mt
+
     out = {}
-    for c in [c for c in rows.columns if c.endswith("_rmsre_pct")]:
-        for lo, hi in ((f"{c}_lo", f"{c}_hi"), (f"{c}_ci_lo", f"{c}_ci_hi")):
+    for m in mt.METRICS:
+        for split in cmp.SPLITS:
+            c = m.metric_key(split, horizon)
+            lo, hi = f"{c}_ci_lo", f"{c}_ci_hi"
             if lo in rows and hi in rows and pd.to_numeric(rows[lo], errors="coerce").notna().any():
-                out[c] = (lo, hi)
-                break
+                out[c] = (lo, hi, f"{m.column_label(split)} 95% interval")
     return out
 
 
@@ -182,11 +185,9 @@ def _rows_table(board: brd.Board) -> str:
     """Every (model, terrain) row: compare's detail table, the intervals when logged, external marks."""
     rows = board.rows
     detail = cmp.detail_table(rows, board.horizon).drop(columns=["inputs", "run", "reason"], errors="ignore")
-    ci = interval_columns(rows)
-    for c, (lo, hi) in ci.items():
-        split, _h, kind, _ = c.split("_", 3)
+    for lo, hi, label in interval_columns(rows, board.horizon).values():
         los, his = pd.to_numeric(rows[lo], errors="coerce"), pd.to_numeric(rows[hi], errors="coerce")
-        detail[f"{kind} {split.upper()} 95% interval"] = [
+        detail[label] = [
             f"{a:.2f} to {b:.2f}" if np.isfinite(a) and np.isfinite(b) else ""
             for a, b in zip(los, his, strict=True)
         ]

@@ -18,9 +18,10 @@ def main(cfg: DictConfig) -> None:
     from skidbench.pipeline.protocol import protocol_of
 
     from . import tracking as trk
-    from .external import format_score, score_predictions
+    from .external import format_score, read_predictions, score_predictions
 
     layout, rec = named_dataset(cfg, "score")
+    read_predictions(Path(str(cfg.score.predictions)))  # a file that cannot be scored: before the store opens
     tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
     res = score_predictions(cfg, layout, tracker, Path(str(cfg.score.predictions)), cfg.score.get("name"),
                             protocol_of(cfg))  # fmt: skip

@@ -379,3 +379,59 @@ def dataset_boards(uri: str, names_ids: dict[str, str], horizon_s: float = 6.0) 
         if lines:
             out[name] = lines
     return out
+
+
+# -- whose runs (a lab's shared server) -------------------------------------------------------------------
+ALL_USERS = "all"
+
+
+def whose(user: str | None) -> str | None:
+    """The user whose runs a board is made of, from compare's ``user`` setting: null = the caller
+    (:func:`~skidbench.benchmark.provenance.current_user`), ``all`` = everyone (None), or that name."""
+    if user in (None, ""):
+        return trk.current_user()
+    return None if str(user) == ALL_USERS else str(user)
+
+
+def others_runs(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> pd.DataFrame:
+    """The dataset's child runs under ``inputs`` made by anyone but ``user``, newest first."""
+    runs = search_children(tracker, inputs, filter_string)
+    if runs.empty:
+        return runs
+    return runs[_col(runs, f"tags.{trk.TAG_USER}").fillna("?") != user]
+
+
+def not_yours(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> str | None:
+    """When ``user`` has no run under ``inputs`` but others have: the line that says whose and what to
+    type; else None."""
+    others = others_runs(tracker, inputs, filter_string, user)
+    if others.empty:
+        return None
+    names = list(dict.fromkeys(_col(others, f"tags.{trk.TAG_USER}").fillna("?")))
+    return (
+        f"no model run of user {user} under inputs={inputs} in experiment {tracker.experiment_name!r} at "
+        f"{tracker.uri}; runs of {', '.join(names)} exist: `skidbench compare user={names[0]}` (or "
+        "user=all), or run `skidbench evaluate` first"
+    )
+
+
+def newer_elsewhere(
+    tracker: trk.Tracker, runs: pd.DataFrame, inputs: str, filter_string: str | None, user: str | None
+) -> str | None:
+    """One line when someone other than ``user`` evaluated this dataset (same protocol) after the newest of
+    the board's ``runs``."""
+    if not user or runs.empty:
+        return None
+    others = others_runs(tracker, inputs, filter_string, user)
+    if others.empty or others["start_time"].iloc[0] <= runs["start_time"].max():
+        return None
+    who = str(_col(others, f"tags.{trk.TAG_USER}").fillna("?").iloc[0])
+    parent = _col(others, f"tags.{trk.TAG_PARENT}").iloc[0]
+    what = f"run {others['run_id'].iloc[0][:8]}"
+    if isinstance(parent, str) and parent:
+        run = tracker.client.get_run(parent)
+        what = f"{run.info.run_name}, run {parent[:8]}, {run.info.status}"
+    return (
+        f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "
+        f"user={who}` shows theirs"
+    )

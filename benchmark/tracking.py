@@ -1,41 +1,26 @@
-"""MLflow tracking for the benchmark: the one place that talks to an MLflow store.
+"""MLflow tracking for the benchmark: the store, its health and the :class:`Tracker` every stage logs
+through. Split by job: what a run is and who made it in :mod:`~skidbench.benchmark.provenance`
+(re-exported here), ending every run and reaping the ones a dead process left open in
+:mod:`~skidbench.benchmark.bookkeeping`, the UI's links and saved views in
+:mod:`~skidbench.benchmark.mlflow_ui`; logging a fitted model: :mod:`~skidbench.benchmark.mlflow_model`.
 
-Store: ``mlflow.tracking_uri`` (config; ``MLFLOW_TRACKING_URI`` when set), else the SQLite file
-``<out_root>/mlflow.db`` with artifacts under ``<out_root>/mlartifacts`` (no server needed). An
-``http(s)://`` URI (a ``mlflow server``) works the same; it is health-checked first so that an unreachable
-server is one clear line, not minutes of HTTP retries.
-
-Runs (SPEC.md "MLflow"): one *parent* run per ``skidbench evaluate`` invocation and one *child* run per
-(model, terrain), linked by the ``mlflow.parentRunId`` tag. Tags under ``skidbench.*`` say what a run is
-(``skidbench.role`` = parent | child, ``skidbench.model``, ``skidbench.terrain``, ...). A child whose
-model failed ends ``FAILED`` with ``skidbench.failure_reason``. Every run also records the process that
-started it (``skidbench.host``, ``skidbench.boot_id``, ``skidbench.pid``): a run left ``RUNNING`` by a
-process of this machine that is gone (killed, crashed) is marked ``KILLED``, with the reason, the next time
-a stage opens the store (:meth:`Tracker.reap_dead_runs`); runs of other machines are never touched.
-
-A job of a sweep tags its run with a key (``skidbench.run_key`` = ``<sweep id>/<job number>``, the same
-for every attempt of the job): :meth:`Tracker.claim_key`, called before the run starts, returns the run of
-an attempt that already FINISHED (log nothing more) and marks ``KILLED`` the runs a dead attempt left open,
-on any machine; so a job a cluster retried still yields exactly one FINISHED run.
+Store: ``mlflow.tracking_uri`` (``MLFLOW_TRACKING_URI`` when set), else the SQLite file
+``<out_root>/mlflow.db`` with artifacts under ``<out_root>/mlartifacts``. An ``http(s)://`` URI (a
+``mlflow server``, a lab's shared one) works the same: health-checked first (one clear line), MLflow's
+HTTP retry and timeout settings bounded by default (:data:`HTTP_DEFAULTS`), and a server that stops
+answering mid-run ends the command in one line naming the server and what to do (:class:`StoreUnreachable`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import datetime as dt
 import functools
-import getpass
-import json
 import logging
 import os
 import re
-import shlex
-import socket
-import sys
 import time
 import urllib.error
-import urllib.parse
 import urllib.request
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -43,67 +28,96 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.pipeline.errors import one_line
-from skidbench.pipeline.io import process_alive
 from skidbench.pipeline.layout import Layout
-from skidbench.pipeline.provenance import git_commit, requirements_of
+from skidbench.pipeline.provenance import requirements_of
 
+from . import bookkeeping as bk
 from .horizon import EvaluationError
 from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric names, kept importable here)
 
+# what a run is and who made it (every name of provenance.__all__): callers use them as ``tracking.<name>``
+from .provenance import *  # noqa: F403
+from .provenance import (
+    MAX_PARAM_LEN,
+    MAX_TAG_LEN,
+    TAG_DATASET_ID,
+    TAG_HEARTBEAT,
+    TAG_INPUTS,
+    TAG_NOTE,
+    TAG_PARENT,
+    TAG_REASON,
+    TAG_ROLE,
+    TAG_STATUS,
+    TAG_USER,
+    owner_tags,
+    source_tags,
+    utc_now,
+)  # fmt: skip
+
 log = logging.getLogger(__name__)
 
-MAX_PARAM_LEN = 6000  # MLflow's limit on a param value
-MAX_TAG_LEN = 5000
-
-TAG_ROLE = "skidbench.role"
-TAG_MODEL = "skidbench.model"
-TAG_MODEL_VERSION = "skidbench.model_version"
-TAG_PLUGIN = "skidbench.plugin_package"
-TAG_TERRAIN = "skidbench.terrain"
-TAG_DATASET = "skidbench.dataset"
-TAG_FINGERPRINT = "skidbench.dataset_fingerprint"  # content of the split files a run read
-TAG_DATASET_ID = "skidbench.dataset_id"  # the dataset's identity (pipeline/dataset.py): runs never mix
-TAG_GIT = "skidbench.git_commit"
-TAG_STATUS = "skidbench.status"
-TAG_REASON = "skidbench.failure_reason"
-TAG_PARENT = "mlflow.parentRunId"
-TAG_HOST = "skidbench.host"
-TAG_BOOT = "skidbench.boot_id"
-TAG_PID = "skidbench.pid"
-TAG_RUN_KEY = "skidbench.run_key"
-TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
-TAG_EXTERNAL = "skidbench.external"  # "true" on a run of `skidbench score` (benchmark/external.py)
-TAG_PREDICTIONS_SHA256 = "skidbench.predictions_sha256"  # the sha256 of the predictions file it scored
-TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
-TAG_SAVED_VIEW = "mlflow.sharedViewState."  # + key: a saved view of the UI's runs table (experiment tag)
 INTERRUPTED = "interrupted (Ctrl-C): killed before it finished"
-#: what `make mlflow-ui` serves; links printed for a local (SQLite) store point there
-DEFAULT_UI_URL = "http://127.0.0.1:5000"
+
+#: MLflow's own HTTP settings (mlflow/environment_variables.py) that skidbench sets, unless they are set
+#: already, when it talks to a tracking server. A request is tried 4 times (3 retries, 0 / 4 / 8 s apart,
+#: plus up to 1 s of jitter each) with 10 s to connect and 10 s to wait for each answer: a server that is
+#: gone (connection refused) is given up after ~14 s, one that accepts and never answers after ~55 s
+#: (MLflow's defaults: 7 retries with a 120 s timeout, ~4 min and more per request). MLflow's "View run
+#: ... at: ..." lines (two per run) are not printed: `compare` prints the links worth opening.
+HTTP_DEFAULTS = {
+    "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "3",
+    "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "2",
+    "MLFLOW_HTTP_REQUEST_BACKOFF_JITTER": "1.0",
+    "MLFLOW_HTTP_REQUEST_TIMEOUT": "10",
+    "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
+}
 
 
-@functools.cache
-def _boot_id() -> str:
-    """This machine's boot id (Linux), which tells two machines of one host name apart; '' elsewhere."""
-    try:
-        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
-    except OSError:
-        return ""
+def use_http_defaults() -> None:
+    """Set :data:`HTTP_DEFAULTS` in this process's environment where the user has not set them (MLflow
+    reads them on every request)."""
+    for key, value in HTTP_DEFAULTS.items():
+        os.environ.setdefault(key, value)
 
 
-def process_tags() -> dict[str, str]:
-    """The tags that name the process starting a run."""
-    return {TAG_HOST: socket.gethostname(), TAG_BOOT: _boot_id(), TAG_PID: str(os.getpid())}
+class StoreUnreachable(EvaluationError):
+    """The tracking server stopped answering mid-run (one line: the server, what happened, what to do)."""
 
 
-def _quiet_mlflow_logs() -> None:
+def unreachable(exc: BaseException) -> str | None:
+    """The short reason when ``exc`` (or what caused it) is a tracking server that does not answer: no
+    connection, a timeout, or error answers (5xx) until the retries ran out; else None (an answer that
+    refuses the request is no outage)."""
+    import requests
+
+    chain: list[BaseException] = []
+    e: BaseException | None = exc
+    while e is not None and e not in chain:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    message = str(getattr(exc, "message", exc))
+    if not any(isinstance(x, requests.exceptions.RequestException) for x in chain) and not (
+        message.startswith("API request to ") and " failed with " in message
+    ):
+        return None
+    low = " ".join(str(x) for x in chain).lower()
+    timed_out = "timed out" in low or "timeout" in low
+    many = "too many" in low  # 5xx answers until the retries ran out
+    return ("connection refused" if "refused" in low else "timed out" if timed_out
+            else "error answers" if many else "no connection")  # fmt: skip
+
+
+def quiet_mlflow_logs() -> None:
     # a fresh SQLite store runs its schema migrations through alembic, which is chatty at INFO
     # and logging a model says at INFO that it validated the input example against the signature
     quiet = ["alembic", "alembic.runtime.migration", "mlflow.store.db.utils"]
     quiet += ["mlflow.pyfunc", "mlflow.models"]
     for name in quiet:
         logging.getLogger(name).setLevel(logging.WARNING)
+    # a warning per retry of a request to a server that is gone: StoreUnreachable's one line says it instead
+    logging.getLogger("urllib3.connectionpool").setLevel(logging.ERROR)
 
 
 def resolve_tracking_uri(cfg: Any, layout: Layout) -> str:
@@ -144,84 +158,6 @@ def check_reachable(uri: str, timeout_s: float = 5.0) -> None:
             f"MLflow tracking server {uri} is unreachable ({reason}); start it "
             "(mlflow server --backend-store-uri ...) or unset MLFLOW_TRACKING_URI to use the local store"
         ) from None
-
-
-def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
-    """Flatten a nested mapping to ``a.b.c`` -> str(value) (lists as their repr), for MLflow params."""
-    out: dict[str, str] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, Mapping):
-            out.update(flatten(v, key + "."))
-        else:
-            s = "null" if v is None else str(v)
-            out[key] = s if len(s) <= MAX_PARAM_LEN else s[: MAX_PARAM_LEN - 3] + "..."
-    return out
-
-
-def source_tags() -> dict[str, str]:
-    """MLflow's own tags for who started a run and from what (the UI's "Created by" and "Source"):
-    ``mlflow.user``, ``mlflow.source.type`` LOCAL, ``mlflow.source.name`` the command line, the git
-    commit of the skidbench tree."""
-    try:
-        user = getpass.getuser()
-    except (KeyError, OSError):
-        user = "unknown"
-    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"  # e.g. "skidbench evaluate"
-    tags = {
-        "mlflow.user": user,
-        "mlflow.source.type": "LOCAL",
-        "mlflow.source.name": " ".join([prog, shlex.join(sys.argv[1:])]).strip()[:MAX_TAG_LEN],
-    }
-    commit = git_commit()
-    if commit != "unknown":
-        tags["mlflow.source.git.commit"] = commit.split("+")[0]
-    return tags
-
-
-def task_overrides() -> list[str]:
-    """The command-line overrides of the running Hydra app ([] outside one)."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return [str(o) for o in HydraConfig.get().overrides.task]
-    except (ImportError, ValueError):
-        return []
-
-
-def reproduce_command(stage: str, extra: Sequence[str] = (), drop: Sequence[str] = ()) -> str:
-    """``skidbench <stage> <this run's overrides> <extra>``; overrides of the keys ``drop`` (and of the keys
-    ``extra`` sets) are left out so that the command runs as printed."""
-    extra = list(extra)
-    keys = {o.split("=", 1)[0].lstrip("+~") for o in extra} | set(drop)
-    kept = [o for o in task_overrides() if o.split("=", 1)[0].lstrip("+~") not in keys]
-    return shlex.join(["skidbench", stage, *kept, *extra])
-
-
-def describe(title: str, facts: Mapping[str, Any], command: str) -> str:
-    """A run description (the ``mlflow.note.content`` tag; Markdown): a title line, facts, the command."""
-    lines = [title, ""]
-    lines += [f"- **{k}**: {v}" for k, v in facts.items() if v not in (None, "")]
-    lines += ["", "Reproduce:", "", "```", command, "```", ""]
-    return "\n".join(lines)[:MAX_TAG_LEN]
-
-
-def parent_run_name(stage: str, dataset: str, inputs: str, when: dt.datetime | None = None) -> str:
-    """``evaluate sim-mini commanded 2026-11-23 23:10:05``: stage, dataset, input protocol, UTC start time
-    (to the second; a parent run's name is unique and says what it is)."""
-    when = when or dt.datetime.now(dt.UTC)
-    return f"{stage} {dataset} {inputs} {when:%Y-%m-%d %H:%M:%S}"
-
-
-def config_params(conf: Mapping[str, Any], model: Mapping[str, Any] | None = None) -> dict[str, str]:
-    """A run's config as params: the stage config without any ``model`` node (a ``+model=...`` override
-    belongs to one model only), plus ``model.*`` of ``model`` (``{"name", "params", "options"}``: the
-    config of the run's own model, :func:`skidbench.models.fitting.model_config`) when given."""
-    conf = {k: v for k, v in conf.items() if k != "model"}
-    if model is not None:
-        conf["model"] = {"name": model.get("name"), "params": model.get("params") or {},
-                         "options": model.get("options") or {}}  # fmt: skip
-    return flatten(conf)
 
 
 def _safe_name(name: str) -> str:
@@ -265,33 +201,30 @@ def _env(**values: str) -> Iterator[None]:
                 os.environ[k] = v
 
 
-@contextlib.contextmanager
-def _mlflow_current(uri: str, experiment_id: str) -> Iterator[None]:
-    """MLflow's current tracking URI and experiment set for a block, then restored with the environment
-    variables ``mlflow.set_tracking_uri``/``set_experiment`` export (the config reads
-    MLFLOW_TRACKING_URI: left set, a stage's cache key would change after its run)."""
-    import mlflow
-    from mlflow.tracking import fluent
-    from mlflow.tracking._tracking_service import utils as tracking_utils
+class _Guarded:
+    """An ``MlflowClient`` whose every call goes through :meth:`Tracker.call` (an outage: one line, once)."""
 
-    names = ("MLFLOW_TRACKING_URI", "MLFLOW_EXPERIMENT_ID")
-    env = {k: os.environ.get(k) for k in names}
-    saved = (tracking_utils._tracking_uri, fluent._active_experiment_id)
-    mlflow.set_tracking_uri(uri)
-    mlflow.set_experiment(experiment_id=experiment_id)
-    try:
-        yield
-    finally:
-        tracking_utils._tracking_uri, fluent._active_experiment_id = saved
-        for k, v in env.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    def __init__(self, client: Any, tracker: Tracker) -> None:
+        self._client, self._tracker = client, tracker
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._client, name)
+        if not callable(attr):
+            return attr
+
+        @functools.wraps(attr)
+        def call(*args, **kwargs):
+            return self._tracker.call(attr, *args, **kwargs)
+
+        return call
 
 
 class Tracker:
-    """An MLflow client bound to one store and one experiment (created if absent)."""
+    """An MLflow client bound to one store and one experiment (created if absent). It keeps the runs it
+    opened and has not ended: on a tracking server a heartbeat thread marks them alive, and when the
+    server stops answering (:meth:`call`) they are ended FAILED if it can still be reached at once, else
+    left to the reaping of :mod:`~skidbench.benchmark.bookkeeping`; every later call then fails at once
+    with the same line (:class:`StoreUnreachable`)."""
 
     def __init__(
         self,
@@ -300,23 +233,74 @@ class Tracker:
         artifact_root: Path | None = None,
         timeout_s: float = 5.0,
         dataset_id: str | None = None,
+        out_root: Path | str | None = None,
     ):
         """``dataset_id``: the dataset's fingerprint; every run started here is tagged with it and
-        :meth:`latest_parent` and compare's searches only see runs that carry it."""
-        _quiet_mlflow_logs()
+        :meth:`latest_parent` and compare's searches only see runs that carry it. ``out_root``: the output
+        root the runs' files go to (tag ``skidbench.out_root``)."""
+        quiet_mlflow_logs()
         self.dataset_id = dataset_id
+        self.out_root = out_root
         from mlflow.tracking import MlflowClient
 
         self.uri = uri
+        if is_server(uri):
+            use_http_defaults()
+        os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
         check_reachable(uri, timeout_s)
         if local_store_file(uri) is not None:
             local_store_file(uri).parent.mkdir(parents=True, exist_ok=True)
-        self.client = MlflowClient(tracking_uri=uri)
+        self._raw = MlflowClient(tracking_uri=uri)
+        self.client = _Guarded(self._raw, self)
         self.experiment_name = experiment
         self._datasets: dict[tuple[str, str], Any] = {}  # dataset entities already built
         self._artifact_root = artifact_root
         self._experiment_id: str | None = None
+        self._open: dict[str, None] = {}  # runs started here and not ended, in start order
+        self._heartbeat = bk.Heartbeat(self._raw) if is_server(uri) else None
+        self._down: str | None = None  # the one line of StoreUnreachable, once the server stopped answering
         self._existing_experiment()  # a deleted experiment or an unusable store: one line, now
+
+    # -- the store's health ------------------------------------------------------------------------
+    def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)``, a call to the store; a server that does not answer (:func:`unreachable`)
+        raises :class:`StoreUnreachable` after :meth:`_gone` (and at once on every later call)."""
+        if self._down:
+            raise StoreUnreachable(self._down)
+        t0 = time.monotonic()
+        try:
+            return fn(*args, **kwargs)
+        except Exception as exc:
+            reason = unreachable(exc) if is_server(self.uri) else None
+            if reason is None:
+                raise
+            self._gone(reason, time.monotonic() - t0)
+            raise StoreUnreachable(self._down) from None
+
+    def _gone(self, reason: str, waited_s: float) -> None:
+        """The server stopped answering: stop the heartbeat, try once (no retry, 5 s) to end every open run
+        FAILED with its PENDING models, and compose the one line every later call raises."""
+        if self._heartbeat is not None:
+            self._heartbeat.stop()
+        runs = list(reversed(self._open))  # children before their parent
+        why = f"the MLflow tracking server stopped answering ({reason})"
+        try:
+            with _env(MLFLOW_HTTP_REQUEST_MAX_RETRIES="0", MLFLOW_HTTP_REQUEST_TIMEOUT="5"):
+                bk.end_runs(self._raw, runs, "FAILED", why, [self._experiment_id or "0"])
+            self._open.clear()
+            left = "the runs this command opened were ended FAILED"
+        except Exception:  # noqa: BLE001 - still down: the runs are left to the reaping
+            left = (
+                f"the {len(runs)} run(s) this command opened stay RUNNING until the next skidbench command "
+                "that reaches the server from this machine, or `skidbench runs --reap` from any machine, "
+                "marks them KILLED"
+            )
+        tries = int(os.environ.get("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")) + 1
+        self._down = (
+            f"MLflow tracking server {self.uri} stopped answering ({reason}; gave up after {tries} tries in "
+            f"{waited_s:.0f} s, see MLFLOW_HTTP_REQUEST_MAX_RETRIES / _TIMEOUT); {left}; check the server "
+            f"({self.uri.rstrip('/')}/health) and run the command again"
+        )
 
     @property
     def experiment_id(self) -> str:
@@ -391,13 +375,17 @@ class Tracker:
 
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
-        t = {**source_tags(), **process_tags(), **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}
+        t = {**source_tags(), **owner_tags(self.out_root), TAG_HEARTBEAT: utc_now(),
+             **{k: str(v)[:MAX_TAG_LEN] for k, v in tags.items()}}  # fmt: skip
         if self.dataset_id:
             t[TAG_DATASET_ID] = self.dataset_id
         if parent_id:
             t[TAG_PARENT] = parent_id
-        run = self.client.create_run(self.experiment_id, run_name=run_name, tags=t)
-        return run.info.run_id
+        run_id = self.client.create_run(self.experiment_id, run_name=run_name, tags=t).info.run_id
+        self._open[run_id] = None
+        if self._heartbeat is not None:
+            self._heartbeat.add(run_id)
+        return run_id
 
     def log(
         self,
@@ -426,6 +414,9 @@ class Tracker:
 
     def end(self, run_id: str, status: str = "FINISHED") -> None:
         self.client.set_terminated(run_id, status=status)
+        self._open.pop(run_id, None)
+        if self._heartbeat is not None:
+            self._heartbeat.remove(run_id)
 
     def fail(self, run_id: str, reason: str) -> None:
         self.log(run_id, tags={TAG_STATUS: "FAILED", TAG_REASON: one_line(reason)})
@@ -488,7 +479,18 @@ class Tracker:
                 InputTag("skidbench.fingerprint", d.fingerprint),
             ]
             inputs.append(DatasetInput(self._datasets[key], tags=tags))
-        self.client.log_inputs(run_id, datasets=inputs)
+        from mlflow.exceptions import MlflowException
+
+        for attempt in range(3):
+            try:
+                return self.client.log_inputs(run_id, datasets=inputs)
+            except MlflowException as exc:
+                # two people logging one dataset at once: the server inserts it twice and one insert loses
+                # on the datasets table's key (PostgreSQL, tests/test_mlflow_server.py); it exists now
+                text = str(exc.message)
+                if attempt == 2 or not ("dataset_pk" in text or "UNIQUE constraint failed: datasets" in text):
+                    raise
+                time.sleep(0.5 * (attempt + 1))
 
     def log_model(
         self,
@@ -504,178 +506,51 @@ class Tracker:
         rows, which MLflow stores and checks the model with); returns its model id.
         Requirements are given, not inferred (inference loads the model in a subprocess: seconds):
         ``requirements``, else skidbench's (:func:`skidbench.pipeline.provenance.requirements_of`)."""
-        import mlflow
-        from mlflow.models import Model
-
         from . import mlflow_model as mm
 
-        # Model.log talks to the current tracking URI and creates the model in the current experiment:
-        # both set for the call only (they are process-wide, and MLFLOW_TRACKING_URI is part of the config)
-        with (
-            _mlflow_current(self.uri, self.experiment_id),
-            _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"),
-        ):
-            info = Model.log(
-                artifact_path=None,
-                name=_safe_name(name)[:100],
-                flavor=mlflow.pyfunc,
-                run_id=run_id,
-                python_model=str(Path(mm.__file__).with_name("mlflow_model_code.py")),  # models from code
-                artifacts={mm.ARTIFACT: str(record), **({mm.ARRAYS_ARTIFACT: str(arrays)} if arrays else {})},
-                signature=mm.signature(),
-                input_example=example,
-                pip_requirements=list(requirements or requirements_of()),
-            )
-        return info.model_id
-
-    # -- links to the UI ------------------------------------------------------------------------
-    def ui_url(self, ui: str | None = None) -> str:
-        """The MLflow UI that shows this store: a tracking server's own URL, else ``ui`` (what
-        ``make mlflow-ui`` serves by default)."""
-        return self.uri.rstrip("/") if is_server(self.uri) else (ui or DEFAULT_UI_URL).rstrip("/")
-
-    def run_url(self, run_id: str, ui: str | None = None) -> str:
-        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs/{run_id}"
-
-    def compare_url(self, run_ids: Sequence[str], ui: str | None = None) -> str:
-        """The UI's compare-runs page of ``run_ids`` (params, metrics and charts side by side)."""
-        q = urllib.parse.urlencode(
-            {
-                "runs": json.dumps(list(run_ids), separators=(",", ":")),
-                "experiments": json.dumps([self.experiment_id], separators=(",", ":")),
-            }
-        )
-        return f"{self.ui_url(ui)}/#/compare-runs?{q}"
-
-    def save_view(
-        self,
-        key: str,
-        title: str,
-        parent_id: str,
-        columns: Sequence[str],
-        order_by: str,
-        ui: str | None = None,
-    ) -> str:
-        """Save a view of the runs table as an experiment tag (the UI's "Views" menu; MLflow 3.17 reads
-        ``mlflow.sharedViewState.<key>`` when the runs page is opened with ``?viewStateShareKey=<key>``):
-        the child runs of ``parent_id`` grouped by terrain (a group's row: the best, i.e. smallest, value),
-        the metric ``columns`` and the logged models visible, rows sorted by ``order_by`` ascending (the
-        best model of each terrain first). Returns its URL."""
-        metrics = [f"metrics.`{c}`" for c in columns]
-        state = {
-            "searchFilter": f"tags.`{TAG_PARENT}` = '{parent_id}'",
-            "orderByKey": f"metrics.`{order_by}`",
-            "orderByAsc": True,
-            "selectedColumns": [*metrics, "attributes.`Models`"],
-            # the metrics right after the run name, wide enough for their names (the UI's column ids)
-            "columnOrder": [
-                "attributes.`Run Name`",
-                *metrics,
-                "attributes.`Models`",
-                "runDateAndNestInfo",
-                "duration",
-            ],
-            "columnWidths": {m: 8 * len(c) + 24 for m, c in zip(metrics, columns, strict=True)},
-            # the chart view plots every run, not the first 10 (the UI's default) nor the groups' minima
-            "runsHiddenMode": "SHOW_ALL",
-            "useGroupedValuesInCharts": False,
-            "groupBy": {
-                "aggregateFunction": "min",
-                "groupByKeys": [{"mode": "tag", "groupByData": TAG_TERRAIN}],
-            },
-        }
-        now = int(time.time() * 1000)
-        envelope = {"name": title, "createdAt": now, "updatedAt": now, "state": json.dumps(state)}
-        self.client.set_experiment_tag(self.experiment_id, TAG_SAVED_VIEW + key, json.dumps(envelope))
-        q = urllib.parse.urlencode({"viewStateShareKey": key, "workflowType": "machine_learning"})
-        return f"{self.ui_url(ui)}/#/experiments/{self.experiment_id}/runs?{q}"
+        with _env(MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR="false"):
+            return self.call(mm.log_pyfunc, self.uri, self.experiment_id, run_id, _safe_name(name)[:100],
+                             record, example, arrays, list(requirements or requirements_of()))  # fmt: skip
 
     def dataset_filter(self) -> list[str]:
         """The search clause that keeps this dataset's runs only (none without a dataset id)."""
         return [f"tags.`{TAG_DATASET_ID}` = '{self.dataset_id}'"] if self.dataset_id else []
 
+    # -- bookkeeping (benchmark/bookkeeping.py) ----------------------------------------------------
     def reap_dead_runs(self) -> list[str]:
-        """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process,
-        on this machine (same host name and boot id), is gone; returns their ids. A run of another
-        machine, or of a live process (a concurrent sweep), is left alone."""
-        me = process_tags()
-        if not me[TAG_BOOT]:  # cannot tell this machine from another of the same name
-            return []
-        quote = me[TAG_HOST].replace("'", "")
-        if not self.search_ids():
-            return []
-        runs = self.client.search_runs(
-            self.search_ids(),
-            filter_string=(
-                f"attributes.status = 'RUNNING' AND tags.`{TAG_HOST}` = '{quote}' "
-                f"AND tags.`{TAG_BOOT}` = '{me[TAG_BOOT]}'"
-            ),
-            max_results=1000,
-        )
-        reaped = []
-        for run in runs:
-            pid = run.data.tags.get(TAG_PID, "")
-            if not pid.isdigit() or process_alive(int(pid)):
-                continue
-            reason = f"process {pid} on {me[TAG_HOST]} ended without closing the run (killed or crashed)"
-            self.log(run.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
-            self.end(run.info.run_id, "KILLED")
-            reaped.append(run.info.run_id)
-        if reaped:
-            log.warning(
-                "MLflow: %d run(s) left RUNNING by a process that is gone marked KILLED: %s",
-                len(reaped), ", ".join(reaped),
-            )  # fmt: skip
-        return reaped
+        """Mark ``KILLED`` (with the reason) the runs of this experiment still ``RUNNING`` whose process, on
+        this machine, is gone (and their PENDING models FAILED); returns their ids."""
+        return [r.run_id for r in bk.reap(self.client, self.search_ids())]
 
     def claim_key(self, key: str) -> str | None:
-        """Before starting the run of one job of a sweep (``key``, the same for every attempt of it): the
-        id of a run of ``key`` that FINISHED (an earlier attempt completed: the job has nothing more to
-        log), else None, after marking ``KILLED`` each run of ``key`` left open and its open children (an
-        attempt whose worker or node died; the cluster retried the job). Open means RUNNING or SCHEDULED."""
-        quoted = key.replace("'", "")
-        if not self.search_ids():
-            return None
-        runs = self.client.search_runs(
-            self.search_ids(), filter_string=f"tags.`{TAG_RUN_KEY}` = '{quoted}'", max_results=100
-        )
-        done = [r for r in runs if r.info.status == "FINISHED"]
-        if done:
-            run_id = done[0].info.run_id
-            log.info("MLflow: job %s already has the finished run %s; not logged again", key, run_id)
-            return run_id
-        reason = f"superseded: job {key} was retried (this attempt's worker or node died)"
-        for run in runs:
-            if run.info.status not in ("RUNNING", "SCHEDULED"):
-                continue
-            children = self.client.search_runs(
-                [self.experiment_id],
-                filter_string=f"tags.`{TAG_PARENT}` = '{run.info.run_id}' AND attributes.status = 'RUNNING'",
-                max_results=1000,
-            )
-            for r in [*children, run]:
-                self.log(r.info.run_id, tags={TAG_STATUS: "KILLED", TAG_REASON: reason})
-                self.end(r.info.run_id, "KILLED")
-            log.warning("MLflow: run %s of job %s, left open by a dead attempt, marked KILLED",
-                        run.info.run_id, key)  # fmt: skip
-        return None
+        """:func:`bookkeeping.claim_key` in this experiment: the FINISHED run of a sweep job's earlier
+        attempt, else None after ending the runs a dead attempt left open."""
+        return bk.claim_key(self.client, self.search_ids(), key)
 
     # -- queries ----------------------------------------------------------------------------------
-    def latest_parent(self, inputs: str | None = None) -> str | None:
-        """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
-        a warning and passed over), else the newest parent of any status, else None. ``inputs``: only
-        parents of that input protocol (tag ``skidbench.inputs``)."""
+    def parents(self, inputs: str | None = None, user: str | None = None, max_results: int = 50) -> list[Any]:
+        """The parent runs of this dataset, newest first; ``inputs``: of that input protocol only;
+        ``user``: made by that user only (tag ``mlflow.user``)."""
         if not self.search_ids():
-            return None
+            return []
         clauses = [f"tags.`{TAG_ROLE}` = 'parent'", *self.dataset_filter()]
         if inputs:
             clauses.append(f"tags.`{TAG_INPUTS}` = '{inputs}'")
-        runs = self.client.search_runs(
+        if user:
+            clauses.append(f"tags.`{TAG_USER}` = '{user.replace(chr(39), '')}'")
+        found = self.client.search_runs(
             self.search_ids(),
-            filter_string=" AND ".join(clauses),
+            " AND ".join(clauses),
             order_by=["attributes.start_time DESC"],
-            max_results=50,
+            max_results=max_results,
         )
+        return list(found)
+
+    def latest_parent(self, inputs: str | None = None, user: str | None = None) -> str | None:
+        """The newest parent run that FINISHED (a newer one killed, failed or still running is named in
+        a warning and passed over), else the newest parent of any status, else None. ``inputs``: only
+        parents of that input protocol (tag ``skidbench.inputs``); ``user``: only that user's."""
+        runs = self.parents(inputs, user)
         if not runs:
             return None
         for k, run in enumerate(runs):
@@ -689,23 +564,6 @@ class Tracker:
                     )
                 return run.info.run_id
         return runs[0].info.run_id
-
-
-def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
-    """For ``make mlflow-ui``: per skidbench experiment of the store, the URL of the saved view of its latest
-    evaluate (the runs table with the RMSRE columns) and of its runs page."""
-    from mlflow.tracking import MlflowClient
-
-    _quiet_mlflow_logs()
-    if not has_store(uri):
-        print(f"no MLflow store at {uri} yet: run `make reproduce` (or `skidbench evaluate`) first")
-        return
-    for exp in MlflowClient(uri).search_experiments(filter_string="name LIKE 'skidbench-%'"):
-        base = f"{ui.rstrip('/')}/#/experiments/{exp.experiment_id}"
-        if TAG_SAVED_VIEW + "latest" in exp.tags:
-            print(f"{exp.name}: {base}/runs?viewStateShareKey=latest&workflowType=machine_learning")
-        else:
-            print(f"{exp.name}: {base}/runs?workflowType=machine_learning")
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
@@ -725,6 +583,7 @@ def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) ->
             artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
             timeout_s=float(node.get("timeout_s", 5.0)),
             dataset_id=dataset_id,
+            out_root=cfg.get("out_root"),
         )
         tracker.reap_dead_runs()
         return tracker

@@ -52,11 +52,17 @@ STAGES: dict[str, tuple[str, str]] = {
     "compare": ("skidbench.benchmark.compare_app:main", "leaderboard and the paper's figures"),
     "discover": ("skidbench.benchmark.discover_app:main", "find the missing physical effect"),
     "datasets": ("skidbench.pipeline.datasets_app:main", "list the datasets the output root holds"),
+    "runs": (
+        "skidbench.benchmark.runs_app:main",
+        "MLflow runs left open; --reap ends those whose process is gone",
+    ),
     "export": ("skidbench.benchmark.bundle_app:export_main", "<dataset> <dir>: dataset, board as a bundle"),
     "import": ("skidbench.benchmark.bundle_app:import_main", "<dir>: verify a bundle, make a dataset of it"),
     "score": ("skidbench.benchmark.score_app:main", "<dataset> --predictions <file>: score a model's output"),
     "publish": ("skidbench.benchmark.publish_app:main", "<dataset> <dir>: the boards as a static web page"),
 }
+#: a stage's command-line flags and the override each stands for (``skidbench runs --reap``)
+FLAGS: dict[str, dict[str, str]] = {"runs": {"--reap": "reap=true"}}
 
 log = logging.getLogger("skidbench")
 
@@ -199,7 +205,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skidbench {name}: error: stage not available ({exc})", file=sys.stderr)
         sys.exit(2)
     register_resolvers()  # before the override check and Hydra compose (and resolve) the stage's config
-    args = _preflight(name, positional_overrides(name, fn, argv[1:]))
+    args = [FLAGS.get(name, {}).get(a, a) for a in argv[1:]]  # `--reap` -> reap=true
+    args = _preflight(name, positional_overrides(name, fn, args))
     sys.argv = [f"skidbench {name}", *args]
     register_launchers()
     fn()

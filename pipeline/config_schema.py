@@ -304,6 +304,7 @@ SCHEMA: dict[str, Spec] = {
     # -- compare.yaml -----------------------------------------------------------------------------------
     "parent_run_id": OPT_STR,
     "filter": OPT_STR,
+    "user": OPT_STR,
     "horizon": number(gt=0, what="s"),
     "rank_by": STR,
     "figures.enabled": BOOL,
@@ -312,6 +313,9 @@ SCHEMA: dict[str, Spec] = {
     "figures.fig6_model": STR,
     "figures.terrain": OPT_STR,
     "log_to_mlflow": BOOL,
+    # -- runs.yaml --------------------------------------------------------------------------------------
+    "reap": BOOL,
+    "stale_after_s": number(gt=0, what="s"),
     # -- export.yaml / import.yaml (benchmark/bundle.py) -------------------------------------------------
     "bundle.dir": STR,
     "bundle.licence": OPT_STR,

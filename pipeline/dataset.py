@@ -212,7 +212,8 @@ def list_datasets(out_root: Path) -> list[dict[str, Any]]:
     for d in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         layout = Layout(root, d.name)
         rec = read_record(layout)
-        if (rec is None and not layout.manifest.is_file()) or not has_extracted_table(layout):
+        imported = (rec or {}).get("source") == "bundle"  # `skidbench import`: splits, no extracted tables
+        if (rec is None and not layout.manifest.is_file()) or not (has_extracted_table(layout) or imported):
             continue  # not a dataset yet (what a failed first command or a bare simulate leaves)
         rec = rec or {"source": "?", "root": "?", "fingerprint": "?"}
         terrains = rec.get("terrains") or []

@@ -22,6 +22,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from .cache import StaleInputError
 from .errors import ConfigError
 
 SOURCE = "bundle"  # dataset.json's ``source`` of an imported dataset
@@ -30,8 +31,9 @@ RECORD_DIR = "bundle"  # <ds>/bundle/: the bundle's record (bundle.json, SHA256S
 FROZEN_STAGES = ("simulate", "extract", "groundtruth", "split")
 
 
-class ImportedDatasetError(ConfigError):
-    """A stage that cannot run on an imported dataset, or with other settings than the bundle's."""
+class ImportedDatasetError(StaleInputError):
+    """A stage that cannot run on an imported dataset, or with other settings than the bundle's: refused
+    before it runs, so it records no failure (the stages downstream still run)."""
 
 
 def bundle_record(root: str | Path) -> dict[str, Any] | None:

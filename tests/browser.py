@@ -13,15 +13,23 @@ from pathlib import Path
 CHROMIUM = next((p for p in (shutil.which("chromium"), "/usr/bin/chromium") if p and Path(p).is_file()), None)
 
 
-def run_chromium(url: str, tmp: Path, *, screenshot: Path | None = None, budget_ms: int = 20000,
-                 console: bool = False) -> subprocess.CompletedProcess:  # fmt: skip
-    """Chromium on ``url`` for ``budget_ms`` of (virtual) time: the DOM on stdout (or a screenshot); with
-    ``console``, the page's console messages on stderr (``CONSOLE(<line>)`` lines)."""
+def run_chromium(
+    url: str,
+    tmp: Path,
+    *,
+    screenshot: Path | None = None,
+    budget_ms: int = 20000,
+    console: bool = False,
+    window: str = "1600,1000",
+) -> subprocess.CompletedProcess:  # noqa: E501 fmt: skip
+    """Chromium on ``url`` for ``budget_ms`` of (virtual) time in a ``window`` (width,height) of a fresh
+    profile: the DOM on stdout (or a screenshot); with ``console``, the page's console messages on stderr
+    (``CONSOLE(<line>)`` lines)."""
     profile = tmp / f"profile-{len(list(tmp.glob('profile-*')))}"
     args = [
         CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        f"--user-data-dir={profile}", "--window-size=1600,1000", f"--virtual-time-budget={budget_ms}",
+        f"--user-data-dir={profile}", f"--window-size={window}", f"--virtual-time-budget={budget_ms}",
     ]  # fmt: skip
     if console:
         args += ["--enable-logging=stderr", "--v=0"]
@@ -31,9 +39,10 @@ def run_chromium(url: str, tmp: Path, *, screenshot: Path | None = None, budget_
     return done
 
 
-def chromium(url: str, tmp: Path, *, screenshot: Path | None = None, budget_ms: int = 20000) -> str:
+def chromium(url: str, tmp: Path, *, screenshot: Path | None = None, budget_ms: int = 20000,
+             window: str = "1600,1000") -> str:  # fmt: skip
     """The DOM of ``url`` after the page has run ``budget_ms`` of (virtual) time; or save a screenshot."""
-    return run_chromium(url, tmp, screenshot=screenshot, budget_ms=budget_ms).stdout
+    return run_chromium(url, tmp, screenshot=screenshot, budget_ms=budget_ms, window=window).stdout
 
 
 def console_messages(stderr: str) -> list[str]:
@@ -44,3 +53,68 @@ def console_messages(stderr: str) -> list[str]:
 def text_of(dom: str) -> str:
     dom = re.sub(r"<(script|style)\b.*?</\1>", " ", dom, flags=re.S)
     return re.sub(r"\s+", " ", html.unescape(re.sub(r"<[^>]+>", " ", dom)))
+
+
+def page_value(url: str, tmp: Path, expression: str, *, window: str = "1920,1080", timeout_s: float = 150.0):
+    """Open ``url`` in headless Chromium (a fresh profile, the flags above) and return the value of the
+    JavaScript ``expression`` (JSON-able) as soon as it is truthy: what the page computes once rendered
+    (element positions, say). Spoken over Chromium's DevTools pipe (fds 3 and 4); AssertionError at the
+    timeout, with the last value."""
+    import json
+    import os
+    import time
+
+    profile = tmp / f"profile-{len(list(tmp.glob('profile-*')))}"
+    to_chrome, from_chrome = os.pipe(), os.pipe()
+
+    def fds():  # Chromium reads commands from fd 3 and writes answers to fd 4
+        import fcntl
+
+        high = [fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (to_chrome[0], from_chrome[1])]  # not 3 or 4
+        os.dup2(high[0], 3)
+        os.dup2(high[1], 4)
+
+    args = [
+        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+        f"--user-data-dir={profile}", f"--window-size={window}", "--remote-debugging-pipe", "about:blank",
+    ]  # fmt: skip
+    proc = subprocess.Popen(args, preexec_fn=fds, pass_fds=(3, 4), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)  # fmt: skip
+    os.close(to_chrome[0])
+    os.close(from_chrome[1])
+    buf, n = b"", 0
+
+    def send(method: str, params: dict, session: str | None = None) -> dict:
+        nonlocal buf, n
+        n += 1
+        msg = {"id": n, "method": method, "params": params, **({"sessionId": session} if session else {})}
+        os.write(to_chrome[1], json.dumps(msg).encode() + b"\0")
+        while True:
+            while b"\0" not in buf:
+                chunk = os.read(from_chrome[0], 1 << 16)
+                assert chunk, "chromium closed its DevTools pipe"
+                buf += chunk
+            raw, buf = buf.split(b"\0", 1)
+            msg = json.loads(raw)
+            if msg.get("id") == n:
+                assert "error" not in msg, msg["error"]
+                return msg["result"]
+
+    try:
+        target = send("Target.createTarget", {"url": "about:blank"})["targetId"]
+        session = send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        send("Page.navigate", {"url": url}, session)
+        deadline, value = time.monotonic() + timeout_s, None
+        while time.monotonic() < deadline:
+            value = send("Runtime.evaluate", {"expression": expression, "returnByValue": True}, session)
+            value = value["result"].get("value")
+            if value:
+                return value
+            time.sleep(0.5)
+        raise AssertionError(f"{url}: {expression[:80]}... still {value!r} after {timeout_s:g} s")
+    finally:
+        proc.kill()
+        proc.wait()
+        os.close(to_chrome[1])
+        os.close(from_chrome[0])

@@ -96,6 +96,8 @@ def readme_reproduce(tmp_path_factory) -> dict:
 XDIST_GROUPS = {
     "tests/test_docs_commands.py": "readme_reproduce",
     "tests/test_e2e.py": "readme_reproduce",
+    "tests/test_release.py": "readme_reproduce",
+    "tests/test_readme_numbers.py": "readme_reproduce",
     "tests/test_datasets_home.py": "micro_root",
     "tests/test_reliability_determinism.py": "micro_root",
     "tests/test_reliability_faults.py": "micro_root",

@@ -54,7 +54,7 @@ def parse_blocks(path: Path) -> list[Block]:
 
 
 def _options(args: str) -> dict:
-    opts: dict = {"flags": set(), "subs": [], "lines": None, "cwd": None}
+    opts: dict = {"flags": set(), "subs": [], "lines": None, "cwd": None, "root": None}
     for tok in shlex.split(args):
         if tok in ("slow", "shared"):
             opts["flags"].add(tok)
@@ -62,6 +62,11 @@ def _options(args: str) -> dict:
             opts["lines"] = {int(n) for n in tok[6:].split(",")}
         elif tok.startswith("cwd="):
             opts["cwd"] = tok[4:]
+        elif tok.startswith("root="):
+            opts["root"] = tok[5:]
+        elif tok.startswith("sub:") and "=" in tok:  # a literal word replaced (sub:sim-mini=sim-tiny)
+            name, value = tok[4:].split("=", 1)
+            opts["subs"].append((name, None, value))
         elif tok.startswith("<") and "=" in tok:
             name, value = tok.split("=", 1)
             name, _, at = name.partition("@")
@@ -131,6 +136,7 @@ def run_block(block: Block, env: dict[str, str]) -> list[dict]:
     absent. Returns per command executed: ``n``, ``cmd``, ``returncode``, ``stdout``, ``stderr``."""
     cwd = block.opts["cwd"] or str(REPO)
     cwd = cwd.replace("$SHARED", str(SHARED_REAL)).replace("$REPO", str(REPO)).replace("$OUT", env["OUT"])
+    cwd = cwd.replace("$TMP", env.get("TMP", ""))
     results = []
     for n, cmd in commands(block):
         if "$SHARED" in cmd and not SHARED_REAL.is_dir():

@@ -162,6 +162,10 @@ def test_newer_runs_that_are_not_complete_are_left_out_and_named(root):
     assert f"the board has its run {chi_run[:8]}" in line
     assert "## Newer runs left out" in res.report.read_text()
     assert line in (out / DS / "reports" / "leaderboard-commanded.md").read_text()
+    # the same rows again: no new time-stamped copy (the rows' columns come in one order)
+    again = run_compare(compose("compare", out, NO_FIGS))
+    same = "leaderboard inputs=commanded: leaderboard-commanded.csv: the same rows as before"
+    assert any(w.startswith(same) for w in again.written), again.written
 
 
 def _dataset_id(out):

@@ -13,6 +13,7 @@ from _bench_data import JACKAL, TRUE_CHI, calibrate_splits, compose, fit_fn, wri
 
 from skidbench.benchmark import figures as figs
 from skidbench.benchmark import report_data as rd
+from skidbench.benchmark import tracking as trk
 from skidbench.benchmark.compare import CompareError, format_console, markdown_table, run_compare
 from skidbench.benchmark.evaluate import run_benchmark
 from skidbench.pipeline.layout import layout_from_cfg
@@ -166,7 +167,7 @@ def test_compare_under_an_output_root_never_evaluated_creates_no_store(tmp_path)
     assert not (tmp_path / "mlflow.db").exists()
 
 
-def test_compare_links_the_parent_its_children_side_by_side_and_a_saved_view(two_evaluations):
+def test_compare_links_the_parent_and_a_saved_view_of_its_children_in_the_model_training_ui(two_evaluations):
     import json
     import urllib.parse
 
@@ -175,12 +176,14 @@ def test_compare_links_the_parent_its_children_side_by_side_and_a_saved_view(two
     client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
     exp = client.get_experiment_by_name(f"skidbench-{DS}")
     base = f"http://127.0.0.1:5000/#/experiments/{exp.experiment_id}"
-    assert res.links["parent run"] == f"{base}/runs/{second.parent_run_id}"
-    query = urllib.parse.parse_qs(res.links["compare its model runs"].split("#/compare-runs?")[1])
-    assert sorted(json.loads(query["runs"][0])) == sorted(c.run_id for c in second.children)
-    assert json.loads(query["experiments"][0]) == [exp.experiment_id]
-    view = res.links["runs table (saved view)"]
+    # every link opens MLflow's model-training pages, not its GenAI ones
+    assert all("workflowType=machine_learning" in url for url in res.links.values())
+    assert res.links["parent run"] == f"{base}/runs/{second.parent_run_id}?workflowType=machine_learning"
+    view, charts = res.links["runs table (saved view)"], res.links["charts of its model runs"]
     key = urllib.parse.parse_qs(view.split("?")[1])["viewStateShareKey"][0]
+    assert urllib.parse.parse_qs(charts.split("?")[1]) == {
+        "viewStateShareKey": [key], "workflowType": ["machine_learning"], "compareRunsMode": ["CHART"]
+    }  # fmt: skip
     saved = json.loads(exp.tags[f"mlflow.sharedViewState.{key}"])
     state = json.loads(saved["state"])
     assert saved["name"] == client.get_run(second.parent_run_id).info.run_name
@@ -188,8 +191,92 @@ def test_compare_links_the_parent_its_children_side_by_side_and_a_saved_view(two
     assert state["orderByKey"] == "metrics.`ld_6s_trans_rmsre_pct`" and state["orderByAsc"] is True
     ld = ["metrics.`ld_6s_trans_rmsre_pct`", "metrics.`ld_6s_rot_rmsre_pct`"]
     assert state["selectedColumns"][:2] == ld
+    # the charts: one bar chart per RMSRE column, the errors' section first
+    assert [c["metricKey"] for c in state["compareRunCharts"]][:2] == [m[9:-1] for m in ld]
+    assert {c["type"] for c in state["compareRunCharts"]} == {"BAR"}
+    assert state["compareRunSections"][0]["uuid"] == state["compareRunCharts"][0]["metricSectionId"]
     text = format_console(res)
     assert all(url in text for url in res.links.values())
+
+
+def test_each_protocol_and_each_user_has_a_latest_view_of_its_own(two_evaluations, tmp_path, monkeypatch):
+    import json
+
+    from skidbench.benchmark.mlflow_ui import TAG_SAVED_VIEW, latest_key
+
+    out, first, second = two_evaluations
+    exp = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}").get_experiment_by_name(f"skidbench-{DS}")
+    views = {k.removeprefix(TAG_SAVED_VIEW): json.loads(json.loads(v)["state"]) for k, v in exp.tags.items()
+             if k.startswith(TAG_SAVED_VIEW)}  # fmt: skip
+    assert latest_key("commanded") in views
+    assert latest_key("commanded").endswith("-" + trk.current_user())
+    # the latest view under one protocol shows the latest evaluate under that protocol, whatever came after
+    assert views[latest_key("commanded")]["searchFilter"].endswith(f"'{second.parent_run_id}'")
+    assert f"evaluate-{first.parent_run_id[:8]}" in views
+    monkeypatch.setenv("SKIDBENCH_USER", "someone else")
+    assert latest_key("commanded") == "latest-commanded-someone_else"
+
+
+def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluated_after(
+    tmp_path, monkeypatch
+):
+    """Two people, one store, one dataset: each compare reports its caller's own latest evaluate (never
+    another's newer one), names the other's newer run in one line, and logs the report to a run of its
+    own; `user=<name>` and `user=all` read another's or the newest of anyone's."""
+    write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
+    runs = {}
+    for user, models in (("alice", "[chi,ideal_t]"), ("bob", "[chi]")):
+        monkeypatch.setenv("SKIDBENCH_USER", user)
+        runs[user] = run_benchmark(compose("evaluate", tmp_path, [f"models={models}"]), fit_fn=fit_fn,
+                                   log_figures=False).parent_run_id  # fmt: skip
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    for user, run_id in runs.items():
+        run = client.get_run(run_id)
+        assert run.data.tags["mlflow.user"] == user and f" {user}@" in run.info.run_name
+        assert run.data.tags["skidbench.out_root"] == str(tmp_path.absolute())
+        assert len(run.data.tags["skidbench.session"]) == 12 and run.data.tags["skidbench.heartbeat"]
+    monkeypatch.setenv("SKIDBENCH_USER", "alice")
+    res = run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))
+    assert res.parents == [runs["alice"]]
+    assert "| ideal_t |" in res.leaderboard_md  # alice's board (bob evaluated chi only)
+    assert [n for n in res.notes if n.startswith("bob evaluated this dataset after you")]
+    assert not client.list_artifacts(runs["alice"], "report") == []  # her own run holds her report
+    bob = run_compare(compose("compare", tmp_path, ["figures.enabled=false", "user=bob"]))
+    assert bob.parents == [runs["bob"]] and "| ideal_t |" not in bob.leaderboard_md
+    assert client.list_artifacts(runs["bob"], "report") == []  # alice never writes into bob's run
+    assert any("not to bob's evaluate run" in n for n in bob.notes)
+    # everyone's: the newest complete run of each (model, terrain): bob's chi beside alice's ideal_t
+    anyone = run_compare(compose("compare", tmp_path, ["figures.enabled=false", "user=all"]))
+    assert set(anyone.parents) == {runs["alice"], runs["bob"]}
+    monkeypatch.setenv("SKIDBENCH_USER", "carol")
+    with pytest.raises(CompareError, match="no model run of user carol .* user=bob"):
+        run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))
+
+
+def test_the_parent_run_shows_the_leaderboard_and_each_models_mean_and_gap_to_the_next():
+    from skidbench.benchmark.mlflow_ui import leaderboard
+
+    rows = [("a+b", "tile", "FINISHED", {"x": 1.0, "y": 9.0}), ("a+b", "grass", "FINISHED", {"x": 3.0,
+            "y": 7.0}), ("c", "tile", "FINISHED", {"x": 4.0, "y": 1.0}), ("c", "grass", "FAILED", {}),
+            ("d", "tile", "FAILED", {})]  # fmt: skip
+    md, metrics = leaderboard(rows, ["x", "y"], ["X %", "Y %"])
+    assert metrics == {"a_b.mean_x": 2.0, "a_b.gap_to_next_x": 2.0, "c.mean_x": 4.0,
+                       "c.mean_y": 1.0, "c.gap_to_next_y": 7.0, "a_b.mean_y": 8.0}  # fmt: skip
+    lines = md.splitlines()
+    assert lines[0] == "| rank | model | X % | Y % | gap to next (X %) | terrains |"
+    assert lines[2:] == ["| 1 | **a+b** | 2.00 | 8.00 | 2.00 | 2/2 |", "| 2 | c | 4.00 | 1.00 |  | 1/2 |",
+                         "| 3 | d | n/a | n/a |  | 0/1 |"]  # fmt: skip
+
+
+def test_an_evaluates_parent_run_carries_its_leaderboard(two_evaluations):
+    out, _, second = two_evaluations
+    run = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}").get_run(second.parent_run_id)
+    note = run.data.tags["mlflow.note.content"]
+    assert note.startswith("**Leaderboard**, inputs=commanded, 6 s horizon: mean over terrains")
+    assert "| 1 | **chi** |" in note and "Benchmark of 3 models on 2 terrains" in note
+    chi = [c.metrics["ld_6s_trans_rmsre_pct"] for c in second.children if c.model == "chi"]
+    assert run.data.metrics["chi.mean_ld_6s_trans_rmsre_pct"] == pytest.approx(np.mean(chi), abs=1e-3)
+    assert run.data.metrics["chi.gap_to_next_ld_6s_trans_rmsre_pct"] > 0
 
 
 def test_markdown_table_formats_numbers_and_missing_values():

@@ -1,10 +1,14 @@
 """The README's (and docs/*.md's) commands are tests: every fenced block carries a marker, an HTML comment
 on the line before it, that says what the block is and how it is tested:
 
-    <!-- doc-test: run [slow] [shared] [lines=1,2] [cwd=<dir>] [<placeholder>[@line]=<value> ...] -->
+    <!-- doc-test: run [slow] [shared] [lines=1,2] [cwd=<dir>] [root=quickstart]
+                       [<placeholder>[@line]=<value> ...] [sub:<word>=<value> ...] -->
         its commands are executed (bash, in order; the selected lines only), on the tiny simulated dataset
         (``SCALE=tiny`` for make, ``SKIDBENCH_OUT``/``OUT`` a temporary root; the quick start in its own,
         once per session, shared with tests/test_e2e.py);
+        ``root=quickstart``: with ``SKIDBENCH_OUT``/``OUT`` the quick start's root, evaluated (the block
+        only reads it: what it writes goes under ``$TMP``, a fresh folder, its default ``cwd``);
+        ``sub:<word>=<value>``: a literal word replaced (``sub:sim-mini=sim-tiny``);
         ``shared``: skipped when ../shared/data/real is absent; ``slow``: marked slow
     <!-- doc-test: check [lines=...] [<placeholder>=<value> ...] -->
         each ``skidbench <stage> ...`` command (and each stage that ``make reproduce|discover`` runs, with
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import re
 import shlex
+from pathlib import Path
 
 import pytest
 from conftest import SHARED_REAL
@@ -61,7 +66,7 @@ def _stage_lines(cmd: str) -> list[tuple[str, list[str]]]:
         k, v = words.pop(0).split("=", 1)
         env[k] = v
     if words[:1] == ["skidbench"] and len(words) > 1:
-        return [(words[1], words[2:])]
+        return [(words[1], _positional(words[1], words[2:]))]
     if words[:1] == ["make"] and len(words) > 1 and words[1] in MAKE_STAGES:
         make = dict(env, **dict(w.split("=", 1) for w in words[2:] if "=" in w))
         source = make.get("SOURCE", "sim")
@@ -73,6 +78,19 @@ def _stage_lines(cmd: str) -> list[tuple[str, list[str]]]:
         args = shlex.split(make.get("ARGS", ""))
         return [(stage, [*base, *args]) for stage in MAKE_STAGES[words[1]]]
     return []
+
+
+def _positional(stage: str, args: list[str]) -> list[str]:
+    """A stage's positional arguments (``skidbench export <dataset> <dir>``) as the CLI turns them into
+    overrides (``pipeline/cli.py`` ``positional_overrides``)."""
+    import importlib
+
+    from skidbench.pipeline.cli import STAGES, positional_overrides
+
+    if stage not in STAGES:
+        return args
+    module, func = STAGES[stage][0].split(":")
+    return positional_overrides(stage, getattr(importlib.import_module(module), func), args)
 
 
 CHECKED = [
@@ -123,6 +141,11 @@ def test_documented_blocks_run_as_written(block, request):
         pytest.skip("../shared/data/real is absent")
     if block.id == quickstart().id:  # executed once per session (run_block), its results read here
         results = request.getfixturevalue("readme_reproduce")["results"]
+    elif block.opts["root"] == "quickstart":  # on the quick start's evaluated root, writing under $TMP only
+        tmp = request.getfixturevalue("tmp_path")
+        env = {**doc_env(Path(request.getfixturevalue("readme_reproduce")["root"])), "TMP": str(tmp)}
+        block.opts["cwd"] = block.opts["cwd"] or "$TMP"
+        results = run_block(block, env)
     else:
         results = run_block(block, request.getfixturevalue("doc_out"))
     for r in results:

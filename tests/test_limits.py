@@ -24,9 +24,9 @@ MAX_FUNCTION_LINES = 80
 
 #: module -> why it is still over MAX_MODULE_LINES
 LONG_MODULES = {
-    "benchmark/tracking.py": "being split by job (store, bookkeeping, UI links) on another branch",
     "benchmark/compare.py": "the board and its intervals are being changed on other branches",
     "benchmark/discover.py": "discovery is being changed on another branch",
+    "models/terms.py": "the term library grew with the false-discovery control; to split by term family",
 }
 
 #: module:function -> why it is still over MAX_FUNCTION_LINES

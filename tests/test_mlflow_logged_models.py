@@ -5,6 +5,7 @@ fitted values as params, only the run's own model config, creator/source tags, u
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 import textwrap
@@ -18,6 +19,7 @@ from _bench_data import compose, sequence_table, write_splits
 from skidbench.benchmark import tracking as trk
 from skidbench.benchmark.evaluate import run_benchmark
 from skidbench.benchmark.mlflow_model import INPUT_COLUMNS
+from skidbench.benchmark.provenance import current_user
 from skidbench.models.fitting import load_fitted
 
 DS = "sim-mini"
@@ -128,7 +130,8 @@ def test_parent_runs_are_unique_and_searchable(real_models):
     out, cfg, res, client, runs = real_models
     again = run_benchmark(cfg, log_figures=False)
     names = [client.get_run(r).info.run_name for r in (res.parent_run_id, again.parent_run_id)]
-    assert all(n.startswith(f"evaluate {DS} commanded 20") for n in names)
+    user = f"{current_user()}@{socket.gethostname().split('.')[0]}"
+    assert all(n.startswith(f"evaluate {DS} commanded {user} 20") for n in names)  # what, whose, when
     assert names[0] != names[1]
     exp = client.get_experiment_by_name(f"skidbench-{DS}")
     found = client.search_runs(

@@ -1,59 +1,174 @@
-"""A real `mlflow server` on 127.0.0.1 (SQLite backend in tmp): evaluate and compare log through it the
-same way they log to the local store."""
+"""A lab's set-up, for real: `mlflow server` on a PostgreSQL database (both started here, on loopback ports,
+stopped by PID; tests/mlflow_server.py), two people evaluating one dataset at once from their own output
+roots through it, each compare reporting its own runs, artifacts and logged models through the server, and
+the server killed mid-evaluate. Skipped, with the one-line reason, where PostgreSQL cannot run."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import pytest
-from _bench_data import compose, fit_fn, write_splits
-from mlflow_server import running_mlflow_server
+from _bench_data import compose, write_splits
+from mlflow_server import MlflowServer, postgres_missing, running_postgres, wait_until_gone
 
 from skidbench.benchmark.compare import run_compare
-from skidbench.benchmark.evaluate import run_benchmark
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
-pytestmark = pytest.mark.slow
-
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(bool(postgres_missing()), reason=str(postgres_missing()))]
 
 DS = "sim-mini"
+FAULTS = Path(__file__).resolve().parent / "fault_injection"
+EVALUATE = ["calibrate.use=false", "log_figures=false"]
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    root = tmp_path_factory.mktemp("mlflow_server")
-    with running_mlflow_server(root) as uri:
-        yield uri, root
+    """``mlflow server`` on a PostgreSQL cluster of its own; restartable (the outage test kills it)."""
+    with running_postgres() as db:
+        srv = MlflowServer(tmp_path_factory.mktemp("mlflow_server"), backend_uri=db)
+        srv.start()
+        try:
+            yield srv
+        finally:
+            srv.stop()
 
 
-def test_benchmark_logs_through_a_real_tracking_server(server, tmp_path, monkeypatch):
-    uri, root = server
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
-    cfg = compose("evaluate", tmp_path, ["models=[chi,broken]"])
-    res = run_benchmark(cfg, fit_fn=fit_fn, log_figures=False)
-    assert res.tracking_uri == uri
-    assert not (tmp_path / "mlflow.db").exists()  # nothing went to the local store
+def evaluate(out_root: Path, uri: str, user: str, *args: str, env: dict | None = None) -> subprocess.Popen:
+    """``skidbench evaluate`` of ``user`` on the dataset under ``out_root``, through the server ``uri``."""
+    e = {**os.environ, "SKIDBENCH_OUT": str(out_root), "MLFLOW_TRACKING_URI": uri, "SKIDBENCH_USER": user}
+    e.update(env or {})
+    cmd = [sys.executable, "-m", "skidbench.pipeline.cli", "evaluate", *EVALUATE, *args]
+    return subprocess.Popen(cmd, env=e, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # fmt: skip
 
+
+def finish(proc: subprocess.Popen, timeout_s: float = 600) -> tuple[int, str, str]:
+    out, err = proc.communicate(timeout=timeout_s)  # a hang guard, not a timing assertion
+    return proc.returncode, out, err
+
+
+def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_own(
+    server, tmp_path, monkeypatch
+):
+    import mlflow
     from mlflow import MlflowClient
 
-    client = MlflowClient(uri)
-    exp = client.get_experiment_by_name(f"skidbench-{DS}")
-    runs = client.search_runs([exp.experiment_id], f"tags.mlflow.parentRunId = '{res.parent_run_id}'")
-    by_model = {r.data.tags["skidbench.model"]: r for r in runs}
-    assert set(by_model) == {"chi", "broken"}
-    chi = by_model["chi"]
-    assert chi.info.status == "FINISHED"
-    assert chi.data.metrics["cv_6s_trans_rmsre_pct"] >= 0
-    assert chi.data.params["model"] == "chi"
-    assert by_model["broken"].info.status == "FAILED"
-    assert "singular" in by_model["broken"].data.tags["skidbench.failure_reason"]
-    # artifacts go through the server's proxy into its --artifacts-destination
-    arts = [a.path for a in client.list_artifacts(chi.info.run_id, "windows")]
-    assert arts == ["windows/tile.windows.parquet"]
-    assert list((root / "artifacts").rglob("tile.windows.parquet"))
+    roots = {user: tmp_path / user for user in ("alice", "bob")}
+    for root in roots.values():  # the same data, copied to two people's output roots
+        write_splits(root / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
+    procs = {
+        "alice": evaluate(roots["alice"], server.uri, "alice", "models=[ideal,edd]"),
+        "bob": evaluate(roots["bob"], server.uri, "bob", "models=[edd]", "min_distance_m=2.0"),
+    }
+    done = {user: finish(p) for user, p in procs.items()}
+    for user, (rc, out, err) in done.items():
+        assert rc == 0, f"{user}: {err[-3000:]}"
+        assert "View run" not in out  # MLflow's per-run console lines are quiet
 
-    ccfg = compose("compare", tmp_path, ["figures.enabled=false"])
-    out = run_compare(ccfg)
-    assert out.parents == [res.parent_run_id]  # every row from that evaluate
-    assert "| chi |" in out.leaderboard_md and "FAILED" in out.report.read_text()
-    report_arts = [a.path for a in client.list_artifacts(res.parent_run_id, "report")]
-    assert "report/report.md" in report_arts
+    client = MlflowClient(server.uri)
+    exp = client.get_experiment_by_name(f"skidbench-{DS}")  # one dataset: one experiment for the lab
+    runs = client.search_runs([exp.experiment_id], "tags.`skidbench.role` != 'compare'", max_results=100)
+    parents = {r.data.tags["mlflow.user"]: r for r in runs if r.data.tags["skidbench.role"] == "parent"}
+    children = [r for r in runs if r.data.tags["skidbench.role"] == "child"]
+    assert sorted(parents) == ["alice", "bob"]  # nothing lost, nothing twice, nothing mixed
+    assert sorted((r.data.tags["mlflow.user"], r.data.tags["skidbench.model"]) for r in children) == [
+        ("alice", "edd"), ("alice", "ideal"), ("bob", "edd")
+    ]  # fmt: skip
+    for r in [*parents.values(), *children]:
+        user = r.data.tags["mlflow.user"]
+        assert r.info.status == "FINISHED"
+        assert r.data.tags["skidbench.out_root"] == str(roots[user])
+        assert r.data.tags["skidbench.session"] == parents[user].data.tags["skidbench.session"]
+    for r in children:
+        assert r.data.tags["mlflow.parentRunId"] == parents[r.data.tags["mlflow.user"]].info.run_id
+    assert f" {'alice'}@" in parents["alice"].info.run_name
+
+    # artifacts and logged models go through the server (its --artifacts-destination)
+    child = next(r for r in children if r.data.tags["skidbench.model"] == "edd")
+    assert [a.path for a in client.list_artifacts(child.info.run_id, "windows")] == [
+        "windows/tile.windows.parquet"
+    ]
+    assert list((server.root / "artifacts").rglob("tile.windows.parquet"))
+    model_id = child.data.tags["skidbench.logged_model"]
+    assert str(client.get_logged_model(model_id).status) == "READY"
+    from _bench_data import sequence_table
+
+    mlflow.set_tracking_uri(server.uri)
+    vel = mlflow.pyfunc.load_model(f"models:/{model_id}").predict(sequence_table(5, 3.0).assign(sequence="s"))
+    assert list(vel.columns) == ["vx", "vy", "wz"] and len(vel) == 90
+
+    # each compare reports its caller's own runs; one whose runs are older hears of the other's
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", server.uri)
+    newest = {u: max(r.info.start_time for r in children if r.data.tags["mlflow.user"] == u) for u in parents}
+    for user in ("alice", "bob"):
+        monkeypatch.setenv("SKIDBENCH_USER", user)
+        res = run_compare(compose("compare", roots[user], ["figures.enabled=false"]))
+        assert res.parents == [parents[user].info.run_id]  # every row from their own evaluate
+        assert ("| ideal |" in res.leaderboard_md) == (user == "alice")
+        mine = [r for r in children if r.data.tags["mlflow.user"] == user]
+        board = (roots[user] / DS / "reports" / "leaderboard-commanded.csv").read_text()
+        for r in mine:  # compare's cells are the server's metrics
+            assert f"{r.data.metrics['ld_6s_trans_rmsre_pct']:.3f}".rstrip("0") in board
+        other = "bob" if user == "alice" else "alice"
+        said = [n for n in res.notes if n.startswith(f"{other} evaluated this dataset after you")]
+        assert len(said) == (newest[other] > newest[user])  # they evaluated after this board's newest run
+        assert "report/report.md" in [a.path for a in client.list_artifacts(res.parents[0], "report")]
+
+
+def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_open(server, tmp_path):
+    """The server dies while evaluate is between two logging calls (the process is held at its first
+    per-window table write): evaluate gives up in one line naming the server, exit status 2; once the
+    server is back, `skidbench runs --reap` (this machine: the process is gone) ends every run it left."""
+    from mlflow import MlflowClient
+
+    write_splits(
+        tmp_path / DS, terrains=("tile", "grass"), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0
+    )
+    fault = {"SKIDBENCH_FAULT": "stop@1:windows.parquet", "PYTHONPATH": str(FAULTS)}
+    proc = evaluate(tmp_path, server.uri, "carol", "models=[ideal,edd]", env=fault)
+    deadline = time.monotonic() + 600
+    while _state(proc.pid) != "T":  # held at the fault
+        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        assert time.monotonic() < deadline, "evaluate never reached its first per-window table"
+        time.sleep(0.5)
+    server.kill()
+    t0 = time.monotonic()
+    os.kill(proc.pid, signal.SIGCONT)
+    rc, out, err = finish(proc, 300)
+    elapsed = time.monotonic() - t0
+    lines = err.strip().splitlines()
+    assert rc == 2, err[-3000:]
+    assert lines[-1].startswith(
+        f"skidbench evaluate: error: MLflow tracking server {server.uri} stopped answering"
+    )
+    assert "skidbench runs --reap" in lines[-1] and "Retrying" not in err and "Traceback" not in err
+    print(f"evaluate exited {elapsed:.1f} s after the server was killed: {lines[-1]}")
+    assert wait_until_gone(proc.pid, 10)
+
+    server.start()
+    client = MlflowClient(server.uri)
+    exp = client.get_experiment_by_name(f"skidbench-{DS}")
+    left = client.search_runs([exp.experiment_id], "tags.`mlflow.user` = 'carol'")
+    assert {r.info.status for r in left} == {"RUNNING"}  # the parent and the child it was logging
+    env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path), "MLFLOW_TRACKING_URI": server.uri}
+    reap = subprocess.run([sys.executable, "-m", "skidbench.pipeline.cli", "runs", "--reap"], env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert reap.returncode == 0, reap.stderr[-3000:]
+    assert f"{len(left)} of them marked KILLED" in reap.stdout
+    after = client.search_runs([exp.experiment_id], "tags.`mlflow.user` = 'carol'")
+    assert {r.info.status for r in after} == {"KILLED"}
+    assert all("ended without closing the run" in r.data.tags["skidbench.failure_reason"] for r in after)
+    models = client.search_logged_models([exp.experiment_id], max_results=1000)
+    assert not [m for m in models if str(m.status) == "PENDING"]
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "?"

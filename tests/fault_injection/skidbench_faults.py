@@ -3,7 +3,8 @@
 ``SKIDBENCH_FAULT=<action>@<n>[:<substring>]`` acts at the n-th atomic write (1-based) of this process
 whose final path contains ``substring``, after the temporary file is written and before it is renamed:
 ``kill`` sends SIGKILL to the process group (a killed run; start it in a session of its own); ``int``
-sends SIGINT to the process (Ctrl-C: Python raises KeyboardInterrupt there);
+sends SIGINT to the process (Ctrl-C: Python raises KeyboardInterrupt there); ``stop`` sends SIGSTOP to the
+process (it waits there until the test sends SIGCONT: something happens mid-run);
 ``enospc`` / ``eacces`` raise that OSError (a full disk / a permission error), which
 ``skidbench.pipeline.io.atomic_path`` then handles as it would a real one.
 
@@ -38,6 +39,8 @@ def inject(final: Path, spec: str | None = None) -> None:
         return
     if action == "kill":  # the whole process group: a stage and its worker processes die together
         os.killpg(os.getpgid(0), signal.SIGKILL)
+    if action == "stop":  # frozen until SIGCONT
+        os.kill(os.getpid(), signal.SIGSTOP)
     if action == "int":  # Ctrl-C: the handler raises KeyboardInterrupt before the next bytecode
         os.kill(os.getpid(), signal.SIGINT)
     code = {"enospc": errno.ENOSPC, "eacces": errno.EACCES}.get(action)
