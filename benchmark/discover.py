@@ -501,15 +501,38 @@ def significantly_better(a: dict[str, Any], ho_a: HeldOut, b: dict[str, Any], ho
     return pose_ok and explains_better(ho_a, ho_b, s)[0]
 
 
+def _same_channels(form: str, eid: str) -> bool:
+    """Whether the library form changes only channels the catalogue effect ``eid`` changes."""
+    return set(termlib.parse_form(form).touched) <= {CHANNELS.index(c) for c in channels_of(eid)}
+
+
+def _restates_named(run: _Search, form: str, ev: dict[str, Any]) -> bool:
+    """Whether a library form states, on its own channels, a catalogue effect the model already has
+    (``terms.catalogue_equivalent``): then what it explains is the residual of that effect's functional
+    form, not another effect, and it is not named. It is listed on the step that named the effect
+    (``naming.form_residual_terms``, with the step at which it passed, its held-out gain and ``p_search``)."""
+    eid = termlib.catalogue_equivalent(form)
+    if eid is None or eid not in run.effects or not _same_channels(form, eid):
+        return False
+    step = next(st for st in run.steps if st["effect"] == eid)
+    step["naming"].setdefault("form_residual_terms", []).append(
+        {"term": form, "at_step": len(run.steps) + 1, "heldout_gain": ev["heldout_gain"],
+         "p_search": ev.get("p_search")}
+    )  # fmt: skip
+    run.say(f"[{run.terrain}]   {form} states {eid}, already named: the residual of its form, not named")
+    return True
+
+
 def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, str, list[dict]] | None:
     """The candidate to add, as (kind, id, equivalent terms) with kind "catalogue" or "term"; None when
     none passes. The interpretable name wins a tie: the passing catalogue effect of largest penalised gain
     is named unless a passing term is significantly better (:func:`significantly_better`); a term
     that states a passing catalogue effect in other words on the effect's own channels
-    (``terms.catalogue_equivalent``) names that effect. The terms that explain the named effect's residual
+    (``terms.catalogue_equivalent``) names that effect, and one that states an effect the model already
+    has is not named at all (:func:`_restates_named`). The terms that explain the named effect's residual
     as well are listed as its equivalents."""
     best_c = _best_catalogue(scored, "passes")
-    passing_t = [k for k, v in scored_t.items() if v[0]["passes"]]
+    passing_t = [k for k, v in scored_t.items() if v[0]["passes"] and not _restates_named(run, k, v[0])]
     if best_c is None and not passing_t:
         return None
 
@@ -532,10 +555,7 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
         return ("catalogue", best_c, equivalents(best_c))
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
     eid = termlib.catalogue_equivalent(name)
-    same_channels = eid is not None and set(scored_t[name][2].touched) <= {
-        CHANNELS.index(c) for c in channels_of(eid)
-    }
-    if same_channels and eid in scored and scored[eid][0]["passes"]:
+    if eid is not None and _same_channels(name, eid) and eid in scored and scored[eid][0]["passes"]:
         # the same statement about the same channels, in a form that fits better: the catalogue's name
         # (a form that also changes a channel the effect does not, e.g. one side's slip, which takes
         # forward speed too, states something more: it is named by itself when significantly better)

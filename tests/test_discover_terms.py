@@ -51,6 +51,9 @@ def test_forms_that_state_a_catalogue_effect_and_forms_of_sequence_time():
     assert tl.catalogue_equivalent("slip.l.wheels") == "side_asymmetry"  # a left/right radius ratio
     assert tl.catalogue_equivalent("lin.|w|*kappa.wz") == "curvature_dependent_icr"  # chi of the radius
     assert tl.catalogue_equivalent("lin.dw*kappa.wz") is None  # an acceleration: not chi's radius law
+    assert tl.catalogue_equivalent("lin.|v|*sgn_w.wz") == "curvature_dependent_icr"  # w |R|: chi of |R|
+    assert tl.catalogue_equivalent("lin.v*sgn_w.wz") is None  # odd in v: not a function of |R|
+    assert tl.catalogue_equivalent("lin.v*w.wz") is None  # degree 2: grows with speed at a fixed radius
     assert tl.catalogue_equivalent("lin.|w|*kappa.vx") is None and tl.catalogue_equivalent("lin.v.vx") is None
     assert {"slip.l.wheels", "slip.r.wheels"} <= set(tl.equivalent_forms("side_asymmetry"))
     timed = set(tl.time_forms())
