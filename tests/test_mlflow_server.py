@@ -5,10 +5,13 @@ the server killed mid-evaluate. Skipped, with the one-line reason, where Postgre
 
 from __future__ import annotations
 
+import concurrent.futures
+import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -50,6 +53,35 @@ def evaluate(out_root: Path, uri: str, user: str, *args: str, env: dict | None =
 def finish(proc: subprocess.Popen, timeout_s: float = 600) -> tuple[int, str, str]:
     out, err = proc.communicate(timeout=timeout_s)  # a hang guard, not a timing assertion
     return proc.returncode, out, err
+
+
+def test_people_starting_on_one_new_experiment_at_once_all_get_it_tagged(server):
+    """The get-or-create of an experiment and its tags, by several processes at the same moment (threads
+    here, each with its own client): one experiment, tagged once, every caller gets its id; a saved view
+    written by all of them at once is one tag (MLflow's server reads, then inserts, an experiment tag: the
+    losers of that race try again, tracking.lost_insert_race)."""
+    from mlflow import MlflowClient
+
+    from skidbench.benchmark import mlflow_ui as mu
+    from skidbench.benchmark import tracking as trk
+
+    name, n = "skidbench-race", 6
+    start = threading.Barrier(n)
+
+    def one(k: int) -> str:
+        tracker = trk.Tracker(server.uri, name)
+        start.wait(timeout=120)
+        exp_id = tracker.experiment_id
+        start.wait(timeout=120)  # every one has it: now the same view at once
+        mu.save_view(tracker.client, exp_id, "latest-race", f"view {k}", {"k": k})
+        return exp_id
+
+    with concurrent.futures.ThreadPoolExecutor(n) as pool:
+        ids = list(pool.map(one, range(n)))
+    exp = MlflowClient(server.uri).get_experiment_by_name(name)
+    assert set(ids) == {exp.experiment_id}
+    assert exp.tags[trk.TAG_EXPERIMENT_KIND] == trk.EXPERIMENT_KIND
+    assert json.loads(exp.tags[mu.TAG_SAVED_VIEW + "latest-race"])["name"] in {f"view {k}" for k in range(n)}
 
 
 def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_own(
