@@ -52,6 +52,9 @@ __all__ = [  # what tracking.py re-exports
     "TAG_EXTERNAL",
     "TAG_PREDICTIONS_SHA256",
     "TAG_NOTE",
+    "TAG_EXPERIMENT_KIND",
+    "EXPERIMENT_KIND",
+    "experiment_tags",
     "USER_ENV",
     "current_user",
     "session_id",
@@ -96,8 +99,23 @@ TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | me
 TAG_EXTERNAL = "skidbench.external"  # "true" on a run of `skidbench score` (benchmark/external.py)
 TAG_PREDICTIONS_SHA256 = "skidbench.predictions_sha256"  # the sha256 of the predictions file it scored
 TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
+TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
+EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
 #: who runs skidbench, when the login name does not say it (a lab's shared account)
 USER_ENV = "SKIDBENCH_USER"
+
+
+def experiment_tags(name: str) -> dict[str, str]:
+    """The tags of a skidbench experiment: its kind (the UI opens it on its runs table, not on the GenAI
+    overview) and a description."""
+    return {
+        TAG_EXPERIMENT_KIND: EXPERIMENT_KIND,
+        TAG_NOTE: f"skidbench benchmark runs of `{name.removeprefix('skidbench-')}`: one parent run per "
+        "`skidbench evaluate` (its name: dataset, input protocol, start time) with a child run per "
+        "model and terrain (fitted on Train, scored on the CV and LD test splits; metrics "
+        "`<split>_<horizon>_<trans|rot>_rmsre_pct` are RMSRE in %, lower is better), and one run per "
+        "`skidbench calibrate`. `skidbench compare` prints the link of a saved view that shows them.",
+    }
 
 
 @functools.cache

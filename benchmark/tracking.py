@@ -38,17 +38,19 @@ from .metrics import metric_key, rank_key, windows_key  # noqa: F401 (the metric
 # what a run is and who made it (every name of provenance.__all__): callers use them as ``tracking.<name>``
 from .provenance import *  # noqa: F403
 from .provenance import (
+    EXPERIMENT_KIND,
     MAX_PARAM_LEN,
     MAX_TAG_LEN,
     TAG_DATASET_ID,
+    TAG_EXPERIMENT_KIND,
     TAG_HEARTBEAT,
     TAG_INPUTS,
-    TAG_NOTE,
     TAG_PARENT,
     TAG_REASON,
     TAG_ROLE,
     TAG_STATUS,
     TAG_USER,
+    experiment_tags,
     owner_tags,
     source_tags,
     utc_now,
@@ -56,8 +58,6 @@ from .provenance import (
 
 log = logging.getLogger(__name__)
 
-TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
-EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)
 INTERRUPTED = "interrupted (Ctrl-C): killed before it finished"
 
 #: MLflow's own HTTP settings (mlflow/environment_variables.py) that skidbench sets, unless they are set
@@ -107,6 +107,24 @@ def unreachable(exc: BaseException) -> str | None:
     many = "too many" in low  # 5xx answers until the retries ran out
     return ("connection refused" if "refused" in low else "timed out" if timed_out
             else "error answers" if many else "no connection")  # fmt: skip
+
+
+#: the unique keys of MLflow's SQL store (mlflow/store/db_migrations) that two writers can both insert at
+#: once: an experiment tag (``set_experiment_tag`` reads, then inserts: two people tagging one new
+#: experiment, or saving one view) and a dataset (``log_inputs``: two people logging one dataset). The
+#: loser's transaction is rolled back whole and the row is there when it tries again; any other unique key
+#: (an experiment name, a run id) is a real error.
+LOST_RACE = re.compile(
+    r"\b(experiment_tag_pk|dataset_pk)\b"  # PostgreSQL: duplicate key value violates unique constraint "..."
+    r"|UNIQUE constraint failed: (experiment_tags|datasets)\."  # SQLite
+    r"|Duplicate entry .* for key '(experiment_tags|datasets)\.PRIMARY'"  # MySQL
+)
+CONFLICT_TRIES = 4
+
+
+def lost_insert_race(exc: BaseException) -> bool:
+    """True when ``exc`` is the store refusing an insert another writer made first (:data:`LOST_RACE`)."""
+    return bool(LOST_RACE.search(str(getattr(exc, "message", exc))))
 
 
 def quiet_mlflow_logs() -> None:
@@ -263,19 +281,24 @@ class Tracker:
 
     # -- the store's health ------------------------------------------------------------------------
     def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
-        """``fn(*args, **kwargs)``, a call to the store; a server that does not answer (:func:`unreachable`)
-        raises :class:`StoreUnreachable` after :meth:`_gone` (and at once on every later call)."""
+        """``fn(*args, **kwargs)``, a call to the store, tried again when it lost an insert race
+        (:func:`lost_insert_race`); a server that does not answer (:func:`unreachable`) raises
+        :class:`StoreUnreachable` after :meth:`_gone` (and at once on every later call)."""
         if self._down:
             raise StoreUnreachable(self._down)
         t0 = time.monotonic()
-        try:
-            return fn(*args, **kwargs)
-        except Exception as exc:
-            reason = unreachable(exc) if is_server(self.uri) else None
-            if reason is None:
-                raise
-            self._gone(reason, time.monotonic() - t0)
-            raise StoreUnreachable(self._down) from None
+        for attempt in range(CONFLICT_TRIES):
+            try:
+                return fn(*args, **kwargs)
+            except Exception as exc:
+                if attempt + 1 < CONFLICT_TRIES and lost_insert_race(exc):
+                    time.sleep(0.2 * (attempt + 1))  # the row the other writer inserted is there now
+                    continue
+                reason = unreachable(exc) if is_server(self.uri) else None
+                if reason is None:
+                    raise
+                self._gone(reason, time.monotonic() - t0)
+                raise StoreUnreachable(self._down) from None
 
     def _gone(self, reason: str, waited_s: float) -> None:
         """The server stopped answering: stop the heartbeat, try once (no retry, 5 s) to end every open run
@@ -347,31 +370,21 @@ class Tracker:
             loc = None
             if artifact_root is not None and not is_server(self.uri):
                 loc = (Path(artifact_root).absolute() / _safe_name(name)).as_uri()
-            try:
-                exp_id = self.client.create_experiment(name, artifact_location=loc)
-            except MlflowException:  # created concurrently (a parallel sweep)
+            try:  # with its tags, in one transaction: a concurrent creator finds it tagged
+                return self.client.create_experiment(name, artifact_location=loc, tags=experiment_tags(name))
+            except MlflowException:  # created concurrently (a parallel sweep, two people at once)
                 exp = self.client.get_experiment_by_name(name)
                 if exp is None:
                     raise
+                self._experiment_id = exp.experiment_id
                 return exp.experiment_id
-            self._tag_experiment(exp_id, name)
-            return exp_id
         except MlflowException as exc:
             raise EvaluationError(f"MLflow store {self.uri}: {one_line(exc.message)[:300]}") from None
 
     def _tag_experiment(self, exp_id: str, name: str) -> None:
-        """The experiment kind (the UI opens the experiment on its runs table, not on the GenAI overview)
-        and a description."""
-        self.client.set_experiment_tag(exp_id, TAG_EXPERIMENT_KIND, EXPERIMENT_KIND)
-        self.client.set_experiment_tag(
-            exp_id,
-            TAG_NOTE,
-            f"skidbench benchmark runs of `{name.removeprefix('skidbench-')}`: one parent run per "
-            "`skidbench evaluate` (its name: dataset, input protocol, start time) with a child run per "
-            "model and terrain (fitted on Train, scored on the CV and LD test splits; metrics "
-            "`<split>_<horizon>_<trans|rot>_rmsre_pct` are RMSRE in %, lower is better), and one run per "
-            "`skidbench calibrate`. `skidbench compare` prints the link of a saved view that shows them.",
-        )
+        """:func:`experiment_tags` on an experiment made without them (a store written before)."""
+        for key, value in experiment_tags(name).items():
+            self.client.set_experiment_tag(exp_id, key, value)
 
     # -- runs ------------------------------------------------------------------------------------
     def start(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
@@ -479,18 +492,7 @@ class Tracker:
                 InputTag("skidbench.fingerprint", d.fingerprint),
             ]
             inputs.append(DatasetInput(self._datasets[key], tags=tags))
-        from mlflow.exceptions import MlflowException
-
-        for attempt in range(3):
-            try:
-                return self.client.log_inputs(run_id, datasets=inputs)
-            except MlflowException as exc:
-                # two people logging one dataset at once: the server inserts it twice and one insert loses
-                # on the datasets table's key (PostgreSQL, tests/test_mlflow_server.py); it exists now
-                text = str(exc.message)
-                if attempt == 2 or not ("dataset_pk" in text or "UNIQUE constraint failed: datasets" in text):
-                    raise
-                time.sleep(0.5 * (attempt + 1))
+        self.client.log_inputs(run_id, datasets=inputs)
 
     def log_model(
         self,

@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import importlib
 import json
 import logging
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -46,6 +46,7 @@ from .errors import ConfigError
 from .io import write_json_atomic
 from .layout import Layout, data_key, data_path, fingerprint_of, layout_from_cfg, prune_stale, remove_atomic
 from .manifest import Manifest
+from .sources import registry
 
 log = logging.getLogger("skidbench.dataset")
 
@@ -109,12 +110,12 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
     """At the start of a stage: the dataset's identity, printed; its folder checked against the recorded
     identity (DatasetError naming both roots unless ``source.replace=true``); ``dataset.json`` written;
     outputs of sequences that are no longer in the manifest pruned. A source's settings that contradict
-    each other (``check_settings`` of its reader, e.g. more terrains than files) are refused first, by
+    each other (the source's ``check``, e.g. more terrains than files) are refused first, by
     every stage, not only by the one that reads them."""
     from omegaconf.errors import OmegaConfBaseException
 
-    _check_source_settings(cfg)
     try:
+        check_source_settings(OmegaConf.to_container(cfg.source, resolve=True, throw_on_missing=False))
         ident = identity_from_cfg(cfg)
     except OmegaConfBaseException as exc:
         cause = _unwrap(exc)
@@ -154,16 +155,16 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
     return layout, ident
 
 
-def _check_source_settings(cfg: Any) -> None:
-    """``skidbench.pipeline.sources.<kind>.check_settings(cfg.source)`` when the source's reader has one."""
-    kind = str(cfg.source.get("kind", "bag") or "bag")
-    try:
-        module = importlib.import_module(f"skidbench.pipeline.sources.{kind}")
-    except ImportError:  # the bag reader and the simulator's source have no module here
+def check_source_settings(source: Mapping[str, Any]) -> None:
+    """The installed source's ``check`` of its settings (``source``: the config section as a plain
+    mapping). A kind no installed source has is left to the stage that reads the source (extract names
+    the installed ones): an imported dataset (``source=bundle``) has none, and a stage after extract
+    reads only the extracted tables."""
+    kind = str(source.get("kind") or "bag")
+    if kind not in registry.installed():
         return
-    check = getattr(module, "check_settings", None)
-    if check is not None:
-        check(cfg.source)
+    src, settings = registry.load(source)
+    src.check(settings)
 
 
 def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:

@@ -92,7 +92,6 @@ CFG_TAKERS = {
     "pipeline.calibration:use_calibration",
     "pipeline.config_schema:leaves",
     "pipeline.config_schema:validate",
-    "pipeline.dataset:_check_source_settings",
     "pipeline.dataset:open_home",
     "pipeline.groundtruth.consistency:consistency",
     "pipeline.groundtruth.loop:bounds_from_config",
@@ -111,8 +110,6 @@ CFG_TAKERS = {
     "pipeline.simulate.physics:from_config",
     "pipeline.simulate.physics:load_physics",
     "pipeline.simulate.sequence:simulate_sequence",
-    "pipeline.sources.amrl_txt:extract_source",
-    "pipeline.sources.drive_df:extract_source",
 }
 
 

@@ -124,3 +124,39 @@ def test_skidbench_bounds_mlflows_http_retries_unless_the_user_set_them(monkeypa
         sum(d["BACKOFF_FACTOR"] * 2 ** (k - 1) for k in range(2, retries + 1)) + retries * d["BACKOFF_JITTER"]
     )
     assert (retries + 1) * d["TIMEOUT"] + backoff < 60
+
+
+def test_a_write_that_lost_an_insert_race_is_tried_again_and_any_other_refusal_is_not(tmp_path):
+    """Two people tagging one new experiment (or logging one dataset) at once: MLflow's SQL store reads,
+    then inserts, and the second insert fails on the row's key (the message of MLflow's server on
+    PostgreSQL, as CI saw it); the row is there on the next try. Another unique key is a real error."""
+    from mlflow.exceptions import MlflowException
+
+    lost = (
+        "BAD_REQUEST: (psycopg.errors.UniqueViolation) duplicate key value violates unique constraint "
+        '"experiment_tag_pk" DETAIL: Key (key, experiment_id)=(mlflow.experimentKind, 1) already exists.'
+    )
+    for text in (lost, "(sqlite3.IntegrityError) UNIQUE constraint failed: datasets.experiment_id, x",
+                 "Duplicate entry 'a-1' for key 'experiment_tags.PRIMARY'"):  # fmt: skip
+        assert trk.lost_insert_race(MlflowException(text)), text
+    name_taken = 'duplicate key value violates unique constraint "experiments_name_key"'
+    assert not trk.lost_insert_race(MlflowException(name_taken))
+
+    tracker = trk.Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", "skidbench-x", artifact_root=tmp_path)
+    calls = []
+
+    def write(fails: int, text: str) -> str:
+        calls.append(text)
+        if len(calls) <= fails:
+            raise MlflowException(text)
+        return "done"
+
+    assert tracker.call(write, 1, lost) == "done" and len(calls) == 2  # lost once, then the row is there
+    calls.clear()
+    with pytest.raises(MlflowException, match="experiment_tag_pk"):  # never resolves: bounded, then raised
+        tracker.call(write, 99, lost)
+    assert len(calls) == trk.CONFLICT_TRIES
+    calls.clear()
+    with pytest.raises(MlflowException, match="experiments_name_key"):
+        tracker.call(write, 1, name_taken)
+    assert len(calls) == 1

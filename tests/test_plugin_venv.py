@@ -1,5 +1,7 @@
-"""The example plugin (examples/skidbench-ridge) pip-installed into a FRESH virtual environment is listed by
-`skidbench models` and fitted by `skidbench fit model=ridge terrain=...`, exactly like a built-in.
+"""The example plugins pip-installed into a FRESH virtual environment work exactly like the built-ins: the
+model examples (examples/skidbench-ridge, -slipgrid) are listed by `skidbench models` and fitted by
+`skidbench fit model=...`; the source example (examples/skidbench-rostopic-csv) is extracted by `skidbench
+extract source=rostopic_csv`. One environment holds the three (built once for this module).
 
 The fresh venv (``--without-pip``; this project's pip installs into it with ``pip --python``) sees this
 project's installed packages through a .pth file that runs
@@ -32,8 +34,14 @@ def run(cmd, **kw):
     return p
 
 
-def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_path, jackal):
-    venv = tmp_path / "venv"
+SLIPGRID = REPO / "examples" / "skidbench-slipgrid"
+CSV_SOURCE = REPO / "examples" / "skidbench-rostopic-csv"
+
+
+@pytest.fixture(scope="module")
+def venv_python(tmp_path_factory) -> Path:
+    """A fresh venv with the three examples installed (one pip call): its python."""
+    venv = tmp_path_factory.mktemp("plugins") / "venv"
     run([sys.executable, "-m", "venv", "--without-pip", str(venv)])  # the project's pip installs into it
     py = venv / "bin" / "python"
     site_dir = run(
@@ -42,20 +50,13 @@ def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_p
     parent = sysconfig.get_paths()["purelib"]  # this interpreter's (the project venv's) site-packages
     Path(site_dir, "_skidbench_parent.pth").write_text(f"import site; site.addsitedir({parent!r})\n")
     isolation = ["--no-build-isolation"] if importlib.util.find_spec("wheel") else []
-    run(
-        [
-            str(py),
-            "-m",
-            "pip",
-            "install",
-            "-q",
-            "--disable-pip-version-check",
-            "--no-deps",
-            *isolation,
-            str(PLUGIN),
-        ]
-    )
+    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-deps", *isolation]
+    run([*pip, str(PLUGIN), str(SLIPGRID), str(CSV_SOURCE)])
+    return py
 
+
+def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_path, jackal, venv_python):
+    py = venv_python
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
     cli = [str(py), "-m", "skidbench.pipeline.cli"]
     listing = run([*cli, "models"], env=env).stdout
@@ -85,24 +86,12 @@ def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_p
     )
 
 
-SLIPGRID = REPO / "examples" / "skidbench-slipgrid"
-
-
-def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(tmp_path, jackal):
+def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(
+    tmp_path, jackal, venv_python
+):
     """The learned example (fitted arrays, predictive covariance) works from a fresh venv: listed, fitted
     by the fit stage with its arrays in ``<terrain>.arrays.npz``, reloaded and predicting with variance."""
-    venv = tmp_path / "venv"
-    run([sys.executable, "-m", "venv", "--without-pip", str(venv)])
-    py = venv / "bin" / "python"
-    site_dir = run(
-        [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"]
-    ).stdout.strip()
-    parent = sysconfig.get_paths()["purelib"]
-    Path(site_dir, "_skidbench_parent.pth").write_text(f"import site; site.addsitedir({parent!r})\n")
-    isolation = ["--no-build-isolation"] if importlib.util.find_spec("wheel") else []
-    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-deps", *isolation]
-    run([*pip, str(SLIPGRID)])
-
+    py = venv_python
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
     cli = [str(py), "-m", "skidbench.pipeline.cli"]
     listing = run([*cli, "models"], env=env).stdout
@@ -132,3 +121,69 @@ def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(
         "assert np.all(c[:, [0, 1, 2], [0, 1, 2]] > 0); print('ok')"
     )
     assert run([str(py), "-c", check], env=env, cwd=tmp_path).stdout.strip() == "ok"
+
+
+def _rostopic_logs(root: Path) -> dict[str, dict]:
+    """Two tiny recordings as `rostopic echo -p` writes them (Twist + Odometry; TwistStamped +
+    PoseStamped), 40 rows at 20 Hz; returns what each should extract to."""
+    import numpy as np
+    import pandas as pd
+
+    t = 1_700_000_000_000_000_001 + np.arange(40) * 50_000_000  # 19 digits: exact only as integers
+    yaw = 0.02 * np.arange(40)
+    quat = {"x": 0.0, "y": 0.0, "z": np.sin(yaw / 2), "w": np.cos(yaw / 2)}
+    out = {}
+    for name, cat, twist, pose in [("run_a", "train", "field", "field.pose.pose"),
+                                   ("run_b", "cv", "field.twist", "field.pose")]:  # fmt: skip
+        folder = root / "tile" / cat / name
+        folder.mkdir(parents=True)
+        v, w = (0.5, 0.2) if name == "run_a" else (0.3, -0.1)
+        cmd = {"%time": t, f"{twist}.linear.x": v, f"{twist}.linear.y": 0.0, f"{twist}.linear.z": 0.0,
+               f"{twist}.angular.x": 0.0, f"{twist}.angular.y": 0.0, f"{twist}.angular.z": w}  # fmt: skip
+        if twist != "field":
+            cmd = {"%time": t, "field.header.seq": np.arange(40), "field.header.stamp": t, **cmd}
+        pd.DataFrame(cmd).to_csv(folder / "cmd_vel.csv", index=False)
+        x = 0.025 * np.arange(40)
+        poses = {f"{pose}.position.{k}": val for k, val in {"x": x, "y": 0.0, "z": 0.0}.items()}
+        poses |= {f"{pose}.orientation.{k}": val for k, val in quat.items()}
+        pd.DataFrame({"%time": t, "field.header.frame_id": "odom", **poses}).to_csv(folder / "odom.csv",
+                                                                                   index=False)  # fmt: skip
+        out[name] = {"category": cat, "t": t, "v": v, "w": w, "x": x, "yaw": yaw}
+    return out
+
+
+def test_example_source_installs_into_a_fresh_venv_and_extracts_like_a_builtin(tmp_path, venv_python):
+    """`skidbench extract source=rostopic_csv` from a fresh venv: the plugin's config and entry point are
+    found, its tables written under the contract's names with exact stamps and the pose's yaw; an unknown
+    source kind is one line naming the installed ones, the plugin's among them."""
+    import json
+
+    import numpy as np
+    import pandas as pd
+
+    logs = tmp_path / "logs"
+    expected = _rostopic_logs(logs)
+    env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
+    cli = [str(venv_python), "-m", "skidbench.pipeline.cli", "extract", "source=rostopic_csv"]
+    run([*cli, f"source.root={logs}", "source.dataset=csvlogs"], env=env, cwd=tmp_path)
+
+    ds = tmp_path / "out" / "csvlogs"
+    manifest = json.loads((ds / "raw" / "manifest.json").read_text())
+    assert {s["name"]: s["category"] for s in manifest["sequences"]} == {"run_a": "train", "run_b": "cv"}
+    assert manifest["format"] == "rostopic_csv"
+    for name, want in expected.items():
+        cmd = pd.read_parquet(ds / "extracted" / name / "cmd_vel.parquet")
+        gt = pd.read_parquet(ds / "extracted" / name / "gt_pose.parquet")
+        assert cmd["stamp_ns"].tolist() == want["t"].tolist() == gt["stamp_ns"].tolist()
+        assert np.all(cmd["linear_x"] == want["v"]) and np.all(cmd["angular_z"] == want["w"])
+        np.testing.assert_allclose(gt["x"], want["x"])
+        np.testing.assert_allclose(gt["yaw"], want["yaw"], atol=1e-12)
+        info = json.loads((ds / "extracted" / name / "_extract.json").read_text())
+        assert info["source"] == "rostopic_csv" and info["tables"] == {"cmd_vel": 40, "gt_pose": 40}
+
+    p = subprocess.run([*cli, f"source.root={logs}", "source.dataset=csvlogs", "source.kind=rostopic_cvs"],
+                       capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)  # fmt: skip
+    assert p.returncode == 2, p.stderr
+    line = p.stderr.strip().splitlines()[-1]
+    assert "source.kind='rostopic_cvs': no such source installed" in line
+    assert "(installed: amrl_txt, bag, drive_df, rostopic_csv)" in line

@@ -145,9 +145,11 @@ def _read(reader: str, corpus: Path, name: str, opts: dict, tmp_path: Path) -> P
         from omegaconf import OmegaConf
 
         from skidbench.pipeline.robot import load_robot
-        from skidbench.pipeline.sources.drive_df import _read_file
+        from skidbench.pipeline.sources.contract import settings_from
+        from skidbench.pipeline.sources.drive_df import DriveSettings, _read_file
 
-        src = OmegaConf.load(Path(__file__).parents[1] / "conf" / "source" / "drive_df.yaml")
+        conf = OmegaConf.load(Path(__file__).parents[1] / "conf" / "source" / "drive_df.yaml")
+        src = settings_from(DriveSettings, OmegaConf.to_container(conf), "drive_df")
         _read_file(path, src, load_robot("husky"), "husky")
     return path
 

@@ -18,17 +18,17 @@ def test_windows_chain_into_train_cv_ld_sequences(shared_real):
     path = shared_real / "drive" / "husky_windows.parquet"
     df = pd.read_parquet(path)
     seqs = windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "husky")
-    cats = [s["category"] for s in seqs]
+    cats = [s.category for s in seqs]
     assert list(dict.fromkeys(cats)) == ["train", "cv", "ld"]  # contiguous blocks, in order
     # the file's 9 boundaries where a wheel jumps by more than it ever changes inside a window (5.4-6.8
     # rad/s against at most 2.1: the robot stood still in between), all inside a split, each start a
     # sequence: 7 Train, 2 CV, 3 LD
     assert [cats.count(c) for c in ("train", "cv", "ld")] == [7, 2, 3]
-    assert [s["name"] for s in seqs if s["category"] == "cv"] == ["husky_cv_00", "husky_cv_01"]
+    assert [s.name for s in seqs if s.category == "cv"] == ["husky_cv_00", "husky_cv_01"]
     # one 2 s slot per window, back to back (no holes); held ICP repeats are thinned out of gt_pose
-    assert sum(len(s["tables"]["enc_wheels"]) for s in seqs) == 40 * len(df)
-    assert sum(len(s["tables"]["gt_pose"]) for s in seqs) < 40 * len(df)
-    gt = seqs[0]["tables"]["gt_pose"]
+    assert sum(len(s.tables.enc_wheels) for s in seqs) == 40 * len(df)
+    assert sum(len(s.tables.gt_pose) for s in seqs) < 40 * len(df)
+    gt = seqs[0].tables.gt_pose
     # the second window starts where the first one ended (chaining in the start's body frame)
     first = df.sort_values("calib_step", kind="stable").iloc[:2]
     end0 = first[["icp_x_39", "icp_y_39", "icp_yaw_39"]].to_numpy()[0]
@@ -79,10 +79,10 @@ def test_raw_text_storage_and_placeholder_row_are_read_without_warnings(shared_r
 def test_raw_form_without_icp_reports_missing_ground_truth(shared_real):
     path = shared_real / "drive" / "close_raw.parquet"
     seqs = raw_to_sequences(pd.read_parquet(path), path, (0.6, 0.2, 0.2), "close")
-    assert [s["category"] for s in seqs] == ["train", "cv", "ld"]
-    assert all("gt_pose" not in s["tables"] for s in seqs)  # ICP never ran in this file
-    assert all(np.all(np.diff(s["tables"]["cmd_vel"]["stamp_ns"]) > 0) for s in seqs)
-    assert "ICP did not run" in seqs[0]["note"][0]
+    assert [s.category for s in seqs] == ["train", "cv", "ld"]
+    assert all(s.tables.gt_pose is None for s in seqs)  # ICP never ran in this file
+    assert all(np.all(np.diff(s.tables.cmd_vel["stamp_ns"]) > 0) for s in seqs)
+    assert "ICP did not run" in seqs[0].notes[0]
 
 
 def test_raw_form_without_ground_truth_fails_groundtruth_in_one_line(shared_real, tmp_path):
@@ -106,7 +106,7 @@ def test_raw_form_with_icp_poses_yields_a_gt_pose_table(shared_real):
     df["icp_pos_x"] = np.linspace(0, 5, n)
     df["icp_quat_z"], df["icp_quat_w"] = np.sin(0.1), np.cos(0.1)
     seqs = raw_to_sequences(df, path, (0.6, 0.2, 0.2), "close")
-    gt = seqs[0]["tables"]["gt_pose"]
+    gt = seqs[0].tables.gt_pose
     np.testing.assert_allclose(gt["yaw"], 0.2)
     assert gt["x"].is_monotonic_increasing
 

@@ -111,15 +111,17 @@ def test_a_pickle_extracts_the_same_sequences_as_its_parquet(tmp_path):
     from test_sources_drive_synthetic import drive_like_frame
 
     from skidbench.pipeline.robot import load_robot
-    from skidbench.pipeline.sources.drive_df import _read_file
+    from skidbench.pipeline.sources.contract import settings_from
+    from skidbench.pipeline.sources.drive_df import DriveSettings, _read_file
 
     df = drive_like_frame([(0.5, 0.0), (0.4, 0.3), (0.6, -0.2), (0.3, 0.1), (0.5, 0.4)])[0]
     df.to_parquet(tmp_path / "w.parquet")
     df.to_pickle(tmp_path / "torch_ready_dataframe.pkl")
-    src = OmegaConf.load(Path(__file__).parents[1] / "conf" / "source" / "drive_df.yaml")
+    conf = OmegaConf.load(Path(__file__).parents[1] / "conf" / "source" / "drive_df.yaml")
+    src = settings_from(DriveSettings, OmegaConf.to_container(conf), "drive_df")
     a = _read_file(tmp_path / "w.parquet", src, load_robot("husky"), "h")
     b = _read_file(tmp_path / "torch_ready_dataframe.pkl", src, load_robot("husky"), "h")
-    assert [s["name"] for s in a[2]] == [s["name"] for s in b[2]] and a[3] == b[3]
+    assert [s.name for s in a[2]] == [s.name for s in b[2]] and a[3] == b[3]
     for sa, sb in zip(a[2], b[2], strict=True):
-        for k in sa["tables"]:
-            pd.testing.assert_frame_equal(sa["tables"][k], sb["tables"][k])
+        for k in sa.tables.present():
+            pd.testing.assert_frame_equal(sa.tables.present()[k], sb.tables.present()[k])

@@ -89,7 +89,7 @@ def test_windows_chain_back_exactly_with_yaw_wraps_and_no_holes(tmp_path):
     df, pose, world = drive_like_frame(steps, hold_icp=False)
     df.loc[3, "calib_step"] = 0.0  # step 0 "has 4 windows", step 1 "has 2"
     seqs = windows_to_sequences(df, tmp_path / "husky_windows.parquet", 20.0, (1.0, 0.0, 0.0), "husky")
-    gt = seqs[0]["tables"]["gt_pose"]
+    gt = seqs[0].tables.gt_pose
     stamps = gt["stamp_ns"].to_numpy()
     assert np.all(np.diff(stamps) == 50_000_000)  # contiguous: no hole
     # expected: the world poses expressed in the first pose's frame; chaining drops the one 50 ms between
@@ -135,8 +135,8 @@ def test_command_convention_is_converted_back_to_body_twist(tmp_path):
         cmd_kinematics=(R_CMD, B_CMD),
         cmd_limits=(1.0, 1.6),
     )
-    assert all("cmd_wheels" not in q["tables"] for q in seqs)
-    cmd = pd.concat([q["tables"]["cmd_vel"] for q in seqs])  # contiguous blocks, in order
+    assert all(q.tables.cmd_wheels is None for q in seqs)
+    cmd = pd.concat([q.tables.cmd_vel for q in seqs])  # contiguous blocks, in order
     v = np.repeat([s[0] for s in steps], 3 * WINDOW)
     w = np.clip(np.repeat([s[1] for s in steps], 3 * WINDOW), -1.6, 1.6)
     np.testing.assert_allclose(cmd["linear_x"], v, atol=1e-12)
@@ -169,15 +169,15 @@ def test_windows_that_are_not_back_to_back_start_a_new_sequence(tmp_path):
 
     path = tmp_path / "husky_windows.parquet"
     seqs = windows_to_sequences(df, path, 20.0, (1.0, 0.0, 0.0), "husky")
-    assert [q["name"] for q in seqs] == ["husky_train_00", "husky_train_01", "husky_cv_00", "husky_ld_00"]
-    assert [q["steps"] for q in seqs] == [3, 2, 1, 1]
+    assert [q.name for q in seqs] == ["husky_train_00", "husky_train_01", "husky_cv_00", "husky_ld_00"]
+    assert [q.steps for q in seqs] == [3, 2, 1, 1]
     for q, world, n_win in ((seqs[0], world_a, len(a)), (seqs[1], world_b, 6)):
-        got = q["tables"]["gt_pose"][["x", "y", "yaw"]].to_numpy()
+        got = q.tables.gt_pose[["x", "y", "yaw"]].to_numpy()
         idx = np.concatenate([np.arange(WINDOW) + w * (WINDOW - 1) for w in range(n_win)])
         np.testing.assert_allclose(got, _in_start_frame(world)[idx], atol=1e-9)
-        assert len(q["tables"]["enc_wheels"]) == WINDOW * n_win
+        assert len(q.tables.enc_wheels) == WINDOW * n_win
     whole = windows_to_sequences(df, path, 20.0, (1.0, 0.0, 0.0), "husky", break_at_jumps=False)
-    assert [q["name"] for q in whole] == ["husky_train_00", "husky_cv_00", "husky_ld_00"]
+    assert [q.name for q in whole] == ["husky_train_00", "husky_cv_00", "husky_ld_00"]
 
 
 def test_window_breaks_ignore_missing_readings_and_smooth_boundaries():

@@ -45,11 +45,11 @@ def test_slip_version_reads_into_the_same_tables_as_the_578_column_version():
     kw = dict(cmd_kinematics=(0.3, 1.08))
     a = windows_to_sequences(df, Path("a.parquet"), 20.0, (0.6, 0.2, 0.2), "w", **kw)
     b = windows_to_sequences(slip, Path("b.parquet"), 20.0, (0.6, 0.2, 0.2), "w", **kw)
-    assert [s["name"] for s in a] == [s["name"] for s in b]
+    assert [s.name for s in a] == [s.name for s in b]
     for sa, sb in zip(a, b, strict=True):
-        assert sa["tables"].keys() == sb["tables"].keys()
-        for k in sa["tables"]:
-            pd.testing.assert_frame_equal(sa["tables"][k], sb["tables"][k])
+        assert sa.tables.present().keys() == sb.tables.present().keys()
+        for k in sa.tables.present():
+            pd.testing.assert_frame_equal(sa.tables.present()[k], sb.tables.present()[k])
 
 
 def test_window_samples_under_a_zero_command_while_moving_are_reported():
@@ -92,7 +92,7 @@ def test_raw_segments_keep_only_the_calib_rows_of_the_shared_grass_file(shared_r
     seqs = raw_to_sequences(df, path, (0.6, 0.2, 0.2), "w", segments=segs)
     calib = df["calib_state"].astype(str) == "calib"
     stamps = pd.to_numeric(df["ros_time"], errors="coerce").to_numpy(float).astype(np.int64)
-    kept = np.concatenate([s["tables"]["cmd_vel"]["stamp_ns"].to_numpy() for s in seqs])
+    kept = np.concatenate([s.tables.cmd_vel["stamp_ns"].to_numpy() for s in seqs])
     # every calib row is kept (2583 rows = 129.1 s at 20 Hz), and no other row
     assert len(kept) == int(calib.sum()) == 2583
     assert set(kept) == set(stamps[calib.to_numpy()])
@@ -102,8 +102,8 @@ def test_raw_segments_keep_only_the_calib_rows_of_the_shared_grass_file(shared_r
     uncommanded = (~calib) & (pd.to_numeric(df["meas_left_vel"], errors="coerce").abs() > 0.3)
     assert not set(stamps[uncommanded.to_numpy()]) & set(kept)
     # several 6 s steps per sequence (runs of calib rows), not one sequence per step
-    assert [s["category"] for s in seqs] == ["train", "train", "cv", "cv", "ld"]
-    assert max(len(s["tables"]["cmd_vel"]) for s in seqs) > 3 * 121
+    assert [s.category for s in seqs] == ["train", "train", "cv", "cv", "ld"]
+    assert max(len(s.tables.cmd_vel) for s in seqs) > 3 * 121
 
 
 def test_a_recording_with_wheels_reading_zero_is_one_line(shared_real):

@@ -19,13 +19,14 @@ from __future__ import annotations
 import io
 import logging
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SourceError
-from ..manifest import Manifest, Sequence
-from .common import TWIST_COLUMNS, record_stamp, source_stamp, stamped, write_sequence
+from ..manifest import Sequence
+from .contract import TWIST_COLUMNS, SourceContext, SourceData, SourceSequence, Tables, TableSource, stamped
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ def discover(root: Path) -> list[tuple[Sequence, Path, Path]]:
     return out
 
 
-def read_sequence(cmd: Path, loc: Path) -> dict:
+def read_sequence(cmd: Path, loc: Path) -> Tables:
     """The extracted tables of one sequence (``cmd_vel``, ``gt_pose``)."""
     c = read_rows(cmd, 7)
     cmd_ns = _stamps(c[:, 6], cmd)
@@ -111,32 +112,33 @@ def read_sequence(cmd: Path, loc: Path) -> dict:
         )
     cmd_vel = stamped(cmd_ns, **{k: c[:, i] for i, k in enumerate(TWIST_COLUMNS)})
     gt = stamped(loc_ns, x=g[:, 1], y=g[:, 2], yaw=g[:, 3])
-    return {"cmd_vel": cmd_vel, "gt_pose": gt}
+    return Tables(cmd_vel=cmd_vel, gt_pose=gt)
 
 
-def extract_source(cfg, layout) -> list[dict]:
-    """Extract every AMRL sequence under ``source.root`` into ``<ds>/extracted`` and write the manifest."""
-    root = Path(str(cfg.source.root)).expanduser().absolute()
-    found = discover(root)
+@dataclass(frozen=True)
+class AmrlSettings:
+    """``source.*`` of ``source=amrl_txt``: the release's folder."""
 
-    records = []
-    skipped = 0
-    for seq, cmd, loc in found:
-        stamp, key, cached = source_stamp(layout, seq.name, [cmd, loc], {"source": "amrl_txt"})
-        if cached is not None:
-            records += cached
-            skipped += 1
-            continue
-        tables = read_sequence(cmd, loc)
-        info = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category, "source": "amrl_txt"}
-        records.append(write_sequence(layout.extracted / seq.name, tables, [cmd, loc], info))
-        record_stamp(stamp, key, [layout.extracted / seq.name])
-        log.info(
-            "extracted %s: cmd_vel %d, gt_pose %d", seq.name, len(tables["cmd_vel"]), len(tables["gt_pose"])
-        )
-    if found and skipped == len(found):
-        log.info("extract: %d sequences up to date, skipped", skipped)
-    Manifest([s for s, _, _ in found], robot=str(cfg.robot.name), format="amrl_txt", base=root).write(
-        layout.manifest
-    )
-    return records
+    root: str
+
+
+class AmrlText(TableSource):
+    """The AMRL release (module docstring): one sequence per cmd/loc pair under ``root``."""
+
+    kind = "amrl_txt"
+    version = 1
+    Settings = AmrlSettings
+
+    def inputs(self, settings: AmrlSettings) -> list[Path]:
+        return [p for _, cmd, loc in discover(_root(settings)) for p in (cmd, loc)]
+
+    def read(self, settings: AmrlSettings, ctx: SourceContext) -> SourceData:
+        seqs = []
+        for seq, cmd, loc in discover(_root(settings)):
+            tables = read_sequence(cmd, loc)
+            seqs.append(SourceSequence(seq.name, seq.terrain, seq.category, tables, (cmd, loc)))
+        return SourceData(tuple(seqs), format="amrl_txt")
+
+
+def _root(settings: AmrlSettings) -> Path:
+    return Path(str(settings.root)).expanduser().absolute()

@@ -79,14 +79,15 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from ..errors import ConfigError, SourceError
 from ..geometry import yaw_from_quaternion
-from ..manifest import Manifest, Sequence
-from .common import TWIST_COLUMNS, category_by_rank, record_stamp, source_stamp, stamped, write_sequence
+from .common import TWIST_COLUMNS, category_by_rank, stamped
+from .contract import SourceContext, SourceData, SourceSequence, Tables, TableSource
 from .drive_checks import Recording, check_recording, robot_checks
 from .drive_files import (  # noqa: F401 - re-exported: the reader's public names
     RAW_COLUMNS,
@@ -99,7 +100,7 @@ from .drive_files import (  # noqa: F401 - re-exported: the reader's public name
     read_frame,
     typed_raw_frame,
 )
-from .drive_rows import COMMAND, IDLE, OTHER, classify_rows, segments_of  # noqa: F401
+from .drive_rows import COMMAND, IDLE, OTHER, DriveSequence, classify_rows, segments_of  # noqa: F401
 from .drive_windows import (  # noqa: F401
     HELD_KEEP,
     chain_windows,
@@ -205,21 +206,21 @@ def read_raw(df: pd.DataFrame, path: Path) -> RawFile:
     return RawFile(df, t, has_gt, enc_absent, classes, reasons, state, notes, x, y)
 
 
-def _raw_tables(raw: RawFile, a: int, b: int) -> dict[str, pd.DataFrame]:
+def _raw_tables(raw: RawFile, a: int, b: int) -> Tables:
     """The extracted tables of rows ``a:b`` of a raw file."""
     part, ts = raw.df.iloc[a:b], raw.t[a:b]
     zeros = np.zeros(len(part))
     twist = [part["cmd_vel_x"], zeros, zeros, zeros, zeros, part["cmd_vel_omega"]]
-    tables = {"cmd_vel": stamped(ts, **dict(zip(TWIST_COLUMNS, twist, strict=True)))}
-    if not raw.enc_absent:
-        tables["enc_wheels"] = stamped(ts, wl=part["meas_left_vel"], wr=part["meas_right_vel"])
+    cmd_vel = stamped(ts, **dict(zip(TWIST_COLUMNS, twist, strict=True)))
+    enc = None if raw.enc_absent else stamped(ts, wl=part["meas_left_vel"], wr=part["meas_right_vel"])
+    gt = None
     if raw.has_gt:
         q = part[["icp_quat_x", "icp_quat_y", "icp_quat_z", "icp_quat_w"]].to_numpy(dtype=float)
         z = part["icp_pos_z"] if "icp_pos_z" in part else zeros
         yaw = yaw_from_quaternion(q)
-        tables["gt_pose"] = stamped(ts, x=part["icp_pos_x"], y=part["icp_pos_y"], z=z, yaw=yaw,
-                                    qx=q[:, 0], qy=q[:, 1], qz=q[:, 2], qw=q[:, 3])  # fmt: skip
-    return tables
+        gt = stamped(ts, x=part["icp_pos_x"], y=part["icp_pos_y"], z=z, yaw=yaw,
+                     qx=q[:, 0], qy=q[:, 1], qz=q[:, 2], qw=q[:, 3])  # fmt: skip
+    return Tables(cmd_vel=cmd_vel, enc_wheels=enc, gt_pose=gt)
 
 
 def raw_to_sequences(
@@ -230,8 +231,8 @@ def raw_to_sequences(
     segments: list | None = None,
     robot=None,
     checks: dict | None = None,
-) -> list[dict]:
-    """Raw form -> ``[{"name", "category", "tables", "note", "steps"}]``: one sequence per maximal run of
+) -> list[DriveSequence]:
+    """Raw form -> its sequences: one per maximal run of
     command-driven rows of one category (module docstring). ``segments``: when a list, every classified
     segment (:func:`segments_of`; the command-driven ones also name their ``category`` and
     ``sequences``) is appended to it. ``robot``: checked against the command-driven rows
@@ -260,8 +261,8 @@ def raw_to_sequences(
         n = counter.get(cat, 0)
         counter[cat] = n + 1
         name = f"{label}_{cat}_{n:02d}"
-        out.append({"name": name, "category": cat, "tables": _raw_tables(raw, a, b), "note": raw.notes,
-                    "steps": len(set(steps_all[a:b].tolist()))})  # fmt: skip
+        steps = len(set(steps_all[a:b].tolist()))
+        out.append(DriveSequence(name, cat, _raw_tables(raw, a, b), steps, tuple(raw.notes)))
         for seg in segs:
             if seg["class"] == COMMAND and raw.t[a] <= seg["start_ns"] <= raw.t[b - 1]:
                 seg.setdefault("sequences", []).append(name)
@@ -293,7 +294,24 @@ def raw_robot_checks(raw: RawFile, path: Path, robot) -> dict:
 
 
 # -- the source ---------------------------------------------------------------------------------------
-def _file_list(src) -> list[str]:
+@dataclass(frozen=True)
+class DriveSettings:
+    """``source.*`` of ``source=drive_df`` (conf/source/drive_df.yaml documents each key)."""
+
+    root: str
+    file: str | tuple[str, ...] | None = None
+    form: str = "auto"
+    label: str | None = None
+    rate_hz: float = 20.0
+    terrain: str | tuple[str, ...] = "unspecified"
+    split_fractions: tuple[float, ...] = (0.6, 0.2, 0.2)
+    identify_cmd_kinematics: bool = True
+    cmd_kinematics: Any = None  # None, [r, B], or robot -> [r, B]
+    cmd_limits: Any = None  # None, [v_max, w_max], or robot -> [v_max, w_max]
+    break_at_jumps: bool = True
+
+
+def _file_list(src: DriveSettings) -> list[str]:
     """``source.file``: one name, or a list of names (one terrain each, ``source.terrain`` a list too)."""
     f = src.file
     if f is None:
@@ -305,7 +323,7 @@ def _file_list(src) -> list[str]:
     return [str(x) for x in f]
 
 
-def check_settings(src) -> tuple[list[str], list[str]]:
+def check_settings(src: DriveSettings) -> tuple[list[str], list[str]]:
     """The files and their terrains: ``source.terrain`` a name (one file) or a list as long as
     ``source.file``; ConfigError (one line) otherwise. Every stage checks it (a terrain list that does not
     fit the files is not silently ignored by the stages that do not read it)."""
@@ -329,11 +347,11 @@ def check_settings(src) -> tuple[list[str], list[str]]:
     return files, terrains
 
 
-def _read_file(path: Path, src, robot, label: str) -> tuple[str, str, list[dict], dict, list[dict]]:
+def _read_file(path: Path, src: DriveSettings, robot, label: str) -> tuple[str, str, list, dict, list[dict]]:
     """One DRIVE file -> ``(form, version, sequences, robot checks, segments)``; nothing written."""
     df = read_frame(path)
     form, version = detect_form(df, path)
-    check_form(str(src.get("form", "auto")), form, version, path)
+    check_form(str(src.form), form, version, path)
     log.info("%s: DRIVE %s form (%s, %d columns)", path.name, form, version, df.shape[1])
     fractions = tuple(float(f) for f in src.split_fractions)
     checks: dict = {}
@@ -347,61 +365,50 @@ def _read_file(path: Path, src, robot, label: str) -> tuple[str, str, list[dict]
         float(src.rate_hz),
         fractions,
         label,
-        cmd_kinematics=_robot_entry(src.get("cmd_kinematics"), robot.name),
-        cmd_limits=_robot_entry(src.get("cmd_limits"), robot.name),
-        break_at_jumps=bool(src.get("break_at_jumps", True)),
+        cmd_kinematics=_robot_entry(src.cmd_kinematics, robot.name),
+        cmd_limits=_robot_entry(src.cmd_limits, robot.name),
+        break_at_jumps=bool(src.break_at_jumps),
         robot=robot,
         checks=checks,
-        identify=bool(src.get("identify_cmd_kinematics", True)),
+        identify=bool(src.identify_cmd_kinematics),
         kinematics_key=f"source.cmd_kinematics.{robot.name}",
     )
     return form, version, seqs, checks, window_segments(df, path)
 
 
-def extract_source(cfg, layout) -> list[dict]:
-    """Extract ``source.root/source.file`` (one file, or a list: one terrain per file, a multi-terrain
-    dataset) into ``<ds>/extracted``, write ``extracted/segments.json`` (every file's classified
-    segments, :func:`classify_rows`) and the manifest. Every file is read and checked before the first
-    table is written."""
-    from omegaconf import OmegaConf
+class DriveDataframes(TableSource):
+    """``source=drive_df``: one DRIVE file, or a list of them (one terrain each: a multi-terrain
+    dataset). Every file is read and checked before the first table is written; ``extracted/segments.json``
+    holds every file's classified segments (:func:`classify_rows`)."""
 
-    from ..io import write_json_atomic
-    from ..robot import robot_from_hydra
+    kind = "drive_df"
+    #: bumped when the reader's output changes for the same file and config (3: rows classified, only
+    #: command-driven runs are sequences; 4: command kinematics identified from the file)
+    version = READER_VERSION
+    Settings = DriveSettings
 
-    src = cfg.source
-    root = Path(str(src.root)).expanduser().absolute()
-    files, terrains = check_settings(src)
-    paths = check_paths(root, files)
-    robot = robot_from_hydra(cfg.robot)
-    conf = {"source": OmegaConf.to_container(src, resolve=True), "robot": OmegaConf.to_container(cfg.robot),
-            "reader": READER_VERSION}  # fmt: skip
-    unit = paths[0].name if len(paths) == 1 else "+".join(p.stem for p in paths)
-    stamp, key, cached = source_stamp(layout, unit, paths, conf)
-    if cached is not None and layout.manifest.is_file():
-        log.info("extract: %s: %d sequences up to date, skipped", unit, len(cached))
-        return cached
-    label = str(src.get("label") or robot.name)
-    read = []
-    for path, terrain in zip(paths, terrains, strict=True):
-        read.append(
-            (path, terrain, *_read_file(path, src, robot, label if len(paths) == 1 else f"{label}_{terrain}"))
-        )
-    records, manifest, segments, forms = [], [], {}, set()
-    for path, terrain, form, version, seqs, checks, segs in read:
-        forms.add(form)
-        segments[path.name] = {"terrain": terrain, "form": form, "version": version,
-                               "robot_checks": checks, "segments": segs}  # fmt: skip
-        for s in seqs:
-            info = {"sequence": s["name"], "terrain": terrain, "category": s["category"],
-                    "source": "drive_df", "form": form, "version": version, "notes": s.get("note", []),
-                    "robot_checks": checks}  # fmt: skip
-            records.append(write_sequence(layout.extracted / s["name"], s["tables"], [path], info))
-            counts = ", ".join(f"{k} {len(v)}" for k, v in s["tables"].items())
-            log.info("extracted %s (%s): %s", s["name"], s["category"], counts)
-        manifest += [Sequence(s["name"], terrain, s["category"], str(path)) for s in seqs]
-    write_json_atomic(layout.extracted / SEGMENTS_FILE, segments)
-    form_s = "+".join(sorted(forms))
-    Manifest(manifest, robot=robot.name, format=f"drive_df/{form_s}", base=root).write(layout.manifest)
-    record_stamp(stamp, key, [layout.extracted / s.name for s in manifest],
-                 [layout.manifest, layout.extracted / SEGMENTS_FILE])  # fmt: skip
-    return records
+    def check(self, settings: DriveSettings) -> None:
+        check_settings(settings)
+
+    def inputs(self, settings: DriveSettings) -> list[Path]:
+        root = Path(str(settings.root)).expanduser().absolute()
+        return check_paths(root, check_settings(settings)[0])
+
+    def read(self, settings: DriveSettings, ctx: SourceContext) -> SourceData:
+        paths = self.inputs(settings)
+        terrains = check_settings(settings)[1]
+        robot = ctx.robot
+        label = str(settings.label or robot.name)
+        seqs, segments, forms = [], {}, set()
+        for path, terrain in zip(paths, terrains, strict=True):
+            form, version, found, checks, segs = _read_file(
+                path, settings, robot, label if len(paths) == 1 else f"{label}_{terrain}"
+            )
+            forms.add(form)
+            segments[path.name] = {"terrain": terrain, "form": form, "version": version,
+                                   "robot_checks": checks, "segments": segs}  # fmt: skip
+            info = {"form": form, "version": version, "robot_checks": checks}
+            seqs += [SourceSequence(s.name, terrain, s.category, s.tables, (path,),
+                                    {**info, "notes": list(s.notes)}) for s in found]  # fmt: skip
+        form_s = "+".join(sorted(forms))
+        return SourceData(tuple(seqs), format=f"drive_df/{form_s}", extra={SEGMENTS_FILE: segments})

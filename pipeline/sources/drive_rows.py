@@ -9,12 +9,28 @@ and the split card list.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+from .contract import Tables
 
 #: row classes of a recording
 COMMAND, OTHER, IDLE = "command", "other", "idle"
 MOVING_WHEEL = 0.3  # rad/s: a wheel turning faster is moving
 MOVING_SPEED = 0.05  # m/s of ground-truth speed: moving
+
+
+@dataclass(frozen=True)
+class DriveSequence:
+    """One sequence cut from a DRIVE file (either form), before its file's terrain is known: its name,
+    category, tables, how many 6 s steps it spans and the file's notes (e.g. why it has no ground truth)."""
+
+    name: str
+    category: str
+    tables: Tables
+    steps: int
+    notes: tuple[str, ...] = ()
 
 
 def classify_rows(

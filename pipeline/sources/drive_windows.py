@@ -19,9 +19,10 @@ from ..errors import SourceError
 from ..geometry import se2_compose
 from ..robot import twist_from_wheel_rates
 from .common import TWIST_COLUMNS, category_by_rank, stamped
+from .contract import Tables
 from .drive_checks import Recording, check_recording, identify_cmd_kinematics, robot_checks, warn_disagreement
 from .drive_files import WINDOW, WINDOW_BLOCKS
-from .drive_rows import classify_rows, segments_of
+from .drive_rows import DriveSequence, classify_rows, segments_of
 
 log = logging.getLogger("skidbench.pipeline.sources.drive_df")
 
@@ -196,8 +197,8 @@ def windows_to_sequences(
     checks: dict | None = None,
     identify: bool = False,
     kinematics_key: str = "source.cmd_kinematics",
-) -> list[dict]:
-    """Window form -> ``[{"name", "category", "tables", "steps", "note"}]`` (the choices: the
+) -> list[DriveSequence]:
+    """Window form -> its sequences (the choices: the
     :mod:`~skidbench.pipeline.sources.drive_df` docstring). ``cmd_kinematics`` (r, B): the conversion DRIVE
     used for ``cmd_left/right`` (with ``identify`` and a ``robot``: identified from the file, this only
     the fallback named ``kinematics_key``); when known the commands are written as a body twist
@@ -231,14 +232,14 @@ def windows_to_sequences(
         # the category's windows, cut at its breaks (a break at the boundary into the category is moot)
         cuts = np.flatnonzero(breaks[cat_i[1:] - 1]) + 1
         for part, rows_i in enumerate(np.split(cat_i, cuts)):
-            seq = _window_sequence(arrays, step, rows_i, f"{label}_{cat}_{part:02d}", cat, dt_ns,
-                                   cmd_kinematics, cmd_limits)  # fmt: skip
-            out.append({**seq, "note": notes})
+            tables, n_steps = _window_tables(arrays, step, rows_i, dt_ns, cmd_kinematics, cmd_limits)
+            out.append(DriveSequence(f"{label}_{cat}_{part:02d}", cat, tables, n_steps, tuple(notes)))
     return out
 
 
-def _window_sequence(arrays, step, rows_i, name, cat, dt_ns, cmd_kinematics, cmd_limits) -> dict:
-    """One sequence of back-to-back windows ``rows_i`` (see :func:`windows_to_sequences`)."""
+def _window_tables(arrays, step, rows_i, dt_ns, cmd_kinematics, cmd_limits) -> tuple[Tables, int]:
+    """The tables of one sequence of back-to-back windows ``rows_i`` and the number of 6 s steps it
+    spans (see :func:`windows_to_sequences`)."""
     n_steps = len({step[i] for i in rows_i})
     win_t = np.arange(len(rows_i))  # back to back: one 2 s slot per window, no holes
     stamps = ((win_t[:, None] * WINDOW + np.arange(WINDOW)[None, :]) * dt_ns).ravel()
@@ -247,19 +248,17 @@ def _window_sequence(arrays, step, rows_i, name, cat, dt_ns, cmd_kinematics, cmd
     # ICP repeats its last value at 20 Hz: keep only the samples where the pose changed (and the first)
     fresh = fresh_samples(rel)
     pick = {k: arrays[k][rows_i].ravel() for k in WINDOW_BLOCKS}
-    tables = {
-        "enc_wheels": stamped(stamps, wl=pick["left_wheel_vel"], wr=pick["right_wheel_vel"]),
-        "gt_pose": stamped(stamps[fresh], x=poses[fresh, 0], y=poses[fresh, 1], yaw=poses[fresh, 2]),
-    }
+    enc = stamped(stamps, wl=pick["left_wheel_vel"], wr=pick["right_wheel_vel"])
+    gt = stamped(stamps[fresh], x=poses[fresh, 0], y=poses[fresh, 1], yaw=poses[fresh, 2])
     if cmd_kinematics is None:
-        tables["cmd_wheels"] = stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"])
-    else:
-        v, w = twist_from_wheel_rates(pick["cmd_left"], pick["cmd_right"], *cmd_kinematics)
-        if cmd_limits is not None:
-            v, w = np.clip(v, -cmd_limits[0], cmd_limits[0]), np.clip(w, -cmd_limits[1], cmd_limits[1])
-        z = np.zeros_like(v)
-        tables["cmd_vel"] = stamped(stamps, **dict(zip(TWIST_COLUMNS, [v, z, z, z, z, w], strict=True)))
-    return {"name": name, "category": cat, "tables": tables, "steps": n_steps}
+        cmd_wheels = stamped(stamps, wl=pick["cmd_left"], wr=pick["cmd_right"])
+        return Tables(cmd_wheels=cmd_wheels, enc_wheels=enc, gt_pose=gt), n_steps
+    v, w = twist_from_wheel_rates(pick["cmd_left"], pick["cmd_right"], *cmd_kinematics)
+    if cmd_limits is not None:
+        v, w = np.clip(v, -cmd_limits[0], cmd_limits[0]), np.clip(w, -cmd_limits[1], cmd_limits[1])
+    z = np.zeros_like(v)
+    cmd_vel = stamped(stamps, **dict(zip(TWIST_COLUMNS, [v, z, z, z, z, w], strict=True)))
+    return Tables(cmd_vel=cmd_vel, enc_wheels=enc, gt_pose=gt), n_steps
 
 
 def window_segments(df: pd.DataFrame, path: Path) -> list[dict]:

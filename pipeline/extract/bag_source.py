@@ -1,0 +1,87 @@
+"""``source.kind=bag``: ROS1/ROS2/MCAP bags (the simulated dataset and a user's own), one sequence per bag.
+
+Registered in the entry-point group ``skidbench.sources`` like any other source; it subclasses
+:class:`~skidbench.pipeline.sources.contract.Source` rather than ``TableSource`` because it streams each
+bag's topics to Parquet (images included) instead of reading whole tables (:func:`.bag.extract_bag`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError
+from ..manifest import Manifest
+from ..sources.contract import Source, SourceContext
+
+log = logging.getLogger("skidbench.extract")
+AUTO = "auto"  # source.topics=auto: each bag's topics chosen by `skidbench inspect`'s proposal
+
+
+@dataclass(frozen=True)
+class BagSettings:
+    """``source.*`` of a bag source (conf/source/bag.yaml, sim.yaml): where the bags are, which topics
+    play which role (a mapping of topic keys, or ``auto``), and the terrain and category of a single bag
+    or of bags not under ``<terrain>/<category>/``."""
+
+    root: str
+    topics: Any = None
+    terrain: str | None = None
+    category: str | None = None
+
+
+class BagSource(Source):
+    """Every bag under ``root`` (or the one bag ``root`` is) -> ``<ds>/extracted/<seq>/``."""
+
+    kind = "bag"
+    Settings = BagSettings
+
+    def extract(self, settings: BagSettings, ctx: SourceContext) -> list[dict[str, Any]]:
+        """Extract every sequence of a bag source; returns the ``_extract.json`` records in order.
+
+        For a user's bags (no ``manifest.json`` in ``root``) the manifest built from the folder tree is
+        written to ``<ds>/raw/manifest.json``, so later stages find terrain and category the same way for
+        every source."""
+        # deferred: the bag readers (rosbags) take seconds to import, and every stage loads this class
+        # to check its settings (pipeline/dataset.py)
+        from tqdm import tqdm
+
+        from .bag import extract_bag
+        from .inspect import auto_specs
+        from .reader import bag_format, discover_sequences, topic_specs
+
+        layout, opts = ctx.layout, ctx.options
+        topics = settings.topics or {}
+        auto = topics == AUTO
+        if isinstance(topics, str) and not auto:
+            raise ConfigError(f"source.topics={topics!r}: expected {AUTO!r} or a mapping of topic keys")
+        specs = None if auto else topic_specs(topics)
+        if not auto and not specs:
+            raise ConfigError("source.topics is empty: nothing to extract")
+        manifest, found = discover_sequences(dataclasses.asdict(settings))
+        if not found:  # paths made absolute: the manifest is written away from the bags
+            seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
+            formats = {bag_format(Path(s.path)) for s in seqs}
+            fmt = formats.pop() if len(formats) == 1 else "mixed"
+            Manifest(seqs, format=fmt or "ros1", base=layout.raw).write(layout.manifest)
+        elif manifest.base.resolve() != layout.raw.resolve():  # a user's manifest.json: ours is current
+            seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
+            Manifest(seqs, manifest.robot, manifest.format, base=layout.raw).write(layout.manifest)
+        records = []
+        seqs = manifest.sequences
+        for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):
+            meta = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category}
+            bag = manifest.resolve(seq)
+            seq_specs = auto_specs(bag, opts.typestores) if auto else specs
+            info = extract_bag(bag, layout.extracted / seq.name, seq_specs, opts, meta)
+            verb = "up to date" if info.get("skipped") else "extracted"
+            counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
+            log.info("%s %s: %s", verb, seq.name, counts)
+            records.append(info)
+        n_skipped = sum(bool(r.get("skipped")) for r in records)
+        if records and n_skipped == len(records):
+            log.info("extract: %d sequences up to date, skipped", len(records))
+        return records
