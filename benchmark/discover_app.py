@@ -266,10 +266,15 @@ def summary_text(doc: dict[str, Any]) -> str:
             lines.append(
                 f"[{terrain}] {i}. {st['effect']}: translational -> {a['translational']:.4f}, rotational -> "
                 f"{a['rotational']:.4f} (held-out gain {ev['heldout_gain']:+.3f}, "
-                f"p = {ev['paired_p_value']:.2g}, "
-                f"{ev['units_improved']}/{ev['n_heldout_units']} held-out units better)"
+                f"{ev['units_improved']}/{ev['n_heldout_units']} held-out units better; p_search = "
+                f"{ev.get('p_search', float('nan')):.2g}: the chance that a dataset with nothing missing "
+                f"gives the best of the {ev.get('n_candidates_tested', '?')} candidates tried a gain as "
+                "consistent)"
             )
             lines.append(f"      {st['explanation']}")
+            eq = [q["term"] for q in (st.get("naming") or {}).get("equivalent_terms") or []]
+            if eq:
+                lines.append(f"      equivalent terms (the same residual in other forms): {', '.join(eq)}")
         lines.append(f"[{terrain}] {r['message']}")
         if r.get("unexplained"):
             lines.append(f"[{terrain}] {r['unexplained']['text']}")

@@ -285,7 +285,13 @@ class Augmenter:
         for _ in range(n_alt):
             if corr:
                 params = self._fit_params(
-                    corr, params, base_pred, feats, rows, self._term_sum(terms, theta, feats, base_pred)
+                    corr,
+                    params,
+                    base_pred,
+                    feats,
+                    rows,
+                    self._term_sum(terms, theta, feats, base_pred),
+                    base_gain=True,
                 )
             theta = self._fit_terms(terms, params, base_pred, feats, rows)
             shift = self._term_sum(terms, theta, feats, base_pred)
@@ -350,13 +356,25 @@ class Augmenter:
         resid = self.pool.target - apply_effects(base_pred, feats, params)
         return termlib.fit_thetas(terms, cols, resid, rows, self.weights)
 
-    def _fit_params(self, corr, params, base_pred, feats, rows, offset=None) -> dict[str, np.ndarray]:
+    def _fit_params(
+        self, corr, params, base_pred, feats, rows, offset=None, base_gain: bool = False
+    ) -> dict[str, np.ndarray]:
         """Effect parameters with the base prediction fixed: box-bounded weighted least squares
         (:func:`_bounded_least_squares`); the curvature law, the one clearly nonlinear effect, from a few
-        starting values of b2."""
+        starting values of b2.
+
+        ``base_gain`` (inside the alternation): a multiplicative yaw-rate effect is fitted together with a
+        free gain on the base model's yaw rate, which is then dropped (the base model's refit on the
+        effect-corrected targets takes it: for ``edd`` its chi). The effect's factor and the base model's
+        own yaw-rate gain trade off (chi_base and ``curvature_dependent_icr``'s b1 both scale the yaw rate
+        of a turn); with the base held at its fit without the effect, a chi that has absorbed the effect's
+        mean, alternation stalls far from the joint optimum (b1 = 0.58, b2 = 17, chi 1.30 on data made
+        with b1 = 0.6, b2 = 1, chi 1: a chi that only spins see, and a residual in wz proportional to
+        |v| sign(w) that the term library then names)."""
         sizes = [CATALOGUE[e].n_params for e in corr]
         x0 = np.concatenate([params[e] for e in corr]).astype(float)
         bp = base_pred[rows]
+        gain = base_gain and any(CATALOGUE[e].kind == "mult" for e in corr)
         fr = {k: v[rows] for k, v in feats.items()}
         chans = sorted({CATALOGUE[e].channel for e in corr})  # only these depend on the parameters
         tg = self.pool.target[rows][:, chans]
@@ -372,10 +390,16 @@ class Augmenter:
             return out
 
         def resid(x):
-            return ((apply_effects(bp, fr, unpack(x))[:, chans] - tg) * sw).ravel()
+            b = bp
+            if gain:  # the base model's yaw rate times the free gain x[-1]
+                b = bp.copy()
+                b[:, 2] *= x[-1]
+            return ((apply_effects(b, fr, unpack(x))[:, chans] - tg) * sw).ravel()
 
         lo = np.concatenate([[b[0] for b in CATALOGUE[e].bounds] for e in corr])
         hi = np.concatenate([[b[1] for b in CATALOGUE[e].bounds] for e in corr])
+        if gain:
+            x0, lo, hi = np.append(x0, 1.0), np.append(lo, 0.2), np.append(hi, 5.0)
         starts = [x0]
         if "curvature_dependent_icr" in corr:  # a few starting values for b2
             i = sum(sizes[: corr.index("curvature_dependent_icr")])

@@ -74,19 +74,42 @@ CATALOGUE_EQUIVALENTS = {
 }
 
 
+#: the static signals (no rates, no time) with their degree in the commanded (v, w) and whether they are
+#: odd in w and in v (kappa = w / max(|v|, 0.1): degree 0, odd in w, even in v)
+_STATIC = {
+    "v": (1, False, True),
+    "w": (1, True, False),
+    "|v|": (1, False, False),
+    "|w|": (1, False, False),
+    "vx_pred": (1, False, True),
+    "wz_pred": (1, True, False),
+    "sgn_v": (0, False, True),
+    "sgn_w": (0, True, False),
+    "kappa": (0, True, False),
+}
+
+
 def catalogue_equivalent(form: str) -> str | None:
     """The catalogue effect a library form (``family.signal.channel``) states in other words, if any: the
     explicit reparametrisations of :data:`CATALOGUE_EQUIVALENTS`, and a yaw-rate change that is a
-    function of the commanded curvature and the speeds (``kappa`` in its signal, no acceleration or
-    time), which is ``curvature_dependent_icr``'s statement that chi depends on the turning radius
-    (1 / kappa) in another functional form."""
+    function of the commanded curvature and the speeds, which is ``curvature_dependent_icr``'s statement
+    that chi depends on the turning radius (1 / kappa) in another functional form: ``kappa`` in its
+    signal (no acceleration or time), or a product of degree 1 in (v, w), odd in w and even in v, that
+    depends on the speed (``|v|*sgn_w`` = w |R|: wz = w / chi(R) plus theta w |R| is w times another
+    function of |R|)."""
     if form in CATALOGUE_EQUIVALENTS:
         return CATALOGUE_EQUIVALENTS[form]
     fam, rest = form.split(".", 1)
     signal, channel = rest.rsplit(".", 1)
     factors = signal.split("*")
-    static = {"kappa", "v", "w", "|v|", "|w|", "vx_pred", "wz_pred", "sgn_v", "sgn_w"}  # no rates, no time
-    if fam == "lin" and channel == "wz" and "kappa" in factors and set(factors) <= static:
+    if fam != "lin" or channel != "wz" or not set(factors) <= set(_STATIC):
+        return None
+    if "kappa" in factors:
+        return "curvature_dependent_icr"
+    degree = sum(_STATIC[f][0] for f in factors)
+    odd_w = sum(_STATIC[f][1] for f in factors) % 2 == 1
+    odd_v = sum(_STATIC[f][2] for f in factors) % 2 == 1
+    if degree == 1 and odd_w and not odd_v and "|v|" in factors:
         return "curvature_dependent_icr"
     return None
 

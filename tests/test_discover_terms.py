@@ -47,6 +47,20 @@ def test_term_keys_round_trip_and_knots_count_as_parameters():
     assert tl.parse_term("sat.wz_pred.wz") is None  # a hinge needs its knot
 
 
+def test_forms_that_state_a_catalogue_effect_and_forms_of_sequence_time():
+    assert tl.catalogue_equivalent("slip.l.wheels") == "side_asymmetry"  # a left/right radius ratio
+    assert tl.catalogue_equivalent("lin.|w|*kappa.wz") == "curvature_dependent_icr"  # chi of the radius
+    assert tl.catalogue_equivalent("lin.dw*kappa.wz") is None  # an acceleration: not chi's radius law
+    assert tl.catalogue_equivalent("lin.|v|*sgn_w.wz") == "curvature_dependent_icr"  # w |R|: chi of |R|
+    assert tl.catalogue_equivalent("lin.v*sgn_w.wz") is None  # odd in v: not a function of |R|
+    assert tl.catalogue_equivalent("lin.v*w.wz") is None  # degree 2: grows with speed at a fixed radius
+    assert tl.catalogue_equivalent("lin.|w|*kappa.vx") is None and tl.catalogue_equivalent("lin.v.vx") is None
+    assert {"slip.l.wheels", "slip.r.wheels"} <= set(tl.equivalent_forms("side_asymmetry"))
+    timed = set(tl.time_forms())
+    assert {"after.vx_pred.vx", "after.wz_pred.wz", "lin.v*t.vx", "lin.t.wz"} <= timed
+    assert not any(f in timed for f in ("lin.v.vx", "sat.wz_pred.wz", "lin.|w|*kappa.wz"))
+
+
 def test_slip_term_on_the_extended_differential_drive_is_eq_8():
     f = _feats()
     chi, s_l = 1.5, 0.1

@@ -168,6 +168,7 @@ def run(cfg: DictConfig) -> list[Path]:
     conf = {
         "split": OmegaConf.to_container(cfg.split, resolve=True),
         "robot": OmegaConf.to_container(cfg.robot, resolve=True),
+        "metadata": ["cmd_association"],  # what a split file records beyond its table: older ones re-split
     }
     written, skipped, refused = [], 0, []
     for s in seqs:
