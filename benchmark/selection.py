@@ -227,7 +227,12 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     )
     for metric in mt.METRICS:  # an optional one (models with a predictive covariance): NaN for the others
         for split in SPLITS:
-            for key in (metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)):
+            keys = [metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)]
+            if metric.bootstrap is not None:  # its 95 % interval and the independent blocks behind it
+                keys += list(metric.interval_keys(split, horizon_s))
+                seed_sd = f"{metric.metric_key(split, horizon_s)}_seed_sd"  # evaluate seeds=N > 1
+                keys += [seed_sd] if f"metrics.{seed_sd}" in runs else []
+            for key in keys:
                 if key is not None:  # the value, and the windows behind it
                     df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
     for m in ("fit_loss", "fit_time_s", "predict_time_s"):

@@ -51,10 +51,20 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     assert res.inputs == "commanded"
     lb = res.leaderboard_md.splitlines()
     assert lb[2].startswith("| 1 | chi |")  # best first
-    assert any(line.startswith("| 3 | broken |") and "grass (FAILED)" in line for line in lb)
+    # a model that failed everywhere is shown, not ranked, with the reason; the floor is a reference row
+    assert any(line.startswith("|  | broken |") and "grass (FAILED)" in line and "not ranked" in line
+               for line in lb)  # fmt: skip
+    assert any(line.startswith("|  | floor |") and "reference" in line for line in lb)
     csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
     assert set(csv["model"]) == {"chi", "ideal_t", "broken"} and len(csv) == 6
     assert (csv[csv["model"] == "broken"]["status"] == "FAILED").all()
+    # added columns: each cell's interval and blocks, the terrain's floor
+    assert {"trans LD % lo", "trans LD % hi", "trans LD % blocks", "floor trans LD %"} <= set(csv.columns)
+    assert (csv["floor trans LD %"] < csv[csv["model"] == "chi"]["trans LD %"].min()).all()
+    chi = csv[csv["model"] == "chi"]
+    assert (chi["trans LD % lo"] <= chi["trans LD %"]).all() and (
+        chi["trans LD %"] <= chi["trans LD % hi"]
+    ).all()
     text = res.report.read_text()
     assert "## Failed runs" in text and "singular normal equations" in text
     for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png", "fig_end_position_rmse.png"):

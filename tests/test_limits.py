@@ -93,23 +93,9 @@ CFG_TAKERS = {
     "pipeline.config_schema:leaves",
     "pipeline.config_schema:validate",
     "pipeline.dataset:open_home",
-    "pipeline.groundtruth.consistency:consistency",
-    "pipeline.groundtruth.loop:bounds_from_config",
-    "pipeline.groundtruth.loop:read_true_pose",
-    "pipeline.groundtruth.vo:_get",
-    "pipeline.groundtruth.vo:_open",
-    "pipeline.groundtruth.vo:_vo_config",
-    "pipeline.groundtruth.vo:run_stereo_vo",
-    "pipeline.groundtruth.vo:source_image_topics",
     "pipeline.imported:check_stage",
     "pipeline.imported:named_dataset",
     "pipeline.protocol:protocol_of",
-    "pipeline.robot:from_config",
-    "pipeline.robot:robot_from_hydra",
-    "pipeline.simulate.physics:_from_mapping",
-    "pipeline.simulate.physics:from_config",
-    "pipeline.simulate.physics:load_physics",
-    "pipeline.simulate.sequence:simulate_sequence",
 }
 
 
