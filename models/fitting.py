@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from skidbench.pipeline.cache import Stamp, stamp_file
 from skidbench.pipeline.calibration import CONSTANTS, load_calibration, response_for, robot_for_model
@@ -432,6 +433,48 @@ def fit_model(
     # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date
     plan.stamp.record(plan.key, [path, *([apath] if arrays else [])])
     return result
+
+
+def is_seeded(model: Any) -> bool:
+    """Does a model have random parts it declares (a ``seed`` among its options: gp_residual, a plugin's)?"""
+    return "seed" in (getattr(model, "options", None) or {})
+
+
+@dataclass
+class Refit:
+    """What fitting a model again with another seed takes (evaluate's ``seeds``): its class, the robot it
+    is built with, its configured params and options, and the Train table of its input protocol."""
+
+    name: str
+    terrain: str
+    cls: type
+    robot: Robot
+    params: dict[str, Any] | None
+    options: dict[str, Any]
+    table: pd.DataFrame
+
+    def fit(self, seed: int) -> KinematicModel:
+        """The model fitted as :func:`fit_model` fits it, with its option ``seed`` set to ``seed``; nothing is
+        written or reused (the saved fit stays the configured seed's)."""
+        try:
+            return self.cls(self.robot, self.params, **{**self.options, "seed": int(seed)}).fit(self.table)
+        except ModelError:
+            raise
+        except Exception as exc:
+            raise ModelError(
+                f"model {self.name}: fit with seed {seed} failed on terrain {self.terrain} "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
+
+
+def refit_from_cfg(cfg: Any, model_name: str, terrain: str, split: str = "train") -> Refit:
+    """The door from the config to a :class:`Refit` of ``model_name`` on ``terrain``'s Train split."""
+    plan = _plan(cfg, model_name, terrain, split)
+    table = fit_table(
+        concat_sequences([read_split(p) for p in plan.files]), plan.inputs, plan.spec_robot, plan.response
+    )
+    mc = model_config(cfg, plan.spec)
+    return Refit(model_name, terrain, plan.cls, plan.robot, mc["params"] or None, dict(mc["options"]), table)
 
 
 def fit_findings(data: dict[str, Any]) -> list[str]:

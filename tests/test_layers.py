@@ -148,7 +148,7 @@ def test_the_installed_package_never_imports_the_perf_harness():
 
 #: the benchmark's pure modules: scoring and its metrics (no MLflow, no files, no figures); of the benchmark
 #: layer they import only each other, so that a server, a notebook or a test can score without a store
-PURE = {"benchmark.horizon", "benchmark.metrics", "benchmark.scoring"}
+PURE = {"benchmark.horizon", "benchmark.metrics", "benchmark.scoring", "benchmark.intervals"}
 IMPURE_LIBS = {"mlflow", "matplotlib", "pyarrow", "ray", "hydra", "omegaconf"}
 
 
