@@ -774,7 +774,7 @@ def run_compare(cfg: Any) -> CompareResult:
         if parent_arg == "latest"
         else None
     )
-    notes += [newer] if newer else []
+    notes += [n for n in (newer, sel.same_data_elsewhere(tracker)) if n]
     log_to = parent or (parents[0] if len(parents) == 1 else None)  # the evaluate run every row hangs from
     owner = tracker.client.get_run(log_to).data.tags.get(trk.TAG_USER) if log_to else None
     if log_to and owner != trk.current_user():  # another person's evaluate run is left as they made it

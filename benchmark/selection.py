@@ -440,3 +440,30 @@ def newer_elsewhere(
         f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "
         f"user={who}` shows theirs"
     )
+
+
+def same_data_elsewhere(tracker: trk.Tracker) -> str | None:
+    """One line when other skidbench experiments of the store hold runs of this dataset's content (its
+    identity, ``skidbench.dataset_id``): the same recording under another name, e.g. mounted at another path
+    on another machine (an automatic name carries its path), whose runs this board leaves out."""
+    if not tracker.dataset_id:
+        return None
+    own = tracker.experiment_name
+    exps = {
+        e.experiment_id: e.name
+        for e in tracker.client.search_experiments(filter_string="name LIKE 'skidbench-%'", max_results=1000)
+        if e.name != own and not e.name.startswith(own + "-")  # not its own transfer experiment
+    }
+    if not exps:
+        return None
+    runs = tracker.client.search_runs(
+        list(exps), f"tags.`{trk.TAG_DATASET_ID}` = '{tracker.dataset_id}'", max_results=200
+    )
+    names = sorted({exps[r.info.experiment_id] for r in runs})
+    if not names:
+        return None
+    return (
+        f"runs of this dataset's content (dataset id {tracker.dataset_id}) are also in experiment(s) "
+        f"{', '.join(repr(n) for n in names)}, under another dataset name, and not on this board; to compare "
+        "them as one, give the data the same name everywhere: source.dataset=<name>"
+    )

@@ -263,6 +263,22 @@ def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluat
         run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))
 
 
+def test_compare_names_other_experiments_holding_runs_of_the_same_content(tmp_path):
+    """One recording under two dataset names (two mount points, each with its automatic name): two
+    experiments; compare's board of one says, in one line, where the other's runs are and what to type."""
+    from skidbench.benchmark import selection as sel
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    here = trk.Tracker(uri, "skidbench-amrl-day2-aaaaaa", artifact_root=tmp_path, dataset_id="c0ffee")
+    assert sel.same_data_elsewhere(here) is None  # alone in the store
+    for name, ident in (("skidbench-amrl-day2-bbbbbb", "c0ffee"), ("skidbench-other-cccccc", "0ther"),
+                        ("skidbench-amrl-day2-aaaaaa-transfer", "c0ffee")):  # fmt: skip
+        trk.Tracker(uri, name, artifact_root=tmp_path, dataset_id=ident).start("run", {})
+    line = sel.same_data_elsewhere(here)
+    assert "experiment(s) 'skidbench-amrl-day2-bbbbbb'," in line and "source.dataset=<name>" in line
+    assert "skidbench-other" not in line and "transfer" not in line
+
+
 def test_the_parent_run_shows_the_leaderboard_and_each_models_mean_and_gap_to_the_next():
     from skidbench.benchmark.mlflow_ui import leaderboard
 

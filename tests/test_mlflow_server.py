@@ -128,6 +128,7 @@ def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_
     from _bench_data import sequence_table
 
     mlflow.set_tracking_uri(server.uri)
+    monkeypatch.setenv("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     vel = mlflow.pyfunc.load_model(f"models:/{model_id}").predict(sequence_table(5, 3.0).assign(sequence="s"))
     assert list(vel.columns) == ["vx", "vy", "wz"] and len(vel) == 90
 
