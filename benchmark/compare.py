@@ -988,6 +988,7 @@ def _report_md(
         *([f"**{standings.verdicts['overall']}.** Each value: estimate [95 % interval] (block bootstrap, "
            "docs/intervals.md); the floor is the ground truth's own velocities through the same windows, "
            "what no model can be expected to beat.", ""] if standings is not None else []),
+        *differences_lines(standings),
         "## Per model and terrain",
         "",
         *([f"- {t}: {v}" for t, v in standings.verdicts.items() if t != "overall"] + [""]
@@ -1047,6 +1048,29 @@ def _report_md(
         "",
     ]
     return "\n".join(parts)
+
+
+def differences_lines(standings: st.Standings | None) -> list[str]:
+    """The paired differences the ranking rule decided on, from the leader (the lowest estimate) to every
+    other ranked model: ``other - leader`` with its 95 % interval and whether it is resolved."""
+    d = standings.differences if standings is not None else pd.DataFrame()
+    ov = standings.overall.set_index("model") if standings is not None else pd.DataFrame()
+    if not len(d):
+        return []
+    ranked = ov.loc[[m for m in ov.index if m != FLOOR and bool(ov.loc[m, "rankable"])], "estimate"]
+    leader = ranked.astype(float).idxmin()
+    rows = []
+    for r in d[(d["a"] == leader) | (d["b"] == leader)].itertuples(index=False):
+        sign, other = (-1.0, r.b) if r.a == leader else (1.0, r.a)  # differences are a - b: other - leader
+        lo, hi = sorted((sign * r.lo, sign * r.hi))
+        rows.append({"model": other, "minus": leader, "difference (points)": _ci(sign * r.estimate, lo, hi),
+                     "resolved": "yes" if r.resolved else "no", "_e": sign * r.estimate})  # fmt: skip
+    table = pd.DataFrame(rows).sort_values("_e").drop(columns="_e")
+    what = "mean of the four RMSREs" if standings.ranked_by == st.AGGREGATE else f"`{standings.ranked_by}`"
+    return ["### Paired differences from the leader", "",
+            f"Each model's {what} over terrains minus {leader}'s, on the same windows and the same resampled "
+            "blocks, with its 95 % interval: resolved when the interval excludes 0.", "",
+            markdown_table(table), ""]  # fmt: skip
 
 
 def _claim_lines(standings: st.Standings) -> list[str]:

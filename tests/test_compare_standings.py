@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
+from skidbench.benchmark import compare, publish
 from skidbench.benchmark import intervals as iv
 from skidbench.benchmark import metrics as mt
-from skidbench.benchmark import publish
 from skidbench.benchmark import standings as st
 from skidbench.benchmark.boards import Board
 from skidbench.benchmark.floor import FLOOR
@@ -88,6 +88,15 @@ def test_a_pathological_metric_keeps_a_model_from_leading():
     assert ov.loc["friction", "rank"] == "3" and ov.loc["friction", "standing"] == ""
     assert ov.loc["edd", "standing"] == ov.loc["roc", "standing"] == iv.TIED  # 0.3 % apart: not resolved
     assert s.verdicts["overall"].startswith("tied for best: edd, roc")
+    # the paired differences behind it: a - b of the aggregates, resolved only where the interval excludes 0
+    d = s.differences.set_index(["a", "b"])
+    for (a, b), r in d.iterrows():
+        assert r["estimate"] == pytest.approx(ov.loc[a, "estimate"] - ov.loc[b, "estimate"], abs=1e-9)
+        assert r["lo"] <= r["estimate"] <= r["hi"] and r["resolved"] == (r["lo"] > 0 or r["hi"] < 0)
+    pair = ("edd", "roc") if ("edd", "roc") in d.index else ("roc", "edd")
+    assert not d.loc[pair, "resolved"] and d.filter(like="friction", axis=0)["resolved"].all()
+    report = "\n".join(compare.differences_lines(s))
+    assert "minus" in report and "| friction | " in report and "| yes |" in report and "| no |" in report
     # ranked by one metric instead (rank_by=ld_trans), friction leads
     assert (
         st.build(w, H, rank_by="ld_trans").overall.set_index("model").loc["friction", "standing"] == iv.BEST
