@@ -154,14 +154,14 @@ test: setup $(CLUSTER_STAMP) $(SERVER_STAMP) system-packages
 test-fast: setup
 	$(PYTEST) -m "not slow"
 
-# Performance comparisons, one process each -> bench/results/latest.{json,md} (BENCH="a b" for some).
-# bench/ is not installed (it measures the package from outside): run from the repository root.
+# Performance comparisons, one process each -> perf/results/latest.{json,md} (BENCH="a b" for some).
+# perf/ is not installed (it measures the package from outside): run from the repository root.
 bench: setup
-	$(BIN)/python -m bench $(BENCH)
+	$(BIN)/python -m perf $(BENCH)
 
 lint: setup
-	$(BIN)/ruff check pipeline models benchmark bench hydra_plugins tests examples
-	$(BIN)/ruff format --check pipeline models benchmark bench hydra_plugins tests examples
+	$(BIN)/ruff check pipeline models benchmark perf hydra_plugins tests examples
+	$(BIN)/ruff format --check pipeline models benchmark perf hydra_plugins tests examples
 	$(BIN)/python -m pytest -q tests/test_layers.py  # imports go down only, no cycles (CONTRIBUTING.md)
 
 clean:
