@@ -412,13 +412,18 @@ def markdown_table(df: pd.DataFrame, digits: int = 2) -> str:
 
 
 def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
-    """Does the paper's claim hold here: friction-based best on LD, comparable on CV?"""
+    """The paper's claim (friction-based best on LD, comparable on CV) where no per-window tables allow
+    paired intervals: not resolved by these data, with friction's place by point estimate only."""
     ok = board[board["status"] == "FINISHED"]
     if "friction" not in set(ok["model"]):
         return [
             "The friction-based model was not evaluated (or failed), so the paper's claim cannot be checked."
         ]
-    lines = []
+    lines = [
+        f"**Overall: {st.UNRESOLVED}** (no per-window tables here, so no paired comparison); friction's "
+        "place by point estimate only, not a ranking:",
+        "",
+    ]
     for metric in mt.PAPER:
         kind = metric.name
         for split in SPLITS:
@@ -788,7 +793,7 @@ def run_compare(cfg: Any) -> CompareResult:
             (
                 m.figure.file,
                 m.figure.caption,
-                lambda p, m=m: figs.metric_bars(board, m, horizon, SPLITS, p, dpi, _floor_of(standings, m)),
+                lambda p, m=m: figs.metric_bars(board, m, horizon, SPLITS, p, dpi, floor_of(standings, m)),
             )
             for m in mt.METRICS
             if m.figure is not None
@@ -877,8 +882,9 @@ def standings_from_cfg(
 ) -> st.Standings | None:
     """The board's intervals, ranking and claim from the per-window tables evaluate wrote
     (:mod:`skidbench.benchmark.standings`), or None (with a note) when there are none to read."""
-    if str(cfg.rank_by) != st.AGGREGATE:
-        trk.rank_key(str(cfg.rank_by), horizon)  # a bad rank_by: one line
+    rank_by = str(cfg.get("rank_by") or st.AGGREGATE)
+    if rank_by != st.AGGREGATE:
+        trk.rank_key(rank_by, horizon)  # a bad rank_by: one line
     windows, missing = st.read_windows(layout, board, protocol, horizon)
     notes += [f"paired intervals: {m}" for m in missing]
     if not any(m != FLOOR for m, _ in windows):
@@ -887,10 +893,10 @@ def standings_from_cfg(
             "by point estimate (no paired comparison)"
         )
         return None
-    return st.build(windows, horizon, iv.IntervalConfig.from_cfg(cfg), str(cfg.rank_by))
+    return st.build(windows, horizon, iv.IntervalConfig.from_cfg(cfg), rank_by)
 
 
-def _floor_of(standings: st.Standings | None, metric: mt.Metric) -> dict[tuple[str, str], float]:
+def floor_of(standings: st.Standings | None, metric: mt.Metric) -> dict[tuple[str, str], float]:
     """``{(terrain, split): the floor's value}`` of a metric, for its bar chart."""
     if standings is None:
         return {}
@@ -929,7 +935,7 @@ def _sort_key(rank_by: str, horizon: float) -> str:
     return trk.rank_key("ld_trans" if rank_by == st.AGGREGATE else rank_by, horizon)
 
 
-def _ranked_by_line(rank_by: str, horizon: float, standings: st.Standings | None) -> str:
+def ranked_by_line(rank_by: str, horizon: float, standings: st.Standings | None) -> str:
     if standings is None:
         what = "the four RMSREs" if rank_by == st.AGGREGATE else f"`{_sort_key(rank_by, horizon)}`"
         return f"- ranked by point estimate of the mean over terrains of {what} (no paired intervals here)"
@@ -971,7 +977,7 @@ def _report_md(
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`" + runs_line,
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
         *[f"- MLflow UI, {what}: <{url}>" for what, url in (links or {}).items()],
-        _ranked_by_line(str(cfg.rank_by), horizon, standings),
+        ranked_by_line(str(cfg.rank_by), horizon, standings),
         f"- input protocol: `{protocol}` (every model driven by the same inputs; runs of different protocols "
         "are never ranked together)",
         "",
@@ -982,6 +988,7 @@ def _report_md(
         *([f"**{standings.verdicts['overall']}.** Each value: estimate [95 % interval] (block bootstrap, "
            "docs/intervals.md); the floor is the ground truth's own velocities through the same windows, "
            "what no model can be expected to beat.", ""] if standings is not None else []),
+        *differences_lines(standings),
         "## Per model and terrain",
         "",
         *([f"- {t}: {v}" for t, v in standings.verdicts.items() if t != "overall"] + [""]
@@ -1041,6 +1048,29 @@ def _report_md(
         "",
     ]
     return "\n".join(parts)
+
+
+def differences_lines(standings: st.Standings | None) -> list[str]:
+    """The paired differences the ranking rule decided on, from the leader (the lowest estimate) to every
+    other ranked model: ``other - leader`` with its 95 % interval and whether it is resolved."""
+    d = standings.differences if standings is not None else pd.DataFrame()
+    ov = standings.overall.set_index("model") if standings is not None else pd.DataFrame()
+    if not len(d):
+        return []
+    ranked = ov.loc[[m for m in ov.index if m != FLOOR and bool(ov.loc[m, "rankable"])], "estimate"]
+    leader = ranked.astype(float).idxmin()
+    rows = []
+    for r in d[(d["a"] == leader) | (d["b"] == leader)].itertuples(index=False):
+        sign, other = (-1.0, r.b) if r.a == leader else (1.0, r.a)  # differences are a - b: other - leader
+        lo, hi = sorted((sign * r.lo, sign * r.hi))
+        rows.append({"model": other, "minus": leader, "difference (points)": _ci(sign * r.estimate, lo, hi),
+                     "resolved": "yes" if r.resolved else "no", "_e": sign * r.estimate})  # fmt: skip
+    table = pd.DataFrame(rows).sort_values("_e").drop(columns="_e")
+    what = "mean of the four RMSREs" if standings.ranked_by == st.AGGREGATE else f"`{standings.ranked_by}`"
+    return ["### Paired differences from the leader", "",
+            f"Each model's {what} over terrains minus {leader}'s, on the same windows and the same resampled "
+            "blocks, with its 95 % interval: resolved when the interval excludes 0.", "",
+            markdown_table(table), ""]  # fmt: skip
 
 
 def _claim_lines(standings: st.Standings) -> list[str]:

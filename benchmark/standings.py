@@ -72,7 +72,9 @@ class Standings:
     - ``per_terrain``: model, terrain, the aggregate on that terrain, rank, standing;
     - ``verdicts``: ``overall`` and each terrain -> one line (best, tied, or nothing ranked);
     - ``claim``: ``overall`` and each terrain -> (verdict, lines) on the paper's claim;
-    - ``ranked_by``: what the board ranks by (:data:`AGGREGATE` or a metric's ``<split>_<short>``)."""
+    - ``ranked_by``: what the board ranks by (:data:`AGGREGATE` or a metric's ``<split>_<short>``);
+    - ``differences``: the paired difference ``a - b`` of the ranking statistic over terrains of every two
+      ranked models (a, b, estimate, lo, hi, rankable, reason, resolved), what the ranking rule decided on."""
 
     cells: pd.DataFrame
     overall: pd.DataFrame
@@ -80,6 +82,7 @@ class Standings:
     verdicts: dict[str, str] = field(default_factory=dict)
     claim: dict[str, tuple[str, list[str]]] = field(default_factory=dict)
     ranked_by: str = AGGREGATE
+    differences: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def cell(self, model: str, terrain: str, split: str, metric: str) -> pd.Series | None:
         c = self.cells
@@ -156,10 +159,10 @@ def build(
                 parts.append(s)
         return (iv.mean_of(name, parts), "") if parts else (None, "no score")
 
-    overall = _rank_rows(sample, models, has_floor, terrains, agg_stat, "overall")
+    overall, differences = _rank_rows(sample, models, has_floor, terrains, agg_stat, "overall")
     _terrain_means(sample, cell_stats, everyone, terrains, paper, overall)
     per_terrain = pd.concat(
-        [_rank_rows(sample, models, has_floor, [t], agg_stat, t).assign(terrain=t) for t in terrains],
+        [_rank_rows(sample, models, has_floor, [t], agg_stat, t)[0].assign(terrain=t) for t in terrains],
         ignore_index=True,
     ) if terrains else pd.DataFrame()  # fmt: skip
     verdicts = {"overall": iv.board_verdict(overall.set_index("model")["standing"])}
@@ -169,7 +172,7 @@ def build(
     claim = {"overall": _claim(sample, cell_stats, models, terrains)}
     for t in terrains:
         claim[t] = _claim(sample, cell_stats, models, [t])
-    return Standings(cells, overall, per_terrain, verdicts, claim, rank_by)
+    return Standings(cells, overall, per_terrain, verdicts, claim, rank_by, differences)
 
 
 def _terrain_means(sample, cell_stats, everyone, terrains, paper, overall: pd.DataFrame) -> None:
@@ -210,9 +213,12 @@ def _cells(sample: iv.Sample, cell_stats: dict) -> pd.DataFrame:
     return pd.concat([keys, res], axis=1)
 
 
-def _rank_rows(sample, models, has_floor, terrains, agg_stat, scope: str) -> pd.DataFrame:
+def _rank_rows(
+    sample, models, has_floor, terrains, agg_stat, scope: str
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """One row per model (and the floor, last): the ranking statistic over ``terrains`` with its interval,
-    rank and standing by :func:`intervals.rank_board` on the paired differences."""
+    rank and standing by :func:`intervals.rank_board` on the paired differences; and those differences
+    (a, b, estimate, lo, hi, ..., resolved)."""
     stats, why = {}, {}
     for model in models + ([FLOOR] if has_floor else []):
         s, reason = agg_stat(model, terrains, f"{model}|{scope}")
@@ -251,7 +257,10 @@ def _rank_rows(sample, models, has_floor, terrains, agg_stat, scope: str) -> pd.
     if has_floor:
         rows.loc[FLOOR, "standing"] = "reference (the ground truth's own velocities; never ranked)"
     out = rows.reset_index(names="model").drop(columns=["stat"])
-    return out
+    d = d.drop(columns=["stat"], errors="ignore").reset_index(names=["a", "b"])
+    d["resolved"] = [bool(r and iv.resolved(lo, hi)) for r, lo, hi in zip(d["rankable"], d["lo"], d["hi"],
+                                                                           strict=True)]  # fmt: skip
+    return out, d
 
 
 def _claim(sample, cell_stats, models, terrains) -> tuple[str, list[str]]:

@@ -5,12 +5,18 @@ one-window splits ranks nothing and says why."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
+from omegaconf import OmegaConf
 
+from skidbench.benchmark import compare, publish
 from skidbench.benchmark import intervals as iv
+from skidbench.benchmark import metrics as mt
 from skidbench.benchmark import standings as st
+from skidbench.benchmark.boards import Board
 from skidbench.benchmark.floor import FLOOR
 from skidbench.benchmark.scoring import summarise
 
@@ -82,6 +88,15 @@ def test_a_pathological_metric_keeps_a_model_from_leading():
     assert ov.loc["friction", "rank"] == "3" and ov.loc["friction", "standing"] == ""
     assert ov.loc["edd", "standing"] == ov.loc["roc", "standing"] == iv.TIED  # 0.3 % apart: not resolved
     assert s.verdicts["overall"].startswith("tied for best: edd, roc")
+    # the paired differences behind it: a - b of the aggregates, resolved only where the interval excludes 0
+    d = s.differences.set_index(["a", "b"])
+    for (a, b), r in d.iterrows():
+        assert r["estimate"] == pytest.approx(ov.loc[a, "estimate"] - ov.loc[b, "estimate"], abs=1e-9)
+        assert r["lo"] <= r["estimate"] <= r["hi"] and r["resolved"] == (r["lo"] > 0 or r["hi"] < 0)
+    pair = ("edd", "roc") if ("edd", "roc") in d.index else ("roc", "edd")
+    assert not d.loc[pair, "resolved"] and d.filter(like="friction", axis=0)["resolved"].all()
+    report = "\n".join(compare.differences_lines(s))
+    assert "minus" in report and "| friction | " in report and "| yes |" in report and "| no |" in report
     # ranked by one metric instead (rank_by=ld_trans), friction leads
     assert (
         st.build(w, H, rank_by="ld_trans").overall.set_index("model").loc["friction", "standing"] == iv.BEST
@@ -110,3 +125,44 @@ def test_a_board_of_one_window_splits_ranks_nothing_and_says_why():
     assert ov.loc["friction", "standing"].startswith("not ranked: 2 independent blocks (ranking needs 8)")
     assert s.verdicts["overall"].startswith("no entry ranked")
     assert s.claim["overall"][0] == st.UNRESOLVED
+
+
+def _board_rows(windows) -> pd.DataFrame:
+    """One finished run per (model, terrain) of ``windows`` (not the floor), with what evaluate logs."""
+    rows = []
+    for (model, terrain), w in windows.items():
+        if model == FLOOR:
+            continue
+        row = {"model": model, "terrain": terrain, "inputs": "commanded", "status": "FINISHED",
+               "run_id": f"{model}-{terrain}-run", "reason": "", "fit_loss": 0.0, "fit_time_s": 0.1,
+               "predict_time_s": 0.1}  # fmt: skip
+        for split in ("cv", "ld"):
+            row.update(summarise(w[w["split"] == split], split, [H]))
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    for m in mt.METRICS:  # the optional metrics (a predictive covariance) these models have not
+        for split in ("cv", "ld"):
+            for key in (m.metric_key(split, H), m.windows_key(split, H)):
+                if key is not None and key not in out:
+                    out[key] = np.nan
+    return out
+
+
+def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(tmp_path):
+    w = _board({"edd": {"trans": {"cv": 7, "ld": 6}}, "roc": {"trans": {"cv": 7.02, "ld": 6.02}},
+                FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
+    board = Board("commanded", "parent", H, {}, _board_rows(w))
+    cfg = OmegaConf.create({"publish": {"figures": False, "dpi": 72}})
+    page = publish._protocol_section(board, tmp_path, cfg, st.build(w, H))
+    lead = page[: page.index("Per terrain and test split")]
+    assert "tied for best" in lead and ">best<" not in lead  # 0.3 % apart on the same windows: not resolved
+    edd = st.build(w, H).overall.set_index("model").loc["edd"]
+    assert f"{edd['estimate']:.2f} [{edd['lo']:.2f}, {edd['hi']:.2f}]" in lead  # the aggregate's interval
+    assert re.search(r"<td>floor</td>", lead) and "reference" in lead  # the floor's row, never ranked
+    assert "not resolved by these data" in lead  # the paper's claim: friction was not evaluated here
+    rows = page[page.index("Per terrain and test split") :]
+    lo, hi = board.rows.loc[0, ["ld_6s_trans_rmsre_pct_ci_lo", "ld_6s_trans_rmsre_pct_ci_hi"]]
+    assert f"{lo:.2f} to {hi:.2f}" in rows  # every row's logged interval
+    # without the per-window tables: listed, not ranked, and it says so
+    bare = publish._protocol_section(board, tmp_path, cfg, None)
+    assert "not ranked" in bare and "<th>rank</th>" not in bare
