@@ -27,7 +27,13 @@ import numpy as np
 import pandas as pd
 
 from skidbench.pipeline.cache import Stamp, stamp_file
-from skidbench.pipeline.calibration import CONSTANTS, load_calibration, response_for, robot_for_model
+from skidbench.pipeline.calibration import (
+    CONSTANTS,
+    Calibrations,
+    load_calibration,
+    response_for,
+    robot_for_model,
+)
 from skidbench.pipeline.io import write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
@@ -247,7 +253,7 @@ def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse |
     inputs = protocol_of(cfg)
     response = None
     if inputs == "response":
-        response = response_for(cfg, terrain)
+        response = response_for(Calibrations.from_cfg(cfg), terrain)
         if response is None:
             raise ProtocolError(
                 f"inputs=response: no wheel response identified for terrain {terrain} (the Train split has "
@@ -291,8 +297,9 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
     cls = get_model_class(spec)
     files = _training_files(cfg, model_name, terrain, split)
     inputs, spec_robot, response = protocol_inputs(cfg, terrain)
-    robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
-    calibration = load_calibration(cfg, terrain)  # None with calibrate.use=false
+    cal = Calibrations.from_cfg(cfg)
+    robot, constants = robot_for_model(cal, calibrated_constants(cls), terrain)
+    calibration = load_calibration(cal, terrain)  # None with calibrate.use=false
     info = discover().get(spec.split("+")[0])
     code = code_identity(cls, *((info.package, info.package_version) if info else ()))
     path = layout.fit_file(model_name, terrain, inputs)
@@ -530,5 +537,5 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
 
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)
-    robot, _ = robot_for_model(cfg, calibrated_constants(cls), terrain)
+    robot, _ = robot_for_model(Calibrations.from_cfg(cfg), calibrated_constants(cls), terrain)
     return from_saved(cls, robot, saved, spec, path)

@@ -129,11 +129,14 @@ XDIST_GROUPS = {
 XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
 #: the longest units start first (longest-processing-time-first), the rest in xdist's order (most tests
 #: first). Measured with --durations=40 on 2026-11-24: the quick start and discover_hidden's
-#: curvature_dependent_icr case are the two longest units.
+#: curvature_dependent_icr case are the two longest units; the lab's server and its UI (one PostgreSQL, one
+#: mlflow server, two evaluates in subprocesses, an outage, three pages in Chromium) took 4 min 12 s alone
+#: on 2026-11-25 (pytest tests/test_mlflow_server.py tests/test_mlflow_ui_browser.py, the machine loaded).
 XDIST_FIRST = (
     "readme_reproduce",
     "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
     "[curvature_dependent_icr]",
+    "lab_server",
 )
 
 

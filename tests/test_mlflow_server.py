@@ -151,19 +151,20 @@ def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_
 
 
 def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_open(server, tmp_path):
-    """The server dies while evaluate is between two logging calls (the process is held at its first
-    per-window table write): evaluate gives up in one line naming the server, exit status 2; once the
-    server is back, `skidbench runs --reap` (this machine: the process is gone) ends every run it left."""
+    """The server dies while evaluate is between two logging calls (the process is held at its first write
+    of the model's outputs, eval/edd/..., inside the model's run; the floor's tables come before, under the
+    parent alone): evaluate gives up in one line naming the server, exit status 2; once the server is back,
+    `skidbench runs --reap` (this machine: the process is gone) ends every run it left."""
     from mlflow import MlflowClient
 
     write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
-    fault = {"SKIDBENCH_FAULT": "stop@1:windows.parquet", "PYTHONPATH": str(FAULTS)}
+    fault = {"SKIDBENCH_FAULT": "stop@1:/eval/edd/", "PYTHONPATH": str(FAULTS)}
     # an experiment of its own on the session's server: the other tests' runs are not its business
     proc = evaluate(tmp_path, server.uri, "carol", "models=[edd]", f"mlflow.experiment={OUTAGE}", env=fault)
     deadline = time.monotonic() + 600
     while _state(proc.pid) != "T":  # held at the fault
         assert proc.poll() is None, proc.communicate()[1][-3000:]
-        assert time.monotonic() < deadline, "evaluate never reached its first per-window table"
+        assert time.monotonic() < deadline, "evaluate never reached the model's outputs"
         time.sleep(0.5)
     server.kill()
     t0 = time.monotonic()
