@@ -482,4 +482,5 @@ def board_verdict(standing: pd.Series) -> str:
         return f"best: {best[0]} (its paired difference from every other is resolved)"
     if tied:
         return f"tied for best: {', '.join(tied)} (their paired differences are not resolved)"
-    return "no entry ranked: " + "; ".join(sorted({str(s) for s in standing if s}))
+    why = sorted({str(s).removeprefix(f"{NOT_RANKED}: ") for s in standing if str(s).startswith(NOT_RANKED)})
+    return "no entry ranked: " + ("; ".join(why) or "no entry")
