@@ -122,7 +122,8 @@ $(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
 # UI (headless Chromium, tests/test_mlflow_ui_browser.py) need two Debian packages, `postgresql` and
 # `chromium`: installed here, where missing, when make runs as root with apt-get (a fresh CI machine);
 # best-effort: where they cannot be installed those tests skip with the reason. A cheap check when both
-# are there. The `server` extra (psycopg, the PostgreSQL driver): once per pyproject.toml change.
+# are there. The `server` extra (psycopg, the PostgreSQL driver): once per pyproject.toml change, every
+# package the lock pins kept at its version (as the cluster extra's).
 SERVER_STAMP := $(VENV)/.skidbench-server
 system-packages:
 	@missing=""; \
@@ -136,8 +137,8 @@ system-packages:
 	else \
 		echo "make test: $$missing not installed (installing needs root and apt-get); the tests that need it will be skipped"; \
 	fi
-$(SERVER_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[dev,server]' \
+$(SERVER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,server]' \
 		|| echo "make test: the server extra (psycopg) did not install; the PostgreSQL tests will be skipped"
 	@touch $@
 
@@ -153,14 +154,14 @@ test: setup $(CLUSTER_STAMP) $(SERVER_STAMP) system-packages
 test-fast: setup
 	$(PYTEST) -m "not slow"
 
-# Performance comparisons, one process each -> bench/results/latest.{json,md} (BENCH="a b" for some).
-# bench/ is not installed (it measures the package from outside): run from the repository root.
+# Performance comparisons, one process each -> perf/results/latest.{json,md} (BENCH="a b" for some).
+# perf/ is not installed (it measures the package from outside): run from the repository root.
 bench: setup
-	$(BIN)/python -m bench $(BENCH)
+	$(BIN)/python -m perf $(BENCH)
 
 lint: setup
-	$(BIN)/ruff check pipeline models benchmark bench hydra_plugins tests examples
-	$(BIN)/ruff format --check pipeline models benchmark bench hydra_plugins tests examples
+	$(BIN)/ruff check pipeline models benchmark perf hydra_plugins tests examples
+	$(BIN)/ruff format --check pipeline models benchmark perf hydra_plugins tests examples
 	$(BIN)/python -m pytest -q tests/test_layers.py  # imports go down only, no cycles (CONTRIBUTING.md)
 
 clean:

@@ -254,6 +254,14 @@ def read_board(path: Path) -> Board:
                  dict(doc.get("settings") or {}), rows)  # fmt: skip
 
 
+def _ranked_by(rank_key: str) -> str:
+    """What a board ranks by: ``mean4`` (the ranking rule's aggregate, docs/intervals.md) or one metric."""
+    if rank_key == "mean4":
+        return ("the mean of the four RMSREs over terrains, with paired 95 % intervals: best only when "
+                "resolved from every other model, else tied (docs/intervals.md)")  # fmt: skip
+    return f"the mean over terrains of `{rank_key}`"
+
+
 def leaderboard_header(
     dataset: str, dataset_id: str | None, experiment: str, protocol: str, parent: str | None,
     horizon: float, rank_key: str, when: str, left_out: list[str],
@@ -273,7 +281,7 @@ def leaderboard_header(
     lines = [
         f"# Leaderboard: dataset {dataset}, inputs={protocol}, {horizon:g} s horizon",
         "",
-        f"Written by `{cmd}` on {when}. Rows: {which}. Ranked by the mean over terrains of `{rank_key}` "
+        f"Written by `{cmd}` on {when}. Rows: {which}. Ranked by {_ranked_by(rank_key)} "
         f"(lower is better). Dataset identity `{dataset_id or '?'}`; MLflow experiment `{experiment}`. "
         "The CSV beside this file has every row's run id, options digest, versions and commit.",
     ]

@@ -214,13 +214,13 @@ def _sequences(layout: Layout, manifest: Manifest) -> list[dict[str, Any]]:
 def _write_inputs(cfg: Any, layout: Layout, manifest: Manifest, protocol: str, dest: Path) -> int:
     """``inputs/<protocol>/<terrain>/<split>/<seq>.parquet``: :func:`model_inputs` of every split file
     (Train too: a model fitted under the protocol is fitted on its inputs and the Train targets)."""
-    from skidbench.pipeline.calibration import response_for
+    from skidbench.pipeline.calibration import Calibrations, response_for
     from skidbench.pipeline.robot import robot_from_hydra
 
     robot = robot_from_hydra(cfg.robot)
     n = 0
     for terrain in split_terrains(manifest):
-        response = response_for(cfg, terrain) if protocol == "response" else None
+        response = response_for(Calibrations.from_cfg(cfg), terrain) if protocol == "response" else None
         if protocol == "response" and response is None:
             raise BundleError(
                 f"inputs=response: {layout.calibration_file(terrain)}: no wheel response identified for "

@@ -43,11 +43,14 @@ from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
 
 from . import boards as brd
 from . import figures as figs
+from . import intervals as iv
 from . import metrics as mt
 from . import mlflow_ui as mu
 from . import report_data as rd
 from . import selection as sel
+from . import standings as st
 from . import tracking as trk
+from .floor import FLOOR
 from .horizon import EvaluationError
 from .selection import board_from_runs  # noqa: F401 (compare's board rows; kept importable here)
 
@@ -173,12 +176,22 @@ def _metric_cells(row: dict[str, Any], ok: pd.DataFrame, horizon_s: float) -> No
                 row[metric.count_label(split)] = _windows(ok[n_key] if n_key in ok else pd.Series([]))
 
 
-def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.DataFrame:
+def summary_table(
+    board: pd.DataFrame, horizon_s: float, rank_by: str, standings: st.Standings | None = None
+) -> pd.DataFrame:
     """Per model: the mean over terrains of each RMSRE (%), terrains scored, failures; ranked by
     ``rank_by`` (``<split>_<trans|rot>``, e.g. ``ld_trans``: :func:`tracking.rank_key`). CompareError when
-    the board mixes input protocols (:func:`check_one_protocol`)."""
+    the board mixes input protocols (:func:`check_one_protocol`). With ``standings``
+    (:mod:`skidbench.benchmark.standings`): ranked by its statistic with the ranking rule
+    (:func:`standings_table`), every paper metric with its 95 % interval, and the floor."""
     check_one_protocol(board)
-    rank_key = trk.rank_key(rank_by, horizon_s)
+    if standings is not None:
+        return standings_table(board, horizon_s, standings)
+    rank_keys = (  # the aggregate: the mean of the paper's metrics on CV and LD (standings.AGGREGATE)
+        [m.metric_key(s, horizon_s) for m in mt.PAPER for s in SPLITS]
+        if rank_by == st.AGGREGATE
+        else [trk.rank_key(rank_by, horizon_s)]
+    )
     rows = []
     for model, g in board.groupby("model", sort=False):
         ok = g[g["status"] == "FINISHED"]
@@ -189,8 +202,9 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
         row["failed"] = (
             ", ".join(f"{t} ({s})" for t, s in zip(bad["terrain"], bad["status"], strict=True)) or ""
         )
-        ranked = ok[rank_key].to_numpy(float) if len(ok) and rank_key in ok else np.array([])
-        row["_key"] = np.nanmean(ranked) if np.isfinite(ranked).any() else np.nan
+        ranked = [ok[k].to_numpy(float) for k in rank_keys if len(ok) and k in ok]
+        means = [np.nanmean(v) if np.isfinite(v).any() else np.nan for v in ranked]
+        row["_key"] = float(np.mean(means)) if means and np.isfinite(means).all() else np.nan
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
     out.insert(0, "rank", np.arange(1, len(out) + 1))
@@ -201,12 +215,94 @@ def summary_table(board: pd.DataFrame, horizon_s: float, rank_by: str) -> pd.Dat
     return out.drop(columns="_key").reset_index(drop=True)
 
 
+def _ci(v: float, lo: float, hi: float, digits: int = 2) -> str:
+    """``6.91 [6.20, 7.62]``: a value and its interval as the boards show them (``n/a`` for no value)."""
+    if not np.isfinite(v):
+        return "n/a"
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return f"{v:.{digits}f} [n/a]"
+    return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def standings_table(board: pd.DataFrame, horizon_s: float, standings: st.Standings) -> pd.DataFrame:
+    """The leaderboard under the ranking rule (docs/intervals.md): per model, in order of its rank and
+    point estimate, ``rank`` (1 + the models resolved better), ``standing`` (best / tied for best / not
+    ranked: why), the ranking statistic (:data:`standings.AGGREGATE`: the mean of the four RMSREs) and each
+    paper metric's mean over terrains with their 95 % intervals, the other headline metrics, the windows and
+    blocks behind them, terrains and failures; the floor last (never ranked)."""
+    ov = standings.overall.set_index("model")
+    floor = standings.cells[standings.cells["model"] == FLOOR]
+    agg_label = st.AGGREGATE_LABEL if standings.ranked_by == st.AGGREGATE else f"{standings.ranked_by} %"
+    rows = []
+    missing = [m for m in board["model"].dropna().unique() if m not in ov.index]  # failed everywhere
+    for model in [*ov.index, *missing]:
+        g = board[board["model"] == model]
+        ok = g[g["status"] == "FINISHED"]
+        r = ov.loc[model] if model in ov.index else _no_standing(ov.columns, "no finished run to score")
+        row: dict[str, Any] = {"rank": r["rank"], "model": _marked(model, g) if len(g) else model}
+        row[agg_label] = _ci(float(r["estimate"]), float(r["lo"]), float(r["hi"]))
+        for metric in mt.HEADLINE:
+            for split in SPLITS:
+                lab = metric.column_label(split)
+                if metric.paper:  # with its interval (the mean over terrains, resampled)
+                    c = f"{metric.name}|{split}|"
+                    row[lab] = _ci(float(r[c + "estimate"]), float(r[c + "lo"]), float(r[c + "hi"]))
+                else:
+                    key = metric.metric_key(split, horizon_s)
+                    vals = ok[key].to_numpy(float) if key in ok else np.array([])
+                    if model == FLOOR:
+                        vals = floor[(floor["metric"] == metric.name) & (floor["split"] == split)]["estimate"]
+                        vals = vals.to_numpy(float)
+                    v = metric.over_terrains(vals) if len(vals) else np.nan
+                    row[lab] = "n/a" if not np.isfinite(v) else f"{v:.{3 if v < 1 else 2}f}"
+                n_key = metric.windows_key(split, horizon_s)
+                if n_key is not None:
+                    counts = ok[n_key] if n_key in ok else pd.Series([])
+                    if model == FLOOR:
+                        counts = floor[(floor["metric"] == metric.name) & (floor["split"] == split)][
+                            "n_windows"
+                        ]
+                    row[metric.count_label(split)] = _windows(counts)
+        row["blocks"] = int(r["n_blocks"]) if pd.notna(r["n_blocks"]) else 0
+        row["standing"] = r["standing"]
+        row["terrains"] = f"{len(ok)}/{len(g)}" if len(g) else str(board["terrain"].nunique())
+        bad = g[g["status"] != "FINISHED"]
+        row["failed"] = ", ".join(f"{t} ({s})" for t, s in zip(bad["terrain"], bad["status"], strict=True))
+        row["_key"] = (0 if r["rank"] else 1 if model != FLOOR else 2, _rank_number(r["rank"]),
+                       float(r["estimate"]) if pd.notna(r["estimate"]) else np.inf)  # fmt: skip
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    out = out.iloc[sorted(range(len(out)), key=lambda i: out["_key"].iloc[i])]
+    return out.drop(columns="_key").reset_index(drop=True)
+
+
+def _no_standing(columns: pd.Index, why: str) -> pd.Series:
+    """A standings row for a model with nothing to score: no value, not ranked, why."""
+    r = pd.Series(np.nan, index=columns, dtype=object)
+    r["rank"], r["standing"], r["n_blocks"] = "", f"{iv.NOT_RANKED}: {why}", 0
+    return r
+
+
+def _rank_number(rank: Any) -> int:
+    try:
+        return int(rank)
+    except (TypeError, ValueError):
+        return 10**6
+
+
 def _marked(model: str, rows: pd.DataFrame) -> str:
     """A model's name on the leaderboard: ``<name> (external)`` for a row scored from a predictions file."""
     return f"{model} (external)" if "external" in rows and rows["external"].any() else str(model)
 
 
-def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
+def detail_table(
+    board: pd.DataFrame, horizon_s: float, standings: st.Standings | None = None
+) -> pd.DataFrame:
+    """One row per (model, terrain): every metric, the windows behind it, and for a metric with an interval
+    its bounds and independent blocks (``<label> lo``, ``<label> hi``, ``<label> blocks``, as evaluate
+    logged them); fit and predict numbers, the run, the reason of a failure. With ``standings``: the
+    ranking aggregate on the terrain with its interval, rank and standing, and the floor of the row's
+    terrain (``floor <label>``: added columns; the report shows the floor's own rows: report_detail)."""
     models = [_marked(m, board.loc[[i]]) for i, m in zip(board.index, board["model"], strict=True)]
     out = pd.DataFrame({"model": models, "inputs": board["inputs"], "terrain": board["terrain"],
                         "status": board["status"]})  # fmt: skip
@@ -218,11 +314,86 @@ def detail_table(board: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             n_key = metric.windows_key(split, horizon_s)
             if n_key is not None:
                 out[metric.count_label(split)] = [_windows(pd.Series([v])) for v in board[n_key]]
+            if metric.bootstrap is not None and not metric.optional:
+                lo, hi, blocks = metric.interval_keys(split, horizon_s)
+                out[f"{lab} lo"] = board[lo] if lo in board else np.nan
+                out[f"{lab} hi"] = board[hi] if hi in board else np.nan
+                out[f"{lab} blocks"] = board[blocks] if blocks in board else np.nan
+                seed_sd = f"{metric.metric_key(split, horizon_s)}_seed_sd"
+                if seed_sd in board and board[seed_sd].notna().any():  # a model fitted over several seeds
+                    out[f"{lab} seed sd"] = board[seed_sd]
+    if standings is not None and len(standings.per_terrain):
+        pt = standings.per_terrain.set_index(["model", "terrain"])
+        keys = list(zip(board["model"], board["terrain"], strict=True))
+        label = st.AGGREGATE_LABEL if standings.ranked_by == st.AGGREGATE else f"{standings.ranked_by} %"
+        for col, name in (("estimate", label), ("lo", f"{label} lo"), ("hi", f"{label} hi")):
+            out[name] = [float(pt.loc[k, col]) if k in pt.index else np.nan for k in keys]
+        out["rank on terrain"] = [str(pt.loc[k, "rank"]) if k in pt.index else "" for k in keys]
+        out["standing on terrain"] = [str(pt.loc[k, "standing"]) if k in pt.index else "" for k in keys]
+        floor = standings.cells[standings.cells["model"] == FLOOR].set_index(["terrain", "split", "metric"])
+        for metric in mt.PAPER:  # the floor of the row's terrain, beside the model's value
+            for split in SPLITS:
+                at = [(t, split, metric.name) for t in board["terrain"]]
+                out[f"floor {metric.column_label(split)}"] = [
+                    float(floor.loc[k, "estimate"]) if k in floor.index else np.nan for k in at
+                ]
     out["fit_loss"] = board["fit_loss"]
     out["fit s"] = board["fit_time_s"]
     out["predict s"] = board["predict_time_s"]
     out["run"] = board["run_id"].str[:8]
     out["reason"] = board["reason"]
+    return out
+
+
+def report_detail(board: pd.DataFrame, horizon_s: float, standings: st.Standings | None) -> pd.DataFrame:
+    """The report's per-terrain table: :func:`detail_table` with the floor's own rows (status
+    ``reference``) after the models'."""
+    if standings is None:
+        return detail_table(board, horizon_s)
+    detail = detail_table(_with_floor_rows(board, horizon_s, standings), horizon_s, standings)
+    return detail.drop(columns=[c for c in detail.columns if c.startswith("floor ")])
+
+
+def _with_floor_rows(board: pd.DataFrame, horizon_s: float, standings: st.Standings) -> pd.DataFrame:
+    """``board`` with a row per terrain for the floor (status ``reference``), its cells from the windows."""
+    cells = standings.cells[standings.cells["model"] == FLOOR]
+    if not len(cells):
+        return board
+    rows = []
+    for terrain, g in cells.groupby("terrain", sort=True):
+        row: dict[str, Any] = {"model": FLOOR, "inputs": board["inputs"].iloc[0] if len(board) else "",
+                               "terrain": terrain, "status": "reference", "reason": "never ranked",
+                               "run_id": "", "external": False}  # fmt: skip
+        for r in g.itertuples(index=False):
+            metric = mt.get(r.metric)
+            lo, hi, blocks = metric.interval_keys(r.split, horizon_s)
+            row[metric.metric_key(r.split, horizon_s)] = r.estimate
+            row[lo], row[hi], row[blocks] = r.lo, r.hi, r.n_blocks
+            n_key = metric.windows_key(r.split, horizon_s)
+            if n_key is not None:
+                row[n_key] = r.n_windows
+        rows.append(row)
+    return pd.concat([board, pd.DataFrame(rows)], ignore_index=True)
+
+
+def display_detail(detail: pd.DataFrame) -> pd.DataFrame:
+    """The per-terrain table as the report shows it: each value with its interval in one cell
+    (``6.91 [6.20, 7.62]``), the windows and blocks behind it in one (``1171 w / 4 b``)."""
+    out = detail.copy()
+    for col in list(out.columns):
+        if f"{col} lo" in out and f"{col} hi" in out:
+            triples = zip(out[col], out[f"{col} lo"], out[f"{col} hi"], strict=True)
+            out[col] = [_ci(float(v), float(a), float(b)) if pd.notna(v) else "n/a" for v, a, b in triples]
+            if f"{col} seed sd" in out:  # the seed spread beside the data interval
+                out[col] = [c + (f" ±{sd:.2f}s" if pd.notna(sd) else "")
+                            for c, sd in zip(out[col], out[f"{col} seed sd"], strict=True)]  # fmt: skip
+                out = out.drop(columns=[f"{col} seed sd"])
+            out = out.drop(columns=[f"{col} lo", f"{col} hi"])
+            n_col = col.removesuffix(" %").removesuffix(" m") + " n"
+            if f"{col} blocks" in out and n_col in out:
+                out[n_col] = [f"{n} w / {int(b)} b" if pd.notna(b) else str(n)
+                              for n, b in zip(out[n_col], out[f"{col} blocks"], strict=True)]  # fmt: skip
+            out = out.drop(columns=[f"{col} blocks"], errors="ignore")
     return out
 
 
@@ -241,13 +412,18 @@ def markdown_table(df: pd.DataFrame, digits: int = 2) -> str:
 
 
 def paper_claim(board: pd.DataFrame, horizon_s: float) -> list[str]:
-    """Does the paper's claim hold here: friction-based best on LD, comparable on CV?"""
+    """The paper's claim (friction-based best on LD, comparable on CV) where no per-window tables allow
+    paired intervals: not resolved by these data, with friction's place by point estimate only."""
     ok = board[board["status"] == "FINISHED"]
     if "friction" not in set(ok["model"]):
         return [
             "The friction-based model was not evaluated (or failed), so the paper's claim cannot be checked."
         ]
-    lines = []
+    lines = [
+        f"**Overall: {st.UNRESOLVED}** (no per-window tables here, so no paired comparison); friction's "
+        "place by point estimate only, not a ranking:",
+        "",
+    ]
     for metric in mt.PAPER:
         kind = metric.name
         for split in SPLITS:
@@ -392,6 +568,7 @@ class CompareResult:
     written: list[str] = field(default_factory=list)  # the leaderboard files, one line per protocol
     dataset: str = ""
     parents: list[str] = field(default_factory=list)  # the evaluate runs the board's rows hang from
+    claim: str = ""  # the paper's claim: overall verdict, then per terrain
 
 
 def _with_inputs(cfg: Any, protocol: str) -> Any:
@@ -478,14 +655,20 @@ def protocol_selections(
 
 
 def leaderboard_texts(
-    board: pd.DataFrame, runs: pd.DataFrame, horizon_s: float, rank_by: str, header: Sequence[str]
+    board: pd.DataFrame,
+    runs: pd.DataFrame,
+    horizon_s: float,
+    rank_by: str,
+    header: Sequence[str],
+    standings: st.Standings | None = None,
 ) -> tuple[str, str, str]:
     """One protocol's leaderboard as ``(csv, md, the ranked table's md)``: the CSV holds one row per
     (model, terrain) with every metric and the provenance of its run (:func:`boards.provenance`: run id,
     options digest, versions, ...); the Markdown ``header`` lines, the ranked means over terrains, then
-    the rows with their run, options digest, model code and skidbench commit."""
-    summary = summary_table(board, horizon_s, rank_by)
-    detail = detail_table(board, horizon_s).drop(columns=["run"])
+    the rows with their run, options digest, model code and skidbench commit. With ``standings``: ranked
+    by the ranking rule, every cell with its interval and the terrain's floor (added CSV columns)."""
+    summary = summary_table(board, horizon_s, rank_by, standings)
+    detail = detail_table(board, horizon_s, standings).drop(columns=["run"])
     prov = brd.provenance(runs).drop(columns=["reproduce"])
     rows = pd.concat([detail, board[["run_id"]]], axis=1).merge(prov, on="run_id", how="left")
     short = lambda col, n=8: rows[col].fillna("").astype(str).str[:n]  # noqa: E731
@@ -496,7 +679,9 @@ def leaderboard_texts(
         commit=short("git_commit", 12),
     )
     lb_md = markdown_table(summary)
-    md = "\n".join([*header, "", lb_md, "", markdown_table(shown), ""])
+    if standings is not None:
+        lb_md += "\n\n" + standings.verdicts["overall"]
+    md = "\n".join([*header, "", lb_md, "", markdown_table(display_detail(shown)), ""])
     return rows.to_csv(index=False), md, lb_md
 
 
@@ -543,10 +728,12 @@ def run_compare(cfg: Any) -> CompareResult:
         raise CompareError(
             f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
         )
-    summary = summary_table(board, horizon, str(cfg.rank_by))
+    interval_notes: list[str] = []
+    standings = standings_from_cfg(cfg, layout, board, protocol, horizon, interval_notes)
+    summary = summary_table(board, horizon, str(cfg.rank_by), standings)
     parents = sel.Selection(protocol, horizon, runs).parents if parent is None else [parent]
     links = ui_links(cfg, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
-    detail = detail_table(board, horizon)
+    detail = report_detail(board, horizon, standings)
     out = layout.reports
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
@@ -559,10 +746,14 @@ def run_compare(cfg: Any) -> CompareResult:
                 shown_boards[p] = (board_from_runs(s.runs, horizon), s.runs, s.left_out)
     lb_md = markdown_table(summary)
     for p, (b, r, lo) in shown_boards.items():
-        rank_key = trk.rank_key(str(cfg.rank_by), horizon)
+        rank_by = str(cfg.rank_by)
+        rank_key = st.AGGREGATE if rank_by == st.AGGREGATE else trk.rank_key(rank_by, horizon)
+        st_p = standings
+        if p != protocol:  # another protocol's board, from its own windows
+            st_p = standings_from_cfg(_with_inputs(cfg, p), layout, b, p, horizon, [])
         header = brd.leaderboard_header(target.name, target.dataset_id, tracker.experiment_name, p, parent,
                                         horizon, rank_key, when, lo)  # fmt: skip
-        csv_text, md_text, md_ranked = leaderboard_texts(b, r, horizon, str(cfg.rank_by), header)
+        csv_text, md_text, md_ranked = leaderboard_texts(b, r, horizon, str(cfg.rank_by), header, st_p)
         paths, line = brd.write_leaderboard(out, p, csv_text, md_text)
         files += paths
         written.append(f"leaderboard inputs={p}: {line}")
@@ -577,13 +768,13 @@ def run_compare(cfg: Any) -> CompareResult:
     shown = decomp.attrs.get("protocols", []) if len(decomp) else []
     decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
 
-    notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded"))
+    notes: list[str] = _fit_findings(layout, board, str(cfg.get("inputs") or "commanded")) + interval_notes
     newer = (
         sel.newer_elsewhere(tracker, runs, protocol, cfg.get("filter"), user)
         if parent_arg == "latest"
         else None
     )
-    notes += [newer] if newer else []
+    notes += [n for n in (newer, sel.same_data_elsewhere(tracker)) if n]
     log_to = parent or (parents[0] if len(parents) == 1 else None)  # the evaluate run every row hangs from
     owner = tracker.client.get_run(log_to).data.tags.get(trk.TAG_USER) if log_to else None
     if log_to and owner != trk.current_user():  # another person's evaluate run is left as they made it
@@ -602,7 +793,7 @@ def run_compare(cfg: Any) -> CompareResult:
             (
                 m.figure.file,
                 m.figure.caption,
-                lambda p, m=m: figs.metric_bars(board, m, horizon, SPLITS, p, dpi),
+                lambda p, m=m: figs.metric_bars(board, m, horizon, SPLITS, p, dpi, floor_of(standings, m)),
             )
             for m in mt.METRICS
             if m.figure is not None
@@ -657,7 +848,7 @@ def run_compare(cfg: Any) -> CompareResult:
     write_text_atomic(
         report,
         _report_md(cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol, decomp_md,
-                   shown, links, target=target, parents=parents, left_out=left_out),
+                   shown, links, target=target, parents=parents, left_out=left_out, standings=standings),
     )  # fmt: skip
     files.append(report)
     if cfg.get("log_to_mlflow", True):
@@ -671,8 +862,11 @@ def run_compare(cfg: Any) -> CompareResult:
             tracker.end(run_id)
         for f in files:
             tracker.artifact(run_id, f, "report")
+    claim = ""
+    if standings is not None:
+        claim = "; ".join(f"{scope}: {v}" for scope, (v, _) in standings.claim.items())
     return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links, left_out, written,
-                         target.name, parents)  # fmt: skip
+                         target.name, parents, claim)  # fmt: skip
 
 
 def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
@@ -683,6 +877,34 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
     return board_findings(layout, rows, inputs)
 
 
+def standings_from_cfg(
+    cfg: Any, layout: Layout, board: pd.DataFrame, protocol: str, horizon: float, notes: list[str]
+) -> st.Standings | None:
+    """The board's intervals, ranking and claim from the per-window tables evaluate wrote
+    (:mod:`skidbench.benchmark.standings`), or None (with a note) when there are none to read."""
+    rank_by = str(cfg.get("rank_by") or st.AGGREGATE)
+    if rank_by != st.AGGREGATE:
+        trk.rank_key(rank_by, horizon)  # a bad rank_by: one line
+    windows, missing = st.read_windows(layout, board, protocol, horizon)
+    notes += [f"paired intervals: {m}" for m in missing]
+    if not any(m != FLOOR for m, _ in windows):
+        notes.append(
+            "no per-window table of these runs here: the leaderboard shows the logged intervals, ranked "
+            "by point estimate (no paired comparison)"
+        )
+        return None
+    return st.build(windows, horizon, iv.IntervalConfig.from_cfg(cfg), rank_by)
+
+
+def floor_of(standings: st.Standings | None, metric: mt.Metric) -> dict[tuple[str, str], float]:
+    """``{(terrain, split): the floor's value}`` of a metric, for its bar chart."""
+    if standings is None:
+        return {}
+    c = standings.cells
+    c = c[(c["model"] == FLOOR) & (c["metric"] == metric.name)]
+    return {(r.terrain, r.split): float(r.estimate) for r in c.itertuples(index=False)}
+
+
 def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataFrame, horizon: float):
     """MLflow UI links (model-training pages, not the GenAI ones): the parent run's page, and a saved view
     of the runs shown (the RMSRE columns first, best first; :mod:`mlflow_ui`) as a table and as charts of
@@ -690,7 +912,7 @@ def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataF
     ui = (cfg.get("mlflow") or {}).get("ui_url")
     uri, exp = tracker.uri, tracker.experiment_id
     cols, _ = mu.board_columns(("ld", "cv"), horizon)
-    order = trk.rank_key(str(cfg.rank_by), horizon)
+    order = _sort_key(str(cfg.rank_by), horizon)  # the aggregate is not a logged metric: sort by ld_trans
     links = {}
     if parent:
         links["parent run"] = mu.run_url(uri, exp, parent, ui)
@@ -707,9 +929,27 @@ def ui_links(cfg: Any, tracker: trk.Tracker, parent: str | None, board: pd.DataF
     return links
 
 
+def _sort_key(rank_by: str, horizon: float) -> str:
+    """The MLflow metric the runs table is sorted by: ``rank_by``'s, or LD translational RMSRE for the
+    aggregate (no one run logs the mean over terrains)."""
+    return trk.rank_key("ld_trans" if rank_by == st.AGGREGATE else rank_by, horizon)
+
+
+def ranked_by_line(rank_by: str, horizon: float, standings: st.Standings | None) -> str:
+    if standings is None:
+        what = "the four RMSREs" if rank_by == st.AGGREGATE else f"`{_sort_key(rank_by, horizon)}`"
+        return f"- ranked by point estimate of the mean over terrains of {what} (no paired intervals here)"
+    what = f"the mean over terrains of `{standings.ranked_by}`"
+    if standings.ranked_by == st.AGGREGATE:
+        what = "the mean of the four RMSREs (translational and rotational, CV and LD) over terrains"
+    return (f"- ranked by {what}, with its 95 % interval; best only when its paired difference from every "
+            "other model is resolved, else tied; under the minimum of independent blocks not ranked "
+            "(docs/intervals.md)")  # fmt: skip
+
+
 def _report_md(
     cfg, tracker, parent, board, summary, detail, horizon, fig_md, notes, protocol="commanded", decomp_md="",
-    shown=(), links=None, target=None, parents=(), left_out=(),
+    shown=(), links=None, target=None, parents=(), left_out=(), standings=None,
 ) -> str:  # fmt: skip
     failed = board[board["status"] != "FINISHED"]
     rec = (target.record if target is not None else None) or {}
@@ -737,7 +977,7 @@ def _report_md(
         f"- MLflow: `{tracker.uri}`, experiment `{tracker.experiment_name}`" + runs_line,
         f"- filter: `{cfg.get('filter')}`" if cfg.get("filter") else "- filter: none",
         *[f"- MLflow UI, {what}: <{url}>" for what, url in (links or {}).items()],
-        f"- ranked by the mean over terrains of `{trk.rank_key(str(cfg.rank_by), horizon)}`",
+        ranked_by_line(str(cfg.rank_by), horizon, standings),
         f"- input protocol: `{protocol}` (every model driven by the same inputs; runs of different protocols "
         "are never ranked together)",
         "",
@@ -745,11 +985,17 @@ def _report_md(
         "",
         markdown_table(summary),
         "",
+        *([f"**{standings.verdicts['overall']}.** Each value: estimate [95 % interval] (block bootstrap, "
+           "docs/intervals.md); the floor is the ground truth's own velocities through the same windows, "
+           "what no model can be expected to beat.", ""] if standings is not None else []),
+        *differences_lines(standings),
         "## Per model and terrain",
         "",
-        markdown_table(detail),
+        *([f"- {t}: {v}" for t, v in standings.verdicts.items() if t != "overall"] + [""]
+          if standings is not None else []),
+        markdown_table(display_detail(detail)),
         "",
-    ]
+    ]  # fmt: skip
     if len(failed):
         parts += ["## Failed runs", ""]
         parts += [
@@ -772,7 +1018,7 @@ def _report_md(
                 "",
             ]
         ),
-        *paper_claim(board, horizon),
+        *(_claim_lines(standings) if standings is not None else paper_claim(board, horizon)),
         "",
     ]
     if decomp_md:
@@ -804,8 +1050,45 @@ def _report_md(
     return "\n".join(parts)
 
 
+def differences_lines(standings: st.Standings | None) -> list[str]:
+    """The paired differences the ranking rule decided on, from the leader (the lowest estimate) to every
+    other ranked model: ``other - leader`` with its 95 % interval and whether it is resolved."""
+    d = standings.differences if standings is not None else pd.DataFrame()
+    ov = standings.overall.set_index("model") if standings is not None else pd.DataFrame()
+    if not len(d):
+        return []
+    ranked = ov.loc[[m for m in ov.index if m != FLOOR and bool(ov.loc[m, "rankable"])], "estimate"]
+    leader = ranked.astype(float).idxmin()
+    rows = []
+    for r in d[(d["a"] == leader) | (d["b"] == leader)].itertuples(index=False):
+        sign, other = (-1.0, r.b) if r.a == leader else (1.0, r.a)  # differences are a - b: other - leader
+        lo, hi = sorted((sign * r.lo, sign * r.hi))
+        rows.append({"model": other, "minus": leader, "difference (points)": _ci(sign * r.estimate, lo, hi),
+                     "resolved": "yes" if r.resolved else "no", "_e": sign * r.estimate})  # fmt: skip
+    table = pd.DataFrame(rows).sort_values("_e").drop(columns="_e")
+    what = "mean of the four RMSREs" if standings.ranked_by == st.AGGREGATE else f"`{standings.ranked_by}`"
+    return ["### Paired differences from the leader", "",
+            f"Each model's {what} over terrains minus {leader}'s, on the same windows and the same resampled "
+            "blocks, with its 95 % interval: resolved when the interval excludes 0.", "",
+            markdown_table(table), ""]  # fmt: skip
+
+
+def _claim_lines(standings: st.Standings) -> list[str]:
+    """The claim's verdict overall (with every paired difference) and per terrain (the verdict line; with
+    one terrain the overall lines are that terrain's)."""
+    verdict, lines = standings.claim["overall"]
+    out = [f"**Overall: {verdict}.**", "", *lines, ""]
+    terrains = [scope for scope in standings.claim if scope != "overall"]
+    if len(terrains) > 1:
+        out += [standings.claim[t][1][0] for t in terrains]
+    return out
+
+
 def format_console(result: CompareResult) -> str:
-    lines = [f"Leaderboard, inputs={result.inputs} (RMSRE %, mean over terrains):", result.leaderboard_md, ""]
+    lines = [f"Leaderboard, inputs={result.inputs} (RMSRE %, mean over terrains; estimate [95 % interval]):",
+             result.leaderboard_md, ""]  # fmt: skip
+    if result.claim:
+        lines += [f"The paper's claim (friction best on LD, comparable on CV): {result.claim}", ""]
     if result.decomposition_md:
         lines += ["Input protocols side by side (commanded / response / measured, RMSRE %):",
                   result.decomposition_md, ""]  # fmt: skip

@@ -123,10 +123,15 @@ def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool
     encoders (its Train sequences, plus CV/LD when the pool had to add them)."""
     if inputs != "response":
         return None
-    from skidbench.pipeline.calibration import response_for, wheel_response_doc, wheel_response_of
+    from skidbench.pipeline.calibration import (
+        Calibrations,
+        response_for,
+        wheel_response_doc,
+        wheel_response_of,
+    )
 
     if own_splits:
-        resp = response_for(cfg, terrain)
+        resp = response_for(Calibrations.from_cfg(cfg), terrain)
     else:
         resp = wheel_response_of(wheel_response_doc(pool.table.assign(sequence=pool.groups)))
     if resp is None:
@@ -160,7 +165,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     files_of = _files_of(dataset)
     from skidbench.models.base import calibrated_constants
     from skidbench.models.specs import get_model_class
-    from skidbench.pipeline.calibration import robot_for_model
+    from skidbench.pipeline.calibration import Calibrations, robot_for_model
 
     own_splits = root.resolve() == layout_from_cfg(cfg).splits.resolve()
     for terrain in _terrains(root, cfg, settings.splits, dataset):
@@ -172,7 +177,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             continue
         # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
         constants = calibrated_constants(get_model_class(base_name))
-        robot_t = robot_for_model(cfg, constants, terrain)[0] if own_splits else robot
+        robot_t = robot_for_model(Calibrations.from_cfg(cfg), constants, terrain)[0] if own_splits else robot
         response = _response(cfg, terrain, pool, inputs, own_splits)
         pool = prepare_pool(pool, inputs, robot, response)
         res = discover_terrain(

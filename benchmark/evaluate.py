@@ -28,9 +28,11 @@ from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import ProtocolError, protocol_of
 from skidbench.pipeline.schema import concat_sequences, read_split
 
+from . import intervals as iv
 from . import metrics as mt
 from . import mlflow_ui as mu
 from . import tracking as trk
+from .console import PROTOCOL_TEXT, format_result  # noqa: F401 (the console summary, importable here)
 from .failures import fail_run, kill_run
 from .fit_record import (
     default_fit_fn,
@@ -44,7 +46,9 @@ from .fit_record import (
     options_tags,
     plugin_package,
 )
+from .floor import FLOOR
 from .horizon import EvaluationError, HorizonConfig, count_windows
+from .references import log_floor, seed_spread
 from .report_data import write_report_data, write_wheel_response_steps
 from .scoring import Inputs, TestSequence, predict_and_score
 from .testsets import (
@@ -88,6 +92,7 @@ class BenchmarkResult:
     children: list[ChildResult]
     inputs: str = "commanded"
     skipped: list[str] = field(default_factory=list)  # one line per (terrain, split) the protocol skipped
+    floor: dict[str, dict[str, float]] = field(default_factory=dict)  # terrain -> the floor's metrics
 
     @property
     def failed(self) -> list[ChildResult]:
@@ -139,6 +144,12 @@ def run_benchmark(
     default :func:`skidbench.models.fitting.fit_model`."""
     layout = layout_from_cfg(cfg)
     models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
+    intervals = iv.IntervalConfig.from_cfg(cfg)
+    for h in horizons:  # blocks shorter than a horizon: one line before anything runs
+        intervals.block_length(h)
+    if FLOOR in models:
+        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
+                              "velocities, on every board), not a model name")  # fmt: skip
     try:
         protocol = protocol_of(cfg)
     except ProtocolError as exc:
@@ -238,13 +249,16 @@ def run_benchmark(
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
-            ctx = ChildContext(
-                cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags, log_figures
-            )
+            ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
+                               log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
+            floor: dict[str, dict[str, float]] = {}
             for terrain in terrains:
                 tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
                 td = TerrainData(terrain, tests[terrain], inputs_of[terrain], datasets_of[terrain],
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
+                stem = layout.eval_stem(FLOOR, terrain, protocol)
+                floor[terrain] = log_floor(tracker, parent_id, stem, terrain, tests[terrain], horizons, hcfg,
+                                           intervals, protocol)  # fmt: skip
                 children += [_run_child(ctx, model_name, td) for model_name in models]
             n_failed = sum(c.status != "FINISHED" for c in children)
             rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
@@ -261,7 +275,8 @@ def run_benchmark(
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
-        layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped)
+        layout,
+        BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped, floor),
     )
 
 
@@ -282,6 +297,7 @@ def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
             "inputs": result.inputs,
             "skipped": result.skipped,
             "children": [c.__dict__ for c in result.children],
+            "floor": result.floor,
         },
     )
     return result
@@ -323,6 +339,8 @@ class ChildContext:
     conf: dict[str, Any]
     tags: dict[str, str]
     log_figures: bool
+    intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
+    seeds: int = 1  # fits of a model with random parts (evaluate's ``seeds``)
 
 
 @dataclass(frozen=True)
@@ -364,8 +382,17 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
                    next(iter(td.tests.values()))[0])  # fmt: skip
         stage("predict")
         metrics, windows, velocities = predict_and_score(
-            fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage
+            fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
         )
+        if ctx.seeds > 1 and "seed" in (getattr(fit.model, "options", None) or {}):  # random parts
+            stage("other seeds")
+            from skidbench.models.fitting import refit_from_cfg
+
+            refit = refit_from_cfg(ctx.cfg, model_name, td.terrain)
+            spread = seed_spread(
+                refit, fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, ctx.seeds, metrics
+            )
+            metrics.update(spread)
         stage("logging")
         _log_windows(ctx, run_id, model_name, td, stem, windows)
         stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
@@ -565,34 +592,3 @@ def _brief(metrics: dict[str, float]) -> str:
 def _headline(key: str) -> bool:
     parsed = mt.parse_key(key)
     return parsed is not None and parsed[0].headline
-
-
-PROTOCOL_TEXT = {
-    "commanded": "the commanded wheel rates and their derivatives (the paper's protocol)",
-    "response": "the commands through the wheel response `calibrate` identified from the Train encoders",
-    "measured": "the encoders' wheel rates and their derivatives (an oracle)",
-}
-
-
-def format_result(result: BenchmarkResult) -> str:
-    """A short text summary for the console: the headline metrics (RMSRE in %, ...) per (model, terrain)
-    at each horizon."""
-    df = result.table()
-    cols = {}
-    for metric in mt.HEADLINE:
-        for c in df.columns:
-            parsed = mt.parse_key(c)
-            if parsed is not None and parsed[0] is metric:
-                cols[c] = f"{metric.short} {parsed[1].upper()} {parsed[2]} {metric.label_unit}".rstrip()
-    show = df[["model", "inputs", "terrain", "status", *cols]].rename(columns=cols)
-    lines = [
-        f"MLflow: {result.tracking_uri}  experiment {result.experiment!r}  parent run {result.parent_run_id}",
-        f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",
-        *result.skipped,
-        show.to_string(index=False, float_format=lambda x: f"{x:.2f}", na_rep="-"),
-    ]
-    for c in result.failed:
-        lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
-        if c.traceback:
-            lines.append(f"  traceback: {c.traceback}")
-    return "\n".join(lines)

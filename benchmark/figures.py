@@ -67,9 +67,12 @@ def metric_bars(
     splits: Sequence[str],
     path: Path,
     dpi: int = 130,
+    floor: Mapping[tuple[str, str], float] | None = None,
 ) -> Path:
     """Bar chart of a metric (Fig. 3: translational RMSRE, Fig. 4: rotational; ``metric.figure``) per model
-    (bars) and terrain (groups), one panel per test split.
+    (bars) and terrain (groups), one panel per test split, each bar with its 95 % interval as an error bar
+    when the board has it (:meth:`Metric.interval_keys`), and the floor (``floor[(terrain, split)]``: the
+    ground truth's own velocities, docs/intervals.md) as a black line across each terrain's group.
 
     ``board``: one row per (model, terrain) with columns ``model``, ``terrain``, ``status`` and the
     metric's columns named by :meth:`Metric.metric_key`. FAILED runs are marked, not dropped."""
@@ -85,9 +88,10 @@ def metric_bars(
     )
     for ax, split in zip(axes[0], splits, strict=True):
         col = metric.metric_key(split, horizon_s)
+        lo_col, hi_col, _ = metric.interval_keys(split, horizon_s)
         top = 0.0
         for i, m in enumerate(models):
-            xs, ys = [], []
+            xs, ys, los, his = [], [], [], []
             for j, ter in enumerate(terrains):
                 row = board[(board["model"] == m) & (board["terrain"] == ter)]
                 x = j + (i - (nm - 1) / 2) * width
@@ -101,17 +105,22 @@ def metric_bars(
                     ax.text(x, 0, "failed", rotation=90, ha="center", va="bottom", fontsize=7, color="0.3")
                 xs.append(x)
                 ys.append(v)
+                los.append(float(row[lo_col].iloc[0]) if len(row) and lo_col in row else np.nan)
+                his.append(float(row[hi_col].iloc[0]) if len(row) and hi_col in row else np.nan)
             ys_arr = np.array(ys)
+            lo_arr, hi_arr = np.array(los), np.array(his)
             top = max(top, np.nanmax(ys_arr) if np.isfinite(ys_arr).any() else 0.0)
             bars = ax.bar(
                 xs, np.nan_to_num(ys_arr), width * 0.92, label=label(m), color=model_color(m, models)
             )
+            top = max(top, _error_bars(ax, np.array(xs), ys_arr, lo_arr, hi_arr))
             for b, y in zip(bars, ys_arr, strict=True):
                 if np.isfinite(y):
                     txt = f"{y:.{digits}f}" if y >= small else f"<{10.0**-digits:g}"
                     xy = (b.get_x() + b.get_width() / 2, b.get_height())
                     ax.annotate(txt, xy, xytext=(0, 2), textcoords="offset points", ha="center", va="bottom",
                                 fontsize=6, rotation=90)  # fmt: skip
+        _floor_lines(ax, terrains, split, floor or {})
         ax.set_xticks(range(nt), [t.capitalize() for t in terrains])
         ax.set_title(SPLIT_LABELS.get(split, split), fontsize=10)
         ax.set_ylabel(fig_spec.axis if fig_spec else metric.column_label(""))
@@ -124,6 +133,26 @@ def metric_bars(
     fig.suptitle(f"{title}, {horizon_s:g} s horizon", fontsize=11)
     fig.tight_layout(rect=(0, 0.08 if nm <= 6 else 0.14, 1, 1))
     return _save(fig, path, dpi)
+
+
+def _error_bars(ax, xs: np.ndarray, ys: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Each bar's 95 % interval (block bootstrap) as an error bar, as the paper's Figs. 3-4 would have it;
+    returns the highest upper bound (0 without one)."""
+    has = np.isfinite(ys) & np.isfinite(lo) & np.isfinite(hi)
+    if not has.any():
+        return 0.0
+    err = np.vstack([ys[has] - lo[has], hi[has] - ys[has]]).clip(min=0.0)
+    ax.errorbar(xs[has], ys[has], yerr=err, fmt="none", ecolor="0.15", elinewidth=0.8, capsize=1.5)
+    return float(np.nanmax(hi[has]))
+
+
+def _floor_lines(ax, terrains: Sequence[str], split: str, floor: Mapping[tuple[str, str], float]) -> None:
+    """The floor (the ground truth's own velocities) as a black line across each terrain's group."""
+    for j, ter in enumerate(terrains):
+        fv = floor.get((ter, split))
+        if fv is not None and np.isfinite(fv):
+            ax.hlines(fv, j - 0.42, j + 0.42, colors="k", linewidth=1.2,
+                      label="floor (ground truth)" if j == 0 else None)  # fmt: skip
 
 
 # -- Fig. 5 -----------------------------------------------------------------------------------------

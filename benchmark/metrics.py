@@ -42,6 +42,21 @@ def mean_finite(values: np.ndarray) -> float:
     return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
 
 
+class Bootstrap(NamedTuple):
+    """How a metric is a ratio of sums over windows, for its block-bootstrap interval
+    (:mod:`skidbench.benchmark.intervals`): the ``aggregation`` (``rms`` or ``mean``) of ``values(column)``
+    per window (None: the column itself; NaN windows left out), times ``scale`` (the logged unit)."""
+
+    aggregation: str
+    scale: float = 1.0
+    values: Callable[[np.ndarray], np.ndarray] | None = None
+
+
+def _within(bound: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Per window: 1.0 when the value is within ``bound`` (a coverage indicator), NaN kept."""
+    return lambda v: np.where(np.isfinite(v), (v <= bound).astype(float), np.nan)
+
+
 class Figure(NamedTuple):
     """Compare's bar chart of a metric per model, terrain and test split."""
 
@@ -70,7 +85,8 @@ class Metric:
     predictive covariance), blank in the tables otherwise; headline: ranked, printed by evaluate, in the
     UI's saved views and the protocol comparison (lower is better); paper: a metric of the paper
     (Rabiee & Biswas 2019, Figs. 3/4), whose claim compare checks; figure: compare's bar chart of it per
-    model, terrain and test split (:class:`Figure`), or None."""
+    model, terrain and test split (:class:`Figure`), or None; bootstrap: how its confidence interval is
+    resampled (:class:`Bootstrap`), or None for a metric without one."""
 
     name: str
     short: str
@@ -89,6 +105,7 @@ class Metric:
     headline: bool = False
     paper: bool = False
     figure: Figure | None = None
+    bootstrap: Bootstrap | None = None
 
     def metric_key(self, split: str, horizon_s: float) -> str:
         return self.key.format(split=split, h=f"{horizon_s:g}", short=self.short)
@@ -97,6 +114,17 @@ class Metric:
         if self.count_key is None:
             return None
         return self.count_key.format(split=split, h=f"{horizon_s:g}", short=self.short)
+
+    def interval_keys(self, split: str, horizon_s: float) -> tuple[str, str, str]:
+        """The MLflow names of its 95 % interval and of the independent blocks behind it:
+        ``(<key>_ci_lo, <key>_ci_hi, <split>_<h>s_<short>_blocks)``."""
+        key = self.metric_key(split, horizon_s)
+        return f"{key}_ci_lo", f"{key}_ci_hi", f"{split}_{horizon_s:g}s_{self.short}_blocks"
+
+    def window_values(self, windows) -> np.ndarray:
+        """The per-window values its interval resamples (:attr:`bootstrap`), in the logged unit's base."""
+        vals = windows[self.column].to_numpy(float)
+        return self.bootstrap.values(vals) if self.bootstrap and self.bootstrap.values else vals
 
     def column_label(self, split: str) -> str:
         """Compare's column of the metric on ``split``: ``"trans CV %"``."""
@@ -132,32 +160,37 @@ METRICS: tuple[Metric, ...] = (
            count_key="{split}_{h}s_{short}_windows", windows=TRANS_WINDOWS, label_unit="%", headline=True,
            paper=True, figure=Figure("fig3_translational_rmsre.png",
                                "Fig. 3: translational RMSRE per model, terrain and test split",
-                               "translational RMSRE (%)", "Translational prediction error", 1)),
+                               "translational RMSRE (%)", "Translational prediction error", 1),
+           bootstrap=Bootstrap("rms", 100.0)),
     Metric("rotational", "rot", "%", "{split}_{h}s_{short}_rmsre_pct", "rel_rot", rmsre_pct,
            "RMSRE of the relative rotational error (|yaw error| / absolute rotation), in %",
            count_key="{split}_{h}s_{short}_windows", windows=ROT_WINDOWS, label_unit="%", headline=True,
            paper=True, figure=Figure("fig4_rotational_rmsre.png",
                                "Fig. 4: rotational RMSRE per model, terrain and test split",
-                               "rotational RMSRE (%)", "Rotational prediction error", 1)),
+                               "rotational RMSRE (%)", "Rotational prediction error", 1),
+           bootstrap=Bootstrap("rms", 100.0)),
     Metric("end_position", "endpos", "m", "{split}_{h}s_{short}_rmse_m", "trans_err", rms_m,
            "RMS over windows of the absolute end-position error (|true - predicted end position| after the "
            "horizon, every window from the true start pose), in m",
            count_key="{split}_{h}s_{short}_windows", label_unit="m", headline=True,
            figure=Figure("fig_end_position_rmse.png",
                    "End-position RMSE (m) per model, terrain and test split",
-                   "end-position RMSE (m)", "Absolute end-position error", 2)),
+                   "end-position RMSE (m)", "Absolute end-position error", 2),
+           bootstrap=Bootstrap("rms")),
     Metric("coverage95_position", "cov95pos", "fraction", "coverage95_position_{split}_{h}s", "pos_d2",
            lambda v: float(np.mean(v <= CHI2_95_2DOF)),
            "fraction of windows whose true end position lies in the predicted 95 % ellipse",
-           label="cov95 pos", label_unit="%", scale=100.0, optional=True),
+           label="cov95 pos", label_unit="%", scale=100.0, optional=True,
+           bootstrap=Bootstrap("mean", values=_within(CHI2_95_2DOF))),
     Metric("coverage95_yaw", "cov95yaw", "fraction", "coverage95_yaw_{split}_{h}s", "yaw_z2",
            lambda v: float(np.mean(v <= CHI2_95_1DOF)),
            "fraction of windows whose true end yaw lies in the predicted 95 % interval",
-           label="cov95 yaw", label_unit="%", scale=100.0, optional=True),
+           label="cov95 yaw", label_unit="%", scale=100.0, optional=True,
+           bootstrap=Bootstrap("mean", values=_within(CHI2_95_1DOF))),
     Metric("nll_position", "nllpos", "nats", "nll_position_{split}_{h}s", "nll_pos",
            lambda v: float(np.mean(v)),
            "mean Gaussian negative log-likelihood of the true end position, in nats",
-           label="NLL pos", optional=True),
+           label="NLL pos", optional=True, bootstrap=Bootstrap("mean")),
 )  # fmt: skip
 
 BY_NAME = {m.name: m for m in METRICS}

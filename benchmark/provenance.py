@@ -111,8 +111,8 @@ def experiment_tags(name: str) -> dict[str, str]:
     return {
         TAG_EXPERIMENT_KIND: EXPERIMENT_KIND,
         TAG_NOTE: f"skidbench benchmark runs of `{name.removeprefix('skidbench-')}`: one parent run per "
-        "`skidbench evaluate` (its name: dataset, input protocol, start time) with a child run per "
-        "model and terrain (fitted on Train, scored on the CV and LD test splits; metrics "
+        "`skidbench evaluate` (its name: dataset, input protocol, user@host, start time) with a child run "
+        "per model and terrain (fitted on Train, scored on the CV and LD test splits; metrics "
         "`<split>_<horizon>_<trans|rot>_rmsre_pct` are RMSRE in %, lower is better), and one run per "
         "`skidbench calibrate`. `skidbench compare` prints the link of a saved view that shows them.",
     }

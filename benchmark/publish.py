@@ -4,7 +4,9 @@ Content-Security-Policy forbids loading anything else).
 
 ``<dir>/<dataset>/index.html`` shows, per input protocol evaluated (benchmark/boards.py: the rows compare
 ranks, external rows of ``skidbench score`` included): the leaderboard (mean over terrains, compare's
-``summary_table``), every (model, terrain) row with its CV and LD numbers (compare's ``detail_table``;
+``summary_table``: with the runs' per-window tables, every mean with its 95 % interval, ranked by
+``rank_by`` under the ranking rule, the floor's row and the paper's claim per terrain; docs/intervals.md),
+every (model, terrain) row with its CV and LD numbers (compare's ``detail_table``;
 bootstrap intervals when the runs logged them), each row's provenance and the command that reproduces it,
 and Figs. 3/4 of that protocol; then the figures of the dataset's last ``compare`` report
 (benchmark/figures.py: Figs. 5-7, the wheel response, calibration curves), the dataset card, and how to
@@ -39,6 +41,7 @@ from . import boards as brd
 from . import compare as cmp
 from . import figures as figs
 from . import metrics as mt
+from . import standings as st
 from . import tracking as trk
 
 PROTOCOL_TITLES = {
@@ -181,16 +184,24 @@ def interval_columns(rows: pd.DataFrame, horizon: float) -> dict[str, tuple[str,
     return out
 
 
-def _rows_table(board: brd.Board) -> str:
-    """Every (model, terrain) row: compare's detail table, the intervals when logged, external marks."""
+def _rows_table(board: brd.Board, standings: st.Standings | None = None) -> str:
+    """Every (model, terrain) row: compare's detail table (with ``standings``: the terrain's aggregate, rank,
+    standing and floor), the intervals when logged (``a to b``, in place of the bounds' own columns),
+    external marks."""
     rows = board.rows
-    detail = cmp.detail_table(rows, board.horizon).drop(columns=["inputs", "run", "reason"], errors="ignore")
+    detail = cmp.detail_table(rows, board.horizon, standings)
+    detail = detail.drop(columns=["inputs", "run", "reason"], errors="ignore")
     for lo, hi, label in interval_columns(rows, board.horizon).values():
         los, his = pd.to_numeric(rows[lo], errors="coerce"), pd.to_numeric(rows[hi], errors="coerce")
-        detail[label] = [
+        base = label.removesuffix(" 95% interval")
+        detail = detail.drop(columns=[f"{base} lo", f"{base} hi"], errors="ignore")
+        at = list(detail.columns).index(base) + 1 if base in detail else len(detail.columns)
+        detail.insert(at, label, [  # beside its value
             f"{a:.2f} to {b:.2f}" if np.isfinite(a) and np.isfinite(b) else ""
             for a, b in zip(los, his, strict=True)
-        ]
+        ])  # fmt: skip
+    for c in [c for c in detail.columns if c.endswith(" blocks")]:  # counts, not measurements
+        detail[c] = [int(v) if np.isfinite(v) else "" for v in pd.to_numeric(detail[c], errors="coerce")]
     external = rows["external"] if "external" in rows else pd.Series(False, index=rows.index)
     classes = [
         " ".join(c for c in ("external" if bool(e) else "", "failed" if s != "FINISHED" else "") if c)
@@ -233,12 +244,12 @@ def _figure(path: Path, caption: str) -> str:
             "</figcaption></figure>")  # fmt: skip
 
 
-def _protocol_figures(board: brd.Board, tmp: Path, dpi: int) -> list[str]:
+def _protocol_figures(board: brd.Board, tmp: Path, dpi: int, standings: st.Standings | None) -> list[str]:
     out = []
     ok = board.rows
     for m in (m for m in mt.METRICS if m.figure is not None):  # Figs. 3, 4 and every metric with a figure
         path = tmp / f"{Path(m.figure.file).stem}_{board.protocol}.png"
-        figs.metric_bars(ok, m, board.horizon, cmp.SPLITS, path, dpi)
+        figs.metric_bars(ok, m, board.horizon, cmp.SPLITS, path, dpi, cmp.floor_of(standings, m))
         out.append(_figure(path, f"{m.figure.caption} (inputs={board.protocol})"))
     return out
 
@@ -250,8 +261,37 @@ def _facts(items: dict[str, Any]) -> str:
     ) + "</dl>"  # fmt: skip
 
 
-def _protocol_section(board: brd.Board, tmp: Path, cfg: Any) -> str:
-    summary = cmp.summary_table(board.rows, board.horizon, "ld_trans")
+def leaderboard_html(board: brd.Board, standings: st.Standings | None) -> str:
+    """The protocol's leaderboard as compare ranks it (docs/intervals.md): with ``standings`` (the runs'
+    per-window tables were found), every mean over terrains with its 95 % interval, ranked by the
+    aggregate under the ranking rule (best only when resolved from every other, else tied; too few blocks:
+    not ranked, with the reason), the floor's row, who leads and the paper's claim per terrain and overall;
+    without, the means listed by LD translational RMSRE and said not to be a ranking."""
+    if standings is None:
+        summary = cmp.summary_table(board.rows, board.horizon, "ld_trans").drop(columns="rank")
+        return (
+            "<h3>Leaderboard (mean over terrains)</h3><p class='note'>The runs' per-window tables are not "
+            "here, so no paired comparison: listed by LD translational RMSRE, not ranked; read the rows' "
+            "intervals below.</p>" + html_table(summary)
+        )
+    summary = cmp.summary_table(board.rows, board.horizon, standings.ranked_by, standings)
+    claim = "".join(
+        f"<li>{esc(scope)}: {esc(verdict)}</li>" for scope, (verdict, _) in standings.claim.items()
+    )
+    return (
+        "<h3>Leaderboard (mean over terrains; estimate [95 % interval])</h3>"
+        f"<p class='note'>{_inline(cmp.ranked_by_line(standings.ranked_by, board.horizon, standings)[2:])}. "
+        "The floor is not a model: the ground truth's own velocities through the same windows.</p>"
+        + html_table(summary)
+        + f"<p><strong>{esc(standings.verdicts.get('overall', ''))}</strong></p>"
+        + (f"<p>The paper's claim (friction-based best on LD, comparable on CV):</p><ul>{claim}</ul>"
+           if claim else "")
+    )  # fmt: skip
+
+
+def _protocol_section(
+    board: brd.Board, tmp: Path, cfg: Any, standings: st.Standings | None = None
+) -> str:  # fmt: skip
     s = board.settings
     n_ext = int(board.rows.get("external", pd.Series(dtype=bool)).sum())
     parts = [
@@ -266,15 +306,14 @@ def _protocol_section(board: brd.Board, tmp: Path, cfg: Any) -> str:
         + (f" and {n_ext} external row(s) scored from a predictions file (<code>skidbench score</code>)"
            if n_ext else "")
         + ". A gap smaller than the rows' interval is a tie, not a ranking.</p>",
-        "<h3>Leaderboard (mean over terrains, ranked by LD translational RMSRE)</h3>",
-        html_table(summary),
+        leaderboard_html(board, standings),
         "<h3>Per terrain and test split</h3>",
-        _rows_table(board),
+        _rows_table(board, standings),
         "<h3>Provenance of each row</h3>",
         _provenance_table(board),
     ]  # fmt: skip
     if cfg.publish.figures:
-        parts += _protocol_figures(board, tmp, int(cfg.publish.dpi))
+        parts += _protocol_figures(board, tmp, int(cfg.publish.dpi), standings)
     parts.append("</section>")
     return "\n".join(parts)
 
@@ -320,7 +359,8 @@ def build_page(
         f"<p class='note'>Metric: {esc(METRIC['definition'])}.</p>",
     ]
     for b in boards.values():
-        body.append(_protocol_section(b, tmp, cfg))
+        body.append(_protocol_section(b, tmp, cfg, cmp.standings_from_cfg(cfg, layout, b.rows, b.protocol,
+                                                                           b.horizon, [])))  # fmt: skip
     n_fig = 0
     figs_html = []
     if cfg.publish.figures:

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from skidbench.pipeline.calibration import calibration_doc, wheel_response_of
+from skidbench.pipeline.calibration import Calibrations, calibration_doc, wheel_response_of
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import read_parquet_metadata, write_bytes_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout
@@ -245,7 +245,7 @@ def write_wheel_response_steps(cfg: Any, layout: Layout, terrain: str) -> Path:
 
 
 def _wheel_response_steps(cfg: Any, layout: Layout, terrain: str) -> tuple[dict[str, np.ndarray], dict]:
-    doc = calibration_doc(cfg, terrain) or {}
+    doc = calibration_doc(Calibrations.from_cfg(cfg), terrain) or {}
     resp = wheel_response_of(doc)
     if resp is None:
         why = (doc.get("wheel_response") or {}).get("reason", "no calibration")

@@ -20,6 +20,7 @@ from skidbench.pipeline.schema import concat_sequences
 from skidbench.pipeline.wheel_response import WheelResponse
 
 from .horizon import EvaluationError, HorizonConfig, window_errors
+from .intervals import IntervalConfig, Sample, cell, estimate, stratum_key
 from .metrics import METRICS
 
 
@@ -127,15 +128,51 @@ def score_split(
     return pd.concat(frames, ignore_index=True)
 
 
-def summarise(windows: pd.DataFrame, split: str, horizons: Sequence[float]) -> dict[str, float]:
+def summarise(
+    windows: pd.DataFrame,
+    split: str,
+    horizons: Sequence[float],
+    intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
+) -> dict[str, float]:
     """Every metric of :data:`~skidbench.benchmark.metrics.METRICS` (and its window count) on the windows
     of one split, per horizon, by its MLflow name (``ld_6s_trans_rmsre_pct``: :func:`Metric.metric_key`);
-    an optional metric only when the windows have its column (models with a predictive covariance)."""
+    an optional metric only when the windows have its column (models with a predictive covariance). With
+    ``intervals`` (the default), a metric with a :class:`~skidbench.benchmark.metrics.Bootstrap` also gets
+    its confidence interval and the independent blocks behind it (:func:`metric_intervals`)."""
     out: dict[str, float] = {}
     for h in horizons:
         w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
         for metric in METRICS:
             out.update(metric.summarise(w, split, h))
+        if intervals is not None:
+            out.update(metric_intervals(w, split, h, intervals))
+    return out
+
+
+def metric_intervals(
+    windows: pd.DataFrame, split: str, horizon_s: float, settings: IntervalConfig
+) -> dict[str, float]:
+    """``<key>_ci_lo``, ``<key>_ci_hi`` (rounded as the value is) and the blocks behind each metric with a
+    bootstrap, on the windows of one split at one horizon (:mod:`skidbench.benchmark.intervals`; a
+    metric whose windows lack its column gets none; with no window, NaN and 0 blocks)."""
+    metrics = [m for m in METRICS if m.bootstrap is not None and (not m.optional or m.column in windows)]
+    out: dict[str, float] = {}
+    if not len(windows):
+        for m in metrics:
+            if not m.optional:
+                lo, hi, blocks = m.interval_keys(split, horizon_s)
+                out.update({lo: float("nan"), hi: float("nan"), blocks: 0.0})
+        return out
+    key = stratum_key(split, horizon_s, windows["sequence"])
+    sample = Sample(settings)
+    sample.add(key, windows["sequence"], windows["t0"].to_numpy(float),
+               {m.name: m.bootstrap.scale * m.window_values(windows) for m in metrics}, horizon_s,
+               {m.name: m.bootstrap.aggregation for m in metrics})  # fmt: skip
+    res = estimate(sample, [cell(m.name, key, m.name) for m in metrics])
+    for m, row in zip(metrics, res.itertuples(index=False), strict=True):
+        lo, hi, blocks = m.interval_keys(split, horizon_s)
+        out[lo], out[hi] = round(float(row.lo), 4), round(float(row.hi), 4)
+        out[blocks] = float(row.n_blocks)
     return out
 
 
@@ -146,13 +183,15 @@ def predict_and_score(
     hcfg: HorizonConfig,
     inputs: Inputs | None = None,
     on_step: Callable[[str], None] | None = None,
+    intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
 ) -> tuple[dict[str, float], pd.DataFrame, dict[str, list[np.ndarray]]]:
     """Predicts every test split with ``model`` (:func:`predict_split`, with its covariances when it has
     ``predict_cov``) and scores every window of every horizon (:func:`score_split`). Returns the metrics
     (:func:`summarise` of each split, plus ``predict_time_s``: the seconds spent in predict), the windows
     of every split in one frame (first column ``split``; empty when no split has a window) and the
     predicted body velocities per split (per sequence (T, 3): vx, vy in m/s, wz in rad/s). Logs nothing;
-    ``on_step`` is told the step it is at ("predict", "score <split>") before each."""
+    ``on_step`` is told the step it is at ("predict", "score <split>") before each; ``intervals``: the
+    confidence intervals' settings (:func:`summarise`)."""
     step = on_step or (lambda _name: None)
     metrics: dict[str, float] = {}
     frames = []
@@ -168,7 +207,7 @@ def predict_and_score(
         if len(w):
             w.insert(0, "split", split)
             frames.append(w)
-        metrics.update(summarise(w, split, horizons))
+        metrics.update(summarise(w, split, horizons, intervals))
         step("predict")
     metrics["predict_time_s"] = predict_time
     windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()

@@ -227,7 +227,12 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     )
     for metric in mt.METRICS:  # an optional one (models with a predictive covariance): NaN for the others
         for split in SPLITS:
-            for key in (metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)):
+            keys = [metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)]
+            if metric.bootstrap is not None:  # its 95 % interval and the independent blocks behind it
+                keys += list(metric.interval_keys(split, horizon_s))
+                seed_sd = f"{metric.metric_key(split, horizon_s)}_seed_sd"  # evaluate seeds=N > 1
+                keys += [seed_sd] if f"metrics.{seed_sd}" in runs else []
+            for key in keys:
                 if key is not None:  # the value, and the windows behind it
                     df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
     for m in ("fit_loss", "fit_time_s", "predict_time_s"):
@@ -434,4 +439,31 @@ def newer_elsewhere(
     return (
         f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "
         f"user={who}` shows theirs"
+    )
+
+
+def same_data_elsewhere(tracker: trk.Tracker) -> str | None:
+    """One line when other skidbench experiments of the store hold runs of this dataset's content (its
+    identity, ``skidbench.dataset_id``): the same recording under another name, e.g. mounted at another path
+    on another machine (an automatic name carries its path), whose runs this board leaves out."""
+    if not tracker.dataset_id:
+        return None
+    own = tracker.experiment_name
+    exps = {
+        e.experiment_id: e.name
+        for e in tracker.client.search_experiments(filter_string="name LIKE 'skidbench-%'", max_results=1000)
+        if e.name != own and not e.name.startswith(own + "-")  # not its own transfer experiment
+    }
+    if not exps:
+        return None
+    runs = tracker.client.search_runs(
+        list(exps), f"tags.`{trk.TAG_DATASET_ID}` = '{tracker.dataset_id}'", max_results=200
+    )
+    names = sorted({exps[r.info.experiment_id] for r in runs})
+    if not names:
+        return None
+    return (
+        f"runs of this dataset's content (dataset id {tracker.dataset_id}) are also in experiment(s) "
+        f"{', '.join(repr(n) for n in names)}, under another dataset name, and not on this board; to compare "
+        "them as one, give the data the same name everywhere: source.dataset=<name>"
     )

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.pipeline.cache import Fingerprints
-from skidbench.pipeline.calibration import response_for
+from skidbench.pipeline.calibration import Calibrations, response_for
 from skidbench.pipeline.errors import SkidbenchError, one_line
 from skidbench.pipeline.io import fingerprint_obj
 from skidbench.pipeline.layout import Layout, split_terrains
@@ -105,7 +105,7 @@ def protocol_unavailable(
     where = f"{layout.splits / terrain}"
     response = None
     if protocol == "response":
-        response = response_for(cfg, terrain)
+        response = response_for(Calibrations.from_cfg(cfg), terrain)
         if response is None:
             return [f"inputs=response: {where}: no wheel response identified (no wheel encoders in its Train "
                     "split, see `skidbench calibrate`); terrain skipped under this protocol"]  # fmt: skip

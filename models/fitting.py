@@ -24,9 +24,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from skidbench.pipeline.cache import Stamp, stamp_file
-from skidbench.pipeline.calibration import CONSTANTS, load_calibration, response_for, robot_for_model
+from skidbench.pipeline.calibration import (
+    CONSTANTS,
+    Calibrations,
+    load_calibration,
+    response_for,
+    robot_for_model,
+)
 from skidbench.pipeline.io import write_json_atomic
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
@@ -246,7 +253,7 @@ def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse |
     inputs = protocol_of(cfg)
     response = None
     if inputs == "response":
-        response = response_for(cfg, terrain)
+        response = response_for(Calibrations.from_cfg(cfg), terrain)
         if response is None:
             raise ProtocolError(
                 f"inputs=response: no wheel response identified for terrain {terrain} (the Train split has "
@@ -290,8 +297,9 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
     cls = get_model_class(spec)
     files = _training_files(cfg, model_name, terrain, split)
     inputs, spec_robot, response = protocol_inputs(cfg, terrain)
-    robot, constants = robot_for_model(cfg, calibrated_constants(cls), terrain)
-    calibration = load_calibration(cfg, terrain)  # None with calibrate.use=false
+    cal = Calibrations.from_cfg(cfg)
+    robot, constants = robot_for_model(cal, calibrated_constants(cls), terrain)
+    calibration = load_calibration(cal, terrain)  # None with calibrate.use=false
     info = discover().get(spec.split("+")[0])
     code = code_identity(cls, *((info.package, info.package_version) if info else ()))
     path = layout.fit_file(model_name, terrain, inputs)
@@ -434,6 +442,48 @@ def fit_model(
     return result
 
 
+def is_seeded(model: Any) -> bool:
+    """Does a model have random parts it declares (a ``seed`` among its options: gp_residual, a plugin's)?"""
+    return "seed" in (getattr(model, "options", None) or {})
+
+
+@dataclass
+class Refit:
+    """What fitting a model again with another seed takes (evaluate's ``seeds``): its class, the robot it
+    is built with, its configured params and options, and the Train table of its input protocol."""
+
+    name: str
+    terrain: str
+    cls: type
+    robot: Robot
+    params: dict[str, Any] | None
+    options: dict[str, Any]
+    table: pd.DataFrame
+
+    def fit(self, seed: int) -> KinematicModel:
+        """The model fitted as :func:`fit_model` fits it, with its option ``seed`` set to ``seed``; nothing is
+        written or reused (the saved fit stays the configured seed's)."""
+        try:
+            return self.cls(self.robot, self.params, **{**self.options, "seed": int(seed)}).fit(self.table)
+        except ModelError:
+            raise
+        except Exception as exc:
+            raise ModelError(
+                f"model {self.name}: fit with seed {seed} failed on terrain {self.terrain} "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
+
+
+def refit_from_cfg(cfg: Any, model_name: str, terrain: str, split: str = "train") -> Refit:
+    """The door from the config to a :class:`Refit` of ``model_name`` on ``terrain``'s Train split."""
+    plan = _plan(cfg, model_name, terrain, split)
+    table = fit_table(
+        concat_sequences([read_split(p) for p in plan.files]), plan.inputs, plan.spec_robot, plan.response
+    )
+    mc = model_config(cfg, plan.spec)
+    return Refit(model_name, terrain, plan.cls, plan.robot, mc["params"] or None, dict(mc["options"]), table)
+
+
 def fit_findings(data: dict[str, Any]) -> list[str]:
     """What a saved fit (its JSON) records as findings: each parameter that ended at a bound
     (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
@@ -487,5 +537,5 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
 
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)
-    robot, _ = robot_for_model(cfg, calibrated_constants(cls), terrain)
+    robot, _ = robot_for_model(Calibrations.from_cfg(cfg), calibrated_constants(cls), terrain)
     return from_saved(cls, robot, saved, spec, path)

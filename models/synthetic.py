@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from skidbench.pipeline.geometry import integrate_body_velocity
+from skidbench.pipeline.geometry import integrate_body_velocity, step_velocities
 from skidbench.pipeline.schema import SPLIT_COLUMNS, write_split
 
 
@@ -68,14 +68,13 @@ def label_with(table: pd.DataFrame, velocities: np.ndarray) -> pd.DataFrame:
     """Copy of ``table`` with ground truth set to ``velocities`` (T, 3) = (vx m/s, vy m/s, wz rad/s) and the
     pose (x m, y m, unwrapped yaw rad) dead-reckoned from them, starting at the origin.
 
-    Row ``i``'s velocity is held over ``[t_i, t_i+1]`` with exact SE(2) steps
-    (:func:`~skidbench.pipeline.geometry.integrate_body_velocity`), the rule of the horizon evaluation, so a
-    model that predicts ``velocities`` exactly has zero window error on the table."""
+    The step ``[t_i, t_i+1]`` moves with the mean of rows ``i`` and ``i+1``'s velocities, an exact SE(2) step
+    (:func:`~skidbench.pipeline.geometry.step_velocities`, the rule of the horizon evaluation), so a model
+    that predicts ``velocities`` exactly has zero window error on the table."""
     df = table.copy()
     vel = np.asarray(velocities, dtype=float)
     df["vx"], df["vy"], df["wz"] = vel[:, 0], vel[:, 1], vel[:, 2]
-    # T rows -> T-1 steps: the last row's velocity moves the pose past the table's end
-    pose = integrate_body_velocity(np.zeros(3), vel[:-1], np.diff(df["t"].to_numpy(dtype=float)))
+    pose = integrate_body_velocity(np.zeros(3), step_velocities(vel), np.diff(df["t"].to_numpy(dtype=float)))
     df["x"], df["y"], df["yaw"] = pose[:, 0], pose[:, 1], pose[:, 2]
     return df
 

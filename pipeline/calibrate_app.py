@@ -27,7 +27,7 @@ from .calibration import (
     calibrate_terrain,
     settings_from_cfg,
     train_files,
-    use_calibration,
+    use_from_cfg,
 )
 from .cli import stage
 from .io import fingerprint_obj
@@ -110,7 +110,7 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     )
     print(format_table(docs))
     print(format_response(docs))
-    if not use_calibration(cfg):
+    if not use_from_cfg(cfg):
         print("calibrate.use=false: every model is fitted with the spec sheet's constants")
     else:
         print("models take: " + "; ".join(f"{m}: {u}" for m, u in usage.items()))

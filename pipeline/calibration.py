@@ -275,9 +275,25 @@ def settings_from_cfg(cfg: Any) -> CalibrationSettings:
     return CalibrationSettings.from_cfg(data)
 
 
-def use_calibration(cfg: Any) -> bool:
+def use_from_cfg(cfg: Any) -> bool:
+    """``calibrate.use`` (default true): whether fits take the calibrated constants."""
     node = cfg.get("calibrate") if hasattr(cfg, "get") else None
     return bool(node.get("use", True)) if node is not None else True
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibrations:
+    """What reading a terrain's calibration needs of the config: the dataset's folders, the robot spec
+    the calibration must have been made for, and whether fits use the calibrated constants
+    (``calibrate.use``; the wheel response is read either way). The apps make it (:meth:`from_cfg`)."""
+
+    layout: Layout
+    spec: Robot
+    use: bool = True
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> Calibrations:
+        return cls(layout_from_cfg(cfg), robot_from_hydra(cfg.robot), use_from_cfg(cfg))
 
 
 def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
@@ -338,13 +354,13 @@ def calibrate_terrain(
     return doc, True
 
 
-def load_calibration(cfg: Any, terrain: str) -> dict[str, Any] | None:
+def load_calibration(cal: Calibrations, terrain: str) -> dict[str, Any] | None:
     """The terrain's calibration for a fit: the one ``calibrate`` saved from the current Train files and
     robot spec (whatever its settings); None when ``calibrate.use`` is false. MissingCalibrationError
     when there is none or it is stale (only ``calibrate`` computes it)."""
-    if not use_calibration(cfg):
+    if not cal.use:
         return None
-    return calibration_doc(cfg, terrain)
+    return calibration_doc(cal, terrain)
 
 
 class MissingCalibrationError(StaleInputError):
@@ -352,14 +368,13 @@ class MissingCalibrationError(StaleInputError):
     Train files or another robot spec)."""
 
 
-def calibration_doc(cfg: Any, terrain: str) -> dict[str, Any] | None:
+def calibration_doc(cal: Calibrations, terrain: str) -> dict[str, Any] | None:
     """The terrain's calibration document whatever ``calibrate.use`` says, as ``calibrate`` saved it;
     None when the terrain has no Train files. MissingCalibrationError (one line) when there is none or it
     is not current: its stamp (:func:`calibration_stamp`) says it was made from other Train files or
     another robot spec (whatever its settings), or the document is missing or changed since. Only the
     ``calibrate`` stage computes it."""
-    layout = layout_from_cfg(cfg)
-    spec = robot_from_hydra(cfg.robot)
+    layout, spec = cal.layout, cal.spec
     path = layout.calibration_file(terrain)
     files = train_files(layout, terrain)
     if not files:
@@ -392,18 +407,20 @@ def calibrated_robot(spec: Robot, doc: Mapping[str, Any] | None, constants: Sequ
     return dataclasses.replace(spec, **changes) if changes else spec
 
 
-def robot_for_model(cfg: Any, constants: Sequence[str], terrain: str) -> tuple[Robot, dict[str, Any]]:
+def robot_for_model(
+    cal: Calibrations, constants: Sequence[str], terrain: str
+) -> tuple[Robot, dict[str, Any]]:
     """The robot a model that takes the calibrated ``constants`` (its class's ``calibrated_constants``,
     e.g. ``("wheel_radius",)``) is built with on ``terrain``, and a record of where each constant came
     from (for the fit JSON and MLflow)."""
-    spec = robot_from_hydra(cfg.robot)
+    spec = cal.spec
     constants = tuple(constants)
-    doc = load_calibration(cfg, terrain)
+    doc = load_calibration(cal, terrain)
     robot = calibrated_robot(spec, doc, constants)
     record: dict[str, Any] = {}
     for c in CONSTANTS:
         if doc is None:
-            src = "spec (calibrate.use=false)" if not use_calibration(cfg) else "spec (no calibration)"
+            src = "spec (calibrate.use=false)" if not cal.use else "spec (no calibration)"
         elif c not in constants:
             src = "spec (absorbed by the model's own parameters)"
         elif not doc[c]["identified"]:
@@ -414,7 +431,7 @@ def robot_for_model(cfg: Any, constants: Sequence[str], terrain: str) -> tuple[R
     return robot, record
 
 
-def response_for(cfg: Any, terrain: str) -> WheelResponse | None:
+def response_for(cal: Calibrations, terrain: str) -> WheelResponse | None:
     """The wheel response ``calibrate`` identified for ``terrain`` (the ``response`` input protocol's; also
     with ``calibrate.use=false``, which concerns the robot constants only); None when not identified."""
-    return wheel_response_of(calibration_doc(cfg, terrain))
+    return wheel_response_of(calibration_doc(cal, terrain))

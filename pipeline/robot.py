@@ -77,9 +77,9 @@ class Robot:
         return d
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> Robot:
+    def from_config(cls, section: Mapping[str, Any]) -> Robot:
         """Build from a (resolved) ``robot`` config mapping; unknown keys go to ``extra``."""
-        cfg = dict(cfg)
+        cfg = dict(section)
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
         missing = [k for k in ("name", "mass", "wheel_radius", "track_width", "wheelbase") if k not in cfg]
         if missing:
@@ -104,11 +104,11 @@ def twist_from_wheel_rates(wl, wr, r: float, B: float) -> tuple[np.ndarray, np.n
     return r * (wl + wr) / 2.0, r * (wr - wl) / B
 
 
-def robot_from_hydra(cfg: Any) -> Robot:
-    """Robot from a Hydra/OmegaConf node."""
+def robot_from_hydra(node: Any) -> Robot:
+    """Robot from the ``robot`` node of a Hydra/OmegaConf config."""
     from omegaconf import OmegaConf
 
-    return Robot.from_config(OmegaConf.to_container(cfg, resolve=True))
+    return Robot.from_config(OmegaConf.to_container(node, resolve=True))
 
 
 def load_robot(name: str = "jackal") -> Robot:

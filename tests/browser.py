@@ -11,6 +11,12 @@ from pathlib import Path
 
 #: Debian's chromium (`make test` installs it where it can: the Makefile); None: the browser tests skip
 CHROMIUM = next((p for p in (shutil.which("chromium"), "/usr/bin/chromium") if p and Path(p).is_file()), None)
+#: headless, as root in a container too (no sandbox; /dev/shm there is often 64 MB, too small for a page:
+#: shared memory in /tmp instead), nothing fetched but the page
+FLAGS = (
+    "--headless", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu", "--disable-quic",
+    "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync",
+)  # fmt: skip
 
 
 def run_chromium(
@@ -26,11 +32,8 @@ def run_chromium(
     profile: the DOM on stdout (or a screenshot); with ``console``, the page's console messages on stderr
     (``CONSOLE(<line>)`` lines)."""
     profile = tmp / f"profile-{len(list(tmp.glob('profile-*')))}"
-    args = [
-        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        f"--user-data-dir={profile}", f"--window-size={window}", f"--virtual-time-budget={budget_ms}",
-    ]  # fmt: skip
+    args = [CHROMIUM, *FLAGS, f"--user-data-dir={profile}", f"--window-size={window}",
+            f"--virtual-time-budget={budget_ms}"]  # fmt: skip
     if console:
         args += ["--enable-logging=stderr", "--v=0"]
     args += [f"--screenshot={screenshot}"] if screenshot else ["--dump-dom"]
@@ -74,11 +77,8 @@ def page_value(url: str, tmp: Path, expression: str, *, window: str = "1920,1080
         os.dup2(high[0], 3)
         os.dup2(high[1], 4)
 
-    args = [
-        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        f"--user-data-dir={profile}", f"--window-size={window}", "--remote-debugging-pipe", "about:blank",
-    ]  # fmt: skip
+    args = [CHROMIUM, *FLAGS, f"--user-data-dir={profile}", f"--window-size={window}",
+            "--remote-debugging-pipe", "about:blank"]  # fmt: skip
     proc = subprocess.Popen(args, preexec_fn=fds, pass_fds=(3, 4), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)  # fmt: skip
     os.close(to_chrome[0])

@@ -50,6 +50,26 @@ def micro_root(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def lab_server(tmp_path_factory):
+    """The session's one ``mlflow server`` on loopback (PostgreSQL behind it where PostgreSQL can run, else
+    SQLite; tests/mlflow_server.py), shared by the tests of a lab's server and of the UI (one xdist unit:
+    ``XDIST_GROUPS``). A test that kills it starts it again; :func:`mlflow_server_up` makes sure it is up."""
+    from mlflow_server import lab_mlflow_server
+
+    with lab_mlflow_server(tmp_path_factory.mktemp("lab_server")) as server:
+        yield server
+
+
+@pytest.fixture
+def mlflow_server_up(lab_server):
+    """:func:`lab_server`, running (started again when an earlier test killed it and failed before its
+    restart)."""
+    if not lab_server.running():
+        lab_server.start()
+    return lab_server
+
+
 @pytest.fixture(autouse=True)
 def _no_inherited_mlflow_store(monkeypatch):
     """Each test starts without MLFLOW_TRACKING_URI: compare's ``mlflow.set_tracking_uri`` exports it for
@@ -102,16 +122,21 @@ XDIST_GROUPS = {
     "tests/test_reliability_determinism.py": "micro_root",
     "tests/test_reliability_faults.py": "micro_root",
     "tests/test_reliability_sweeps.py": "micro_root",
+    "tests/test_mlflow_server.py": "lab_server",
+    "tests/test_mlflow_ui_browser.py": "lab_server",
 }
 #: files of long, independent tests (no module fixture): one test per unit, so they balance over workers
 XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
 #: the longest units start first (longest-processing-time-first), the rest in xdist's order (most tests
 #: first). Measured with --durations=40 on 2026-11-24: the quick start and discover_hidden's
-#: curvature_dependent_icr case are the two longest units.
+#: curvature_dependent_icr case are the two longest units; the lab's server and its UI (one PostgreSQL, one
+#: mlflow server, two evaluates in subprocesses, an outage, three pages in Chromium) took 4 min 12 s alone
+#: on 2026-11-25 (pytest tests/test_mlflow_server.py tests/test_mlflow_ui_browser.py, the machine loaded).
 XDIST_FIRST = (
     "readme_reproduce",
     "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
     "[curvature_dependent_icr]",
+    "lab_server",
 )
 
 

@@ -86,6 +86,9 @@ class MlflowServer:
                 pytest.fail(f"mlflow server did not start: {self.log_path.read_text()[-2000:]}")
             time.sleep(0.5)
 
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
     def kill(self) -> None:
         """SIGKILL its process group (an outage: the server is gone without a word)."""
         if self.proc is not None and self.proc.poll() is None:
@@ -195,3 +198,16 @@ def running_postgres(timeout_s: float = 120.0) -> Iterator[str]:
                     os.kill(pid, signal.SIGKILL)
                 wait_until_gone(pid, 10)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def lab_mlflow_server(root: Path) -> Iterator[MlflowServer]:
+    """The test session's one ``mlflow server`` (tests/conftest.py ``lab_server``): on a PostgreSQL cluster
+    of its own (:func:`running_postgres`) where PostgreSQL can run here, else on a SQLite file under
+    ``root``; started, yielded (restartable: a test may kill it) and stopped by PID."""
+    with contextlib.ExitStack() as stack:
+        db = None if postgres_missing() else stack.enter_context(running_postgres())
+        server = MlflowServer(root, backend_uri=db)
+        stack.callback(server.stop)
+        server.start()
+        yield server

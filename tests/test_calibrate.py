@@ -219,6 +219,7 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
 
     from skidbench.models.fitting import fit_model
     from skidbench.pipeline.calibration import (
+        Calibrations,
         MissingCalibrationError,
         calibrate_terrain,
         calibration_doc,
@@ -243,7 +244,9 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     # of the fit's inputs)
     settings = dataclasses.replace(settings, settle_s=1.5)
     doc, recomputed = calibrate_terrain(layout, "tile", jackal, settings, "calib")
-    assert recomputed and doc == calibration_doc(cfg, "tile")  # settings: not a reader's concern
+    assert recomputed and doc == calibration_doc(
+        Calibrations.from_cfg(cfg), "tile"
+    )  # settings: not a reader's concern
     assert not fit_model(cfg, "edd", "tile").reused and fit_model(cfg, "edd", "tile").reused
 
     def stale(c) -> str:
@@ -269,7 +272,7 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     stamp.write_text(json.dumps({**old, "schema": 1}))
     assert "schema 1" in stale(cfg)
     assert not calibrate_terrain(layout, "tile", jackal, settings, "calib")[1]
-    assert calibration_doc(cfg, "tile") is not None
+    assert calibration_doc(Calibrations.from_cfg(cfg), "tile") is not None
     assert fit_model(cfg, "edd", "tile").reused  # the same calibration: its fit is still up to date
 
 

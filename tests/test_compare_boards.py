@@ -100,7 +100,11 @@ def test_a_model_evaluated_alone_lands_on_the_full_board(root):
     assert by_model.loc["chi", "run_id"] == chi_run and by_model.loc["ideal_t", "run_id"] == ideal_run
     assert by_model.loc["raiser", "status"] == "FAILED"  # its only run failed: on the board as FAILED
     assert set(res.parents) == {runs[1].parent_run_id, runs[2].parent_run_id}
-    assert "| 1 | chi |" in res.leaderboard_md and "| 2 | ideal_t |" in res.leaderboard_md
+    # every model is on the board, in order of its score; this data (one short terrain) is too small to
+    # rank (docs/intervals.md: at least 8 independent blocks)
+    lines = res.leaderboard_md.splitlines()
+    chi, ideal = (next(i for i, t in enumerate(lines) if f"| {m} |" in t) for m in ("chi", "ideal_t"))
+    assert chi < ideal and "not ranked" in lines[chi]
     for col in ("run_id", "parent_run_id", "options_digest", "model_version", "git_commit", "env.numpy"):
         assert col in board.columns
     assert board["options_digest"].str.fullmatch(r"[0-9a-f]{12}").all()

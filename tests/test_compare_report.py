@@ -51,10 +51,20 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
     assert res.inputs == "commanded"
     lb = res.leaderboard_md.splitlines()
     assert lb[2].startswith("| 1 | chi |")  # best first
-    assert any(line.startswith("| 3 | broken |") and "grass (FAILED)" in line for line in lb)
+    # a model that failed everywhere is shown, not ranked, with the reason; the floor is a reference row
+    assert any(line.startswith("|  | broken |") and "grass (FAILED)" in line and "not ranked" in line
+               for line in lb)  # fmt: skip
+    assert any(line.startswith("|  | floor |") and "reference" in line for line in lb)
     csv = pd.read_csv(out / DS / "reports" / "leaderboard-commanded.csv")
     assert set(csv["model"]) == {"chi", "ideal_t", "broken"} and len(csv) == 6
     assert (csv[csv["model"] == "broken"]["status"] == "FAILED").all()
+    # added columns: each cell's interval and blocks, the terrain's floor
+    assert {"trans LD % lo", "trans LD % hi", "trans LD % blocks", "floor trans LD %"} <= set(csv.columns)
+    assert (csv["floor trans LD %"] < csv[csv["model"] == "chi"]["trans LD %"].min()).all()
+    chi = csv[csv["model"] == "chi"]
+    assert (chi["trans LD % lo"] <= chi["trans LD %"]).all() and (
+        chi["trans LD %"] <= chi["trans LD % hi"]
+    ).all()
     text = res.report.read_text()
     assert "## Failed runs" in text and "singular normal equations" in text
     for f in ("fig3_translational_rmsre.png", "fig4_rotational_rmsre.png", "fig_end_position_rmse.png"):
@@ -251,6 +261,22 @@ def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluat
     monkeypatch.setenv("SKIDBENCH_USER", "carol")
     with pytest.raises(CompareError, match="no model run of user carol .* user=bob"):
         run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))
+
+
+def test_compare_names_other_experiments_holding_runs_of_the_same_content(tmp_path):
+    """One recording under two dataset names (two mount points, each with its automatic name): two
+    experiments; compare's board of one says, in one line, where the other's runs are and what to type."""
+    from skidbench.benchmark import selection as sel
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    here = trk.Tracker(uri, "skidbench-amrl-day2-aaaaaa", artifact_root=tmp_path, dataset_id="c0ffee")
+    assert sel.same_data_elsewhere(here) is None  # alone in the store
+    for name, ident in (("skidbench-amrl-day2-bbbbbb", "c0ffee"), ("skidbench-other-cccccc", "0ther"),
+                        ("skidbench-amrl-day2-aaaaaa-transfer", "c0ffee")):  # fmt: skip
+        trk.Tracker(uri, name, artifact_root=tmp_path, dataset_id=ident).start("run", {})
+    line = sel.same_data_elsewhere(here)
+    assert "experiment(s) 'skidbench-amrl-day2-bbbbbb'," in line and "source.dataset=<name>" in line
+    assert "skidbench-other" not in line and "transfer" not in line
 
 
 def test_the_parent_run_shows_the_leaderboard_and_each_models_mean_and_gap_to_the_next():

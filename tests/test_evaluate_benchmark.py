@@ -251,3 +251,32 @@ def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_
         for s, vel in zip(seqs, velocities[split], strict=True):
             assert np.allclose(vel, s.table[["vx", "vy", "wz"]].to_numpy(), atol=1e-12)
     assert steps == ["score cv", "predict", "score ld", "predict"]
+
+
+def test_every_metric_is_logged_with_its_interval_and_blocks_and_the_floor_on_the_parent(bench):
+    """docs/intervals.md: each child logs <metric>_ci_lo/_ci_hi and the blocks behind it; the parent logs the
+    floor of each terrain (the ground truth's own velocities through the same windows) and its
+    windows go where compare reads them; evaluate's summary prints the intervals and the floor."""
+    from skidbench.benchmark.evaluate import format_result
+
+    out, _, res = bench
+    runs = _runs(out, res.parent_run_id)
+    ok = runs[runs["status"] == "FINISHED"]
+    for split in ("cv", "ld"):
+        v = ok[f"metrics.{split}_6s_trans_rmsre_pct"]
+        lo, hi = (
+            ok[f"metrics.{split}_6s_trans_rmsre_pct_ci_lo"],
+            ok[f"metrics.{split}_6s_trans_rmsre_pct_ci_hi"],
+        )
+        assert ((lo <= v + 1e-3) & (v <= hi + 1e-3)).all()
+        assert (ok[f"metrics.{split}_6s_trans_blocks"] >= 1).all()
+    parent = mlflow.get_run(res.parent_run_id).data.metrics
+    chi = ok[ok["tags.skidbench.model"] == "chi"].set_index("tags.skidbench.terrain")
+    for terrain in ("tile", "grass"):
+        # this data's poses are dead-reckoned from its velocities by the left point, not the trapezoid: a
+        # floor of a few tenths of a percent, under the best model's error
+        floor = parent[f"floor.{terrain}.ld_6s_trans_rmsre_pct"]
+        assert 0 <= floor < 1.0 and floor < chi.loc[terrain, "metrics.ld_6s_trans_rmsre_pct"]
+        assert (out / DS / "eval" / "floor" / f"{terrain}.windows.parquet").is_file()
+    text = format_result(res)
+    assert "floor (reference)" in text and "[" in text

@@ -92,3 +92,15 @@ def test_windows_touching_invalid_samples_are_dropped():
 def test_horizon_longer_than_sequence_gives_no_windows():
     t, gt, vel = _drive(T=90)
     assert len(window_errors(t, gt, vel, 6.0)) == 0
+
+
+def test_constant_acceleration_is_integrated_exactly_by_the_trapezoidal_step():
+    # straight line from rest at a = 0.5 m/s^2: x = a t^2 / 2 exactly; the step twist is the mean of its ends,
+    # exact for a velocity linear in time (the left point would be short by a dt h / 2 = 5 cm over 6 s)
+    t = np.arange(301) / 30.0
+    vel = np.zeros((301, 3))
+    vel[:, 0] = 0.5 * t
+    gt = np.zeros((301, 3))
+    gt[:, 0] = 0.25 * t**2
+    w = window_errors(t, gt, vel, 6.0)
+    assert len(w) == 301 - 180 and np.max(w["trans_err"]) < 1e-12

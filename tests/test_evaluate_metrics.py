@@ -70,7 +70,9 @@ def test_a_constant_velocity_bias_gives_an_end_error_of_bias_times_horizon(bias)
 
 
 def test_the_end_position_rmse_is_the_rms_over_every_window_of_a_split():
-    """A bias b over the first m samples only: window i (steps i..i+n-1) ends b dt clip(m - i, 0, n) off.
+    """A bias b over the first m samples only: a step moves with the mean of its two ends' velocities, so
+    steps 0..m-2 carry b and step m-1 b/2; window i (steps i..i+n-1) ends b dt (clip(m-1-i, 0, n) + 1/2
+    if it holds step m-1) off.
     The RMS is over the windows of both sequences together (not a mean of per-sequence values), and the
     exact model's sequence counts with its zero errors."""
     b, m, n = 0.2, 150, round(H * RATE)
@@ -79,7 +81,8 @@ def test_the_end_position_rmse_is_the_rms_over_every_window_of_a_split():
     pred = true.copy()
     pred[:m, 0] += b
     w = score_split([biased, exact], [pred, true2], [H], HorizonConfig(H))
-    errs = b / RATE * np.clip(m - np.arange(300 - n), 0, n)
+    i = np.arange(300 - n)
+    errs = b / RATE * (np.clip(m - 1 - i, 0, n) + 0.5 * ((i <= m - 1) & (m - 1 <= i + n - 1)))
     expected = np.sqrt(np.mean(np.concatenate([errs, np.zeros(200 - n)]) ** 2))
     out = summarise(w, "cv", [H])
     assert out["cv_6s_endpos_rmse_m"] == pytest.approx(expected, abs=1e-4)
@@ -89,11 +92,13 @@ def test_the_end_position_rmse_is_the_rms_over_every_window_of_a_split():
 def test_summarise_logs_every_metric_and_optional_ones_only_with_their_column():
     seq, true = _line("a", 300)
     w = score_split([seq], [true], [H], HorizonConfig(H))
-    out = summarise(w, "ld", [H])
+    out = summarise(w, "ld", [H], intervals=None)
     plain = [m for m in mt.METRICS if not m.optional]
     assert set(out) == {m.metric_key("ld", H) for m in plain} | {
         m.windows_key("ld", H) for m in plain if m.count_key
     }
+    with_ci = summarise(w, "ld", [H])  # by default each metric's interval and blocks too (intervals.py)
+    assert set(with_ci) == set(out) | {k for m in plain for k in m.interval_keys("ld", H)}
     assert np.isnan(out["ld_6s_rot_rmsre_pct"]) and out["ld_6s_rot_windows"] == 0  # a line turns 0 rad
     assert out["ld_6s_trans_rmsre_pct"] == 0.0 and out["ld_6s_endpos_rmse_m"] == 0.0
     empty = summarise(pd.DataFrame(), "cv", [H])  # no window at all: NaN values, zero counts

@@ -248,12 +248,11 @@ def test_vo_reads_the_stereo_topics_that_auto_chose_for_the_bag(tmp_path):
     }
     topics = {k: {"topic": t, "type": "x", "count": 1} for k, t in chosen.items()}
     (tmp_path / "_extract.json").write_text(json.dumps({"topics": topics}))
-    auto = OmegaConf.create({"source": {"topics": "auto"}})
-    assert source_image_topics(auto, tmp_path) == {
+    assert source_image_topics("auto", tmp_path) == {
         "left_topic": "/cam/left/image_raw",
         "right_topic": "/cam/right/image_raw",
         "left_info_topic": "/cam/left/camera_info",
         "right_info_topic": "/cam/right/camera_info",
     }
-    explicit = OmegaConf.create({"source": {"topics": {"left_image": {"topic": "/a"}}}})
+    explicit = OmegaConf.create({"left_image": {"topic": "/a"}})  # source.topics as the config holds it
     assert source_image_topics(explicit, tmp_path) == {"left_topic": "/a"}

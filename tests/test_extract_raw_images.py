@@ -15,7 +15,7 @@ from rosbags.rosbag1 import Writer
 
 from skidbench.pipeline.extract.images import ImageDecodeError, gray8, png_bytes, raw_pixels
 from skidbench.pipeline.extract.synthetic import T0_NS, _Factory, typestore_for
-from skidbench.pipeline.groundtruth.vo import run_stereo_vo
+from skidbench.pipeline.groundtruth.vo import StereoSettings, run_stereo_vo
 from skidbench.pipeline.simulate.render import StereoRenderer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -209,7 +209,7 @@ def _vo(bag: Path, camera_cfg: dict, variant: str):
         "right_info": {"topic": "/right/camera_info"},
     }
     stats: dict = {}
-    traj = run_stereo_vo(bag, {"robot": {"camera": camera_cfg}, "source": {"topics": topics}}, stats=stats)
+    traj = run_stereo_vo(bag, StereoSettings(camera=camera_cfg, topics=topics), stats=stats)
     return traj, stats
 
 

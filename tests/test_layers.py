@@ -130,8 +130,8 @@ def test_the_check_sees_imports_inside_functions(tmp_path):
     assert layer("pipeline.io") == "core" and layer("pipeline.calibrate_app") == "apps"
 
 
-def test_the_installed_package_never_imports_the_bench_harness():
-    """``bench/`` (``make bench``) sits outside the installed package: an import of it from the package
+def test_the_installed_package_never_imports_the_perf_harness():
+    """``perf/`` (``make bench``) sits outside the installed package: an import of it from the package
     would work in a checkout and fail in an installed copy."""
     found = []
     for mod, path in our_modules().items():
@@ -142,13 +142,13 @@ def test_the_installed_package_never_imports_the_bench_harness():
                 names = [node.module or ""]
             else:
                 continue
-            found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] == "bench"]
+            found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] == "perf"]
     assert not found, "\n".join(found)
 
 
 #: the benchmark's pure modules: scoring and its metrics (no MLflow, no files, no figures); of the benchmark
 #: layer they import only each other, so that a server, a notebook or a test can score without a store
-PURE = {"benchmark.horizon", "benchmark.metrics", "benchmark.scoring"}
+PURE = {"benchmark.horizon", "benchmark.metrics", "benchmark.scoring", "benchmark.intervals"}
 IMPURE_LIBS = {"mlflow", "matplotlib", "pyarrow", "ray", "hydra", "omegaconf"}
 
 

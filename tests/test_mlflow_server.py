@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from _bench_data import compose, write_splits
-from mlflow_server import MlflowServer, postgres_missing, running_postgres, wait_until_gone
+from mlflow_server import postgres_missing, wait_until_gone
 
 from skidbench.benchmark.compare import run_compare
 
@@ -27,18 +27,15 @@ pytestmark = [pytest.mark.slow, pytest.mark.skipif(bool(postgres_missing()), rea
 DS = "sim-mini"
 FAULTS = Path(__file__).resolve().parent / "fault_injection"
 EVALUATE = ["calibrate.use=false", "log_figures=false"]
+OUTAGE = "skidbench-outage"
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    """``mlflow server`` on a PostgreSQL cluster of its own; restartable (the outage test kills it)."""
-    with running_postgres() as db:
-        srv = MlflowServer(tmp_path_factory.mktemp("mlflow_server"), backend_uri=db)
-        srv.start()
-        try:
-            yield srv
-        finally:
-            srv.stop()
+@pytest.fixture
+def server(mlflow_server_up):
+    """The session's ``mlflow server`` (tests/conftest.py ``lab_server``), here on its PostgreSQL cluster;
+    restartable (the outage test kills it)."""
+    assert mlflow_server_up.backend_uri.startswith("postgresql")
+    return mlflow_server_up
 
 
 def evaluate(out_root: Path, uri: str, user: str, *args: str, env: dict | None = None) -> subprocess.Popen:
@@ -131,6 +128,7 @@ def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_
     from _bench_data import sequence_table
 
     mlflow.set_tracking_uri(server.uri)
+    monkeypatch.setenv("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     vel = mlflow.pyfunc.load_model(f"models:/{model_id}").predict(sequence_table(5, 3.0).assign(sequence="s"))
     assert list(vel.columns) == ["vx", "vy", "wz"] and len(vel) == 90
 
@@ -153,20 +151,20 @@ def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_
 
 
 def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_open(server, tmp_path):
-    """The server dies while evaluate is between two logging calls (the process is held at its first
-    per-window table write): evaluate gives up in one line naming the server, exit status 2; once the
-    server is back, `skidbench runs --reap` (this machine: the process is gone) ends every run it left."""
+    """The server dies while evaluate is between two logging calls (the process is held at its first write
+    of the model's outputs, eval/edd/..., inside the model's run; the floor's tables come before, under the
+    parent alone): evaluate gives up in one line naming the server, exit status 2; once the server is back,
+    `skidbench runs --reap` (this machine: the process is gone) ends every run it left."""
     from mlflow import MlflowClient
 
-    write_splits(
-        tmp_path / DS, terrains=("tile", "grass"), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0
-    )
-    fault = {"SKIDBENCH_FAULT": "stop@1:windows.parquet", "PYTHONPATH": str(FAULTS)}
-    proc = evaluate(tmp_path, server.uri, "carol", "models=[ideal,edd]", env=fault)
+    write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
+    fault = {"SKIDBENCH_FAULT": "stop@1:/eval/edd/", "PYTHONPATH": str(FAULTS)}
+    # an experiment of its own on the session's server: the other tests' runs are not its business
+    proc = evaluate(tmp_path, server.uri, "carol", "models=[edd]", f"mlflow.experiment={OUTAGE}", env=fault)
     deadline = time.monotonic() + 600
     while _state(proc.pid) != "T":  # held at the fault
         assert proc.poll() is None, proc.communicate()[1][-3000:]
-        assert time.monotonic() < deadline, "evaluate never reached its first per-window table"
+        assert time.monotonic() < deadline, "evaluate never reached the model's outputs"
         time.sleep(0.5)
     server.kill()
     t0 = time.monotonic()
@@ -184,9 +182,13 @@ def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_o
 
     server.start()
     client = MlflowClient(server.uri)
-    exp = client.get_experiment_by_name(f"skidbench-{DS}")
+    exp = client.get_experiment_by_name(OUTAGE)
     left = client.search_runs([exp.experiment_id], "tags.`mlflow.user` = 'carol'")
-    assert {r.info.status for r in left} == {"RUNNING"}  # the parent and the child it was logging
+    assert {r.info.status for r in left} == {"RUNNING"}
+    assert sorted(r.data.tags["skidbench.role"] for r in left) == [
+        "child",
+        "parent",
+    ]  # the one it was logging
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path), "MLFLOW_TRACKING_URI": server.uri}
     reap = subprocess.run([sys.executable, "-m", "skidbench.pipeline.cli", "runs", "--reap"], env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip

@@ -289,3 +289,30 @@ def compose_fit(out_root, overrides=()):
     GlobalHydra.instance().clear()
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         return compose("fit", overrides=[f"out_root={out_root}", *overrides])
+
+
+def test_a_seeded_model_refits_with_another_seed_without_touching_its_saved_fit(tmp_path, jackal):
+    """evaluate seeds=N (docs/intervals.md, "Seeds"): a model with a ``seed`` option is refitted with
+    another seed on the same Train table; its inducing points differ, the saved fit stays the configured
+    seed's, and a deterministic model declares no seed."""
+    from skidbench.models.fitting import is_seeded, refit_from_cfg
+
+    write_train_splits(tmp_path, jackal, terrains=("tile",), n=800)
+    cfg = compose_fit(
+        tmp_path,
+        ["model=gp_residual", "terrain=tile", "model.options.n_inducing=40", "model.options.max_opt_iter=20",
+         "model.options.cv_folds=0", "calibrate.use=false"],
+    )  # fmt: skip
+    res = fit_model(cfg, "gp_residual", "tile")
+    saved = res.path.read_bytes()
+    refit = refit_from_cfg(cfg, "gp_residual", "tile")
+    other = refit.fit(1)
+    assert is_seeded(res.model) and other.options["seed"] == 1 and res.model.options["seed"] == 0
+    assert set(other.arrays) == set(res.model.arrays)
+    assert any(not np.array_equal(other.arrays[k], res.model.arrays[k]) for k in other.arrays)
+    assert res.path.read_bytes() == saved and fit_model(cfg, "gp_residual", "tile").reused
+    same = refit.fit(0)  # the configured seed: the saved fit, again
+    tab = command_table(jackal, 300, seed=5)
+    assert np.allclose(same.predict(tab), res.model.predict(tab))
+    edd_cfg = compose_fit(tmp_path, ["model=edd", "terrain=tile", "calibrate.use=false"])
+    assert not is_seeded(fit_model(edd_cfg, "edd", "tile").model)

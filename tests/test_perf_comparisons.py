@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from bench import check, load_all
-from bench import reproduce as rep
-from bench import scaling as sc
-from bench import vo as vo_bench
+from perf import check, load_all
+from perf import reproduce as rep
+from perf import scaling as sc
+from perf import vo as vo_bench
 
 
 @pytest.mark.parametrize("name", ["vo", "reproduce", "scaling"])
@@ -63,7 +63,7 @@ def test_scaling_reports_an_exponent_per_model_and_kind():
 
 
 def test_render_comparison_reports_both_thread_counts_and_identical_pixels():
-    from bench import render as render_bench
+    from perf import render as render_bench
 
     assert load_all()["render"].targets == {"max_pixel_diff": ("<=", 0)}
     small = {"ground_texture_px": 1024, "wall_texture_px": 256, "n_boxes": 3, "n_posts": 2}

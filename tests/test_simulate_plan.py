@@ -15,7 +15,7 @@ from skidbench.pipeline.robot import Robot
 from skidbench.pipeline.simulate.card import PAPER_TABLE_I
 from skidbench.pipeline.simulate.physics import load_physics
 from skidbench.pipeline.simulate.scenarios import SequenceSpec, plan_sequences
-from skidbench.pipeline.simulate.sequence import simulate_sequence
+from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence
 
 CONF = files("skidbench.conf")
 
@@ -29,7 +29,7 @@ def world():
     robot = Robot.from_config(yaml.safe_load(CONF.joinpath("robot/jackal.yaml").read_text()))
     terrains, drive, tyre = load_physics(yaml.safe_load(CONF.joinpath("sim/jackal.yaml").read_text()))
     sim = yaml.safe_load(CONF.joinpath("simulate.yaml").read_text())
-    run_cfg = {"dt": sim["dt"], "rates": {**sim["rates"], "camera": 15.0}, "sensors": sim["sensors"]}
+    run_cfg = RunSettings(dt=sim["dt"], rates={**sim["rates"], "camera": 15.0}, sensors=sim["sensors"])
     return robot, terrains, drive, tyre, run_cfg
 
 

@@ -45,9 +45,9 @@ def test_amrl_fixture_goes_to_split_files_with_the_true_body_velocities(tmp_path
     assert sorted(p.relative_to(home(tmp_path, FIXTURE) / "splits").parts[:2] for p in files) == sorted(
         (t, s) for t in ("grass", "tile") for s in ("cv", "ld", "train")
     )
-    df, meta = read_split(home(tmp_path, FIXTURE) / "splits" / "tile" / "train" / "tile_train_01.parquet")
+    df, meta = read_split(home(tmp_path, FIXTURE) / "splits" / "tile" / "cv" / "tile_cv_01.parquet")
     assert list(df.columns) == list(SPLIT_COLUMNS)
-    assert meta["terrain"] == "tile" and meta["split"] == "train" and meta["robot"]["name"] == "jackal"
+    assert meta["terrain"] == "tile" and meta["split"] == "cv" and meta["robot"]["name"] == "jackal"
     assert set(meta["sources"]) == {"groundtruth", "cmd"} and all(
         s["fingerprint"] for s in meta["sources"].values()
     )

@@ -11,13 +11,13 @@ import pytest
 
 from skidbench.pipeline.errors import GroundTruthError
 from skidbench.pipeline.geometry import se2_compose
-from skidbench.pipeline.sources.drive_df import raw_to_sequences, windows_to_sequences
+from skidbench.pipeline.sources.drive_df import WindowSettings, raw_to_sequences, windows_to_sequences
 
 
 def test_windows_chain_into_train_cv_ld_sequences(shared_real):
     path = shared_real / "drive" / "husky_windows.parquet"
     df = pd.read_parquet(path)
-    seqs = windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "husky")
+    seqs = windows_to_sequences(df, path, WindowSettings(20.0, (0.6, 0.2, 0.2), "husky"))
     cats = [s.category for s in seqs]
     assert list(dict.fromkeys(cats)) == ["train", "cv", "ld"]  # contiguous blocks, in order
     # the file's 9 boundaries where a wheel jumps by more than it ever changes inside a window (5.4-6.8

@@ -8,6 +8,7 @@ import pandas as pd
 from skidbench.pipeline.geometry import se2_compose
 from skidbench.pipeline.sources.drive_df import (
     WINDOW,
+    WindowSettings,
     command_gain,
     fresh_samples,
     window_breaks,
@@ -88,7 +89,9 @@ def test_windows_chain_back_exactly_with_yaw_wraps_and_no_holes(tmp_path):
     steps = [(0.5, 0.4), (0.3, -1.2), (-0.4, 0.9), (0.6, 0.0), (0.2, 1.5)]
     df, pose, world = drive_like_frame(steps, hold_icp=False)
     df.loc[3, "calib_step"] = 0.0  # step 0 "has 4 windows", step 1 "has 2"
-    seqs = windows_to_sequences(df, tmp_path / "husky_windows.parquet", 20.0, (1.0, 0.0, 0.0), "husky")
+    seqs = windows_to_sequences(
+        df, tmp_path / "husky_windows.parquet", WindowSettings(20.0, (1.0, 0.0, 0.0), "husky")
+    )
     gt = seqs[0].tables.gt_pose
     stamps = gt["stamp_ns"].to_numpy()
     assert np.all(np.diff(stamps) == 50_000_000)  # contiguous: no hole
@@ -126,15 +129,10 @@ def test_command_convention_is_converted_back_to_body_twist(tmp_path):
     mr = df[[f"right_wheel_vel_{k}" for k in range(WINDOW)]].to_numpy()
     gs, gd, n = command_gain(cl, cr, ml, mr)
     assert n >= 5 and abs(gs - R_CMD / 0.165) < 1e-3  # the mismatch is measured
-    seqs = windows_to_sequences(
-        df,
-        tmp_path / "husky_windows.parquet",
-        20.0,
-        (1.0, 0.0, 0.0),
-        "husky",
-        cmd_kinematics=(R_CMD, B_CMD),
-        cmd_limits=(1.0, 1.6),
+    settings = WindowSettings(
+        20.0, (1.0, 0.0, 0.0), "husky", cmd_kinematics=(R_CMD, B_CMD), cmd_limits=(1.0, 1.6)
     )
+    seqs = windows_to_sequences(df, tmp_path / "husky_windows.parquet", settings)
     assert all(q.tables.cmd_wheels is None for q in seqs)
     cmd = pd.concat([q.tables.cmd_vel for q in seqs])  # contiguous blocks, in order
     v = np.repeat([s[0] for s in steps], 3 * WINDOW)
@@ -168,7 +166,7 @@ def test_windows_that_are_not_back_to_back_start_a_new_sequence(tmp_path):
     assert np.flatnonzero(breaks).tolist() == [len(a) - 1]
 
     path = tmp_path / "husky_windows.parquet"
-    seqs = windows_to_sequences(df, path, 20.0, (1.0, 0.0, 0.0), "husky")
+    seqs = windows_to_sequences(df, path, WindowSettings(20.0, (1.0, 0.0, 0.0), "husky"))
     assert [q.name for q in seqs] == ["husky_train_00", "husky_train_01", "husky_cv_00", "husky_ld_00"]
     assert [q.steps for q in seqs] == [3, 2, 1, 1]
     for q, world, n_win in ((seqs[0], world_a, len(a)), (seqs[1], world_b, 6)):
@@ -176,7 +174,9 @@ def test_windows_that_are_not_back_to_back_start_a_new_sequence(tmp_path):
         idx = np.concatenate([np.arange(WINDOW) + w * (WINDOW - 1) for w in range(n_win)])
         np.testing.assert_allclose(got, _in_start_frame(world)[idx], atol=1e-9)
         assert len(q.tables.enc_wheels) == WINDOW * n_win
-    whole = windows_to_sequences(df, path, 20.0, (1.0, 0.0, 0.0), "husky", break_at_jumps=False)
+    whole = windows_to_sequences(
+        df, path, WindowSettings(20.0, (1.0, 0.0, 0.0), "husky", break_at_jumps=False)
+    )
     assert [q.name for q in whole] == ["husky_train_00", "husky_cv_00", "husky_ld_00"]
 
 

@@ -17,6 +17,7 @@ from skidbench.pipeline.sources.drive_df import (
     COMMAND,
     SLIP_BLOCKS,
     WINDOW,
+    WindowSettings,
     classify_rows,
     detect_form,
     raw_to_sequences,
@@ -42,9 +43,9 @@ def test_slip_version_reads_into_the_same_tables_as_the_578_column_version():
     slip = as_slip_version(df)
     assert detect_form(slip, "x")[1] == "slip_dataset_all"
     assert detect_form(df, "x")[0] == "windows"
-    kw = dict(cmd_kinematics=(0.3, 1.08))
-    a = windows_to_sequences(df, Path("a.parquet"), 20.0, (0.6, 0.2, 0.2), "w", **kw)
-    b = windows_to_sequences(slip, Path("b.parquet"), 20.0, (0.6, 0.2, 0.2), "w", **kw)
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "w", cmd_kinematics=(0.3, 1.08))
+    a = windows_to_sequences(df, Path("a.parquet"), settings)
+    b = windows_to_sequences(slip, Path("b.parquet"), settings)
     assert [s.name for s in a] == [s.name for s in b]
     for sa, sb in zip(a, b, strict=True):
         assert sa.tables.present().keys() == sb.tables.present().keys()
@@ -65,7 +66,7 @@ def test_window_samples_under_a_zero_command_while_moving_are_reported():
 def test_a_window_file_without_calib_step_is_one_clear_line():
     df, _, _ = drive_like_frame(STEPS)
     with pytest.raises(SourceError, match=r"w\.parquet: window form without a calib_step column"):
-        windows_to_sequences(df.drop(columns="calib_step"), Path("w.parquet"), 20.0, (0.6, 0.2, 0.2), "w")
+        windows_to_sequences(df.drop(columns="calib_step"), Path("w.parquet"), WindowSettings(label="w"))
 
 
 def test_not_a_drive_frame_is_one_line():
@@ -116,14 +117,14 @@ def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
     path = shared_real / "drive" / "husky_windows.parquet"
     df = pd.read_parquet(path)
     checks: dict = {}
-    windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08),
-                         robot=load_robot("husky"), checks=checks)  # fmt: skip
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08))
+    windows_to_sequences(df, path, settings, robot=load_robot("husky"), checks=checks)
     assert 0.7 < checks["speed_gain"] < 1.1 and 0.8 < checks["implied_radius_ratio"] < 1.1
     # the geometry refuses it as a Warthog's (not the speed gain, which the command conversion also moves)
     refused = r"robot=warthog: the ground truth travels 0\.15\d m per wheel radian.* 0\.50x the spec sheet's"
     with pytest.raises(ConfigError, match=refused):
-        windows_to_sequences(df, path, 20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08),
-                             robot=load_robot("warthog"), identify=True)  # fmt: skip
+        identified = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+        windows_to_sequences(df, path, identified, robot=load_robot("warthog"))
 
 
 def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_real, tmp_path):

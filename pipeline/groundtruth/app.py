@@ -149,7 +149,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         except ImportError as exc:
             raise GroundTruthError(f"groundtruth.method=vo is not available ({exc}); use pose_topic") from exc
         bag = manifest.resolve(seq)
-        traj = vo.run_stereo_vo(bag, cfg, extracted=ext)
+        traj = vo.run_stereo_vo(bag, vo.StereoSettings.from_cfg(cfg), extracted=ext)
         fp = fingerprint_file(bag) if bag.is_file() else None
         return traj, {"files": {str(bag): fp}}
     raise ConfigError(f"groundtruth.method={method!r}: expected vo, orbslam or pose_topic")
@@ -188,7 +188,7 @@ def stage_config(cfg: DictConfig) -> dict[str, Any]:
     if gt.get("method") == "vo":  # VO reads the stereo topics of source.topics
         from .vo import source_image_topics
 
-        out["vo_topics"] = source_image_topics(cfg)
+        out["vo_topics"] = source_image_topics(cfg.source.get("topics"))
     return out
 
 

@@ -59,11 +59,11 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(a, b)[0, 1])
 
 
-def consistency(df: pd.DataFrame, wheel_radius: float, track_width: float, cfg: GateConfig | None = None):
+def consistency(df: pd.DataFrame, wheel_radius: float, track_width: float, gate: GateConfig | None = None):
     """The gate's numbers for one split table (module docstring): a dict with ``wheels`` (``encoders`` or
     ``commands``), ``moving_rows``, ``sign_agreement``, ``heading_offset_deg``, ``corr_v``, ``corr_w``,
     ``uncommanded_s``, ``valid_s``, ``flagged`` (bool) and ``reasons`` (list of str)."""
-    cfg = cfg or GateConfig()
+    gate = gate or GateConfig()
     valid = df["valid"].to_numpy(bool)
     t = df["t"].to_numpy(float)
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
@@ -83,8 +83,8 @@ def consistency(df: pd.DataFrame, wheel_radius: float, track_width: float, cfg: 
     v = wheel_radius * (wl + wr) / 2
     w = wheel_radius * (wr - wl) / track_width
     vx, vy, wz = (df[c].to_numpy(float) for c in ("vx", "vy", "wz"))
-    moving = valid & ((np.abs(v) > cfg.min_speed) | (np.abs(vx) > cfg.min_speed))
-    signed = valid & (np.abs(v) > cfg.min_speed) & (np.abs(vx) > cfg.min_speed)
+    moving = valid & ((np.abs(v) > gate.min_speed) | (np.abs(vx) > gate.min_speed))
+    signed = valid & (np.abs(v) > gate.min_speed) & (np.abs(vx) > gate.min_speed)
     out: dict[str, Any] = {"wheels": "encoders" if use_enc else "commands", "moving_rows": int(moving.sum())}
     out["sign_agreement"] = (
         float(np.mean(np.sign(vx[signed]) == np.sign(v[signed]))) if signed.any() else None
@@ -98,23 +98,23 @@ def consistency(df: pd.DataFrame, wheel_radius: float, track_width: float, cfg: 
     out["corr_v"] = _corr(vx[moving], v[moving])
     out["corr_w"] = _corr(wz[moving], w[moving])
     cmd_zero = (np.abs(df["cmd_wl"].to_numpy(float)) < 1e-9) & (np.abs(df["cmd_wr"].to_numpy(float)) < 1e-9)
-    turning = np.fmax(np.abs(np.nan_to_num(enc[:, 0])), np.abs(np.nan_to_num(enc[:, 1]))) > cfg.moving_wheel
+    turning = np.fmax(np.abs(np.nan_to_num(enc[:, 0])), np.abs(np.nan_to_num(enc[:, 1]))) > gate.moving_wheel
     # rows since the command last was non-zero (a run of zero commands longer than settle_s)
     last_cmd = np.maximum.accumulate(np.where(~cmd_zero, np.arange(len(t)), -(10**9)))
-    settled = (np.arange(len(t)) - last_cmd) * dt > cfg.settle_s
-    uncommanded = valid & cmd_zero & settled & (turning | (np.hypot(vx, vy) > cfg.min_speed))
+    settled = (np.arange(len(t)) - last_cmd) * dt > gate.settle_s
+    uncommanded = valid & cmd_zero & settled & (turning | (np.hypot(vx, vy) > gate.min_speed))
     out["uncommanded_s"] = float(uncommanded.sum() * dt)
     out["valid_s"] = float(valid.sum() * dt)
     reasons = []
-    if out["moving_rows"] >= cfg.min_rows:
+    if out["moving_rows"] >= gate.min_rows:
         sa, off, cv = out["sign_agreement"], out["heading_offset_deg"], out["corr_v"]
-        if sa is not None and signed.sum() >= cfg.min_rows and sa < cfg.min_sign_agreement:
+        if sa is not None and signed.sum() >= gate.min_rows and sa < gate.min_sign_agreement:
             reasons.append(f"vx has the sign of the wheels' speed in {100 * sa:.0f} % of moving rows")
-        if off is not None and abs(off) > cfg.max_heading_offset_deg:
+        if off is not None and abs(off) > gate.max_heading_offset_deg:
             reasons.append(f"the ground truth moves at {off:.0f} deg from the wheels' forward direction")
-        if np.isfinite(cv) and cv < cfg.min_corr_v:
+        if np.isfinite(cv) and cv < gate.min_corr_v:
             reasons.append(f"vx and the wheels' speed are anti-correlated ({cv:.2f})")
-    if out["uncommanded_s"] >= 1.0 and out["uncommanded_s"] > cfg.max_uncommanded_frac * out["valid_s"]:
+    if out["uncommanded_s"] >= 1.0 and out["uncommanded_s"] > gate.max_uncommanded_frac * out["valid_s"]:
         reasons.append(
             f"{out['uncommanded_s']:.1f} s of {out['valid_s']:.1f} s move under zero commands "
             "(driven by something else)"

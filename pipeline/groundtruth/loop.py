@@ -21,15 +21,13 @@ first associated pose (start-pose alignment), then
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import GroundTruthError
-from ..extract.convert import header_stamp_ns
 from ..geometry import se2_relative, wrap_angle
 from ..timesync import interp_se2
 from .trajectory import Trajectory
@@ -167,37 +165,3 @@ def evaluate_against_truth(est: Trajectory, truth: Trajectory, rpe_window_s: flo
     else:
         out.update({"rpe_window_s": rpe_window_s, "rpe_n": 0})
     return out
-
-
-def read_true_pose(bag_path: str | Path, cfg: Any = None, topic: str = "/skidbench/true_pose") -> Trajectory:
-    """The simulator's truth (nav_msgs/Odometry) from a bag, header-stamped, streamed."""
-    from .vo import _open
-
-    bag_path = Path(bag_path)
-    stamps, xyz, quat = [], [], []
-    try:
-        with _open(bag_path, cfg) as reader:
-            conns = [c for c in reader.connections if c.topic == topic]
-            if not conns:
-                topics = ", ".join(sorted({c.topic for c in reader.connections}))
-                raise GroundTruthError(f"{bag_path}: topic {topic} not found (topics: {topics})")
-            for conn, bag_ns, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
-                p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                stamps.append(header_stamp_ns(msg, bag_ns))
-                xyz.append((p.x, p.y, p.z))
-                quat.append((q.x, q.y, q.z, q.w))
-    except GroundTruthError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - a damaged bag fails somewhere inside rosbags
-        raise GroundTruthError(f"{bag_path}: cannot read {topic} ({' '.join(str(exc).split())})") from exc
-    if len(stamps) < 2:
-        raise GroundTruthError(f"{bag_path}: topic {topic} has {len(stamps)} messages")
-    order = np.argsort(np.asarray(stamps), kind="stable")
-    return Trajectory(np.asarray(stamps)[order], np.asarray(xyz)[order], np.asarray(quat)[order])
-
-
-def bounds_from_config(cfg: Mapping[str, Any] | None) -> tuple[float, float]:
-    """``(max_trans_err, max_rot_err)`` fractions from a ``loop_closure`` mapping (defaults: the paper)."""
-    cfg = cfg or {}
-    return float(cfg.get("max_trans_err", PAPER_TRANS_BOUND)), float(cfg.get("max_rot_err", PAPER_ROT_BOUND))

@@ -5,8 +5,9 @@ stereo refinement, keyframe policy, tracking-loss gaps) is described in :mod:`.s
 
 Three modules: the algorithm on arrays (:mod:`.stereo_vo`: :class:`StereoVO`, :class:`VOConfig`); a bag's
 stereo pairs (:mod:`.stereo_bag`: camera_info, topics, left/right pairing by header stamp, decoding); and
-this one, the method's entry point: :func:`run_stereo_vo` reads the stage config (``robot.camera``,
-``groundtruth.vo``, ``source.topics``, ``extract.typestores``), streams the bag's pairs through the
+this one, the method's entry point: :func:`run_stereo_vo` takes what it reads of the stage config as a
+:class:`StereoSettings` (``robot.camera``, ``groundtruth.vo``, ``source.topics``,
+``extract.typestores``; ``StereoSettings.from_cfg`` at the app), streams the bag's pairs through the
 algorithm and returns the base-frame trajectory ``T_b0_bi = T_b_c T_c0_ci T_b_c^-1``.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +33,7 @@ __all__ = [
     "StereoCamera",
     "VOStats",
     "run_stereo_vo",
+    "StereoSettings",
     "camera_extrinsic",
     "camera_to_base",
     "base_to_camera",
@@ -41,8 +44,8 @@ __all__ = [
 ]
 
 
-def _get(cfg: Any, path: str, default: Any = None) -> Any:
-    cur = cfg
+def _get(node: Any, path: str, default: Any = None) -> Any:
+    cur = node
     for part in path.split("."):
         try:
             cur = cur[part]
@@ -53,23 +56,40 @@ def _get(cfg: Any, path: str, default: Any = None) -> Any:
     return cur
 
 
-def _open(bag_path: Path, cfg: Any):
-    """The bag open for reading with the config's ``extract.typestores`` (default: DEFAULT_STORES)."""
-    return open_stereo_bag(bag_path, _get(cfg, "extract.typestores", None))
+def _plain(value: Any) -> Any:
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
+@dataclass(frozen=True)
+class StereoSettings:
+    """What the ``vo`` method reads of the stage config: the left camera's pose on the robot
+    (``robot.camera``: ``xyz``, ``rpy``), the VO options (``groundtruth.vo``), the stereo topics as
+    ``source.topics`` names them (a mapping, or ``auto``: those extract chose) and the default typestore
+    per bag format (``extract.typestores``; None: DEFAULT_STORES)."""
+
+    camera: Mapping[str, Any] | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
+    topics: Any = None
+    typestores: Mapping[str, str] | None = None
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> StereoSettings:
+        """From a stage config (a DictConfig or a plain mapping)."""
+        return cls(
+            camera=_plain(_get(cfg, "robot.camera")),
+            options=dict(_plain(_get(cfg, "groundtruth.vo")) or {}),
+            topics=_plain(_get(cfg, "source.topics")),
+            typestores=_plain(_get(cfg, "extract.typestores")),
+        )
 
 
 def _vo_config(
-    cfg: Any, vo: VOConfig | Mapping[str, Any] | None, extracted: str | Path | None = None
+    settings: StereoSettings, vo: VOConfig | Mapping[str, Any] | None, extracted: str | Path | None = None
 ) -> VOConfig:
     if isinstance(vo, VOConfig):
         return vo
-    if vo is None:
-        vo = _get(cfg, "groundtruth.vo", None)
-        if vo is not None and not isinstance(vo, Mapping):
-            vo = dict(vo)
-        if vo is not None and OmegaConf.is_config(vo):
-            vo = OmegaConf.to_container(vo, resolve=True)
-    return VOConfig.from_mapping({**source_image_topics(cfg, extracted), **dict(vo or {})})
+    options = dict(settings.options if vo is None else vo)
+    return VOConfig.from_mapping({**source_image_topics(settings.topics, extracted), **options})
 
 
 # VOConfig option <- the extraction's topic key: VO reads the topics extract was configured with
@@ -81,16 +101,16 @@ _SOURCE_TOPICS = {
 }
 
 
-def source_image_topics(cfg: Any, extracted: str | Path | None = None) -> dict[str, str]:
-    """``source.topics.{left,right}_{image,info}.topic`` as VO options (``left_topic`` ...): a bag whose
-    stereo pair is on other topics (raw ``image_raw`` included) is set once, for extract and VO alike;
-    ``groundtruth.vo.*`` still overrides. With ``source.topics=auto`` the topics are those extract chose
-    for this bag, read from ``extracted`` (the sequence's folder, its ``_extract.json``)."""
-    if _get(cfg, "source.topics") == "auto":
+def source_image_topics(topics: Any, extracted: str | Path | None = None) -> dict[str, str]:
+    """``source.topics`` (``topics``) ``{left,right}_{image,info}.topic`` as VO options (``left_topic``
+    ...): a bag whose stereo pair is on other topics (raw ``image_raw`` included) is set once, for extract
+    and VO alike; ``groundtruth.vo.*`` still overrides. With ``source.topics=auto`` the topics are those
+    extract chose for this bag, read from ``extracted`` (the sequence's folder, its ``_extract.json``)."""
+    if topics == "auto":
         return extracted_image_topics(extracted) if extracted is not None else {}
     out = {}
     for option, key in _SOURCE_TOPICS.items():
-        topic = _get(cfg, f"source.topics.{key}.topic")
+        topic = _get(topics, f"{key}.topic")
         if topic:
             out[option] = str(topic)
     return out
@@ -107,24 +127,24 @@ def extracted_image_topics(extracted: str | Path) -> dict[str, str]:
 
 def run_stereo_vo(
     bag_path: str | Path,
-    cfg: Any,
+    settings: StereoSettings,
     vo: VOConfig | Mapping[str, Any] | None = None,
     stats: dict | None = None,
     extracted: str | Path | None = None,
 ) -> Trajectory:
     """Stereo VO over a bag's images -> base-frame trajectory (first pose = identity), header stamps.
 
-    ``cfg``: the stage config (reads ``robot.camera`` for the extrinsic, ``groundtruth.vo`` for options
-    unless ``vo`` is given, ``extract.typestores`` if present). ``stats``, if given, receives the run's
+    ``settings``: the camera extrinsic, the VO options (``vo``, when given, replaces them), the stereo
+    topics and the typestores (:meth:`StereoSettings.from_cfg`). ``stats``, if given, receives the run's
     counters (frames, keyframes, lost frames, frames/s). ``extracted``: the sequence's extracted folder,
     whose ``_extract.json`` names the stereo topics when ``source.topics=auto``. Every bag problem is one
     GroundTruthError.
     """
     bag_path = Path(bag_path)
-    vocfg = _vo_config(cfg, vo, extracted)
-    camera_cfg = _get(cfg, "robot.camera")
+    vocfg = _vo_config(settings, vo, extracted)
+    camera_cfg = settings.camera
     try:
-        with _open(bag_path, cfg) as reader:
+        with open_stereo_bag(bag_path, settings.typestores) as reader:
             check_image_topics(reader, bag_path, vocfg)  # a bag without images: no ground-truth source
             if camera_cfg is None:
                 raise GroundTruthError(

@@ -10,6 +10,7 @@ killed run resumes where it stopped; ``force=true`` re-simulates everything.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -36,7 +37,7 @@ from .bag import FORMATS, BagSink, bag_path
 from .card import build_rows, render_card, sequence_moments
 from .physics import load_physics
 from .scenarios import SequenceSpec, plan_sequences
-from .sequence import simulate_sequence
+from .sequence import RunSettings, simulate_sequence
 
 log = logging.getLogger("skidbench.simulate")
 
@@ -113,7 +114,7 @@ def _simulate_one(index: int, spec: SequenceSpec, final: Path, tick=None) -> dic
             c["terrains"][spec.terrain],
             c["drive"],
             c["tyre"],
-            c["run_cfg"],
+            c["run"],
             c["seed"],
             sink,
             c["renderer"],
@@ -150,7 +151,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     rates = dict(sim_cfg["rates"])
     camera = robot.extra.get("camera") or {}
     rates["camera"] = float(camera.get("fps", 15.0))
-    run_cfg = {"dt": sim_cfg["dt"], "rates": rates, "sensors": sim_cfg["sensors"]}
+    run = RunSettings(dt=sim_cfg["dt"], rates=rates, sensors=sim_cfg["sensors"])
 
     layout = layout_from_cfg(cfg)
     bags_dir = layout.raw / "bags"
@@ -176,7 +177,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 "format": fmt,
                 "images": bool(cfg.images),
                 "render": sim_cfg.get("render"),
-                "run": run_cfg,
+                "run": dataclasses.asdict(run),
                 "robot": robot.to_dict(),
                 "physics": sim_cfg["sim"],
                 "code": code,
@@ -201,7 +202,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             terrains=terrains,
             drive=drive,
             tyre=tyre,
-            run_cfg=run_cfg,
+            run=run,
             seed=seed,
             fmt=fmt,
             renderer=make_renderer(robot, cfg, seed),

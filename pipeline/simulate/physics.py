@@ -38,16 +38,16 @@ from ..robot import Robot
 WORLD_GRAVITY = 9.81
 
 
-def _from_mapping(cls, cfg: Mapping[str, Any], what: str):
+def _from_mapping(cls, values: Mapping[str, Any], what: str):
     names = {f.name for f in fields(cls)}
-    unknown = sorted(set(cfg) - names)
-    missing = sorted(n for n in names if n not in cfg and n != "name")
+    unknown = sorted(set(values) - names)
+    missing = sorted(n for n in names if n not in values and n != "name")
     if unknown or missing:
         raise SimulateError(
             f"{what}: bad physics parameters (unknown: {', '.join(unknown) or '-'}; "
             f"missing: {', '.join(missing) or '-'}); see conf/sim/jackal.yaml"
         )
-    return cls(**{k: float(v) if k != "name" else str(v) for k, v in cfg.items()})
+    return cls(**{k: float(v) if k != "name" else str(v) for k, v in values.items()})
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,8 @@ class TerrainParams:
     rolling_resistance: float  # mu_rr: rolling / bulldozing resistance coefficient, -
 
     @classmethod
-    def from_config(cls, name: str, cfg: Mapping[str, Any]) -> TerrainParams:
-        return _from_mapping(cls, {"name": name, **dict(cfg)}, f"terrain {name}")
+    def from_config(cls, name: str, section: Mapping[str, Any]) -> TerrainParams:
+        return _from_mapping(cls, {"name": name, **dict(section)}, f"terrain {name}")
 
 
 @dataclass(frozen=True)
@@ -79,8 +79,8 @@ class DriveParams:
     viscous_friction: float  # gearbox viscous loss, N m / (rad/s)
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> DriveParams:
-        return _from_mapping(cls, dict(cfg), "drive")
+    def from_config(cls, section: Mapping[str, Any]) -> DriveParams:
+        return _from_mapping(cls, dict(section), "drive")
 
 
 @dataclass(frozen=True)
@@ -91,8 +91,8 @@ class TyreParams:
     rolling_sign_speed: float  # rolling resistance fades in over this wheel speed (smooth sign), m/s
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> TyreParams:
-        return _from_mapping(cls, dict(cfg), "tyre")
+    def from_config(cls, section: Mapping[str, Any]) -> TyreParams:
+        return _from_mapping(cls, dict(section), "tyre")
 
 
 def brush_force(slip: float, friction: float, normal_load: float, theta: float) -> float:
@@ -290,10 +290,10 @@ class SkidSteerSim:
         return self.vx + self.wz * yc, self.vy - self.wz * xc, self.wz
 
 
-def load_physics(cfg: Mapping[str, Any]) -> tuple[dict[str, TerrainParams], DriveParams, TyreParams]:
+def load_physics(sim: Mapping[str, Any]) -> tuple[dict[str, TerrainParams], DriveParams, TyreParams]:
     """(terrains by name, drive, tyre) from the ``sim`` config group mapping."""
     try:
-        terrains = {name: TerrainParams.from_config(name, t) for name, t in dict(cfg["terrains"]).items()}
-        return terrains, DriveParams.from_config(cfg["drive"]), TyreParams.from_config(cfg["tyre"])
+        terrains = {name: TerrainParams.from_config(name, t) for name, t in dict(sim["terrains"]).items()}
+        return terrains, DriveParams.from_config(sim["drive"]), TyreParams.from_config(sim["tyre"])
     except KeyError as exc:
         raise SimulateError(f"sim config: missing section {exc}; see conf/sim/jackal.yaml") from exc

@@ -20,6 +20,17 @@ from .bag import POSE_COV, TRUTH_COV, TWIST_COV, BagSink
 from .physics import WORLD_GRAVITY, DriveParams, SkidSteerSim, TerrainParams, TyreParams
 from .scenarios import SequenceSpec, make_driver, sequence_rng
 
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What a simulated run reads of the ``simulate`` config: the physics step ``dt`` (s), the rate of
+    every stream (``rates``, Hz, the camera's included) and the sensor noise levels (``sensors``)."""
+
+    dt: float
+    rates: Mapping[str, float]
+    sensors: Mapping[str, float]
+
+
 EPOCH_NS = 1_700_000_000 * 1_000_000_000  # bag clock of the first sequence (a fixed date: same bytes)
 SEQUENCE_SPACING_NS = 3600 * 1_000_000_000  # each sequence starts an hour after the previous one
 
@@ -57,7 +68,7 @@ def simulate_sequence(
     terrain: TerrainParams,
     drive: DriveParams,
     tyre: TyreParams,
-    cfg: Mapping[str, Any],
+    run: RunSettings,
     seed: int,
     sink: BagSink | None,
     renderer: Any | None = None,
@@ -65,12 +76,12 @@ def simulate_sequence(
 ) -> Truth:
     """Run ``spec`` and write its messages to ``sink`` (None: physics and truth only, for tests).
 
-    ``cfg``: the ``simulate`` config (``dt`` s, ``rates`` Hz per stream, ``sensors`` noise levels).
+    ``run``: the step, the streams' rates and the sensor noise (:class:`RunSettings`).
     """
-    dt = float(cfg["dt"])
+    dt = float(run.dt)
     dt_ns = int(round(dt * 1e9))
-    rates = {k: float(v) for k, v in cfg["rates"].items()}
-    noise = cfg["sensors"]
+    rates = {k: float(v) for k, v in run.rates.items()}
+    noise = run.sensors
     t0_ns = EPOCH_NS + index * SEQUENCE_SPACING_NS
 
     rng = sequence_rng(seed, spec.name)

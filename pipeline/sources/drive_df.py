@@ -103,6 +103,7 @@ from .drive_files import (  # noqa: F401 - re-exported: the reader's public name
 from .drive_rows import COMMAND, IDLE, OTHER, DriveSequence, classify_rows, segments_of  # noqa: F401
 from .drive_windows import (  # noqa: F401
     HELD_KEEP,
+    WindowSettings,
     chain_windows,
     command_gain,
     fresh_samples,
@@ -359,20 +360,17 @@ def _read_file(path: Path, src: DriveSettings, robot, label: str) -> tuple[str, 
         segs: list = []
         seqs = raw_to_sequences(df, path, fractions, label, segments=segs, robot=robot, checks=checks)
         return form, version, seqs, checks, segs
-    seqs = windows_to_sequences(
-        df,
-        path,
-        float(src.rate_hz),
-        fractions,
-        label,
+    windows = WindowSettings(
+        rate_hz=float(src.rate_hz),
+        fractions=fractions,
+        label=label,
         cmd_kinematics=_robot_entry(src.cmd_kinematics, robot.name),
         cmd_limits=_robot_entry(src.cmd_limits, robot.name),
         break_at_jumps=bool(src.break_at_jumps),
-        robot=robot,
-        checks=checks,
         identify=bool(src.identify_cmd_kinematics),
         kinematics_key=f"source.cmd_kinematics.{robot.name}",
     )
+    seqs = windows_to_sequences(df, path, windows, robot=robot, checks=checks)
     return form, version, seqs, checks, window_segments(df, path)
 
 

@@ -10,6 +10,7 @@ categories) are documented in :mod:`skidbench.pipeline.sources.drive_df`.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -184,37 +185,43 @@ def _commands_and_robot(path, arrays, robot, cmd_kinematics, identify, key, chec
     return cmd_kinematics
 
 
-def windows_to_sequences(
-    df: pd.DataFrame,
-    path: Path,
-    rate_hz: float,
-    fractions,
-    label: str,
-    cmd_kinematics=None,
-    cmd_limits=None,
-    break_at_jumps: bool = True,
-    robot=None,
-    checks: dict | None = None,
-    identify: bool = False,
-    kinematics_key: str = "source.cmd_kinematics",
-) -> list[DriveSequence]:
-    """Window form -> its sequences (the choices: the
-    :mod:`~skidbench.pipeline.sources.drive_df` docstring). ``cmd_kinematics`` (r, B): the conversion DRIVE
-    used for ``cmd_left/right`` (with ``identify`` and a ``robot``: identified from the file, this only
-    the fallback named ``kinematics_key``); when known the commands are written as a body twist
-    (``cmd_vel``), clipped to ``cmd_limits`` (v_max, w_max) if given; else as ``cmd_wheels``.
+@dataclass(frozen=True)
+class WindowSettings:
+    """How a window file is cut into sequences (the choices: the
+    :mod:`~skidbench.pipeline.sources.drive_df` docstring). ``rate_hz``: the sampling rate; ``fractions``:
+    the train/cv/ld shares of the 6 s steps; ``label``: the sequence-name prefix; ``cmd_kinematics``
+    (r, B): the conversion DRIVE used for ``cmd_left/right`` (with ``identify`` and a robot: identified from
+    the file, this only the fallback named ``kinematics_key``); when known the commands are written as a
+    body twist (``cmd_vel``), clipped to ``cmd_limits`` (v_max, w_max) if given, else as ``cmd_wheels``;
     ``break_at_jumps``: a boundary that is not back to back (:func:`window_breaks`) starts a new sequence
-    of the category. ``robot``: checked against the data (:mod:`.drive_checks`), its numbers stored in
-    ``checks``. A recording nothing can be scored on is one SourceError."""
+    of the category."""
+
+    rate_hz: float = 20.0
+    fractions: tuple[float, ...] = (0.6, 0.2, 0.2)
+    label: str = "drive"
+    cmd_kinematics: tuple[float, float] | None = None
+    cmd_limits: tuple[float, float] | None = None
+    break_at_jumps: bool = True
+    identify: bool = False
+    kinematics_key: str = "source.cmd_kinematics"
+
+
+def windows_to_sequences(
+    df: pd.DataFrame, path: Path, settings: WindowSettings, robot=None, checks: dict | None = None
+) -> list[DriveSequence]:
+    """Window form -> its sequences, cut as ``settings`` say. ``robot``: checked against the data
+    (:mod:`.drive_checks`), its numbers stored in ``checks``. A recording nothing can be scored on is one
+    SourceError."""
+    s = settings
     df, step = _ordered(df, path)
     arrays = window_arrays(df, path)
     notes = check_recording(path, window_recording(arrays), refuse_without_gt=True)
     cmd_kinematics = _commands_and_robot(
-        path, arrays, robot, cmd_kinematics, identify, kinematics_key, checks
+        path, arrays, robot, s.cmd_kinematics, s.identify, s.kinematics_key, checks
     )
-    cats = category_by_rank(list(dict.fromkeys(step.tolist())), tuple(fractions))
+    cats = category_by_rank(list(dict.fromkeys(step.tolist())), tuple(s.fractions))
     breaks = np.zeros(max(len(df) - 1, 0), dtype=bool)
-    if break_at_jumps:
+    if s.break_at_jumps:
         breaks = window_breaks(arrays["left_wheel_vel"], arrays["right_wheel_vel"])
         log.info(
             "%s: %d of %d window boundaries are not back to back (a wheel rate jumps by more than any "
@@ -223,7 +230,7 @@ def windows_to_sequences(
             int(breaks.sum()),
             breaks.size,
         )
-    dt_ns = int(round(1e9 / rate_hz))
+    dt_ns = int(round(1e9 / s.rate_hz))
     out = []
     for cat in ("train", "cv", "ld"):
         cat_i = np.flatnonzero(np.array([cats[s] == cat for s in step], dtype=bool))
@@ -232,8 +239,8 @@ def windows_to_sequences(
         # the category's windows, cut at its breaks (a break at the boundary into the category is moot)
         cuts = np.flatnonzero(breaks[cat_i[1:] - 1]) + 1
         for part, rows_i in enumerate(np.split(cat_i, cuts)):
-            tables, n_steps = _window_tables(arrays, step, rows_i, dt_ns, cmd_kinematics, cmd_limits)
-            out.append(DriveSequence(f"{label}_{cat}_{part:02d}", cat, tables, n_steps, tuple(notes)))
+            tables, n_steps = _window_tables(arrays, step, rows_i, dt_ns, cmd_kinematics, s.cmd_limits)
+            out.append(DriveSequence(f"{s.label}_{cat}_{part:02d}", cat, tables, n_steps, tuple(notes)))
     return out
 
 

@@ -1,12 +1,12 @@
 """``make bench``: side-by-side performance comparisons, one subprocess each (see ``harness.py``).
 
 Not part of the installed package (it holds a frozen copy of an old solver, ``friction_legacy.py``, and
-measures the package from outside): it runs from the repository root, ``python -m bench``.
+measures the package from outside): it runs from the repository root, ``python -m perf``.
 
 A comparison is a function registered with :func:`register` in a module of this package; the harness
 imports every module here, so adding a comparison is adding a module::
 
-    from bench import register
+    from perf import register
 
     @register("friction_solver", "batched solve vs per-step least_squares", targets={"ratio": (">=", 100)})
     def friction_solver(quick: bool) -> dict[str, float]:
@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-#: the repository root: ``bench`` is importable as a top-level package from there
+#: the repository root: ``perf`` is importable as a top-level package from there
 REPO = Path(__file__).resolve().parents[1]
 
 OPS: dict[str, Callable[[float, float], bool]] = {
@@ -75,7 +75,7 @@ def load_all() -> dict[str, Comparison]:
 
 def child_env(env: dict[str, str] | None = None) -> dict[str, str]:
     """``env`` (default: this process's environment) with the repository root first on ``PYTHONPATH``, for a
-    child ``python -m bench.<module>`` started from any working directory (``bench`` is not installed)."""
+    child ``python -m perf.<module>`` started from any working directory (``perf`` is not installed)."""
     env = dict(os.environ if env is None else env)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
     return env

@@ -7,7 +7,7 @@ Scale: ``mini`` (what ``make reproduce`` runs); ``SKIDBENCH_BENCH_SCALE=tiny`` f
 stages done are reported, the total says incomplete).
 
 Each stage runs as ``skidbench <stage> scale=<s> seed=0`` in its own process, under a small wrapper
-(``python -m bench.reproduce stage <json> <stage> [overrides]``) that runs the CLI
+(``python -m perf.reproduce stage <json> <stage> [overrides]``) that runs the CLI
 in-process (``runpy``, as ``python -m skidbench.pipeline.cli``) and at exit writes its own ``VmHWM`` (the
 high-water mark of the stage's process image) and ``RUSAGE_CHILDREN``'s ``ru_maxrss`` (the largest process
 the stage started and waited for, e.g. the simulator's workers). Not ``/usr/bin/time -v`` nor the
@@ -58,12 +58,12 @@ def run_stage(
     stage: str, args: list[str], out_root: Path, cwd: Path, label: str | None = None
 ) -> dict[str, Any]:
     """One stage in a fresh process under the wrapper: wall/CPU seconds, peak RSS (MiB), exit code."""
-    env = child_env()  # the stage's cwd is its own folder: bench found through PYTHONPATH
+    env = child_env()  # the stage's cwd is its own folder: perf found through PYTHONPATH
     env["SKIDBENCH_OUT"] = str(out_root)
     env.pop("MLFLOW_TRACKING_URI", None)  # the fresh root's own mlflow.db
     with tempfile.NamedTemporaryFile(prefix="skidbench-stage-", suffix=".json", delete=False) as f:
         report = Path(f.name)
-    cmd = [sys.executable, "-m", "bench.reproduce", "stage", str(report), stage, *args]
+    cmd = [sys.executable, "-m", "perf.reproduce", "stage", str(report), stage, *args]
     log = cwd / f"{label or stage}.log"
     started = time.perf_counter()
     with log.open("w") as out:
@@ -108,7 +108,7 @@ def reproduce(scale: str, keep: Path | None = None, budget_min: float | None = N
             res = run_stage(stage, [f"scale={scale}", "seed=0", *extra], out_root, root, label)
             stages.append(res)
             print(
-                f"bench reproduce: {label} {res['wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MiB"
+                f"perf reproduce: {label} {res['wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MiB"
                 + (f" FAILED: {res.get('error')}" if res["exit"] else ""),
                 file=sys.stderr,
                 flush=True,
@@ -203,5 +203,5 @@ if __name__ == "__main__":
     if len(sys.argv) >= 4 and sys.argv[1] == "stage":
         _stage_main(sys.argv[2], sys.argv[3], sys.argv[4:])
     else:
-        print("usage: python -m bench.reproduce stage <report.json> <stage> [args]")
+        print("usage: python -m perf.reproduce stage <report.json> <stage> [args]")
         sys.exit(2)

@@ -1,10 +1,10 @@
 """Extraction: our ``extract_bag`` vs bare rosbags (open, filter connections, iterate, deserialise the
 same messages, nothing else), and extraction's peak memory on a short and a long bag.
 
-Each side of the memory comparison runs in a fresh interpreter (``python -m bench.extraction rss <bag>
+Each side of the memory comparison runs in a fresh interpreter (``python -m perf.extraction rss <bag>
 <out>``), so the figures are each run's own peak RSS.
 Bags are synthetic Jackal bags (``pipeline/extract/synthetic.py``), cached under
-``$SKIDBENCH_OUT/bench/bags``; the simulator's ``sim-mini``/``sim-full`` bags are measured too when
+``$SKIDBENCH_OUT/perf/bags``; the simulator's ``sim-mini``/``sim-full`` bags are measured too when
 they exist.
 """
 
@@ -42,7 +42,7 @@ IMAGE_BYTES = 2048
 
 
 def bag_cache() -> Path:
-    return default_out_root() / "bench" / "bags"
+    return default_out_root() / "perf" / "bags"
 
 
 def synthetic_bag(duration_s: float, fmt: str = "ros1") -> Path:
@@ -99,7 +99,7 @@ def measure_rss(bag: Path, mode: str = "ours") -> dict[str, float]:
     ``mode``: ``ours`` (extract_bag, synthetic topics), ``sim`` (extract_bag, the sim config's topics) or
     ``bare`` (rosbags alone)."""
     with tempfile.TemporaryDirectory(prefix="skidbench-rss-") as tmp:
-        cmd = [sys.executable, "-m", "bench.extraction", mode, str(bag), tmp]
+        cmd = [sys.executable, "-m", "perf.extraction", mode, str(bag), tmp]
         proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=child_env())
     return json.loads(proc.stdout.strip().splitlines()[-1])
 

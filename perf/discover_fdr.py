@@ -1,7 +1,7 @@
 """How often discovery names something that is not there (docs/discovery.md, "False discoveries").
 
-    python -m bench.discover_fdr                      # every set, the seeds below (from the repository root)
-    python -m bench.discover_fdr --sets clean --seeds 20 --jobs 1 --out outputs/discover_fdr
+    python -m perf.discover_fdr                      # every set, the seeds below (from the repository root)
+    python -m perf.discover_fdr --sets clean --seeds 20 --jobs 1 --out outputs/discover_fdr
 
 Generates datasets whose truth is known (``tests/discover_data.py``: the extended differential drive plus
 exactly the hidden effects, in physical form) in two worlds, runs the search of ``skidbench discover``
@@ -281,7 +281,7 @@ def summary(rows: list[dict[str, Any]], command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m bench.discover_fdr", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m perf.discover_fdr", description=__doc__.split("\n\n")[0])
     ap.add_argument("--sets", default="clean,clean_sim,clean_blocks,single,outside")
     ap.add_argument("--seeds", type=int, default=20, help="clean datasets (the other sets scale from it)")
     ap.add_argument("--jobs", type=int, default=1, help="processes (the machine's cores are shared)")
@@ -312,7 +312,7 @@ def main(argv: list[str] | None = None) -> None:
                   f"{r.get('cpu_s')} CPU-s", flush=True)  # fmt: skip
     wanted = {case_id(c) for c in cases(a.sets.split(","), a.seeds)}
     rows = [r for k, r in done.items() if k in wanted]
-    command = "python -m bench.discover_fdr " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python -m perf.discover_fdr " + " ".join(sys.argv[1:] if argv is None else argv)
     text = summary(rows, command.strip())
     (out / "summary.md").write_text(text)
     print(text)

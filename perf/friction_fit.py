@@ -5,7 +5,7 @@ truth from an extended differential drive with side slip and noise, so the frict
 truth), read back from split files and fitted as :func:`skidbench.models.fitting.fit_model` fits it
 (configured initial parameters and options). ``quick``: the 1x case (3,000 rows).
 
-- old: ``bench/friction_legacy.py``, the version-1.5 solve and fit frozen (finite-difference
+- old: ``perf/friction_legacy.py``, the version-1.5 solve and fit frozen (finite-difference
   Jacobians inside the Levenberg-Marquardt and for the five parameters);
 - new: ``FrictionBased.fit`` (compiled per-step solve with the analytic Jacobian, implicit-function
   parameter Jacobian).

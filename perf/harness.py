@@ -1,11 +1,11 @@
 """Runs the registered comparisons, each in its own Python process (so one comparison's allocations,
 caches and imports never colour the next, and the machine's drift hits both sides of a ratio alike),
-then writes ``bench/results/latest.json`` and ``latest.md`` and prints the table.
+then writes ``perf/results/latest.json`` and ``latest.md`` and prints the table.
 
-    python -m bench                 # every comparison (from the repository root)
-    python -m bench extraction      # some
-    python -m bench --quick         # small problems (a smoke run)
-    python -m bench --list
+    python -m perf                 # every comparison (from the repository root)
+    python -m perf extraction      # some
+    python -m perf --quick         # small problems (a smoke run)
+    python -m perf --list
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def run_in_subprocess(name: str, quick: bool, timeout_s: float) -> dict[str, Any
     """Run one comparison in a fresh interpreter and collect its JSON result (or its error)."""
     with tempfile.TemporaryDirectory(prefix="skidbench-bench-") as tmp:
         out = Path(tmp) / "result.json"
-        cmd = [sys.executable, "-m", "bench.harness", "--one", name, "--json", str(out)]
+        cmd = [sys.executable, "-m", "perf.harness", "--one", name, "--json", str(out)]
         if quick:
             cmd.append("--quick")
         try:
@@ -130,7 +130,7 @@ def run_all(names: list[str], quick: bool, timeout_s: float, results_dir: Path) 
     if names:  # a partial run keeps the other comparisons' last results (each carries its date)
         results["comparisons"].update(_previous(results_dir / "latest.json"))
     for name in names or list(comparisons):
-        print(f"bench: {name} ...", file=sys.stderr, flush=True)
+        print(f"perf: {name} ...", file=sys.stderr, flush=True)
         res = run_in_subprocess(name, quick, timeout_s)
         res["date"] = results["date"]
         comp = comparisons[name]
@@ -148,7 +148,7 @@ def run_all(names: list[str], quick: bool, timeout_s: float, results_dir: Path) 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m perf", description=__doc__.split("\n")[0])
     parser.add_argument("names", nargs="*", help="comparisons to run (default: all)")
     parser.add_argument("--quick", action="store_true", help="small problems (smoke run)")
     parser.add_argument("--list", action="store_true", help="list the comparisons and exit")

@@ -89,7 +89,7 @@ def main() -> None:
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
 
 
-try:  # the `make bench` harness (bench/__init__.py) collects registered comparisons
+try:  # the `make bench` harness (perf/__init__.py) collects registered comparisons
     from . import register
 except ImportError:  # run as a script
     register = None

@@ -1,5 +1,0 @@
-"""``python -m bench [names] [--quick]``: run the comparisons (see harness.py)."""
-
-from .harness import main
-
-main()

@@ -1,0 +1,168 @@
+"""A board's intervals, ranking rule and the paper's claim (benchmark/standings.py), on synthetic windows:
+compare's cells equal what evaluate logs, a model with one pathological metric does not lead, the claim is
+"holds", "does not hold" or "not resolved by these data" as the differences are resolved, and a board of
+one-window splits ranks nothing and says why."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from skidbench.benchmark import compare, publish
+from skidbench.benchmark import intervals as iv
+from skidbench.benchmark import metrics as mt
+from skidbench.benchmark import standings as st
+from skidbench.benchmark.boards import Board
+from skidbench.benchmark.floor import FLOOR
+from skidbench.benchmark.scoring import summarise
+
+H = 6.0
+
+
+def _windows(
+    rng, terrain, scale: dict[str, float], seconds: float, shared: dict, rot_scale=None
+) -> pd.DataFrame:
+    """Windows of one (model, terrain): a CV and an LD sequence of ``seconds``, 5 windows a second; relative
+    errors lognormal around ``scale[split]`` (%, as fractions), correlated with every model's (``shared``:
+    the same hard windows for everyone)."""
+    frames = []
+    for split in ("cv", "ld"):
+        n = int(seconds * 5)
+        z = shared.setdefault(split, rng.standard_normal(n))
+        x = 0.8 * z + 0.6 * rng.standard_normal(n)
+        rel = scale[split] / 100 * np.exp(0.4 * x)
+        rot = (rot_scale or scale)[split] / 100 * np.exp(0.4 * (0.8 * z + 0.6 * rng.standard_normal(n)))
+        frames.append(pd.DataFrame({"split": split, "horizon_s": H, "sequence": f"{terrain}_{split}_00",
+                                    "start": np.arange(n) * 6, "t0": np.arange(n) / 5.0,
+                                    "rel_trans": rel, "rel_rot": rot, "trans_err": rel}))  # fmt: skip
+    return pd.concat(frames, ignore_index=True)
+
+
+def _board(models: dict[str, dict], terrains=("grass", "tile"), seconds=120.0, seed=0):
+    rng = np.random.default_rng(seed)
+    out = {}
+    for t in terrains:
+        shared: dict = {}
+        for m, spec in models.items():
+            out[(m, t)] = _windows(rng, t, spec["trans"], seconds, shared, spec.get("rot"))
+    return out
+
+
+def test_cells_equal_what_evaluate_logs_and_the_floor_is_a_reference_row():
+    w = _board({"edd": {"trans": {"cv": 8, "ld": 6}}, "friction": {"trans": {"cv": 7, "ld": 4}},
+                FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
+    s = st.build(w, H)
+    logged = summarise(w[("friction", "tile")][lambda d: d["split"] == "ld"], "ld", [H])
+    cell = s.cell("friction", "tile", "ld", "translational")
+    assert cell["estimate"] == pytest.approx(logged["ld_6s_trans_rmsre_pct"], abs=1e-3)
+    assert (cell["lo"], cell["hi"]) == pytest.approx(
+        (logged["ld_6s_trans_rmsre_pct_ci_lo"], logged["ld_6s_trans_rmsre_pct_ci_hi"]), abs=1e-4
+    )
+    assert cell["n_blocks"] == logged["ld_6s_trans_blocks"] == 10  # 120 s in blocks of 12 s
+    assert ov_blocks(s, "friction") == 40  # two terrains, CV and LD
+    ov = s.overall.set_index("model")
+    assert ov.loc[FLOOR, "rank"] == "" and ov.loc[FLOOR, "standing"].startswith("reference")
+    assert ov.loc["friction", "standing"] == iv.BEST and ov.loc["edd", "rank"] == "2"
+    # the aggregate is the mean of the four RMSREs over the terrains
+    four = [s.cell("friction", t, sp, m)["estimate"] for t in ("grass", "tile") for sp in ("cv", "ld")
+            for m in ("translational", "rotational")]  # fmt: skip
+    assert ov.loc["friction", "estimate"] == pytest.approx(np.mean(four))
+
+
+def ov_blocks(s, model):
+    return int(s.overall.set_index("model").loc[model, "n_blocks"])
+
+
+def test_a_pathological_metric_keeps_a_model_from_leading():
+    # like friction on the Warthog ice: best LD translation, but a 353 % LD rotation
+    w = _board({"friction": {"trans": {"cv": 6, "ld": 4}, "rot": {"cv": 6, "ld": 353}},
+                "edd": {"trans": {"cv": 7, "ld": 6}},
+                "roc": {"trans": {"cv": 7.02, "ld": 6.02}}})  # fmt: skip
+    s = st.build(w, H)
+    ov = s.overall.set_index("model")
+    assert s.cell("friction", "grass", "ld", "translational")["estimate"] < 5
+    assert ov.loc["friction", "rank"] == "3" and ov.loc["friction", "standing"] == ""
+    assert ov.loc["edd", "standing"] == ov.loc["roc", "standing"] == iv.TIED  # 0.3 % apart: not resolved
+    assert s.verdicts["overall"].startswith("tied for best: edd, roc")
+    # the paired differences behind it: a - b of the aggregates, resolved only where the interval excludes 0
+    d = s.differences.set_index(["a", "b"])
+    for (a, b), r in d.iterrows():
+        assert r["estimate"] == pytest.approx(ov.loc[a, "estimate"] - ov.loc[b, "estimate"], abs=1e-9)
+        assert r["lo"] <= r["estimate"] <= r["hi"] and r["resolved"] == (r["lo"] > 0 or r["hi"] < 0)
+    pair = ("edd", "roc") if ("edd", "roc") in d.index else ("roc", "edd")
+    assert not d.loc[pair, "resolved"] and d.filter(like="friction", axis=0)["resolved"].all()
+    report = "\n".join(compare.differences_lines(s))
+    assert "minus" in report and "| friction | " in report and "| yes |" in report and "| no |" in report
+    # ranked by one metric instead (rank_by=ld_trans), friction leads
+    assert (
+        st.build(w, H, rank_by="ld_trans").overall.set_index("model").loc["friction", "standing"] == iv.BEST
+    )
+
+
+def test_the_papers_claim_holds_fails_or_is_not_resolved():
+    others = {m: {"trans": {"cv": 7, "ld": 6}} for m in ("ideal", "edd", "roc")}
+    holds = st.build(_board({**others, "friction": {"trans": {"cv": 7, "ld": 4}}}), H)
+    assert holds.claim["overall"][0] == st.HOLDS and holds.claim["grass"][0] == st.HOLDS
+    fails = st.build(_board({**others, "friction": {"trans": {"cv": 7, "ld": 8}}}), H)
+    assert fails.claim["overall"][0] == st.FAILS
+    worse_cv = st.build(_board({**others, "friction": {"trans": {"cv": 10, "ld": 4}}}), H)
+    assert worse_cv.claim["overall"][0] == st.FAILS
+    close = st.build(_board({**others, "friction": {"trans": {"cv": 7, "ld": 5.9}}}), H)
+    assert close.claim["overall"][0] == st.UNRESOLVED
+    assert any("not resolved" in line for line in close.claim["overall"][1])
+
+
+def test_a_board_of_one_window_splits_ranks_nothing_and_says_why():
+    w = _board({"friction": {"trans": {"cv": 74, "ld": 6}}, "full_linear": {"trans": {"cv": 3.8, "ld": 78}}},
+               terrains=("grass",), seconds=0.2)  # fmt: skip
+    s = st.build(w, H)
+    ov = s.overall.set_index("model")
+    assert (ov["rank"] == "").all()
+    assert ov.loc["friction", "standing"].startswith("not ranked: 2 independent blocks (ranking needs 8)")
+    assert s.verdicts["overall"] == "no entry ranked: 2 independent blocks (ranking needs 8)"  # not the floor
+    assert s.claim["overall"][0] == st.UNRESOLVED
+
+
+def _board_rows(windows) -> pd.DataFrame:
+    """One finished run per (model, terrain) of ``windows`` (not the floor), with what evaluate logs."""
+    rows = []
+    for (model, terrain), w in windows.items():
+        if model == FLOOR:
+            continue
+        row = {"model": model, "terrain": terrain, "inputs": "commanded", "status": "FINISHED",
+               "run_id": f"{model}-{terrain}-run", "reason": "", "fit_loss": 0.0, "fit_time_s": 0.1,
+               "predict_time_s": 0.1}  # fmt: skip
+        for split in ("cv", "ld"):
+            row.update(summarise(w[w["split"] == split], split, [H]))
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    for m in mt.METRICS:  # the optional metrics (a predictive covariance) these models have not
+        for split in ("cv", "ld"):
+            for key in (m.metric_key(split, H), m.windows_key(split, H)):
+                if key is not None and key not in out:
+                    out[key] = np.nan
+    return out
+
+
+def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(tmp_path):
+    w = _board({"edd": {"trans": {"cv": 7, "ld": 6}}, "roc": {"trans": {"cv": 7.02, "ld": 6.02}},
+                FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
+    board = Board("commanded", "parent", H, {}, _board_rows(w))
+    cfg = OmegaConf.create({"publish": {"figures": False, "dpi": 72}})
+    page = publish._protocol_section(board, tmp_path, cfg, st.build(w, H))
+    lead = page[: page.index("Per terrain and test split")]
+    assert "tied for best" in lead and ">best<" not in lead  # 0.3 % apart on the same windows: not resolved
+    edd = st.build(w, H).overall.set_index("model").loc["edd"]
+    assert f"{edd['estimate']:.2f} [{edd['lo']:.2f}, {edd['hi']:.2f}]" in lead  # the aggregate's interval
+    assert re.search(r"<td>floor</td>", lead) and "reference" in lead  # the floor's row, never ranked
+    assert "not resolved by these data" in lead  # the paper's claim: friction was not evaluated here
+    rows = page[page.index("Per terrain and test split") :]
+    lo, hi = board.rows.loc[0, ["ld_6s_trans_rmsre_pct_ci_lo", "ld_6s_trans_rmsre_pct_ci_hi"]]
+    assert f"{lo:.2f} to {hi:.2f}" in rows  # every row's logged interval
+    # without the per-window tables: listed, not ranked, and it says so
+    bare = publish._protocol_section(board, tmp_path, cfg, None)
+    assert "not ranked" in bare and "<th>rank</th>" not in bare
