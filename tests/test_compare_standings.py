@@ -153,10 +153,11 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
                 FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
     board = Board("commanded", "parent", H, {}, _board_rows(w))
     cfg = OmegaConf.create({"publish": {"figures": False, "dpi": 72}})
-    page = publish._protocol_section(board, tmp_path, cfg, st.build(w, H))
+    s = st.build(w, H)
+    page = publish._protocol_section(board, tmp_path, cfg, s)
     lead = page[: page.index("Per terrain and test split")]
     assert "tied for best" in lead and ">best<" not in lead  # 0.3 % apart on the same windows: not resolved
-    edd = st.build(w, H).overall.set_index("model").loc["edd"]
+    edd = s.overall.set_index("model").loc["edd"]
     assert f"{edd['estimate']:.2f} [{edd['lo']:.2f}, {edd['hi']:.2f}]" in lead  # the aggregate's interval
     assert re.search(r"<td>floor</td>", lead) and "reference" in lead  # the floor's row, never ranked
     assert "not resolved by these data" in lead  # the paper's claim: friction was not evaluated here
