@@ -1074,12 +1074,13 @@ def differences_lines(standings: st.Standings | None) -> list[str]:
 
 
 def _claim_lines(standings: st.Standings) -> list[str]:
-    """The claim's verdict overall (with every paired difference) and per terrain (the verdict line)."""
+    """The claim's verdict overall (with every paired difference) and per terrain (the verdict line; with
+    one terrain the overall lines are that terrain's)."""
     verdict, lines = standings.claim["overall"]
     out = [f"**Overall: {verdict}.**", "", *lines, ""]
-    for scope, (_, terrain_lines) in standings.claim.items():
-        if scope != "overall":
-            out.append(terrain_lines[0])
+    terrains = [scope for scope in standings.claim if scope != "overall"]
+    if len(terrains) > 1:
+        out += [standings.claim[t][1][0] for t in terrains]
     return out
 
 

@@ -501,6 +501,21 @@ def significantly_better(a: dict[str, Any], ho_a: HeldOut, b: dict[str, Any], ho
     return pose_ok and explains_better(ho_a, ho_b, s)[0]
 
 
+def _tie_candidate(run: _Search, scored: Scored) -> str | None:
+    """When only library terms pass: the catalogue effect of largest penalised gain that passes every part
+    of the rule but its own 6 s sign-flip test (``paired_p_value``), marked ``named_on_tie``. That some
+    effect is there is shown by the passing term (the search-wide test bounds the chance of any name on
+    data with nothing missing, whichever is given); which name it gets is the naming rule's (a term is
+    named instead only when significantly better than this effect, :func:`_choose`)."""
+    alpha = run.settings.alpha
+    ok = [e for e, (ev, _) in scored.items() if ev["rule_ok"] and ev.get("p_search", 1.0) <= alpha]
+    if not ok:
+        return None
+    best = max(ok, key=lambda e: scored[e][0]["penalised_gain"])
+    scored[best][0]["named_on_tie"] = True
+    return best
+
+
 def _same_channels(form: str, eid: str) -> bool:
     """Whether the library form changes only channels the catalogue effect ``eid`` changes."""
     return set(termlib.parse_form(form).touched) <= {CHANNELS.index(c) for c in channels_of(eid)}
@@ -535,6 +550,8 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
     passing_t = [k for k, v in scored_t.items() if v[0]["passes"] and not _restates_named(run, k, v[0])]
     if best_c is None and not passing_t:
         return None
+    if best_c is None:  # a term passes: a catalogue effect that ties it names what it found
+        best_c = _tie_candidate(run, scored)
 
     def equivalents(eid: str) -> list[dict]:
         ev_c, ho_c = scored[eid]
@@ -552,7 +569,11 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
         if best_c is None or significantly_better(*scored_t[k][:2], *scored[best_c], run.settings)
     ]
     if not better:
+        if scored[best_c][0].get("named_on_tie"):
+            run.say(f"[{run.terrain}]   {best_c} ties the passing terms (none significantly better): named")
         return ("catalogue", best_c, equivalents(best_c))
+    if best_c is not None:
+        scored[best_c][0].pop("named_on_tie", None)
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
     eid = termlib.catalogue_equivalent(name)
     if eid is not None and _same_channels(name, eid) and eid in scored and scored[eid][0]["passes"]:

@@ -439,7 +439,8 @@ def rank_board(scores: pd.DataFrame, differences: pd.DataFrame) -> pd.DataFrame:
     ``differences``: index ``(a, b)`` with ``lo``, ``hi`` of ``a - b`` (either order given suffices).
     Returns, per entry, ``rank`` (1 + the number of rankable entries resolved better than it; "" when not
     rankable) and ``standing``: ``best`` (resolved better than every other rankable entry), ``tied for
-    best`` (the entries not resolved from the leader by point estimate, when none is best), ``""`` (behind),
+    best`` (the entries not resolved from the leader by point estimate and with no entry resolved better
+    than them, when none is best), ``""`` (behind),
     or ``not ranked: <reason>``. A board with no rankable entry ranks nothing."""
     out = pd.DataFrame(index=scores.index, data={"rank": "", "standing": ""})
     ok = [
@@ -467,8 +468,8 @@ def rank_board(scores: pd.DataFrame, differences: pd.DataFrame) -> pd.DataFrame:
         out.loc[leader, "standing"] = BEST
     else:
         out.loc[leader, "standing"] = TIED
-        for j in others:
-            if not resolved(*diff(leader, j)):
+        for j in others:  # tied with the leader, and no other entry resolved better than it
+            if not resolved(*diff(leader, j)) and out.loc[j, "rank"] == "1":
                 out.loc[j, "standing"] = TIED
     return out
 
@@ -481,4 +482,5 @@ def board_verdict(standing: pd.Series) -> str:
         return f"best: {best[0]} (its paired difference from every other is resolved)"
     if tied:
         return f"tied for best: {', '.join(tied)} (their paired differences are not resolved)"
-    return "no entry ranked: " + "; ".join(sorted({str(s) for s in standing if s}))
+    why = sorted({str(s).removeprefix(f"{NOT_RANKED}: ") for s in standing if str(s).startswith(NOT_RANKED)})
+    return "no entry ranked: " + ("; ".join(why) or "no entry")

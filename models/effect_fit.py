@@ -28,6 +28,7 @@ from skidbench.models.effects import (
     base_targets,
     command_features,
     lag_filter,
+    sqrt_radius,
 )
 from skidbench.pipeline.errors import SkidbenchError
 from skidbench.pipeline.protocol import INPUT_COLUMNS
@@ -376,6 +377,7 @@ class Augmenter:
         bp = base_pred[rows]
         gain = base_gain and any(CATALOGUE[e].kind == "mult" for e in corr)
         fr = {k: v[rows] for k, v in feats.items()}
+        fr["sqrt_R"] = sqrt_radius(fr["R"])  # computed once, not at every residual evaluation
         chans = sorted({CATALOGUE[e].channel for e in corr})  # only these depend on the parameters
         tg = self.pool.target[rows][:, chans]
         if offset is not None:  # the open-ended terms' correction, held fixed while the effects are fitted
@@ -401,7 +403,10 @@ class Augmenter:
         if gain:
             x0, lo, hi = np.append(x0, 1.0), np.append(lo, 0.2), np.append(hi, 5.0)
         starts = [x0]
-        if "curvature_dependent_icr" in corr:  # a few starting values for b2
+        cold = "curvature_dependent_icr" in corr and np.allclose(
+            params["curvature_dependent_icr"], CATALOGUE["curvature_dependent_icr"].init
+        )
+        if cold:  # a few starting values for b2 (a warm start is already near its optimum)
             i = sum(sizes[: corr.index("curvature_dependent_icr")])
             for b2 in (0.3, 1.0, 4.0):
                 xs = x0.copy()
@@ -409,7 +414,7 @@ class Augmenter:
                 starts.append(xs)
         best, best_cost = x0, np.inf
         for xs in starts:
-            x = _bounded_least_squares(resid, xs, lo, hi, 60 if len(starts) > 1 else 20)
+            x = _bounded_least_squares(resid, xs, lo, hi, 60 if "curvature_dependent_icr" in corr else 20)
             c = float(np.sum(resid(x) ** 2))
             if c < best_cost:
                 best, best_cost = x, c

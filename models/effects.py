@@ -174,11 +174,16 @@ def command_features(table: pd.DataFrame, wheel_radius: float, track_width: floa
 # -- corrections --------------------------------------------------------------------------------
 
 
+def sqrt_radius(R: np.ndarray) -> np.ndarray:
+    """sqrt|R| of the commanded turning radius, a straight line (R infinite) at 1e12 m."""
+    return np.sqrt(np.where(np.isfinite(R), R, 1e12))
+
+
 def mult_factor(eid: str, p: np.ndarray, f: dict[str, np.ndarray]) -> np.ndarray:
     """The yaw-rate factor of a multiplicative effect."""
     if eid == "curvature_dependent_icr":
         b1, b2 = float(p[0]), abs(float(p[1]))
-        sq = np.sqrt(np.where(np.isfinite(f["R"]), f["R"], 1e12))
+        sq = f["sqrt_R"] if "sqrt_R" in f else sqrt_radius(f["R"])
         return 1.0 / (1.0 + b1 / (1.0 + b2 * sq))
     if eid == "speed_dependent_turn_slip":
         return 1.0 - float(p[0]) * np.abs(f["v"])

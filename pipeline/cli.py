@@ -107,9 +107,9 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
                 if hasattr(cfg, "get"):  # a sweep's job or an in-process call: not checked by _preflight
                     validate(cfg)
                 if home and hasattr(cfg, "get") and cfg.get("source") is not None and "dataset" in cfg:
-                    from .dataset import open_home
+                    from .dataset import home_from_cfg, open_home
 
-                    root = open_home(cfg, name)[0].root
+                    root = open_home(home_from_cfg(cfg), name)[0].root
                     check_producers(root, name)
                     check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
                     before = data_state(root) if name in LOCAL_PRODUCERS else None

@@ -106,23 +106,40 @@ def _unwrap(exc: BaseException) -> BaseException:
     return seen or exc
 
 
-def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
-    """At the start of a stage: the dataset's identity, printed; its folder checked against the recorded
-    identity (DatasetError naming both roots unless ``source.replace=true``); ``dataset.json`` written;
-    outputs of sequences that are no longer in the manifest pruned. A source's settings that contradict
-    each other (the source's ``check``, e.g. more terrains than files) are refused first, by
-    every stage, not only by the one that reads them."""
+@dataclass(frozen=True)
+class Home:
+    """What opening a dataset's folder needs of the config (:func:`home_from_cfg`): the output root, the
+    configured identity and whether a folder holding another source may be replaced."""
+
+    out_root: Path
+    ident: DatasetIdentity
+    replace: bool = False
+
+
+def home_from_cfg(cfg: Any) -> Home:
+    """The :class:`Home` of a composed config. A source's settings that contradict each other (the
+    source's ``check``, e.g. more terrains than files) are refused first, by every stage, not only by the
+    one that reads them; an interpolation's one-line error (a missing root) is raised as itself."""
     from omegaconf.errors import OmegaConfBaseException
 
     try:
-        check_source_settings(OmegaConf.to_container(cfg.source, resolve=True, throw_on_missing=False))
+        source = OmegaConf.to_container(cfg.source, resolve=True, throw_on_missing=False)
+        check_source_settings(source)
         ident = identity_from_cfg(cfg)
     except OmegaConfBaseException as exc:
         cause = _unwrap(exc)
         if isinstance(cause, ConfigError):
             raise cause from None
         raise
-    layout = Layout(Path(str(cfg.out_root)), ident.name)
+    return Home(Path(str(cfg.out_root)), ident, bool(source.get("replace", False)))
+
+
+def open_home(home: Home, stage: str = "") -> tuple[Layout, DatasetIdentity]:
+    """At the start of a stage: the dataset's identity, printed; its folder checked against the recorded
+    identity (DatasetError naming both roots unless ``source.replace=true``); ``dataset.json`` written;
+    outputs of sequences that are no longer in the manifest pruned."""
+    ident = home.ident
+    layout = Layout(home.out_root, ident.name)
     # stdout: stderr is kept for the one-line error a stage may end with
     print(f"skidbench {stage}: {ident.describe()} -> {layout.root}", flush=True)
     rec = read_record(layout)
@@ -138,7 +155,7 @@ def open_home(cfg: Any, stage: str = "") -> tuple[Layout, DatasetIdentity]:
                 "runs logged under the old one are not ranked with new ones: run evaluate again",
                 flush=True,
             )
-        elif not bool(cfg.source.get("replace", False)):
+        elif not home.replace:
             raise DatasetError(
                 f"{layout.root}: dataset {ident.name!r} already holds {rec.get('source')} {rec.get('root')}; "
                 f"{ident.source} {ident.root} cannot share it: name it with source.dataset=<another name>, "

@@ -18,7 +18,13 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
-from skidbench.pipeline.dataset import DatasetError, identity_from_cfg, list_datasets, open_home
+from skidbench.pipeline.dataset import (
+    DatasetError,
+    home_from_cfg,
+    identity_from_cfg,
+    list_datasets,
+    open_home,
+)
 from skidbench.pipeline.layout import layout_from_cfg
 
 FIXTURE = Path(__file__).parent / "fixtures" / "amrl"
@@ -69,7 +75,7 @@ def run_stage(stage: str, out: Path, *over: str):
     # config reads (mlflow.tracking_uri) and a later stage's stamp would see as a changed config
     os.environ.pop("MLFLOW_TRACKING_URI", None)
     c = cfg(stage, out, *over, *extra)
-    open_home(c, stage)
+    open_home(home_from_cfg(c), stage)
     return runners[stage](c)
 
 

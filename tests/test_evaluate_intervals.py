@@ -128,6 +128,16 @@ def test_a_known_difference_is_resolved_with_enough_blocks_and_tied_without():
     assert iv.board_verdict(ranks["standing"]).startswith("tied for best: A, B")
 
 
+def test_a_model_behind_another_is_not_tied_for_best_even_when_the_leader_is_not_resolved_from_it():
+    # A leads; B and C are not resolved from A, but B is resolved better than C: C is behind, rank 2
+    scores = pd.DataFrame({"estimate": [1.0, 1.1, 1.3], "rankable": True, "reason": ""}, index=list("ABC"))
+    diffs = pd.DataFrame({"lo": [-0.5, -0.6, -0.3], "hi": [0.3, 0.1, -0.1]},
+                         index=pd.MultiIndex.from_tuples([("A", "B"), ("A", "C"), ("B", "C")]))  # fmt: skip
+    ranks = iv.rank_board(scores, diffs)
+    assert ranks["rank"].tolist() == ["1", "1", "2"]
+    assert ranks["standing"].tolist() == [iv.TIED, iv.TIED, ""]
+
+
 def test_a_split_with_one_window_is_shown_but_not_ranked():
     s = iv.Sample()
     s.add("grass/cv", ["raw_00"], [0.0], {"A": [3.79], "B": [73.78]}, H)

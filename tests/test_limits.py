@@ -87,7 +87,6 @@ CFG_TAKERS = {
     "models.fitting:resolve_model_spec",
     "pipeline.config_schema:leaves",
     "pipeline.config_schema:validate",
-    "pipeline.dataset:open_home",
     "pipeline.imported:check_stage",
     "pipeline.imported:named_dataset",
     "pipeline.protocol:protocol_of",
