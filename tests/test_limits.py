@@ -24,7 +24,6 @@ MAX_FUNCTION_LINES = 80
 
 #: module -> why it is still over MAX_MODULE_LINES
 LONG_MODULES = {
-    "benchmark/compare.py": "the board and its intervals are being changed on other branches",
     "benchmark/discover.py": "discovery is being changed on another branch",
     "models/terms.py": "the term library grew with the false-discovery control; to split by term family",
 }
@@ -33,7 +32,6 @@ LONG_MODULES = {
 LONG_FUNCTIONS = {
     "pipeline/splits/app.py:split_sequence": "not yet split into named steps",
     "pipeline/groundtruth/app.py:run": "not yet split into named steps",
-    "benchmark/compare.py:_report_md": "not yet split into named steps",
     "pipeline/simulate/physics.py:step": "not yet split into named steps",
     "models/fitting.py:fit_model": "not yet split into named steps",
     "pipeline/calibration.py:calibrate_table": "not yet split into named steps",
@@ -41,7 +39,6 @@ LONG_FUNCTIONS = {
     "models/gp_residual.py:_fit": "not yet split into named steps",
     "benchmark/figures.py:yaw_rate_surfaces": "not yet split into named steps",
     "benchmark/evaluate.py:run_benchmark": "not yet split into named steps",
-    "benchmark/compare.py:run_compare": "not yet split into named steps",
     "pipeline/simulate/app.py:run": "not yet split into named steps",
     "pipeline/simulate/sequence.py:simulate_sequence": "not yet split into named steps",
 }
@@ -52,10 +49,7 @@ CFG_TAKERS = {
     "benchmark.bundle:_write_inputs",
     "benchmark.bundle:export_bundle",
     "benchmark.bundle:licence_of",
-    "benchmark.compare:_report_md",
-    "benchmark.compare:_with_inputs",
     "benchmark.compare:run_compare",
-    "benchmark.compare:ui_links",
     "benchmark.evaluate:_as_container",
     "benchmark.evaluate:_describe",
     "benchmark.evaluate:_split_inputs",
