@@ -146,10 +146,10 @@ def readme_reproduce(tmp_path_factory) -> dict:
 
 @pytest.fixture(scope="session")
 def publishing_walkthrough(readme_reproduce, tmp_path_factory) -> dict:
-    """docs/publishing.md's walkthrough (its ``run`` block: the quick start's dataset exported to
-    ``release/``, imported into ``lab-b``, every built-in model evaluated there, the ideal model's
-    predictions written by examples/predict_ideal.py and scored, compare, publish) executed once per
-    session on the quick start's root (read only), in a folder of its own (``$TMP``, the block's cwd):
+    """docs/publishing.md's walkthrough (its ``run`` block's lines: the quick start's dataset exported to
+    ``release/``, imported into ``lab-b``, the ideal model's predictions written by examples/predict_ideal.py
+    and scored there, compare, publish) executed once per session on the quick start's root (read only), in
+    a folder of its own (``$TMP``, the block's cwd):
     ``{"tmp": <folder>, "results": [one dict per command, as readme_reproduce's]}``.
     tests/test_docs_commands.py asserts that it succeeds, tests/test_release.py what it wrote."""
     from doc_blocks import doc_env, publishing, run_block
