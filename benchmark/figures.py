@@ -143,7 +143,9 @@ def _error_bars(ax, xs: np.ndarray, ys: np.ndarray, lo: np.ndarray, hi: np.ndarr
         return 0.0
     err = np.vstack([ys[has] - lo[has], hi[has] - ys[has]]).clip(min=0.0)
     ax.errorbar(xs[has], ys[has], yerr=err, fmt="none", ecolor="0.15", elinewidth=0.8, capsize=1.5)
-    return float(np.nanmax(hi[has]))
+    # an interval of a cell on a block or two can reach 1000x its value: the axis keeps the bars readable
+    # (at most 3x the highest bar) and such a bar's error bar runs off the top
+    return float(min(np.nanmax(hi[has]), 3.0 * np.nanmax(ys[has])))
 
 
 def _floor_lines(ax, terrains: Sequence[str], split: str, floor: Mapping[tuple[str, str], float]) -> None:

@@ -179,9 +179,11 @@ def leaderboard(
 ) -> tuple[str, dict[str, float]]:
     """The leaderboard an evaluate's parent run shows, from its child runs ``rows`` = (model, terrain,
     status, metrics): per model the mean over the terrains it FINISHED of each metric of ``columns`` (lower
-    is better; ``labels`` their headers), ranked by the first. Returns its Markdown (for the run's
-    description) and the parent's metrics ``<model>.mean_<column>`` and ``<model>.gap_to_next_<column>``
-    (how far ahead of the next model on that column, in its unit; none for the last)."""
+    is better; ``labels`` their headers), in order of the first: point estimates, not a ranking (evaluate has
+    no paired intervals; ``skidbench compare`` ranks by the rule of docs/intervals.md). Returns its
+    Markdown (for the run's description) and the parent's metrics ``<model>.mean_<column>`` and
+    ``<model>.gap_to_next_<column>`` (how far ahead of the next model on that column, in its unit; none
+    for the last)."""
     models = list(dict.fromkeys(r[0] for r in rows))
     means: dict[str, dict[str, float]] = {}
     ok: dict[str, tuple[int, int]] = {}
@@ -206,11 +208,11 @@ def leaderboard(
     first = columns[0]
     order = sorted(models, key=lambda m: (not np.isfinite(means[m][first]), means[m][first]))
     cell = lambda v: "n/a" if not np.isfinite(v) else f"{v:.2f}"  # noqa: E731
-    head = ["rank", "model", *labels, f"gap to next ({labels[0]})", "terrains"]
+    head = ["order", "model", *labels, f"gap to next ({labels[0]})", "terrains"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---:|---|" + "---:|" * (len(labels) + 1) + "---|"]
     for k, m in enumerate(order, 1):
         gap = gaps[m].get(first)
-        cells = [str(k), f"**{m}**" if k == 1 else m, *(cell(means[m][c]) for c in columns),
+        cells = [str(k), m, *(cell(means[m][c]) for c in columns),
                  "" if gap is None else f"{gap:.2f}", f"{ok[m][0]}/{ok[m][1]}"]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines), metrics
@@ -225,5 +227,7 @@ def evaluate_leaderboard(
     cols, labels = board_columns(splits, horizon_s)
     md, metrics = leaderboard(rows, cols, labels)
     title = (f"**Leaderboard**, inputs={protocol}, {horizon_s:g} s horizon: mean over terrains, lower is "
-             "better, ranked by the first column")  # fmt: skip
+             "better, in order of the first column's point estimate, not a ranking: each child run logs its "
+             "95 % intervals (`_ci_lo`, `_ci_hi`), and `skidbench compare` ranks on paired intervals (a gap "
+             "inside them is a tie)")  # fmt: skip
     return f"{title}\n\n{md}\n\n", metrics

@@ -47,6 +47,7 @@ from .io import write_json_atomic
 from .layout import Layout, data_key, data_path, fingerprint_of, layout_from_cfg, prune_stale, remove_atomic
 from .manifest import Manifest
 from .sources import registry
+from .sources.contract import Source, settings_from
 
 log = logging.getLogger("skidbench.dataset")
 
@@ -176,12 +177,19 @@ def check_source_settings(source: Mapping[str, Any]) -> None:
     """The installed source's ``check`` of its settings (``source``: the config section as a plain
     mapping). A kind no installed source has is left to the stage that reads the source (extract names
     the installed ones): an imported dataset (``source=bundle``) has none, and a stage after extract
-    reads only the extracted tables."""
+    reads only the extracted tables; so is a setting not given at all (``dataset=<name>`` alone names a
+    dataset without its root)."""
     kind = str(source.get("kind") or "bag")
     if kind not in registry.installed():
         return
-    src, settings = registry.load(source)
-    src.check(settings)
+    cls = registry.source_class(kind)
+    if cls.check is Source.check:  # the source checks nothing
+        return
+    try:
+        settings = settings_from(cls.Settings, source, kind)
+    except ConfigError:
+        return
+    cls().check(settings)
 
 
 def record(layout: Layout, ident: DatasetIdentity) -> dict[str, Any]:

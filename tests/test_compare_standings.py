@@ -153,10 +153,11 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
                 FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
     board = Board("commanded", "parent", H, {}, _board_rows(w))
     cfg = OmegaConf.create({"publish": {"figures": False, "dpi": 72}})
-    page = publish._protocol_section(board, tmp_path, cfg, st.build(w, H))
+    s = st.build(w, H)
+    page = publish._protocol_section(board, tmp_path, cfg, s)
     lead = page[: page.index("Per terrain and test split")]
     assert "tied for best" in lead and ">best<" not in lead  # 0.3 % apart on the same windows: not resolved
-    edd = st.build(w, H).overall.set_index("model").loc["edd"]
+    edd = s.overall.set_index("model").loc["edd"]
     assert f"{edd['estimate']:.2f} [{edd['lo']:.2f}, {edd['hi']:.2f}]" in lead  # the aggregate's interval
     assert re.search(r"<td>floor</td>", lead) and "reference" in lead  # the floor's row, never ranked
     assert "not resolved by these data" in lead  # the paper's claim: friction was not evaluated here
@@ -166,3 +167,24 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
     # without the per-window tables: listed, not ranked, and it says so
     bare = publish._protocol_section(board, tmp_path, cfg, None)
     assert "not ranked" in bare and "<th>rank</th>" not in bare
+
+
+def test_figs_3_4_draw_each_cells_interval_and_the_floor(tmp_path, monkeypatch):
+    import matplotlib.axes
+
+    from skidbench.benchmark import figures as figs
+
+    w = _board({"edd": {"trans": {"cv": 7, "ld": 6}}, FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}},
+               terrains=("grass",), seconds=30.0)  # fmt: skip
+    rows = _board_rows(w)
+    drawn, floors = [], []
+    axes = matplotlib.axes.Axes
+    monkeypatch.setattr(axes, "errorbar", lambda ax, x, y, yerr, **kw: drawn.append((y, yerr)))
+    monkeypatch.setattr(axes, "hlines", lambda ax, y, *a, **kw: floors.append(y))
+    trans = mt.get("trans")
+    figs.metric_bars(rows, trans, H, ("cv", "ld"), tmp_path / "fig3.png", 40, {("grass", "ld"): 0.05})
+    for split, (y, yerr) in zip(("cv", "ld"), drawn, strict=True):
+        key = trans.metric_key(split, H)
+        v, lo, hi = rows.loc[0, [key, f"{key}_ci_lo", f"{key}_ci_hi"]]
+        assert y[0] == v and yerr[:, 0] == pytest.approx([v - lo, hi - v])
+    assert floors == [0.05]  # the floor's line on the LD panel only (no CV floor given)

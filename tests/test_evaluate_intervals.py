@@ -180,15 +180,16 @@ def test_the_floor_on_the_simulators_exact_truth_is_near_zero():
     from skidbench.pipeline.robot import Robot
     from skidbench.pipeline.simulate.physics import load_physics
     from skidbench.pipeline.simulate.scenarios import SequenceSpec
-    from skidbench.pipeline.simulate.sequence import simulate_sequence
+    from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence
     from skidbench.pipeline.splits.build import build_split_table
 
     conf = files("skidbench.conf")
     robot = Robot.from_config(yaml.safe_load(conf.joinpath("robot/jackal.yaml").read_text()))
     terrains, drive, tyre = load_physics(yaml.safe_load(conf.joinpath("sim/jackal.yaml").read_text()))
-    sim_cfg = yaml.safe_load(conf.joinpath("simulate.yaml").read_text())
+    sim = yaml.safe_load(conf.joinpath("simulate.yaml").read_text())
+    run = RunSettings(dt=sim["dt"], rates=sim["rates"], sensors=sim["sensors"])
     spec = SequenceSpec("grass_cv_00", "grass", "cv", 12.0, {"cv_segment": 3})
-    truth = simulate_sequence(spec, 0, robot, terrains["grass"], drive, tyre, sim_cfg, 0, None)
+    truth = simulate_sequence(spec, 0, robot, terrains["grass"], drive, tyre, run, 0, None)
     ns = np.round(truth.t * 1e9).astype(np.int64)
     table = build_split_table(robot, ns, np.c_[truth.x, truth.y, truth.yaw], [], ns,
                               np.c_[truth.cmd_left, truth.cmd_right], "wheels")  # fmt: skip

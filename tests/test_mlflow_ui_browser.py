@@ -118,7 +118,7 @@ def test_a_parent_runs_page_shows_the_leaderboard_who_made_it_and_its_datasets(u
     assert re.search(rf"evaluate {DS} commanded {re.escape(current_user())}@\S+ 20", text)  # what, whose
     assert "Model training" in text
     # its description opens with the leaderboard: per model the mean over terrains, the gap to the next
-    head = r"rank model trans LD % rot LD % trans CV % rot CV % endpos LD m endpos CV m"
+    head = r"order model trans LD % rot LD % trans CV % rot CV % endpos LD m endpos CV m"
     head += r" gap to next \(trans LD %\)"
     assert re.search(rf"Leaderboard , inputs=commanded, 6 s horizon: .* {head} terrains 1 chi ", text)
     assert "Benchmark of 2 models on 2 terrains" in text

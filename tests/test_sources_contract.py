@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from skidbench.pipeline.dataset import check_source_settings
 from skidbench.pipeline.errors import ConfigError, SourceError
 from skidbench.pipeline.extract.bag import ExtractOptions
 from skidbench.pipeline.layout import Layout
@@ -202,3 +203,18 @@ def test_a_repeated_name_or_an_unknown_category_is_refused(tmp_path, monkeypatch
     monkeypatch.setattr(TinySource, "read", lambda self, s, c: renamed(self, s, c, category="test"))
     with pytest.raises(SourceError, match="category 'test' is not one of train, cv, ld, loop"):
         TinySource().extract(settings, ctx)
+
+
+def test_every_stage_runs_the_sources_check_but_not_on_what_it_cannot_know():
+    """``open_home`` (every stage) refuses settings a source's ``check`` rejects; a kind that is not
+    installed (an imported bundle) or a setting not given (``dataset=<name>`` without its root) is left
+    to the stage that reads the source."""
+    with pytest.raises(ConfigError, match="source.terrain='x' for 2 files: give one terrain per file"):
+        check_source_settings(
+            {"kind": "drive_df", "root": "/d", "file": ["a.parquet", "b.parquet"], "terrain": "x"}
+        )
+    check_source_settings(
+        {"kind": "drive_df", "root": "/d", "file": ["a.parquet", "b.parquet"], "terrain": ["x", "y"]}
+    )
+    check_source_settings({"kind": "amrl_txt", "root": "???"})
+    check_source_settings({"kind": "bundle", "root": "???"})
