@@ -144,6 +144,25 @@ def readme_reproduce(tmp_path_factory) -> dict:
     return {"root": root, "results": results}
 
 
+@pytest.fixture(scope="session")
+def publishing_walkthrough(readme_reproduce, tmp_path_factory) -> dict:
+    """docs/publishing.md's walkthrough (its ``run`` block's lines: the quick start's dataset exported to
+    ``release/``, imported into ``lab-b``, the ideal model's predictions written by examples/predict_ideal.py
+    and scored there, compare, publish) executed once per session on the quick start's root (read only), in
+    a folder of its own (``$TMP``, the block's cwd):
+    ``{"tmp": <folder>, "results": [one dict per command, as readme_reproduce's]}``.
+    tests/test_docs_commands.py asserts that it succeeds, tests/test_release.py what it wrote."""
+    from doc_blocks import doc_env, publishing, run_block
+
+    quick = Path(readme_reproduce["root"])
+    tmp, results = once_per_session(
+        tmp_path_factory,
+        "publishing_walkthrough",
+        lambda tmp: run_block(publishing(), {**doc_env(quick), "TMP": str(tmp)}),
+    )
+    return {"tmp": tmp, "results": results}
+
+
 # -- pytest-xdist: which tests share a worker (make test: -n 2 --dist loadgroup) ------------------------
 #: files whose tests share a session fixture: one worker runs them all, so it is built once and no worker
 #: waits for the other's build (README quick start: test_docs_commands and test_e2e; the micro dataset)
@@ -161,24 +180,45 @@ XDIST_GROUPS = {
 }
 #: files of long, independent tests (no module fixture): one test per unit, so they balance over workers
 XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
+
+
+def docs_blocks_alone() -> tuple[str, ...]:
+    """The documented run blocks that use no session fixture of their file's group (neither the quick start
+    nor its root; the README's own-data block: `make reproduce` on the AMRL fixture): long, so each is a
+    unit of its own, run beside the group instead of after it."""
+    from doc_blocks import BLOCKS, quickstart
+
+    return tuple(
+        f"tests/test_docs_commands.py::test_documented_blocks_run_as_written[{b.id}]"
+        for b in BLOCKS
+        if b.mode == "run" and b.id != quickstart().id and b.opts["root"] != "quickstart"
+    )
+
+
+XDIST_ALONE = docs_blocks_alone()
 #: the longest units start first (longest-processing-time-first), the rest in xdist's order (most tests
 #: first). Measured with --durations=40 on 2026-11-24: the quick start and discover_hidden's
 #: curvature_dependent_icr case are the two longest units; the lab's server and its UI (one PostgreSQL, one
 #: mlflow server, two evaluates in subprocesses, an outage, three pages in Chromium) took 4 min 12 s alone
 #: on 2026-11-25 (pytest tests/test_mlflow_server.py tests/test_mlflow_ui_browser.py, the machine loaded).
+#: The README's own-data block (`make reproduce` on the AMRL fixture) was the third-longest test of
+#: `make test --durations=80` on 2026-11-25 (462 s, the machine loaded; the quick start and curvature
+#: over 1800 s).
 XDIST_FIRST = (
     "readme_reproduce",
     "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
     "[curvature_dependent_icr]",
+    *XDIST_ALONE,
     "lab_server",
 )
 
 
 def xdist_unit(nodeid: str) -> str:
     """The work unit of a test under ``--dist loadgroup``: its file (as ``--dist loadfile``: a file's module
-    fixtures are built once), its group (``XDIST_GROUPS``) or, in ``XDIST_SPREAD``, the test itself."""
+    fixtures are built once), its group (``XDIST_GROUPS``) or, in ``XDIST_SPREAD`` or ``XDIST_ALONE``, the
+    test itself."""
     path = nodeid.split("::")[0]
-    if path in XDIST_SPREAD:
+    if path in XDIST_SPREAD or nodeid in XDIST_ALONE:
         return nodeid
     return XDIST_GROUPS.get(path, path)
 

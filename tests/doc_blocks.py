@@ -1,6 +1,7 @@
 """The fenced blocks of README.md and docs/*.md with their ``doc-test`` markers (the syntax is described in
 tests/test_docs_commands.py), and how a ``run`` block is executed: shared by that test and by the session
-fixture that runs the README's quick start once (tests/conftest.py ``readme_reproduce``)."""
+fixtures that run the README's quick start and docs/publishing.md's walkthrough once (tests/conftest.py
+``readme_reproduce``, ``publishing_walkthrough``)."""
 
 from __future__ import annotations
 
@@ -110,6 +111,13 @@ def quickstart() -> Block:
     """The README's quick-start block: the ``run`` block whose first line is ``make reproduce``."""
     (block,) = [b for b in BLOCKS if b.doc.name == "README.md" and b.text and b.text[0].split("#")[0].strip()
                 == "make reproduce"]  # fmt: skip
+    return block
+
+
+def publishing() -> Block:
+    """docs/publishing.md's walkthrough: its ``run`` block on the quick start's root (export, import,
+    evaluate, predict, score, compare, publish)."""
+    (block,) = [b for b in BLOCKS if b.doc.name == "publishing.md" and b.mode == "run"]
     return block
 
 

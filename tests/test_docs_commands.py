@@ -31,7 +31,7 @@ from pathlib import Path
 
 import pytest
 from conftest import SHARED_REAL
-from doc_blocks import BLOCKS, MODES, REPO, commands, doc_env, parse_blocks, quickstart, run_block
+from doc_blocks import BLOCKS, MODES, REPO, commands, doc_env, parse_blocks, publishing, quickstart, run_block
 
 from skidbench.pipeline.config_schema import validate
 from skidbench.pipeline.overrides import check_overrides
@@ -141,6 +141,8 @@ def test_documented_blocks_run_as_written(block, request):
         pytest.skip("../shared/data/real is absent")
     if block.id == quickstart().id:  # executed once per session (run_block), its results read here
         results = request.getfixturevalue("readme_reproduce")["results"]
+    elif block.id == publishing().id:  # once per session too: tests/test_release.py reads what it wrote
+        results = request.getfixturevalue("publishing_walkthrough")["results"]
     elif block.opts["root"] == "quickstart":  # on the quick start's evaluated root, writing under $TMP only
         tmp = request.getfixturevalue("tmp_path")
         env = {**doc_env(Path(request.getfixturevalue("readme_reproduce")["root"])), "TMP": str(tmp)}

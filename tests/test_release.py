@@ -1,10 +1,11 @@
 """A released benchmark (issue 35), through the real CLI on the README quick start's tiny dataset (session
-fixture ``readme_reproduce``, read only): ``skidbench export`` writes its bundle once; ``skidbench import``
-refuses a corrupted copy and makes a dataset of the bundle in a fresh output root, where ``evaluate`` of the
-same built-in models gives the exported board cell for cell; ``skidbench score`` of the ideal model's
-predictions (written by examples/predict_ideal.py, without skidbench) gives the ideal plugin's cells, bad
-predictions files are one line each; ``skidbench publish`` renders in headless Chromium with no console
-message and the numbers of the leaderboard files."""
+fixture ``readme_reproduce``, read only). docs/publishing.md's walkthrough, run once per session (fixture
+``publishing_walkthrough``), exported it, imported the bundle into a fresh output root, scored the ideal
+model's predictions there (written by examples/predict_ideal.py, without skidbench), compared and
+published: here the bundle holds what it should, a corrupted copy is refused, the built-in models evaluated
+again in the imported dataset give the exported board cell for cell, the scored predictions equal the ideal
+plugin's cells and bad predictions files are one line each; ``skidbench publish`` renders in headless
+Chromium with no console message and the numbers of the leaderboard files."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from browser import CHROMIUM, console_messages, run_chromium, text_of
-from doc_blocks import REPO, doc_env
+from doc_blocks import doc_env
 
 from skidbench.benchmark import metrics as mt
 from skidbench.benchmark.bundle import BundleError, verify
@@ -31,17 +32,13 @@ DS = "sim-tiny"
 MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual")
 #: the models the round trip re-evaluates (a parameter-free one, the paper's friction model with its batched
 #: solver, a learned one with fitted arrays): the cost of the test; every built-in model was measured by hand
-#: (docs/publishing.md, "Measured")
+#: (docs/publishing.md, "Measured"; the walkthrough's test leaves its evaluate line out)
 ROUND_TRIP = ("ideal", "friction", "gp_residual")
 #: every metric evaluate logs at the 6 s horizon, and the window counts behind them (benchmark/metrics.py)
 CELLS = [
     k for m in mt.METRICS for s in ("cv", "ld") for k in (m.metric_key(s, 6.0), m.windows_key(s, 6.0)) if k
 ]
 SKB = str(Path(sys.executable).parent / "skidbench")
-#: every metric evaluate logs at the 6 s horizon, and the window counts behind them (benchmark/metrics.py)
-CELLS = [
-    k for m in mt.METRICS for s in ("cv", "ld") for k in (m.metric_key(s, 6.0), m.windows_key(s, 6.0)) if k
-]
 
 
 def skb(*args: str, out: Path, cwd: Path | None = None, ok: bool = True) -> subprocess.CompletedProcess:
@@ -69,19 +66,36 @@ def quickstart(readme_reproduce) -> Path:
 
 
 @pytest.fixture(scope="module")
-def bundle(quickstart, tmp_path_factory) -> Path:
-    """The quick start's dataset exported (inputs=commanded)."""
-    dest = tmp_path_factory.mktemp("release") / "bundle"
-    skb("export", DS, str(dest), out=quickstart)
-    return dest
+def walkthrough(publishing_walkthrough) -> Path:
+    """The folder of docs/publishing.md's walkthrough, every command of which succeeded."""
+    for r in publishing_walkthrough["results"]:
+        assert r["returncode"] == 0, f"{r['cmd']} failed:\n{r['stderr'][-3000:]}"
+    return Path(publishing_walkthrough["tmp"])
+
+
+def walkthrough_stdout(publishing_walkthrough, stage: str) -> str:
+    """What the walkthrough's ``skidbench <stage>`` printed."""
+    (out,) = [
+        r["stdout"] for r in publishing_walkthrough["results"] if r["cmd"].startswith(f"skidbench {stage} ")
+    ]
+    return out
 
 
 @pytest.fixture(scope="module")
-def imported(bundle, tmp_path_factory) -> Path:
-    """The bundle imported into a fresh output root and evaluated there (the models of ``ROUND_TRIP``)."""
-    out = tmp_path_factory.mktemp("lab_b")
-    done = skb("import", str(bundle), out=out)
-    assert f"skidbench evaluate source=bundle dataset={DS}" in done.stdout
+def bundle(walkthrough) -> Path:
+    """The quick start's dataset exported (inputs=commanded): ``skidbench export sim-tiny release/``."""
+    return walkthrough / "release"
+
+
+@pytest.fixture(scope="module")
+def imported(walkthrough, publishing_walkthrough) -> Path:
+    """The bundle imported into a fresh output root (the walkthrough's ``lab-b``, where it also scored the
+    ideal model's predictions) and the models of ``ROUND_TRIP`` evaluated there (here: the walkthrough
+    leaves its evaluate line out)."""
+    out = walkthrough / "lab-b"
+    assert f"skidbench evaluate source=bundle dataset={DS}" in walkthrough_stdout(
+        publishing_walkthrough, "import"
+    )
     skb("evaluate", "source=bundle", f"dataset={DS}", f"models=[{','.join(ROUND_TRIP)}]", "log_figures=false",
         out=out)  # fmt: skip
     return out
@@ -157,7 +171,7 @@ def test_the_imported_bundle_evaluated_again_gives_the_exported_board_cell_for_c
     assert len(cells) >= 12  # RMSRE, end-position RMSE and their windows on CV and LD, at least
     key = ["model", "terrain"]
     a = exported[exported["model"].isin(ROUND_TRIP)].set_index(key).sort_index()
-    b = again.set_index(key).sort_index()
+    b = again[~again["external"].astype(bool)].set_index(key).sort_index()  # the scored file's rows aside
     assert list(a.index) == list(b.index) and len(a) == len(ROUND_TRIP) * 3
     assert (a["status"] == "FINISHED").all() and (b["status"] == "FINISHED").all()
     for c in cells:
@@ -176,26 +190,25 @@ def test_an_imported_dataset_refuses_its_frozen_stages_and_another_robot(importe
 
 
 @pytest.fixture(scope="module")
-def ideal_predictions(bundle, tmp_path_factory) -> Path:
+def ideal_predictions(walkthrough) -> Path:
     """The ideal model's predictions, written from the bundle by examples/predict_ideal.py (no skidbench)."""
-    path = tmp_path_factory.mktemp("preds") / "ideal_dd.parquet"
-    script = REPO / "examples" / "predict_ideal.py"
-    subprocess.run([sys.executable, str(script), str(bundle), str(path)], check=True, capture_output=True)
-    return path
+    return walkthrough / "predictions.parquet"
 
 
-def test_scored_predictions_of_the_ideal_model_equal_its_plugin_cell_for_cell(imported, ideal_predictions):
+def test_scored_predictions_of_the_ideal_model_equal_its_plugin_cell_for_cell(
+    imported, ideal_predictions, publishing_walkthrough
+):
     from skidbench.benchmark import boards as brd
     from skidbench.benchmark.tracking import Tracker
     from skidbench.pipeline.dataset import read_record
     from skidbench.pipeline.layout import Layout
 
-    done = skb("score", DS, "--predictions", str(ideal_predictions), out=imported)
-    assert "ideal_dd (external" in done.stdout
+    name = ideal_predictions.stem  # score's default name of a predictions file
+    assert f"{name} (external" in walkthrough_stdout(publishing_walkthrough, "score")
     layout = Layout(imported, DS)
     tracker = Tracker(layout.mlflow_uri, f"skidbench-{DS}", dataset_id=read_record(layout)["fingerprint"])
     rows = brd.protocol_board(tracker, "commanded").rows  # compare's rows: the external one is on the board
-    ext = rows[rows["model"] == "ideal_dd"].set_index("terrain").sort_index()
+    ext = rows[rows["model"] == name].set_index("terrain").sort_index()
     plugin = rows[rows["model"] == "ideal"].set_index("terrain").sort_index()
     assert len(ext) == 3 and ext["external"].all() and not plugin["external"].any()
     sha = subprocess.run(
@@ -206,9 +219,10 @@ def test_scored_predictions_of_the_ideal_model_equal_its_plugin_cell_for_cell(im
     assert len(cells) >= 12
     for c in cells:
         assert ext[c].to_numpy(float).tolist() == plugin[c].to_numpy(float).tolist(), c
+    assert name in walkthrough_stdout(publishing_walkthrough, "compare")  # the walkthrough's compare lists it
     # compare ranks it with the others
     done = skb("compare", "source=bundle", f"dataset={DS}", "figures.enabled=false", out=imported)
-    assert "ideal_dd" in done.stdout
+    assert name in done.stdout and "friction" in done.stdout
 
 
 @pytest.mark.parametrize(
