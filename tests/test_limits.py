@@ -30,7 +30,6 @@ LONG_MODULES = {
 
 #: module:function -> why it is still over MAX_FUNCTION_LINES
 LONG_FUNCTIONS = {
-    "pipeline/splits/app.py:split_sequence": "not yet split into named steps",
     "pipeline/groundtruth/app.py:run": "not yet split into named steps",
     "pipeline/simulate/physics.py:step": "not yet split into named steps",
     "models/fitting.py:fit_model": "not yet split into named steps",
