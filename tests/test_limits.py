@@ -31,7 +31,6 @@ LONG_MODULES = {
 #: module:function -> why it is still over MAX_FUNCTION_LINES
 LONG_FUNCTIONS = {
     "pipeline/groundtruth/app.py:run": "not yet split into named steps",
-    "pipeline/simulate/physics.py:step": "not yet split into named steps",
     "models/fitting.py:fit_model": "not yet split into named steps",
     "pipeline/calibration.py:calibrate_table": "not yet split into named steps",
     "pipeline/simulate/render.py:_draw_faces": "not yet split into named steps",
