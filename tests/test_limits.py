@@ -36,7 +36,6 @@ LONG_FUNCTIONS = {
     "models/gp_residual.py:_fit": "not yet split into named steps",
     "benchmark/figures.py:yaw_rate_surfaces": "not yet split into named steps",
     "benchmark/evaluate.py:run_benchmark": "not yet split into named steps",
-    "pipeline/simulate/sequence.py:simulate_sequence": "not yet split into named steps",
 }
 
 #: module:function taking ``cfg`` outside the app layer (to become settings objects; issue 31 item 4)
