@@ -32,7 +32,6 @@ LONG_MODULES = {
 LONG_FUNCTIONS = {
     "pipeline/groundtruth/app.py:run": "not yet split into named steps",
     "models/fitting.py:fit_model": "not yet split into named steps",
-    "benchmark/figures.py:yaw_rate_surfaces": "not yet split into named steps",
     "benchmark/evaluate.py:run_benchmark": "not yet split into named steps",
 }
 
