@@ -34,7 +34,7 @@ from typing import Any
 
 import pandas as pd
 
-from skidbench.models.fitting import board_findings
+from skidbench.models.saved import board_findings
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg

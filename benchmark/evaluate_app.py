@@ -86,7 +86,7 @@ def run(cfg: DictConfig):
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
     each model's version and config."""
-    from skidbench.models.fitting import model_config
+    from skidbench.models.fitting import ModelConfigs, model_config
     from skidbench.models.registry import discover
     from skidbench.models.saved import arrays_file
     from skidbench.pipeline.layout import split_terrains
@@ -115,7 +115,8 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
         for info in [plugins.get(str(m).split("+")[0])]
     }
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
-    conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
+    configs = ModelConfigs.from_cfg(cfg)
+    conf["model_configs"] = {str(m): model_config(configs, str(m)) for m in cfg.models}
     return stamp.key(files, conf)
 
 

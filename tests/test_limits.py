@@ -31,7 +31,6 @@ LONG_MODULES = {
 #: module:function -> why it is still over MAX_FUNCTION_LINES
 LONG_FUNCTIONS = {
     "pipeline/groundtruth/app.py:run": "not yet split into named steps",
-    "models/fitting.py:fit_model": "not yet split into named steps",
     "benchmark/evaluate.py:run_benchmark": "not yet split into named steps",
 }
 
@@ -60,17 +59,6 @@ CFG_TAKERS = {
     "benchmark.testsets:protocol_unavailable",
     "benchmark.tracking:resolve_tracking_uri",
     "benchmark.transfer:training_layout",
-    "models.fitting:_is_override_node",
-    "models.fitting:_plan",
-    "models.fitting:_training_files",
-    "models.fitting:build_model",
-    "models.fitting:fit_model",
-    "models.fitting:fit_stamp",
-    "models.fitting:load_fitted",
-    "models.fitting:model_config",
-    "models.fitting:model_overrides",
-    "models.fitting:protocol_inputs",
-    "models.fitting:resolve_model_spec",
     "pipeline.config_schema:leaves",
     "pipeline.config_schema:validate",
     "pipeline.imported:check_stage",
