@@ -38,7 +38,7 @@ from skidbench.models.saved import board_findings
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
+from skidbench.pipeline.protocol import PROTOCOLS, protocol_from_cfg
 
 from . import boards as brd
 from . import intervals as iv
@@ -200,7 +200,7 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
             cfg.mlflow.experiment = target.experiment
     if target.layout.root.is_dir():
         check_producers(target.layout.root, "compare")
-        check_stage(cfg, "compare", target.layout.root)
+        check_stage(cfg.get("robot") if hasattr(cfg, "get") else None, "compare", target.layout.root)
     return cfg, target, trk.tracker_from_cfg(cfg, target.layout, dataset_id=target.dataset_id or "")
 
 
@@ -232,7 +232,7 @@ def run_compare(cfg: Any) -> CompareResult:
         selections = protocol_selections(tracker, horizon, cfg.get("filter"), user)
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
-    asked = protocol_of(cfg) if parent_arg == "latest" else None  # None: the runs of parent_arg
+    asked = protocol_from_cfg(cfg) if parent_arg == "latest" else None  # None: the runs of parent_arg
     runs, parent, left_out = _chosen_runs(
         target, tracker, selections, asked, parent_arg, cfg.get("filter"), user
     )

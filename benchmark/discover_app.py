@@ -35,7 +35,7 @@ from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
-from skidbench.pipeline.protocol import protocol_of
+from skidbench.pipeline.protocol import protocol_from_cfg
 from skidbench.pipeline.robot import robot_from_hydra
 
 log = logging.getLogger("skidbench.discover")
@@ -158,7 +158,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise DiscoverError(
             f"discover.candidates: unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})"
         )
-    inputs = protocol_of(cfg)
+    inputs = protocol_from_cfg(cfg)
     print(f"skidbench discover: base model {base_name}; inputs={inputs}; splits {root}")
     print("significance rule: " + settings.rule())
     results: list[TerrainDiscovery] = []

@@ -25,7 +25,7 @@ from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import ProtocolError, protocol_of
+from skidbench.pipeline.protocol import ProtocolError, protocol_from_cfg
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import intervals as iv
@@ -151,7 +151,7 @@ def run_benchmark(
         raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
                               "velocities, on every board), not a model name")  # fmt: skip
     try:
-        protocol = protocol_of(cfg)
+        protocol = protocol_from_cfg(cfg)
     except ProtocolError as exc:
         raise EvaluationError(str(exc)) from None
     if log_figures is None:

@@ -47,12 +47,12 @@ def run(cfg: DictConfig):
     :func:`run_benchmark`. Returns ``(result, skipped)``."""
     from skidbench.pipeline.cache import Stamp, stamp_file
     from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.protocol import protocol_of
+    from skidbench.pipeline.protocol import protocol_from_cfg
 
     from .evaluate import ProtocolSkipped, format_result, last_file, run_benchmark
 
     layout = layout_from_cfg(cfg)
-    inputs = protocol_of(cfg)
+    inputs = protocol_from_cfg(cfg)
     # one stamp per input protocol: evaluating under another protocol does not stale this one
     name = "evaluate.json" if inputs == "commanded" else f"evaluate.{inputs}.json"
     stamp = Stamp(stamp_file(layout.root, "evaluate", name), "evaluate")
@@ -96,9 +96,9 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
     files = [p for p in layout.split_files(manifest) if p.is_file()]
     terrains = split_terrains(manifest)
-    from skidbench.pipeline.protocol import protocol_of
+    from skidbench.pipeline.protocol import protocol_from_cfg
 
-    inputs = protocol_of(cfg)
+    inputs = protocol_from_cfg(cfg)
     files += [layout.fit_file(str(m), t, inputs) for m in cfg.models for t in terrains]
     files += [arrays_file(layout.fit_file(str(m), t, inputs)) for m in cfg.models for t in terrains]
     files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
@@ -126,11 +126,11 @@ def _cached_result(cfg: DictConfig, layout, stamp):
     from .evaluate import BenchmarkResult, ChildResult
 
     try:
-        from skidbench.pipeline.protocol import protocol_of
+        from skidbench.pipeline.protocol import protocol_from_cfg
 
         from .evaluate import last_file
 
-        last = json.loads(last_file(layout, protocol_of(cfg)).read_text())
+        last = json.loads(last_file(layout, protocol_from_cfg(cfg)).read_text())
         tracker = trk.tracker_from_cfg(cfg, layout)
         if last.get("tracking_uri") != tracker.uri:
             return None

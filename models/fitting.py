@@ -39,7 +39,7 @@ from skidbench.pipeline.calibration import (
 from skidbench.pipeline.io import write_json_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
-from skidbench.pipeline.protocol import INPUT_COLUMNS, ProtocolError, fit_table, protocol_of
+from skidbench.pipeline.protocol import INPUT_COLUMNS, ProtocolError, fit_table, protocol_from_cfg
 from skidbench.pipeline.provenance import CodeIdentity, code_identity
 from skidbench.pipeline.robot import Robot, robot_from_hydra
 from skidbench.pipeline.schema import concat_sequences, read_split
@@ -109,7 +109,7 @@ class FitSettings:
         return cls(
             layout_from_cfg(cfg),
             robot_from_hydra(cfg.robot),
-            protocol_of(cfg),
+            protocol_from_cfg(cfg),
             Calibrations.from_cfg(cfg),
             ModelConfigs.from_cfg(cfg),
         )

@@ -111,7 +111,7 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
 
                     root = open_home(home_from_cfg(cfg), name)[0].root
                     check_producers(root, name)
-                    check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
+                    check_stage(cfg.get("robot"), name, root)  # imported: frozen splits, the bundle's robot
                     before = data_state(root) if name in LOCAL_PRODUCERS else None
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record

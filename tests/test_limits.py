@@ -61,9 +61,6 @@ CFG_TAKERS = {
     "benchmark.transfer:training_layout",
     "pipeline.config_schema:leaves",
     "pipeline.config_schema:validate",
-    "pipeline.imported:check_stage",
-    "pipeline.imported:named_dataset",
-    "pipeline.protocol:protocol_of",
 }
 
 
