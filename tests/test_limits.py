@@ -36,10 +36,6 @@ LONG_FUNCTIONS = {
 
 #: module:function taking ``cfg`` outside the app layer (to become settings objects; issue 31 item 4)
 CFG_TAKERS = {
-    "benchmark.bundle:_bundle_doc",
-    "benchmark.bundle:_write_inputs",
-    "benchmark.bundle:export_bundle",
-    "benchmark.bundle:licence_of",
     "benchmark.compare:run_compare",
     "benchmark.evaluate:_as_container",
     "benchmark.evaluate:_describe",
