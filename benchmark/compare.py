@@ -429,9 +429,22 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
 def standings_from_cfg(
     cfg: Any, layout: Layout, board: pd.DataFrame, protocol: str, horizon: float, notes: list[str]
 ) -> st.Standings | None:
-    """The board's intervals, ranking and claim from the per-window tables evaluate wrote
-    (:mod:`skidbench.benchmark.standings`), or None (with a note) when there are none to read."""
+    """:func:`standings_of` with the config's ``rank_by`` and ``intervals``."""
     rank_by = str(cfg.get("rank_by") or st.AGGREGATE)
+    return standings_of(rank_by, iv.IntervalConfig.from_cfg(cfg), layout, board, protocol, horizon, notes)
+
+
+def standings_of(
+    rank_by: str,
+    intervals: iv.IntervalConfig,
+    layout: Layout,
+    board: pd.DataFrame,
+    protocol: str,
+    horizon: float,
+    notes: list[str],
+) -> st.Standings | None:
+    """The board's intervals, ranking (by ``rank_by``) and claim from the per-window tables evaluate wrote
+    (:mod:`skidbench.benchmark.standings`), or None (with a note) when there are none to read."""
     if rank_by != st.AGGREGATE:
         trk.rank_key(rank_by, horizon)  # a bad rank_by: one line
     windows, missing = st.read_windows(layout, board, protocol, horizon)
@@ -442,7 +455,7 @@ def standings_from_cfg(
             "by point estimate (no paired comparison)"
         )
         return None
-    return st.build(windows, horizon, iv.IntervalConfig.from_cfg(cfg), rank_by)
+    return st.build(windows, horizon, intervals, rank_by)
 
 
 def ui_links(
