@@ -6,7 +6,9 @@ plain or gzip/bz2/xz-compressed. A pickle can run any code it names, so it is re
 unpickler (:class:`DataFrameUnpickler`, the "restricting globals" recipe of Python's :mod:`pickle` docs
 on top of pandas' own compatibility unpickler): it admits only the (module, name) pairs in
 :data:`ALLOWED_GLOBALS`, the pandas and numpy types a dataframe of numbers and text holds as pandas
-1.x-3.x and numpy 1.x-2.x write it; anything else is refused in one line as unsafe, before it is called.
+1.x-3.x and numpy 1.x-2.x write it (float, int, bool and text columns, pandas' nullable ones and pd.NA,
+categories, datetimes with a UTC offset, timedeltas, their indexes and a MultiIndex); anything else is
+refused in one line as unsafe, before it is called.
 
 **Forms.** :func:`detect_form` picks the form from the columns: ``windows`` (every window version DRIVE
 wrote: the 578-column ``torch_ready``, the 1218-column ``slip_dataset_all``, any newer one with more
@@ -67,13 +69,41 @@ _PANDAS = {
     # pandas 3 keeps text columns in Arrow arrays: their pickles rebuild them with these
     ("pyarrow.lib", "_restore_array"), ("pyarrow.lib", "py_buffer"), ("pyarrow.lib", "type_for_alias"),
 }  # fmt: skip
+#: pandas' other data types (nullable numbers and booleans, pd.NA, categories, times and their indexes, a
+#: MultiIndex of columns) by the names pandas 1.5-2.x and 3.x write: a lab's own dataframe may hold them
+#: (``convert_dtypes()``, a time index), and refusing them as unsafe would name the wrong reason
+_PANDAS_TYPES = {
+    ("pandas._libs.missing", "NA"), ("pandas", "NA"),
+    *{(m, n) for m, names in {
+        "pandas.core.arrays.integer": ("IntegerArray", *(f"{u}Int{b}Dtype" for u in ("", "U")
+                                                          for b in (8, 16, 32, 64))),
+        "pandas.core.arrays.floating": ("FloatingArray", "Float32Dtype", "Float64Dtype"),
+        "pandas.core.arrays.boolean": ("BooleanArray", "BooleanDtype"),
+        "pandas.core.arrays.categorical": ("Categorical",),
+        "pandas.core.dtypes.dtypes": ("CategoricalDtype",),
+        "pandas.core.arrays.timedeltas": ("TimedeltaArray",),
+        "pandas.core.indexes.category": ("CategoricalIndex",),
+        "pandas.core.indexes.datetimes": ("DatetimeIndex", "_new_DatetimeIndex"),
+        "pandas.core.indexes.timedeltas": ("TimedeltaIndex", "_new_TimedeltaIndex"),
+        "pandas.core.indexes.multi": ("MultiIndex",),
+    }.items() for n in names},
+    *{("pandas", n) for n in ("Categorical", "CategoricalDtype", "CategoricalIndex", "DatetimeIndex",
+                              "TimedeltaIndex", "MultiIndex", "DatetimeTZDtype", "BooleanDtype",
+                              "Float32Dtype", "Float64Dtype",
+                              *(f"{u}Int{b}Dtype" for u in ("", "U") for b in (8, 16, 32, 64)))},
+    *{("pandas.arrays", n) for n in ("IntegerArray", "FloatingArray", "BooleanArray", "Categorical",
+                                     "TimedeltaArray")},
+    ("pandas._libs.tslibs.timedeltas", "_timedelta_unpickle"),
+    ("datetime", "timezone"), ("datetime", "timedelta"),  # a UTC-offset time zone (pandas 2-3's UTC)
+    ("pytz", "_UTC"),  # pandas 1.x's UTC
+}  # fmt: skip
 _PYTHON = {
     ("builtins", "slice"), ("__builtin__", "slice"),
     ("builtins", "bytearray"), ("__builtin__", "bytearray"),
     ("_codecs", "encode"),  # how protocol 2 writes bytes
 }  # fmt: skip
 #: every global a DRIVE dataframe pickle may name (after pandas' renames of legacy names)
-ALLOWED_GLOBALS = frozenset(_NUMPY | _PANDAS | _PYTHON)
+ALLOWED_GLOBALS = frozenset(_NUMPY | _PANDAS | _PANDAS_TYPES | _PYTHON)
 
 
 class UnsafePickleError(SourceError):
