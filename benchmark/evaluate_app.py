@@ -85,7 +85,7 @@ def run(cfg: DictConfig):
 
 def _findings(layout, result) -> list[str]:
     """What the fits behind the board found (a parameter at its bound), printed under it as compare does."""
-    from skidbench.models.fitting import board_findings
+    from skidbench.models.saved import board_findings
 
     rows = [(c.model, c.terrain) for c in result.children if c.status == "FINISHED"]
     return board_findings(layout, rows, result.inputs)
