@@ -29,10 +29,11 @@ from .cache import (
     inputs_changed,
     mark_failed,
 )
-from .config_schema import check_value, validate
+from .config_schema import check_value
 from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
 from .imported import check_stage
 from .layout import default_out_root, register_resolvers, remove_atomic
+from .overrides import validate
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {

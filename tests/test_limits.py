@@ -48,8 +48,6 @@ CFG_TAKERS = {
     "benchmark.testsets:protocol_unavailable",
     "benchmark.tracking:resolve_tracking_uri",
     "benchmark.transfer:training_layout",
-    "pipeline.config_schema:leaves",
-    "pipeline.config_schema:validate",
 }
 
 
