@@ -69,8 +69,9 @@ the needed columns are read as numbers and that row is dropped (:func:`~.drive_f
 other rows with a zero timestamp, or whose needed values are not numbers, are dropped with one warning
 each; a ``ros_time`` that is a date in s, ms or us instead of ns is converted with one warning
 (:func:`~.drive_files.ros_time_ns`). A file whose ICP pose never changes (ICP did not run: the
-published ``workshop_raw``/``close_raw`` are such) has no ground truth: no ``gt_pose`` table is written and ``_extract.json`` says why;
-``groundtruth`` then fails with that reason (another ground truth can be given). Encoders that read
+published ``workshop_raw``/``close_raw`` are such) has no ground truth: no ``gt_pose`` table is
+written and ``_extract.json`` says why; ``groundtruth`` then fails with that reason, led by the source
+file (another ground truth can be given). Encoders that read
 exactly zero throughout while the robot is commanded are treated as absent (no ``enc_wheels``) when there
 is no ground truth either, else the file is refused (a broken encoder log).
 """
