@@ -127,6 +127,23 @@ def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
         windows_to_sequences(df, path, identified, robot=load_robot("warthog"))
 
 
+def test_a_shuffled_window_file_is_said_to_be_out_of_recording_order(shared_real, caplog):
+    """DRIVE writes a step's windows in order (no boundary inside a calib_step breaks); a shuffled copy of
+    the real Husky file breaks a quarter of them: one warning says the windows are not in recording
+    order, the ordered file gets none."""
+    import logging
+
+    path = shared_real / "drive" / "husky_windows.parquet"
+    df = pd.read_parquet(path)
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08))
+    with caplog.at_level(logging.WARNING):
+        windows_to_sequences(df, path, settings)
+        assert "not in recording order" not in caplog.text
+        short = windows_to_sequences(df.sample(frac=1, random_state=0), path, settings)
+    assert "husky_windows.parquet: 119 of 402 boundaries between windows of one calib_step" in caplog.text
+    assert "not in recording order (shuffled?)" in caplog.text and len(short) > 200
+
+
 def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_real, tmp_path):
     from hydra import compose, initialize_config_module
 
