@@ -127,6 +127,23 @@ def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
         windows_to_sequences(df, path, identified, robot=load_robot("warthog"))
 
 
+def test_a_shuffled_window_file_is_said_to_be_out_of_recording_order(shared_real, caplog):
+    """DRIVE writes a step's windows in order (no boundary inside a calib_step breaks); a shuffled copy of
+    the real Husky file breaks a quarter of them: one warning says the windows are not in recording
+    order, the ordered file gets none."""
+    import logging
+
+    path = shared_real / "drive" / "husky_windows.parquet"
+    df = pd.read_parquet(path)
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08))
+    with caplog.at_level(logging.WARNING):
+        windows_to_sequences(df, path, settings)
+        assert "not in recording order" not in caplog.text
+        short = windows_to_sequences(df.sample(frac=1, random_state=0), path, settings)
+    assert "husky_windows.parquet: 119 of 402 boundaries between windows of one calib_step" in caplog.text
+    assert "not in recording order (shuffled?)" in caplog.text and len(short) > 200
+
+
 def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_real, tmp_path):
     from hydra import compose, initialize_config_module
 
@@ -215,3 +232,48 @@ def test_a_husky_with_its_own_command_kinematics_is_scored_with_them(tmp_path, c
     moving = t["valid"].astype(bool) & (t["cmd_v"].abs() > 0.2) & (t["cmd_w"].abs() < 0.1)
     ratio = float(np.median(t.loc[moving, "vx"] / t.loc[moving, "cmd_v"]))
     assert 0.9 < ratio < 1.1, ratio
+
+
+def _raw_frame(n_steps: int = 4, per_step: int = 40) -> pd.DataFrame:
+    """A small raw DRIVE frame driving forward (ns clock of 2024, 20 Hz, every row ``calib``)."""
+    n = n_steps * per_step
+    t = 1_721_336_326_440_222_197 + np.arange(n, dtype=np.int64) * 50_000_000
+    return pd.DataFrame(
+        {
+            "ros_time": t, "cmd_vel_x": np.full(n, 0.5), "cmd_vel_omega": np.zeros(n),
+            "meas_left_vel": np.full(n, 1.6), "meas_right_vel": np.full(n, 1.6),
+            "calib_step": np.repeat(np.arange(n_steps), per_step).astype(float), "calib_state": "calib",
+            "icp_pos_x": 0.025 * np.arange(n), "icp_pos_y": np.zeros(n), "icp_pos_z": np.zeros(n),
+            "icp_quat_x": np.zeros(n), "icp_quat_y": np.zeros(n), "icp_quat_z": np.zeros(n),
+            "icp_quat_w": np.ones(n),
+        }
+    )  # fmt: skip
+
+
+def test_a_raw_clock_in_seconds_ms_or_us_is_read_as_nanoseconds(caplog):
+    """ros_time in s, ms, us (a converted file) or a datetime column of any resolution: the same tables as
+    DRIVE's ns clock, with one warning naming the unit; a clock stepping by under 1 per row that is no
+    date is refused in one line."""
+    import logging
+
+    df = _raw_frame()
+    want = raw_to_sequences(df, Path("r.parquet"), (0.5, 0.25, 0.25), "r")
+    ns = df["ros_time"].to_numpy()
+    variants = {
+        "s": ns / 1e9, "ms": ns / 1e6, "us": ns // 1000,
+        "datetime us": pd.to_datetime(ns // 1000, unit="us").as_unit("us"),
+    }  # fmt: skip
+    for unit, t in variants.items():
+        with caplog.at_level(logging.WARNING):
+            caplog.clear()
+            got = raw_to_sequences(df.assign(ros_time=t), Path("r.parquet"), (0.5, 0.25, 0.25), "r")
+        assert [s.name for s in got] == [s.name for s in want]
+        for a, b in zip(got, want, strict=True):
+            for k, table in b.tables.present().items():
+                x, clock = a.tables.present()[k], [c for c in table.columns if c.endswith("_ns")]
+                assert np.abs(x[clock].to_numpy() - table[clock].to_numpy()).max() < 1e3, unit  # float s
+                pd.testing.assert_frame_equal(x.drop(columns=clock), table.drop(columns=clock))
+        if unit in ("s", "ms", "datetime us"):
+            assert f"ros_time is in {unit[-2:].strip()} (median" in caplog.text and "of 2024" in caplog.text
+    with pytest.raises(SourceError, match=r"r\.parquet: ros_time steps by 0\.05 per row \(median\): not"):
+        raw_to_sequences(df.assign(ros_time=100 + 0.05 * np.arange(len(df))), Path("r.parquet"), (1,), "r")

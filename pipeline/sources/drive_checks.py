@@ -80,7 +80,7 @@ def check_recording(path: Path, rec: Recording, *, refuse_without_gt: bool) -> l
         )
         if refuse_without_gt:
             raise SourceError(f"{path}: nothing can be scored: no ground truth: {why} ({rec.what})")
-        notes.append(f"no ground truth: {why}")
+        notes.append(f"no ground truth: {why} ({rec.what})")
     zero_wheels = not (np.nan_to_num(rec.meas_l) != 0).any() and not (np.nan_to_num(rec.meas_r) != 0).any()
     if zero_wheels:
         if rec.gt_changes:

@@ -67,9 +67,11 @@ driven by measured encoder rates can take them from the source file; no command-
 scores them. Repairs (logged): DRIVE stores every raw column as text with a zero-initialised first row:
 the needed columns are read as numbers and that row is dropped (:func:`~.drive_files.typed_raw_frame`);
 other rows with a zero timestamp, or whose needed values are not numbers, are dropped with one warning
-each. A file whose ICP pose never changes (ICP did not run: the published ``workshop_raw``/``close_raw``
-are such) has no ground truth: no ``gt_pose`` table is written and ``_extract.json`` says why;
-``groundtruth`` then fails with that reason (another ground truth can be given). Encoders that read
+each; a ``ros_time`` that is a date in s, ms or us instead of ns is converted with one warning
+(:func:`~.drive_files.ros_time_ns`). A file whose ICP pose never changes (ICP did not run: the
+published ``workshop_raw``/``close_raw`` are such) has no ground truth: no ``gt_pose`` table is
+written and ``_extract.json`` says why; ``groundtruth`` then fails with that reason, led by the source
+file (another ground truth can be given). Encoders that read
 exactly zero throughout while the robot is commanded are treated as absent (no ``enc_wheels``) when there
 is no ground truth either, else the file is refused (a broken encoder log).
 """
@@ -98,6 +100,7 @@ from .drive_files import (  # noqa: F401 - re-exported: the reader's public name
     check_paths,
     detect_form,
     read_frame,
+    ros_time_ns,
     typed_raw_frame,
 )
 from .drive_rows import COMMAND, IDLE, OTHER, DriveSequence, classify_rows, segments_of  # noqa: F401
@@ -116,9 +119,9 @@ from .drive_windows import (  # noqa: F401
 log = logging.getLogger(__name__)
 
 #: bumped when the reader's output changes for the same file and config (3: rows classified, only
-#: command-driven runs are sequences; 4: command kinematics identified from the file): an extraction
-#: stamped by an older reader is redone, not reused
-READER_VERSION = 4
+#: command-driven runs are sequences; 4: command kinematics identified from the file; 5: a raw ros_time
+#: in s, ms or us read as such): an extraction stamped by an older reader is redone, not reused
+READER_VERSION = 5
 SEGMENTS_FILE = "segments.json"
 
 
@@ -164,6 +167,7 @@ def _raw_typed(df: pd.DataFrame, path: Path) -> tuple[pd.DataFrame, list[str]]:
         df = df[~zero]
     if len(df) == 0:
         raise SourceError(f"{path}: empty sequence (no rows with a valid timestamp)")
+    df = df.assign(ros_time=ros_time_ns(df["ros_time"].to_numpy(dtype=float), path))
     t = df["ros_time"].to_numpy(dtype=float).astype(np.int64)  # float64 ns: ~256 ns resolution
     back = np.flatnonzero(np.diff(t) < 0)
     if len(back):
