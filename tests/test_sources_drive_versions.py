@@ -254,6 +254,14 @@ def test_a_husky_with_its_own_command_kinematics_is_scored_with_them(tmp_path, c
     info = json.loads(next((tmp_path / "out").glob("*/extracted/husky_train_00/_extract.json")).read_text())
     assert info["robot_checks"]["cmd_kinematics"]["value"] == [0.165, 0.55]
     assert info["robot_checks"]["cmd_kinematics"]["configured"] == [0.3, 1.08]
+    from skidbench.pipeline.layout import Layout
+    from skidbench.pipeline.splits.app import recording_section
+
+    ds = next((tmp_path / "out").glob("*/extracted")).parent.name
+    card = recording_section(Layout(tmp_path / "out", ds))  # and the dataset card says it
+    row = next(ln for ln in card.splitlines() if ln.startswith("| husky_windows.parquet | windows"))
+    assert "| [0.165, 0.55]: the husky's spec sheet (measured/commanded common-mode wheel-rate gain" in row
+    assert row.endswith("; the configured fallback [0.3, 1.08] not used |")
     t = split_table(splits)
     moving = t["valid"].astype(bool) & (t["cmd_v"].abs() > 0.2) & (t["cmd_w"].abs() < 0.1)
     ratio = float(np.median(t.loc[moving, "vx"] / t.loc[moving, "cmd_v"]))
