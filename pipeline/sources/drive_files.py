@@ -304,3 +304,32 @@ def _placeholder_rows(df: pd.DataFrame, needed: list[str]) -> np.ndarray:
         return np.zeros(len(df), dtype=bool)
     vals = df[[c for c in needed if c in df.columns]].to_numpy(dtype=float)
     return np.all(np.nan_to_num(vals, nan=1.0) == 0.0, axis=1)
+
+
+#: a ROS time since 1970 of the years 2000-2100 in each unit: how a raw file's ``ros_time`` unit is told
+_EPOCH_S = (946_684_800.0, 4_102_444_800.0)
+_UNITS = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
+
+
+def ros_time_ns(t: np.ndarray, path: Path) -> np.ndarray:
+    """``ros_time`` (valid rows, float) in nanoseconds, DRIVE's unit. A clock of the years 2000-2100 in
+    seconds, milliseconds or microseconds (a lab's converted file, a datetime column of another
+    resolution) is converted, with one warning naming the unit; a clock that steps by under 1 per row and
+    is no such date is refused in one line (a nanosecond clock never does)."""
+    t = np.asarray(t, dtype=float)
+    mid = float(np.median(t)) if t.size else 0.0
+    unit = next((u for u, k in _UNITS.items() if _EPOCH_S[0] * k <= mid <= _EPOCH_S[1] * k), None)
+    if unit is not None and unit != "ns":
+        log.warning(
+            "%s: ros_time is in %s (median %.6g: a date of %s in %s, not in ns); converted to ns",
+            path.name, unit, mid, pd.Timestamp(mid / _UNITS[unit], unit="s").year, unit,
+        )  # fmt: skip
+        return t * (1e9 / _UNITS[unit])
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if unit is None and steps.size and float(np.median(steps)) < 1.0:
+        raise SourceError(
+            f"{path}: ros_time steps by {float(np.median(steps)):.3g} per row (median): not nanoseconds, "
+            "DRIVE's unit, and not a date in s, ms or us either; give ros_time in ns"
+        )
+    return t
