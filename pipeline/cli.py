@@ -29,10 +29,11 @@ from .cache import (
     inputs_changed,
     mark_failed,
 )
-from .config_schema import check_value, validate
+from .config_schema import check_value
 from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
 from .imported import check_stage
 from .layout import default_out_root, register_resolvers, remove_atomic
+from .overrides import validate
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -111,7 +112,7 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
 
                     root = open_home(home_from_cfg(cfg), name)[0].root
                     check_producers(root, name)
-                    check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
+                    check_stage(cfg.get("robot"), name, root)  # imported: frozen splits, the bundle's robot
                     before = data_state(root) if name in LOCAL_PRODUCERS else None
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record

@@ -104,7 +104,7 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     is b2 = 0, chi = 1 + b1 = edd's; the fit says so (fit_info_["at_bound"]), and compare's note names
     it with the terrain and value. A roc-shaped truth reports nothing."""
     from skidbench.benchmark.compare import _fit_findings
-    from skidbench.models.fitting import fit_findings
+    from skidbench.models.saved import fit_findings
     from skidbench.pipeline.layout import Layout
 
     fitted = RocBased(jackal).fit(
@@ -130,6 +130,14 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     board = pd.DataFrame({"model": ["roc", "edd"], "terrain": ["grass", "grass"], "status": ["FINISHED"] * 2})
     (note,) = _fit_findings(layout, board, "commanded")
     assert note.startswith("roc degenerates to edd on this data: b2 at its bound (grass: b2 = ")
+    # and under evaluate's board (its console print), for the runs that finished
+    from skidbench.benchmark import evaluate_app
+    from skidbench.benchmark.evaluate import BenchmarkResult, ChildResult, format_result
+
+    done = BenchmarkResult("uri", "ds", "p", [ChildResult(m, "grass", m, "FINISHED") for m in ("roc", "edd")])
+    assert f"\nnote: {note}" in format_result(done, evaluate_app._findings(layout, done))
+    done.children[0].status = "FAILED"
+    assert evaluate_app._findings(layout, done) == []
 
 
 def test_enhanced_recovers_p1_to_p6_with_a_cg_offset(cg_robot, table):
