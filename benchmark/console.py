@@ -3,6 +3,7 @@ intervals (and a seeded model's spread over seeds), and the floor of each terrai
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -19,10 +20,11 @@ PROTOCOL_TEXT = {
 }
 
 
-def format_result(result: Any) -> str:
+def format_result(result: Any, findings: Sequence[str] = ()) -> str:
     """A short text summary for the console: the headline metrics (RMSRE in %, ...) per (model, terrain)
-    at each horizon, each with its 95 % interval in brackets, and the floor of each terrain (never
-    ranked; docs/intervals.md)."""
+    at each horizon, each with its 95 % interval in brackets, the floor of each terrain (never ranked;
+    docs/intervals.md), and ``findings``: what the fits behind the board found (a parameter at its bound:
+    ``roc degenerates to edd on this data: b2 at its bound (grass: b2 = 6e-25)``), one ``note:`` line each."""
     rows = [
         {"model": c.model, "terrain": c.terrain, "status": c.status, **c.metrics} for c in result.children
     ]
@@ -48,6 +50,7 @@ def format_result(result: Any) -> str:
         show.to_string(index=False),
         "(value [95 % interval], ±s: the spread over seeds of a model with random parts; the floor is the "
         "ground truth's own velocities, never ranked; `skidbench compare` ranks with paired intervals)",
+        *(f"note: {f}" for f in findings),
     ]
     for c in result.failed:
         lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")

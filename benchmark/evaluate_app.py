@@ -59,7 +59,7 @@ def run(cfg: DictConfig):
     if not cfg.get("force", False) and stamp.is_fresh(_stamp_key(cfg, layout, stamp)):
         cached = _cached_result(cfg, layout, stamp)
         if cached is not None:
-            print(format_result(cached), flush=True)
+            print(format_result(cached, _findings(layout, cached)), flush=True)
             print(
                 f"evaluate: inputs unchanged (split files, fits, config) and parent run "
                 f"{cached.parent_run_id} exists; skipped (force=true re-runs)",
@@ -71,7 +71,7 @@ def run(cfg: DictConfig):
     except ProtocolSkipped as exc:  # e.g. inputs=response on data without wheel encoders: said, not failed
         print(f"evaluate: {exc}", flush=True)
         return None, True
-    print(format_result(result), flush=True)
+    print(format_result(result, _findings(layout, result)), flush=True)
     if result.failed:
         log.warning(
             "%d of %d model run(s) FAILED (marked FAILED in MLflow with the reason)",
@@ -81,6 +81,14 @@ def run(cfg: DictConfig):
     else:  # the key is taken after the run: the fits it (re)wrote are part of it
         stamp.record(_stamp_key(cfg, layout, stamp), [last_file(layout, inputs)])
     return result, False
+
+
+def _findings(layout, result) -> list[str]:
+    """What the fits behind the board found (a parameter at its bound), printed under it as compare does."""
+    from skidbench.models.fitting import board_findings
+
+    rows = [(c.model, c.terrain) for c in result.children if c.status == "FINISHED"]
+    return board_findings(layout, rows, result.inputs)
 
 
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:

@@ -9,8 +9,9 @@ An augmented model is evaluated in a fixed order, so that adding effects never d
 in which discovery found them:
 
 1. ``actuator_lag`` (an input transform): every command channel passes through a causal first-order
-   lag ``tau * dy/dt = u - y``, restarted at each sequence start; the command derivatives become
-   ``(u - y) / tau``. The base model then predicts from the lagged commands.
+   lag ``tau * dy/dt = u - y`` (the continuous response of commands linear between clock samples,
+   ``pipeline.wheel_response.lag_response``), restarted at each sequence start; the command derivatives
+   become ``(u - y) / tau``. The base model then predicts from the lagged commands.
 2. multiplicative yaw-rate factors on the base prediction (``curvature_dependent_icr``,
    ``speed_dependent_turn_slip``);
 3. additive corrections (the others).
@@ -24,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.models import terms as termlib
-from skidbench.pipeline.wheel_response import CMD_COLUMNS, lag_filter  # noqa: F401  (the one home of the lag)
+from skidbench.pipeline.wheel_response import CMD_COLUMNS, lag_response  # noqa: F401  (the one home of the lag)
 
 INF = float("inf")
 
@@ -280,7 +281,7 @@ def augmented_prediction(
     )
     inputs = table
     if "actuator_lag" in params:
-        inputs = lag_filter(table, float(np.asarray(params["actuator_lag"])[0]), groups)
+        inputs = lag_response(table, float(np.asarray(params["actuator_lag"])[0]), groups)
     base_pred = np.asarray(base_model.predict(inputs), dtype=float)
     corr = {e: np.asarray(p, dtype=float) for e, p in params.items() if CATALOGUE[e].kind != "input"}
     feats = command_features(inputs, wheel_radius, track_width)

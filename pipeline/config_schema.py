@@ -204,6 +204,7 @@ SCHEMA: dict[str, Spec] = {
     "source.cmd_kinematics.*": listof(number(gt=0), 2, what="[wheel radius m, track m]"),
     "source.cmd_limits.*": listof(number(gt=0), 2, what="[v_max m/s, w_max rad/s]"),
     "source.break_at_jumps": BOOL,
+    "source.check_geometry": BOOL,
     "source.topics": ANY,  # `auto`, or the mapping below
     "source.topics.*": ANY,  # null: the topic is not in the bags
     "source.topics.*.topic": STR,

@@ -106,12 +106,10 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
         lim = np.maximum(float(L0) - float(k) * np.abs(w), 0.0)
         wl, wr = np.clip(wl, -lim, lim), np.clip(wr, -lim, lim)
     if "actuator_lag" in effects:  # each wheel's motor: first-order response
-        tau = float(effects["actuator_lag"])
-        from scipy.signal import lfilter
-
-        a = 1 - np.exp(-float(np.median(dt)) / tau)
-        wl = lfilter([a], [1, a - 1], wl, zi=[(1 - a) * wl[0]])[0]
-        wr = lfilter([a], [1, a - 1], wr, zi=[(1 - a) * wr[0]])[0]
+        wl, wr = (
+            motor_lag(wl, float(effects["actuator_lag"]), dt),
+            motor_lag(wr, float(effects["actuator_lag"]), dt),
+        )
     rl = rr = R_WHEEL
     if "side_asymmetry" in effects:
         e = float(effects["side_asymmetry"])
@@ -152,6 +150,21 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
     if "lateral_drift" in effects:
         vy = vy + float(effects["lateral_drift"])
     return vx, vy, wz
+
+
+def motor_lag(x: np.ndarray, tau: float, dt: np.ndarray) -> np.ndarray:
+    """A motor's first-order response ``tau dy/dt = x - y`` to a command held over each fine step
+    (``x[n]`` over ``[t_n, t_n+1)``, at rest on ``x[0]`` before), as the mean of ``y`` over each step: what
+    :func:`integrate`, which holds ``vel[n]`` over that step, needs to move the robot exactly as the
+    continuous response does. (The response at the step's end, ``y(t_n+1)``, would put the motion one
+    step early; at its start, one step late.)"""
+    h = float(np.median(dt))
+    e = np.exp(-h / tau)
+    y = np.empty(len(x))  # y(t_n): the exact zero-order-hold recursion
+    y[0] = x[0]
+    for n in range(1, len(x)):
+        y[n] = e * y[n - 1] + (1 - e) * x[n - 1]
+    return x + (y - x) * tau * (1 - e) / h
 
 
 def integrate(t, vx, vy, wz):

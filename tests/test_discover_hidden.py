@@ -51,21 +51,10 @@ def _assert_shrinks(step: dict) -> None:
     assert after["rotational"] <= before["rotational"] * 1.01
 
 
-#: a known false discovery, open in the discovery issue: since the 6 s errors are integrated with the
-#: trapezoidal rule (6345996), actuator_lag's data is named `actuator_lag` (held-out trans 5.60 -> 1.71 %)
-#: and then `angular_acceleration_slip` (1.71 -> 1.66 %, p = 0.0078), which is not in the data; the lag
-#: taken as the continuous response (one clock step later) leaves the same second name (2026-11-25)
-KNOWN_FALSE = {"actuator_lag": "a false angular_acceleration_slip after actuator_lag (see KNOWN_FALSE)"}
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "effect",
-    [
-        pytest.param(e, marks=pytest.mark.xfail(reason=KNOWN_FALSE[e], run=False)) if e in KNOWN_FALSE else e
-        for e in EFFECT_IDS
-        if e != CLI_EFFECT
-    ],
+    [e for e in EFFECT_IDS if e != CLI_EFFECT],
 )
 def test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap(effect, jackal):
     res = _discover([effect], seed=100 + EFFECT_IDS.index(effect), jackal=jackal)
@@ -74,6 +63,8 @@ def test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap(effect, jack
     _assert_shrinks(res.steps[0])
     ev = res.steps[0]["evidence"]
     assert ev["p_search"] <= 0.05 and ev["heldout_gain"] > 0  # the name's gain and its search-wide p
+    if effect == "actuator_lag":  # the motor's time constant, recovered
+        assert res.final["params"]["actuator_lag"]["tau"] == pytest.approx(dd.DEFAULT_SIZES[effect], rel=0.03)
     if effect == "side_asymmetry":  # one side's slip ratio is the same thing: listed as its equivalent
         eq = {q["term"]: q for q in res.steps[0]["naming"]["equivalent_terms"]}
         assert any(k.startswith("slip.") and q["reparametrisation"] for k, q in eq.items()), eq

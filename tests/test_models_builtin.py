@@ -130,6 +130,14 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     board = pd.DataFrame({"model": ["roc", "edd"], "terrain": ["grass", "grass"], "status": ["FINISHED"] * 2})
     (note,) = _fit_findings(layout, board, "commanded")
     assert note.startswith("roc degenerates to edd on this data: b2 at its bound (grass: b2 = ")
+    # and under evaluate's board (its console print), for the runs that finished
+    from skidbench.benchmark import evaluate_app
+    from skidbench.benchmark.evaluate import BenchmarkResult, ChildResult, format_result
+
+    done = BenchmarkResult("uri", "ds", "p", [ChildResult(m, "grass", m, "FINISHED") for m in ("roc", "edd")])
+    assert f"\nnote: {note}" in format_result(done, evaluate_app._findings(layout, done))
+    done.children[0].status = "FAILED"
+    assert evaluate_app._findings(layout, done) == []
 
 
 def test_enhanced_recovers_p1_to_p6_with_a_cg_offset(cg_robot, table):

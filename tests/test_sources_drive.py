@@ -95,8 +95,12 @@ def test_raw_form_without_ground_truth_fails_groundtruth_in_one_line(shared_real
             "source.file=workshop_raw.parquet", "source.label=workshop"]  # fmt: skip
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         extract(compose("extract", over))
-        with pytest.raises(GroundTruthError, match="gt_pose.parquet: pose table not found.*ICP did not run"):
+        with pytest.raises(GroundTruthError) as err:
             groundtruth(compose("groundtruth", over))
+    line = str(err.value)  # the source file, the true reason with its numbers, and what would give one
+    assert line.startswith(f"{shared_real / 'drive' / 'workshop_raw.parquet'}: nothing to score workshop_")
+    assert "no ground truth: the ICP pose never changes in this file (ICP did not run) (4637 rows)" in line
+    assert "groundtruth.method=orbslam" in line and "\n" not in line
 
 
 def test_raw_form_with_icp_poses_yields_a_gt_pose_table(shared_real):

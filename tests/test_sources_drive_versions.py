@@ -122,9 +122,52 @@ def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
     assert 0.7 < checks["speed_gain"] < 1.1 and 0.8 < checks["implied_radius_ratio"] < 1.1
     # the geometry refuses it as a Warthog's (not the speed gain, which the command conversion also moves)
     refused = r"robot=warthog: the ground truth travels 0\.15\d m per wheel radian.* 0\.50x the spec sheet's"
-    with pytest.raises(ConfigError, match=refused):
-        identified = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+    identified = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+    with pytest.raises(ConfigError, match=refused) as e:
         windows_to_sequences(df, path, identified, robot=load_robot("warthog"))
+    # below the radius, heavy slip (ice, mud) is the other reading: said, with the key that scores it
+    assert "or its wheels slip by 50% on straight stretches (ice, mud)" in str(e.value)
+    assert str(e.value).endswith("or source.check_geometry=false to score it as this robot's")
+
+
+def test_a_geometry_check_turned_off_scores_the_file_with_a_warning(shared_real, caplog):
+    """source.check_geometry=false (a Warthog on ice looks like a smaller robot): the same file the
+    geometry refuses is extracted as this robot's, the contradiction one warning, its numbers recorded;
+    the raw form likewise (the Warthog's grass file as a Husky: 1.58x the Husky's wheel radius)."""
+    import dataclasses
+    import logging
+
+    path = shared_real / "drive" / "husky_windows.parquet"
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+    off = dataclasses.replace(settings, check_geometry=False)
+    checks: dict = {}
+    with caplog.at_level(logging.WARNING):
+        seqs = windows_to_sequences(pd.read_parquet(path), path, off, load_robot("warthog"), checks)
+    assert seqs and checks["implied_radius_ratio"] == pytest.approx(0.50, abs=0.01)
+    assert "0.50x the spec sheet's wheel radius 0.3 m" in caplog.text
+    assert "scored as this robot's anyway (source.check_geometry=false)" in caplog.text
+    raw = shared_real / "drive" / "warthog_grass2_raw.parquet"
+    args = (pd.read_parquet(raw), raw, (0.6, 0.2, 0.2), "g", None, load_robot("husky"))
+    with pytest.raises(ConfigError, match=r"1\.58x the spec sheet's wheel radius 0\.165 m"):
+        raw_to_sequences(*args)
+    assert raw_to_sequences(*args, check_geometry=False)
+
+
+def test_a_shuffled_window_file_is_said_to_be_out_of_recording_order(shared_real, caplog):
+    """DRIVE writes a step's windows in order (no boundary inside a calib_step breaks); a shuffled copy of
+    the real Husky file breaks a quarter of them: one warning says the windows are not in recording
+    order, the ordered file gets none."""
+    import logging
+
+    path = shared_real / "drive" / "husky_windows.parquet"
+    df = pd.read_parquet(path)
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08))
+    with caplog.at_level(logging.WARNING):
+        windows_to_sequences(df, path, settings)
+        assert "not in recording order" not in caplog.text
+        short = windows_to_sequences(df.sample(frac=1, random_state=0), path, settings)
+    assert "husky_windows.parquet: 119 of 402 boundaries between windows of one calib_step" in caplog.text
+    assert "not in recording order (shuffled?)" in caplog.text and len(short) > 200
 
 
 def test_a_renamed_husky_file_run_as_a_warthog_is_refused_in_one_line(shared_real, tmp_path):
@@ -211,7 +254,60 @@ def test_a_husky_with_its_own_command_kinematics_is_scored_with_them(tmp_path, c
     info = json.loads(next((tmp_path / "out").glob("*/extracted/husky_train_00/_extract.json")).read_text())
     assert info["robot_checks"]["cmd_kinematics"]["value"] == [0.165, 0.55]
     assert info["robot_checks"]["cmd_kinematics"]["configured"] == [0.3, 1.08]
+    from skidbench.pipeline.layout import Layout
+    from skidbench.pipeline.splits.app import recording_section
+
+    ds = next((tmp_path / "out").glob("*/extracted")).parent.name
+    card = recording_section(Layout(tmp_path / "out", ds))  # and the dataset card says it
+    row = next(ln for ln in card.splitlines() if ln.startswith("| husky_windows.parquet | windows"))
+    assert "| [0.165, 0.55]: the husky's spec sheet (measured/commanded common-mode wheel-rate gain" in row
+    assert row.endswith("; the configured fallback [0.3, 1.08] not used |")
     t = split_table(splits)
     moving = t["valid"].astype(bool) & (t["cmd_v"].abs() > 0.2) & (t["cmd_w"].abs() < 0.1)
     ratio = float(np.median(t.loc[moving, "vx"] / t.loc[moving, "cmd_v"]))
     assert 0.9 < ratio < 1.1, ratio
+
+
+def _raw_frame(n_steps: int = 4, per_step: int = 40) -> pd.DataFrame:
+    """A small raw DRIVE frame driving forward (ns clock of 2024, 20 Hz, every row ``calib``)."""
+    n = n_steps * per_step
+    t = 1_721_336_326_440_222_197 + np.arange(n, dtype=np.int64) * 50_000_000
+    return pd.DataFrame(
+        {
+            "ros_time": t, "cmd_vel_x": np.full(n, 0.5), "cmd_vel_omega": np.zeros(n),
+            "meas_left_vel": np.full(n, 1.6), "meas_right_vel": np.full(n, 1.6),
+            "calib_step": np.repeat(np.arange(n_steps), per_step).astype(float), "calib_state": "calib",
+            "icp_pos_x": 0.025 * np.arange(n), "icp_pos_y": np.zeros(n), "icp_pos_z": np.zeros(n),
+            "icp_quat_x": np.zeros(n), "icp_quat_y": np.zeros(n), "icp_quat_z": np.zeros(n),
+            "icp_quat_w": np.ones(n),
+        }
+    )  # fmt: skip
+
+
+def test_a_raw_clock_in_seconds_ms_or_us_is_read_as_nanoseconds(caplog):
+    """ros_time in s, ms, us (a converted file) or a datetime column of any resolution: the same tables as
+    DRIVE's ns clock, with one warning naming the unit; a clock stepping by under 1 per row that is no
+    date is refused in one line."""
+    import logging
+
+    df = _raw_frame()
+    want = raw_to_sequences(df, Path("r.parquet"), (0.5, 0.25, 0.25), "r")
+    ns = df["ros_time"].to_numpy()
+    variants = {
+        "s": ns / 1e9, "ms": ns / 1e6, "us": ns // 1000,
+        "datetime us": pd.to_datetime(ns // 1000, unit="us").as_unit("us"),
+    }  # fmt: skip
+    for unit, t in variants.items():
+        with caplog.at_level(logging.WARNING):
+            caplog.clear()
+            got = raw_to_sequences(df.assign(ros_time=t), Path("r.parquet"), (0.5, 0.25, 0.25), "r")
+        assert [s.name for s in got] == [s.name for s in want]
+        for a, b in zip(got, want, strict=True):
+            for k, table in b.tables.present().items():
+                x, clock = a.tables.present()[k], [c for c in table.columns if c.endswith("_ns")]
+                assert np.abs(x[clock].to_numpy() - table[clock].to_numpy()).max() < 1e3, unit  # float s
+                pd.testing.assert_frame_equal(x.drop(columns=clock), table.drop(columns=clock))
+        if unit in ("s", "ms", "datetime us"):
+            assert f"ros_time is in {unit[-2:].strip()} (median" in caplog.text and "of 2024" in caplog.text
+    with pytest.raises(SourceError, match=r"r\.parquet: ros_time steps by 0\.05 per row \(median\): not"):
+        raw_to_sequences(df.assign(ros_time=100 + 0.05 * np.arange(len(df))), Path("r.parquet"), (1,), "r")

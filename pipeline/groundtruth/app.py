@@ -104,11 +104,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
     if method == "pose_topic":
         path = ext / f"{gt.pose_topic.key}.parquet"
         if not path.is_file():
-            why = _extract_notes(ext)
-            raise GroundTruthError(
-                f"{path}: pose table not found{' (' + why + ')' if why else ''}; "
-                "set groundtruth.pose_topic.key or run `skidbench extract`"
-            )
+            raise GroundTruthError(_no_pose_table(path, ext, seq.name))
         pt = gt.pose_topic
         if is_tf_table(path):  # /tf (+ /tf_static): compose parent -> child through the tree
             static = ext / f"{pt.static_key}.parquet" if pt.get("static_key") else None
@@ -198,11 +194,22 @@ def _write_if_changed(path: Path, obj: Any) -> None:
         write_text_atomic(path, text)
 
 
-def _extract_notes(ext: Path) -> str:
-    info = ext / "_extract.json"
-    if info.is_file():
-        return "; ".join(json.loads(info.read_text()).get("notes", []))
-    return ""
+def _no_pose_table(path: Path, ext: Path, seq: str) -> str:
+    """Why a sequence has no pose table, in one line: the recording's own reason when extract recorded one
+    (``_extract.json`` notes, e.g. DRIVE's ``no ground truth: the ICP pose never changes ...``: led by the
+    source file, with the settings that would give a ground truth), else the table's path."""
+    info = json.loads((ext / "_extract.json").read_text()) if (ext / "_extract.json").is_file() else {}
+    notes = [str(n) for n in info.get("notes", [])]
+    gt = [n for n in notes if n.startswith("no ground truth")]
+    if gt:
+        src = ", ".join(str(k) for k in info.get("sources", {})) or str(ext)
+        return (
+            f"{src}: nothing to score {seq} against: {'; '.join(gt)}, so extract wrote no {path.name}; give "
+            "another ground truth: groundtruth.method=orbslam groundtruth.orbslam.dir=<one trajectory file "
+            "per sequence>, or groundtruth.pose_topic.key=<a pose table of the extraction>"
+        )
+    why = f" ({'; '.join(notes)})" if notes else ""
+    return f"{path}: pose table not found{why}; set groundtruth.pose_topic.key or run `skidbench extract`"
 
 
 def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[str, float] | None:

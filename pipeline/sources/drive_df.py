@@ -67,9 +67,11 @@ driven by measured encoder rates can take them from the source file; no command-
 scores them. Repairs (logged): DRIVE stores every raw column as text with a zero-initialised first row:
 the needed columns are read as numbers and that row is dropped (:func:`~.drive_files.typed_raw_frame`);
 other rows with a zero timestamp, or whose needed values are not numbers, are dropped with one warning
-each. A file whose ICP pose never changes (ICP did not run: the published ``workshop_raw``/``close_raw``
-are such) has no ground truth: no ``gt_pose`` table is written and ``_extract.json`` says why;
-``groundtruth`` then fails with that reason (another ground truth can be given). Encoders that read
+each; a ``ros_time`` that is a date in s, ms or us instead of ns is converted with one warning
+(:func:`~.drive_files.ros_time_ns`). A file whose ICP pose never changes (ICP did not run: the
+published ``workshop_raw``/``close_raw`` are such) has no ground truth: no ``gt_pose`` table is
+written and ``_extract.json`` says why; ``groundtruth`` then fails with that reason, led by the source
+file (another ground truth can be given). Encoders that read
 exactly zero throughout while the robot is commanded are treated as absent (no ``enc_wheels``) when there
 is no ground truth either, else the file is refused (a broken encoder log).
 """
@@ -98,6 +100,7 @@ from .drive_files import (  # noqa: F401 - re-exported: the reader's public name
     check_paths,
     detect_form,
     read_frame,
+    ros_time_ns,
     typed_raw_frame,
 )
 from .drive_rows import COMMAND, IDLE, OTHER, DriveSequence, classify_rows, segments_of  # noqa: F401
@@ -116,9 +119,9 @@ from .drive_windows import (  # noqa: F401
 log = logging.getLogger(__name__)
 
 #: bumped when the reader's output changes for the same file and config (3: rows classified, only
-#: command-driven runs are sequences; 4: command kinematics identified from the file): an extraction
-#: stamped by an older reader is redone, not reused
-READER_VERSION = 4
+#: command-driven runs are sequences; 4: command kinematics identified from the file; 5: a raw ros_time
+#: in s, ms or us read as such): an extraction stamped by an older reader is redone, not reused
+READER_VERSION = 5
 SEGMENTS_FILE = "segments.json"
 
 
@@ -164,6 +167,7 @@ def _raw_typed(df: pd.DataFrame, path: Path) -> tuple[pd.DataFrame, list[str]]:
         df = df[~zero]
     if len(df) == 0:
         raise SourceError(f"{path}: empty sequence (no rows with a valid timestamp)")
+    df = df.assign(ros_time=ros_time_ns(df["ros_time"].to_numpy(dtype=float), path))
     t = df["ros_time"].to_numpy(dtype=float).astype(np.int64)  # float64 ns: ~256 ns resolution
     back = np.flatnonzero(np.diff(t) < 0)
     if len(back):
@@ -232,12 +236,14 @@ def raw_to_sequences(
     segments: list | None = None,
     robot=None,
     checks: dict | None = None,
+    check_geometry: bool = True,
 ) -> list[DriveSequence]:
     """Raw form -> its sequences: one per maximal run of
     command-driven rows of one category (module docstring). ``segments``: when a list, every classified
     segment (:func:`segments_of`; the command-driven ones also name their ``category`` and
     ``sequences``) is appended to it. ``robot``: checked against the command-driven rows
-    (:func:`raw_robot_checks`), its numbers stored in ``checks``."""
+    (:func:`raw_robot_checks`; ``check_geometry=False``: a contradiction only warns), its numbers stored in
+    ``checks``."""
     raw = read_raw(df, path)
     cmd_rows = raw.classes == COMMAND
     steps_all = raw.df["calib_step"].to_numpy()
@@ -249,7 +255,7 @@ def raw_to_sequences(
             log.info("%s: left out %s segment %.1f s%s (%s)", path.name, seg["class"], seg["seconds"],
                      f", {seg['metres']:.1f} m" if seg["metres"] is not None else "", seg["why"])  # fmt: skip
     if robot is not None:
-        found = raw_robot_checks(raw, path, robot)
+        found = raw_robot_checks(raw, path, robot, check_geometry)
         if checks is not None:
             checks.update(found)
     # one sequence per maximal run of command-driven rows of one category
@@ -275,7 +281,7 @@ def raw_to_sequences(
     return out
 
 
-def raw_robot_checks(raw: RawFile, path: Path, robot) -> dict:
+def raw_robot_checks(raw: RawFile, path: Path, robot, check_geometry: bool = True) -> dict:
     """:func:`~.drive_checks.robot_checks` on a raw file's command-driven rows (commands, encoders; ICP
     per 6 s step when it ran)."""
     part = raw.df[raw.classes == COMMAND]
@@ -291,7 +297,8 @@ def raw_robot_checks(raw: RawFile, path: Path, robot) -> dict:
             xy = g[["icp_pos_x", "icp_pos_y"]].to_numpy(float)
             dist.append(float(np.hypot(*(xy[-1] - xy[0]))) if diff < 0.2 * common else np.nan)
             angle.append(common)
-    return robot_checks(path, robot, ml, mr, part["cmd_vel_x"].to_numpy(float), dist, angle)
+    cmd_v = part["cmd_vel_x"].to_numpy(float)
+    return robot_checks(path, robot, ml, mr, cmd_v, dist, angle, refuse=check_geometry)
 
 
 # -- the source ---------------------------------------------------------------------------------------
@@ -310,6 +317,7 @@ class DriveSettings:
     cmd_kinematics: Any = None  # None, [r, B], or robot -> [r, B]
     cmd_limits: Any = None  # None, [v_max, w_max], or robot -> [v_max, w_max]
     break_at_jumps: bool = True
+    check_geometry: bool = True  # false: a geometry that contradicts the robot only warns (ice, mud)
 
 
 def _file_list(src: DriveSettings) -> list[str]:
@@ -358,7 +366,7 @@ def _read_file(path: Path, src: DriveSettings, robot, label: str) -> tuple[str, 
     checks: dict = {}
     if form == "raw":
         segs: list = []
-        seqs = raw_to_sequences(df, path, fractions, label, segments=segs, robot=robot, checks=checks)
+        seqs = raw_to_sequences(df, path, fractions, label, segs, robot, checks, bool(src.check_geometry))
         return form, version, seqs, checks, segs
     windows = WindowSettings(
         rate_hz=float(src.rate_hz),
@@ -369,6 +377,7 @@ def _read_file(path: Path, src: DriveSettings, robot, label: str) -> tuple[str, 
         break_at_jumps=bool(src.break_at_jumps),
         identify=bool(src.identify_cmd_kinematics),
         kinematics_key=f"source.cmd_kinematics.{robot.name}",
+        check_geometry=bool(src.check_geometry),
     )
     seqs = windows_to_sequences(df, path, windows, robot=robot, checks=checks)
     return form, version, seqs, checks, window_segments(df, path)

@@ -6,7 +6,9 @@ plain or gzip/bz2/xz-compressed. A pickle can run any code it names, so it is re
 unpickler (:class:`DataFrameUnpickler`, the "restricting globals" recipe of Python's :mod:`pickle` docs
 on top of pandas' own compatibility unpickler): it admits only the (module, name) pairs in
 :data:`ALLOWED_GLOBALS`, the pandas and numpy types a dataframe of numbers and text holds as pandas
-1.x-3.x and numpy 1.x-2.x write it; anything else is refused in one line as unsafe, before it is called.
+1.x-3.x and numpy 1.x-2.x write it (float, int, bool and text columns, pandas' nullable ones and pd.NA,
+categories, datetimes with a UTC offset, timedeltas, their indexes and a MultiIndex); anything else is
+refused in one line as unsafe, before it is called.
 
 **Forms.** :func:`detect_form` picks the form from the columns: ``windows`` (every window version DRIVE
 wrote: the 578-column ``torch_ready``, the 1218-column ``slip_dataset_all``, any newer one with more
@@ -67,13 +69,41 @@ _PANDAS = {
     # pandas 3 keeps text columns in Arrow arrays: their pickles rebuild them with these
     ("pyarrow.lib", "_restore_array"), ("pyarrow.lib", "py_buffer"), ("pyarrow.lib", "type_for_alias"),
 }  # fmt: skip
+#: pandas' other data types (nullable numbers and booleans, pd.NA, categories, times and their indexes, a
+#: MultiIndex of columns) by the names pandas 1.5-2.x and 3.x write: a lab's own dataframe may hold them
+#: (``convert_dtypes()``, a time index), and refusing them as unsafe would name the wrong reason
+_PANDAS_TYPES = {
+    ("pandas._libs.missing", "NA"), ("pandas", "NA"),
+    *{(m, n) for m, names in {
+        "pandas.core.arrays.integer": ("IntegerArray", *(f"{u}Int{b}Dtype" for u in ("", "U")
+                                                          for b in (8, 16, 32, 64))),
+        "pandas.core.arrays.floating": ("FloatingArray", "Float32Dtype", "Float64Dtype"),
+        "pandas.core.arrays.boolean": ("BooleanArray", "BooleanDtype"),
+        "pandas.core.arrays.categorical": ("Categorical",),
+        "pandas.core.dtypes.dtypes": ("CategoricalDtype",),
+        "pandas.core.arrays.timedeltas": ("TimedeltaArray",),
+        "pandas.core.indexes.category": ("CategoricalIndex",),
+        "pandas.core.indexes.datetimes": ("DatetimeIndex", "_new_DatetimeIndex"),
+        "pandas.core.indexes.timedeltas": ("TimedeltaIndex", "_new_TimedeltaIndex"),
+        "pandas.core.indexes.multi": ("MultiIndex",),
+    }.items() for n in names},
+    *{("pandas", n) for n in ("Categorical", "CategoricalDtype", "CategoricalIndex", "DatetimeIndex",
+                              "TimedeltaIndex", "MultiIndex", "DatetimeTZDtype", "BooleanDtype",
+                              "Float32Dtype", "Float64Dtype",
+                              *(f"{u}Int{b}Dtype" for u in ("", "U") for b in (8, 16, 32, 64)))},
+    *{("pandas.arrays", n) for n in ("IntegerArray", "FloatingArray", "BooleanArray", "Categorical",
+                                     "TimedeltaArray")},
+    ("pandas._libs.tslibs.timedeltas", "_timedelta_unpickle"),
+    ("datetime", "timezone"), ("datetime", "timedelta"),  # a UTC-offset time zone (pandas 2-3's UTC)
+    ("pytz", "_UTC"),  # pandas 1.x's UTC
+}  # fmt: skip
 _PYTHON = {
     ("builtins", "slice"), ("__builtin__", "slice"),
     ("builtins", "bytearray"), ("__builtin__", "bytearray"),
     ("_codecs", "encode"),  # how protocol 2 writes bytes
 }  # fmt: skip
 #: every global a DRIVE dataframe pickle may name (after pandas' renames of legacy names)
-ALLOWED_GLOBALS = frozenset(_NUMPY | _PANDAS | _PYTHON)
+ALLOWED_GLOBALS = frozenset(_NUMPY | _PANDAS | _PANDAS_TYPES | _PYTHON)
 
 
 class UnsafePickleError(SourceError):
@@ -274,3 +304,32 @@ def _placeholder_rows(df: pd.DataFrame, needed: list[str]) -> np.ndarray:
         return np.zeros(len(df), dtype=bool)
     vals = df[[c for c in needed if c in df.columns]].to_numpy(dtype=float)
     return np.all(np.nan_to_num(vals, nan=1.0) == 0.0, axis=1)
+
+
+#: a ROS time since 1970 of the years 2000-2100 in each unit: how a raw file's ``ros_time`` unit is told
+_EPOCH_S = (946_684_800.0, 4_102_444_800.0)
+_UNITS = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
+
+
+def ros_time_ns(t: np.ndarray, path: Path) -> np.ndarray:
+    """``ros_time`` (valid rows, float) in nanoseconds, DRIVE's unit. A clock of the years 2000-2100 in
+    seconds, milliseconds or microseconds (a lab's converted file, a datetime column of another
+    resolution) is converted, with one warning naming the unit; a clock that steps by under 1 per row and
+    is no such date is refused in one line (a nanosecond clock never does)."""
+    t = np.asarray(t, dtype=float)
+    mid = float(np.median(t)) if t.size else 0.0
+    unit = next((u for u, k in _UNITS.items() if _EPOCH_S[0] * k <= mid <= _EPOCH_S[1] * k), None)
+    if unit is not None and unit != "ns":
+        log.warning(
+            "%s: ros_time is in %s (median %.6g: a date of %s in %s, not in ns); converted to ns",
+            path.name, unit, mid, pd.Timestamp(mid / _UNITS[unit], unit="s").year, unit,
+        )  # fmt: skip
+        return t * (1e9 / _UNITS[unit])
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if unit is None and steps.size and float(np.median(steps)) < 1.0:
+        raise SourceError(
+            f"{path}: ros_time steps by {float(np.median(steps)):.3g} per row (median): not nanoseconds, "
+            "DRIVE's unit, and not a date in s, ms or us either; give ros_time in ns"
+        )
+    return t

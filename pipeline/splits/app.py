@@ -224,7 +224,7 @@ def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
     card_cfg: Any = cfg.get("card") or {}
     files = [p for p in layout.split_files(Manifest.read(layout.manifest)) if p.is_file()]
     text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)), files)
-    text += gate_section(files) + segments_section(layout)
+    text += gate_section(files) + recording_section(layout) + segments_section(layout)
     write_text_atomic(layout.splits / "card.md", text)
     return text
 
@@ -266,6 +266,33 @@ def _metres(segs: list[dict]) -> str:
     """Ground-truth path length of segments ("-" when the source has no absolute pose for them)."""
     vals = [s["metres"] for s in segs if s.get("metres") is not None]
     return f"{sum(vals):.1f}" if vals else "-"
+
+
+def recording_section(layout: Layout) -> str:
+    """Markdown: per source file, what extract measured of the recording against the robot (``robot_checks``
+    in ``extracted/segments.json``: the wheel-rate peak, the ground truth's metres per wheel radian over
+    the spec radius, the measured/commanded speed gain) and the command kinematics identified from it."""
+    path = layout.extracted / "segments.json"
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    rows = [(name, rec) for name, rec in data.items() if rec.get("robot_checks")]
+    if not rows:
+        return ""
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    out = ["", "## The recording against the robot (measured by extract)", ""]
+    out += ["| file | version | robot | wheel peak rad/s | m per wheel rad / spec radius | speed gain | "
+            "command kinematics [r, B] |", "|---|---|---|---:|---:|---:|---|"]  # fmt: skip
+    for name, rec in rows:
+        c = rec["robot_checks"]
+        kin = c.get("cmd_kinematics") or {}
+        said = f"{kin['value']}: {kin.get('how', '')}" if kin.get("value") else "- (body commands)"
+        if kin.get("configured") and kin.get("value") and kin["configured"] != kin["value"]:
+            said += f"; the configured fallback {kin['configured']} not used"
+        out.append(
+            f"| {name} | {rec.get('version', '-')} | {c.get('robot', '-')} | "
+            f"{fmt(c.get('max_wheel_rate_measured'), '.2f')} | {fmt(c.get('implied_radius_ratio'), '.2f')} | "
+            f"{fmt(c.get('speed_gain'), '.2f')} | {said} |"
+        )
+    return "\n".join(out) + "\n"
 
 
 def segments_section(layout: Layout) -> str:
