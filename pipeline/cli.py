@@ -20,9 +20,10 @@ from collections.abc import Callable
 from importlib.resources import files
 from pathlib import Path
 
-from .config_schema import check_value, validate
+from .config_schema import check_value
 from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
 from .layout import default_out_root, register_resolvers, remove_atomic
+from .overrides import validate
 
 # Not imported here: what a stage's run needs and `skidbench --help` does not (.cache, .imported: PyArrow
 # through .io), so that the command starts with only what the chosen stage imports itself.
@@ -107,7 +108,7 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
 
                     root = open_home(home_from_cfg(cfg), name)[0].root
                     check_producers(root, name)
-                    check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
+                    check_stage(cfg.get("robot"), name, root)  # imported: frozen splits, the bundle's robot
                     before = data_state(root) if name in LOCAL_PRODUCERS else None
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
