@@ -201,7 +201,8 @@ def run_benchmark(
                          terrain, split, h, n_win, n_seq, short)  # fmt: skip
             tests[terrain][split] = seqs
         files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
-        why = protocol_unavailable(cfg, layout, protocol, terrain, train_files, tests[terrain], inputs_of)
+        cal = Calibrations.from_cfg(cfg)
+        why = protocol_unavailable(cal, layout, protocol, terrain, train_files, tests[terrain], inputs_of)
         skipped += why
     for line in skipped:
         log.warning("%s", line)

@@ -154,6 +154,7 @@ def _cached_result(cfg: DictConfig, layout, stamp):
     return BenchmarkResult(
         last["tracking_uri"], last["experiment"], last["parent_run_id"], children,
         last.get("inputs", "commanded"), list(last.get("skipped") or []),
+        {str(t): dict(m) for t, m in (last.get("floor") or {}).items()},  # every board shows the floor
     )  # fmt: skip
 
 

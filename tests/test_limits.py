@@ -40,11 +40,9 @@ CFG_TAKERS = {
     "benchmark.evaluate:_describe",
     "benchmark.evaluate:_split_inputs",
     "benchmark.evaluate:run_benchmark",
-    "benchmark.external:score_predictions",
     "benchmark.fit_record:log_model",
     "benchmark.fit_record:model_config",
     "benchmark.horizon:window_errors",
-    "benchmark.testsets:protocol_unavailable",
     "benchmark.tracking:resolve_tracking_uri",
     "benchmark.transfer:training_layout",
 }
