@@ -26,7 +26,7 @@ from skidbench.pipeline.calibration import Calibrations
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import ProtocolError, protocol_from_cfg
+from skidbench.pipeline.protocol import ProtocolError, check_protocol
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import intervals as iv
@@ -140,7 +140,7 @@ def run_benchmark(
     intervals = iv.IntervalConfig.from_cfg(cfg)
     for h in horizons:  # blocks shorter than a horizon: one line before anything runs
         intervals.block_length(h)
-    protocol = _checked_protocol(cfg, models)
+    protocol = _checked_protocol(cfg.get("inputs"), models)
     if log_figures is None:
         log_figures = bool(cfg.get("log_figures", True))
     if fit_fn is None:
@@ -209,13 +209,14 @@ def run_benchmark(
     )
 
 
-def _checked_protocol(cfg: Any, models: list[str]) -> str:
-    """The run's input protocol; EvaluationError (one line) for a bad one, or the floor named a model."""
+def _checked_protocol(inputs: str | None, models: list[str]) -> str:
+    """The run's input protocol (``inputs``; ``commanded`` when unset); EvaluationError (one line) for a bad
+    one, or the floor named a model."""
     if FLOOR in models:
         raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
                               "velocities, on every board), not a model name")  # fmt: skip
     try:
-        return protocol_from_cfg(cfg)
+        return check_protocol(inputs if inputs is not None else "commanded")
     except ProtocolError as exc:
         raise EvaluationError(str(exc)) from None
 
