@@ -18,7 +18,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
 from skidbench.models import terms as tl  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.models.specs import get_model_class  # noqa: E402
