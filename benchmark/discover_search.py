@@ -22,6 +22,7 @@ from skidbench.models.effect_fit import (
     channel_weights,
 )
 from skidbench.models.effects import CATALOGUE
+from skidbench.models.term_screen import FoldScreens, screen
 from skidbench.pipeline.robot import Robot
 
 Scored = dict[str, tuple[dict[str, Any], HeldOut]]  # catalogue effect -> (evidence, held-out evaluation)
@@ -133,7 +134,7 @@ def excluded_forms(run: Search) -> tuple[str, ...]:
     return tuple(t.form for t in run.terms) + tuple(eq) + tuple(timed)
 
 
-def fold_screens(run: Search) -> termlib.FoldScreens:
+def fold_screens(run: Search) -> FoldScreens:
     """The library screened once per fold, each on its training units only: the current model fitted on
     them (as :func:`cross_validate` fits it) and the sparse regression on what it leaves there. A form
     is a candidate when a majority of the folds select it, and each fold's held-out evaluation uses the
@@ -146,7 +147,7 @@ def fold_screens(run: Search) -> termlib.FoldScreens:
         rows = np.isin(pool.units, train) & pool.valid
         sig = aug.signals(st.feats, st.base_pred)
         screens.append(
-            termlib.screen(
+            screen(
                 sig,
                 termlib.base_gains(sig, rows),
                 run.robot.track_width,
@@ -157,10 +158,10 @@ def fold_screens(run: Search) -> termlib.FoldScreens:
                 max_candidates=run.settings.max_terms,
             )
         )
-    return termlib.FoldScreens(screens, min_folds=len(screens) // 2 + 1)
+    return FoldScreens(screens, min_folds=len(screens) // 2 + 1)
 
 
-def score_form(run: Search, fs: termlib.FoldScreens, template: termlib.Term, scored_t: ScoredTerms) -> None:
+def score_form(run: Search, fs: FoldScreens, template: termlib.Term, scored_t: ScoredTerms) -> None:
     """One library form added to the current model, each fold with its own screen's knots, scored held
     out against the current model (into ``scored_t``)."""
     fold_terms = fs.fold_terms(template)
@@ -171,7 +172,7 @@ def score_form(run: Search, fs: termlib.FoldScreens, template: termlib.Term, sco
     scored_t[template.form] = (ev, ho, template, fold_terms)
 
 
-def score_terms(run: Search) -> tuple[ScoredTerms, dict[str, Any], termlib.FoldScreens | None]:
+def score_terms(run: Search) -> tuple[ScoredTerms, dict[str, Any], FoldScreens | None]:
     """The open-ended terms (``discover.open_ended``): the forms a majority of the folds' screens select
     (:func:`fold_screens`), at most ``max_terms``, each scored held out like a catalogue effect.
     Returns the scores, what the screens selected (for the record) and the screens (none when off)."""
@@ -190,7 +191,7 @@ def score_terms(run: Search) -> tuple[ScoredTerms, dict[str, Any], termlib.FoldS
     return scored_t, screen_info, fs
 
 
-def score_rival(run: Search, best_c: str, scored_t: ScoredTerms, fs: termlib.FoldScreens) -> None:
+def score_rival(run: Search, best_c: str, scored_t: ScoredTerms, fs: FoldScreens) -> None:
     """The catalogue's best must beat the library's best form of no more parameters on its channels
     (best mean share over the folds' screens): that rival, when not scored yet, is scored too."""
     chans = tuple(CHANNELS.index(c) for c in channels_of(best_c))
