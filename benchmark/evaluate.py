@@ -22,10 +22,11 @@ import pandas as pd
 import pyarrow as pa
 
 from skidbench.pipeline import provenance
+from skidbench.pipeline.calibration import Calibrations
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import ProtocolError, protocol_of
+from skidbench.pipeline.protocol import ProtocolError, protocol_from_cfg
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import intervals as iv
@@ -49,7 +50,7 @@ from .fit_record import (
 from .floor import FLOOR
 from .horizon import EvaluationError, HorizonConfig, count_windows
 from .references import log_floor, seed_spread
-from .report_data import write_report_data, write_wheel_response_steps
+from .report_data import ReportDataSettings, write_report_data, write_wheel_response_steps
 from .scoring import Inputs, TestSequence, predict_and_score
 from .testsets import (
     TRAIN,
@@ -151,7 +152,7 @@ def run_benchmark(
         raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
                               "velocities, on every board), not a model name")  # fmt: skip
     try:
-        protocol = protocol_of(cfg)
+        protocol = protocol_from_cfg(cfg)
     except ProtocolError as exc:
         raise EvaluationError(str(exc)) from None
     if log_figures is None:
@@ -200,7 +201,8 @@ def run_benchmark(
                          terrain, split, h, n_win, n_seq, short)  # fmt: skip
             tests[terrain][split] = seqs
         files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
-        why = protocol_unavailable(cfg, layout, protocol, terrain, train_files, tests[terrain], inputs_of)
+        cal = Calibrations.from_cfg(cfg)
+        why = protocol_unavailable(cal, layout, protocol, terrain, train_files, tests[terrain], inputs_of)
         skipped += why
     for line in skipped:
         log.warning("%s", line)
@@ -253,7 +255,8 @@ def run_benchmark(
                                log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
             floor: dict[str, dict[str, float]] = {}
             for terrain in terrains:
-                tracker.artifact(parent_id, write_wheel_response_steps(cfg, layout, terrain), "report_data")
+                steps = write_wheel_response_steps(Calibrations.from_cfg(cfg), layout, terrain)
+                tracker.artifact(parent_id, steps, "report_data")
                 td = TerrainData(terrain, tests[terrain], inputs_of[terrain], datasets_of[terrain],
                                  split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
                 stem = layout.eval_stem(FLOOR, terrain, protocol)
@@ -501,7 +504,8 @@ def _log_report_data(
 ) -> None:
     """Writes and logs what compare draws from this model beyond the metrics (report_data.py), and the
     window-error figure when figures are logged and there is a window."""
-    for p in write_report_data(ctx.cfg, ctx.layout, stem, model, td.terrain, td.tests, velocities,
+    settings = ReportDataSettings.from_cfg(ctx.cfg)
+    for p in write_report_data(settings, ctx.layout, stem, model, td.terrain, td.tests, velocities,
                                ctx.horizons[0]):  # fmt: skip
         ctx.tracker.artifact(run_id, p, "report_data")
     if ctx.log_figures and len(windows):

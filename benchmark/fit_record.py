@@ -57,7 +57,7 @@ def model_code(model_name: str, model: Any) -> provenance.CodeIdentity:
 
 
 def default_fit_fn() -> Callable[[Any, str, str], Any]:
-    return fitting.fit_model
+    return fitting.fit_from_cfg
 
 
 def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str, Any]:
@@ -87,7 +87,7 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
 
 
 def model_config(cfg, model_name: str) -> dict[str, Any] | None:
-    return fitting.model_config(cfg, model_name)
+    return fitting.model_config(fitting.ModelConfigs.from_cfg(cfg), model_name)
 
 
 def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path, seq: TestSequence) -> None:

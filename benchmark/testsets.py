@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from skidbench.pipeline.cache import Fingerprints
 from skidbench.pipeline.calibration import Calibrations, response_for
@@ -15,7 +14,6 @@ from skidbench.pipeline.io import fingerprint_obj
 from skidbench.pipeline.layout import Layout, split_terrains
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import sequences_without_encoders
-from skidbench.pipeline.robot import robot_from_hydra
 from skidbench.pipeline.schema import read_split
 
 from .horizon import EvaluationError, horizon_steps
@@ -96,16 +94,17 @@ def split_fingerprint(files: Sequence[Path], root: Path) -> str:
 
 
 def protocol_unavailable(
-    cfg: Any, layout: Layout, protocol: str, terrain: str, train_files: Sequence[Path],
+    cal: Calibrations, layout: Layout, protocol: str, terrain: str, train_files: Sequence[Path],
     tests: dict[str, list[TestSequence]], inputs_of: dict[str, Inputs],
 ) -> list[str]:  # fmt: skip
     """Checks the protocol can drive the models on ``terrain``: sets ``inputs_of[terrain]``, drops from
     ``tests`` the test splits it cannot drive (``measured`` on a split without encoders) and returns one
-    line per (terrain, split) skipped (the whole terrain: no response identified, no Train encoders)."""
+    line per (terrain, split) skipped (the whole terrain: no response identified, no Train encoders). ``cal``:
+    the calibrations (the response, and the spec sheet's robot the inputs are converted with)."""
     where = f"{layout.splits / terrain}"
     response = None
     if protocol == "response":
-        response = response_for(Calibrations.from_cfg(cfg), terrain)
+        response = response_for(cal, terrain)
         if response is None:
             return [f"inputs=response: {where}: no wheel response identified (no wheel encoders in its Train "
                     "split, see `skidbench calibrate`); terrain skipped under this protocol"]  # fmt: skip
@@ -126,7 +125,7 @@ def protocol_unavailable(
                 del tests[split]
         if not tests:
             return lines
-        inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), None)
+        inputs_of[terrain] = Inputs(protocol, cal.spec, None)
         return lines
-    inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), response)
+    inputs_of[terrain] = Inputs(protocol, cal.spec, response)
     return []
