@@ -163,7 +163,6 @@ def run_benchmark(
     conf = _as_container(cfg)
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
-    all_files = [p for fs in files_of.values() for p in fs]
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
     env_tags = provenance.run_tags()
     common_tags = {trk.TAG_DATASET: str(cfg.dataset), **env_tags, trk.TAG_GIT: commit, **transfer_tags}
@@ -184,7 +183,7 @@ def run_benchmark(
             **common_tags,
             **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
             trk.TAG_ROLE: "parent",
-            trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
+            trk.TAG_FINGERPRINT: split_fingerprint(sum(files_of.values(), []), layout.splits),
             trk.TAG_INPUTS: protocol,
             "skidbench.models": ",".join(models),
             "skidbench.terrains": ",".join(terrains),
