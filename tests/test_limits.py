@@ -35,11 +35,7 @@ LONG_FUNCTIONS: dict[str, str] = {}
 CFG_TAKERS = {
     "benchmark.compare:run_compare",
     "benchmark.evaluate:_as_container",
-    "benchmark.evaluate:_describe",
-    "benchmark.evaluate:_split_inputs",
     "benchmark.evaluate:run_benchmark",
-    "benchmark.fit_record:log_model",
-    "benchmark.fit_record:model_config",
     "benchmark.horizon:window_errors",
     "benchmark.tracking:resolve_tracking_uri",
     "benchmark.transfer:training_layout",
