@@ -174,9 +174,33 @@ def _calibration_settings(layout: Layout, terrain: str) -> dict[str, Any] | None
     return conf.get("settings") if isinstance(conf, dict) else None
 
 
-def licence_of(cfg: Any, source: str) -> str:
+@dataclass(frozen=True)
+class ExportSettings:
+    """What ``export`` reads of its config: the robot (``robot``) and calibrations the inputs are made
+    with, the input protocol written (``inputs``), the source data's ``bundle.licence`` and
+    ``bundle.provenance`` (None: unset)."""
+
+    robot: Any  # pipeline.robot.Robot
+    calibrations: Any  # pipeline.calibration.Calibrations
+    inputs: str
+    licence: str | None
+    provenance: str | None
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> ExportSettings:
+        from skidbench.pipeline.calibration import Calibrations
+        from skidbench.pipeline.robot import robot_from_hydra
+
+        b = cfg.bundle
+        return cls(
+            robot_from_hydra(cfg.robot), Calibrations.from_cfg(cfg), str(cfg.get("inputs") or "commanded"),
+            str(b.get("licence")) if b.get("licence") else None, b.get("provenance") or None,
+        )  # fmt: skip
+
+
+def licence_of(licence: str | None, source: str) -> str:
     """The licence of the source data: ``bundle.licence``; for simulated data the project's own."""
-    lic = cfg.bundle.get("licence")
+    lic = licence
     if lic:
         return str(lic)
     if source == "sim":
@@ -211,16 +235,15 @@ def _sequences(layout: Layout, manifest: Manifest) -> list[dict[str, Any]]:
     return out
 
 
-def _write_inputs(cfg: Any, layout: Layout, manifest: Manifest, protocol: str, dest: Path) -> int:
+def _write_inputs(s: ExportSettings, layout: Layout, manifest: Manifest, dest: Path) -> int:
     """``inputs/<protocol>/<terrain>/<split>/<seq>.parquet``: :func:`model_inputs` of every split file
     (Train too: a model fitted under the protocol is fitted on its inputs and the Train targets)."""
-    from skidbench.pipeline.calibration import Calibrations, response_for
-    from skidbench.pipeline.robot import robot_from_hydra
+    from skidbench.pipeline.calibration import response_for
 
-    robot = robot_from_hydra(cfg.robot)
+    robot, protocol = s.robot, s.inputs
     n = 0
     for terrain in split_terrains(manifest):
-        response = response_for(Calibrations.from_cfg(cfg), terrain) if protocol == "response" else None
+        response = response_for(s.calibrations, terrain) if protocol == "response" else None
         if protocol == "response" and response is None:
             raise BundleError(
                 f"inputs=response: {layout.calibration_file(terrain)}: no wheel response identified for "
@@ -247,7 +270,7 @@ def _write_inputs(cfg: Any, layout: Layout, manifest: Manifest, protocol: str, d
     return n
 
 
-def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | None) -> ExportResult:
+def export_bundle(s: ExportSettings, layout: Layout, dest: Path, tracker: trk.Tracker | None) -> ExportResult:
     """Writes the bundle of ``layout``'s dataset to ``dest`` (a new or empty folder), atomically: built in
     a temporary sibling folder, renamed into place when complete."""
     dest = Path(dest).expanduser().absolute()
@@ -258,7 +281,7 @@ def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | N
             f"{layout.root}: no dataset here (no {layout.manifest}); `skidbench datasets` lists them"
         )
     rec = read_record(layout) or {}
-    lic = licence_of(cfg, str(rec.get("source", "?")))
+    lic = licence_of(s.licence, str(rec.get("source", "?")))
     manifest = Manifest.read(layout.manifest)
     terrains = split_terrains(manifest)
     if not terrains:
@@ -276,7 +299,7 @@ def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | N
             f"{layout.root}: no `skidbench evaluate` run of dataset {layout.dataset} in the MLflow store; "
             "run it first (a bundle ships the board)"
         )
-    protocol = str(cfg.get("inputs") or "commanded")
+    protocol = s.inputs
 
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".tmp-export-{dest.name}.{os.getpid()}")
@@ -299,8 +322,8 @@ def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | N
             brd.write_board(
                 b, tmp / "board", {"dataset": layout.dataset, "dataset_id": rec.get("fingerprint")}
             )
-        n_inputs = _write_inputs(cfg, layout, manifest, protocol, tmp)
-        doc = _bundle_doc(cfg, layout, rec, manifest, boards, protocol, lic, calib_settings)
+        n_inputs = _write_inputs(s, layout, manifest, tmp)
+        doc = _bundle_doc(s, layout, rec, manifest, boards, lic, calib_settings)
         write_json_atomic(tmp / "bundle.json", doc)
         write_text_atomic(tmp / "README.md", _readme(doc))
         write_sums(tmp)
@@ -315,10 +338,8 @@ def export_bundle(cfg: Any, layout: Layout, dest: Path, tracker: trk.Tracker | N
     return ExportResult(dest, n_files, size, list(boards), protocol, n_inputs)
 
 
-def _bundle_doc(cfg, layout, rec, manifest, boards, protocol, lic, calib_settings) -> dict[str, Any]:
-    from skidbench.pipeline.robot import robot_from_hydra
-
-    robot = robot_from_hydra(cfg.robot)
+def _bundle_doc(s: ExportSettings, layout, rec, manifest, boards, lic, calib_settings) -> dict[str, Any]:
+    robot, protocol = s.robot, s.inputs
     first = next(iter(boards.values()))
     return {
         "format": BUNDLE_FORMAT,
@@ -359,7 +380,7 @@ def _bundle_doc(cfg, layout, rec, manifest, boards, protocol, lic, calib_setting
         "calibration_settings": calib_settings,
         "licence": lic,
         "provenance": {
-            "statement": cfg.bundle.get("provenance")
+            "statement": s.provenance
             or (
                 f"simulated by skidbench {_version()} (`skidbench simulate`), dataset {layout.dataset}"
                 if rec.get("source") == "sim"

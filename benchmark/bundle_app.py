@@ -15,15 +15,17 @@ from skidbench.pipeline.cli import stage
 @stage("export", home=False)
 def export_main(cfg: DictConfig) -> None:
     from skidbench.pipeline.imported import named_dataset
+    from skidbench.pipeline.layout import layout_from_cfg
 
     from . import tracking as trk
-    from .bundle import describe_export, export_bundle
+    from .bundle import ExportSettings, describe_export, export_bundle
 
-    layout, rec = named_dataset(cfg, "export")
+    layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "export")
     tracker = None  # export reads the store: it does not create an empty one to find nothing in
     if trk.has_store(trk.resolve_tracking_uri(cfg, layout)):
         tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
-    print(describe_export(export_bundle(cfg, layout, Path(str(cfg.bundle.dir)), tracker)), flush=True)
+    settings = ExportSettings.from_cfg(cfg)
+    print(describe_export(export_bundle(settings, layout, Path(str(cfg.bundle.dir)), tracker)), flush=True)
 
 
 export_main.positional = (("dataset", "bundle.dir"), {})

@@ -34,11 +34,11 @@ from typing import Any
 
 import pandas as pd
 
-from skidbench.models.fitting import board_findings
+from skidbench.models.saved import board_findings
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import PROTOCOLS, protocol_of
+from skidbench.pipeline.protocol import PROTOCOLS, protocol_from_cfg
 
 from . import boards as brd
 from . import intervals as iv
@@ -200,7 +200,7 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
             cfg.mlflow.experiment = target.experiment
     if target.layout.root.is_dir():
         check_producers(target.layout.root, "compare")
-        check_stage(cfg, "compare", target.layout.root)
+        check_stage(cfg.get("robot") if hasattr(cfg, "get") else None, "compare", target.layout.root)
     return cfg, target, trk.tracker_from_cfg(cfg, target.layout, dataset_id=target.dataset_id or "")
 
 
@@ -232,7 +232,7 @@ def run_compare(cfg: Any) -> CompareResult:
         selections = protocol_selections(tracker, horizon, cfg.get("filter"), user)
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
-    asked = protocol_of(cfg) if parent_arg == "latest" else None  # None: the runs of parent_arg
+    asked = protocol_from_cfg(cfg) if parent_arg == "latest" else None  # None: the runs of parent_arg
     runs, parent, left_out = _chosen_runs(
         target, tracker, selections, asked, parent_arg, cfg.get("filter"), user
     )
@@ -429,9 +429,22 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
 def standings_from_cfg(
     cfg: Any, layout: Layout, board: pd.DataFrame, protocol: str, horizon: float, notes: list[str]
 ) -> st.Standings | None:
-    """The board's intervals, ranking and claim from the per-window tables evaluate wrote
-    (:mod:`skidbench.benchmark.standings`), or None (with a note) when there are none to read."""
+    """:func:`standings_of` with the config's ``rank_by`` and ``intervals``."""
     rank_by = str(cfg.get("rank_by") or st.AGGREGATE)
+    return standings_of(rank_by, iv.IntervalConfig.from_cfg(cfg), layout, board, protocol, horizon, notes)
+
+
+def standings_of(
+    rank_by: str,
+    intervals: iv.IntervalConfig,
+    layout: Layout,
+    board: pd.DataFrame,
+    protocol: str,
+    horizon: float,
+    notes: list[str],
+) -> st.Standings | None:
+    """The board's intervals, ranking (by ``rank_by``) and claim from the per-window tables evaluate wrote
+    (:mod:`skidbench.benchmark.standings`), or None (with a note) when there are none to read."""
     if rank_by != st.AGGREGATE:
         trk.rank_key(rank_by, horizon)  # a bad rank_by: one line
     windows, missing = st.read_windows(layout, board, protocol, horizon)
@@ -442,7 +455,7 @@ def standings_from_cfg(
             "by point estimate (no paired comparison)"
         )
         return None
-    return st.build(windows, horizon, iv.IntervalConfig.from_cfg(cfg), rank_by)
+    return st.build(windows, horizon, intervals, rank_by)
 
 
 def ui_links(

@@ -33,7 +33,7 @@ from skidbench.pipeline.cli import stage
 from skidbench.pipeline.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
-from skidbench.pipeline.protocol import protocol_of
+from skidbench.pipeline.protocol import protocol_from_cfg
 from skidbench.pipeline.robot import robot_from_hydra
 
 log = logging.getLogger("skidbench.discover")
@@ -140,13 +140,14 @@ def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Run discovery for the configured source; returns what was written to discovery.json."""
-    from skidbench.models.fitting import build_model
+    from skidbench.models.fitting import ModelConfigs, build_model
 
     t0 = time.perf_counter()
     settings = settings_from_cfg(cfg)
     robot = robot_from_hydra(cfg.robot)
     base_name = _model_name(cfg)
-    build_model(cfg, base_name, robot)  # fail early, with the model's one-line error
+    configs = ModelConfigs.from_cfg(cfg)
+    build_model(configs, base_name, robot)  # fail early, with the model's one-line error
     root = _splits_root(cfg)
     out = Path(str(cfg.discover.out)).expanduser()
     cands = tuple(cfg.discover.candidates) if cfg.discover.get("candidates") else EFFECT_IDS
@@ -155,7 +156,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise DiscoverError(
             f"discover.candidates: unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})"
         )
-    inputs = protocol_of(cfg)
+    inputs = protocol_from_cfg(cfg)
     print(f"skidbench discover: base model {base_name}; inputs={inputs}; splits {root}")
     print("significance rule: " + settings.rule())
     results: list[TerrainDiscovery] = []
@@ -180,7 +181,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         pool = prepare_pool(pool, inputs, robot, response)
         res = discover_terrain(
             pool,
-            lambda r=robot_t: build_model(cfg, base_name, r),
+            lambda r=robot_t: build_model(configs, base_name, r),
             robot_t,
             settings,
             terrain,

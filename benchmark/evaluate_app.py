@@ -47,12 +47,12 @@ def run(cfg: DictConfig):
     :func:`run_benchmark`. Returns ``(result, skipped)``."""
     from skidbench.pipeline.cache import Stamp, stamp_file
     from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.protocol import protocol_of
+    from skidbench.pipeline.protocol import protocol_from_cfg
 
     from .evaluate import ProtocolSkipped, format_result, last_file, run_benchmark
 
     layout = layout_from_cfg(cfg)
-    inputs = protocol_of(cfg)
+    inputs = protocol_from_cfg(cfg)
     # one stamp per input protocol: evaluating under another protocol does not stale this one
     name = "evaluate.json" if inputs == "commanded" else f"evaluate.{inputs}.json"
     stamp = Stamp(stamp_file(layout.root, "evaluate", name), "evaluate")
@@ -85,7 +85,7 @@ def run(cfg: DictConfig):
 
 def _findings(layout, result) -> list[str]:
     """What the fits behind the board found (a parameter at its bound), printed under it as compare does."""
-    from skidbench.models.fitting import board_findings
+    from skidbench.models.saved import board_findings
 
     rows = [(c.model, c.terrain) for c in result.children if c.status == "FINISHED"]
     return board_findings(layout, rows, result.inputs)
@@ -94,7 +94,7 @@ def _findings(layout, result) -> list[str]:
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
     each model's version and config."""
-    from skidbench.models.fitting import model_config
+    from skidbench.models.fitting import ModelConfigs, model_config
     from skidbench.models.registry import discover
     from skidbench.models.saved import arrays_file
     from skidbench.pipeline.layout import split_terrains
@@ -104,9 +104,9 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
     files = [p for p in layout.split_files(manifest) if p.is_file()]
     terrains = split_terrains(manifest)
-    from skidbench.pipeline.protocol import protocol_of
+    from skidbench.pipeline.protocol import protocol_from_cfg
 
-    inputs = protocol_of(cfg)
+    inputs = protocol_from_cfg(cfg)
     files += [layout.fit_file(str(m), t, inputs) for m in cfg.models for t in terrains]
     files += [arrays_file(layout.fit_file(str(m), t, inputs)) for m in cfg.models for t in terrains]
     files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
@@ -123,7 +123,8 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
         for info in [plugins.get(str(m).split("+")[0])]
     }
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
-    conf["model_configs"] = {str(m): model_config(cfg, str(m)) for m in cfg.models}
+    configs = ModelConfigs.from_cfg(cfg)
+    conf["model_configs"] = {str(m): model_config(configs, str(m)) for m in cfg.models}
     return stamp.key(files, conf)
 
 
@@ -133,11 +134,11 @@ def _cached_result(cfg: DictConfig, layout, stamp):
     from .evaluate import BenchmarkResult, ChildResult
 
     try:
-        from skidbench.pipeline.protocol import protocol_of
+        from skidbench.pipeline.protocol import protocol_from_cfg
 
         from .evaluate import last_file
 
-        last = json.loads(last_file(layout, protocol_of(cfg)).read_text())
+        last = json.loads(last_file(layout, protocol_from_cfg(cfg)).read_text())
         tracker = trk.tracker_from_cfg(cfg, layout)
         if last.get("tracking_uri") != tracker.uri:
             return None
@@ -153,6 +154,7 @@ def _cached_result(cfg: DictConfig, layout, stamp):
     return BenchmarkResult(
         last["tracking_uri"], last["experiment"], last["parent_run_id"], children,
         last.get("inputs", "commanded"), list(last.get("skipped") or []),
+        {str(t): dict(m) for t, m in (last.get("floor") or {}).items()},  # every board shows the floor
     )  # fmt: skip
 
 

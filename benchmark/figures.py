@@ -16,6 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
 
 from skidbench.pipeline.io import atomic_path  # noqa: E402
 
@@ -209,26 +210,9 @@ def residual_vs_acceleration(
 
 
 # -- Fig. 6 -----------------------------------------------------------------------------------------
-def yaw_rate_surfaces(
-    wl: np.ndarray,
-    wr: np.ndarray,
-    surfaces: Mapping[float, np.ndarray],
-    title: str,
-    path: Path,
-    dpi: int = 130,
-    no_root: Mapping[float, np.ndarray] | None = None,
-) -> Path:
-    """The paper's Fig. 6. (a) 3D: the model's yaw rate over the wheel-velocity plane, one surface per
-    commanded angular acceleration (distinct colours, shared colour legend); (b) the slice through the
-    spot-turn diagonal (w_r = -w_l) and (c) the slice at a fixed left wheel rate, where the surfaces'
-    ordering (higher commanded angular acceleration -> lower yaw rate) reads off directly. NaN cells (no
-    prediction) are left blank. ``no_root`` (bool grids, optional): cells where the force balance has no root
-    at the commanded acceleration (the prediction there is the model's fallback: the solution at a reduced
-    acceleration, or the least-squares solution of eq. 12); the surfaces show roots only and these cells
-    are drawn as dots, so a missing patch of surface reads as "no force balance", not as a solver failure."""
-    accels = sorted(surfaces)
-    no_root = {a: np.asarray(no_root[a], bool) if no_root and a in no_root else None for a in accels}
-    # diverging, colour-blind-safe: negative blue, zero grey, positive orange-red
+def _accel_styles(accels: list[float]) -> tuple[dict, dict, dict]:
+    """(colour, line style, label) per commanded angular acceleration: diverging and colour-blind-safe
+    (negative blue, zero grey, positive orange-red), a sequential map with more than one per sign."""
     base = {-1: "#1f5fbf", 0: "#4d4d4d", 1: "#d9541e"}
     colors = {a: base[int(np.sign(a))] for a in accels}
     if len(set(colors.values())) < len(accels):  # more than one acceleration per sign: a sequential map
@@ -236,9 +220,13 @@ def yaw_rate_surfaces(
         colors = {a: cmap(0.05 + 0.9 * k / max(len(accels) - 1, 1)) for k, a in enumerate(accels)}
     styles = {a: ("-", "--", ":", "-.")[k % 4] for k, a in enumerate(accels)}
     lab = {a: rf"$\dot\omega_{{cmd}}$ = {a:+g} rad/s$^2$" for a in accels}
-    fig = plt.figure(figsize=(13, 6.2))
-    gs = fig.add_gridspec(2, 2, width_ratios=(1.35, 1.0), hspace=0.42, wspace=0.12)
-    ax = fig.add_subplot(gs[:, 0], projection="3d")
+    return colors, styles, lab
+
+
+def _draw_surfaces(ax, wl, wr, surfaces, no_root, colors, lab) -> None:
+    """Fig. 6 (a): one surface (and wireframe) per acceleration on the 3D axes ``ax``, its no-root cells
+    as dots, and the colour legend."""
+    accels = sorted(surfaces)
     stride = max(1, wl.shape[0] // 15)
     for a in accels:
         z = np.asarray(surfaces[a], float)
@@ -261,8 +249,6 @@ def yaw_rate_surfaces(
     ax.tick_params(labelsize=7, pad=0)
     ax.view_init(elev=22, azim=-128)
     ax.set_box_aspect((1, 1, 0.75))
-    from matplotlib.lines import Line2D
-
     ax.legend(
         [Line2D([], [], color=colors[a], lw=6, alpha=0.7) for a in accels],
         [lab[a] for a in accels],
@@ -272,6 +258,11 @@ def yaw_rate_surfaces(
     )
     ax.set_title("(a) yaw rate over the wheel-velocity plane", fontsize=10)
 
+
+def _surface_slices(wl, wr, surfaces, no_root) -> list[tuple]:
+    """Fig. 6's slices, each (x, yaw rate per acceleration, no-root cells per acceleration, x label,
+    title): the spot-turn diagonal (w_r = -w_l, when the grid is symmetric) and a fixed left wheel rate."""
+    accels = sorted(surfaces)
     n = wl.shape[0]
     diag = np.arange(n)
     anti = n - 1 - diag
@@ -298,29 +289,64 @@ def yaw_rate_surfaces(
             f"({'c' if symmetric else 'b'}) slice: " + r"$\omega_l$ = " + f"{wl[0, col]:.1f} rad/s",
         )
     )
+    return slices
+
+
+def _draw_slice(a2, piece: tuple, colors, styles, lab) -> bool:
+    """One slice of Fig. 6 on ``a2`` (no-root cells as open dots, the line broken there); returns whether
+    it has any."""
+    x, sl, nr, xlabel, sub = piece
     any_nr = False
-    for k, (x, sl, nr, xlabel, sub) in enumerate(slices):
+    for a in sl:
+        y = np.asarray(sl[a], float)
+        if nr[a] is not None and nr[a].any():
+            any_nr = True
+            a2.plot(x[nr[a]], y[nr[a]], "o", ms=3.5, mfc="none", color=colors[a], alpha=0.8)
+            y = np.where(nr[a], np.nan, y)
+        a2.plot(x, y, styles[a], color=colors[a], lw=2, label=lab[a])
+    a2.axhline(0, color="k", lw=0.5)
+    a2.axvline(0, color="k", lw=0.5)
+    a2.set_xlabel(xlabel, fontsize=9)
+    a2.set_ylabel(r"predicted $\omega_z$ (rad/s)", fontsize=9)
+    a2.tick_params(labelsize=8)
+    a2.grid(alpha=0.3)
+    a2.set_title(sub, fontsize=10)
+    return any_nr
+
+
+def yaw_rate_surfaces(
+    wl: np.ndarray,
+    wr: np.ndarray,
+    surfaces: Mapping[float, np.ndarray],
+    title: str,
+    path: Path,
+    dpi: int = 130,
+    no_root: Mapping[float, np.ndarray] | None = None,
+) -> Path:
+    """The paper's Fig. 6. (a) 3D: the model's yaw rate over the wheel-velocity plane, one surface per
+    commanded angular acceleration (distinct colours, shared colour legend); (b) the slice through the
+    spot-turn diagonal (w_r = -w_l) and (c) the slice at a fixed left wheel rate, where the surfaces'
+    ordering (higher commanded angular acceleration -> lower yaw rate) reads off directly. NaN cells (no
+    prediction) are left blank. ``no_root`` (bool grids, optional): cells where the force balance has no root
+    at the commanded acceleration (the prediction there is the model's fallback: the solution at a reduced
+    acceleration, or the least-squares solution of eq. 12); the surfaces show roots only and these cells
+    are drawn as dots, so a missing patch of surface reads as "no force balance", not as a solver failure."""
+    accels = sorted(surfaces)
+    no_root = {a: np.asarray(no_root[a], bool) if no_root and a in no_root else None for a in accels}
+    colors, styles, lab = _accel_styles(accels)
+    fig = plt.figure(figsize=(13, 6.2))
+    gs = fig.add_gridspec(2, 2, width_ratios=(1.35, 1.0), hspace=0.42, wspace=0.12)
+    _draw_surfaces(fig.add_subplot(gs[:, 0], projection="3d"), wl, wr, surfaces, no_root, colors, lab)
+    slices = _surface_slices(wl, wr, surfaces, no_root)
+    for k, piece in enumerate(slices):
         a2 = fig.add_subplot(gs[k, 1]) if len(slices) == 2 else fig.add_subplot(gs[:, 1])
-        for a in accels:
-            y = np.asarray(sl[a], float)
-            if nr[a] is not None and nr[a].any():
-                any_nr = True
-                a2.plot(x[nr[a]], y[nr[a]], "o", ms=3.5, mfc="none", color=colors[a], alpha=0.8)
-                y = np.where(nr[a], np.nan, y)
-            a2.plot(x, y, styles[a], color=colors[a], lw=2, label=lab[a])
-        a2.axhline(0, color="k", lw=0.5)
-        a2.axvline(0, color="k", lw=0.5)
-        a2.set_xlabel(xlabel, fontsize=9)
-        a2.set_ylabel(r"predicted $\omega_z$ (rad/s)", fontsize=9)
-        a2.tick_params(labelsize=8)
-        a2.grid(alpha=0.3)
-        if k == 0:
+        any_nr = _draw_slice(a2, piece, colors, styles, lab)
+        if k == 0:  # the legend, on the first slice
             h, lb = a2.get_legend_handles_labels()
             if any_nr:
                 h.append(Line2D([], [], ls="", marker="o", mfc="none", color="0.3", ms=4))
                 lb.append("no root at the commanded\nacceleration (fallback shown)")
             a2.legend(h, lb, fontsize=7.5)
-        a2.set_title(sub, fontsize=10)
     fig.suptitle(title, fontsize=11)
     fig.subplots_adjust(left=0.0, right=0.98, top=0.86, bottom=0.09)
     return _save(fig, path, dpi)

@@ -40,6 +40,7 @@ from skidbench.pipeline.layout import Layout
 from . import boards as brd
 from . import compare as cmp
 from . import figures as figs
+from . import intervals as iv
 from . import metrics as mt
 from . import standings as st
 from . import tracking as trk
@@ -289,8 +290,28 @@ def leaderboard_html(board: brd.Board, standings: st.Standings | None) -> str:
     )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class PublishSettings:
+    """What ``publish`` reads of its config: whether the page has figures (``publish.figures``) and their
+    ``publish.dpi``, and how the boards are ranked (``rank_by``, ``intervals``), as compare ranks them."""
+
+    figures: bool
+    dpi: int
+    rank_by: str = st.AGGREGATE
+    intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> PublishSettings:
+        return cls(
+            bool(cfg.publish.figures),
+            int(cfg.publish.dpi),
+            str(cfg.get("rank_by") or st.AGGREGATE),
+            iv.IntervalConfig.from_cfg(cfg),
+        )
+
+
 def _protocol_section(
-    board: brd.Board, tmp: Path, cfg: Any, standings: st.Standings | None = None
+    board: brd.Board, tmp: Path, settings: PublishSettings, standings: st.Standings | None = None
 ) -> str:  # fmt: skip
     s = board.settings
     n_ext = int(board.rows.get("external", pd.Series(dtype=bool)).sum())
@@ -312,8 +333,8 @@ def _protocol_section(
         "<h3>Provenance of each row</h3>",
         _provenance_table(board),
     ]  # fmt: skip
-    if cfg.publish.figures:
-        parts += _protocol_figures(board, tmp, int(cfg.publish.dpi), standings)
+    if settings.figures:
+        parts += _protocol_figures(board, tmp, settings.dpi, standings)
     parts.append("</section>")
     return "\n".join(parts)
 
@@ -338,7 +359,7 @@ def _dataset_facts(layout: Layout, rec: dict[str, Any], bundle_doc: dict[str, An
 
 
 def build_page(
-    cfg: Any, layout: Layout, rec: dict[str, Any], boards: dict[str, brd.Board], tmp: Path
+    settings: PublishSettings, layout: Layout, rec: dict[str, Any], boards: dict[str, brd.Board], tmp: Path
 ) -> tuple[str, int]:
     from .bundle import METRIC, read_bundle_doc
 
@@ -359,11 +380,12 @@ def build_page(
         f"<p class='note'>Metric: {esc(METRIC['definition'])}.</p>",
     ]
     for b in boards.values():
-        body.append(_protocol_section(b, tmp, cfg, cmp.standings_from_cfg(cfg, layout, b.rows, b.protocol,
-                                                                           b.horizon, [])))  # fmt: skip
+        standings = cmp.standings_of(settings.rank_by, settings.intervals, layout, b.rows, b.protocol,
+                                     b.horizon, [])  # fmt: skip
+        body.append(_protocol_section(b, tmp, settings, standings))
     n_fig = 0
     figs_html = []
-    if cfg.publish.figures:
+    if settings.figures:
         for name, caption in REPORT_FIGURES:
             path = layout.reports / name
             if path.is_file():
@@ -380,7 +402,7 @@ def build_page(
     body.append("</main>")
     template = Template((files("skidbench.benchmark") / "publish_template.html").read_text())
     page = template.substitute(title=esc(f"skidbench: {layout.dataset}"), body="\n".join(body))
-    return page, n_fig + (2 * len(boards) if cfg.publish.figures else 0)
+    return page, n_fig + (2 * len(boards) if settings.figures else 0)
 
 
 def _reproduce_section(layout: Layout, rec: dict[str, Any], boards: dict[str, brd.Board], bundle_doc) -> str:
@@ -434,7 +456,9 @@ def write_index(site: Path) -> Path:
     return path
 
 
-def publish(cfg: Any, layout: Layout, rec: dict[str, Any], tracker: trk.Tracker, site: Path) -> PublishResult:
+def publish(
+    settings: PublishSettings, layout: Layout, rec: dict[str, Any], tracker: trk.Tracker, site: Path
+) -> PublishResult:
     """Writes ``<site>/<dataset>/index.html`` (and the board CSVs, ``site.json``) and
     ``<site>/index.html``."""
     boards = brd.all_boards(tracker)
@@ -447,7 +471,7 @@ def publish(cfg: Any, layout: Layout, rec: dict[str, Any], tracker: trk.Tracker,
     out = site / layout.dataset
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="skidbench-publish-") as tmp:
-        page, n_fig = build_page(cfg, layout, rec, boards, Path(tmp))
+        page, n_fig = build_page(settings, layout, rec, boards, Path(tmp))
     for b in boards.values():
         write_text_atomic(out / f"board-{b.protocol}.csv", b.rows.to_csv(index=False))
     path = out / "index.html"

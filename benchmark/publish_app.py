@@ -14,13 +14,15 @@ from skidbench.pipeline.cli import stage
 @stage("publish", home=False)
 def main(cfg: DictConfig) -> None:
     from skidbench.pipeline.imported import named_dataset
+    from skidbench.pipeline.layout import layout_from_cfg
 
     from . import tracking as trk
-    from .publish import describe, publish
+    from .publish import PublishSettings, describe, publish
 
-    layout, rec = named_dataset(cfg, "publish")
+    layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "publish")
     tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
-    print(describe(publish(cfg, layout, rec, tracker, Path(str(cfg.publish.dir)))), flush=True)
+    site = Path(str(cfg.publish.dir))
+    print(describe(publish(PublishSettings.from_cfg(cfg), layout, rec, tracker, site)), flush=True)
 
 
 main.positional = (("dataset", "publish.dir"), {})

@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,22 @@ FIG7_MIN_DISTANCE_M = 0.5  # Fig. 7 shows windows that go somewhere
 DEFAULTS = {"fig6_accels": [-8.0, 0.0, 8.0], "fig6_grid": 31, "fig7_windows": 3}
 
 
+@dataclass(frozen=True)
+class ReportDataSettings:
+    """What evaluate's report data is made with (``report_data.*``, :data:`DEFAULTS` for what is unset):
+    Fig. 6's commanded angular accelerations (rad/s^2) and grid size, Fig. 7's number of windows."""
+
+    fig6_accels: tuple[float, ...] = tuple(DEFAULTS["fig6_accels"])
+    fig6_grid: int = DEFAULTS["fig6_grid"]
+    fig7_windows: int = DEFAULTS["fig7_windows"]
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> ReportDataSettings:
+        got = cfg.get("report_data") or {}
+        s = {k: got.get(k, v) if got.get(k) is not None else v for k, v in DEFAULTS.items()}
+        return cls(tuple(float(a) for a in s["fig6_accels"]), int(s["fig6_grid"]), int(s["fig7_windows"]))
+
+
 class ReportDataError(EvaluationError):
     """What compare wants was not written by evaluate (or is unreadable)."""
 
@@ -53,27 +70,20 @@ def _path(stem: Path, what: str) -> Path:
     return stem.with_name(f"{stem.name}.{what}")
 
 
-def _settings(cfg: Any) -> dict[str, Any]:
-    got = cfg.get("report_data") or {}
-    return {k: got.get(k, v) if got.get(k) is not None else v for k, v in DEFAULTS.items()}
-
-
 # -- evaluate's side ----------------------------------------------------------------------------------
 def write_report_data(
-    cfg: Any, layout: Layout, stem: Path, model: Any, terrain: str, tests: Mapping[str, Sequence[Any]],
-    velocities: Mapping[str, Sequence[np.ndarray]], horizon_s: float,
+    s: ReportDataSettings, layout: Layout, stem: Path, model: Any, terrain: str,
+    tests: Mapping[str, Sequence[Any]], velocities: Mapping[str, Sequence[np.ndarray]], horizon_s: float,
 ) -> list[Path]:  # fmt: skip
     """Writes the three artifacts of one (model, terrain, protocol) (module docstring) and returns them.
     ``tests``: split -> the TestSequences evaluate scored; ``velocities``: split -> their (T, 3) predicted
     body velocities (m/s, m/s, rad/s); ``horizon_s``: the horizon of Fig. 7 (evaluate's first)."""
-    s = _settings(cfg)
+    accels, windows = list(s.fig6_accels), s.fig7_windows
     jobs = {
         "residuals.parquet": lambda: write_residuals(stem, tests, velocities),
-        "trajectories.parquet": lambda: write_trajectories(stem, tests, velocities, horizon_s,
-                                                           int(s["fig7_windows"])),
-        "surfaces.npz": lambda: write_surfaces(stem, model, layout, terrain,
-                                               [float(a) for a in s["fig6_accels"]], int(s["fig6_grid"])),
-    }  # fmt: skip
+        "trajectories.parquet": lambda: write_trajectories(stem, tests, velocities, horizon_s, windows),
+        "surfaces.npz": lambda: write_surfaces(stem, model, layout, terrain, accels, s.fig6_grid),
+    }
     out = []
     for what, write in jobs.items():
         try:
@@ -227,14 +237,14 @@ def wheel_response_path(layout: Layout, terrain: str) -> Path:
     return layout.eval / "wheel_response" / f"{terrain}.parquet"
 
 
-def write_wheel_response_steps(cfg: Any, layout: Layout, terrain: str) -> Path:
+def write_wheel_response_steps(cal: Calibrations, layout: Layout, terrain: str) -> Path:
     """The wheel response ``calibrate`` identified for ``terrain`` against the encoders around the largest
     step of the mean commanded wheel rate in its Train split (1 s before to 4 s after): columns ``t``
     (s from the step), ``cmd_wl``, ``cmd_wr``, ``enc_wl``, ``enc_wr``, ``resp_wl``, ``resp_wr`` (rad/s),
     the figure's title in the metadata; with no response (or no step), no rows and the ``reason``."""
     path = wheel_response_path(layout, terrain)
     try:
-        cols, meta = _wheel_response_steps(cfg, layout, terrain)
+        cols, meta = _wheel_response_steps(cal, layout, terrain)
     except Exception as exc:  # the figure's data never fails the benchmark: compare shows the reason
         cols, meta = {}, {"reason": one_line(str(exc)) if isinstance(exc, SkidbenchError)
                           else f"{type(exc).__name__}: {one_line(str(exc))}"}  # fmt: skip
@@ -244,8 +254,10 @@ def write_wheel_response_steps(cfg: Any, layout: Layout, terrain: str) -> Path:
     return path
 
 
-def _wheel_response_steps(cfg: Any, layout: Layout, terrain: str) -> tuple[dict[str, np.ndarray], dict]:
-    doc = calibration_doc(Calibrations.from_cfg(cfg), terrain) or {}
+def _wheel_response_steps(
+    cal: Calibrations, layout: Layout, terrain: str
+) -> tuple[dict[str, np.ndarray], dict]:
+    doc = calibration_doc(cal, terrain) or {}
     resp = wheel_response_of(doc)
     if resp is None:
         why = (doc.get("wheel_response") or {}).get("reason", "no calibration")

@@ -15,16 +15,17 @@ from skidbench.pipeline.cli import stage
 @stage("score", home=False)
 def main(cfg: DictConfig) -> None:
     from skidbench.pipeline.imported import named_dataset
-    from skidbench.pipeline.protocol import protocol_of
+    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.protocol import protocol_from_cfg
 
     from . import tracking as trk
     from .external import format_score, read_predictions, score_predictions
 
-    layout, rec = named_dataset(cfg, "score")
+    layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "score")
     read_predictions(Path(str(cfg.score.predictions)))  # a file that cannot be scored: before the store opens
     tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
-    res = score_predictions(cfg, layout, tracker, Path(str(cfg.score.predictions)), cfg.score.get("name"),
-                            protocol_of(cfg))  # fmt: skip
+    res = score_predictions(layout, tracker, Path(str(cfg.score.predictions)), cfg.score.get("name"),
+                            protocol_from_cfg(cfg))  # fmt: skip
     print(format_score(res), flush=True)
 
 

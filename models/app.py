@@ -27,7 +27,7 @@ def main(cfg: DictConfig) -> None:
 
     from skidbench.pipeline.layout import layout_from_cfg
 
-    from .fitting import fit_model
+    from .fitting import FitSettings, fit_model
 
     try:
         terrain = str(cfg.terrain)
@@ -39,7 +39,7 @@ def main(cfg: DictConfig) -> None:
     layout = layout_from_cfg(cfg)
     track = bool(cfg.get("track", True))
 
-    def log_run(res, cfg, name, terrain) -> None:
+    def log_run(res, name, terrain) -> None:
         loss = f"{res.fit_loss:.6g}" if res.fit_loss is not None else "n/a"
         log.info(
             f"fit {name} on {terrain}: {res.n_train} rows, loss {loss}, {res.fit_time_s:.2f} s, "
@@ -51,7 +51,12 @@ def main(cfg: DictConfig) -> None:
     # up to date (fitting.fit_stamp, whichever stage made the fit): reused and nothing logged; else
     # fitted, logged, and only then stamped (a job killed before its run was logged refits when retried)
     res = fit_model(
-        cfg, name, terrain, reuse=bool(cfg.get("reuse", True)), split=str(cfg.split), hooks=[log_run]
+        FitSettings.from_cfg(cfg),
+        name,
+        terrain,
+        reuse=bool(cfg.get("reuse", True)),
+        split=str(cfg.split),
+        hooks=[log_run],
     )
     if res.reused:
         print(f"fit: {name}/{terrain} up to date, skipped ({res.path})", flush=True)

@@ -1,13 +1,15 @@
 """Fitting a model on a terrain's Train split: the function the ``fit``, ``evaluate`` and ``discover``
 stages call, and the reader of saved fits.
 
-    fit_model(cfg, "friction", "grass") -> FitResult   # writes <out_root>/<dataset>/fits/friction/grass.json
-    load_fitted(cfg, "friction", "grass") -> KinematicModel
+    settings = FitSettings.from_cfg(cfg)                    # in the app
+    fit_model(settings, "friction", "grass") -> FitResult   # writes <ds>/fits/friction/grass.json
+    load_fitted(settings, "friction", "grass") -> KinematicModel
 
-``cfg`` is any composed skidbench config that brings ``common`` (robot, out_root, dataset). The model's own
-config (``model/<name>.yaml``: ``params`` = initial parameters, ``options``) is ``cfg.model`` when its
-name matches, else it is composed from the Hydra search path (so a plugin's config is found too), else
-the model's class defaults are used.
+:class:`FitSettings` is what fitting reads of a composed skidbench config that brings ``common`` (robot,
+out_root, dataset, inputs, calibrate): the apps make it. The model's own config (``model/<name>.yaml``:
+``params`` = initial parameters, ``options``) is the config's ``model`` group when its name matches, else
+it is composed from the Hydra search path (so a plugin's config is found too), else the model's class
+defaults are used (:class:`ModelConfigs`, :func:`model_config`).
 """
 
 from __future__ import annotations
@@ -35,9 +37,9 @@ from skidbench.pipeline.calibration import (
     robot_for_model,
 )
 from skidbench.pipeline.io import write_json_atomic
-from skidbench.pipeline.layout import layout_from_cfg
+from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.manifest import Manifest
-from skidbench.pipeline.protocol import INPUT_COLUMNS, ProtocolError, fit_table, protocol_of
+from skidbench.pipeline.protocol import INPUT_COLUMNS, ProtocolError, fit_table, protocol_from_cfg
 from skidbench.pipeline.provenance import CodeIdentity, code_identity
 from skidbench.pipeline.robot import Robot, robot_from_hydra
 from skidbench.pipeline.schema import concat_sequences, read_split
@@ -45,7 +47,7 @@ from skidbench.pipeline.wheel_response import WheelResponse
 
 from .base import KinematicModel, ModelError, calibrated_constants
 from .registry import DISCOVERED, discover
-from .saved import arrays_file, from_saved, save_arrays
+from .saved import arrays_file, fit_findings, from_saved, save_arrays
 from .specs import get_model_class
 
 log = logging.getLogger(__name__)
@@ -64,24 +66,71 @@ class FitResult:
     code: CodeIdentity | None = None  # the model's code (pipeline/provenance.py), in the fit's fingerprint
 
 
-def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
+@dataclass(frozen=True)
+class ModelConfigs:
+    """What a run's config says of its models: ``node``, its ``model`` entry (resolved; None without one),
+    which is the model config group of a one-model stage (``fit``), or, on a stage that evaluates a list
+    of models (``models``, not None), the ``+model.params/options.*`` overrides of its command line."""
+
+    node: Any = None
+    models: tuple[str, ...] | None = None
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> ModelConfigs:
+        from omegaconf import OmegaConf
+
+        node = cfg.get("model") if hasattr(cfg, "get") else None
+        models = cfg.get("models") if hasattr(cfg, "get") else None
+        if OmegaConf.is_config(node):
+            node = OmegaConf.to_container(node, resolve=True)
+        return cls(node, None if models is None else tuple(str(m) for m in models))
+
+    @property
+    def overrides_only(self) -> bool:
+        """True when ``node`` is a command-line override on a stage that evaluates a list of models
+        (``skidbench evaluate +model.options.x=...``), not the model config group of ``fit``."""
+        return self.models is not None
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """What fitting reads of a run's config: the dataset's layout, the spec sheet's robot, the input
+    protocol (``inputs``), the calibrations (``calibrate.use``) and the models' configs. The apps make it
+    (:meth:`from_cfg`)."""
+
+    layout: Layout
+    robot: Robot
+    inputs: str
+    calibrations: Calibrations
+    models: ModelConfigs
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> FitSettings:
+        return cls(
+            layout_from_cfg(cfg),
+            robot_from_hydra(cfg.robot),
+            protocol_from_cfg(cfg),
+            Calibrations.from_cfg(cfg),
+            ModelConfigs.from_cfg(cfg),
+        )
+
+
+def model_config(configs: ModelConfigs, model_name: str) -> dict[str, Any]:
     """``{"name", "params", "options"}`` for ``model_name`` (see module docstring). An augmented spec
     ``base+effect+...`` gets its base model's params and options as ``base_params``/``base_options``."""
-    from omegaconf import OmegaConf
-
     if model_name == DISCOVERED:
         return {"name": model_name, "params": {}, "options": {}}
     if "+" in model_name:
-        base = model_config(cfg, model_name.split("+")[0].strip())
+        base = model_config(configs, model_name.split("+")[0].strip())
         return {
             "name": model_name,
             "params": {},
             "options": {"base_params": base["params"], "base_options": base["options"]},
         }
 
-    node = cfg.get("model") if hasattr(cfg, "get") else None
-    if node is not None and node.get("name") == model_name and not _is_override_node(cfg):
-        data = OmegaConf.to_container(node, resolve=True)
+    node = configs.node
+    if isinstance(node, dict) and node.get("name") == model_name and not configs.overrides_only:
+        data = copy.deepcopy(node)
     else:
         data = _compose_model_config(model_name)
     data = dict(data or {})
@@ -90,7 +139,7 @@ def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
         "params": dict(data.get("params") or {}),
         "options": dict(data.get("options") or {}),
     }
-    over = model_overrides(cfg, model_name)
+    over = model_overrides(configs, model_name)
     unknown = sorted(set(over.get("options") or {}) - set(out["options"]))
     if unknown and data:  # the model's config lists its options: an unknown one would be ignored
         raise ModelError(
@@ -102,21 +151,13 @@ def model_config(cfg: Any, model_name: str) -> dict[str, Any]:
     return out
 
 
-def _is_override_node(cfg: Any) -> bool:
-    """True when ``cfg.model`` is a command-line override on a stage that evaluates a list of models
-    (``skidbench evaluate +model.options.x=...``), not the model config group of ``fit``."""
-    return hasattr(cfg, "get") and cfg.get("models") is not None
-
-
-def model_overrides(cfg: Any, model_name: str) -> dict[str, Any]:
+def model_overrides(configs: ModelConfigs, model_name: str) -> dict[str, Any]:
     """``{"params", "options"}`` set on the command line of a multi-model stage (``evaluate``):
     ``+model.options.x=1`` (one model evaluated, or ``+model.name=<m>`` says which one). Anything else
     under ``model`` is refused (ModelError), never silently ignored."""
-    from omegaconf import OmegaConf
-
-    if not _is_override_node(cfg) or cfg.get("model") is None:
+    if not configs.overrides_only or configs.node is None:
         return {}
-    node = OmegaConf.to_container(cfg.model, resolve=True) or {}
+    node = copy.deepcopy(configs.node) or {}
     if not isinstance(node, dict):
         raise ModelError(f"model={node!r}: on evaluate, set models=[...] and +model.options.<key>=<value>")
     unknown = sorted(set(node) - {"name", "params", "options"})
@@ -124,7 +165,7 @@ def model_overrides(cfg: Any, model_name: str) -> dict[str, Any]:
         raise ModelError(
             f"model.{unknown[0]}: unknown key; evaluate takes +model.options.* and +model.params.*"
         )
-    models = [str(m) for m in cfg.get("models") or []]
+    models = list(configs.models or ())
     target = node.get("name")
     if target is None:
         if len(models) != 1:
@@ -172,11 +213,10 @@ def _compose_cached(model_name: str, sources: tuple | None) -> dict[str, Any] | 
     return OmegaConf.to_container(c.model, resolve=True)
 
 
-def build_model(cfg: Any, model_name: str, robot: Robot | None = None) -> KinematicModel:
-    """An unfitted instance with its configured initial params and options."""
+def build_model(configs: ModelConfigs, model_name: str, robot: Robot) -> KinematicModel:
+    """An unfitted instance on ``robot`` with its configured initial params and options."""
     cls = get_model_class(model_name)
-    mc = model_config(cfg, model_name)
-    robot = robot or robot_from_hydra(cfg.robot)
+    mc = model_config(configs, model_name)
     try:
         return cls(robot, mc["params"] or None, **mc["options"])
     except ModelError:
@@ -185,9 +225,8 @@ def build_model(cfg: Any, model_name: str, robot: Robot | None = None) -> Kinema
         raise ModelError(f"model {model_name}: cannot be built ({type(exc).__name__}: {exc})") from exc
 
 
-def _training_files(cfg: Any, model_name: str, terrain: str, split: str) -> list[Path]:
+def _training_files(layout: Layout, model_name: str, terrain: str, split: str) -> list[Path]:
     """The split files of the current manifest's ``terrain``/``split`` sequences (pipeline/layout.py)."""
-    layout = layout_from_cfg(cfg)
     if not layout.manifest.is_file():
         raise ModelError(
             f"model {model_name}: no manifest {layout.manifest}; run `skidbench extract` and `split`"
@@ -202,13 +241,16 @@ def _training_files(cfg: Any, model_name: str, terrain: str, split: str) -> list
     return files
 
 
-def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, dict[str, Any]]:
-    """The model spec a name stands for on ``terrain``: itself, except ``discovered``, which is the base
-    model and effects ``skidbench discover`` found for the terrain (``<ds>/discovery/discovery.json``;
-    the base model alone when it found none). Returns (spec, what the discovery said)."""
+def resolve_model_spec(
+    layout: Layout, inputs: str, model_name: str, terrain: str
+) -> tuple[str, dict[str, Any]]:
+    """The model spec a name stands for on ``terrain`` of the dataset at ``layout``, under input protocol
+    ``inputs``: itself, except ``discovered``, which is the base model and effects ``skidbench discover``
+    found for the terrain (``<ds>/discovery/discovery.json``; the base model alone when it found none).
+    Returns (spec, what the discovery said)."""
     if model_name != DISCOVERED:
         return model_name, {}
-    path = layout_from_cfg(cfg).discovery / "discovery.json"
+    path = layout.discovery / "discovery.json"
     if not path.is_file():
         raise ModelError(
             f"model {DISCOVERED}: {path} not found; run `skidbench discover` on this dataset first"
@@ -222,7 +264,7 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
         raise ModelError(
             f"model {DISCOVERED}: {path} has no discovery for terrain {terrain} ({type(exc).__name__}: {exc})"
         ) from None
-    found_under, inputs = str(doc.get("inputs", "commanded")), protocol_of(cfg)
+    found_under = str(doc.get("inputs", "commanded"))
     if found_under != inputs:  # what is missing depends on the inputs the search was given
         raise ModelError(
             f"model {DISCOVERED}: {path} was found under inputs={found_under}, this run is inputs={inputs}; "
@@ -245,21 +287,21 @@ def resolve_model_spec(cfg: Any, model_name: str, terrain: str) -> tuple[str, di
     }
 
 
-def protocol_inputs(cfg: Any, terrain: str) -> tuple[str, Robot, WheelResponse | None]:
+def protocol_inputs(settings: FitSettings, terrain: str) -> tuple[str, Robot, WheelResponse | None]:
     """(protocol, robot the inputs are converted with, the terrain's wheel response) of a run: the
-    protocol ``cfg.inputs``; the spec sheet's robot (the split's own commanded ``cmd_v``/``cmd_w`` come
+    protocol ``inputs``; the spec sheet's robot (the split's own commanded ``cmd_v``/``cmd_w`` come
     from it); the response ``calibrate`` identified (``response`` protocol only; ProtocolError when
     there is none)."""
-    inputs = protocol_of(cfg)
+    inputs = settings.inputs
     response = None
     if inputs == "response":
-        response = response_for(Calibrations.from_cfg(cfg), terrain)
+        response = response_for(settings.calibrations, terrain)
         if response is None:
             raise ProtocolError(
                 f"inputs=response: no wheel response identified for terrain {terrain} (the Train split has "
                 "no wheel encoders, or too few readings; `skidbench calibrate` says which)"
             )
-    return inputs, robot_from_hydra(cfg.robot), response
+    return inputs, settings.robot, response
 
 
 def check_inputs(model: Any, model_name: str) -> None:
@@ -291,13 +333,13 @@ class _FitPlan:
     key: str
 
 
-def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
-    layout = layout_from_cfg(cfg)
-    spec, resolved = resolve_model_spec(cfg, model_name, terrain)
+def _plan(settings: FitSettings, model_name: str, terrain: str, split: str) -> _FitPlan:
+    layout = settings.layout
+    spec, resolved = resolve_model_spec(layout, settings.inputs, model_name, terrain)
     cls = get_model_class(spec)
-    files = _training_files(cfg, model_name, terrain, split)
-    inputs, spec_robot, response = protocol_inputs(cfg, terrain)
-    cal = Calibrations.from_cfg(cfg)
+    files = _training_files(layout, model_name, terrain, split)
+    inputs, spec_robot, response = protocol_inputs(settings, terrain)
+    cal = settings.calibrations
     robot, constants = robot_for_model(cal, calibrated_constants(cls), terrain)
     calibration = load_calibration(cal, terrain)  # None with calibrate.use=false
     info = discover().get(spec.split("+")[0])
@@ -309,7 +351,7 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
     key = stamp.key(
         files,  # the manifest's Train files of the terrain, exactly those fitted on
         {
-            "model": model_config(cfg, spec),
+            "model": model_config(settings.models, spec),
             "version": getattr(cls, "version", "?"),
             # the code itself (distribution, version and a digest of its package's files): a plugin
             # edited in place, or a release that forgets to bump a version, still invalidates old fits
@@ -329,19 +371,21 @@ def _plan(cfg: Any, model_name: str, terrain: str, split: str) -> _FitPlan:
     )
 
 
-def fit_stamp(cfg: Any, model_name: str, terrain: str, split: str = "train") -> tuple[Stamp, str]:
+def fit_stamp(
+    settings: FitSettings, model_name: str, terrain: str, split: str = "train"
+) -> tuple[Stamp, str]:
     """The stamp of the fit of ``model_name`` on ``terrain``'s ``split`` (``<ds>/.stamps/fit/<model>/
     <terrain>[.<inputs>].json``) and the key of its current inputs: the split files (content), the model's
     config, class version, its code (distribution, version and the digest of its package's files:
     ``pipeline/provenance.py``), the robot it is built with (calibrated constants
     included) and the spec sheet's, terrain, split, input protocol, wheel response, the calibration's
     constants and ``FIT_SCHEMA``. ``stamp.is_fresh(key)``: the saved fit is up to date."""
-    plan = _plan(cfg, model_name, terrain, split)
+    plan = _plan(settings, model_name, terrain, split)
     return plan.stamp, plan.key
 
 
 def fit_model(
-    cfg: Any,
+    settings: FitSettings,
     model_name: str,
     terrain: str,
     *,
@@ -355,39 +399,62 @@ def fit_model(
     of "up to date" of a fit, whichever stage made it: a fit ``evaluate`` made is up to date for ``fit``
     and the other way round) is fresh: same inputs, and the fit JSON and its arrays intact (a corrupted
     or truncated one is refitted). The model is fitted on the Train table of the input protocol
-    ``cfg.inputs`` (:func:`skidbench.pipeline.protocol.fit_table`: the protocol's inputs and the
-    targets, nothing else). ``hooks``: called after a fit (not a reuse) as ``hook(result, cfg,
-    model_name, terrain)``, passed by the caller (the fit stage its MLflow logging; fitting stays free of
-    MLflow). The stamp is recorded after the hooks: a job killed before its hooks finished is refitted
-    when retried."""
-    plan = _plan(cfg, model_name, terrain, split)
-    spec, cls, files, inputs, robot, path = (
-        plan.spec,
-        plan.cls,
-        plan.files,
-        plan.inputs,
-        plan.robot,
-        plan.path,
-    )
+    ``settings.inputs`` (:func:`skidbench.pipeline.protocol.fit_table`: the protocol's inputs and the
+    targets, nothing else). ``hooks``: called after a fit (not a reuse) as ``hook(result, model_name,
+    terrain)``, passed by the caller (the fit stage its MLflow logging; fitting stays free of MLflow). The
+    stamp is recorded after the hooks: a job killed before its hooks finished is refitted when retried."""
+    plan = _plan(settings, model_name, terrain, split)
     if reuse and plan.stamp.is_fresh(plan.key):
-        try:
-            saved = json.loads(path.read_text())
-            model = from_saved(cls, robot, saved, spec, path)
-            return FitResult(
-                model,
-                path,
-                saved.get("fit_loss"),
-                saved.get("fit_time_s", 0.0),
-                int(saved.get("n_train", 0)),
-                reused=True,
-                code=plan.code,
-            )
-        except (OSError, ValueError, ModelError):
-            pass  # unreadable: refit
-    table = fit_table(
-        concat_sequences([read_split(p) for p in files]), inputs, plan.spec_robot, plan.response
+        saved = _saved_fit(plan)
+        if saved is not None:
+            return saved
+    model, n_train, fit_time = _fit_on_train(settings.models, plan, model_name, terrain)
+    arrays = _model_arrays(model, model_name)
+    data = _fit_doc(model, plan, model_name, terrain, split, settings.layout.dataset, n_train, fit_time)
+    apath = _write_fit(plan.path, data, arrays, model_name)
+    for line in fit_findings(data):  # a fit at a bound is a finding (compare notes it too)
+        log.warning("%s on %s: %s", model_name, terrain, line)
+    result = FitResult(model, plan.path, data.get("fit_loss"), fit_time, n_train, code=plan.code)
+    for hook in hooks:
+        hook(result, model_name, terrain)
+    # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date
+    plan.stamp.record(plan.key, [plan.path, *([apath] if arrays else [])])
+    return result
+
+
+def fit_from_cfg(cfg: Any, model_name: str, terrain: str, **kwargs: Any) -> FitResult:
+    """The door for a caller that holds the config (evaluate's ``fit_fn(cfg, model, terrain)``):
+    :func:`fit_model` with the config's :class:`FitSettings`."""
+    return fit_model(FitSettings.from_cfg(cfg), model_name, terrain, **kwargs)
+
+
+def _saved_fit(plan: _FitPlan) -> FitResult | None:
+    """The saved fit of an up-to-date ``plan`` (None when its JSON or arrays cannot be read: refit)."""
+    try:
+        saved = json.loads(plan.path.read_text())
+        model = from_saved(plan.cls, plan.robot, saved, plan.spec, plan.path)
+    except (OSError, ValueError, ModelError):
+        return None
+    return FitResult(
+        model,
+        plan.path,
+        saved.get("fit_loss"),
+        saved.get("fit_time_s", 0.0),
+        int(saved.get("n_train", 0)),
+        reused=True,
+        code=plan.code,
     )
-    model = build_model(cfg, spec, robot)
+
+
+def _fit_on_train(
+    configs: ModelConfigs, plan: _FitPlan, model_name: str, terrain: str
+) -> tuple[KinematicModel, int, float]:
+    """(the model built as configured and fitted on the plan's Train table, its valid training rows, the
+    fit's seconds). A model's exception other than ModelError is its fit failing, in one line."""
+    table = fit_table(
+        concat_sequences([read_split(p) for p in plan.files]), plan.inputs, plan.spec_robot, plan.response
+    )
+    model = build_model(configs, plan.spec, plan.robot)
     check_inputs(model, model_name)
     n_train = int(table["valid"].sum()) if "valid" in table else 0
     t0 = time.perf_counter()
@@ -399,29 +466,47 @@ def fit_model(
         raise ModelError(
             f"model {model_name}: fit failed on terrain {terrain} ({type(exc).__name__}: {exc})"
         ) from exc
-    fit_time = time.perf_counter() - t0
+    return model, n_train, time.perf_counter() - t0
+
+
+def _fit_doc(
+    model: KinematicModel,
+    plan: _FitPlan,
+    model_name: str,
+    terrain: str,
+    split: str,
+    dataset: str,
+    n_train: int,
+    fit_time: float,
+) -> dict[str, Any]:
+    """The fit JSON of a fitted model: the model's own record and what it was fitted on, with."""
     data = model.to_json() if hasattr(model, "to_json") else {"model": model_name, "params": model.params}
-    arrays = _model_arrays(model, model_name)
-    info = discover().get(spec.split("+")[0])
+    info = discover().get(plan.spec.split("+")[0])
     data.update(
         {
             "schema": FIT_SCHEMA,
             "terrain": terrain,
-            "dataset": str(cfg.dataset),
-            "robot": robot.name,
+            "dataset": dataset,
+            "robot": plan.robot.name,
             "split": split,
-            "sequences": [p.stem for p in files],
+            "sequences": [p.stem for p in plan.files],
             "n_train": n_train,
             "fit_time_s": fit_time,
             "fit_info": getattr(model, "fit_info_", {}),
             "robot_constants": plan.constants,
-            "inputs": inputs,
+            "inputs": plan.inputs,
             **({"wheel_response": dataclasses.asdict(plan.response)} if plan.response is not None else {}),
             **({"resolved": plan.resolved} if plan.resolved else {}),
             "package": info.package if info else "?",
             "code": plan.code.to_dict(),
         }
     )
+    return data
+
+
+def _write_fit(path: Path, data: dict[str, Any], arrays: dict[str, np.ndarray], model_name: str) -> Path:
+    """Write a fit's arrays (when it has any; their record goes into ``data``), then its JSON, atomically;
+    a refit without arrays removes an older fit's arrays file. Returns the arrays file's path."""
     apath = arrays_file(path)
     if arrays:
         fp_arrays = save_arrays(apath, arrays)
@@ -432,14 +517,7 @@ def fit_model(
         raise ModelError(f"model {model_name}: parameters are not JSON-serialisable ({exc})") from exc
     if not arrays and apath.is_file():
         apath.unlink()  # a refit without arrays leaves no stale file
-    for line in fit_findings(data):  # a fit at a bound is a finding (compare notes it too)
-        log.warning("%s on %s: %s", model_name, terrain, line)
-    result = FitResult(model, path, data.get("fit_loss"), fit_time, n_train, code=plan.code)
-    for hook in hooks:
-        hook(result, cfg, model_name, terrain)
-    # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date
-    plan.stamp.record(plan.key, [path, *([apath] if arrays else [])])
-    return result
+    return apath
 
 
 def is_seeded(model: Any) -> bool:
@@ -476,37 +554,13 @@ class Refit:
 
 def refit_from_cfg(cfg: Any, model_name: str, terrain: str, split: str = "train") -> Refit:
     """The door from the config to a :class:`Refit` of ``model_name`` on ``terrain``'s Train split."""
-    plan = _plan(cfg, model_name, terrain, split)
+    settings = FitSettings.from_cfg(cfg)
+    plan = _plan(settings, model_name, terrain, split)
     table = fit_table(
         concat_sequences([read_split(p) for p in plan.files]), plan.inputs, plan.spec_robot, plan.response
     )
-    mc = model_config(cfg, plan.spec)
+    mc = model_config(settings.models, plan.spec)
     return Refit(model_name, terrain, plan.cls, plan.robot, mc["params"] or None, dict(mc["options"]), table)
-
-
-def fit_findings(data: dict[str, Any]) -> list[str]:
-    """What a saved fit (its JSON) records as findings: each parameter that ended at a bound
-    (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
-    out = []
-    for f in (data.get("fit_info") or {}).get("at_bound") or []:
-        bound = "inf" if f.get("bound") is None else f"{f['bound']:g}"
-        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {bound})")
-    return out
-
-
-def board_findings(layout: Any, rows: Sequence[tuple[str, str]], inputs: str = "commanded") -> list[str]:
-    """The findings of the fits behind a board's (model, terrain) rows, one line per model and finding
-    naming the terrains and values (``roc degenerates to edd on this data: b2 at its bound (grass: b2 =
-    6e-25; tile: ...)``): what ``compare`` notes under the board and in the report."""
-    found: dict[tuple[str, str], list[str]] = {}
-    for model, terrain in sorted(set(rows)):
-        try:
-            data = json.loads(layout.fit_file(model, terrain, inputs).read_text())
-        except (OSError, ValueError):
-            continue
-        for f in (data.get("fit_info") or {}).get("at_bound") or []:
-            found.setdefault((model, f["finding"]), []).append(f"{terrain}: {f['param']} = {f['value']:.2g}")
-    return [f"{finding} ({'; '.join(where)})" for (_, finding), where in found.items()]
 
 
 def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:
@@ -521,10 +575,10 @@ def _model_arrays(model: Any, model_name: str) -> dict[str, np.ndarray]:
     return arrays
 
 
-def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
+def load_fitted(settings: FitSettings, model_name: str, terrain: str) -> KinematicModel:
     """The fitted model saved by :func:`fit_model` (ModelError if there is none)."""
-    inputs = protocol_of(cfg)
-    path = layout_from_cfg(cfg).fit_file(model_name, terrain, inputs)
+    inputs = settings.inputs
+    path = settings.layout.fit_file(model_name, terrain, inputs)
     if not path.is_file():
         raise ModelError(
             f"model {model_name}: no fit for terrain {terrain} under inputs={inputs} at {path}; run "
@@ -537,5 +591,5 @@ def load_fitted(cfg: Any, model_name: str, terrain: str) -> KinematicModel:
 
     spec = str((saved.get("resolved") or {}).get("spec") or model_name)
     cls = get_model_class(spec)
-    robot, _ = robot_for_model(Calibrations.from_cfg(cfg), calibrated_constants(cls), terrain)
+    robot, _ = robot_for_model(settings.calibrations, calibrated_constants(cls), terrain)
     return from_saved(cls, robot, saved, spec, path)

@@ -308,20 +308,14 @@ class GPResidual(KinematicModel):
             return self._fit(table)
 
     def _fit(self, table: pd.DataFrame) -> GPResidual:
-        self.check_columns(table, fitting=True)
+        """The base model, then per output a sparse GP on its residuals over the moving valid rows
+        (standardised features, shared inducing points), then the residuals' autocorrelation."""
         o = self.options
+        self.check_columns(table, fitting=True)
         base = self._base_class()(self.robot, **dict(o["base_options"] or {}))
         base.fit(table)
         self._base = base
-        valid = table["valid"].to_numpy(bool)
-        X = gp_features(table, self.robot, float(o["regime_tau_s"]))
-        still = (np.abs(X[:, 0]) < o["standstill_speed"]) & (np.abs(X[:, 1]) < o["standstill_speed"])
-        use = valid & ~still
-        if use.sum() < 20:
-            raise ModelError(f"model {self.name}: {int(use.sum())} moving valid training rows")
-        resid = targets(table) - base.predict(table)
-        Xu, R = X[use], resid[use]
-        folds = block_folds(table, use, int(o["cv_folds"]))
+        use, Xu, R, folds = self._residual_rows(table, base)
         n_use = len(Xu)
         mirror = list(o["mirror_outputs"] or [])
         if mirror:
@@ -337,60 +331,18 @@ class GPResidual(KinematicModel):
         sd[sd < 1e-9] = 1.0
         Xs = (Xu - mu) / sd
         idx = select_inducing(Xs, int(o["n_inducing"]), int(o["seed"]))
-        Z = Xs[idx]
-        arrays: dict[str, np.ndarray] = {"x_mean": mu, "x_scale": sd, "inducing": Z}
+        arrays: dict[str, np.ndarray] = {"x_mean": mu, "x_scale": sd, "inducing": Xs[idx]}
         hyper = []
         heldout = np.full((len(table), 3), np.nan)  # held-out residuals of the blocked CV (used rows)
         for j, name in enumerate(TARGETS):
-            dims = input_dims(name, Xs.shape[1], o["regime_outputs"])
             rows = slice(None) if name in mirror else slice(0, n_use)  # the mirror images are rows n_use..
-            Xj, Zj = Xs[rows][:, dims], Z[:, dims]
-            y = R[rows, j]
-            iz = (
-                idx if name in mirror else idx[idx < n_use]
-            )  # the likelihood's rows: inducing rows trained on
-            yz = R[iz, j]
-            var0 = max(float(np.var(y)), 1e-10)
-            theta0 = np.concatenate([np.zeros(len(dims)), [np.log(var0), np.log(0.1 * var0)]])
-            res = minimize(
-                neg_log_marginal, theta0, args=(Xs[iz][:, dims], yz), method="L-BFGS-B", jac=True,
-                bounds=[(-4, 4)] * len(dims) + [(np.log(var0) - 12, np.log(var0) + 4)] * 2,
-                options={"maxiter": int(o["max_opt_iter"])},
-            )  # fmt: skip
-            theta = res.x
-            ls, sf, sn = np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
-            sn = max(sn, 1e-10)
-            sel = blocked_cv_select(
-                Xj, y, Zj, ls, sf, sn, None if folds is None else folds[rows],
-                [float(a) for a in o["cv_lengthscale_factors"]], [float(b) for b in o["cv_noise_factors"]],
-            )  # fmt: skip
-            ls, sn, Lmm, G, h = sel["lengthscales"], sel["noise_var"], sel["Lmm"], sel["G"], sel["h"]
-            alpha = sel["shrink"] if o["shrink"] else 1.0
-            kappa = sel["var_scale"] if o["calibrate_variance"] else 1.0
-            if sel["heldout"] is not None:
-                heldout[np.flatnonzero(use), j] = (y - alpha * sel["heldout"])[:n_use]
-            # whitened DTC (numerically stable for small noise): V = Lmm^-1 Kmn, B = I + V V^T / sn,
-            # mean = q*^T B^-1 V y / sn with q* = Lmm^-1 k*; G = V V^T and h = V y over all rows
-            LB = np.linalg.cholesky(np.eye(len(Z)) + G / sn)
-            arrays[f"{name}_beta"] = alpha * cho_solve((LB, True), h / sn)
-            arrays[f"{name}_Lmm"] = Lmm
-            arrays[f"{name}_LB"] = LB
-            arrays[f"{name}_theta"] = np.concatenate([np.log(ls), [np.log(sf), np.log(sn)]])
-            arrays[f"{name}_var_scale"] = np.array(kappa)
-            if o["calibrate_variance"] and alpha == 0.0 and sel["heldout"] is not None:
-                # no correction carries over: the output is its base's, and so is its variance, the base's
-                # held-out squared residual everywhere (the unshrunk GP's shape of it is not the base's:
-                # with it, a residual that is white noise had wz intervals covering 92 %, not 95 %)
-                arrays[f"{name}_var_const"] = np.array(float(np.mean(y**2)))
-            arrays[f"{name}_dims"] = np.array(dims)
-            hyper.append(
-                {
-                    "lengthscales": ls.tolist(), "signal_var": sf, "noise_var": sn, "nlml": float(res.fun),
-                    "lengthscale_factor": sel["lengthscale_factor"], "noise_factor": sel["noise_factor"],
-                    "shrink": float(alpha), "var_scale": float(kappa),
-                    "cv_mse": sel["cv_mse"], "cv_mse_base": sel["cv_mse_base"],
-                }
-            )  # fmt: skip
+            iz = idx if name in mirror else idx[idx < n_use]  # the likelihood's rows: inducing rows fitted
+            fold = None if folds is None else folds[rows]
+            out, h, cv_heldout = self._fit_output(name, Xs[rows], R[rows, j], Xs[iz], R[iz, j], Xs[idx], fold)
+            arrays.update(out)
+            hyper.append(h)
+            if cv_heldout is not None:
+                heldout[np.flatnonzero(use), j] = cv_heldout[:n_use]
         for k, v in getattr(base, "arrays", {}).items():
             arrays[f"base__{k}"] = np.asarray(v)
         self.arrays = arrays
@@ -399,9 +351,80 @@ class GPResidual(KinematicModel):
             "features": list(FEATURE_NAMES) + (["wheel_acc_rms"] if float(o["regime_tau_s"]) > 0 else []),
             "regime_tau_s": float(o["regime_tau_s"]),
             "hyperparameters": dict(zip(TARGETS, hyper, strict=True)),
-            "n_inducing": len(Z),
+            "n_inducing": len(idx),
             "n_train": int(use.sum()),
         }
+        self._fit_residual_autocorrelation(table, heldout)
+        return self
+
+    def _residual_rows(self, table: pd.DataFrame, base: KinematicModel):
+        """(the rows the GP is trained on: valid and moving, their features, the base model's residuals
+        there, their blocked CV folds or None)."""
+        o = self.options
+        valid = table["valid"].to_numpy(bool)
+        X = gp_features(table, self.robot, float(o["regime_tau_s"]))
+        still = (np.abs(X[:, 0]) < o["standstill_speed"]) & (np.abs(X[:, 1]) < o["standstill_speed"])
+        use = valid & ~still
+        if use.sum() < 20:
+            raise ModelError(f"model {self.name}: {int(use.sum())} moving valid training rows")
+        resid = targets(table) - base.predict(table)
+        return use, X[use], resid[use], block_folds(table, use, int(o["cv_folds"]))
+
+    def _fit_output(self, name: str, Xs, y, Xs_z, y_z, Z, folds):
+        """One output's GP: the hyperparameters maximising the marginal likelihood on the inducing rows
+        (``Xs_z``, ``y_z``), then the blocked CV's scale factors, shrink and variance scale on the rows
+        ``Xs``, ``y`` (standardised features, every input). Returns (its arrays, its hyperparameters' record,
+        its held-out residuals or None)."""
+        o = self.options
+        dims = input_dims(name, Xs.shape[1], o["regime_outputs"])
+        Xj, Zj = Xs[:, dims], Z[:, dims]
+        var0 = max(float(np.var(y)), 1e-10)
+        theta0 = np.concatenate([np.zeros(len(dims)), [np.log(var0), np.log(0.1 * var0)]])
+        res = minimize(
+            neg_log_marginal, theta0, args=(Xs_z[:, dims], y_z), method="L-BFGS-B", jac=True,
+            bounds=[(-4, 4)] * len(dims) + [(np.log(var0) - 12, np.log(var0) + 4)] * 2,
+            options={"maxiter": int(o["max_opt_iter"])},
+        )  # fmt: skip
+        theta = res.x
+        ls, sf, sn = np.exp(theta[:-2]), float(np.exp(theta[-2])), float(np.exp(theta[-1]))
+        sn = max(sn, 1e-10)
+        sel = blocked_cv_select(
+            Xj, y, Zj, ls, sf, sn, folds,
+            [float(a) for a in o["cv_lengthscale_factors"]], [float(b) for b in o["cv_noise_factors"]],
+        )  # fmt: skip
+        ls, sn, Lmm, G, h = sel["lengthscales"], sel["noise_var"], sel["Lmm"], sel["G"], sel["h"]
+        alpha = sel["shrink"] if o["shrink"] else 1.0
+        kappa = sel["var_scale"] if o["calibrate_variance"] else 1.0
+        heldout = None if sel["heldout"] is None else y - alpha * sel["heldout"]
+        # whitened DTC (numerically stable for small noise): V = Lmm^-1 Kmn, B = I + V V^T / sn,
+        # mean = q*^T B^-1 V y / sn with q* = Lmm^-1 k*; G = V V^T and h = V y over all rows
+        LB = np.linalg.cholesky(np.eye(len(Z)) + G / sn)
+        arrays = {
+            f"{name}_beta": alpha * cho_solve((LB, True), h / sn),
+            f"{name}_Lmm": Lmm,
+            f"{name}_LB": LB,
+            f"{name}_theta": np.concatenate([np.log(ls), [np.log(sf), np.log(sn)]]),
+            f"{name}_var_scale": np.array(kappa),
+        }
+        if o["calibrate_variance"] and alpha == 0.0 and sel["heldout"] is not None:
+            # no correction carries over: the output is its base's, and so is its variance, the base's
+            # held-out squared residual everywhere (the unshrunk GP's shape of it is not the base's:
+            # with it, a residual that is white noise had wz intervals covering 92 %, not 95 %)
+            arrays[f"{name}_var_const"] = np.array(float(np.mean(y**2)))
+        arrays[f"{name}_dims"] = np.array(dims)
+        hyper = {
+            "lengthscales": ls.tolist(), "signal_var": sf, "noise_var": sn, "nlml": float(res.fun),
+            "lengthscale_factor": sel["lengthscale_factor"], "noise_factor": sel["noise_factor"],
+            "shrink": float(alpha), "var_scale": float(kappa),
+            "cv_mse": sel["cv_mse"], "cv_mse_base": sel["cv_mse_base"],
+        }  # fmt: skip
+        return arrays, hyper, heldout
+
+    def _fit_residual_autocorrelation(self, table: pd.DataFrame, heldout: np.ndarray) -> None:
+        """The fit loss and the autocorrelation of the fitted model's errors on the valid Train rows (the
+        blocked CV's held-out errors where it has them, with ``autocorr_residuals=heldout``)."""
+        o = self.options
+        valid = table["valid"].to_numpy(bool)
         rows = table.loc[valid]
         pred = self.predict(table)
         res = targets(table) - pred
@@ -413,7 +436,6 @@ class GPResidual(KinematicModel):
         lags = max(1, int(round(float(o["autocorr_lags_s"]) / max(dt, 1e-6))))
         starts = sequence_starts(rows) | (np.diff(rows.index.to_numpy(), prepend=-2) != 1)
         self.arrays["error_autocorrelation"] = error_autocorrelation(res, starts, lags)
-        return self
 
     @property
     def error_autocorrelation_(self) -> np.ndarray | None:

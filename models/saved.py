@@ -1,9 +1,12 @@
 """A fitted model on disk: the fit JSON and the fitted arrays beside it (``fits/<model>/<terrain>.json``
-and ``.arrays.npz``), read back into a model object."""
+and ``.arrays.npz``), read back into a model object, and the findings the fit JSONs record."""
 
 from __future__ import annotations
 
+import json
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -59,3 +62,28 @@ def from_saved(
         else:
             m.arrays = arrays
     return m
+
+
+def fit_findings(data: dict[str, Any]) -> list[str]:
+    """What a saved fit (its JSON) records as findings: each parameter that ended at a bound
+    (``fit_info.at_bound``, :func:`skidbench.models.columns.bounds_reached`), one line with its value."""
+    out = []
+    for f in (data.get("fit_info") or {}).get("at_bound") or []:
+        bound = "inf" if f.get("bound") is None else f"{f['bound']:g}"
+        out.append(f"{f['finding']} ({f['param']} = {f['value']:.3g}, its {f['side']} bound {bound})")
+    return out
+
+
+def board_findings(layout: Any, rows: Sequence[tuple[str, str]], inputs: str = "commanded") -> list[str]:
+    """The findings of the fits behind a board's (model, terrain) rows, one line per model and finding
+    naming the terrains and values (``roc degenerates to edd on this data: b2 at its bound (grass: b2 =
+    6e-25; tile: ...)``): what ``compare`` notes under the board and in the report."""
+    found: dict[tuple[str, str], list[str]] = {}
+    for model, terrain in sorted(set(rows)):
+        try:
+            data = json.loads(layout.fit_file(model, terrain, inputs).read_text())
+        except (OSError, ValueError):
+            continue
+        for f in (data.get("fit_info") or {}).get("at_bound") or []:
+            found.setdefault((model, f["finding"]), []).append(f"{terrain}: {f['param']} = {f['value']:.2g}")
+    return [f"{finding} ({'; '.join(where)})" for (_, finding), where in found.items()]

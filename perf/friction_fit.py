@@ -36,7 +36,7 @@ def training_table(n_seq: int, seq_rows: int = SEQ_ROWS):
     sequences."""
     from hydra import initialize_config_module
 
-    from skidbench.models.fitting import build_model
+    from skidbench.models.fitting import ModelConfigs, build_model
     from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.robot import robot_from_hydra
     from skidbench.pipeline.schema import concat_sequences, list_split_files, read_split
@@ -53,7 +53,7 @@ def training_table(n_seq: int, seq_rows: int = SEQ_ROWS):
         write_splits(Path(tmp), robot, dataset, n_seq, seq_rows)
         files = list_split_files(layout_from_cfg(cfg).splits, "tile", "train")
         train = concat_sequences([read_split(p) for p in files])
-        model = build_model(cfg, "friction", robot)
+        model = build_model(ModelConfigs.from_cfg(cfg), "friction", robot)
         return robot, dict(model.params), dict(model.options), train
 
 

@@ -50,7 +50,7 @@ def husky_train(tmp: Path):
 def compare(quick: bool) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
-    from skidbench.models.fitting import build_model
+    from skidbench.models.fitting import ModelConfigs, build_model
     from skidbench.pipeline.robot import robot_from_hydra
 
     if not (DRIVE / "husky_windows.parquet").is_file():
@@ -63,7 +63,7 @@ def compare(quick: bool) -> dict[str, Any]:
     out: dict[str, Any] = {"rows": len(train), "valid_rows": int(train["valid"].sum())}
     with threadpool_limits(1):
         for name in MODELS:
-            model = build_model(cfg, name, robot)
+            model = build_model(ModelConfigs.from_cfg(cfg), name, robot)
             c, w = time.process_time(), time.perf_counter()
             model.fit(train)
             out[f"{name}_fit_cpu_s"] = time.process_time() - c

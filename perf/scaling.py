@@ -93,8 +93,9 @@ def time_model(cfg, name: str, repeats: int, eval_params: tuple | None = None) -
     from skidbench.benchmark.horizon import HorizonConfig
     from skidbench.benchmark.scoring import predict_split, score_split
     from skidbench.benchmark.testsets import load_test_split, split_files
-    from skidbench.models.fitting import build_model
+    from skidbench.models.fitting import ModelConfigs, build_model
     from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.pipeline.robot import robot_from_hydra
     from skidbench.pipeline.schema import concat_sequences, read_split
 
     layout = layout_from_cfg(cfg)
@@ -102,7 +103,8 @@ def time_model(cfg, name: str, repeats: int, eval_params: tuple | None = None) -
     seqs = load_test_split(layout, "tile", "cv")
     best: dict[str, Any] = {"fit_cpu": np.inf, "fit_wall": np.inf, "eval_cpu": np.inf, "eval_wall": np.inf}
     for _ in range(repeats):
-        model = build_model(cfg, name)  # configured initial params and options (not timed)
+        # configured initial params and options (not timed)
+        model = build_model(ModelConfigs.from_cfg(cfg), name, robot_from_hydra(cfg.robot))
         c, w = time.process_time(), time.perf_counter()
         model.fit(train)
         best["fit_cpu"] = min(best["fit_cpu"], time.process_time() - c)

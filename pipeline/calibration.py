@@ -138,9 +138,23 @@ def _slope_with_ci(
     }
 
 
-def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
-    """The calibration document of one terrain from its concatenated Train table (``sequence`` column as
-    :func:`skidbench.pipeline.schema.concat_sequences` adds). See the module docstring."""
+@dataclasses.dataclass(frozen=True)
+class _Rows:
+    """What the identification reads of a Train table: the wheel rates it uses (``source``: the encoders
+    where nearly every valid row has them, else the commands), their mean and difference, the targets
+    (vx, wz), bootstrap blocks, and the settled straight and turning rows."""
+
+    source: str
+    valid: np.ndarray
+    mean_rate: np.ndarray
+    diff: np.ndarray
+    target: np.ndarray
+    blocks: np.ndarray
+    straight: np.ndarray
+    turning: np.ndarray
+
+
+def _rows(table: pd.DataFrame, s: CalibrationSettings) -> _Rows:
     need = ["t", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr", "enc_wl", "enc_wr", "vx", "wz", "valid"]
     missing = [c for c in need if c not in table.columns]
     if missing:
@@ -153,7 +167,6 @@ def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) ->
     valid = table["valid"].to_numpy(bool)
     has_enc = valid.any() and np.mean(np.all(np.isfinite(enc[valid]), axis=1)) >= 0.9
     wheels = enc if has_enc else cmd
-    source = "encoders" if has_enc else "commands"
     target = table[["vx", "wz"]].to_numpy(float)
     changing = np.any(np.abs(table[["cmd_dwl", "cmd_dwr"]].to_numpy(float)) > s.command_change, axis=1)
     ok = valid & np.all(np.isfinite(wheels), axis=1) & np.all(np.isfinite(target), axis=1)
@@ -161,46 +174,48 @@ def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) ->
     wl, wr = wheels[:, 0], wheels[:, 1]
     mean_rate = (wl + wr) / 2.0
     diff = wr - wl
-    blocks = _blocks(t, seq, s.block_s)
     straight = (
         ok & (np.abs(mean_rate) >= s.min_wheel_rate) & (np.abs(diff) <= s.straight_ratio * np.abs(mean_rate))
     )
     turning = ok & (np.abs(diff) >= s.min_turn_rate)
+    source = "encoders" if has_enc else "commands"
+    return _Rows(source, valid, mean_rate, diff, target, _blocks(t, seq, s.block_s), straight, turning)
 
-    doc: dict[str, Any] = {
-        "schema": CALIBRATION_SCHEMA,
-        "source": source,
-        "spec": {"wheel_radius": spec.wheel_radius, "track_width": spec.track_width},
-        "settings": dataclasses.asdict(s),
-        "n_rows": int(valid.sum()),
-    }
-    # radius
-    r_eff = spec.wheel_radius
-    if straight.sum() >= s.min_rows:
-        fit = _slope_with_ci(mean_rate[straight], target[straight, 0], blocks[straight], s)
-        r_eff = fit["slope"]
-        doc["wheel_radius"] = {
-            "value": r_eff,
-            "identified": True,
-            **{k: v for k, v in fit.items() if k != "slope"},
-            "ratio_to_spec": r_eff / spec.wheel_radius,
-            "method": f"straight settled rows: vx = r (wl + wr) / 2 through the origin; wheels: {source}",
-        }
-        if source == "commands":
-            doc["wheel_radius"]["note"] = (
-                "from commanded wheel rates (no encoders): includes the velocity controller's steady-state "
-                "tracking error and the longitudinal slip of straight driving"
-            )
-    else:
-        doc["wheel_radius"] = {
+
+def _wheel_radius(rows: _Rows, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
+    """The effective wheel radius: vx = r (wl + wr) / 2 on the settled straight rows (the spec sheet's
+    with too few)."""
+    straight = rows.straight
+    if straight.sum() < s.min_rows:
+        return {
             "value": spec.wheel_radius,
             "identified": False,
             "n_rows": int(straight.sum()),
             "reason": f"{int(straight.sum())} settled straight rows (< min_rows {s.min_rows}); spec kept",
         }
-    # track width
-    if source != "encoders":
-        doc["track_width"] = {
+    fit = _slope_with_ci(rows.mean_rate[straight], rows.target[straight, 0], rows.blocks[straight], s)
+    r_eff = fit["slope"]
+    out = {
+        "value": r_eff,
+        "identified": True,
+        **{k: v for k, v in fit.items() if k != "slope"},
+        "ratio_to_spec": r_eff / spec.wheel_radius,
+        "method": f"straight settled rows: vx = r (wl + wr) / 2 through the origin; wheels: {rows.source}",
+    }
+    if rows.source == "commands":
+        out["note"] = (
+            "from commanded wheel rates (no encoders): includes the velocity controller's steady-state "
+            "tracking error and the longitudinal slip of straight driving"
+        )
+    return out
+
+
+def _track_width(rows: _Rows, r_eff: float, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
+    """The effective track width: wz = r_eff (wr - wl) / B on the settled turning rows, from encoders only
+    (the spec sheet's otherwise, with too few rows, or with a slope that is not positive)."""
+    turning = rows.turning
+    if rows.source != "encoders":
+        return {
             "value": spec.track_width,
             "identified": False,
             "reason": (
@@ -209,37 +224,50 @@ def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) ->
                 "coefficient of edd/roc absorbs the difference)"
             ),
         }
-    elif turning.sum() >= s.min_rows:
-        fit = _slope_with_ci(r_eff * diff[turning], target[turning, 1], blocks[turning], s)
-        k = fit["slope"]
-        if not k > 0:
-            doc["track_width"] = {
-                "value": spec.track_width,
-                "identified": False,
-                "reason": f"yaw rate against wheel-rate difference has slope {k:.3g} <= 0; spec value kept",
-            }
-        else:
-            lo, hi = fit["ci"]
-            doc["track_width"] = {
-                "value": 1.0 / k,
-                "identified": True,
-                "ci": [1.0 / hi if hi > 0 else float("nan"), 1.0 / lo if lo > 0 else float("inf")],
-                "se": fit["se"] / k**2,
-                "n_rows": fit["n_rows"],
-                "n_blocks": fit["n_blocks"],
-                "residual_rms": fit["residual_rms"],
-                "ratio_to_spec": (1.0 / k) / spec.track_width,
-                "method": "turning settled rows: wz = r_eff (wr - wl) / B through the origin (encoders)",
-            }
-    else:
-        doc["track_width"] = {
+    if turning.sum() < s.min_rows:
+        return {
             "value": spec.track_width,
             "identified": False,
             "n_rows": int(turning.sum()),
             "reason": f"{int(turning.sum())} settled turning rows (< min_rows {s.min_rows}); spec value kept",
         }
+    fit = _slope_with_ci(r_eff * rows.diff[turning], rows.target[turning, 1], rows.blocks[turning], s)
+    k = fit["slope"]
+    if not k > 0:
+        return {
+            "value": spec.track_width,
+            "identified": False,
+            "reason": f"yaw rate against wheel-rate difference has slope {k:.3g} <= 0; spec value kept",
+        }
+    lo, hi = fit["ci"]
+    return {
+        "value": 1.0 / k,
+        "identified": True,
+        "ci": [1.0 / hi if hi > 0 else float("nan"), 1.0 / lo if lo > 0 else float("inf")],
+        "se": fit["se"] / k**2,
+        "n_rows": fit["n_rows"],
+        "n_blocks": fit["n_blocks"],
+        "residual_rms": fit["residual_rms"],
+        "ratio_to_spec": (1.0 / k) / spec.track_width,
+        "method": "turning settled rows: wz = r_eff (wr - wl) / B through the origin (encoders)",
+    }
+
+
+def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
+    """The calibration document of one terrain from its concatenated Train table (``sequence`` column as
+    :func:`skidbench.pipeline.schema.concat_sequences` adds). See the module docstring."""
+    rows = _rows(table, s)
+    doc: dict[str, Any] = {
+        "schema": CALIBRATION_SCHEMA,
+        "source": rows.source,
+        "spec": {"wheel_radius": spec.wheel_radius, "track_width": spec.track_width},
+        "settings": dataclasses.asdict(s),
+        "n_rows": int(rows.valid.sum()),
+    }
+    doc["wheel_radius"] = _wheel_radius(rows, spec, s)
+    doc["track_width"] = _track_width(rows, doc["wheel_radius"]["value"], spec, s)
     doc["not_identified"] = [c for c in CONSTANTS if not doc[c]["identified"]]
-    doc["wheel_response"] = wheel_response_doc(table if has_enc else None)
+    doc["wheel_response"] = wheel_response_doc(table if rows.source == "encoders" else None)
     return doc
 
 

@@ -20,19 +20,13 @@ from collections.abc import Callable
 from importlib.resources import files
 from pathlib import Path
 
-from .cache import (
-    LOCAL_PRODUCERS,
-    StaleInputError,
-    check_producers,
-    clear_failed,
-    data_state,
-    inputs_changed,
-    mark_failed,
-)
-from .config_schema import check_value, validate
+from .config_schema import check_value
 from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
-from .imported import check_stage
 from .layout import default_out_root, register_resolvers, remove_atomic
+from .overrides import validate
+
+# Not imported here: what a stage's run needs and `skidbench --help` does not (.cache, .imported: PyArrow
+# through .io), so that the command starts with only what the chosen stage imports itself.
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -100,6 +94,9 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
+            from .cache import LOCAL_PRODUCERS, StaleInputError, check_producers, clear_failed, data_state
+            from .imported import check_stage
+
             root = before = None
             register_resolvers()  # a sweep's job may run in a process that did not start at main()
             try:
@@ -111,7 +108,7 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
 
                     root = open_home(home_from_cfg(cfg), name)[0].root
                     check_producers(root, name)
-                    check_stage(cfg, name, root)  # an imported dataset: frozen splits, the bundle's robot
+                    check_stage(cfg.get("robot"), name, root)  # imported: frozen splits, the bundle's robot
                     before = data_state(root) if name in LOCAL_PRODUCERS else None
                 result = fn(*args, **kwargs)
             except StaleInputError as exc:  # this stage did not run: nothing of it to record
@@ -155,6 +152,7 @@ def _after_failure(root: Path | None, name: str, message: str, before: dict | No
     stages downstream."""
     if root is None or not root.is_dir():
         return
+    from .cache import data_state, inputs_changed, mark_failed
     from .dataset import holds_data
 
     if not holds_data(root):

@@ -1,9 +1,10 @@
 """The declared type and range of every value a user can set: ONE table, :data:`SCHEMA`.
 
-Each stage's composed config is checked against it before the stage starts (``skidbench.pipeline.cli``
-checks the composed config before Hydra runs; :func:`skidbench.pipeline.cli.stage` again for a sweep's
-jobs and in-process calls). A value outside its declaration is one line naming the key, the value and
-what is allowed (``ConfigError``, exit status 2)::
+Each stage's composed config is checked against it before the stage starts, at the door
+(:func:`skidbench.pipeline.overrides.validate`: ``skidbench.pipeline.cli`` checks the composed config before
+Hydra runs; :func:`skidbench.pipeline.cli.stage` again for a sweep's jobs and in-process calls).
+A value outside its declaration is one line naming the key, the value and what is allowed
+(``ConfigError``, exit status 2)::
 
     invalid value calibrate.settle_s=-1: allowed a number >= 0 (s since the wheel commands last changed)
 
@@ -18,11 +19,8 @@ from __future__ import annotations
 
 import fnmatch
 import math
-from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
-
-from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from .errors import ConfigError
 
@@ -204,6 +202,7 @@ SCHEMA: dict[str, Spec] = {
     "source.cmd_kinematics.*": listof(number(gt=0), 2, what="[wheel radius m, track m]"),
     "source.cmd_limits.*": listof(number(gt=0), 2, what="[v_max m/s, w_max rad/s]"),
     "source.break_at_jumps": BOOL,
+    "source.check_geometry": BOOL,
     "source.topics": ANY,  # `auto`, or the mapping below
     "source.topics.*": ANY,  # null: the topic is not in the bags
     "source.topics.*.topic": STR,
@@ -387,43 +386,3 @@ def check_value(key: str, value: Any) -> None:
     if spec is None or spec.accepts(value):
         return
     raise ConfigError(f"invalid value {key}={_describe(value)}: allowed {spec.allowed()}")
-
-
-def leaves(cfg: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """``(dotted key, node)`` of every leaf (a scalar, a list, an empty mapping) of a config, ``hydra``
-    left out. A mapping with a declared (non-``any``) spec is a leaf too."""
-    items = cfg.items_ex(resolve=False) if isinstance(cfg, DictConfig) else cfg.items()
-    for k, _ in items:
-        key = f"{prefix}{k}"
-        if key == "hydra":
-            continue
-        node = cfg._get_node(k) if isinstance(cfg, DictConfig) else cfg[k]
-        if isinstance(node, DictConfig) and not node._is_none() and not node._is_missing():
-            if len(node) == 0:
-                yield key, node
-            else:
-                yield from leaves(node, f"{key}.")
-        else:
-            yield key, node
-
-
-def validate(cfg: Any, keys: Sequence[str] | None = None) -> None:
-    """Check every (resolvable, set) value of a composed config against :data:`SCHEMA`; the first
-    violation is one ConfigError. ``keys``: check only these."""
-    for key, node in leaves(cfg):
-        if keys is not None and key not in keys:
-            continue
-        spec = spec_for(key)
-        if spec is None or spec.kind == "any":
-            continue
-        if node._is_missing():
-            continue
-        try:
-            value = OmegaConf.select(cfg, key, throw_on_resolution_failure=True)
-        except Exception:  # noqa: BLE001 - an interpolation another check reports (e.g. a missing root)
-            continue
-        if isinstance(value, (DictConfig, ListConfig)):
-            value = OmegaConf.to_container(value, resolve=True) if isinstance(value, ListConfig) else value
-        if isinstance(value, DictConfig):  # a section given where a value belongs
-            raise ConfigError(f"invalid value for {key}: a mapping; allowed {spec.allowed()}")
-        check_value(key, value)

@@ -19,11 +19,15 @@ refused in one line naming the one to set (``robot=<name>``), instead of a stale
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .cache import StaleInputError
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from .layout import Layout
 
 SOURCE = "bundle"  # dataset.json's ``source`` of an imported dataset
 RECORD_DIR = "bundle"  # <ds>/bundle/: the bundle's record (bundle.json, SHA256SUMS, board/)
@@ -55,10 +59,11 @@ def is_imported(root: str | Path) -> bool:
     return isinstance(rec, dict) and rec.get("source") == SOURCE
 
 
-def check_stage(cfg: Any, stage: str, root: str | Path) -> None:
+def check_stage(robot_conf: Mapping[str, Any] | None, stage: str, root: str | Path) -> None:
     """Before ``stage`` runs on the dataset folder ``root``: nothing for a dataset that was not imported;
     for an imported one, ImportedDatasetError when the stage would rebuild its frozen splits, or when the
-    configured robot is not the bundle's (its calibration and board were made with that one)."""
+    configured robot (``robot_conf``: the ``robot`` config group; None: not checked) is not the bundle's
+    (its calibration and board were made with that one)."""
     if not is_imported(root):
         return
     name = Path(root).name
@@ -71,11 +76,11 @@ def check_stage(cfg: Any, stage: str, root: str | Path) -> None:
     rec = bundle_record(root) or {}
     robot = rec.get("robot") or {}
     want = robot.get("spec")
-    if not want or cfg is None or not hasattr(cfg, "get") or cfg.get("robot") is None:
+    if not want or robot_conf is None:
         return
     from .robot import robot_from_hydra
 
-    have = robot_from_hydra(cfg.robot).to_dict()
+    have = robot_from_hydra(robot_conf).to_dict()
     if json.dumps(have, sort_keys=True, default=str) != json.dumps(want, sort_keys=True, default=str):
         raise ImportedDatasetError(
             f"{root}: dataset {name!r} was imported from a bundle made with robot {robot.get('name')!r} "
@@ -84,16 +89,16 @@ def check_stage(cfg: Any, stage: str, root: str | Path) -> None:
         )
 
 
-def named_dataset(cfg: Any, stage: str) -> tuple[Any, dict[str, Any]]:
-    """The dataset a stage names by its folder (``skidbench export <dataset> ...``: ``cfg.dataset`` under
-    ``cfg.out_root``, whatever ``source`` says): its Layout and ``dataset.json`` record. ConfigError (one
-    line) when there is no such dataset; the checks of ``@stage`` otherwise (a failed producer, an imported
-    dataset's robot)."""
+def named_dataset(
+    layout: Layout, robot_conf: Mapping[str, Any] | None, stage: str
+) -> tuple[Layout, dict[str, Any]]:
+    """The dataset a stage names by its folder (``skidbench export <dataset> ...``: ``layout``, the config's
+    ``dataset`` under its ``out_root``, whatever ``source`` says): its Layout and ``dataset.json`` record.
+    ConfigError (one line) when there is no such dataset; the checks of ``@stage`` otherwise (a failed
+    producer, an imported dataset's robot: ``robot_conf``, the ``robot`` config group)."""
     from .cache import check_producers
     from .dataset import read_record
-    from .layout import layout_from_cfg
 
-    layout = layout_from_cfg(cfg)
     rec = read_record(layout)
     if rec is None or not layout.manifest.is_file():
         raise ConfigError(
@@ -101,5 +106,5 @@ def named_dataset(cfg: Any, stage: str) -> tuple[Any, dict[str, Any]]:
             "manifest); `skidbench datasets` lists them"
         )
     check_producers(layout.root, stage)
-    check_stage(cfg, stage, layout.root)
+    check_stage(robot_conf, stage, layout.root)
     return layout, rec

@@ -14,10 +14,13 @@ from __future__ import annotations
 import difflib
 import functools
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from importlib import resources
 from typing import Any
 
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from .config_schema import check_value, spec_for
 from .errors import ConfigError, one_line
 from .layout import register_resolvers
 
@@ -307,3 +310,45 @@ def _flatten(node: Any, prefix: str = "") -> Iterator[str]:
             key = f"{prefix}{k}"
             yield key
             yield from _flatten(v, f"{key}.")
+
+
+# -- the composed config's values against the declared schema (pipeline/config_schema.py) --------------
+def leaves(cfg: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``(dotted key, node)`` of every leaf (a scalar, a list, an empty mapping) of a config, ``hydra``
+    left out. A mapping with a declared (non-``any``) spec is a leaf too."""
+    items = cfg.items_ex(resolve=False) if isinstance(cfg, DictConfig) else cfg.items()
+    for k, _ in items:
+        key = f"{prefix}{k}"
+        if key == "hydra":
+            continue
+        node = cfg._get_node(k) if isinstance(cfg, DictConfig) else cfg[k]
+        if isinstance(node, DictConfig) and not node._is_none() and not node._is_missing():
+            if len(node) == 0:
+                yield key, node
+            else:
+                yield from leaves(node, f"{key}.")
+        else:
+            yield key, node
+
+
+def validate(cfg: Any, keys: Sequence[str] | None = None) -> None:
+    """Check every (resolvable, set) value of a composed config against the declared schema
+    (:data:`skidbench.pipeline.config_schema.SCHEMA`); the first violation is one ConfigError. ``keys``:
+    check only these."""
+    for key, node in leaves(cfg):
+        if keys is not None and key not in keys:
+            continue
+        spec = spec_for(key)
+        if spec is None or spec.kind == "any":
+            continue
+        if node._is_missing():
+            continue
+        try:
+            value = OmegaConf.select(cfg, key, throw_on_resolution_failure=True)
+        except Exception:  # noqa: BLE001 - an interpolation another check reports (e.g. a missing root)
+            continue
+        if isinstance(value, (DictConfig, ListConfig)):
+            value = OmegaConf.to_container(value, resolve=True) if isinstance(value, ListConfig) else value
+        if isinstance(value, DictConfig):  # a section given where a value belongs
+            raise ConfigError(f"invalid value for {key}: a mapping; allowed {spec.allowed()}")
+        check_value(key, value)

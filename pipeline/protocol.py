@@ -58,8 +58,9 @@ def check_protocol(protocol: Any) -> str:
     return name
 
 
-def protocol_of(cfg: Any) -> str:
-    """The checked protocol of a composed config (``inputs``; ``commanded`` when the key is absent)."""
+def protocol_from_cfg(cfg: Any) -> str:
+    """The checked protocol of a composed config (``inputs``; ``commanded`` when the key is absent): the
+    door from the config to the protocol a library function takes."""
     value = cfg.get("inputs", "commanded") if hasattr(cfg, "get") else "commanded"
     return check_protocol(value if value is not None else "commanded")
 

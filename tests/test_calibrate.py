@@ -169,29 +169,29 @@ def _cfg(root: Path, *over: str):
 
 
 def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(calib_root, jackal):
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
     from skidbench.pipeline.calibration import MissingCalibrationError, calibrate_terrain, settings_from_cfg
     from skidbench.pipeline.layout import layout_from_cfg
 
     cfg = _cfg(calib_root)
     # fit never calibrates: without `skidbench calibrate` it stops and says to run it
     with pytest.raises(MissingCalibrationError, match="skidbench calibrate"):
-        fit_model(cfg, "ideal", "tile")
+        fit_model(FitSettings.from_cfg(cfg), "ideal", "tile")
     calibrate_terrain(layout_from_cfg(cfg), "tile", jackal, settings_from_cfg(cfg), "calib")
-    ideal = fit_model(cfg, "ideal", "tile")
+    ideal = fit_model(FitSettings.from_cfg(cfg), "ideal", "tile")
     assert ideal.model.robot.wheel_radius == pytest.approx(R_TRUE, rel=0.01)
     assert ideal.model.robot.track_width == pytest.approx(B_TRUE, rel=0.01)
     saved = json.loads(ideal.path.read_text())
     assert saved["robot_constants"]["track_width"]["source"] == "calibrated"
     # edd: chi absorbs the track width, so it keeps the spec sheet's and chi is the calibrated ratio
     # (from commanded rates, so it also absorbs the wheels' 3 % tracking error)
-    edd = fit_model(cfg, "edd", "tile")
+    edd = fit_model(FitSettings.from_cfg(cfg), "edd", "tile")
     assert edd.model.robot.track_width == jackal.track_width
     assert edd.model.robot.wheel_radius == pytest.approx(R_TRUE, rel=0.01)
     assert edd.model.params["chi"] == pytest.approx(B_TRUE / (TRACKING * jackal.track_width), rel=0.01)
     assert "absorbed" in json.loads(edd.path.read_text())["robot_constants"]["track_width"]["source"]
     # calibrate.use=false: the spec sheet, and the fit is redone (its stamp includes the constants)
-    off = fit_model(_cfg(calib_root, "calibrate.use=false"), "ideal", "tile")
+    off = fit_model(FitSettings.from_cfg(_cfg(calib_root, "calibrate.use=false")), "ideal", "tile")
     assert not off.reused
     assert (off.model.robot.wheel_radius, off.model.robot.track_width) == (
         jackal.wheel_radius,
@@ -200,7 +200,11 @@ def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(cali
     assert json.loads(off.path.read_text())["robot_constants"]["wheel_radius"]["source"].startswith("spec")
     # a calibration made for another robot spec is stale: the fit stops rather than recalibrating
     with pytest.raises(MissingCalibrationError, match="stale"):
-        fit_model(_cfg(calib_root, f"robot.wheel_radius={jackal.wheel_radius * 1.1}"), "ideal", "tile")
+        fit_model(
+            FitSettings.from_cfg(_cfg(calib_root, f"robot.wheel_radius={jackal.wheel_radius * 1.1}")),
+            "ideal",
+            "tile",
+        )
     # the ideal model's yaw rate with the calibrated track is close to the truth (off by the 3 % tracking
     # error of the commanded rates it predicts from), with the spec sheet's 45 % off
     table = _train_table(calib_root)
@@ -217,7 +221,7 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     import dataclasses
     import shutil
 
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
     from skidbench.pipeline.calibration import (
         Calibrations,
         MissingCalibrationError,
@@ -239,7 +243,10 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     layout = layout_from_cfg(cfg)
     settings = dataclasses.replace(settings_from_cfg(cfg), bootstrap=20)
     calibrate_terrain(layout, "tile", jackal, settings, "calib")
-    assert not fit_model(cfg, "edd", "tile").reused and fit_model(cfg, "edd", "tile").reused
+    assert (
+        not fit_model(FitSettings.from_cfg(cfg), "edd", "tile").reused
+        and fit_model(FitSettings.from_cfg(cfg), "edd", "tile").reused
+    )
     # calibrated with other settings: other constants (edd takes the radius; the track width too is part
     # of the fit's inputs)
     settings = dataclasses.replace(settings, settle_s=1.5)
@@ -247,11 +254,14 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     assert recomputed and doc == calibration_doc(
         Calibrations.from_cfg(cfg), "tile"
     )  # settings: not a reader's concern
-    assert not fit_model(cfg, "edd", "tile").reused and fit_model(cfg, "edd", "tile").reused
+    assert (
+        not fit_model(FitSettings.from_cfg(cfg), "edd", "tile").reused
+        and fit_model(FitSettings.from_cfg(cfg), "edd", "tile").reused
+    )
 
     def stale(c) -> str:
         with pytest.raises(MissingCalibrationError) as err:
-            fit_model(c, "edd", "tile")
+            fit_model(FitSettings.from_cfg(c), "edd", "tile")
         msg = str(err.value)
         assert len(msg.splitlines()) == 1 and "run `skidbench calibrate` first" in msg and "(stale: " in msg
         return msg
@@ -264,7 +274,7 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     write_split(df.iloc[:-10].reset_index(drop=True), f, meta)
     assert f"input(s) changed since ({f}" in stale(cfg)
     calibrate_terrain(layout, "tile", jackal, settings, "calib")
-    assert fit_model(cfg, "edd", "tile").n_train > 0
+    assert fit_model(FitSettings.from_cfg(cfg), "edd", "tile").n_train > 0
     # a calibration stamped by an older version (schema 1: the same key, without what it was made of) is
     # stale to a reader; calibrate finds it up to date and upgrades its stamp instead of recomputing
     stamp = tmp_path / "calib" / ".stamps" / "calibrate" / "tile.json"
@@ -273,7 +283,9 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     assert "schema 1" in stale(cfg)
     assert not calibrate_terrain(layout, "tile", jackal, settings, "calib")[1]
     assert calibration_doc(Calibrations.from_cfg(cfg), "tile") is not None
-    assert fit_model(cfg, "edd", "tile").reused  # the same calibration: its fit is still up to date
+    assert fit_model(
+        FitSettings.from_cfg(cfg), "edd", "tile"
+    ).reused  # the same calibration: its fit is still up to date
 
 
 @pytest.mark.slow

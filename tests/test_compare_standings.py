@@ -10,7 +10,6 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
-from omegaconf import OmegaConf
 
 from skidbench.benchmark import compare, publish
 from skidbench.benchmark import intervals as iv
@@ -152,9 +151,9 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
     w = _board({"edd": {"trans": {"cv": 7, "ld": 6}}, "roc": {"trans": {"cv": 7.02, "ld": 6.02}},
                 FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
     board = Board("commanded", "parent", H, {}, _board_rows(w))
-    cfg = OmegaConf.create({"publish": {"figures": False, "dpi": 72}})
+    settings = publish.PublishSettings(figures=False, dpi=72)
     s = st.build(w, H)
-    page = publish._protocol_section(board, tmp_path, cfg, s)
+    page = publish._protocol_section(board, tmp_path, settings, s)
     lead = page[: page.index("Per terrain and test split")]
     assert "tied for best" in lead and ">best<" not in lead  # 0.3 % apart on the same windows: not resolved
     edd = s.overall.set_index("model").loc["edd"]
@@ -165,7 +164,7 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
     lo, hi = board.rows.loc[0, ["ld_6s_trans_rmsre_pct_ci_lo", "ld_6s_trans_rmsre_pct_ci_hi"]]
     assert f"{lo:.2f} to {hi:.2f}" in rows  # every row's logged interval
     # without the per-window tables: listed, not ranked, and it says so
-    bare = publish._protocol_section(board, tmp_path, cfg, None)
+    bare = publish._protocol_section(board, tmp_path, settings, None)
     assert "not ranked" in bare and "<th>rank</th>" not in bare
 
 

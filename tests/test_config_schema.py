@@ -8,9 +8,9 @@ from importlib import resources
 
 import pytest
 
-from skidbench.pipeline.config_schema import SCHEMA, check_value, leaves, spec_for, validate
+from skidbench.pipeline.config_schema import SCHEMA, check_value, spec_for
 from skidbench.pipeline.errors import ConfigError
-from skidbench.pipeline.overrides import _compose
+from skidbench.pipeline.overrides import _compose, leaves, validate
 
 STAGES = sorted(p.name[:-5] for p in resources.files("skidbench.conf").iterdir() if p.name.endswith(".yaml"))
 GROUPS = {

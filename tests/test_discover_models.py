@@ -108,21 +108,21 @@ def _compose_compare(root: Path):
 
 
 def test_augmented_model_round_trips_through_its_json(hidden_root):
-    from skidbench.models.fitting import fit_model, load_fitted
+    from skidbench.models.fitting import FitSettings, fit_model, load_fitted
     from skidbench.pipeline.schema import load_split_tables
 
     cfg = _cfg(hidden_root, "calibrate.use=false")  # the JSON round trip, not the calibration
-    res = fit_model(cfg, "edd+actuator_lag", "tile")
-    again = load_fitted(cfg, "edd+actuator_lag", "tile")
+    res = fit_model(FitSettings.from_cfg(cfg), "edd+actuator_lag", "tile")
+    again = load_fitted(FitSettings.from_cfg(cfg), "edd+actuator_lag", "tile")
     df, _ = load_split_tables(hidden_root / "hidden" / "splits", "tile", "ld")[0]
     np.testing.assert_allclose(again.predict(df), res.model.predict(df), rtol=1e-12, atol=1e-12)
     assert res.model.params["effects"]["actuator_lag"]["tau"] > 0
 
 
 def test_discovered_without_a_discovery_is_a_one_line_error(tmp_path):
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
 
     raw = dd.dataset({}, 3, n_train=2, duration=20.0)
     dd.write_splits(raw, tmp_path / "hidden" / "splits", "tile")
     with pytest.raises(ModelError, match="run `skidbench discover`"):
-        fit_model(_cfg(tmp_path), "discovered", "tile")
+        fit_model(FitSettings.from_cfg(_cfg(tmp_path)), "discovered", "tile")

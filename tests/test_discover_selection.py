@@ -97,19 +97,20 @@ def test_discovered_refuses_a_discovery_that_selected_on_the_test_splits(tmp_pat
     from hydra import compose, initialize_config_module
 
     from skidbench.models.base import ModelError
-    from skidbench.models.fitting import resolve_model_spec
+    from skidbench.models.fitting import FitSettings, resolve_model_spec
 
     path = tmp_path / "hidden" / "discovery" / "discovery.json"
     path.parent.mkdir(parents=True)
     entry = {"base_model": "edd", "effects": ["actuator_lag"], "message": ""}
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose("evaluate", [f"out_root={tmp_path}", "dataset=hidden"])
+    settings = FitSettings.from_cfg(cfg)
     # written before selection kept to Train: CV/LD sequences added to its pool
     old = {**entry, "base": {"pool_note": "cv/ld sequences added to the pool"}}
     path.write_text(json.dumps({"terrains": {"tile": old}}))
     with pytest.raises(ModelError, match="would not be held out"):
-        resolve_model_spec(cfg, "discovered", "tile")
+        resolve_model_spec(settings.layout, settings.inputs, "discovered", "tile")
     sel = {"splits": ["train"], "text": "train only: 1 sequence (60 s) cut into 8 time blocks of 7.5 s"}
     path.write_text(json.dumps({"terrains": {"tile": {**entry, "selected_on": sel}}}))
-    spec, resolved = resolve_model_spec(cfg, "discovered", "tile")
+    spec, resolved = resolve_model_spec(settings.layout, settings.inputs, "discovered", "tile")
     assert spec == "edd+actuator_lag" and resolved["selected_on"] == sel["text"]

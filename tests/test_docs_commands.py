@@ -33,8 +33,7 @@ import pytest
 from conftest import SHARED_REAL
 from doc_blocks import BLOCKS, MODES, REPO, commands, doc_env, parse_blocks, publishing, quickstart, run_block
 
-from skidbench.pipeline.config_schema import validate
-from skidbench.pipeline.overrides import check_overrides
+from skidbench.pipeline.overrides import check_overrides, validate
 
 MAKE_STAGES = {  # what the Makefile's targets run (make reproduce / make discover)
     "reproduce": ("extract", "groundtruth", "split", "calibrate", "evaluate", "compare"),

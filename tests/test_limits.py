@@ -26,61 +26,16 @@ MAX_FUNCTION_LINES = 80
 LONG_MODULES: dict[str, str] = {}
 
 #: module:function -> why it is still over MAX_FUNCTION_LINES
-LONG_FUNCTIONS = {
-    "pipeline/splits/app.py:split_sequence": "not yet split into named steps",
-    "pipeline/groundtruth/app.py:run": "not yet split into named steps",
-    "pipeline/simulate/physics.py:step": "not yet split into named steps",
-    "models/fitting.py:fit_model": "not yet split into named steps",
-    "pipeline/calibration.py:calibrate_table": "not yet split into named steps",
-    "pipeline/simulate/render.py:_draw_faces": "not yet split into named steps",
-    "models/gp_residual.py:_fit": "not yet split into named steps",
-    "benchmark/figures.py:yaw_rate_surfaces": "not yet split into named steps",
-    "benchmark/evaluate.py:run_benchmark": "not yet split into named steps",
-    "pipeline/simulate/app.py:run": "not yet split into named steps",
-    "pipeline/simulate/sequence.py:simulate_sequence": "not yet split into named steps",
-}
+LONG_FUNCTIONS: dict[str, str] = {}
 
 #: module:function taking ``cfg`` outside the app layer (to become settings objects; issue 31 item 4)
 CFG_TAKERS = {
-    "benchmark.bundle:_bundle_doc",
-    "benchmark.bundle:_write_inputs",
-    "benchmark.bundle:export_bundle",
-    "benchmark.bundle:licence_of",
     "benchmark.compare:run_compare",
     "benchmark.evaluate:_as_container",
-    "benchmark.evaluate:_describe",
-    "benchmark.evaluate:_split_inputs",
     "benchmark.evaluate:run_benchmark",
-    "benchmark.external:score_predictions",
-    "benchmark.fit_record:log_model",
-    "benchmark.fit_record:model_config",
     "benchmark.horizon:window_errors",
-    "benchmark.publish:_protocol_section",
-    "benchmark.publish:build_page",
-    "benchmark.publish:publish",
-    "benchmark.report_data:_settings",
-    "benchmark.report_data:_wheel_response_steps",
-    "benchmark.report_data:write_report_data",
-    "benchmark.report_data:write_wheel_response_steps",
-    "benchmark.testsets:protocol_unavailable",
     "benchmark.tracking:resolve_tracking_uri",
     "benchmark.transfer:training_layout",
-    "models.fitting:_is_override_node",
-    "models.fitting:_plan",
-    "models.fitting:_training_files",
-    "models.fitting:build_model",
-    "models.fitting:fit_model",
-    "models.fitting:fit_stamp",
-    "models.fitting:load_fitted",
-    "models.fitting:model_config",
-    "models.fitting:model_overrides",
-    "models.fitting:protocol_inputs",
-    "models.fitting:resolve_model_spec",
-    "pipeline.config_schema:leaves",
-    "pipeline.config_schema:validate",
-    "pipeline.imported:check_stage",
-    "pipeline.imported:named_dataset",
-    "pipeline.protocol:protocol_of",
 }
 
 

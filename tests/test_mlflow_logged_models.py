@@ -20,7 +20,7 @@ from skidbench.benchmark import tracking as trk
 from skidbench.benchmark.evaluate import run_benchmark
 from skidbench.benchmark.mlflow_model import INPUT_COLUMNS
 from skidbench.benchmark.provenance import current_user
-from skidbench.models.fitting import load_fitted
+from skidbench.models.fitting import FitSettings, load_fitted
 
 DS = "sim-mini"
 pytestmark = pytest.mark.slow  # real fits, logged models, a fresh interpreter importing MLflow: 86 s (loaded)
@@ -71,7 +71,7 @@ def test_a_logged_model_loads_and_predicts_in_a_plain_python_process(real_models
     assert got["inputs"] == list(INPUT_COLUMNS) and got["outputs"] == ["vx", "vy", "wz"]
     assert got["columns"] == ["vx", "vy", "wz"]
     # the same numbers as the fitted model skidbench itself predicts with
-    expected = load_fitted(cfg, "roc", "tile").predict(table)
+    expected = load_fitted(FitSettings.from_cfg(cfg), "roc", "tile").predict(table)
     np.testing.assert_allclose(np.array(got["values"]), expected, rtol=1e-12, atol=1e-12)
 
 
@@ -154,12 +154,12 @@ def test_pyfunc_signature_rejects_a_table_without_the_protocols_columns(real_mod
 
 def test_a_fit_runs_model_is_logged_too(real_models):
     from skidbench.models.app import log_fit_run
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
     from skidbench.pipeline.layout import layout_from_cfg
 
     out, _, _, client, runs = real_models
     cfg = compose("fit", out, ["model=roc", "terrain=tile", "calibrate.use=false"])
-    res = fit_model(cfg, "roc", "tile")  # the evaluate's fit, reused
+    res = fit_model(FitSettings.from_cfg(cfg), "roc", "tile")  # the evaluate's fit, reused
     run = client.get_run(log_fit_run(cfg, layout_from_cfg(cfg), "roc", "tile", res))
     assert run.data.params["fitted.b1"] == runs["roc"].data.params["fitted.b1"]
     model = client.get_logged_model(run.data.tags["skidbench.logged_model"])

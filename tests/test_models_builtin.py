@@ -104,7 +104,7 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     is b2 = 0, chi = 1 + b1 = edd's; the fit says so (fit_info_["at_bound"]), and compare's note names
     it with the terrain and value. A roc-shaped truth reports nothing."""
     from skidbench.benchmark.compare import _fit_findings
-    from skidbench.models.fitting import fit_findings
+    from skidbench.models.saved import fit_findings
     from skidbench.pipeline.layout import Layout
 
     fitted = RocBased(jackal).fit(

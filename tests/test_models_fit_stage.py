@@ -28,31 +28,31 @@ def compose(out_root: Path, overrides=()):
 
 
 def test_fit_model_writes_json_and_load_fitted_reads_it(tmp_path, jackal):
-    from skidbench.models.fitting import fit_model, load_fitted
+    from skidbench.models.fitting import FitSettings, fit_model, load_fitted
 
     make_splits(tmp_path, jackal)
     cfg = compose(tmp_path, ["model=edd", "terrain=tile"])
     calibrate_splits(cfg)
-    res = fit_model(cfg, "edd", "tile")
+    res = fit_model(FitSettings.from_cfg(cfg), "edd", "tile")
     assert res.path == tmp_path / "sim-mini" / "fits" / "edd" / "tile.json"
     saved = json.loads(res.path.read_text())
     assert saved["params"]["chi"] == pytest.approx(1.5) and saved["n_train"] == res.n_train == 1200
-    assert load_fitted(cfg, "edd", "tile").params["chi"] == pytest.approx(1.5)
+    assert load_fitted(FitSettings.from_cfg(cfg), "edd", "tile").params["chi"] == pytest.approx(1.5)
     # another model than cfg.model: its config comes from the search path
-    assert fit_model(cfg, "roc", "grass").path.name == "grass.json"
-    assert fit_model(cfg, "edd", "tile").reused  # unchanged inputs: reused
-    assert not fit_model(cfg, "edd", "tile", reuse=False).reused
+    assert fit_model(FitSettings.from_cfg(cfg), "roc", "grass").path.name == "grass.json"
+    assert fit_model(FitSettings.from_cfg(cfg), "edd", "tile").reused  # unchanged inputs: reused
+    assert not fit_model(FitSettings.from_cfg(cfg), "edd", "tile", reuse=False).reused
 
 
 def test_fit_on_a_split_without_the_needed_columns_names_the_model(tmp_path, jackal):
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     cfg = compose(tmp_path, ["terrain=tile"])
     with pytest.raises(ModelError, match="no train sequences of terrain sand"):
-        fit_model(cfg, "edd", "sand")
+        fit_model(FitSettings.from_cfg(cfg), "edd", "sand")
     with pytest.raises(ModelError, match="model nope: not installed"):
-        fit_model(cfg, "nope", "tile")
+        fit_model(FitSettings.from_cfg(cfg), "nope", "tile")
 
 
 def run_cli(args, out_root: Path):
@@ -107,7 +107,7 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
 def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_path, jackal):
     """One split lookup (Layout.require_split_files): fit and evaluate say the same of a missing file."""
     from skidbench.benchmark.testsets import EvaluationError, split_files
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
     from skidbench.pipeline.layout import layout_from_cfg
 
     make_splits(tmp_path, jackal, terrains=("tile",))
@@ -116,7 +116,7 @@ def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_p
     cfg = compose(tmp_path, ["terrain=tile", "calibrate.use=false"])
     msg = f"{gone}: no split file for sequence {gone.stem} of "
     with pytest.raises(ModelError, match="run `skidbench split`") as fit_err:
-        fit_model(cfg, "edd", "tile")
+        fit_model(FitSettings.from_cfg(cfg), "edd", "tile")
     assert str(fit_err.value).startswith(f"model edd: {msg}")
     with pytest.raises(EvaluationError) as eval_err:
         split_files(layout_from_cfg(cfg), "tile", "train")
@@ -134,7 +134,9 @@ def test_a_fit_is_reused_until_one_of_its_inputs_changes(tmp_path, jackal, monke
     base = ["model=edd", "terrain=tile", "calibrate.use=false"]  # the calibration: the next test
 
     def fit(*over: str):
-        return fitting.fit_model(compose(tmp_path, [*base, *over]), "edd", "tile")
+        return fitting.fit_model(
+            fitting.FitSettings.from_cfg(compose(tmp_path, [*base, *over])), "edd", "tile"
+        )
 
     assert not fit().reused and fit().reused  # unchanged inputs: reused
     changes = {
@@ -174,7 +176,7 @@ def test_a_fit_is_reused_until_one_of_its_inputs_changes(tmp_path, jackal, monke
 
 
 def test_a_fit_whose_hooks_did_not_finish_is_not_up_to_date(tmp_path, jackal):
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     cfg = compose(tmp_path, ["model=edd", "terrain=tile", "calibrate.use=false"])
@@ -183,12 +185,17 @@ def test_a_fit_whose_hooks_did_not_finish_is_not_up_to_date(tmp_path, jackal):
         raise KeyboardInterrupt  # the job killed while logging its run
 
     with pytest.raises(KeyboardInterrupt):
-        fit_model(cfg, "edd", "tile", hooks=[killed])
+        fit_model(FitSettings.from_cfg(cfg), "edd", "tile", hooks=[killed])
     assert (tmp_path / "sim-mini" / "fits" / "edd" / "tile.json").is_file()
     logged = []
-    assert not fit_model(cfg, "edd", "tile", hooks=[lambda *a: logged.append(a[2:])]).reused
+    assert not fit_model(
+        FitSettings.from_cfg(cfg), "edd", "tile", hooks=[lambda *a: logged.append(a[1:])]
+    ).reused
     assert logged == [("edd", "tile")]
-    assert fit_model(cfg, "edd", "tile", hooks=[lambda *a: logged.append(a)]).reused and len(logged) == 1
+    assert (
+        fit_model(FitSettings.from_cfg(cfg), "edd", "tile", hooks=[lambda *a: logged.append(a)]).reused
+        and len(logged) == 1
+    )
 
 
 def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_path, jackal):

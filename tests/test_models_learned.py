@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from skidbench.models.base import ModelError
 from skidbench.models.drive_blr import DriveBLR
-from skidbench.models.fitting import fit_model, load_fitted, model_config
+from skidbench.models.fitting import FitSettings, ModelConfigs, fit_model, load_fitted, model_config
 from skidbench.models.gp_residual import GPResidual, recent_wheel_acceleration
 from skidbench.models.ideal import IdealDifferentialDrive
 from skidbench.models.linear import ExtendedDifferentialDrive
@@ -205,22 +205,25 @@ def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal
         ["model=gp_residual", "terrain=tile", "model.options.n_inducing=40", "model.options.max_opt_iter=20",
          "calibrate.use=false"],
     )  # fmt: skip
-    res = fit_model(cfg, "gp_residual", "tile")
+    res = fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile")
     saved = json.loads(res.path.read_text())
     npz = res.path.with_name("tile.arrays.npz")
     assert saved["arrays"]["file"] == npz.name and npz.is_file()
-    again = load_fitted(cfg, "gp_residual", "tile")
+    again = load_fitted(FitSettings.from_cfg(cfg), "gp_residual", "tile")
     assert set(again.arrays) == set(res.model.arrays)
     for k, a in res.model.arrays.items():
         assert np.array_equal(again.arrays[k], a) and again.arrays[k].dtype == a.dtype
     tab = command_table(jackal, 300, seed=5)
     assert np.array_equal(again.predict(tab), res.model.predict(tab))
     assert np.array_equal(again.predict_cov(tab), res.model.predict_cov(tab))
-    assert fit_model(cfg, "gp_residual", "tile").reused
+    assert fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile").reused
     npz.unlink()  # the cache treats the arrays like the JSON: missing arrays refit
-    assert not fit_model(cfg, "gp_residual", "tile").reused and npz.is_file()
+    assert not fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile").reused and npz.is_file()
     npz.write_bytes(npz.read_bytes()[:100])  # and truncated ones
-    assert not fit_model(cfg, "gp_residual", "tile").reused and fit_model(cfg, "gp_residual", "tile").reused
+    assert (
+        not fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile").reused
+        and fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile").reused
+    )
 
     import dataclasses
 
@@ -229,7 +232,9 @@ def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal
     infos = fitting.discover()
     bumped = {**infos, "gp_residual": dataclasses.replace(infos["gp_residual"], package_version="9.9")}
     monkeypatch.setattr(fitting, "discover", lambda: bumped)
-    assert not fit_model(cfg, "gp_residual", "tile").reused  # a new package release refits
+    assert not fit_model(
+        FitSettings.from_cfg(cfg), "gp_residual", "tile"
+    ).reused  # a new package release refits
 
 
 def test_fitted_arrays_round_trip_through_mlflow_artifacts_exactly(tmp_path):
@@ -260,19 +265,19 @@ def test_a_numpy_array_in_params_is_a_clear_model_error(jackal):
 
 def test_evaluate_model_options_apply_to_the_named_model_or_are_refused():
     cfg = OmegaConf.create({"models": ["drive_blr"], "model": {"options": {"train_rows": "steady"}}})
-    assert model_config(cfg, "drive_blr")["options"]["train_rows"] == "steady"
+    assert model_config(ModelConfigs.from_cfg(cfg), "drive_blr")["options"]["train_rows"] == "steady"
     cfg = OmegaConf.create({"models": ["edd", "drive_blr"], "model": {"options": {"train_rows": "steady"}}})
     with pytest.raises(ModelError, match=r"\+model.name"):
-        model_config(cfg, "drive_blr")
+        model_config(ModelConfigs.from_cfg(cfg), "drive_blr")
     cfg.model.name = "drive_blr"
-    assert model_config(cfg, "drive_blr")["options"]["train_rows"] == "steady"
-    assert "train_rows" not in model_config(cfg, "edd")["options"]
+    assert model_config(ModelConfigs.from_cfg(cfg), "drive_blr")["options"]["train_rows"] == "steady"
+    assert "train_rows" not in model_config(ModelConfigs.from_cfg(cfg), "edd")["options"]
     cfg.model.name = "roc"
     with pytest.raises(ModelError, match="not among models"):
-        model_config(cfg, "edd")
+        model_config(ModelConfigs.from_cfg(cfg), "edd")
     cfg = OmegaConf.create({"models": ["drive_blr"], "model": {"options": {"train_row": "steady"}}})
     with pytest.raises(ModelError, match="has no such option"):  # a misspelt option is refused
-        model_config(cfg, "drive_blr")
+        model_config(ModelConfigs.from_cfg(cfg), "drive_blr")
 
 
 def test_unknown_options_of_the_learned_models_are_refused(jackal):
@@ -303,16 +308,18 @@ def test_a_seeded_model_refits_with_another_seed_without_touching_its_saved_fit(
         ["model=gp_residual", "terrain=tile", "model.options.n_inducing=40", "model.options.max_opt_iter=20",
          "model.options.cv_folds=0", "calibrate.use=false"],
     )  # fmt: skip
-    res = fit_model(cfg, "gp_residual", "tile")
+    res = fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile")
     saved = res.path.read_bytes()
     refit = refit_from_cfg(cfg, "gp_residual", "tile")
     other = refit.fit(1)
     assert is_seeded(res.model) and other.options["seed"] == 1 and res.model.options["seed"] == 0
     assert set(other.arrays) == set(res.model.arrays)
     assert any(not np.array_equal(other.arrays[k], res.model.arrays[k]) for k in other.arrays)
-    assert res.path.read_bytes() == saved and fit_model(cfg, "gp_residual", "tile").reused
+    assert (
+        res.path.read_bytes() == saved and fit_model(FitSettings.from_cfg(cfg), "gp_residual", "tile").reused
+    )
     same = refit.fit(0)  # the configured seed: the saved fit, again
     tab = command_table(jackal, 300, seed=5)
     assert np.allclose(same.predict(tab), res.model.predict(tab))
     edd_cfg = compose_fit(tmp_path, ["model=edd", "terrain=tile", "calibrate.use=false"])
-    assert not is_seeded(fit_model(edd_cfg, "edd", "tile").model)
+    assert not is_seeded(fit_model(FitSettings.from_cfg(edd_cfg), "edd", "tile").model)

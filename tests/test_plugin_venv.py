@@ -111,12 +111,12 @@ def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(
     assert {"mean", "var", "v_edges", "w_edges"} <= set(saved["arrays"]["names"])
     check = (
         "import numpy as np; from pathlib import Path; from omegaconf import OmegaConf;"
-        "from skidbench.models.fitting import load_fitted;"
+        "from skidbench.models.fitting import FitSettings, load_fitted;"
         "from skidbench.models.synthetic import command_table;"
         f"cfg = OmegaConf.create({{'out_root': {str(tmp_path / 'out')!r}, 'dataset': 'sim-mini',"
         "'robot': OmegaConf.load(__import__('importlib.resources').resources.files('skidbench.conf')"
         ".joinpath('robot/jackal.yaml')), 'calibrate': {'use': False}});"
-        "m = load_fitted(cfg, 'slipgrid', 'tile'); tab = command_table(m.robot, 50);"
+        "m = load_fitted(FitSettings.from_cfg(cfg), 'slipgrid', 'tile'); tab = command_table(m.robot, 50);"
         "c = m.predict_cov(tab); assert m.predict(tab).shape == (50, 3) and c.shape == (50, 3, 3);"
         "assert np.all(c[:, [0, 1, 2], [0, 1, 2]] > 0); print('ok')"
     )

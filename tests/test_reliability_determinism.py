@@ -60,9 +60,11 @@ def test_evaluate_again_with_nothing_changed_is_skipped_and_reprints(micro_root,
     assert "skipped" not in first.stdout
     again = skidbench("evaluate", tmp_path)
     assert "inputs unchanged" in again.stdout and "skipped" in again.stdout, again.stdout[-1500:]
-    rows = lambda out: [ln.split() for ln in out.splitlines() if ln.strip().startswith(("ideal", "edd"))]  # noqa: E731
-    table = rows(first.stdout)  # compared cell by cell: the first print's columns are wider by its floor row
-    assert table and all(r in rows(again.stdout) for r in table)  # compare-style reprint of the same result
+    starts = ("ideal", "edd", "floor (reference)")
+    rows = lambda out: [ln.split() for ln in out.splitlines() if ln.strip().startswith(starts)]  # noqa: E731
+    table = rows(first.stdout)
+    assert any(r[0] == "floor" for r in table)  # the first print shows the floor of each terrain
+    assert table == rows(again.stdout)  # the reprint is the same board, its floor rows included
 
 
 def _mlflow_metrics(root) -> dict:
@@ -120,7 +122,7 @@ def test_a_plugin_edited_in_place_without_a_version_bump_is_refitted(micro_root,
     from importlib.metadata import EntryPoint
 
     from skidbench.models import registry
-    from skidbench.models.fitting import fit_model
+    from skidbench.models.fitting import FitSettings, fit_model
 
     pkg = tmp_path / "site" / "scaled_plugin"
     pkg.mkdir(parents=True)
@@ -135,15 +137,15 @@ def test_a_plugin_edited_in_place_without_a_version_bump_is_refitted(micro_root,
     copy_splits(micro_root, root)
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose("fit", overrides=[f"out_root={root}", *SCALE, "terrain=tile", "calibrate.use=false"])
-    first = fit_model(cfg, "scaled", "tile")
-    again = fit_model(cfg, "scaled", "tile")
+    first = fit_model(FitSettings.from_cfg(cfg), "scaled", "tile")
+    again = fit_model(FitSettings.from_cfg(cfg), "scaled", "tile")
     assert not first.reused and again.reused  # nothing changed: the saved fit is up to date
     assert first.code.digest == again.code.digest != "?"
 
     (pkg / "model.py").write_text(PLUGIN.format(gain=2.0))  # same name, same version, other code
     for mod in ("scaled_plugin.model", "scaled_plugin"):  # a new process would import it anew
         monkeypatch.delitem(sys.modules, mod, raising=False)
-    edited = fit_model(cfg, "scaled", "tile")
+    edited = fit_model(FitSettings.from_cfg(cfg), "scaled", "tile")
     assert not edited.reused and edited.model.params == {"gain": 2.0}
     assert edited.code.digest != first.code.digest and edited.code.version == first.code.version
     saved = json.loads(edited.path.read_text())

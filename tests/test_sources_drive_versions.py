@@ -122,9 +122,35 @@ def test_windows_are_checked_against_the_robot_from_the_data(shared_real):
     assert 0.7 < checks["speed_gain"] < 1.1 and 0.8 < checks["implied_radius_ratio"] < 1.1
     # the geometry refuses it as a Warthog's (not the speed gain, which the command conversion also moves)
     refused = r"robot=warthog: the ground truth travels 0\.15\d m per wheel radian.* 0\.50x the spec sheet's"
-    with pytest.raises(ConfigError, match=refused):
-        identified = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+    identified = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+    with pytest.raises(ConfigError, match=refused) as e:
         windows_to_sequences(df, path, identified, robot=load_robot("warthog"))
+    # below the radius, heavy slip (ice, mud) is the other reading: said, with the key that scores it
+    assert "or its wheels slip by 50% on straight stretches (ice, mud)" in str(e.value)
+    assert str(e.value).endswith("or source.check_geometry=false to score it as this robot's")
+
+
+def test_a_geometry_check_turned_off_scores_the_file_with_a_warning(shared_real, caplog):
+    """source.check_geometry=false (a Warthog on ice looks like a smaller robot): the same file the
+    geometry refuses is extracted as this robot's, the contradiction one warning, its numbers recorded;
+    the raw form likewise (the Warthog's grass file as a Husky: 1.58x the Husky's wheel radius)."""
+    import dataclasses
+    import logging
+
+    path = shared_real / "drive" / "husky_windows.parquet"
+    settings = WindowSettings(20.0, (0.6, 0.2, 0.2), "h", cmd_kinematics=(0.3, 1.08), identify=True)
+    off = dataclasses.replace(settings, check_geometry=False)
+    checks: dict = {}
+    with caplog.at_level(logging.WARNING):
+        seqs = windows_to_sequences(pd.read_parquet(path), path, off, load_robot("warthog"), checks)
+    assert seqs and checks["implied_radius_ratio"] == pytest.approx(0.50, abs=0.01)
+    assert "0.50x the spec sheet's wheel radius 0.3 m" in caplog.text
+    assert "scored as this robot's anyway (source.check_geometry=false)" in caplog.text
+    raw = shared_real / "drive" / "warthog_grass2_raw.parquet"
+    args = (pd.read_parquet(raw), raw, (0.6, 0.2, 0.2), "g", None, load_robot("husky"))
+    with pytest.raises(ConfigError, match=r"1\.58x the spec sheet's wheel radius 0\.165 m"):
+        raw_to_sequences(*args)
+    assert raw_to_sequences(*args, check_geometry=False)
 
 
 def test_a_shuffled_window_file_is_said_to_be_out_of_recording_order(shared_real, caplog):
@@ -228,6 +254,14 @@ def test_a_husky_with_its_own_command_kinematics_is_scored_with_them(tmp_path, c
     info = json.loads(next((tmp_path / "out").glob("*/extracted/husky_train_00/_extract.json")).read_text())
     assert info["robot_checks"]["cmd_kinematics"]["value"] == [0.165, 0.55]
     assert info["robot_checks"]["cmd_kinematics"]["configured"] == [0.3, 1.08]
+    from skidbench.pipeline.layout import Layout
+    from skidbench.pipeline.splits.app import recording_section
+
+    ds = next((tmp_path / "out").glob("*/extracted")).parent.name
+    card = recording_section(Layout(tmp_path / "out", ds))  # and the dataset card says it
+    row = next(ln for ln in card.splitlines() if ln.startswith("| husky_windows.parquet | windows"))
+    assert "| [0.165, 0.55]: the husky's spec sheet (measured/commanded common-mode wheel-rate gain" in row
+    assert row.endswith("; the configured fallback [0.3, 1.08] not used |")
     t = split_table(splits)
     moving = t["valid"].astype(bool) & (t["cmd_v"].abs() > 0.2) & (t["cmd_w"].abs() < 0.1)
     ratio = float(np.median(t.loc[moving, "vx"] / t.loc[moving, "cmd_v"]))

@@ -251,15 +251,13 @@ def loop_closure(cfg: DictConfig, trajs: dict[str, Trajectory]) -> dict[str, Any
     }  # fmt: skip
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Compute every sequence's ground truth and the loop-closure report; returns the report."""
-    layout = layout_from_cfg(cfg)
-    manifest = Manifest.read(layout.manifest)
-    gt_cfg = cfg.groundtruth
+def _up_to_date(cfg: DictConfig, layout, manifest: Manifest) -> tuple[list, dict, dict, int]:
+    """(the sequences to compute, each with its stamp and key; the loops and truth scores of those up to
+    date, read back; how many are up to date)."""
     out = layout.groundtruth
+    conf = stage_config(cfg)
     loops: dict[str, Trajectory] = {}
     truth_scores = {}
-    conf = stage_config(cfg)
     skipped = 0
     stale: list[tuple[Sequence, Stamp, str]] = []
     for seq in manifest.sequences:
@@ -275,6 +273,60 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 loops[seq.name] = read_tum(tum)
         else:
             stale.append((seq, stamp, key))
+    return stale, loops, truth_scores, skipped
+
+
+def _write_sequence(gt_cfg, layout, seq: Sequence, traj: Trajectory, report: dict) -> dict | None:
+    """Write one computed sequence's TUM and report (with its error against the recording's own truth
+    pose, when it has one that is not the ground truth itself); returns that error (None without)."""
+    out = layout.groundtruth
+    tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
+    if len(traj) < 2:
+        raise GroundTruthError(f"{seq.name}: empty sequence ({len(traj)} pose)")
+    truth_path = layout.extracted / seq.name / f"{gt_cfg.truth_key}.parquet"
+    is_truth = gt_cfg.method == "pose_topic" and gt_cfg.pose_topic.key == gt_cfg.truth_key
+    score = None
+    if truth_path.is_file() and not is_truth:
+        truth = read_pose_table(truth_path, float(gt_cfg.max_gap))
+        score = truth_errors(traj, truth, float(gt_cfg.relative_horizon)) or None
+        if score:
+            report["truth_error"] = score
+    dur = (traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9
+    report.update(
+        {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category,
+         "method": str(gt_cfg.method),
+         "poses": len(traj), "duration_s": dur, "gaps": [[a, b] for a, b in traj.gaps]}
+    )  # fmt: skip
+    write_tum(traj, tum, header=f"skidbench groundtruth {seq.name} method={gt_cfg.method}")
+    write_json_atomic(rep, report)
+    log.info("%s: %d poses, %.1f s, %d gap(s)", seq.name, len(traj), dur, len(traj.gaps))
+    return score
+
+
+def _loop_report(cfg: DictConfig, manifest: Manifest, loops: dict, truth_scores: dict) -> dict[str, Any]:
+    """The loop-closure report of the loops, with the mean truth errors, in manifest order (whatever order
+    the workers finished in: the dataset means are summed in it)."""
+    rank = {seq.name: i for i, seq in enumerate(manifest.sequences)}
+    loops = dict(sorted(loops.items(), key=lambda kv: rank[kv[0]]))
+    truth_scores = dict(sorted(truth_scores.items(), key=lambda kv: rank[kv[0]]))
+    result = loop_closure(cfg, loops)
+    result["method"] = str(cfg.groundtruth.method)
+    if truth_scores:
+        keys = ("ate_rms_m", "rpe_trans_rms_m", "rpe_trans_rel_rms", "rpe_yaw_rms_rad")
+        result["truth_error"] = {
+            k: float(np.mean([s[k] for s in truth_scores.values() if s.get(k) is not None]))
+            for k in keys
+            if any(s.get(k) is not None for s in truth_scores.values())
+        }
+    return result
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Compute every sequence's ground truth and the loop-closure report; returns the report."""
+    layout = layout_from_cfg(cfg)
+    manifest = Manifest.read(layout.manifest)
+    gt_cfg = cfg.groundtruth
+    stale, loops, truth_scores, skipped = _up_to_date(cfg, layout, manifest)
     # Sequences are independent: compute them in parallel processes (stereo VO is CPU-bound), longest
     # first (by extracted bytes) so that no worker is left alone with a long one at the end; each result
     # is written from this process as soon as it arrives (a stopped run keeps the finished sequences).
@@ -286,42 +338,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     )
     for name, traj, report in computed:
         seq, stamp, key = by_name[name]
-        tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
-        if len(traj) < 2:
-            raise GroundTruthError(f"{seq.name}: empty sequence ({len(traj)} pose)")
-        truth_path = layout.extracted / seq.name / f"{gt_cfg.truth_key}.parquet"
-        is_truth = gt_cfg.method == "pose_topic" and gt_cfg.pose_topic.key == gt_cfg.truth_key
-        if truth_path.is_file() and not is_truth:
-            truth = read_pose_table(truth_path, float(gt_cfg.max_gap))
-            score = truth_errors(traj, truth, float(gt_cfg.relative_horizon))
-            if score:
-                report["truth_error"] = truth_scores[seq.name] = score
-        dur = (traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9
-        report.update(
-            {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category,
-             "method": str(gt_cfg.method),
-             "poses": len(traj), "duration_s": dur, "gaps": [[a, b] for a, b in traj.gaps]}
-        )  # fmt: skip
-        write_tum(traj, tum, header=f"skidbench groundtruth {seq.name} method={gt_cfg.method}")
-        write_json_atomic(rep, report)
-        stamp.record(key, [tum, rep])
-        log.info("%s: %d poses, %.1f s, %d gap(s)", seq.name, len(traj), dur, len(traj.gaps))
+        score = _write_sequence(gt_cfg, layout, seq, traj, report)
+        if score:
+            truth_scores[seq.name] = score
+        stamp.record(key, [layout.groundtruth / f"{seq.name}.tum", layout.groundtruth / f"{seq.name}.json"])
         if seq.category == "loop":
             loops[seq.name] = traj
-    # manifest order, whatever order the workers finished in (the dataset means are summed in it)
-    rank = {seq.name: i for i, seq in enumerate(manifest.sequences)}
-    loops = dict(sorted(loops.items(), key=lambda kv: rank[kv[0]]))
-    truth_scores = dict(sorted(truth_scores.items(), key=lambda kv: rank[kv[0]]))
-    result = loop_closure(cfg, loops)
-    result["method"] = str(gt_cfg.method)
-    if truth_scores:
-        keys = ("ate_rms_m", "rpe_trans_rms_m", "rpe_trans_rel_rms", "rpe_yaw_rms_rad")
-        result["truth_error"] = {
-            k: float(np.mean([s[k] for s in truth_scores.values() if s.get(k) is not None]))
-            for k in keys
-            if any(s.get(k) is not None for s in truth_scores.values())
-        }
-    _write_if_changed(out / LOOP_REPORT, result)
+    result = _loop_report(cfg, manifest, loops, truth_scores)
+    _write_if_changed(layout.groundtruth / LOOP_REPORT, result)
     n = len(manifest.sequences)
     if skipped == n:
         log.info("groundtruth: %d sequences up to date, skipped", n)

@@ -127,15 +127,8 @@ def _simulate_one(index: int, spec: SequenceSpec, final: Path, tick=None) -> dic
     return {**sequence_moments(truth, robot.track_width, robot.wheel_radius), "_duration": float(truth.t[-1])}
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Simulate every sequence of the configured scale; returns a summary (paths, card rows, timing)."""
-    t_start = time.perf_counter()
-    fmt = str(cfg.format)
-    if fmt not in FORMATS:
-        raise SimulateError(f"format={fmt!r}: not one of {', '.join(FORMATS)}")
-    jobs = int(cfg.jobs)
-    if jobs < 1:
-        raise SimulateError(f"jobs={jobs}: must be at least 1")
+def _physics(cfg: DictConfig) -> tuple[Robot, dict, Any, Any, list[SequenceSpec]]:
+    """(robot, physics per terrain, drive, tyre, every sequence of the scale), checked."""
     robot = robot_from_hydra(cfg.robot)
     if not robot.left_joints or not robot.right_joints:
         raise SimulateError(f"robot {robot.name}: left_joints/right_joints are empty in the robot config")
@@ -146,107 +139,77 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise SimulateError(
             f"sim config: no physics for terrain(s) {', '.join(missing)}; add them under sim.terrains"
         )
-    sim_cfg = OmegaConf.to_container(cfg, resolve=True)
-    seed = int(cfg.seed)
+    return robot, terrains, drive, tyre, specs
+
+
+def _run_settings(sim_cfg: dict[str, Any], robot: Robot) -> RunSettings:
+    """The integrator step, sensor rates (the camera's from the robot's camera, 15 fps without one) and
+    sensor models of every sequence."""
     rates = dict(sim_cfg["rates"])
     camera = robot.extra.get("camera") or {}
     rates["camera"] = float(camera.get("fps", 15.0))
-    run = RunSettings(dt=sim_cfg["dt"], rates=rates, sensors=sim_cfg["sensors"])
+    return RunSettings(dt=sim_cfg["dt"], rates=rates, sensors=sim_cfg["sensors"])
 
-    layout = layout_from_cfg(cfg)
-    bags_dir = layout.raw / "bags"
-    stamps_dir = layout.raw / ".stamps"
-    code = code_fingerprint()
-    moments: dict[str, dict[str, float]] = {}
-    todo: list[tuple[int, SequenceSpec, Path, Stamp, str]] = []
+
+def _selected(cfg: DictConfig, specs: list[SequenceSpec]) -> list[tuple[int, SequenceSpec]]:
+    """The sequences ``only`` names (all without it), each with its plan index: a subset keeps each
+    sequence's plan index, hence its random streams and its bytes."""
     only = set(cfg.get("only") or ())
     unknown = sorted(only - {s.name for s in specs})
     if unknown:
         raise SimulateError(f"only={unknown}: no such sequence at scale {cfg.scale.name}")
-    # a subset keeps each sequence's plan index, hence its random streams and its bytes
-    selected = [(i, s) for i, s in enumerate(specs) if not only or s.name in only]
-    for index, spec in selected:
-        final = bag_path(bags_dir, spec.name, fmt)
-        stamp = Stamp(stamps_dir / f"{spec.name}.json", "simulate")
-        key = stamp.key(
-            [],
-            {
-                "spec": spec.__dict__,
-                "index": index,
-                "seed": seed,
-                "format": fmt,
-                "images": bool(cfg.images),
-                "render": sim_cfg.get("render"),
-                "run": dataclasses.asdict(run),
-                "robot": robot.to_dict(),
-                "physics": sim_cfg["sim"],
-                "code": code,
-            },
-        )
-        if not cfg.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
-            moments[spec.name] = stamp.data["info"]["moments"]
-        else:
-            todo.append((index, spec, final, stamp, key))
+    return [(i, s) for i, s in enumerate(specs) if not only or s.name in only]
 
-    if todo:
-        if jobs > 1 and len(todo) > 1:
-            # OpenCV single-threaded in the workers (set here, before the renderer is built and the
-            # workers fork: changing it inside a forked child hangs on the parent's thread pool). The
-            # workers already fill the cores, and OpenCV's idle pool threads spin, taking CPU time from
-            # the other workers (`make bench BENCH=render`: 8.2 CPU-ms a stereo pair with one thread,
-            # 18.4 with two).
-            cv2_threads = cv2.getNumThreads()
-            cv2.setNumThreads(1)
-        _CONTEXT.update(
-            robot=robot,
-            terrains=terrains,
-            drive=drive,
-            tyre=tyre,
-            run=run,
-            seed=seed,
-            fmt=fmt,
-            renderer=make_renderer(robot, cfg, seed),
-        )
-        total = sum(_planned_seconds(t[1]) for t in todo)
-        with tqdm(
-            total=total, unit="s", desc=f"simulate {layout.dataset}", dynamic_ncols=True, mininterval=1.0
-        ) as bar:
 
-            def finish(item, result) -> None:
-                index, spec, final, stamp, key = item
-                duration = result.pop("_duration")
-                stamp.record(key, [final], {"moments": result, "duration": duration})
-                moments[spec.name] = result
+def _stamp_key(stamp: Stamp, index: int, spec: SequenceSpec, cfg: DictConfig, sim_cfg, run, robot, code):
+    """The key of one sequence's bag: everything its bytes depend on."""
+    return stamp.key(
+        [],
+        {
+            "spec": spec.__dict__,
+            "index": index,
+            "seed": int(cfg.seed),
+            "format": str(cfg.format),
+            "images": bool(cfg.images),
+            "render": sim_cfg.get("render"),
+            "run": dataclasses.asdict(run),
+            "robot": robot.to_dict(),
+            "physics": sim_cfg["sim"],
+            "code": code,
+        },
+    )
 
-            if jobs == 1:
-                for item in todo:
-                    bar.set_postfix_str(item[1].name)
-                    before = bar.n
-                    result = _simulate_one(item[0], item[1], item[2], bar.update)
-                    bar.update(max(0.0, _planned_seconds(item[1]) - (bar.n - before)))
-                    finish(item, result)
-            else:
-                # sequences are independent (own random streams), so any order gives the same bytes;
-                # fork shares the parent's renderer world instead of rebuilding it per worker; longest
-                # first, so that no worker is left alone with a long sequence at the end
-                ctx = multiprocessing.get_context("fork")
-                longest_first = sorted(todo, key=lambda t: -_planned_seconds(t[1]))
-                with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
-                    futures = {pool.submit(_simulate_one, t[0], t[1], t[2]): t for t in longest_first}
-                    for fut in as_completed(futures):
-                        item = futures[fut]
-                        finish(item, fut.result())
-                        bar.set_postfix_str(item[1].name)
-                        bar.update(_planned_seconds(item[1]))
-        _CONTEXT.clear()
-        if jobs > 1 and len(todo) > 1:
-            cv2.setNumThreads(cv2_threads)
 
-    results = [
-        {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for _, s in selected
-    ]
-    skipped = len(selected) - len(todo)
+def _simulate_all(todo: list, jobs: int, desc: str, finish) -> None:
+    """Simulate the sequences ``todo`` (in ``jobs`` forked workers when more than one), with a progress
+    bar in simulated seconds; ``finish(item, moments)`` after each. ``_CONTEXT`` is set."""
+    total = sum(_planned_seconds(t[1]) for t in todo)
+    with tqdm(total=total, unit="s", desc=desc, dynamic_ncols=True, mininterval=1.0) as bar:
+        if jobs == 1:
+            for item in todo:
+                bar.set_postfix_str(item[1].name)
+                before = bar.n
+                result = _simulate_one(item[0], item[1], item[2], bar.update)
+                bar.update(max(0.0, _planned_seconds(item[1]) - (bar.n - before)))
+                finish(item, result)
+            return
+        # sequences are independent (own random streams), so any order gives the same bytes; fork shares
+        # the parent's renderer world instead of rebuilding it per worker; longest first, so that no
+        # worker is left alone with a long sequence at the end
+        ctx = multiprocessing.get_context("fork")
+        longest_first = sorted(todo, key=lambda t: -_planned_seconds(t[1]))
+        with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+            futures = {pool.submit(_simulate_one, t[0], t[1], t[2]): t for t in longest_first}
+            for fut in as_completed(futures):
+                item = futures[fut]
+                finish(item, fut.result())
+                bar.set_postfix_str(item[1].name)
+                bar.update(_planned_seconds(item[1]))
 
+
+def _write_manifest_and_card(layout, results: list[dict], robot: Robot, fmt: str, seed: int) -> tuple:
+    """The dataset's manifest and card (``raw/card.md``) of the simulated ``results``; returns the card's
+    (rows, text)."""
     manifest = Manifest(
         [
             Sequence(
@@ -267,14 +230,72 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     )
     card = render_card(rows, f"{layout.dataset} (seed {seed})")
     write_text_atomic(layout.raw / "card.md", card)
-    size = sum(_size(r["path"]) for r in results)
+    return rows, card
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Simulate every sequence of the configured scale; returns a summary (paths, card rows, timing)."""
+    t_start = time.perf_counter()
+    fmt = str(cfg.format)
+    if fmt not in FORMATS:
+        raise SimulateError(f"format={fmt!r}: not one of {', '.join(FORMATS)}")
+    jobs = int(cfg.jobs)
+    if jobs < 1:
+        raise SimulateError(f"jobs={jobs}: must be at least 1")
+    robot, terrains, drive, tyre, specs = _physics(cfg)
+    sim_cfg = OmegaConf.to_container(cfg, resolve=True)
+    seed = int(cfg.seed)
+    run = _run_settings(sim_cfg, robot)
+
+    layout = layout_from_cfg(cfg)
+    bags_dir = layout.raw / "bags"
+    code = code_fingerprint()
+    moments: dict[str, dict[str, float]] = {}
+    todo: list[tuple[int, SequenceSpec, Path, Stamp, str]] = []
+    selected = _selected(cfg, specs)
+    for index, spec in selected:
+        stamp = Stamp(layout.raw / ".stamps" / f"{spec.name}.json", "simulate")
+        key = _stamp_key(stamp, index, spec, cfg, sim_cfg, run, robot, code)
+        if not cfg.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
+            moments[spec.name] = stamp.data["info"]["moments"]
+        else:
+            todo.append((index, spec, bag_path(bags_dir, spec.name, fmt), stamp, key))
+
+    def finish(item, result) -> None:
+        index, spec, final, stamp, key = item
+        duration = result.pop("_duration")
+        stamp.record(key, [final], {"moments": result, "duration": duration})
+        moments[spec.name] = result
+
+    if todo:
+        if jobs > 1 and len(todo) > 1:
+            # OpenCV single-threaded in the workers (set here, before the renderer is built and the
+            # workers fork: changing it inside a forked child hangs on the parent's thread pool). The
+            # workers already fill the cores, and OpenCV's idle pool threads spin, taking CPU time from
+            # the other workers (`make bench BENCH=render`: 8.2 CPU-ms a stereo pair with one thread,
+            # 18.4 with two).
+            cv2_threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+        _CONTEXT.update(
+            robot=robot, terrains=terrains, drive=drive, tyre=tyre, run=run, seed=seed, fmt=fmt,
+            renderer=make_renderer(robot, cfg, seed),
+        )  # fmt: skip
+        _simulate_all(todo, jobs, f"simulate {layout.dataset}", finish)
+        _CONTEXT.clear()
+        if jobs > 1 and len(todo) > 1:
+            cv2.setNumThreads(cv2_threads)
+
+    results = [
+        {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for _, s in selected
+    ]
+    rows, card = _write_manifest_and_card(layout, results, robot, fmt, seed)
     return {
         "layout": layout,
         "card": card,
         "rows": rows,
         "sequences": len(results),
-        "skipped": skipped,
-        "bytes": size,
+        "skipped": len(selected) - len(todo),
+        "bytes": sum(_size(r["path"]) for r in results),
         "seconds": time.perf_counter() - t_start,
     }
 

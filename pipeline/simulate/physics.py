@@ -194,15 +194,18 @@ class SkidSteerSim:
 
     # -- one step ------------------------------------------------------------------------------------
     def step(self, cmd_left: float, cmd_right: float) -> None:
-        """Advance by ``dt`` with commanded wheel rates (rad/s) for the left and right side."""
-        dt, r = self.dt, self.radius
-        ter, tyre, drive = self.terrain, self.tyre, self.drive
-        mu, theta, ky = ter.friction, self.theta, ter.lateral_stiffness_ratio
-        mu_ratio = ter.lateral_friction_ratio
-        c_s = ter.slip_stiffness
-        vref_min, v_roll = tyre.min_reference_speed, tyre.rolling_sign_speed
+        """Advance by ``dt`` with commanded wheel rates (rad/s) for the left and right side: the motors,
+        the tyres' forces at the current state, then the wheels, the body and the pose."""
+        self._step_motors(cmd_left, cmd_right)
+        self.normal_load = self.normal_loads()
+        body, side_fx, side_k = self._tyre_forces(self.normal_load)
+        self._step_wheels(side_fx, side_k)
+        self._step_body(*body)
+        self._step_pose()
 
-        # motors: PI torque command, first-order current loop, limits
+    def _step_motors(self, cmd_left: float, cmd_right: float) -> None:
+        """Motors: PI torque command, first-order current loop, limits."""
+        dt, drive = self.dt, self.drive
         for side, cmd in ((0, cmd_left), (1, cmd_right)):
             target = self._torque_available(side, self._motor_torque_command(side, cmd))
             tq = (
@@ -210,66 +213,83 @@ class SkidSteerSim:
             )
             self.motor_torque[side] = self._torque_available(side, tq)
 
-        loads = self.normal_loads()
-        self.normal_load = loads
-        vx, vy, wz = self.vx, self.vy, self.wz
+    def _wheel_force(self, i: int, n: float) -> tuple[float, float, float, float]:
+        """Wheel ``i``'s ground force at normal load ``n``: (fx, fy) on the body in the body frame (brush
+        traction plus rolling resistance), its traction ``fx`` alone (what reacts on the wheel) and its
+        brush slope (for the implicit step)."""
+        r, ter, tyre = self.radius, self.terrain, self.tyre
+        ky, mu_ratio = ter.lateral_stiffness_ratio, ter.lateral_friction_ratio
+        px, py = self.wheel_xy[i]
+        v_wx = self.vx - self.wz * py  # wheel-centre velocity (eq. 4's V_wx, V_wy), m/s
+        v_wy = self.vy + self.wz * px
+        v_roll_i = r * self.wheel_rate[self.wheel_side[i]]  # rolling speed r*omega, m/s
+        # theoretical slip against the larger of rolling and travel speed (bounded below at rest)
+        v_ref = max(abs(v_roll_i), abs(v_wx), tyre.min_reference_speed)
+        slip_x = (v_roll_i - v_wx) / v_ref  # positive when the wheel drives (spins faster than it travels)
+        slip_y = -ky * v_wy / v_ref  # lateral slip, scaled by the bristles' stiffness ratio
+        slip = math.hypot(slip_x, slip_y)
+        if slip > 1e-12:
+            f = brush_force(slip, ter.friction, n, self.theta)
+            fx = f * slip_x / slip
+            fy = f * slip_y / slip * mu_ratio  # friction ellipse: lateral grip mu_y = ratio * mu_x
+        else:
+            fx = fy = 0.0
+        traction = fx  # the tyre's traction reacts on the wheel (and through it, the motor)
+        # rolling / bulldozing resistance against the wheel centre's travel (smooth near rest)
+        v_w = math.hypot(v_wx, v_wy)
+        if v_w > 1e-12:
+            rr = ter.rolling_resistance * n * math.tanh(v_w / tyre.rolling_sign_speed) / v_w
+            fx -= rr * v_wx
+            fy -= rr * v_wy
+        return fx, fy, traction, ter.slip_stiffness * n / v_ref  # initial brush slope dF/d(slip vel.)
+
+    def _tyre_forces(self, loads: list[float]) -> tuple[tuple[float, ...], list[float], list[float]]:
+        """The four wheels' forces summed: ((fx, fy, mz) on the body and their slopes (k_x, k_y, k_z), N per
+        m/s and N m per rad/s, for the implicit step), the traction per side (N) and its slope bound per
+        side (N / (rad/s))."""
+        ky, mu_ratio = self.terrain.lateral_stiffness_ratio, self.terrain.lateral_friction_ratio
         fx_tot = fy_tot = mz_tot = 0.0
-        k_x = k_y = k_z = 0.0  # force slopes (N per m/s, N m per rad/s) for the implicit step
-        side_fx = [0.0, 0.0]  # tyre longitudinal force per side, N
-        side_k = [0.0, 0.0]  # d(side_fx)/d(wheel rate) bound, N / (rad/s)
+        k_x = k_y = k_z = 0.0
+        side_fx = [0.0, 0.0]
+        side_k = [0.0, 0.0]
         for i in range(4):
             px, py = self.wheel_xy[i]
             side = self.wheel_side[i]
-            n = loads[i]
-            v_wx = vx - wz * py  # wheel-centre velocity (eq. 4's V_wx, V_wy), m/s
-            v_wy = vy + wz * px
-            v_roll_i = r * self.wheel_rate[side]  # rolling speed r*omega, m/s
-            # theoretical slip against the larger of rolling and travel speed (bounded below at rest)
-            v_ref = max(abs(v_roll_i), abs(v_wx), vref_min)
-            slip_x = (
-                v_roll_i - v_wx
-            ) / v_ref  # positive when the wheel drives (spins faster than it travels)
-            slip_y = -ky * v_wy / v_ref  # lateral slip, scaled by the bristles' stiffness ratio
-            slip = math.hypot(slip_x, slip_y)
-            if slip > 1e-12:
-                f = brush_force(slip, mu, n, theta)
-                fx = f * slip_x / slip
-                fy = f * slip_y / slip * mu_ratio  # friction ellipse: lateral grip mu_y = ratio * mu_x
-            else:
-                fx = fy = 0.0
-            side_fx[side] += fx  # the tyre's traction reacts on the wheel (and through it, the motor)
-            # rolling / bulldozing resistance against the wheel centre's travel (smooth near rest)
-            v_w = math.hypot(v_wx, v_wy)
-            if v_w > 1e-12:
-                rr = ter.rolling_resistance * n * math.tanh(v_w / v_roll) / v_w
-                fx -= rr * v_wx
-                fy -= rr * v_wy
+            fx, fy, traction, slope = self._wheel_force(i, loads[i])
+            side_fx[side] += traction
             fx_tot += fx
             fy_tot += fy
             mz_tot += px * fy - py * fx
-            slope = c_s * n / v_ref  # initial brush slope dF/d(slip velocity)
             k_x += slope
             k_y += slope * ky * mu_ratio
             k_z += slope * (py * py + ky * mu_ratio * px * px)
-            side_k[side] += slope * r
+            side_k[side] += slope * self.radius
+        return (fx_tot, fy_tot, mz_tot, k_x, k_y, k_z), side_fx, side_k
 
-        # wheels: J domega/dt = T_motor - r F_x - b omega (linearly implicit in omega)
+    def _step_wheels(self, side_fx: list[float], side_k: list[float]) -> None:
+        """Wheels: J domega/dt = T_motor - r F_x - b omega (linearly implicit in omega)."""
+        dt, r, drive = self.dt, self.radius, self.drive
         for side in (0, 1):
             net = self.motor_torque[side] - r * side_fx[side] - drive.viscous_friction * self.wheel_rate[side]
             damp = r * side_k[side] + drive.viscous_friction
             self.wheel_rate[side] += dt * net / (drive.side_inertia + dt * damp)
             self.wheel_angle[side] += dt * self.wheel_rate[side]
 
-        # body: m (dv/dt + w x v) = F, I dw/dt = M (linearly implicit in each velocity)
-        m, iz = self.mass, self.inertia
-        self.ax, self.ay = fx_tot / m, fy_tot / m  # CG acceleration (for next step's load transfer)
-        dvx = (fx_tot / m + wz * vy) / (1.0 + dt * k_x / m)
-        dvy = (fy_tot / m - wz * vx) / (1.0 + dt * k_y / m)
-        dwz = (mz_tot / iz) / (1.0 + dt * k_z / iz)
+    def _step_body(self, fx: float, fy: float, mz: float, k_x: float, k_y: float, k_z: float) -> None:
+        """Body: m (dv/dt + w x v) = F, I dw/dt = M (linearly implicit in each velocity)."""
+        dt, m, iz = self.dt, self.mass, self.inertia
+        vx, vy, wz = self.vx, self.vy, self.wz
+        self.ax, self.ay = fx / m, fy / m  # CG acceleration (for next step's load transfer)
+        dvx = (fx / m + wz * vy) / (1.0 + dt * k_x / m)
+        dvy = (fy / m - wz * vx) / (1.0 + dt * k_y / m)
+        dwz = (mz / iz) / (1.0 + dt * k_z / iz)
         self.vx = vx + dt * dvx
         self.vy = vy + dt * dvy
         self.wz = wz + dt * dwz
-        # pose: exact integration of the (new) body twist over the step, midpoint heading
+
+    def _step_pose(self) -> None:
+        """Pose: exact integration of the (new) body twist over the step, midpoint heading."""
+        dt = self.dt
         yaw_mid = self.yaw + 0.5 * dt * self.wz
         c, s = math.cos(yaw_mid), math.sin(yaw_mid)
         self.x += dt * (c * self.vx - s * self.vy)

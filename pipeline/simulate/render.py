@@ -380,7 +380,8 @@ class StereoRenderer:
         then face order, into ``img`` with the inverse-depth z-buffer ``zbuf``.
 
         The geometry of every face (corners in the camera, projection, plane, texture axes) is computed
-        for all faces at once; only the pixel work (mask, depth test, texture warp) is per face.
+        for all faces at once (:meth:`_face_geometry`); only the pixel work (mask, depth test, texture
+        warp: :meth:`_paint_face`) is per face.
         """
         idx, alphas = boxes
         if len(idx) == 0:
@@ -389,10 +390,20 @@ class StereoRenderer:
         idx, alphas = idx[keep], alphas[keep]
         if len(idx) == 0:
             return
-        H, W = self.height, self.width
+        faces = self._face_geometry(idx, R_c_w, t_c_w, cam)
+        if faces is None:
+            return
+        down_c = -R_c_w[:, 2]  # the texture's down axis in the camera
+        for j in range(len(faces.b_i)):
+            uv = self._face_outline(faces, j)
+            if uv is not None:
+                self._paint_face(img, zbuf, faces, j, uv, down_c, float(alphas[faces.b_i[j]]))
+
+    def _face_geometry(self, idx, R_c_w, t_c_w, cam) -> _Faces | None:
+        """The front (not back) vertical faces of instances ``idx``, box-major, in the camera; None
+        when there is none."""
         K = self.K
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-        near = float(self.opts["near_m"])
         c = self._inst[idx, :2]
         hxy = self._inst_h[idx]
         height = self._inst_height[idx]
@@ -402,7 +413,7 @@ class StereoRenderer:
         front = np.einsum("bfk,fk->bf", cam[None, None, :2] - p0, _FACE_N) > 1e-6  # not a back face
         b_i, f_i = np.nonzero(front)
         if len(b_i) == 0:
-            return
+            return None
         p0 = p0[b_i, f_i]
         e2 = _FACE_E[f_i]
         length = length[b_i, f_i]
@@ -415,72 +426,95 @@ class StereoRenderer:
         corners[:, 3, :2] = p0
         corners[:, 0:2, 2] = h[:, None]
         pc = corners @ R_c_w.T + t_c_w  # (F, 4, 3) camera coordinates; pc[:, 0] is the top of p0
-        in_front = np.all(pc[..., 2] >= near, axis=1)
+        in_front = np.all(pc[..., 2] >= float(self.opts["near_m"]), axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             uv_all = pc[..., :2] / pc[..., 2:3] * [fx, fy] + [cx, cy]
         # plane in camera coordinates: n_c . X = d ; inverse depth = n_c . K^-1 (u, v, 1) / d
         n_c = np.column_stack([_FACE_N[f_i], np.zeros(n_f)]) @ R_c_w.T
         plane = (n_c @ self.Kinv) / np.einsum("fk,fk->f", n_c, pc[:, 0])[:, None]
-        # texture axes in the camera: along the face, and down
+        # texture axes in the camera: along the face (and down, the same for every face)
         e_c = np.column_stack([e2, np.zeros(n_f)]) @ R_c_w.T
-        down_c = -R_c_w[:, 2]
-        tex_off = self._inst_tex[idx[b_i], f_i]
-        fog_m = float(self.opts["fog_m"])
-        n_lev = len(self.wall)
-        for j in range(n_f):
-            if in_front[j]:
-                uv = uv_all[j]
-            else:
-                poly = _clip_near(pc[j], near)
-                if len(poly) < 3:
-                    continue
-                uv = poly[:, :2] / poly[:, 2:3] * [fx, fy] + [cx, cy]
-            umin, vmin = uv.min(axis=0).tolist()
-            umax, vmax = uv.max(axis=0).tolist()
-            x0, x1 = max(0, math.floor(umin)), min(W, math.ceil(umax) + 1)
-            y0, y1 = max(0, math.floor(vmin)), min(H, math.ceil(vmax) + 1)
-            if x1 <= x0 or y1 <= y0:
-                continue
-            a = plane[j]  # float64 scalars: the products are float64, rounded to float32 once
-            invz = (a[0] * self._uu[y0:y1, x0:x1] + a[1] * self._vv[y0:y1, x0:x1] + a[2]).astype(np.float32)
-            mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-            pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
-            cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
-            zsub = zbuf[y0:y1, x0:x1]
-            sel = (mask > 0) & (invz > zsub)
-            invz_sel = invz[sel]
-            if invz_sel.size == 0:
-                continue
-            # texture: face coords (s along e, t down from the top) in texels of a mip level
-            dist = 1.0 / max(float(invz_sel.max()), 1e-6)
-            foot = dist / (fx * self.wall_texel)
-            lev = min(max(math.floor(math.log2(max(foot * 0.7, 1e-9))), 0), n_lev - 1)
-            s = self.wall_texel * (2**lev)
-            tex = self.wall[lev]
-            n_t = tex.shape[0]
-            # face texel (i, j) -> world: P0 + (i + ou) * s * E - (j + ov) * s * z ; offsets mod tile
-            ou, ov = int(tex_off[j, 0]) % n_t, int(tex_off[j, 1]) % n_t
-            Mface = np.column_stack([e_c[j] * s, down_c * s, pc[j, 0] - ou * s * e_c[j] - ov * s * down_c])
-            Tr = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
-            Minv = np.linalg.inv(Tr @ K @ Mface)
-            patch = cv2.warpPerspective(
-                tex,
-                Minv,
-                (x1 - x0, y1 - y0),
-                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                borderMode=cv2.BORDER_WRAP,
-            )
-            f = math.exp(-dist / fog_m)
-            sub = img[y0:y1, x0:x1]
-            alpha = float(alphas[b_i[j]])
-            if alpha >= 1.0:
-                sub[sel] = (patch[sel] * f + 150.0 * (1 - f)).astype(np.uint8)
-            else:
-                sub[sel] = (alpha * (patch[sel] * f + 150.0 * (1 - f)) + (1 - alpha) * sub[sel]).astype(
-                    np.uint8
-                )
-            if alpha >= 0.5:
-                zsub[sel] = invz_sel
+        return _Faces(b_i, pc, in_front, uv_all, plane, e_c, self._inst_tex[idx[b_i], f_i])
+
+    def _face_outline(self, faces: _Faces, j: int) -> np.ndarray | None:
+        """Face ``j``'s outline in pixels (clipped at the near plane; None when nothing is left)."""
+        if faces.in_front[j]:
+            return faces.uv_all[j]
+        poly = _clip_near(faces.pc[j], float(self.opts["near_m"]))
+        if len(poly) < 3:
+            return None
+        K = self.K
+        return poly[:, :2] / poly[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+
+    def _paint_face(self, img, zbuf, faces: _Faces, j: int, uv, down_c, alpha: float) -> None:
+        """Face ``j``'s pixels in front of ``zbuf`` within outline ``uv``: its texture, fogged, blended
+        with ``alpha`` into ``img``; the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
+        umin, vmin = uv.min(axis=0).tolist()
+        umax, vmax = uv.max(axis=0).tolist()
+        x0, x1 = max(0, math.floor(umin)), min(self.width, math.ceil(umax) + 1)
+        y0, y1 = max(0, math.floor(vmin)), min(self.height, math.ceil(vmax) + 1)
+        if x1 <= x0 or y1 <= y0:
+            return
+        a = faces.plane[j]  # float64 scalars: the products are float64, rounded to float32 once
+        invz = (a[0] * self._uu[y0:y1, x0:x1] + a[1] * self._vv[y0:y1, x0:x1] + a[2]).astype(np.float32)
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
+        cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
+        zsub = zbuf[y0:y1, x0:x1]
+        sel = (mask > 0) & (invz > zsub)
+        invz_sel = invz[sel]
+        if invz_sel.size == 0:
+            return
+        dist = 1.0 / max(float(invz_sel.max()), 1e-6)
+        patch = self._face_texture(faces, j, down_c, dist, (x0, y0, x1, y1))
+        f = math.exp(-dist / float(self.opts["fog_m"]))
+        sub = img[y0:y1, x0:x1]
+        if alpha >= 1.0:
+            sub[sel] = (patch[sel] * f + 150.0 * (1 - f)).astype(np.uint8)
+        else:
+            sub[sel] = (alpha * (patch[sel] * f + 150.0 * (1 - f)) + (1 - alpha) * sub[sel]).astype(np.uint8)
+        if alpha >= 0.5:
+            zsub[sel] = invz_sel
+
+    def _face_texture(self, faces: _Faces, j: int, down_c, dist: float, box) -> np.ndarray:
+        """Face ``j``'s wall texture warped onto the pixel box ``(x0, y0, x1, y1)``, from the mip level of
+        its footprint at distance ``dist`` (face coords: s along e, t down from the top, in texels)."""
+        x0, y0, x1, y1 = box
+        K = self.K
+        foot = dist / (K[0, 0] * self.wall_texel)
+        lev = min(max(math.floor(math.log2(max(foot * 0.7, 1e-9))), 0), len(self.wall) - 1)
+        s = self.wall_texel * (2**lev)
+        tex = self.wall[lev]
+        n_t = tex.shape[0]
+        # face texel (i, j) -> world: P0 + (i + ou) * s * E - (j + ov) * s * z ; offsets mod tile
+        e_c, tex_off = faces.e_c[j], faces.tex_off[j]
+        ou, ov = int(tex_off[0]) % n_t, int(tex_off[1]) % n_t
+        Mface = np.column_stack([e_c * s, down_c * s, faces.pc[j, 0] - ou * s * e_c - ov * s * down_c])
+        Tr = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
+        Minv = np.linalg.inv(Tr @ K @ Mface)
+        return cv2.warpPerspective(
+            tex,
+            Minv,
+            (x1 - x0, y1 - y0),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_WRAP,
+        )
+
+
+@dataclass(frozen=True)
+class _Faces:
+    """The front faces of :meth:`StereoRenderer._face_geometry`, one row each: the instance row ``b_i`` of the
+    face, its corners in the camera ``pc`` (F, 4, 3; ``pc[:, 0]`` the top of its ground corner p0),
+    whether they are all before the near plane, their pixels ``uv_all`` (F, 4, 2), the face's plane
+    (inverse depth = ``plane . (u, v, 1)``), its direction in the camera ``e_c`` and its texture offset."""
+
+    b_i: np.ndarray
+    pc: np.ndarray
+    in_front: np.ndarray
+    uv_all: np.ndarray
+    plane: np.ndarray
+    e_c: np.ndarray
+    tex_off: np.ndarray
 
 
 # box corners (x, y, z) as signs of the half sizes and of the height, in the order of the face tests

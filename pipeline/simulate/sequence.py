@@ -61,6 +61,115 @@ def _schedule(rate: float, dt_ns: int) -> Callable[[int], int]:
     return lambda n: math.ceil(n * period - 1e-9)
 
 
+class _Clock:
+    """Which integrator step each stream fires at next (:func:`_schedule`)."""
+
+    def __init__(self, rates: Mapping[str, float], dt_ns: int, streams: list[str]):
+        self.sched = {k: _schedule(rates[k], dt_ns) for k in streams}
+        self.count = dict.fromkeys(streams, 0)
+        self.due = {k: self.sched[k](0) for k in streams}
+
+    def fires(self, stream: str, k: int) -> bool:
+        return stream in self.due and self.due[stream] == k
+
+    def advance(self, stream: str) -> None:
+        self.count[stream] += 1
+        self.due[stream] = self.sched[stream](self.count[stream])
+
+
+class _Sensors:
+    """The robot's sensors and what they write: encoders (``joint_states``), the wheel odometry of the
+    Jackal's controller (``odom``) and the IMU, with per-sequence IMU biases and white noise per sample,
+    drawn from ``rng`` (the sensors' own stream) in a fixed order."""
+
+    def __init__(self, sim: SkidSteerSim, robot: Robot, noise: Mapping[str, float], rng, start, sink):
+        self.sim, self.robot, self.rng, self.sink = sim, robot, rng, sink
+        self.gyro_bias = rng.normal(0.0, float(noise["gyro_bias"]))
+        self.accel_bias = rng.normal(0.0, float(noise["accel_bias"]), 2)
+        self.enc_sigma = float(noise["encoder_rate"])
+        self.gyro_sigma = float(noise["gyro"])
+        self.accel_sigma = float(noise["accel"])
+        self.joints = (*robot.left_joints, *robot.right_joints)
+        self.n_left = len(robot.left_joints)
+        self.odom = [start[0], start[1], start[2]]  # wheel odometry starts at the true pose
+        self.odom_last: float | None = None
+        self.imu_yaw, self.imu_last = start[2], None
+
+    def encoders(self) -> tuple[float, float]:
+        """The measured (left, right) wheel rates, rad/s."""
+        left = self.sim.wheel_rate[0] + self.rng.normal(0.0, self.enc_sigma)
+        right = self.sim.wheel_rate[1] + self.rng.normal(0.0, self.enc_sigma)
+        return left, right
+
+    def joint_states(self, t_ns: int, meas: tuple[float, float]) -> None:
+        if self.sink is None:
+            return
+        sim, n_left, n_right = self.sim, self.n_left, len(self.joints) - self.n_left
+        pos = [sim.wheel_angle[0]] * n_left + [sim.wheel_angle[1]] * n_right
+        vel = [meas[0]] * n_left + [meas[1]] * n_right
+        eff = [sim.motor_torque[0] / n_left] * n_left + [sim.motor_torque[1] / n_right] * n_right
+        self.sink.joint_states(t_ns, self.joints, pos, vel, eff)
+
+    def odometry(self, t: float, t_ns: int, meas: tuple[float, float]) -> None:
+        """jackal_velocity_controller: ideal diff-drive dead reckoning from the encoders."""
+        r, B = self.robot.wheel_radius, self.robot.track_width
+        meas_left, meas_right = meas
+        v_odom, w_odom = r * (meas_left + meas_right) / 2.0, r * (meas_right - meas_left) / B
+        odom = self.odom
+        if self.odom_last is not None:
+            h = (t - self.odom_last) * 1.0
+            mid = odom[2] + 0.5 * h * w_odom
+            odom[0] += h * v_odom * math.cos(mid)
+            odom[1] += h * v_odom * math.sin(mid)
+            odom[2] += h * w_odom
+        self.odom_last = t
+        if self.sink is not None:
+            twist = (v_odom, 0.0, w_odom)
+            self.sink.odometry("odom", t_ns, "odom", "base_link", odom, twist, POSE_COV, TWIST_COV)
+
+    def imu(self, t: float, t_ns: int) -> None:
+        sim, rng, gyro_sigma, accel_sigma = self.sim, self.rng, self.gyro_sigma, self.accel_sigma
+        gyro_z = sim.wz + self.gyro_bias + rng.normal(0.0, gyro_sigma)
+        if self.imu_last is not None:
+            self.imu_yaw += (t - self.imu_last) * gyro_z
+        self.imu_last = t
+        if self.sink is not None:
+            gyro = (rng.normal(0.0, gyro_sigma), rng.normal(0.0, gyro_sigma), gyro_z)
+            accel = (
+                sim.ax + self.accel_bias[0] + rng.normal(0.0, accel_sigma),
+                sim.ay + self.accel_bias[1] + rng.normal(0.0, accel_sigma),
+                WORLD_GRAVITY + rng.normal(0.0, accel_sigma),  # specific force: the ground pushes up
+            )
+            self.sink.imu(t_ns, self.imu_yaw, gyro, accel, gyro_sigma**2, accel_sigma**2)
+
+
+def _camera(renderer: Any, sim: SkidSteerSim, sink: BagSink | None, t_ns: int, cam_info) -> None:
+    """Render the stereo pair at the robot's pose and write both images with their camera infos."""
+    x, y, yaw = sim.base_pose()
+    left, right = renderer.render(x, y, yaw)
+    if sink is not None:
+        sink.image("left", t_ns, renderer.encode(left))
+        sink.camera_info("left", t_ns, cam_info["left"])
+        sink.image("right", t_ns, renderer.encode(right))
+        sink.camera_info("right", t_ns, cam_info["right"])
+
+
+def _start(spec: SequenceSpec, robot: Robot, terrain, drive, tyre, dt: float, rng, cmd_rate: float):
+    """The sequence's start pose (base frame, drawn from the driver's stream), its driver and the
+    simulator reset there."""
+    start = (
+        float(rng.uniform(-20.0, 20.0)),
+        float(rng.uniform(-20.0, 20.0)),
+        float(rng.uniform(-math.pi, math.pi)),
+    )
+    driver = make_driver(spec, rng, start, cmd_rate)
+    sim = SkidSteerSim(robot, terrain, drive, tyre, dt)
+    xc, yc = sim.cg_offset
+    c0, s0 = math.cos(start[2]), math.sin(start[2])
+    sim.reset(start[0] + c0 * xc - s0 * yc, start[1] + s0 * xc + c0 * yc, start[2])
+    return start, driver, sim
+
+
 def simulate_sequence(
     spec: SequenceSpec,
     index: int,
@@ -81,46 +190,15 @@ def simulate_sequence(
     dt = float(run.dt)
     dt_ns = int(round(dt * 1e9))
     rates = {k: float(v) for k, v in run.rates.items()}
-    noise = run.sensors
     t0_ns = EPOCH_NS + index * SEQUENCE_SPACING_NS
-
     rng = sequence_rng(seed, spec.name)
     sensor_rng = np.random.default_rng([int(seed), index, 7])
-    start = (
-        float(rng.uniform(-20.0, 20.0)),
-        float(rng.uniform(-20.0, 20.0)),
-        float(rng.uniform(-math.pi, math.pi)),
-    )
-    driver = make_driver(spec, rng, start, rates["cmd_vel"])
-    sim = SkidSteerSim(robot, terrain, drive, tyre, dt)
-    xc, yc = sim.cg_offset
-    c0, s0 = math.cos(start[2]), math.sin(start[2])
-    sim.reset(start[0] + c0 * xc - s0 * yc, start[1] + s0 * xc + c0 * yc, start[2])
-
+    start, driver, sim = _start(spec, robot, terrain, drive, tyre, dt, rng, rates["cmd_vel"])
     r, B = robot.wheel_radius, robot.track_width
-    joints = (*robot.left_joints, *robot.right_joints)
-    n_left = len(robot.left_joints)
-
-    # sensor errors: per-sequence IMU biases, white noise per sample
-    gyro_bias = sensor_rng.normal(0.0, float(noise["gyro_bias"]))
-    accel_bias = sensor_rng.normal(0.0, float(noise["accel_bias"]), 2)
-    enc_sigma, gyro_sigma, accel_sigma = (
-        float(noise["encoder_rate"]),
-        float(noise["gyro"]),
-        float(noise["accel"]),
-    )
-
+    sensors = _Sensors(sim, robot, run.sensors, sensor_rng, start, sink)
     streams = ["cmd_vel", "true_pose", "joint_states", "odom", "imu"]
-    if renderer is not None:
-        streams.append("camera")
-    sched = {k: _schedule(rates[k], dt_ns) for k in streams}
-    count = dict.fromkeys(streams, 0)
-    due = {k: sched[k](0) for k in streams}
-
+    clock = _Clock(rates, dt_ns, [*streams, "camera"] if renderer is not None else streams)
     cmd_left = cmd_right = 0.0
-    odom = [start[0], start[1], start[2]]  # wheel odometry starts at the true pose
-    odom_last = None
-    imu_yaw, imu_last = start[2], None
     cam_info = renderer.camera_info() if renderer is not None else None
     truth: dict[str, list[float]] = {k: [] for k in Truth.__dataclass_fields__}
 
@@ -129,94 +207,35 @@ def simulate_sequence(
     for k in range(n_steps + 1):
         t = k * dt
         t_ns = t0_ns + k * dt_ns
-        if k == due["cmd_vel"]:
-            pose = sim.base_pose()
-            v, w = driver.command(t, pose)
+        if clock.fires("cmd_vel", k):
+            v, w = driver.command(t, sim.base_pose())
             # the Jackal's diff-drive controller: ideal inverse kinematics to side wheel rates
             cmd_left, cmd_right = (v - w * B / 2.0) / r, (v + w * B / 2.0) / r
             if sink is not None:
                 sink.cmd_vel(t_ns, v, w)
-            count["cmd_vel"] += 1
-            due["cmd_vel"] = sched["cmd_vel"](count["cmd_vel"])
-        if k == due["true_pose"]:
+            clock.advance("cmd_vel")
+        if clock.fires("true_pose", k):
             pose, twist = sim.base_pose(), sim.base_twist()
-            for key, val in zip(
-                (
-                    "t",
-                    "x",
-                    "y",
-                    "yaw",
-                    "vx",
-                    "vy",
-                    "wz",
-                    "wheel_left",
-                    "wheel_right",
-                    "cmd_left",
-                    "cmd_right",
-                ),
-                (t, *pose, *twist, sim.wheel_rate[0], sim.wheel_rate[1], cmd_left, cmd_right),
-                strict=True,
-            ):
+            row = (t, *pose, *twist, sim.wheel_rate[0], sim.wheel_rate[1], cmd_left, cmd_right)
+            for key, val in zip(Truth.__dataclass_fields__, row, strict=True):
                 truth[key].append(val)
             if sink is not None:
                 sink.odometry("true_pose", t_ns, "world", "base_link", pose, twist, TRUTH_COV, TRUTH_COV)
-            count["true_pose"] += 1
-            due["true_pose"] = sched["true_pose"](count["true_pose"])
-        if k == due["joint_states"] or k == due["odom"]:
-            meas_left = sim.wheel_rate[0] + sensor_rng.normal(0.0, enc_sigma)
-            meas_right = sim.wheel_rate[1] + sensor_rng.normal(0.0, enc_sigma)
-        if k == due["joint_states"]:
-            if sink is not None:
-                pos = [sim.wheel_angle[0]] * n_left + [sim.wheel_angle[1]] * (len(joints) - n_left)
-                vel = [meas_left] * n_left + [meas_right] * (len(joints) - n_left)
-                eff = [sim.motor_torque[0] / n_left] * n_left + [
-                    sim.motor_torque[1] / (len(joints) - n_left)
-                ] * (len(joints) - n_left)
-                sink.joint_states(t_ns, joints, pos, vel, eff)
-            count["joint_states"] += 1
-            due["joint_states"] = sched["joint_states"](count["joint_states"])
-        if k == due["odom"]:
-            # jackal_velocity_controller: ideal diff-drive dead reckoning from the encoders
-            v_odom, w_odom = r * (meas_left + meas_right) / 2.0, r * (meas_right - meas_left) / B
-            if odom_last is not None:
-                h = (t - odom_last) * 1.0
-                mid = odom[2] + 0.5 * h * w_odom
-                odom[0] += h * v_odom * math.cos(mid)
-                odom[1] += h * v_odom * math.sin(mid)
-                odom[2] += h * w_odom
-            odom_last = t
-            if sink is not None:
-                sink.odometry(
-                    "odom", t_ns, "odom", "base_link", odom, (v_odom, 0.0, w_odom), POSE_COV, TWIST_COV
-                )
-            count["odom"] += 1
-            due["odom"] = sched["odom"](count["odom"])
-        if k == due["imu"]:
-            gyro_z = sim.wz + gyro_bias + sensor_rng.normal(0.0, gyro_sigma)
-            if imu_last is not None:
-                imu_yaw += (t - imu_last) * gyro_z
-            imu_last = t
-            if sink is not None:
-                gyro = (sensor_rng.normal(0.0, gyro_sigma), sensor_rng.normal(0.0, gyro_sigma), gyro_z)
-                accel = (
-                    sim.ax + accel_bias[0] + sensor_rng.normal(0.0, accel_sigma),
-                    sim.ay + accel_bias[1] + sensor_rng.normal(0.0, accel_sigma),
-                    WORLD_GRAVITY
-                    + sensor_rng.normal(0.0, accel_sigma),  # specific force: the ground pushes up
-                )
-                sink.imu(t_ns, imu_yaw, gyro, accel, gyro_sigma**2, accel_sigma**2)
-            count["imu"] += 1
-            due["imu"] = sched["imu"](count["imu"])
-        if renderer is not None and k == due["camera"]:
-            x, y, yaw = sim.base_pose()
-            left, right = renderer.render(x, y, yaw)
-            if sink is not None:
-                sink.image("left", t_ns, renderer.encode(left))
-                sink.camera_info("left", t_ns, cam_info["left"])
-                sink.image("right", t_ns, renderer.encode(right))
-                sink.camera_info("right", t_ns, cam_info["right"])
-            count["camera"] += 1
-            due["camera"] = sched["camera"](count["camera"])
+            clock.advance("true_pose")
+        if clock.fires("joint_states", k) or clock.fires("odom", k):
+            meas = sensors.encoders()
+        if clock.fires("joint_states", k):
+            sensors.joint_states(t_ns, meas)
+            clock.advance("joint_states")
+        if clock.fires("odom", k):
+            sensors.odometry(t, t_ns, meas)
+            clock.advance("odom")
+        if clock.fires("imu", k):
+            sensors.imu(t, t_ns)
+            clock.advance("imu")
+        if renderer is not None and clock.fires("camera", k):
+            _camera(renderer, sim, sink, t_ns, cam_info)
+            clock.advance("camera")
         if progress is not None and k % report_every == 0 and k:
             progress(1.0)
         if driver.done or k == n_steps:

@@ -103,6 +103,7 @@ def robot_checks(
     cmd_v: np.ndarray | None,
     icp_dist: np.ndarray | None = None,
     enc_rad: np.ndarray | None = None,
+    refuse: bool = True,
 ) -> dict:
     """Check the data against ``robot`` (module docstring); ConfigError (not this robot's) or SourceError
     (does not move) naming the number. Returns the measured numbers (logged and recorded).
@@ -110,7 +111,8 @@ def robot_checks(
     meas_l, meas_r: measured wheel rates (rad/s, any shape). cmd_v: the commanded body speed (m/s) at the
     same samples, or None. icp_dist, enc_rad: per window or step, the ground-truth distance (m) and the
     mean absolute wheel angle turned (rad) of near-straight motion, or None. A check without data is
-    skipped."""
+    skipped. ``refuse=False`` (``source.check_geometry=false``): a geometry that contradicts the robot is
+    a warning, and the recording is scored as this robot's."""
     r = float(robot.wheel_radius)
     out: dict = {"robot": robot.name, "wheel_radius": r}
     ml, mr = np.asarray(meas_l, float).ravel(), np.asarray(meas_r, float).ravel()
@@ -118,11 +120,12 @@ def robot_checks(
     peak = float(np.nanmax(np.abs(np.concatenate([ml, mr])))) if ml.size else float("nan")
     out["max_wheel_rate_measured"] = peak
     if icp_dist is not None and enc_rad is not None:
-        _check_radius(path, robot, np.asarray(icp_dist, float), np.asarray(enc_rad, float), out)
+        _check_radius(path, robot, np.asarray(icp_dist, float), np.asarray(enc_rad, float), out, refuse)
     if limit and np.isfinite(peak) and peak > WHEEL_LIMIT_MARGIN * limit:
-        raise ConfigError(
+        _not_this_robot(
             f"{path}: robot={robot.name}: the wheels turn at up to {peak:.2f} rad/s, over "
-            f"{WHEEL_LIMIT_MARGIN:g}x its limit {limit:.2f} rad/s: the recording is not this robot's; {HINT}"
+            f"{WHEEL_LIMIT_MARGIN:g}x its limit {limit:.2f} rad/s: the recording is not this robot's",
+            refuse,
         )
     if cmd_v is not None:
         _speed_gain(path, robot, ml, mr, np.asarray(cmd_v, float).ravel(), limit, out)
@@ -131,9 +134,17 @@ def robot_checks(
     return out
 
 
-def _check_radius(path: Path, robot, d: np.ndarray, a: np.ndarray, out: dict) -> None:
+def _not_this_robot(line: str, refuse: bool) -> None:
+    """ConfigError naming what would fix it; a warning with ``source.check_geometry=false``."""
+    if refuse:
+        raise ConfigError(f"{line}; {HINT}, or source.check_geometry=false to score it as this robot's")
+    log.warning("%s; scored as this robot's anyway (source.check_geometry=false)", line)
+
+
+def _check_radius(path: Path, robot, d: np.ndarray, a: np.ndarray, out: dict, refuse: bool = True) -> None:
     """Ground-truth metres per wheel radian over the spec radius: near zero, the robot does not move while
-    its wheels turn; outside ``RADIUS_RANGE``, another robot's recording."""
+    its wheels turn; outside ``RADIUS_RANGE``, another robot's recording (below it, or wheels that slip
+    that much on straight stretches: ice, mud; the line says both)."""
     r = float(robot.wheel_radius)
     use = np.isfinite(d) & np.isfinite(a) & (a > MIN_STRETCH_RAD)
     if use.sum() < MIN_STRETCHES:
@@ -151,9 +162,11 @@ def _check_radius(path: Path, robot, d: np.ndarray, a: np.ndarray, out: dict) ->
             f"{ratio:.2g}x the wheel radius {r:g} m: lifted off the ground or stuck"
         )
     if not RADIUS_RANGE[0] <= ratio <= RADIUS_RANGE[1]:
-        raise ConfigError(
+        slip = f", or its wheels slip by {1 - ratio:.0%} on straight stretches (ice, mud)" * (ratio < 1)
+        _not_this_robot(
             f"{path}: robot={robot.name}: {numbers}, {ratio:.2f}x the spec sheet's wheel radius {r:g} m "
-            f"(expected {RADIUS_RANGE[0]}-{RADIUS_RANGE[1]}x): the recording is not this robot's; {HINT}"
+            f"(expected {RADIUS_RANGE[0]}-{RADIUS_RANGE[1]}x): the recording is not this robot's{slip}",
+            refuse,
         )
 
 

@@ -236,12 +236,14 @@ def raw_to_sequences(
     segments: list | None = None,
     robot=None,
     checks: dict | None = None,
+    check_geometry: bool = True,
 ) -> list[DriveSequence]:
     """Raw form -> its sequences: one per maximal run of
     command-driven rows of one category (module docstring). ``segments``: when a list, every classified
     segment (:func:`segments_of`; the command-driven ones also name their ``category`` and
     ``sequences``) is appended to it. ``robot``: checked against the command-driven rows
-    (:func:`raw_robot_checks`), its numbers stored in ``checks``."""
+    (:func:`raw_robot_checks`; ``check_geometry=False``: a contradiction only warns), its numbers stored in
+    ``checks``."""
     raw = read_raw(df, path)
     cmd_rows = raw.classes == COMMAND
     steps_all = raw.df["calib_step"].to_numpy()
@@ -253,7 +255,7 @@ def raw_to_sequences(
             log.info("%s: left out %s segment %.1f s%s (%s)", path.name, seg["class"], seg["seconds"],
                      f", {seg['metres']:.1f} m" if seg["metres"] is not None else "", seg["why"])  # fmt: skip
     if robot is not None:
-        found = raw_robot_checks(raw, path, robot)
+        found = raw_robot_checks(raw, path, robot, check_geometry)
         if checks is not None:
             checks.update(found)
     # one sequence per maximal run of command-driven rows of one category
@@ -279,7 +281,7 @@ def raw_to_sequences(
     return out
 
 
-def raw_robot_checks(raw: RawFile, path: Path, robot) -> dict:
+def raw_robot_checks(raw: RawFile, path: Path, robot, check_geometry: bool = True) -> dict:
     """:func:`~.drive_checks.robot_checks` on a raw file's command-driven rows (commands, encoders; ICP
     per 6 s step when it ran)."""
     part = raw.df[raw.classes == COMMAND]
@@ -295,7 +297,8 @@ def raw_robot_checks(raw: RawFile, path: Path, robot) -> dict:
             xy = g[["icp_pos_x", "icp_pos_y"]].to_numpy(float)
             dist.append(float(np.hypot(*(xy[-1] - xy[0]))) if diff < 0.2 * common else np.nan)
             angle.append(common)
-    return robot_checks(path, robot, ml, mr, part["cmd_vel_x"].to_numpy(float), dist, angle)
+    cmd_v = part["cmd_vel_x"].to_numpy(float)
+    return robot_checks(path, robot, ml, mr, cmd_v, dist, angle, refuse=check_geometry)
 
 
 # -- the source ---------------------------------------------------------------------------------------
@@ -314,6 +317,7 @@ class DriveSettings:
     cmd_kinematics: Any = None  # None, [r, B], or robot -> [r, B]
     cmd_limits: Any = None  # None, [v_max, w_max], or robot -> [v_max, w_max]
     break_at_jumps: bool = True
+    check_geometry: bool = True  # false: a geometry that contradicts the robot only warns (ice, mud)
 
 
 def _file_list(src: DriveSettings) -> list[str]:
@@ -362,7 +366,7 @@ def _read_file(path: Path, src: DriveSettings, robot, label: str) -> tuple[str, 
     checks: dict = {}
     if form == "raw":
         segs: list = []
-        seqs = raw_to_sequences(df, path, fractions, label, segments=segs, robot=robot, checks=checks)
+        seqs = raw_to_sequences(df, path, fractions, label, segs, robot, checks, bool(src.check_geometry))
         return form, version, seqs, checks, segs
     windows = WindowSettings(
         rate_hz=float(src.rate_hz),
@@ -373,6 +377,7 @@ def _read_file(path: Path, src: DriveSettings, robot, label: str) -> tuple[str, 
         break_at_jumps=bool(src.break_at_jumps),
         identify=bool(src.identify_cmd_kinematics),
         kinematics_key=f"source.cmd_kinematics.{robot.name}",
+        check_geometry=bool(src.check_geometry),
     )
     seqs = windows_to_sequences(df, path, windows, robot=robot, checks=checks)
     return form, version, seqs, checks, window_segments(df, path)

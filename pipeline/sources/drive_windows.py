@@ -151,9 +151,10 @@ def window_recording(arrays: dict[str, np.ndarray]) -> Recording:
                      metres, changes)  # fmt: skip
 
 
-def _commands_and_robot(path, arrays, robot, cmd_kinematics, identify, key, checks) -> tuple | None:
+def _commands_and_robot(path, arrays, robot, s: WindowSettings, checks) -> tuple | None:
     """Log the measured/commanded gain, identify the command kinematics (``identify`` with a robot), check
     the robot against the data; returns the kinematics the commands are converted back with."""
+    cmd_kinematics = s.cmd_kinematics
     gs, gd, n_used = command_gain(
         arrays["cmd_left"], arrays["cmd_right"], arrays["left_wheel_vel"], arrays["right_wheel_vel"]
     )
@@ -169,16 +170,15 @@ def _commands_and_robot(path, arrays, robot, cmd_kinematics, identify, key, chec
             )
         return cmd_kinematics
     found: dict = {}
-    if identify:
+    if s.identify:
         cmd_kinematics, found["cmd_kinematics"] = identify_cmd_kinematics(
-            path, robot, arrays, cmd_kinematics, key
+            path, robot, arrays, cmd_kinematics, s.kinematics_key
         )
     r_cmd = cmd_kinematics[0] if cmd_kinematics is not None else float(robot.wheel_radius)
     cmd_v = r_cmd * (arrays["cmd_left"] + arrays["cmd_right"]) / 2
     dist, angle = window_motion(arrays)
-    found.update(
-        robot_checks(path, robot, arrays["left_wheel_vel"], arrays["right_wheel_vel"], cmd_v, dist, angle)
-    )
+    wheels = arrays["left_wheel_vel"], arrays["right_wheel_vel"]
+    found.update(robot_checks(path, robot, *wheels, cmd_v, dist, angle, refuse=s.check_geometry))
     warn_disagreement(path, found.get("cmd_kinematics", {}))
     if checks is not None:
         checks.update(found)
@@ -194,7 +194,7 @@ class WindowSettings:
     the file, this only the fallback named ``kinematics_key``); when known the commands are written as a
     body twist (``cmd_vel``), clipped to ``cmd_limits`` (v_max, w_max) if given, else as ``cmd_wheels``;
     ``break_at_jumps``: a boundary that is not back to back (:func:`window_breaks`) starts a new sequence
-    of the category."""
+    of the category; ``check_geometry=False``: a geometry that contradicts the robot is only a warning."""
 
     rate_hz: float = 20.0
     fractions: tuple[float, ...] = (0.6, 0.2, 0.2)
@@ -204,6 +204,7 @@ class WindowSettings:
     break_at_jumps: bool = True
     identify: bool = False
     kinematics_key: str = "source.cmd_kinematics"
+    check_geometry: bool = True
 
 
 def windows_to_sequences(
@@ -216,9 +217,7 @@ def windows_to_sequences(
     df, step = _ordered(df, path)
     arrays = window_arrays(df, path)
     notes = check_recording(path, window_recording(arrays), refuse_without_gt=True)
-    cmd_kinematics = _commands_and_robot(
-        path, arrays, robot, s.cmd_kinematics, s.identify, s.kinematics_key, checks
-    )
+    cmd_kinematics = _commands_and_robot(path, arrays, robot, s, checks)
     cats = category_by_rank(list(dict.fromkeys(step.tolist())), tuple(s.fractions))
     breaks = np.zeros(max(len(df) - 1, 0), dtype=bool)
     if s.break_at_jumps:

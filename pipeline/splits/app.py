@@ -73,6 +73,88 @@ def joint_rates(df: pd.DataFrame, robot: Robot, where: str) -> np.ndarray:
     return np.column_stack([left, right])
 
 
+def _source(path: Path) -> dict[str, str]:
+    """A split's record of one file it was made from."""
+    return {"path": str(path), "fingerprint": fingerprint_file(path)}
+
+
+def read_commands(ext: Path) -> tuple[Path, str, np.ndarray, np.ndarray]:
+    """(file, kind, bag times in ns, (N, 2) values) of a sequence's extracted commands, in time order:
+    ``cmd_vel`` (kind ``twist``: linear_x, angular_z) or else ``cmd_wheels`` (kind ``wheels``: wl, wr)."""
+    if (ext / "cmd_vel.parquet").is_file():
+        cmd_path, kind, cols = ext / "cmd_vel.parquet", "twist", ["linear_x", "angular_z"]
+    elif (ext / "cmd_wheels.parquet").is_file():
+        cmd_path, kind, cols = ext / "cmd_wheels.parquet", "wheels", ["wl", "wr"]
+    else:
+        raise SplitError(f"{ext}: no cmd_vel or cmd_wheels table; run `skidbench extract`")
+    c = pd.read_parquet(cmd_path, columns=["bag_time_ns", *cols])
+    cmd = c[cols].to_numpy(float)
+    if len(c) == 0:
+        raise SplitError(f"{cmd_path}: empty sequence (no commands)")
+    cmd_t = c["bag_time_ns"].to_numpy(np.int64)
+    order = np.argsort(cmd_t, kind="stable")
+    return cmd_path, kind, cmd_t[order], cmd[order]
+
+
+def read_encoders(ext: Path, robot: Robot) -> tuple[np.ndarray | None, np.ndarray | None, Path | None]:
+    """(bag times in ns, (N, 2) wheel rates wl/wr, file) of a sequence's wheel measurements: the robot's
+    joints of ``joint_states`` (:func:`joint_rates`) or else ``enc_wheels``; (None, None, None) without
+    either (or with an empty ``joint_states``)."""
+    p = ext / "joint_states.parquet"
+    if p.is_file():
+        j = pd.read_parquet(p, columns=["bag_time_ns", "name", "velocity"])
+        if not len(j):
+            return None, None, None
+        return j["bag_time_ns"].to_numpy(np.int64), joint_rates(j, robot, str(p)), p
+    p = ext / "enc_wheels.parquet"
+    if p.is_file():
+        j = pd.read_parquet(p, columns=["bag_time_ns", "wl", "wr"])
+        return j["bag_time_ns"].to_numpy(np.int64), j[["wl", "wr"]].to_numpy(float), p
+    return None, None, None
+
+
+def apply_gate(df: pd.DataFrame, gate: dict, sp: DictConfig, layout: Layout, seq: Sequence) -> bool:
+    """What the consistency gate's verdict does to a sequence: nothing when not flagged; with
+    ``split.drop_flagged`` (and not ``allow_flagged``) every row of ``df`` becomes invalid (in place);
+    refused otherwise unless ``allow_flagged`` (returns False, and an earlier run's split file is removed)."""
+    if not gate["flagged"]:
+        return True
+    log.warning("ground truth consistency gate FLAGGED %s", describe(seq.name, gate))
+    if bool(sp.get("drop_flagged", False)) and not bool(sp.allow_flagged):
+        gate["dropped"] = True  # kept in the manifest's layout, but no row of it is scored or fitted
+        df["valid"] = False
+        log.warning("%s: dropped (split.drop_flagged=true): every row valid=false", seq.name)
+    elif not bool(sp.allow_flagged):
+        stale = layout.split_file(seq.terrain, seq.category, seq.name)
+        stale.unlink(missing_ok=True)  # an earlier allowed run's file must not be scored now
+        return False
+    return True
+
+
+def split_meta(
+    df: pd.DataFrame, gate: dict, sp: DictConfig, robot: Robot, seq: Sequence, sources: dict
+) -> dict[str, Any]:
+    """The metadata a split file records beside its table."""
+    return {
+        "consistency": gate,
+        "sequence": seq.name,
+        "terrain": seq.terrain,
+        "split": seq.category,
+        "robot": robot.to_dict(),
+        "sources": sources,
+        "rate_hz": float(sp.rate_hz),
+        "cmd_timeout_s": float(sp.cmd_timeout),
+        "differentiator": {
+            "kind": "savitzky_golay",
+            "window": int(sp.differentiator.window),
+            "order": int(sp.differentiator.order),
+        },
+        "max_wheel_rate": robot.max_wheel_rate,
+        "clipped_rows": df.attrs.get("clipped_rows", 0),
+        "cmd_association": df.attrs.get("cmd_association"),
+    }
+
+
 def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence) -> tuple[Path | None, dict]:
     """Build one sequence's split table and gate it (:func:`consistency`); write it unless the gate
     flags it and ``split.allow_flagged`` is false. Returns (its path or None when refused, the gate's
@@ -83,70 +165,24 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
     if not tum.is_file():
         raise SplitError(f"{tum}: no ground truth for {seq.name}; run `skidbench groundtruth`")
     gt = read_tum(tum)
-    sources = {"groundtruth": {"path": str(tum), "fingerprint": fingerprint_file(tum)}}
-    if (ext / "cmd_vel.parquet").is_file():
-        cmd_path, kind = ext / "cmd_vel.parquet", "twist"
-        c = pd.read_parquet(cmd_path, columns=["bag_time_ns", "linear_x", "angular_z"])
-        cmd = c[["linear_x", "angular_z"]].to_numpy(float)
-    elif (ext / "cmd_wheels.parquet").is_file():
-        cmd_path, kind = ext / "cmd_wheels.parquet", "wheels"
-        c = pd.read_parquet(cmd_path, columns=["bag_time_ns", "wl", "wr"])
-        cmd = c[["wl", "wr"]].to_numpy(float)
-    else:
-        raise SplitError(f"{ext}: no cmd_vel or cmd_wheels table; run `skidbench extract`")
-    if len(c) == 0:
-        raise SplitError(f"{cmd_path}: empty sequence (no commands)")
-    cmd_t = c["bag_time_ns"].to_numpy(np.int64)
-    order = np.argsort(cmd_t, kind="stable")
-    cmd_t, cmd = cmd_t[order], cmd[order]
-    sources["cmd"] = {"path": str(cmd_path), "fingerprint": fingerprint_file(cmd_path)}
-    enc_t = enc = None
-    if (ext / "joint_states.parquet").is_file():
-        p = ext / "joint_states.parquet"
-        j = pd.read_parquet(p, columns=["bag_time_ns", "name", "velocity"])
-        if len(j):
-            enc_t, enc = j["bag_time_ns"].to_numpy(np.int64), joint_rates(j, robot, str(p))
-            sources["enc"] = {"path": str(p), "fingerprint": fingerprint_file(p)}
-    elif (ext / "enc_wheels.parquet").is_file():
-        p = ext / "enc_wheels.parquet"
-        j = pd.read_parquet(p, columns=["bag_time_ns", "wl", "wr"])
-        enc_t, enc = j["bag_time_ns"].to_numpy(np.int64), j[["wl", "wr"]].to_numpy(float)
-        sources["enc"] = {"path": str(p), "fingerprint": fingerprint_file(p)}
-    window, order_ = int(sp.differentiator.window), int(sp.differentiator.order)
+    cmd_path, kind, cmd_t, cmd = read_commands(ext)
+    enc_t, enc, enc_path = read_encoders(ext, robot)
+    sources = {"groundtruth": _source(tum), "cmd": _source(cmd_path)}
+    if enc_path is not None:
+        sources["enc"] = _source(enc_path)
     df = build_split_table(
         robot, gt.stamp_ns, gt.se2, gt.gaps, cmd_t, cmd, kind, enc_t, enc, float(sp.rate_hz),
-        float(sp.cmd_timeout), float(sp.max_gap), window, order_,
+        float(sp.cmd_timeout), float(sp.max_gap), int(sp.differentiator.window), int(sp.differentiator.order),
     )  # fmt: skip
     if len(df) == 0 or not df["valid"].any():  # (checked before the gate, which may drop every row)
         raise SplitError(
             f"{tum}: empty sequence: no valid ground truth overlapping the commands of {cmd_path}"
         )
     gate = consistency(df, robot.wheel_radius, robot.track_width, GateConfig.from_cfg(sp.get("consistency")))
-    if gate["flagged"]:
-        log.warning("ground truth consistency gate FLAGGED %s", describe(seq.name, gate))
-        if bool(sp.get("drop_flagged", False)) and not bool(sp.allow_flagged):
-            gate["dropped"] = True  # kept in the manifest's layout, but no row of it is scored or fitted
-            df["valid"] = False
-            log.warning("%s: dropped (split.drop_flagged=true): every row valid=false", seq.name)
-        elif not bool(sp.allow_flagged):
-            stale = layout.split_file(seq.terrain, seq.category, seq.name)
-            stale.unlink(missing_ok=True)  # an earlier allowed run's file must not be scored now
-            return None, gate
+    if not apply_gate(df, gate, sp, layout, seq):
+        return None, gate
     path = layout.split_file(seq.terrain, seq.category, seq.name)
-    meta = {
-        "consistency": gate,
-        "sequence": seq.name,
-        "terrain": seq.terrain,
-        "split": seq.category,
-        "robot": robot.to_dict(),
-        "sources": sources,
-        "rate_hz": float(sp.rate_hz),
-        "cmd_timeout_s": float(sp.cmd_timeout),
-        "differentiator": {"kind": "savitzky_golay", "window": window, "order": order_},
-        "max_wheel_rate": robot.max_wheel_rate,
-        "clipped_rows": df.attrs.get("clipped_rows", 0),
-        "cmd_association": df.attrs.get("cmd_association"),
-    }
+    meta = split_meta(df, gate, sp, robot, seq, sources)
     write_split(df, path, meta)
     log.info("%s -> %s (%d rows, %.0f%% valid)", seq.name, path, len(df), 100 * df["valid"].mean())
     if meta["clipped_rows"]:
@@ -224,7 +260,7 @@ def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
     card_cfg: Any = cfg.get("card") or {}
     files = [p for p in layout.split_files(Manifest.read(layout.manifest)) if p.is_file()]
     text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)), files)
-    text += gate_section(files) + segments_section(layout)
+    text += gate_section(files) + recording_section(layout) + segments_section(layout)
     write_text_atomic(layout.splits / "card.md", text)
     return text
 
@@ -266,6 +302,33 @@ def _metres(segs: list[dict]) -> str:
     """Ground-truth path length of segments ("-" when the source has no absolute pose for them)."""
     vals = [s["metres"] for s in segs if s.get("metres") is not None]
     return f"{sum(vals):.1f}" if vals else "-"
+
+
+def recording_section(layout: Layout) -> str:
+    """Markdown: per source file, what extract measured of the recording against the robot (``robot_checks``
+    in ``extracted/segments.json``: the wheel-rate peak, the ground truth's metres per wheel radian over
+    the spec radius, the measured/commanded speed gain) and the command kinematics identified from it."""
+    path = layout.extracted / "segments.json"
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    rows = [(name, rec) for name, rec in data.items() if rec.get("robot_checks")]
+    if not rows:
+        return ""
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    out = ["", "## The recording against the robot (measured by extract)", ""]
+    out += ["| file | version | robot | wheel peak rad/s | m per wheel rad / spec radius | speed gain | "
+            "command kinematics [r, B] |", "|---|---|---|---:|---:|---:|---|"]  # fmt: skip
+    for name, rec in rows:
+        c = rec["robot_checks"]
+        kin = c.get("cmd_kinematics") or {}
+        said = f"{kin['value']}: {kin.get('how', '')}" if kin.get("value") else "- (body commands)"
+        if kin.get("configured") and kin.get("value") and kin["configured"] != kin["value"]:
+            said += f"; the configured fallback {kin['configured']} not used"
+        out.append(
+            f"| {name} | {rec.get('version', '-')} | {c.get('robot', '-')} | "
+            f"{fmt(c.get('max_wheel_rate_measured'), '.2f')} | {fmt(c.get('implied_radius_ratio'), '.2f')} | "
+            f"{fmt(c.get('speed_gain'), '.2f')} | {said} |"
+        )
+    return "\n".join(out) + "\n"
 
 
 def segments_section(layout: Layout) -> str:
