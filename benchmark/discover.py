@@ -576,10 +576,18 @@ def _choose(run: _Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, s
         scored[best_c][0].pop("named_on_tie", None)
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
     eid = termlib.catalogue_equivalent(name)
-    if eid is not None and _same_channels(name, eid) and eid in scored and scored[eid][0]["passes"]:
-        # the same statement about the same channels, in a form that fits better: the catalogue's name
-        # (a form that also changes a channel the effect does not, e.g. one side's slip, which takes
-        # forward speed too, states something more: it is named by itself when significantly better)
+    if (
+        eid is not None
+        and _same_channels(name, eid)
+        and eid in scored
+        and scored[eid][0]["passes"]
+        and not significantly_better(*scored_t[name][:2], *scored[eid], run.settings)
+    ):
+        # the same statement about the same channels, as well explained by the catalogue's own form: the
+        # catalogue's name. Significantly better than that form, it is not the effect as the catalogue
+        # states it (a wheel dead zone cuts spins' yaw rate, a function of curvature that chi(R) takes
+        # only at a bound), and a form that also changes a channel the effect does not (one side's slip,
+        # which takes forward speed too) states something more: either is named by itself
         run.say(f"[{run.terrain}]   {name} states {eid} in another form: named {eid}")
         return ("catalogue", eid, equivalents(eid))
     if best_c is not None:

@@ -77,6 +77,20 @@ def test_slip_term_on_the_extended_differential_drive_is_eq_8():
     assert "longitudinal ICR offset x_ICR = 0.05" in tl.Term("lin", "wz_pred", 1).describe(-0.05, R)
 
 
+def test_one_side_slip_is_a_radius_difference_on_a_smaller_mean_radius(monkeypatch):
+    # a slip ratio s on the left side moves the robot exactly as wheel radii r (1 - s) and r do: the radius
+    # difference of side_asymmetry, e = (s / 2) / (1 - s / 2), on a mean radius r (1 - s / 2), the radius
+    # calibrate measures on straight rows; so on a calibrated base the two are one statement
+    t, v, w = dd.joystick(np.random.default_rng(0), 20.0, 1 / 180)
+    s = 0.1
+    slip = dd.true_velocity(t, v, w, {"one_side_slip": ("l", s)})
+    monkeypatch.setattr(dd, "R_WHEEL", R * (1 - s / 2))  # the same wheel commands, the smaller mean radius
+    m = 1 - s / 2
+    radii = dd.true_velocity(t, v * m, w * m, {"side_asymmetry": (s / 2) / m})
+    for a, b in zip(slip, radii, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+
+
 def test_stlsq_recovers_a_sparse_law():
     rng = np.random.default_rng(3)
     X = rng.normal(size=(500, 30))
