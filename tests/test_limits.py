@@ -34,7 +34,6 @@ CFG_TAKERS = {
     "benchmark.evaluate:_as_container",
     "benchmark.evaluate:run_benchmark",
     "benchmark.horizon:window_errors",
-    "benchmark.tracking:resolve_tracking_uri",
     "benchmark.transfer:training_layout",
 }
 
