@@ -214,7 +214,8 @@ def false_catalogue_names(c: dict[str, Any], steps: list[dict[str, Any]]) -> lis
 
 
 def run_case(c: dict[str, Any]) -> dict[str, Any]:
-    from skidbench.benchmark.discover import discover_terrain, prepare_pool
+    from skidbench.benchmark.discover import discover_terrain
+    from skidbench.benchmark.discover_pool import prepare_pool
     from skidbench.models.effect_fit import DiscoverError, DiscoverSettings, build_pool
     from skidbench.models.specs import get_model_class
     from skidbench.pipeline.robot import load_robot

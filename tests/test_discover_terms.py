@@ -18,7 +18,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
+from skidbench.models import term_screen as ts  # noqa: E402
 from skidbench.models import terms as tl  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.models.specs import get_model_class  # noqa: E402
@@ -95,7 +97,7 @@ def test_stlsq_recovers_a_sparse_law():
     rng = np.random.default_rng(3)
     X = rng.normal(size=(500, 30))
     y = 2.0 * X[:, 3] - 0.5 * X[:, 17] + 0.01 * rng.normal(size=500)
-    coef = tl.stlsq(X, y, threshold=0.05)
+    coef = ts.stlsq(X, y, threshold=0.05)
     assert set(np.flatnonzero(coef)) == {3, 17}
     raw = coef / np.linalg.norm(X, axis=0)  # back to the unstandardised columns
     assert raw[3] == pytest.approx(2.0, rel=0.02) and raw[17] == pytest.approx(-0.5, rel=0.02)
@@ -110,7 +112,7 @@ def test_screen_names_a_yaw_rate_saturation_with_its_knot():
     true = base.copy()
     true[:, 2] = np.clip(base[:, 2], -lim, lim)
     resid = true - base + 0.01 * np.random.default_rng(2).normal(size=true.shape)
-    scr = tl.screen(sig, gains, B, resid, np.ones(2000, bool), np.ones(3))
+    scr = ts.screen(sig, gains, B, resid, np.ones(2000, bool), np.ones(3))
     best = scr.candidates[0]
     assert (best.family, best.signal, best.channel) == ("sat", "wz_pred", 2)
     assert best.knots[0] == pytest.approx(lim, rel=0.02)
