@@ -33,7 +33,6 @@ CFG_TAKERS = {
     "benchmark.compare:run_compare",
     "benchmark.evaluate:_as_container",
     "benchmark.evaluate:run_benchmark",
-    "benchmark.horizon:window_errors",
     "benchmark.transfer:training_layout",
 }
 
