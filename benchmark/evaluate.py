@@ -99,7 +99,8 @@ class BenchmarkResult:
         return pd.DataFrame(rows)
 
 
-def _as_container(cfg: Any) -> dict[str, Any]:
+def _container_from_cfg(cfg: Any) -> dict[str, Any]:
+    """The config as plain data (resolved): what the parent run's params are logged from."""
     try:
         from omegaconf import OmegaConf
 
@@ -160,7 +161,7 @@ def run_benchmark(
 
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)
-    conf = _as_container(cfg)
+    conf = _container_from_cfg(cfg)
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
