@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.models.fitting import ModelConfigs, model_config
 from skidbench.pipeline import provenance
 from skidbench.pipeline.calibration import Calibrations
 from skidbench.pipeline.errors import one_line
@@ -42,7 +43,6 @@ from .fit_record import (
     installed_models,
     log_model,
     model_code,
-    model_config,
     num,
     options_tags,
     plugin_package,
@@ -99,7 +99,8 @@ class BenchmarkResult:
         return pd.DataFrame(rows)
 
 
-def _as_container(cfg: Any) -> dict[str, Any]:
+def _container_from_cfg(cfg: Any) -> dict[str, Any]:
+    """The config as plain data (resolved): what the parent run's params are logged from."""
     try:
         from omegaconf import OmegaConf
 
@@ -160,10 +161,9 @@ def run_benchmark(
 
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)
-    conf = _as_container(cfg)
+    conf = _container_from_cfg(cfg)
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
-    all_files = [p for fs in files_of.values() for p in fs]
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
     env_tags = provenance.run_tags()
     common_tags = {trk.TAG_DATASET: str(cfg.dataset), **env_tags, trk.TAG_GIT: commit, **transfer_tags}
@@ -179,27 +179,28 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped))  # fmt: skip
+        about = _describe(layout, str(cfg.get("inputs", "commanded")), models, terrains, splits, horizons)
         parent_tags = {
             **common_tags,
             **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
             trk.TAG_ROLE: "parent",
-            trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
+            trk.TAG_FINGERPRINT: split_fingerprint(sum(files_of.values(), []), layout.splits),
             trk.TAG_INPUTS: protocol,
             "skidbench.models": ",".join(models),
             "skidbench.terrains": ",".join(terrains),
-            trk.TAG_NOTE: _describe(cfg, models, terrains, splits, horizons),
+            trk.TAG_NOTE: about,
         }
         name = tracker.unique_run_name(trk.parent_run_name("evaluate", str(cfg.dataset), protocol))
         with tracker.run(name, parent_tags) as parent_id:
             tracker.log(parent_id, params=params)
             if skipped:
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
-            datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
+            datasets_of = {t: _split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
                                log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
             floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
-            _log_board(ctx, children, splits, protocol, _describe(cfg, models, terrains, splits, horizons))
+            _log_board(ctx, children, splits, protocol, about)
             save_views(tracker, parent_id, splits, horizons, protocol)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
@@ -379,8 +380,8 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         fit = _fit_and_log(ctx, run_id, model_name, td, stem)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
-        log_model(ctx.cfg, ctx.tracker, run_id, fit, model_name, td.terrain, record_path,
-                   next(iter(td.tests.values()))[0])  # fmt: skip
+        log_model(str(ctx.cfg.get("inputs", "commanded")), ctx.tracker, run_id, fit, model_name, td.terrain,
+                  record_path, next(iter(td.tests.values()))[0])  # fmt: skip
         stage("predict")
         metrics, windows, velocities = predict_and_score(
             fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
@@ -417,13 +418,14 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
 def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
     protocol = td.inputs.protocol
-    model_conf = model_config(ctx.cfg, model_name)
+    model_conf = model_config(ModelConfigs.from_cfg(ctx.cfg), model_name)
     run_id = ctx.tracker.start(
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {**ctx.tags, trk.TAG_FINGERPRINT: td.fingerprint, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name,
          trk.TAG_TERRAIN: td.terrain, trk.TAG_INPUTS: protocol,
          **options_tags(ctx.conf, model_conf, protocol),
-         trk.TAG_NOTE: _describe(ctx.cfg, [model_name], [td.terrain], list(td.tests), ctx.horizons)},
+         trk.TAG_NOTE: _describe(ctx.layout, str(ctx.cfg.get("inputs", "commanded")), [model_name],
+                                 [td.terrain], list(td.tests), ctx.horizons)},
         ctx.parent_id,
     )  # fmt: skip
     params = trk.config_params(ctx.conf, model_conf)  # this model's config only
@@ -540,7 +542,7 @@ def _over_some_windows(key: str) -> bool:
 
 
 # -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
-def _describe(cfg, models, terrains, splits, horizons) -> str:
+def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -> str:
     """The description of an evaluate run (parent: every model and terrain; child: one of each)."""
     one = len(models) == 1 and len(terrains) == 1
     cmd = trk.reproduce_command(
@@ -553,8 +555,8 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
     title = (f"**{models[0]}** on **{terrains[0]}**, fitted on Train, scored on {'/'.join(splits).upper()}"
              if one else f"Benchmark of {len(models)} models on {len(terrains)} terrains")  # fmt: skip
     facts = {
-        "dataset": f"`{cfg.dataset}` ({layout_from_cfg(cfg).root})",
-        "input protocol": f"`{cfg.get('inputs', 'commanded')}` (what a model is given at predict time)",
+        "dataset": f"`{layout.dataset}` ({layout.root})",
+        "input protocol": f"`{inputs}` (what a model is given at predict time)",
         "horizon": ", ".join(f"{h:g} s" for h in horizons),
         "models": None if one else ", ".join(models),
         "terrains": None if one else ", ".join(terrains),
@@ -563,7 +565,7 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
     return trk.describe(title, facts, cmd)
 
 
-def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
+def _split_inputs(layout: Layout, terrain, files, tests) -> list[trk.SplitData]:
     """The Train split and the test splits of one terrain as MLflow dataset inputs."""
     out = []
     for split in [TRAIN, *tests]:
@@ -573,7 +575,8 @@ def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
             if split in tests
             else [read_split(p) for p in fs]
         )
-        out.append(trk.SplitData(f"{cfg.dataset}/{terrain}/{split}", split, layout.splits / terrain / split,
+        name = f"{layout.dataset}/{terrain}/{split}"
+        out.append(trk.SplitData(name, split, layout.splits / terrain / split,
                                  split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
     return out
 
