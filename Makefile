@@ -108,13 +108,19 @@ mlflow-ui: setup
 # The Ray tests need the optional `cluster` extra: installed best-effort, once per pyproject.toml change;
 # where it cannot be installed those tests are skipped with the reason.
 CLUSTER_STAMP := $(VENV)/.skidbench-cluster
-# The lock's pins as constraints without their hashes (pip refuses an editable install beside hashed
+# The lock's pins as constraints without their hashes (pip refuses a requirement without a hash beside hashed
 # constraints): the extra's own packages resolve freely, everything the lock pins keeps its version.
 CONSTRAINTS := $(VENV)/constraints.txt
 $(CONSTRAINTS): $(STAMP)
 	grep -E '^[A-Za-z0-9_.-]+==' $(LOCK) | sed 's/ *\\$$//' > $@
+# An extra's own packages (pyproject.toml's optional-dependencies), not the project again: `setup` installed
+# it already, and each editable install builds it anew (a build environment fetched from the index and four
+# build-backend calls; 2-3 min of a `make test` on a loaded machine, 2026-11-27).
+EXTRA_REQS = $(BIN)/python -c 'import sys, tomllib; \
+	print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"][sys.argv[1]]))'
 $(CLUSTER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
-	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,cluster]' \
+	$(EXTRA_REQS) cluster > $(VENV)/extra-cluster.txt
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -r $(VENV)/extra-cluster.txt \
 		|| echo "make test: the cluster extra (Ray) did not install; its tests will be skipped"
 	@touch $@
 
@@ -138,7 +144,8 @@ system-packages:
 		echo "make test: $$missing not installed (installing needs root and apt-get); the tests that need it will be skipped"; \
 	fi
 $(SERVER_STAMP): $(STAMP) $(if $(LOCK),$(CONSTRAINTS))
-	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -e '.[dev,server]' \
+	$(EXTRA_REQS) server > $(VENV)/extra-server.txt
+	$(BIN)/python -m pip install -q --disable-pip-version-check $(if $(LOCK),-c $(CONSTRAINTS)) -r $(VENV)/extra-server.txt \
 		|| echo "make test: the server extra (psycopg) did not install; the PostgreSQL tests will be skipped"
 	@touch $@
 

@@ -22,7 +22,7 @@ def export_main(cfg: DictConfig) -> None:
 
     layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "export")
     tracker = None  # export reads the store: it does not create an empty one to find nothing in
-    if trk.has_store(trk.resolve_tracking_uri(cfg, layout)):
+    if trk.has_store(trk.tracking_uri_from_cfg(cfg, layout)):
         tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
     settings = ExportSettings.from_cfg(cfg)
     print(describe_export(export_bundle(settings, layout, Path(str(cfg.bundle.dir)), tracker)), flush=True)

@@ -180,7 +180,7 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
     from skidbench.pipeline.cache import check_producers
     from skidbench.pipeline.imported import check_stage
 
-    uri = trk.resolve_tracking_uri(cfg, layout_from_cfg(cfg))
+    uri = trk.tracking_uri_from_cfg(cfg, layout_from_cfg(cfg))
     if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
         raise CompareError(
             f"no MLflow store at {uri}: nothing was evaluated under this output root; "

@@ -24,11 +24,9 @@ from skidbench.benchmark.discover import (
     NO_EFFECT_MESSAGE,
     TerrainDiscovery,
     discover_terrain,
-    load_pool,
-    prepare_pool,
     refused_terrain,
-    too_small,
 )
+from skidbench.benchmark.discover_pool import load_pool, prepare_pool, too_small
 from skidbench.models.effect_fit import DiscoverError, DiscoverSettings
 from skidbench.models.effects import CATALOGUE, EFFECT_IDS
 from skidbench.pipeline.cli import stage

@@ -21,12 +21,13 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.models.fitting import ModelConfigs, model_config
 from skidbench.pipeline import provenance
 from skidbench.pipeline.calibration import Calibrations
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import ProtocolError, protocol_from_cfg
+from skidbench.pipeline.protocol import ProtocolError, check_protocol
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import intervals as iv
@@ -42,25 +43,16 @@ from .fit_record import (
     installed_models,
     log_model,
     model_code,
-    model_config,
     num,
     options_tags,
     plugin_package,
 )
 from .floor import FLOOR
-from .horizon import EvaluationError, HorizonConfig, count_windows
+from .horizon import EvaluationError, HorizonConfig
 from .references import log_floor, seed_spread
 from .report_data import ReportDataSettings, write_report_data, write_wheel_response_steps
 from .scoring import Inputs, TestSequence, predict_and_score
-from .testsets import (
-    TRAIN,
-    check_horizons,
-    find_terrains,
-    load_test_split,
-    protocol_unavailable,
-    split_files,
-    split_fingerprint,
-)
+from .testsets import TRAIN, EvaluationData, load_evaluation_data, split_fingerprint
 from .transfer import training_layout
 
 log = logging.getLogger(__name__)
@@ -107,7 +99,8 @@ class BenchmarkResult:
         return pd.DataFrame(rows)
 
 
-def _as_container(cfg: Any) -> dict[str, Any]:
+def _container_from_cfg(cfg: Any) -> dict[str, Any]:
+    """The config as plain data (resolved): what the parent run's params are logged from."""
     try:
         from omegaconf import OmegaConf
 
@@ -142,80 +135,35 @@ def run_benchmark(
 ) -> BenchmarkResult:
     """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(cfg, model, terrain)``
     returns a FitResult-like object (``model``, ``path``, ``fit_loss``, ``fit_time_s``, ``n_train``);
-    default :func:`skidbench.models.fitting.fit_model`."""
+    default :func:`skidbench.models.fitting.fit_from_cfg`."""
     layout = layout_from_cfg(cfg)
     models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
     intervals = iv.IntervalConfig.from_cfg(cfg)
     for h in horizons:  # blocks shorter than a horizon: one line before anything runs
         intervals.block_length(h)
-    if FLOOR in models:
-        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
-                              "velocities, on every board), not a model name")  # fmt: skip
-    try:
-        protocol = protocol_from_cfg(cfg)
-    except ProtocolError as exc:
-        raise EvaluationError(str(exc)) from None
+    protocol = _checked_protocol(cfg.get("inputs"), models)
     if log_figures is None:
         log_figures = bool(cfg.get("log_figures", True))
     if fit_fn is None:
-        from skidbench.models.registry import is_model_spec
-        from skidbench.models.specs import get_model_class
-
-        known = installed_models()
-        for m in models:  # an augmented spec "base+effect+..." must name a known base and known effects
-            if "+" in m:
-                get_model_class(m)
-        unknown = [m for m in models if known and m not in known and not is_model_spec(m)]
-        if unknown:
-            raise EvaluationError(
-                f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
-            )
-        fit_fn = default_fit_fn()
+        fit_fn = _checked_default_fit_fn(models)
     # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags (benchmark/transfer.py)
     cfg, fit_fn, transfer_tags = training_layout(cfg, fit_fn)
 
     # 1. the data, checked before anything is logged
-    found = find_terrains(layout)
-    if terrains is None:
-        terrains = found
-    missing = [t for t in terrains if t not in found]
-    if missing:
-        raise EvaluationError(f"{layout.manifest}: no sequences of terrain(s) {missing}; it has {found}")
-    tests: dict[str, dict[str, list[TestSequence]]] = {}
-    files_of: dict[str, list[Path]] = {}
-    inputs_of: dict[str, Inputs] = {}
-    skipped: list[str] = []
-    for terrain in terrains:
-        train_files = split_files(layout, terrain, TRAIN)
-        if not train_files:
-            raise EvaluationError(
-                f"{layout.splits / terrain / TRAIN}: empty train split for terrain {terrain}"
-            )
-        tests[terrain] = {}
-        for split in splits:
-            seqs = load_test_split(layout, terrain, split)
-            check_horizons(terrain, split, seqs, horizons)
-            for h in horizons:  # short sequences: say how many windows each horizon has (compare shows n)
-                n_win, n_seq, short = count_windows([s.table for s in seqs], h)
-                log.info("%s/%s: %g s horizon: %d windows from %d sequence(s), %d shorter than it",
-                         terrain, split, h, n_win, n_seq, short)  # fmt: skip
-            tests[terrain][split] = seqs
-        files_of[terrain] = train_files + [s.path for sp in splits for s in tests[terrain][sp]]
-        why = protocol_unavailable(cfg, layout, protocol, terrain, train_files, tests[terrain], inputs_of)
-        skipped += why
+    data = load_evaluation_data(layout, Calibrations.from_cfg(cfg), terrains, splits, horizons, protocol)
+    tests, files_of = data.tests, data.files_of
+    skipped, terrains = data.skipped, data.terrains
     for line in skipped:
         log.warning("%s", line)
         print(line, flush=True)
-    terrains = [t for t in terrains if t in inputs_of and tests[t]]
     if not terrains:
         raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
 
     # 2. the store (an unreachable server is one line, here)
     tracker = trk.tracker_from_cfg(cfg, layout)
-    conf = _as_container(cfg)
+    conf = _container_from_cfg(cfg)
     params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
-    all_files = [p for fs in files_of.values() for p in fs]
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
     env_tags = provenance.run_tags()
     common_tags = {trk.TAG_DATASET: str(cfg.dataset), **env_tags, trk.TAG_GIT: commit, **transfer_tags}
@@ -231,54 +179,106 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped))  # fmt: skip
-        inputs = protocol
-        with tracker.run(
-            tracker.unique_run_name(trk.parent_run_name("evaluate", str(cfg.dataset), inputs)),
-            {
-                **common_tags,
-                **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
-                trk.TAG_ROLE: "parent",
-                trk.TAG_FINGERPRINT: split_fingerprint(all_files, layout.splits),
-                trk.TAG_INPUTS: protocol,
-                "skidbench.models": ",".join(models),
-                "skidbench.terrains": ",".join(terrains),
-                trk.TAG_NOTE: _describe(cfg, models, terrains, splits, horizons),
-            },
-        ) as parent_id:
+        about = _describe(layout, str(cfg.get("inputs", "commanded")), models, terrains, splits, horizons)
+        parent_tags = {
+            **common_tags,
+            **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
+            trk.TAG_ROLE: "parent",
+            trk.TAG_FINGERPRINT: split_fingerprint(sum(files_of.values(), []), layout.splits),
+            trk.TAG_INPUTS: protocol,
+            "skidbench.models": ",".join(models),
+            "skidbench.terrains": ",".join(terrains),
+            trk.TAG_NOTE: about,
+        }
+        name = tracker.unique_run_name(trk.parent_run_name("evaluate", str(cfg.dataset), protocol))
+        with tracker.run(name, parent_tags) as parent_id:
             tracker.log(parent_id, params=params)
             if skipped:
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
-            datasets_of = {t: _split_inputs(cfg, layout, t, files_of[t], tests[t]) for t in terrains}
+            datasets_of = {t: _split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
                                log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
-            floor: dict[str, dict[str, float]] = {}
-            for terrain in terrains:
-                steps = write_wheel_response_steps(Calibrations.from_cfg(cfg), layout, terrain)
-                tracker.artifact(parent_id, steps, "report_data")
-                td = TerrainData(terrain, tests[terrain], inputs_of[terrain], datasets_of[terrain],
-                                 split_fingerprint(files_of[terrain], layout.splits))  # fmt: skip
-                stem = layout.eval_stem(FLOOR, terrain, protocol)
-                floor[terrain] = log_floor(tracker, parent_id, stem, terrain, tests[terrain], horizons, hcfg,
-                                           intervals, protocol)  # fmt: skip
-                children += [_run_child(ctx, model_name, td) for model_name in models]
-            n_failed = sum(c.status != "FINISHED" for c in children)
-            rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
-            board, board_metrics = mu.evaluate_leaderboard(rows, splits, horizons[0], protocol)
-            tracker.log(
-                parent_id,
-                metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
-                tags={
-                    trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED",
-                    trk.TAG_NOTE: board + _describe(cfg, models, terrains, splits, horizons),
-                },  # fmt: skip
-            )
+            floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
+            _log_board(ctx, children, splits, protocol, about)
             save_views(tracker, parent_id, splits, horizons, protocol)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
         layout,
         BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped, floor),
+    )
+
+
+def _checked_protocol(inputs: str | None, models: list[str]) -> str:
+    """The run's input protocol (``inputs``; ``commanded`` when unset); EvaluationError (one line) for a bad
+    one, or the floor named a model."""
+    if FLOOR in models:
+        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
+                              "velocities, on every board), not a model name")  # fmt: skip
+    try:
+        return check_protocol(inputs if inputs is not None else "commanded")
+    except ProtocolError as exc:
+        raise EvaluationError(str(exc)) from None
+
+
+def _run_terrains(
+    ctx: ChildContext, models: list[str], data: EvaluationData, datasets_of: dict, protocol: str,
+    children: list[ChildResult],
+) -> dict[str, dict[str, float]]:  # fmt: skip
+    """Every terrain's references (wheel-response steps, the floor) and every model's child run on it
+    (appended to ``children``, as they finish); returns the floor's metrics per terrain."""
+    floor: dict[str, dict[str, float]] = {}
+    for terrain in data.terrains:
+        td = TerrainData(terrain, data.tests[terrain], data.inputs_of[terrain], datasets_of[terrain],
+                         split_fingerprint(data.files_of[terrain], ctx.layout.splits))  # fmt: skip
+        floor[terrain] = _log_terrain_references(ctx, td, protocol)
+        children += [_run_child(ctx, model_name, td) for model_name in models]
+    return floor
+
+
+def _checked_default_fit_fn(models: list[str]) -> Callable[[Any, str, str], Any]:
+    """The default fit function, once every model named is installed (an augmented spec
+    ``base+effect+...``: a known base and known effects); EvaluationError (one line) otherwise."""
+    from skidbench.models.registry import is_model_spec
+    from skidbench.models.specs import get_model_class
+
+    known = installed_models()
+    for m in models:
+        if "+" in m:
+            get_model_class(m)
+    unknown = [m for m in models if known and m not in known and not is_model_spec(m)]
+    if unknown:
+        raise EvaluationError(
+            f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
+        )
+    return default_fit_fn()
+
+
+def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -> dict[str, float]:
+    """What the parent run holds of a terrain beside its models' runs: the wheel response's steps (report
+    data) and the floor (the ground truth's own velocities); returns the floor's metrics."""
+    steps = write_wheel_response_steps(Calibrations.from_cfg(ctx.cfg), ctx.layout, td.terrain)
+    ctx.tracker.artifact(ctx.parent_id, steps, "report_data")
+    stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
+    return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
+                     ctx.intervals, protocol)  # fmt: skip
+
+
+def _log_board(
+    ctx: ChildContext, children: list[ChildResult], splits: list[str], protocol: str, about: str
+) -> None:
+    """The parent run's leaderboard metrics, run counts, status and note (the board, then ``about``)."""
+    n_failed = sum(c.status != "FINISHED" for c in children)
+    rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
+    board, board_metrics = mu.evaluate_leaderboard(rows, splits, ctx.horizons[0], protocol)
+    ctx.tracker.log(
+        ctx.parent_id,
+        metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
+        tags={
+            trk.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED",
+            trk.TAG_NOTE: board + about,
+        },
     )
 
 
@@ -380,8 +380,8 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         fit = _fit_and_log(ctx, run_id, model_name, td, stem)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
-        log_model(ctx.cfg, ctx.tracker, run_id, fit, model_name, td.terrain, record_path,
-                   next(iter(td.tests.values()))[0])  # fmt: skip
+        log_model(str(ctx.cfg.get("inputs", "commanded")), ctx.tracker, run_id, fit, model_name, td.terrain,
+                  record_path, next(iter(td.tests.values()))[0])  # fmt: skip
         stage("predict")
         metrics, windows, velocities = predict_and_score(
             fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
@@ -418,13 +418,14 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
 def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
     protocol = td.inputs.protocol
-    model_conf = model_config(ctx.cfg, model_name)
+    model_conf = model_config(ModelConfigs.from_cfg(ctx.cfg), model_name)
     run_id = ctx.tracker.start(
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {**ctx.tags, trk.TAG_FINGERPRINT: td.fingerprint, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name,
          trk.TAG_TERRAIN: td.terrain, trk.TAG_INPUTS: protocol,
          **options_tags(ctx.conf, model_conf, protocol),
-         trk.TAG_NOTE: _describe(ctx.cfg, [model_name], [td.terrain], list(td.tests), ctx.horizons)},
+         trk.TAG_NOTE: _describe(ctx.layout, str(ctx.cfg.get("inputs", "commanded")), [model_name],
+                                 [td.terrain], list(td.tests), ctx.horizons)},
         ctx.parent_id,
     )  # fmt: skip
     params = trk.config_params(ctx.conf, model_conf)  # this model's config only
@@ -541,7 +542,7 @@ def _over_some_windows(key: str) -> bool:
 
 
 # -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
-def _describe(cfg, models, terrains, splits, horizons) -> str:
+def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -> str:
     """The description of an evaluate run (parent: every model and terrain; child: one of each)."""
     one = len(models) == 1 and len(terrains) == 1
     cmd = trk.reproduce_command(
@@ -554,8 +555,8 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
     title = (f"**{models[0]}** on **{terrains[0]}**, fitted on Train, scored on {'/'.join(splits).upper()}"
              if one else f"Benchmark of {len(models)} models on {len(terrains)} terrains")  # fmt: skip
     facts = {
-        "dataset": f"`{cfg.dataset}` ({layout_from_cfg(cfg).root})",
-        "input protocol": f"`{cfg.get('inputs', 'commanded')}` (what a model is given at predict time)",
+        "dataset": f"`{layout.dataset}` ({layout.root})",
+        "input protocol": f"`{inputs}` (what a model is given at predict time)",
         "horizon": ", ".join(f"{h:g} s" for h in horizons),
         "models": None if one else ", ".join(models),
         "terrains": None if one else ", ".join(terrains),
@@ -564,7 +565,7 @@ def _describe(cfg, models, terrains, splits, horizons) -> str:
     return trk.describe(title, facts, cmd)
 
 
-def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
+def _split_inputs(layout: Layout, terrain, files, tests) -> list[trk.SplitData]:
     """The Train split and the test splits of one terrain as MLflow dataset inputs."""
     out = []
     for split in [TRAIN, *tests]:
@@ -574,7 +575,8 @@ def _split_inputs(cfg, layout, terrain, files, tests) -> list[trk.SplitData]:
             if split in tests
             else [read_split(p) for p in fs]
         )
-        out.append(trk.SplitData(f"{cfg.dataset}/{terrain}/{split}", split, layout.splits / terrain / split,
+        name = f"{layout.dataset}/{terrain}/{split}"
+        out.append(trk.SplitData(name, split, layout.splits / terrain / split,
                                  split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
     return out
 

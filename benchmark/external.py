@@ -265,7 +265,6 @@ def check_name(name: str) -> str:
 
 
 def score_predictions(
-    cfg: Any,
     layout: Layout,
     tracker: trk.Tracker,
     path: Path,

@@ -86,13 +86,12 @@ def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str
     return described
 
 
-def model_config(cfg, model_name: str) -> dict[str, Any] | None:
-    return fitting.model_config(fitting.ModelConfigs.from_cfg(cfg), model_name)
-
-
-def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path, seq: TestSequence) -> None:
-    """The fitted model as an MLflow Model of the run (tag ``skidbench.logged_model``: its id, or why not:
-    a model object that is no installed skidbench model cannot be rebuilt outside this process)."""
+def log_model(
+    inputs: str, tracker, run_id, fit, model_name, terrain, record_path: Path, seq: TestSequence
+) -> None:
+    """The fitted model (under input protocol ``inputs``) as an MLflow Model of the run (tag
+    ``skidbench.logged_model``: its id, or why not: a model object that is no installed skidbench model
+    cannot be rebuilt outside this process)."""
     from skidbench.models.base import ModelError
     from skidbench.models.specs import get_model_class
 
@@ -105,7 +104,7 @@ def log_model(cfg, tracker, run_id, fit, model_name, terrain, record_path: Path,
         if not hasattr(model, "robot") or (type(model) is not cls and getattr(model, "name", "") != cls.name):
             raise ModelError(f"{type(model).__name__} is not the installed model {spec}")
         record = write_model_record(record_path, spec, model.to_json(),
-                                    model.robot, str(cfg.get("inputs", "commanded")))  # fmt: skip
+                                    model.robot, inputs)  # fmt: skip
         example = seq.table.head(30).assign(sequence=seq.name)[list(INPUT_COLUMNS)]  # 1 s of a test sequence
         arrays = record_path.with_name(record_path.name.replace(".mlflow_model.json", ".arrays.npz"))
         arrays = arrays if getattr(model, "arrays", None) and arrays.is_file() else None

@@ -68,7 +68,7 @@ def window_errors(
     velocity: np.ndarray,
     horizon_s: float,
     valid: np.ndarray | None = None,
-    cfg: HorizonConfig | None = None,
+    hcfg: HorizonConfig | None = None,
     velocity_cov: np.ndarray | None = None,
     autocorr: np.ndarray | None = None,
 ) -> pd.DataFrame:
@@ -81,9 +81,10 @@ def window_errors(
     ``rel_trans``, ``rel_rot`` (NaN where the window is under the minimum distance / rotation), then the
     details: ``end`` (index), ``pred_x``, ``pred_y``, ``pred_yaw`` (predicted pose at the window's end).
     With ``velocity_cov`` (T, 3, 3), the model's predictive covariance of (vx, vy, wz), and optionally
-    its error ``autocorr`` (L, 3), the columns of :data:`UNCERTAINTY_COLUMNS` follow.
+    its error ``autocorr`` (L, 3), the columns of :data:`UNCERTAINTY_COLUMNS` follow. ``hcfg``: the
+    windows' minimum distance and rotation (default :class:`HorizonConfig`'s).
     """
-    cfg = cfg or HorizonConfig(horizon_s=horizon_s)
+    hcfg = hcfg or HorizonConfig(horizon_s=horizon_s)
     t = np.asarray(t, dtype=float)
     gt_pose = np.asarray(gt_pose, dtype=float)
     velocity = np.asarray(velocity, dtype=float)
@@ -110,8 +111,8 @@ def window_errors(
         bad = np.concatenate([[0], np.cumsum(~np.asarray(valid, dtype=bool))])
         keep = (bad[ends + 1] - bad[starts]) == 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel_trans = np.where(distance >= cfg.min_distance_m, pos_err / distance, np.nan)
-        rel_rot = np.where(rotation >= cfg.min_rotation_rad, np.abs(rot_err) / rotation, np.nan)
+        rel_trans = np.where(distance >= hcfg.min_distance_m, pos_err / distance, np.nan)
+        rel_rot = np.where(rotation >= hcfg.min_rotation_rad, np.abs(rot_err) / rotation, np.nan)
     out = pd.DataFrame(
         {
             "start": starts,

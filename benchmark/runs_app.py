@@ -50,7 +50,7 @@ def call_store(uri: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="runs")
 @stage("runs", home=False)
 def main(cfg: DictConfig) -> None:
-    uri = trk.resolve_tracking_uri(cfg, layout_from_cfg(cfg))
+    uri = trk.tracking_uri_from_cfg(cfg, layout_from_cfg(cfg))
     client = store_client(uri, float(cfg.mlflow.get("timeout_s", 5.0)))
     if client is None:
         print(f"no MLflow store at {uri}: nothing was evaluated under this output root")

@@ -24,7 +24,7 @@ def main(cfg: DictConfig) -> None:
     layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "score")
     read_predictions(Path(str(cfg.score.predictions)))  # a file that cannot be scored: before the store opens
     tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
-    res = score_predictions(cfg, layout, tracker, Path(str(cfg.score.predictions)), cfg.score.get("name"),
+    res = score_predictions(layout, tracker, Path(str(cfg.score.predictions)), cfg.score.get("name"),
                             protocol_from_cfg(cfg))  # fmt: skip
     print(format_score(res), flush=True)
 

@@ -4,9 +4,10 @@ some sequence), each failure one :class:`EvaluationError` line, raised before an
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from skidbench.pipeline.cache import Fingerprints
 from skidbench.pipeline.calibration import Calibrations, response_for
@@ -15,11 +16,12 @@ from skidbench.pipeline.io import fingerprint_obj
 from skidbench.pipeline.layout import Layout, split_terrains
 from skidbench.pipeline.manifest import Manifest
 from skidbench.pipeline.protocol import sequences_without_encoders
-from skidbench.pipeline.robot import robot_from_hydra
 from skidbench.pipeline.schema import read_split
 
-from .horizon import EvaluationError, horizon_steps
+from .horizon import EvaluationError, count_windows, horizon_steps
 from .scoring import Inputs, TestSequence
+
+log = logging.getLogger(__name__)
 
 TRAIN = "train"
 
@@ -96,16 +98,17 @@ def split_fingerprint(files: Sequence[Path], root: Path) -> str:
 
 
 def protocol_unavailable(
-    cfg: Any, layout: Layout, protocol: str, terrain: str, train_files: Sequence[Path],
+    cal: Calibrations, layout: Layout, protocol: str, terrain: str, train_files: Sequence[Path],
     tests: dict[str, list[TestSequence]], inputs_of: dict[str, Inputs],
 ) -> list[str]:  # fmt: skip
     """Checks the protocol can drive the models on ``terrain``: sets ``inputs_of[terrain]``, drops from
     ``tests`` the test splits it cannot drive (``measured`` on a split without encoders) and returns one
-    line per (terrain, split) skipped (the whole terrain: no response identified, no Train encoders)."""
+    line per (terrain, split) skipped (the whole terrain: no response identified, no Train encoders). ``cal``:
+    the calibrations (the response, and the spec sheet's robot the inputs are converted with)."""
     where = f"{layout.splits / terrain}"
     response = None
     if protocol == "response":
-        response = response_for(Calibrations.from_cfg(cfg), terrain)
+        response = response_for(cal, terrain)
         if response is None:
             return [f"inputs=response: {where}: no wheel response identified (no wheel encoders in its Train "
                     "split, see `skidbench calibrate`); terrain skipped under this protocol"]  # fmt: skip
@@ -126,7 +129,57 @@ def protocol_unavailable(
                 del tests[split]
         if not tests:
             return lines
-        inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), None)
+        inputs_of[terrain] = Inputs(protocol, cal.spec, None)
         return lines
-    inputs_of[terrain] = Inputs(protocol, robot_from_hydra(cfg.robot), response)
+    inputs_of[terrain] = Inputs(protocol, cal.spec, response)
     return []
+
+
+@dataclass
+class EvaluationData:
+    """The test splits an evaluate scores, checked before anything is logged: the terrains the protocol
+    can drive, their test sequences per split, their split files (Train and test: the fingerprint's), the
+    inputs that drive the models, and a line per (terrain, split) skipped under the protocol."""
+
+    terrains: list[str]
+    tests: dict[str, dict[str, list[TestSequence]]]
+    files_of: dict[str, list[Path]]
+    inputs_of: dict[str, Inputs]
+    skipped: list[str]
+
+
+def load_evaluation_data(
+    layout: Layout, cal: Calibrations, terrains: list[str] | None, splits: Sequence[str],
+    horizons: Sequence[float], protocol: str,
+) -> EvaluationData:  # fmt: skip
+    """The test splits of ``terrains`` (None: every terrain of the dataset) under ``protocol``, each checked
+    against the horizons (and its windows per horizon logged); EvaluationError (one line) for a terrain
+    the dataset lacks or an empty Train split."""
+    found = find_terrains(layout)
+    if terrains is None:
+        terrains = found
+    missing = [t for t in terrains if t not in found]
+    if missing:
+        raise EvaluationError(f"{layout.manifest}: no sequences of terrain(s) {missing}; it has {found}")
+    data = EvaluationData([], {}, {}, {}, [])
+    for terrain in terrains:
+        train_files = split_files(layout, terrain, TRAIN)
+        if not train_files:
+            raise EvaluationError(
+                f"{layout.splits / terrain / TRAIN}: empty train split for terrain {terrain}"
+            )
+        data.tests[terrain] = {}
+        for split in splits:
+            seqs = load_test_split(layout, terrain, split)
+            check_horizons(terrain, split, seqs, horizons)
+            for h in horizons:  # short sequences: say how many windows each horizon has (compare shows n)
+                n_win, n_seq, short = count_windows([s.table for s in seqs], h)
+                log.info("%s/%s: %g s horizon: %d windows from %d sequence(s), %d shorter than it",
+                         terrain, split, h, n_win, n_seq, short)  # fmt: skip
+            data.tests[terrain][split] = seqs
+        data.files_of[terrain] = train_files + [s.path for sp in splits for s in data.tests[terrain][sp]]
+        data.skipped += protocol_unavailable(
+            cal, layout, protocol, terrain, train_files, data.tests[terrain], data.inputs_of
+        )
+    data.terrains = [t for t in terrains if t in data.inputs_of and data.tests[t]]
+    return data

@@ -138,8 +138,9 @@ def quiet_mlflow_logs() -> None:
     logging.getLogger("urllib3.connectionpool").setLevel(logging.ERROR)
 
 
-def resolve_tracking_uri(cfg: Any, layout: Layout) -> str:
-    """``mlflow.tracking_uri`` (the config reads ``MLFLOW_TRACKING_URI``) or the local SQLite store."""
+def tracking_uri_from_cfg(cfg: Any, layout: Layout) -> str:
+    """The door from the config to the store: ``mlflow.tracking_uri`` (the config reads
+    ``MLFLOW_TRACKING_URI``) or the local SQLite store."""
     node = cfg.get("mlflow") if hasattr(cfg, "get") else None
     uri = (node.get("tracking_uri") if node is not None else None) or os.environ.get("MLFLOW_TRACKING_URI")
     return str(uri) if uri else layout.mlflow_uri
@@ -573,7 +574,7 @@ def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) ->
     the configured source's, pipeline/dataset.py; a stage that names a dataset by its folder passes the
     one its ``dataset.json`` records)."""
     node = cfg.mlflow
-    uri = resolve_tracking_uri(cfg, layout)
+    uri = tracking_uri_from_cfg(cfg, layout)
     if dataset_id is None and cfg.get("source") is not None:
         from skidbench.pipeline.dataset import identity_from_cfg
 

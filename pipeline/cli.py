@@ -20,20 +20,13 @@ from collections.abc import Callable
 from importlib.resources import files
 from pathlib import Path
 
-from .cache import (
-    LOCAL_PRODUCERS,
-    StaleInputError,
-    check_producers,
-    clear_failed,
-    data_state,
-    inputs_changed,
-    mark_failed,
-)
 from .config_schema import check_value
 from .errors import EXIT_INTERRUPTED, EXIT_PARTIAL, ConfigError, PartialFailure, SkidbenchError, one_line
-from .imported import check_stage
 from .layout import default_out_root, register_resolvers, remove_atomic
 from .overrides import validate
+
+# Not imported here: what a stage's run needs and `skidbench --help` does not (.cache, .imported: PyArrow
+# through .io), so that the command starts with only what the chosen stage imports itself.
 
 # stage -> "module:function" (imported lazily so that `skidbench --help` is instant)
 STAGES: dict[str, tuple[str, str]] = {
@@ -101,6 +94,9 @@ def stage(name: str, home: bool = True, runs: bool = False, interrupted: str = "
     def deco(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
+            from .cache import LOCAL_PRODUCERS, StaleInputError, check_producers, clear_failed, data_state
+            from .imported import check_stage
+
             root = before = None
             register_resolvers()  # a sweep's job may run in a process that did not start at main()
             try:
@@ -156,6 +152,7 @@ def _after_failure(root: Path | None, name: str, message: str, before: dict | No
     stages downstream."""
     if root is None or not root.is_dir():
         return
+    from .cache import data_state, inputs_changed, mark_failed
     from .dataset import holds_data
 
     if not holds_data(root):

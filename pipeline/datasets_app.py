@@ -18,14 +18,14 @@ from .dataset import format_datasets, list_datasets
 @stage("datasets", home=False)
 def main(cfg: DictConfig) -> None:
     from skidbench.benchmark.selection import dataset_boards
-    from skidbench.benchmark.tracking import resolve_tracking_uri
+    from skidbench.benchmark.tracking import tracking_uri_from_cfg
 
     from .layout import Layout
 
     out_root = Path(str(cfg.out_root)).absolute()
     rows = list_datasets(out_root)
     print(format_datasets(rows, out_root))
-    uri = resolve_tracking_uri(cfg, Layout(out_root, "-"))
+    uri = tracking_uri_from_cfg(cfg, Layout(out_root, "-"))
     boards = dataset_boards(uri, {r["name"]: r["fingerprint"] for r in rows if r["fingerprint"] != "?"})
     for name, lines in boards.items():
         print(f"\n{name} (`skidbench compare dataset={name}`):")

@@ -18,8 +18,9 @@ only to identify ``(delay_s, tau_s)`` on the Train split.
 This module is the one home of the concept "the wheels do not follow their commands at once": the
 ``calibrate`` stage identifies the response per terrain from the Train encoders
 (:func:`identify_response`), the ``response`` input protocol (:mod:`skidbench.pipeline.protocol`) drives
-every model with it, and the discovery effect ``actuator_lag`` is its first-order lag :func:`lag_filter`
-(restarted at each sequence start). This module adds the dead time, the limits and the identification. The
+every model with it, and the discovery effect ``actuator_lag`` is its first-order lag of commands linear
+between clock samples, :func:`lag_response` (restarted at each sequence start). The identification (the dead
+time, the limits, the general response) builds on the zero-order-hold recursion :func:`lag_filter`; the
 general response's recursion reduces to it exactly with unit gains and no limits.
 """
 

@@ -156,7 +156,7 @@ def test_commands_aligned_with_the_grid_leave_no_timing_error():
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import discover_data as dd
 
-    from skidbench.benchmark.discover import align_commands
+    from skidbench.benchmark.discover_pool import align_commands
     from skidbench.models.effect_fit import DiscoverSettings, build_pool
     from skidbench.pipeline.robot import load_robot
 

@@ -21,7 +21,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.models.effects import EFFECT_IDS  # noqa: E402
 

@@ -15,7 +15,8 @@ from scipy.signal import lfilter
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.pipeline.schema import concat_sequences  # noqa: E402
 from skidbench.pipeline.wheel_response import identify_response  # noqa: E402

@@ -18,7 +18,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain, prepare_pool  # noqa: E402
+from skidbench.benchmark.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
+from skidbench.models import term_screen as ts  # noqa: E402
 from skidbench.models import terms as tl  # noqa: E402
 from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
 from skidbench.models.specs import get_model_class  # noqa: E402
@@ -77,11 +79,25 @@ def test_slip_term_on_the_extended_differential_drive_is_eq_8():
     assert "longitudinal ICR offset x_ICR = 0.05" in tl.Term("lin", "wz_pred", 1).describe(-0.05, R)
 
 
+def test_one_side_slip_is_a_radius_difference_on_a_smaller_mean_radius(monkeypatch):
+    # a slip ratio s on the left side moves the robot exactly as wheel radii r (1 - s) and r do: the radius
+    # difference of side_asymmetry, e = (s / 2) / (1 - s / 2), on a mean radius r (1 - s / 2), the radius
+    # calibrate measures on straight rows; so on a calibrated base the two are one statement
+    t, v, w = dd.joystick(np.random.default_rng(0), 20.0, 1 / 180)
+    s = 0.1
+    slip = dd.true_velocity(t, v, w, {"one_side_slip": ("l", s)})
+    monkeypatch.setattr(dd, "R_WHEEL", R * (1 - s / 2))  # the same wheel commands, the smaller mean radius
+    m = 1 - s / 2
+    radii = dd.true_velocity(t, v * m, w * m, {"side_asymmetry": (s / 2) / m})
+    for a, b in zip(slip, radii, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+
+
 def test_stlsq_recovers_a_sparse_law():
     rng = np.random.default_rng(3)
     X = rng.normal(size=(500, 30))
     y = 2.0 * X[:, 3] - 0.5 * X[:, 17] + 0.01 * rng.normal(size=500)
-    coef = tl.stlsq(X, y, threshold=0.05)
+    coef = ts.stlsq(X, y, threshold=0.05)
     assert set(np.flatnonzero(coef)) == {3, 17}
     raw = coef / np.linalg.norm(X, axis=0)  # back to the unstandardised columns
     assert raw[3] == pytest.approx(2.0, rel=0.02) and raw[17] == pytest.approx(-0.5, rel=0.02)
@@ -96,7 +112,7 @@ def test_screen_names_a_yaw_rate_saturation_with_its_knot():
     true = base.copy()
     true[:, 2] = np.clip(base[:, 2], -lim, lim)
     resid = true - base + 0.01 * np.random.default_rng(2).normal(size=true.shape)
-    scr = tl.screen(sig, gains, B, resid, np.ones(2000, bool), np.ones(3))
+    scr = ts.screen(sig, gains, B, resid, np.ones(2000, bool), np.ones(3))
     best = scr.candidates[0]
     assert (best.family, best.signal, best.channel) == ("sat", "wz_pred", 2)
     assert best.knots[0] == pytest.approx(lim, rel=0.02)

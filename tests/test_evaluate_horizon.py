@@ -71,11 +71,11 @@ def test_relative_errors_and_minimum_distance_rotation():
     t = np.arange(301) / 30.0
     vel = np.tile([1.0, 0.0, 0.0], (301, 1))  # straight at 1 m/s: 2 m in 2 s, no rotation
     gt = integrate_body_velocity(np.zeros(3), vel[:-1] * [1.1, 1, 1], np.diff(t))  # truly 10 % faster
-    w = window_errors(t, gt, vel, 2.0, cfg=HorizonConfig(2.0, min_distance_m=0.5))
+    w = window_errors(t, gt, vel, 2.0, hcfg=HorizonConfig(2.0, min_distance_m=0.5))
     np.testing.assert_allclose(w["distance"], 2.2, rtol=1e-9)
     np.testing.assert_allclose(w["rel_trans"], 0.2 / 2.2, rtol=1e-9)
     assert w["rel_rot"].isna().all()  # under the minimum rotation: left out
-    w = window_errors(t, gt, vel, 2.0, cfg=HorizonConfig(2.0, min_distance_m=5.0))
+    w = window_errors(t, gt, vel, 2.0, hcfg=HorizonConfig(2.0, min_distance_m=5.0))
     assert w["rel_trans"].isna().all()
 
 

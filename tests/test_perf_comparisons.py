@@ -71,3 +71,17 @@ def test_render_comparison_reports_both_thread_counts_and_identical_pixels():
     assert m["pairs"] == 4 and m["max_pixel_diff"] == 0
     assert m["cpu_ms_1thread"] > 0 and m["cpu_ms_2threads"] > 0
     assert math.isclose(m["cpu_ratio"], m["cpu_ms_2threads"] / m["cpu_ms_1thread"])
+
+
+def test_startup_times_a_command_with_its_cpu_and_names_a_failing_one():
+    import os
+    import sys
+
+    from perf import startup
+
+    assert load_all()["startup"].module == startup.__name__
+    wall, cpu = startup.timed([sys.executable, "-c", "sum(range(10**6))"], dict(os.environ))
+    assert wall > 0 and 0 < cpu <= wall + 0.5  # the child's own CPU, reaped: not this process's
+    failing = [sys.executable, "-c", "import sys; sys.stderr.write('boom'); sys.exit(3)"]
+    with pytest.raises(RuntimeError, match=r"failed \(3\): boom"):
+        startup.timed(failing, dict(os.environ))

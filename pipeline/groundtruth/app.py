@@ -327,10 +327,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     manifest = Manifest.read(layout.manifest)
     gt_cfg = cfg.groundtruth
     stale, loops, truth_scores, skipped = _up_to_date(cfg, layout, manifest)
-    # Sequences are independent: compute them in parallel processes (stereo VO is CPU-bound), longest
+    # Sequences are independent: stereo VO (CPU-bound) computes them in parallel processes, longest
     # first (by extracted bytes) so that no worker is left alone with a long one at the end; each result
     # is written from this process as soon as it arrives (a stopped run keeps the finished sequences).
-    jobs = int(gt_cfg.get("jobs", 1)) if len(stale) > 1 else 1
+    # Reading a pose table or an ORB-SLAM file takes less than starting a worker process: in this one.
+    jobs = int(gt_cfg.get("jobs", 1)) if len(stale) > 1 and str(gt_cfg.method) == "vo" else 1
     by_name = {seq.name: (seq, stamp, key) for seq, stamp, key in stale}
     order = sorted(stale, key=lambda item: -_extracted_bytes(layout, item[0]))
     computed = Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
