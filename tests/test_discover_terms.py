@@ -121,6 +121,22 @@ def test_screen_names_a_yaw_rate_saturation_with_its_knot():
     assert "wz saturates at 0.9" in best.describe(1.0, R)
 
 
+def test_screen_finds_a_wheel_dead_zone_on_a_radius_the_dead_zone_shortened():
+    # the base's vx at a calibrated radius 18 % short (vx_pred = 0.82 v): at that radius the knot would take
+    # up the vx the radius leaves; with the hinge's radius fitted the knot is the dead zone's
+    f = _feats(2000, 4)
+    base = np.column_stack([0.82 * f["v"], 0 * f["v"], f["w"] / 1.5])
+    sig = tl.signals(f, base, np.linspace(0, 30, 2000), B)
+    gains = tl.base_gains(sig, np.ones(2000, bool))
+    d = 2.0 * R  # 2 rad/s of each wheel
+    g, g0 = tl.Term("wdz", "rim", -1, (d,)).design(sig, gains, B)
+    true = base + g / 0.82 + g0  # theta = 1 / 0.82: the wheels' own radius
+    resid = true - base + 0.005 * np.random.default_rng(5).normal(size=true.shape)
+    scr = ts.screen(sig, gains, B, resid, np.ones(2000, bool), np.ones(3))
+    dz = [t for t in scr.ranked if (t.family, t.signal) == ("wdz", "rim")][0]
+    assert dz.knots[0] == pytest.approx(d, rel=0.02)
+
+
 def test_augmented_model_spec_carries_terms_and_predicts_with_them(jackal):
     key = "sat.wz_pred.wz@1"
     cls = get_model_class("edd+actuator_lag+sat.wz_pred.wz@1.0")
