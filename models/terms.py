@@ -433,10 +433,10 @@ def fit_thetas(
     if not free:
         return theta
     cols = [g for g, _ in designs]
-    y = np.asarray(resid, float)[rows] - sum(
-        (g0[rows] if t.fitted_theta else g[rows] + g0[rows] for t, (g, g0) in zip(terms, designs, strict=True)),
-        np.zeros_like(resid[rows]),
-    )
+    fixed = [
+        g0[rows] if t.fitted_theta else g[rows] + g0[rows] for t, (g, g0) in zip(terms, designs, strict=True)
+    ]
+    y = np.asarray(resid, float)[rows] - sum(fixed, np.zeros_like(resid[rows]))
     sw = np.sqrt(np.asarray(weights, float))
     X = np.column_stack([(cols[i][rows] * sw).ravel() for i in free])
     theta[free] = np.linalg.lstsq(X, (y * sw).ravel(), rcond=None)[0]
