@@ -218,36 +218,73 @@ def protocol_selections(
     return out
 
 
-def run_compare(cfg: Any) -> CompareResult:
-    cfg, target, tracker = open_target_from_cfg(cfg)
+@dataclass(frozen=True)
+class CompareSettings:
+    """What compare's orchestration reads of the config (made by the compare app, after
+    :func:`open_target_from_cfg` set the dataset and experiment found): the horizon, which runs
+    (``parent_run_id``, ``user``, ``filter``, the protocol asked for), how to rank, the report, the figures
+    and whether to log to MLflow."""
+
+    horizon: float
+    parent_run_id: str | None  # "latest", a run id, or None (every child run)
+    user: str | None  # sel.whose: the caller's own runs unless user=<name> | all
+    filter: str | None
+    asked: str | None  # the checked protocol of ``inputs`` with parent_run_id=latest, else None
+    inputs: str  # the configured protocol (unchecked), for a board whose protocol is not one of PROTOCOLS
+    rank_by: str
+    intervals: iv.IntervalConfig
+    report: ReportSettings
+    figures: FigureSettings
+    ui_url: str | None
+    log_to_mlflow: bool
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> CompareSettings:
+        parent = cfg.get("parent_run_id", "latest")
+        parent_arg = None if parent in (None, "", "null") else str(parent)
+        return cls(
+            horizon=float(cfg.horizon),
+            parent_run_id=parent_arg,
+            user=sel.whose(cfg.get("user")),
+            filter=cfg.get("filter"),
+            asked=protocol_from_cfg(cfg) if parent_arg == "latest" else None,
+            inputs=str(cfg.get("inputs") or "commanded"),
+            rank_by=str(cfg.get("rank_by") or st.AGGREGATE),
+            intervals=iv.IntervalConfig.from_cfg(cfg),
+            report=ReportSettings.from_cfg(cfg),
+            figures=FigureSettings.from_cfg(cfg),
+            ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
+            log_to_mlflow=bool(cfg.get("log_to_mlflow", True)),
+        )
+
+
+def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -> CompareResult:
+    """Compare's orchestration on the dataset ``target`` of ``tracker``'s store and experiment (the compare
+    app makes the three: :func:`open_target_from_cfg`, :meth:`CompareSettings.from_cfg`)."""
     layout = target.layout
-    horizon = float(cfg.horizon)
-    parent_cfg = cfg.get("parent_run_id", "latest")
-    parent_arg = None if parent_cfg in (None, "", "null") else str(parent_cfg)
-    user = sel.whose(cfg.get("user"))  # the caller's own runs unless user=<name> | all
-    # latest: the newest complete run of each (model, terrain) under cfg.inputs, across evaluates; a run
+    horizon = cs.horizon
+    parent_arg = cs.parent_run_id
+    user = cs.user
+    # latest: the newest complete run of each (model, terrain) under cs.asked, across evaluates; a run
     # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
     # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
     try:
-        selections = protocol_selections(tracker, horizon, cfg.get("filter"), user)
+        selections = protocol_selections(tracker, horizon, cs.filter, user)
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
-    asked = protocol_from_cfg(cfg) if parent_arg == "latest" else None  # None: the runs of parent_arg
-    runs, parent, left_out = _chosen_runs(
-        target, tracker, selections, asked, parent_arg, cfg.get("filter"), user
-    )
+    # cs.asked None: the runs of parent_arg
+    runs, parent, left_out = _chosen_runs(target, tracker, selections, cs.asked, parent_arg, cs.filter, user)
     board = board_from_runs(runs, horizon)
     protocol = check_one_protocol(board)
     # the protocol of the runs shown (the files evaluate wrote for them)
-    inputs = protocol if protocol in PROTOCOLS else str(cfg.get("inputs") or "commanded")
+    inputs = protocol if protocol in PROTOCOLS else cs.inputs
     _check_horizon(runs, horizon)
-    settings = ReportSettings.from_cfg(cfg)
+    settings = cs.report
     interval_notes: list[str] = []
-    standings = standings_from_cfg(cfg, layout, board, protocol, horizon, interval_notes)
+    standings = standings_of(cs.rank_by, cs.intervals, layout, board, protocol, horizon, interval_notes)
     summary = summary_table(board, horizon, settings.rank_by, standings)
     parents = sel.Selection(protocol, horizon, runs).parents if parent is None else [parent]
-    ui_url = (cfg.get("mlflow") or {}).get("ui_url")
-    links = ui_links(settings, ui_url, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
+    links = ui_links(settings, cs.ui_url, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
     detail = report_detail(board, horizon, standings)
     out = layout.reports
     out.mkdir(parents=True, exist_ok=True)
@@ -257,11 +294,13 @@ def run_compare(cfg: Any) -> CompareResult:
             if p != protocol:
                 shown_boards[p] = (board_from_runs(s.runs, horizon), s.runs, s.left_out)
 
-    def standings_of(p: str, b: pd.DataFrame) -> st.Standings | None:  # another protocol's: its own windows
-        return standings if p == protocol else standings_from_cfg(cfg, layout, b, p, horizon, [])
+    def standings_for(p: str, b: pd.DataFrame) -> st.Standings | None:  # another protocol's: its own windows
+        if p == protocol:
+            return standings
+        return standings_of(cs.rank_by, cs.intervals, layout, b, p, horizon, [])
 
     boards = _BoardsShown(target, tracker.experiment_name, parent, horizon, settings.rank_by, shown_boards)
-    files, written, lb_md = _write_boards(boards, out, protocol, summary, standings_of)
+    files, written, lb_md = _write_boards(boards, out, protocol, summary, standings_for)
     boards_of = (  # the protocols side by side: the dataset's board of each
         {p: b for p, (b, _r, _lo) in shown_boards.items()}
         if parent is None
@@ -269,15 +308,11 @@ def run_compare(cfg: Any) -> CompareResult:
     )
     decomp, shown, decomp_md = _decomposition(boards_of, horizon)
     notes: list[str] = _fit_findings(layout, board, inputs) + interval_notes
-    newer = (
-        sel.newer_elsewhere(tracker, runs, protocol, cfg.get("filter"), user)
-        if parent_arg == "latest"
-        else None
-    )
+    newer = sel.newer_elsewhere(tracker, runs, protocol, cs.filter, user) if parent_arg == "latest" else None
     notes += [n for n in (newer, sel.same_data_elsewhere(tracker)) if n]
-    log_mlflow = bool(cfg.get("log_to_mlflow", True))
+    log_mlflow = cs.log_to_mlflow
     log_to = _log_target(tracker, parent, parents, log_mlflow, notes)
-    fs = FigureSettings.from_cfg(cfg)
+    fs = cs.figures
     fig_md: list[str] = []
     if fs.enabled:
         jobs = figure_jobs(fs, layout, board, horizon, inputs, standings, decomp, shown)
@@ -424,14 +459,6 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
     done = board[board["status"] == "FINISHED"] if "status" in board else board
     rows = list(zip(done["model"].astype(str), done["terrain"].astype(str), strict=True))
     return board_findings(layout, rows, inputs)
-
-
-def standings_from_cfg(
-    cfg: Any, layout: Layout, board: pd.DataFrame, protocol: str, horizon: float, notes: list[str]
-) -> st.Standings | None:
-    """:func:`standings_of` with the config's ``rank_by`` and ``intervals``."""
-    rank_by = str(cfg.get("rank_by") or st.AGGREGATE)
-    return standings_of(rank_by, iv.IntervalConfig.from_cfg(cfg), layout, board, protocol, horizon, notes)
 
 
 def standings_of(

@@ -11,9 +11,18 @@ from skidbench.pipeline.cli import stage
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="compare")
 @stage("compare", home=False)  # the dataset is the one named (benchmark/selection.py)
 def main(cfg: DictConfig) -> None:
-    from .compare import format_console, run_compare
+    from .compare import format_console
 
-    print(format_console(run_compare(cfg)), flush=True)
+    print(format_console(run(cfg)), flush=True)
+
+
+def run(cfg: DictConfig):
+    """The stage: the dataset, store and experiment the config names (``open_target_from_cfg``), the
+    settings compare reads of the config as it stands for that dataset, then :func:`run_compare`."""
+    from .compare import CompareSettings, open_target_from_cfg, run_compare
+
+    cfg, target, tracker = open_target_from_cfg(cfg)
+    return run_compare(CompareSettings.from_cfg(cfg), target, tracker)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ from _bench_data import JACKAL, TRUE_CHI, calibrate_splits, compose, fit_fn, wri
 from skidbench.benchmark import figures as figs
 from skidbench.benchmark import report_data as rd
 from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.compare import CompareError, format_console, markdown_table, run_compare
+from skidbench.benchmark.compare import CompareError, format_console, markdown_table
+from skidbench.benchmark.compare_app import run as run_compare
 from skidbench.benchmark.evaluate import run_benchmark
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.schema import read_split

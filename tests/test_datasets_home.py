@@ -55,7 +55,7 @@ def cfg(stage: str, out: Path, *over: str):
 
 def run_stage(stage: str, out: Path, *over: str):
     """A stage as the CLI runs it (``stage`` wrapper: open_home first), in this process."""
-    from skidbench.benchmark import compare, discover_app, evaluate_app
+    from skidbench.benchmark import compare_app, discover_app, evaluate_app
     from skidbench.pipeline import calibrate_app
     from skidbench.pipeline.extract import app as extract
     from skidbench.pipeline.groundtruth import app as groundtruth
@@ -67,7 +67,7 @@ def run_stage(stage: str, out: Path, *over: str):
         "split": split.run,
         "calibrate": calibrate_app.run,  # evaluate reads its calibration (only calibrate computes it)
         "evaluate": evaluate_app.run,
-        "compare": compare.run_compare,
+        "compare": compare_app.run,
         "discover": discover_app.run,
     }
     extra = {"evaluate": EVALUATE, "compare": COMPARE, "discover": DISCOVER}.get(stage, [])

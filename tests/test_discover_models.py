@@ -62,7 +62,7 @@ def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderb
     # an earlier compare in this process exported its store (mlflow.set_tracking_uri): use this root's
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
 
-    from skidbench.benchmark.compare import run_compare
+    from skidbench.benchmark.compare_app import run as run_compare
     from skidbench.benchmark.evaluate import run_benchmark
 
     # what `skidbench discover` writes (its contract: per terrain the base model and the effects)

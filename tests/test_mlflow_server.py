@@ -19,7 +19,7 @@ import pytest
 from _bench_data import compose, write_splits
 from mlflow_server import postgres_missing, wait_until_gone
 
-from skidbench.benchmark.compare import run_compare
+from skidbench.benchmark.compare_app import run as run_compare
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(bool(postgres_missing()), reason=str(postgres_missing()))]
