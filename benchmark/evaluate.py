@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from skidbench.models.fitting import ModelConfigs, model_config
+from skidbench.models.fitting import FitSettings, ModelConfigs, model_config
 from skidbench.pipeline import provenance
 from skidbench.pipeline.calibration import Calibrations
 from skidbench.pipeline.errors import one_line
@@ -53,7 +53,7 @@ from .references import log_floor, seed_spread
 from .report_data import ReportDataSettings, write_report_data, write_wheel_response_steps
 from .scoring import Inputs, TestSequence, predict_and_score
 from .testsets import TRAIN, EvaluationData, load_evaluation_data, split_fingerprint
-from .transfer import training_layout
+from .transfer import TransferSettings, scored_from_cfg, training_layout
 
 log = logging.getLogger(__name__)
 
@@ -130,24 +130,24 @@ def settings_from_cfg(cfg: Any) -> tuple[list[str], list[str] | None, list[str],
 
 def run_benchmark(
     cfg: Any,
-    fit_fn: Callable[[Any, str, str], Any] | None = None,
+    fit_fn: Callable[[FitSettings, str, str], Any] | None = None,
     log_figures: bool | None = None,
 ) -> BenchmarkResult:
-    """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(cfg, model, terrain)``
-    returns a FitResult-like object (``model``, ``path``, ``fit_loss``, ``fit_time_s``, ``n_train``);
-    default :func:`skidbench.models.fitting.fit_from_cfg`."""
+    """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(settings, model, terrain)``
+    (``settings`` a :class:`FitSettings`) returns a FitResult-like object (``model``, ``path``, ``fit_loss``,
+    ``fit_time_s``, ``n_train``); default :func:`skidbench.models.fitting.fit_model`."""
     layout = layout_from_cfg(cfg)
     models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
     intervals = iv.IntervalConfig.from_cfg(cfg)
     for h in horizons:  # blocks shorter than a horizon: one line before anything runs
         intervals.block_length(h)
     protocol = _checked_protocol(cfg.get("inputs"), models)
-    if log_figures is None:
-        log_figures = bool(cfg.get("log_figures", True))
-    if fit_fn is None:
-        fit_fn = _checked_default_fit_fn(models)
+    log_figures = bool(cfg.get("log_figures", True)) if log_figures is None else log_figures
+    fit_fn = fit_fn or _checked_default_fit_fn(models)
     # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags (benchmark/transfer.py)
-    cfg, fit_fn, transfer_tags = training_layout(cfg, fit_fn)
+    transfer, fit = TransferSettings.from_cfg(cfg), FitSettings.from_cfg(cfg)
+    fit_fn, transfer_tags = training_layout(transfer, fit, fit_fn)
+    cfg = scored_from_cfg(cfg, transfer)
 
     # 1. the data, checked before anything is logged
     data = load_evaluation_data(layout, Calibrations.from_cfg(cfg), terrains, splits, horizons, protocol)
@@ -197,8 +197,8 @@ def run_benchmark(
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             datasets_of = {t: _split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
-            ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
-                               log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
+            ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, fit, conf,
+                               common_tags, log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
             floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
             _log_board(ctx, children, splits, protocol, about)
             save_views(tracker, parent_id, splits, horizons, protocol)
@@ -337,7 +337,8 @@ class ChildContext:
     layout: Layout
     horizons: Sequence[float]
     hcfg: HorizonConfig
-    fit_fn: Callable[[Any, str, str], Any]
+    fit_fn: Callable[[FitSettings, str, str], Any]
+    fit: FitSettings  # what fit_fn is called with
     conf: dict[str, Any]
     tags: dict[str, str]
     log_figures: bool
@@ -439,7 +440,7 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
     version and package, its fit diagnostics, the parameters of :func:`fit_description`, and the fitted
     model's files (``<stem>.params.json``, a learned model's ``<stem>.arrays.npz``). Returns the fit."""
     tracker = ctx.tracker
-    fit = ctx.fit_fn(ctx.cfg, model_name, td.terrain)
+    fit = ctx.fit_fn(ctx.fit, model_name, td.terrain)
     model = fit.model
     tracker.log(
         run_id,

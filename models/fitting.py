@@ -422,12 +422,6 @@ def fit_model(
     return result
 
 
-def fit_from_cfg(cfg: Any, model_name: str, terrain: str, **kwargs: Any) -> FitResult:
-    """The door for a caller that holds the config (evaluate's ``fit_fn(cfg, model, terrain)``):
-    :func:`fit_model` with the config's :class:`FitSettings`."""
-    return fit_model(FitSettings.from_cfg(cfg), model_name, terrain, **kwargs)
-
-
 def _saved_fit(plan: _FitPlan) -> FitResult | None:
     """The saved fit of an up-to-date ``plan`` (None when its JSON or arrays cannot be read: refit)."""
     try:

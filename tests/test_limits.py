@@ -31,7 +31,6 @@ LONG_FUNCTIONS: dict[str, str] = {}
 #: module:function taking ``cfg`` outside the app layer (to become settings objects; issue 31 item 4)
 CFG_TAKERS = {
     "benchmark.evaluate:run_benchmark",
-    "benchmark.transfer:training_layout",
 }
 
 
