@@ -254,8 +254,9 @@ def _add_term(
             "effect": term.key,
             "kind": "term",
             "explanation": term.describe(theta, run.robot.wheel_radius),
-            "formula": f"{'vx, wz' if term.channel < 0 else CHANNELS[term.channel]} += theta * g, "
-            f"g = {term.key}",
+            "formula": f"{'vx, wz' if term.channel < 0 else CHANNELS[term.channel]} += "
+            + ("g at the wheel radius theta r, " if term.family in termlib.RADIUS_HINGES else "theta * g, ")
+            + f"g = {term.key}",
             "evidence": {**ev, **evidence},
             "naming": naming_record("term", ev, scored_t, scored, term.n_params, []),
             "params": {term.key: _term_step_params(run.state, term)},

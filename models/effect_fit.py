@@ -347,7 +347,7 @@ class Augmenter:
         sig = self.signals(feats, base_pred)
         gains = self._gains(feats, base_pred)
         for t, th in zip(terms, theta, strict=True):
-            out += th * t.columns(sig, gains, self.robot.track_width)
+            out += t.correction(sig, gains, self.robot.track_width, th)
         return out
 
     def _fit_terms(self, terms, params, base_pred, feats, rows) -> np.ndarray:
@@ -356,9 +356,9 @@ class Augmenter:
             return np.zeros(0)
         sig = self.signals(feats, base_pred)
         gains = self._gains(feats, base_pred)
-        cols = [t.columns(sig, gains, self.robot.track_width) for t in terms]
+        designs = [t.design(sig, gains, self.robot.track_width) for t in terms]
         resid = self.pool.target - apply_effects(base_pred, feats, params)
-        return termlib.fit_thetas(terms, cols, resid, rows, self.weights)
+        return termlib.fit_thetas(terms, designs, resid, rows, self.weights)
 
     def _fit_params(
         self, corr, params, base_pred, feats, rows, offset=None, base_gain: bool = False

@@ -290,5 +290,5 @@ def augmented_prediction(
         sig = termlib.signals(feats, base_pred, table["t"].to_numpy(float), track_width)
         for key, p in terms.items():
             term = termlib.parse_term(key)
-            out += float(p["theta"]) * term.columns(sig, (float(p["c_v"]), float(p["c_w"])), track_width)
+            out += term.correction(sig, (float(p["c_v"]), float(p["c_w"])), track_width, float(p["theta"]))
     return out

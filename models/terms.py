@@ -38,6 +38,11 @@ WHEEL_FAMILIES = ("slip", "wsat", "wdz", "wload")
 #: hinges are hard limits and dead zones: the excess beyond the knot is lost whole (theta = 1, not fitted),
 #: so a hinge's parameters are its knots and its constant is where the limit sits
 HINGES = ("sat", "dz", "wsat", "wdz", "wload")
+#: wheel-level hinges carry the effective wheel radius as their coefficient theta (r_eff = theta r, theta =
+#: 1 the calibrated radius): ``calibrate`` measures the radius on straight rows that the hinge has already
+#: shaped (a dead zone of 2 rad/s gave 0.081 m for 0.098), and the base model's vx has no gain of its own
+#: to undo that; its yaw rate has (the extended differential drive's chi)
+RADIUS_HINGES = ("wsat", "wdz", "wload")
 KNOTS = {"sat": 1, "dz": 1, "after": 1, "wsat": 1, "wdz": 1, "wload": 2, "lin": 0, "slip": 0}
 #: the product pairs of the library come from these signals
 CORE = ("one", "v", "w", "dv", "dw", "vx_pred", "wz_pred", "t", "|v|", "|w|", "sgn_v", "sgn_w", "kappa")
@@ -158,14 +163,20 @@ class Term:
         return self.family not in HINGES
 
     @property
+    def fitted_theta(self) -> bool:
+        """Whether theta is fitted: a scale of the columns (:attr:`free_theta`) or a wheel hinge's radius."""
+        return self.free_theta or self.family in RADIUS_HINGES
+
+    @property
     def n_params(self) -> int:
-        """theta (unless a hinge) and every knot (a chosen knot is charged like a fitted parameter)."""
-        return int(self.free_theta) + len(self.knots)
+        """theta (unless a hard limit in a body velocity) and every knot (a chosen knot is charged like a
+        fitted parameter)."""
+        return int(self.fitted_theta) + len(self.knots)
 
     @property
     def n_params_with_knots(self) -> int:
         """:attr:`n_params` of the form with its knots (a template has none yet)."""
-        return int(self.free_theta) + KNOTS[self.family]
+        return int(self.fitted_theta) + KNOTS[self.family]
 
     @property
     def touched(self) -> tuple[int, ...]:
@@ -187,11 +198,35 @@ class Term:
     def columns(
         self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float
     ) -> np.ndarray:
-        """(T, 3) the term's direction g: the correction is theta * g."""
+        """(T, 3) the term's direction g: the correction is theta * g (a wheel hinge's at the calibrated
+        radius, theta = 1: :meth:`design`)."""
         g = np.zeros((len(sig["v"]), 3))
         for c, col in self.channel_columns(sig, gains, track_width).items():
             g[:, c] = col
         return g
+
+    def design(
+        self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(g, g0), each (T, 3): the correction is theta * g + g0, linear in the fitted theta.
+
+        A wheel hinge's theta is the effective radius over the calibrated one: every rim speed, the hinged
+        one, is theta times the commanded (r w_l + d_l, with d_l the hinge's change), so vx = c_v theta (v +
+        (d_l + d_r) / 2); its yaw rate keeps theta = 1 (the base model's yaw-rate gain takes the radius: chi
+        for the extended differential drive). theta = 1 is :meth:`columns`. Any other term: (columns, 0)."""
+        g = self.columns(sig, gains, track_width)
+        if self.family not in RADIUS_HINGES:
+            return g, np.zeros_like(g)
+        rho = np.zeros_like(g)
+        rho[:, 0] = gains[0] * sig["v"] + g[:, 0]  # c_v (v + (d_l + d_r) / 2)
+        return rho, g - rho
+
+    def correction(
+        self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float, theta: float
+    ) -> np.ndarray:
+        """(T, 3) the term's correction at coefficient ``theta`` (:meth:`design`)."""
+        g, g0 = self.design(sig, gains, track_width)
+        return float(theta) * g + g0
 
     def channel_columns(
         self, sig: dict[str, np.ndarray], gains: tuple[float, float], track_width: float
@@ -234,17 +269,22 @@ class Term:
         if self.family == "slip":
             side = {"l": "left", "r": "right"}[self.signal]
             return f"the {side} side slips: slip ratio s_{self.signal} = {th:.3f} (eq. (8))"
+        radius = ""
+        if self.family in RADIUS_HINGES and abs(th - 1.0) > 5e-4:  # the wheel's rate at its fitted radius
+            wheel_radius, radius = th * wheel_radius, f" (effective wheel radius {th * wheel_radius:.3g} m)"
         if self.family == "wsat":
-            return f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s ({k[0]:.3g} m/s rim speed)"
+            return (
+                f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s ({k[0]:.3g} m/s rim speed){radius}"
+            )
         if self.family == "wdz":
             return (
                 f"a wheel dead zone: the first {k[0] / wheel_radius:.3g} rad/s of each wheel command do not "
-                "turn the wheel"
+                f"turn the wheel{radius}"
             )
         if self.family == "wload":
             return (
                 f"wheel rates saturate at {k[0] / wheel_radius:.3g} rad/s, lower by "
-                f"{k[1] / wheel_radius:.3g} rad/s per rad/s of commanded yaw rate (the turning load)"
+                f"{k[1] / wheel_radius:.3g} rad/s per rad/s of commanded yaw rate (the turning load){radius}"
             )
         if self.signal == "wz_pred" and ch == "vy":
             return f"a longitudinal ICR offset x_ICR = {-th:.3g} m: vy = -x_ICR * wz (eq. (8))"
@@ -380,17 +420,23 @@ def parse_form(form: str) -> Term:
 
 
 def fit_thetas(
-    terms: list[Term], cols: list[np.ndarray], resid: np.ndarray, rows: np.ndarray, weights: np.ndarray
+    terms: list[Term],
+    designs: list[tuple[np.ndarray, np.ndarray]],
+    resid: np.ndarray,
+    rows: np.ndarray,
+    weights: np.ndarray,
 ) -> np.ndarray:
-    """Joint weighted least squares of the terms' coefficients on ``rows`` (``cols``: each (T, 3));
-    a hinge's is 1."""
+    """Joint weighted least squares of the terms' coefficients on ``rows`` (``designs``: each term's
+    (g, g0) of :meth:`Term.design`); a hard limit's is 1."""
     theta = np.ones(len(terms))
-    free = [i for i, t in enumerate(terms) if t.free_theta]
+    free = [i for i, t in enumerate(terms) if t.fitted_theta]
     if not free:
         return theta
-    y = np.asarray(resid, float)[rows] - sum(
-        (cols[i][rows] for i, t in enumerate(terms) if not t.free_theta), np.zeros_like(resid[rows])
-    )
+    cols = [g for g, _ in designs]
+    fixed = [
+        g0[rows] if t.fitted_theta else g[rows] + g0[rows] for t, (g, g0) in zip(terms, designs, strict=True)
+    ]
+    y = np.asarray(resid, float)[rows] - sum(fixed, np.zeros_like(resid[rows]))
     sw = np.sqrt(np.asarray(weights, float))
     X = np.column_stack([(cols[i][rows] * sw).ravel() for i in free])
     theta[free] = np.linalg.lstsq(X, (y * sw).ravel(), rcond=None)[0]
