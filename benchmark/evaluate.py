@@ -3,8 +3,9 @@ predict and score the CV and LD sequences (:mod:`skidbench.benchmark.scoring`, p
 of :mod:`skidbench.benchmark.metrics` per model, terrain, split and horizon to MLflow
 (:mod:`skidbench.benchmark.tracking`).
 
-:func:`run_benchmark` is the stage without Hydra; ``evaluate_app.main`` is the CLI. Data problems that
-make the benchmark meaningless (no splits, an empty test split, a horizon longer than every sequence) are
+:func:`run_benchmark` is the stage without Hydra (its settings: benchmark/evaluate_settings.py);
+``evaluate_app.main`` is the CLI (``evaluate_app.benchmark``: the settings from the config). Data problems
+that make the benchmark meaningless (no splits, an empty test split, a horizon longer than every sequence) are
 raised as one-line :class:`EvaluationError` before any run is created; a model that fails to fit or
 predict gets its child run marked FAILED with the reason, and the others carry on.
 """
@@ -21,13 +22,11 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from skidbench.models.fitting import ModelConfigs, model_config
+from skidbench.models.fitting import FitSettings, model_config
 from skidbench.pipeline import provenance
-from skidbench.pipeline.calibration import Calibrations
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.io import write_json_atomic, write_parquet_atomic
-from skidbench.pipeline.layout import Layout, layout_from_cfg
-from skidbench.pipeline.protocol import ProtocolError, check_protocol
+from skidbench.pipeline.layout import Layout
 from skidbench.pipeline.schema import concat_sequences, read_split
 
 from . import intervals as iv
@@ -35,6 +34,7 @@ from . import metrics as mt
 from . import mlflow_ui as mu
 from . import tracking as trk
 from .console import PROTOCOL_TEXT, format_result  # noqa: F401 (the console summary, importable here)
+from .evaluate_settings import EvaluateSettings
 from .failures import fail_run, kill_run
 from .fit_record import (
     default_fit_fn,
@@ -99,58 +99,24 @@ class BenchmarkResult:
         return pd.DataFrame(rows)
 
 
-def _container_from_cfg(cfg: Any) -> dict[str, Any]:
-    """The config as plain data (resolved): what the parent run's params are logged from."""
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(cfg):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover
-        pass
-    return dict(cfg)
-
-
-def settings_from_cfg(cfg: Any) -> tuple[list[str], list[str] | None, list[str], list[float], HorizonConfig]:
-    models = [str(m) for m in (cfg.models or [])]
-    if not models:
-        raise EvaluationError("no models to evaluate; set models=[ideal,friction,...]")
-    terrains = [str(t) for t in cfg.terrains] if cfg.get("terrains") else None
-    splits = [str(s) for s in (cfg.splits or [])]
-    if not splits:
-        raise EvaluationError("no test splits; set splits=[cv,ld]")
-    horizons = [float(h) for h in (cfg.horizons or [])]
-    if not horizons:
-        raise EvaluationError("no horizons; set horizons=[6.0]")
-    hcfg = HorizonConfig(
-        horizons[0], float(cfg.min_distance_m), float(np.deg2rad(float(cfg.min_rotation_deg)))
-    )
-    return models, terrains, splits, horizons, hcfg
-
-
 def run_benchmark(
-    cfg: Any,
-    fit_fn: Callable[[Any, str, str], Any] | None = None,
+    es: EvaluateSettings,
+    fit_fn: Callable[[FitSettings, str, str], Any] | None = None,
     log_figures: bool | None = None,
 ) -> BenchmarkResult:
-    """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(cfg, model, terrain)``
-    returns a FitResult-like object (``model``, ``path``, ``fit_loss``, ``fit_time_s``, ``n_train``);
-    default :func:`skidbench.models.fitting.fit_from_cfg`."""
-    layout = layout_from_cfg(cfg)
-    models, terrains, splits, horizons, hcfg = settings_from_cfg(cfg)
-    intervals = iv.IntervalConfig.from_cfg(cfg)
-    for h in horizons:  # blocks shorter than a horizon: one line before anything runs
-        intervals.block_length(h)
-    protocol = _checked_protocol(cfg.get("inputs"), models)
-    if log_figures is None:
-        log_figures = bool(cfg.get("log_figures", True))
-    if fit_fn is None:
-        fit_fn = _checked_default_fit_fn(models)
+    """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(settings, model, terrain)``
+    (``settings`` a :class:`FitSettings`) returns a FitResult-like object (``model``, ``path``, ``fit_loss``,
+    ``fit_time_s``, ``n_train``); default :func:`skidbench.models.fitting.fit_model`. ``log_figures``:
+    None for the settings'."""
+    layout, models, terrains, splits, horizons = es.layout, es.models, es.terrains, es.splits, es.horizons
+    protocol = es.protocol
+    log_figures = es.log_figures if log_figures is None else log_figures
+    fit_fn = fit_fn or _checked_default_fit_fn(models)
     # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags (benchmark/transfer.py)
-    cfg, fit_fn, transfer_tags = training_layout(cfg, fit_fn)
+    fit_fn, transfer_tags = training_layout(es.transfer, es.fit, fit_fn)
 
     # 1. the data, checked before anything is logged
-    data = load_evaluation_data(layout, Calibrations.from_cfg(cfg), terrains, splits, horizons, protocol)
+    data = load_evaluation_data(layout, es.fit.calibrations, terrains, splits, horizons, protocol)
     tests, files_of = data.tests, data.files_of
     skipped, terrains = data.skipped, data.terrains
     for line in skipped:
@@ -160,13 +126,12 @@ def run_benchmark(
         raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
 
     # 2. the store (an unreachable server is one line, here)
-    tracker = trk.tracker_from_cfg(cfg, layout)
-    conf = _container_from_cfg(cfg)
-    params = trk.config_params(conf)  # no model's config on the parent: each child logs its own
+    tracker = es.store.open()
+    params = trk.config_params(es.conf)  # no model's config on the parent: each child logs its own
     commit = trk.git_commit()
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
     env_tags = provenance.run_tags()
-    common_tags = {trk.TAG_DATASET: str(cfg.dataset), **env_tags, trk.TAG_GIT: commit, **transfer_tags}
+    common_tags = {trk.TAG_DATASET: es.dataset, **env_tags, trk.TAG_GIT: commit, **transfer_tags}
     children: list[ChildResult] = []
     from mlflow.exceptions import MlflowException
 
@@ -179,7 +144,7 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped))  # fmt: skip
-        about = _describe(layout, str(cfg.get("inputs", "commanded")), models, terrains, splits, horizons)
+        about = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
         parent_tags = {
             **common_tags,
             **({trk.TAG_RUN_KEY: job_key} if job_key else {}),
@@ -190,15 +155,16 @@ def run_benchmark(
             "skidbench.terrains": ",".join(terrains),
             trk.TAG_NOTE: about,
         }
-        name = tracker.unique_run_name(trk.parent_run_name("evaluate", str(cfg.dataset), protocol))
+        name = tracker.unique_run_name(trk.parent_run_name("evaluate", es.dataset, protocol))
         with tracker.run(name, parent_tags) as parent_id:
             tracker.log(parent_id, params=params)
             if skipped:
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             datasets_of = {t: _split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
-            ctx = ChildContext(cfg, tracker, parent_id, layout, horizons, hcfg, fit_fn, conf, common_tags,
-                               log_figures, intervals, int(cfg.get("seeds") or 1))  # fmt: skip
+            ctx = ChildContext(es.inputs_text, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
+                               fit_fn, es.fit, es.conf, common_tags, log_figures, es.intervals,
+                               es.seeds)  # fmt: skip
             floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
             _log_board(ctx, children, splits, protocol, about)
             save_views(tracker, parent_id, splits, horizons, protocol)
@@ -208,18 +174,6 @@ def run_benchmark(
         layout,
         BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped, floor),
     )
-
-
-def _checked_protocol(inputs: str | None, models: list[str]) -> str:
-    """The run's input protocol (``inputs``; ``commanded`` when unset); EvaluationError (one line) for a bad
-    one, or the floor named a model."""
-    if FLOOR in models:
-        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
-                              "velocities, on every board), not a model name")  # fmt: skip
-    try:
-        return check_protocol(inputs if inputs is not None else "commanded")
-    except ProtocolError as exc:
-        raise EvaluationError(str(exc)) from None
 
 
 def _run_terrains(
@@ -258,7 +212,7 @@ def _checked_default_fit_fn(models: list[str]) -> Callable[[Any, str, str], Any]
 def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -> dict[str, float]:
     """What the parent run holds of a terrain beside its models' runs: the wheel response's steps (report
     data) and the floor (the ground truth's own velocities); returns the floor's metrics."""
-    steps = write_wheel_response_steps(Calibrations.from_cfg(ctx.cfg), ctx.layout, td.terrain)
+    steps = write_wheel_response_steps(ctx.fit.calibrations, ctx.layout, td.terrain)
     ctx.tracker.artifact(ctx.parent_id, steps, "report_data")
     stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
     return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
@@ -331,13 +285,15 @@ class ChildContext:
     ``conf`` the params are logged from), the store, the parent run, the output layout, the horizons and
     window thresholds, the fit function, the tags every child carries and whether to draw figures."""
 
-    cfg: Any
+    inputs_text: str  # ``inputs`` as the config spells it
+    report_data: ReportDataSettings
     tracker: Any
     parent_id: str
     layout: Layout
     horizons: Sequence[float]
     hcfg: HorizonConfig
-    fit_fn: Callable[[Any, str, str], Any]
+    fit_fn: Callable[[FitSettings, str, str], Any]
+    fit: FitSettings  # what fit_fn is called with
     conf: dict[str, Any]
     tags: dict[str, str]
     log_figures: bool
@@ -380,7 +336,7 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         fit = _fit_and_log(ctx, run_id, model_name, td, stem)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
-        log_model(str(ctx.cfg.get("inputs", "commanded")), ctx.tracker, run_id, fit, model_name, td.terrain,
+        log_model(ctx.inputs_text, ctx.tracker, run_id, fit, model_name, td.terrain,
                   record_path, next(iter(td.tests.values()))[0])  # fmt: skip
         stage("predict")
         metrics, windows, velocities = predict_and_score(
@@ -388,9 +344,9 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         )
         if ctx.seeds > 1 and "seed" in (getattr(fit.model, "options", None) or {}):  # random parts
             stage("other seeds")
-            from skidbench.models.fitting import refit_from_cfg
+            from skidbench.models.fitting import refit_of
 
-            refit = refit_from_cfg(ctx.cfg, model_name, td.terrain)
+            refit = refit_of(ctx.fit, model_name, td.terrain)
             spread = seed_spread(
                 refit, fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, ctx.seeds, metrics
             )
@@ -418,13 +374,13 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
 def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
     protocol = td.inputs.protocol
-    model_conf = model_config(ModelConfigs.from_cfg(ctx.cfg), model_name)
+    model_conf = model_config(ctx.fit.models, model_name)
     run_id = ctx.tracker.start(
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {**ctx.tags, trk.TAG_FINGERPRINT: td.fingerprint, trk.TAG_ROLE: "child", trk.TAG_MODEL: model_name,
          trk.TAG_TERRAIN: td.terrain, trk.TAG_INPUTS: protocol,
          **options_tags(ctx.conf, model_conf, protocol),
-         trk.TAG_NOTE: _describe(ctx.layout, str(ctx.cfg.get("inputs", "commanded")), [model_name],
+         trk.TAG_NOTE: _describe(ctx.layout, ctx.inputs_text, [model_name],
                                  [td.terrain], list(td.tests), ctx.horizons)},
         ctx.parent_id,
     )  # fmt: skip
@@ -439,7 +395,7 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
     version and package, its fit diagnostics, the parameters of :func:`fit_description`, and the fitted
     model's files (``<stem>.params.json``, a learned model's ``<stem>.arrays.npz``). Returns the fit."""
     tracker = ctx.tracker
-    fit = ctx.fit_fn(ctx.cfg, model_name, td.terrain)
+    fit = ctx.fit_fn(ctx.fit, model_name, td.terrain)
     model = fit.model
     tracker.log(
         run_id,
@@ -504,7 +460,7 @@ def _log_report_data(
 ) -> None:
     """Writes and logs what compare draws from this model beyond the metrics (report_data.py), and the
     window-error figure when figures are logged and there is a window."""
-    settings = ReportDataSettings.from_cfg(ctx.cfg)
+    settings = ctx.report_data
     for p in write_report_data(settings, ctx.layout, stem, model, td.terrain, td.tests, velocities,
                                ctx.horizons[0]):  # fmt: skip
         ctx.tracker.artifact(run_id, p, "report_data")

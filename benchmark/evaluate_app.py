@@ -49,7 +49,7 @@ def run(cfg: DictConfig):
     from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.protocol import protocol_from_cfg
 
-    from .evaluate import ProtocolSkipped, format_result, last_file, run_benchmark
+    from .evaluate import ProtocolSkipped, format_result, last_file
 
     layout = layout_from_cfg(cfg)
     inputs = protocol_from_cfg(cfg)
@@ -67,7 +67,7 @@ def run(cfg: DictConfig):
             )
             return cached, True
     try:
-        result = run_benchmark(cfg)
+        result = benchmark(cfg)
     except ProtocolSkipped as exc:  # e.g. inputs=response on data without wheel encoders: said, not failed
         print(f"evaluate: {exc}", flush=True)
         return None, True
@@ -81,6 +81,15 @@ def run(cfg: DictConfig):
     else:  # the key is taken after the run: the fits it (re)wrote are part of it
         stamp.record(_stamp_key(cfg, layout, stamp), [last_file(layout, inputs)])
     return result, False
+
+
+def benchmark(cfg: DictConfig, fit_fn=None, log_figures: bool | None = None):
+    """:func:`~skidbench.benchmark.evaluate.run_benchmark` with the config's settings
+    (:meth:`~skidbench.benchmark.evaluate_settings.EvaluateSettings.from_cfg`), never skipped."""
+    from .evaluate import run_benchmark
+    from .evaluate_settings import EvaluateSettings
+
+    return run_benchmark(EvaluateSettings.from_cfg(cfg), fit_fn, log_figures)
 
 
 def _findings(layout, result) -> list[str]:

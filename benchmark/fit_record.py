@@ -56,8 +56,8 @@ def model_code(model_name: str, model: Any) -> provenance.CodeIdentity:
     return provenance.code_identity(type(model), *((dist.name, dist.version) if dist else ()))
 
 
-def default_fit_fn() -> Callable[[Any, str, str], Any]:
-    return fitting.fit_from_cfg
+def default_fit_fn() -> Callable[[fitting.FitSettings, str, str], Any]:
+    return fitting.fit_model
 
 
 def fit_description(fit: Any, response: WheelResponse | None = None) -> dict[str, Any]:

@@ -18,12 +18,14 @@ model fitted last week. Top-level keys because they choose the *layout* a fit re
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 from omegaconf import OmegaConf
 
+from skidbench.models.fitting import FitSettings
 from skidbench.pipeline.errors import SkidbenchError, one_line
-from skidbench.pipeline.layout import Layout, layout_from_cfg, split_terrains
+from skidbench.pipeline.layout import Layout, split_terrains
 from skidbench.pipeline.manifest import Manifest
 
 from .horizon import EvaluationError
@@ -33,21 +35,65 @@ TAG_TRAIN_DATASET = "skidbench.train_dataset"
 TAG_TRAIN_TERRAIN = "skidbench.train_terrain"
 
 
-def training_layout(cfg: Any, fit_fn: Callable[[Any, str, str], Any]) -> tuple[Any, Callable, dict[str, str]]:
-    """``(cfg, fit_fn, tags)`` for :func:`~skidbench.benchmark.evaluate.run_benchmark`: unchanged (tags
-    ``skidbench.transfer=false``) without ``train_dataset``/``train_terrain``; else the config with the
-    transfer experiment, a ``fit_fn`` that fits on the training dataset/terrain, and the transfer tags.
-    EvaluationError (one line) when the training dataset is absent, of another robot, or lacks the
-    terrain."""
-    train_ds = cfg.get("train_dataset")
-    train_terrain = cfg.get("train_terrain")
-    if not train_ds and not train_terrain:
-        return cfg, fit_fn, {TAG_TRANSFER: "false"}
-    scored = str(cfg.dataset)
-    train_ds = str(train_ds or scored)
-    train_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    train_cfg.dataset = train_ds
-    train_layout = Layout(layout_from_cfg(cfg).out_root, train_ds)
+@dataclass(frozen=True)
+class TransferSettings:
+    """What a transfer reads of the config: the training dataset and terrain (None: the scored ones), the
+    scored dataset, its robot and the configured MLflow experiment. The evaluate app makes it
+    (:meth:`from_cfg`)."""
+
+    train_dataset: str | None
+    train_terrain: str | None
+    scored: str
+    robot: str
+    experiment: str
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> TransferSettings:
+        train_ds, train_terrain = cfg.get("train_dataset"), cfg.get("train_terrain")
+        return cls(
+            str(train_ds) if train_ds else None,
+            str(train_terrain) if train_terrain is not None else None,
+            str(cfg.dataset),
+            str(cfg.robot.name),
+            str(cfg.mlflow.experiment),
+        )
+
+    @property
+    def on(self) -> bool:
+        return bool(self.train_dataset or self.train_terrain)
+
+    @property
+    def scored_experiment(self) -> str:
+        """The experiment the scored runs go to: ``<experiment>-transfer`` when the configured one is the
+        default ``skidbench-<dataset>``."""
+        default = f"skidbench-{self.scored}"
+        return f"{default}-transfer" if self.on and self.experiment == default else self.experiment
+
+
+def scored_from_cfg(cfg: Any, ts: TransferSettings) -> Any:
+    """The door from the config to the scored runs' config: unchanged without a transfer, else (resolved)
+    with the transfer experiment (:attr:`TransferSettings.scored_experiment`)."""
+    if not ts.on:
+        return cfg
+    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    out.mlflow.experiment = ts.scored_experiment
+    return out
+
+
+def training_layout(
+    ts: TransferSettings, fit: FitSettings, fit_fn: Callable[[FitSettings, str, str], Any]
+) -> tuple[Callable[[FitSettings, str, str], Any], dict[str, str]]:
+    """``(fit_fn, tags)`` for :func:`~skidbench.benchmark.evaluate.run_benchmark`: unchanged (tags
+    ``skidbench.transfer=false``) without ``train_dataset``/``train_terrain``; else a ``fit_fn`` that fits
+    with the training dataset's settings (its layout and calibrations; ``fit`` otherwise) on the training
+    terrain, and the transfer tags. EvaluationError (one line) when the training dataset is absent, of
+    another robot, or lacks the terrain."""
+    if not ts.on:
+        return fit_fn, {TAG_TRANSFER: "false"}
+    scored = ts.scored
+    train_ds = ts.train_dataset or scored
+    train_terrain = ts.train_terrain
+    train_layout = Layout(fit.layout.out_root, train_ds)
     try:
         manifest = Manifest.read(train_layout.manifest)
     except (OSError, SkidbenchError) as exc:
@@ -55,10 +101,10 @@ def training_layout(cfg: Any, fit_fn: Callable[[Any, str, str], Any]) -> tuple[A
             f"train_dataset={train_ds}: no dataset at {train_layout.root} ({one_line(str(exc))[:200]}); "
             "`skidbench datasets` lists them"
         ) from None
-    if manifest.robot != str(cfg.robot.name):
+    if manifest.robot != ts.robot:
         raise EvaluationError(
             f"train_dataset={train_ds} holds robot {manifest.robot}, the scored dataset {scored} robot="
-            f"{cfg.robot.name}: a transfer needs the same robot"
+            f"{ts.robot}: a transfer needs the same robot"
         )
     terrains = split_terrains(manifest)
     if train_terrain is None and len(terrains) == 1:
@@ -67,17 +113,14 @@ def training_layout(cfg: Any, fit_fn: Callable[[Any, str, str], Any]) -> tuple[A
         raise EvaluationError(
             f"train_terrain={train_terrain}: not a terrain of dataset {train_ds} (it has {terrains})"
         )
+    train_fit = replace(fit, layout=train_layout, calibrations=replace(fit.calibrations, layout=train_layout))
 
-    def fit_on_training(_cfg: Any, model: str, terrain: str) -> Any:
-        return fit_fn(train_cfg, model, str(train_terrain) if train_terrain is not None else terrain)
+    def fit_on_training(_fit: FitSettings, model: str, terrain: str) -> Any:
+        return fit_fn(train_fit, model, str(train_terrain) if train_terrain is not None else terrain)
 
-    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    default_experiment = f"skidbench-{scored}"
-    if str(out.mlflow.experiment) == default_experiment:
-        out.mlflow.experiment = f"{default_experiment}-transfer"
     tags = {
         TAG_TRANSFER: "true",
         TAG_TRAIN_DATASET: train_ds,
         TAG_TRAIN_TERRAIN: str(train_terrain) if train_terrain is not None else "(same as scored)",
     }
-    return out, fit_on_training, tags
+    return fit_on_training, tags

@@ -422,12 +422,6 @@ def fit_model(
     return result
 
 
-def fit_from_cfg(cfg: Any, model_name: str, terrain: str, **kwargs: Any) -> FitResult:
-    """The door for a caller that holds the config (evaluate's ``fit_fn(cfg, model, terrain)``):
-    :func:`fit_model` with the config's :class:`FitSettings`."""
-    return fit_model(FitSettings.from_cfg(cfg), model_name, terrain, **kwargs)
-
-
 def _saved_fit(plan: _FitPlan) -> FitResult | None:
     """The saved fit of an up-to-date ``plan`` (None when its JSON or arrays cannot be read: refit)."""
     try:
@@ -553,8 +547,12 @@ class Refit:
 
 
 def refit_from_cfg(cfg: Any, model_name: str, terrain: str, split: str = "train") -> Refit:
-    """The door from the config to a :class:`Refit` of ``model_name`` on ``terrain``'s Train split."""
-    settings = FitSettings.from_cfg(cfg)
+    """The door from the config to :func:`refit_of`."""
+    return refit_of(FitSettings.from_cfg(cfg), model_name, terrain, split)
+
+
+def refit_of(settings: FitSettings, model_name: str, terrain: str, split: str = "train") -> Refit:
+    """A :class:`Refit` of ``model_name`` on ``terrain``'s Train split."""
     plan = _plan(settings, model_name, terrain, split)
     table = fit_table(
         concat_sequences([read_split(p) for p in plan.files]), plan.inputs, plan.spec_robot, plan.response

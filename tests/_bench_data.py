@@ -143,14 +143,14 @@ class Fit:
         self.path = None
 
 
-def fit_fn(cfg, model_name, terrain):
-    """A stand-in for skidbench.models.fitting.fit_model on the synthetic splits."""
+def fit_fn(settings, model_name, terrain):
+    """A stand-in for skidbench.models.fitting.fit_model (``settings`` a FitSettings) on the synthetic
+    splits."""
     import time
 
-    from skidbench.pipeline.layout import layout_from_cfg
     from skidbench.pipeline.schema import concat_sequences, load_split_tables
 
-    tables = load_split_tables(layout_from_cfg(cfg).splits, terrain, "train")
+    tables = load_split_tables(settings.layout.splits, terrain, "train")
     table = concat_sequences(tables)
     t0 = time.perf_counter()
     model = MODELS[model_name](JACKAL).fit(table)

@@ -194,7 +194,7 @@ def test_a_retried_evaluate_job_whose_first_attempt_finished_logs_nothing_again(
     from _bench_data import write_splits as write_chi_splits
 
     from skidbench.benchmark import sweep
-    from skidbench.benchmark.evaluate import run_benchmark
+    from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     write_chi_splits(tmp_path / "sim-mini")

@@ -21,7 +21,8 @@ from _bench_data import compose, fit_fn, write_splits
 from skidbench.benchmark import boards as brd
 from skidbench.benchmark import tracking as trk
 from skidbench.benchmark.compare_app import run as run_compare
-from skidbench.benchmark.evaluate import format_result, run_benchmark
+from skidbench.benchmark.evaluate import format_result
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.benchmark.failures import TRACEBACK_ARTIFACT, failure_summary
 
 DS = "sim-mini"

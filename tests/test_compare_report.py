@@ -16,7 +16,7 @@ from skidbench.benchmark import report_data as rd
 from skidbench.benchmark import tracking as trk
 from skidbench.benchmark.compare import CompareError, format_console, markdown_table
 from skidbench.benchmark.compare_app import run as run_compare
-from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.pipeline.layout import layout_from_cfg
 from skidbench.pipeline.schema import read_split
 

@@ -63,7 +63,7 @@ def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderb
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
 
     from skidbench.benchmark.compare_app import run as run_compare
-    from skidbench.benchmark.evaluate import run_benchmark
+    from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 
     # what `skidbench discover` writes (its contract: per terrain the base model and the effects)
     disc = hidden_root / "hidden" / "discovery" / "discovery.json"

@@ -13,7 +13,7 @@ import pytest
 from _bench_data import compose, fit_fn, write_splits
 
 from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.benchmark.horizon import EvaluationError
 from skidbench.pipeline.layout import Layout
 

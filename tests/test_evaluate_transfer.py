@@ -8,7 +8,7 @@ import mlflow
 import pytest
 from _bench_data import compose, fit_fn, sequence_table, write_splits
 
-from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.benchmark.horizon import EvaluationError, count_windows
 from skidbench.pipeline.layout import Layout
 from skidbench.pipeline.manifest import Manifest, Sequence

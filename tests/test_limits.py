@@ -29,10 +29,7 @@ LONG_MODULES: dict[str, str] = {}
 LONG_FUNCTIONS: dict[str, str] = {}
 
 #: module:function taking ``cfg`` outside the app layer (to become settings objects; issue 31 item 4)
-CFG_TAKERS = {
-    "benchmark.evaluate:run_benchmark",
-    "benchmark.transfer:training_layout",
-}
+CFG_TAKERS: set[str] = set()
 
 
 def _files() -> list[Path]:

@@ -17,7 +17,7 @@ import pytest
 from _bench_data import compose, sequence_table, write_splits
 
 from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.benchmark.mlflow_model import INPUT_COLUMNS
 from skidbench.benchmark.provenance import current_user
 from skidbench.models.fitting import FitSettings, load_fitted

@@ -18,7 +18,7 @@ from _bench_data import compose, fit_fn, write_splits
 from browser import CHROMIUM, chromium, page_value, text_of
 
 from skidbench.benchmark.compare_app import run as run_compare
-from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.benchmark.provenance import current_user
 
 DS = "sim-mini"

@@ -205,12 +205,13 @@ def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_
     from hydra.core.global_hydra import GlobalHydra
 
     from skidbench.benchmark.fit_record import default_fit_fn
+    from skidbench.models.fitting import FitSettings
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     GlobalHydra.instance().clear()
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         ev = hcompose("evaluate", [f"out_root={tmp_path}", "dataset=sim-mini", "calibrate.use=false"])
-        assert not default_fit_fn()(ev, "edd", "tile").reused
+        assert not default_fit_fn()(FitSettings.from_cfg(ev), "edd", "tile").reused
     # one command: edd (evaluate's fit) is up to date, roc is fitted
     p = run_cli(
         ["fit", "-m", "model=edd,roc", "terrain=tile", "track=false", "calibrate.use=false"], tmp_path
@@ -219,4 +220,4 @@ def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_
     assert "fit: edd/tile up to date, skipped" in p.stdout and "roc/tile up to date" not in p.stdout
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         ev = hcompose("evaluate", [f"out_root={tmp_path}", "dataset=sim-mini", "calibrate.use=false"])
-        assert default_fit_fn()(ev, "roc", "tile").reused
+        assert default_fit_fn()(FitSettings.from_cfg(ev), "roc", "tile").reused

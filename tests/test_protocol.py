@@ -13,7 +13,7 @@ import pytest
 from _bench_data import JACKAL, compose, sequence_table, write_splits
 
 from skidbench.benchmark import evaluate as ev
-from skidbench.benchmark.evaluate import run_benchmark
+from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 from skidbench.models import registry
 from skidbench.models.base import KinematicModel, ModelError
 from skidbench.models.fitting import check_inputs

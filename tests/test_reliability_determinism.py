@@ -26,7 +26,7 @@ def _same(metrics: dict) -> dict:
 
 
 def _evaluate(micro_root, root):
-    from skidbench.benchmark.evaluate import run_benchmark
+    from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
 
     copy_splits(micro_root, root)
     with initialize_config_module("skidbench.conf", version_base="1.3"):
