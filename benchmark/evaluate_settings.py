@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 
 from skidbench.models.fitting import FitSettings
-from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.layout import Layout, layout_from_cfg
 from skidbench.pipeline.protocol import ProtocolError, check_protocol
 
@@ -58,18 +57,9 @@ class StoreSettings:
     def open(self) -> trk.Tracker:
         """The tracker (its dead runs reaped); EvaluationError (one line) for a store that cannot be
         opened."""
-        try:
-            tracker = trk.Tracker(self.uri, self.experiment, artifact_root=self.artifact_root,
-                                  timeout_s=self.timeout_s, dataset_id=self.dataset_id,
-                                  out_root=self.out_root)  # fmt: skip
-            tracker.reap_dead_runs()
-            return tracker
-        except EvaluationError:
-            raise
-        except Exception as exc:  # a malformed URI, an unwritable store, ...
-            raise EvaluationError(
-                f"MLflow store {self.uri}: {type(exc).__name__}: {one_line(str(exc))[:300]}"
-            ) from None
+        return trk.open_tracker(self.uri, self.experiment, artifact_root=self.artifact_root,
+                                timeout_s=self.timeout_s, dataset_id=self.dataset_id,
+                                out_root=self.out_root)  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -579,20 +579,21 @@ def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) ->
         from skidbench.pipeline.dataset import identity_from_cfg
 
         dataset_id = identity_from_cfg(cfg).fingerprint
+    artifacts = Path(str(node.get("artifact_root") or layout.mlflow_artifacts))
+    options = {"artifact_root": artifacts, "timeout_s": float(node.get("timeout_s", 5.0))}
+    return open_tracker(
+        uri, str(node.experiment), dataset_id=dataset_id, out_root=cfg.get("out_root"), **options
+    )
+
+
+def open_tracker(uri: str, experiment: str, **options: Any) -> Tracker:
+    """The tracker (its dead runs reaped); EvaluationError (one line) for a store that cannot be opened."""
     try:
-        tracker = Tracker(
-            uri,
-            str(node.experiment),
-            artifact_root=Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
-            timeout_s=float(node.get("timeout_s", 5.0)),
-            dataset_id=dataset_id,
-            out_root=cfg.get("out_root"),
-        )
+        tracker = Tracker(uri, experiment, **options)
         tracker.reap_dead_runs()
         return tracker
     except EvaluationError:
         raise
     except Exception as exc:  # a malformed URI, an unwritable store, ...
-        raise EvaluationError(
-            f"MLflow store {uri}: {type(exc).__name__}: {one_line(str(exc))[:300]}"
-        ) from None
+        msg = f"MLflow store {uri}: {type(exc).__name__}: {one_line(str(exc))[:300]}"
+        raise EvaluationError(msg) from None
