@@ -28,15 +28,8 @@ from readme_numbers import (
 
 MODELS = {"ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual"}
 README = REPO / "README.md"
-NO_RECORD = not RECORD.is_file()
 
 
-@pytest.mark.xfail(
-    NO_RECORD,
-    reason="no record yet: the README's table predates it; `make reproduce OUT=<dir>` then `make "
-    "readme-numbers OUT=<dir>` writes it and prints the block that replaces the table (issue 32)",
-    strict=True,
-)
 def test_the_readme_numbers_are_those_of_the_committed_record():
     record = json.loads(RECORD.read_text())
     readme = parse_readme(README.read_text())
@@ -45,7 +38,6 @@ def test_the_readme_numbers_are_those_of_the_committed_record():
     assert record["command"].split(" OUT=")[0] in text and record["date_utc"] in text
 
 
-@pytest.mark.xfail(NO_RECORD, reason="no record yet (see above)", strict=True)
 def test_the_record_is_one_complete_make_reproduce():
     record = json.loads(RECORD.read_text())
     assert record["command"].startswith("make reproduce") and record["dataset"] == "sim-mini"
