@@ -364,7 +364,9 @@ def wheel_response(table: pd.DataFrame, resp: WheelResponse, groups: np.ndarray 
     ``table``'s ``cmd_wl``/``cmd_wr``, restarted at each sequence start from its first (shaped) command."""
     groups = groups_of(table) if groups is None else groups
     t = table["t"].to_numpy(float)
-    cmd = table[["cmd_wl", "cmd_wr"]].to_numpy(float)
+    # column by column: selecting a list of columns costs more than the response itself (the fits call
+    # this a few thousand times on the same table)
+    cmd_l, cmd_r = table["cmd_wl"].to_numpy(float), table["cmd_wr"].to_numpy(float)
     out = np.empty((len(t), 4))
     if len(t) == 0:
         return out
@@ -385,9 +387,9 @@ def wheel_response(table: pd.DataFrame, resp: WheelResponse, groups: np.ndarray 
                 k = d / step
                 k = round(k) if abs(k - round(k)) < 1e-6 else k
                 x, xp = np.arange(b - a) - k, np.arange(b - a)
-            ul, ur = np.interp(x, xp, cmd[a:b, 0]), np.interp(x, xp, cmd[a:b, 1])
+            ul, ur = np.interp(x, xp, cmd_l[a:b]), np.interp(x, xp, cmd_r[a:b])
         else:
-            ul, ur = cmd[a:b, 0], cmd[a:b, 1]
+            ul, ur = cmd_l[a:b], cmd_r[a:b]
         S = _shape((ul + ur) / 2.0, resp.gain_s, resp.sat_s)
         D = _shape((ur - ul) / 2.0, resp.gain_d, resp.sat_d)
         if resp.wheel_max > 0:
