@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
+from ..forked import map_forked
 from ..manifest import Manifest
 from ..sources.contract import Source, SourceContext
 
@@ -49,8 +50,6 @@ class BagSource(Source):
         # to check its settings (pipeline/dataset.py)
         from tqdm import tqdm
 
-        from .bag import extract_bag
-        from .inspect import auto_specs
         from .reader import bag_format, discover_sequences, topic_specs
 
         layout, opts = ctx.layout, ctx.options
@@ -70,18 +69,35 @@ class BagSource(Source):
         elif manifest.base.resolve() != layout.raw.resolve():  # a user's manifest.json: ours is current
             seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
             Manifest(seqs, manifest.robot, manifest.format, base=layout.raw).write(layout.manifest)
-        records = []
         seqs = manifest.sequences
-        for seq in tqdm(seqs, desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2):
+        # one bar, over the bags: the workers' per-bag message bars would overwrite each other
+        bag_opts = dataclasses.replace(opts, progress=False) if len(seqs) > 1 else opts
+        calls = []
+        for seq in seqs:
             meta = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category}
             bag = manifest.resolve(seq)
-            seq_specs = auto_specs(bag, opts.typestores) if auto else specs
-            info = extract_bag(bag, layout.extracted / seq.name, seq_specs, opts, meta)
+            calls.append((bag, layout.extracted / seq.name, specs, auto, bag_opts, meta))
+        bar = tqdm(total=len(seqs), desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2)
+
+        def done(i: int, info: dict[str, Any]) -> None:
             verb = "up to date" if info.get("skipped") else "extracted"
             counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
-            log.info("%s %s: %s", verb, seq.name, counts)
-            records.append(info)
+            log.info("%s %s: %s", verb, seqs[i].name, counts)
+            bar.update()
+
+        # the bags are independent (each its own tables and stamp): in forked workers, one per core
+        with bar:
+            records = map_forked(_extract_one, calls, done)
         n_skipped = sum(bool(r.get("skipped")) for r in records)
         if records and n_skipped == len(records):
             log.info("extract: %d sequences up to date, skipped", len(records))
         return records
+
+
+def _extract_one(bag: Path, out: Path, specs, auto: bool, opts, meta: dict[str, Any]) -> dict[str, Any]:
+    """One bag's tables (:func:`.bag.extract_bag`; its topics proposed by ``skidbench inspect`` when
+    ``auto``); its ``_extract.json`` record."""
+    from .bag import extract_bag
+    from .inspect import auto_specs
+
+    return extract_bag(bag, out, auto_specs(bag, opts.typestores) if auto else specs, opts, meta)

@@ -1,0 +1,54 @@
+"""Independent jobs of a stage in forked worker processes, one per core: the same results as one after the
+other, in about a core's share of the time.
+
+A stage whose items are independent (calibrate's terrains, extract's bags: each its own inputs, outputs and
+stamp) maps them with :func:`map_forked`. Fork, not spawn: the workers share the stage's imports and
+arguments instead of loading them again (a fresh interpreter takes seconds to import the stack), and they
+start before the stage has opened any store or thread pool of its own. How many processes compute the
+results changes nothing in them, so it is not a setting (every config key is a parameter of the MLflow runs).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any
+
+
+def cores() -> int:
+    """The processors this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def map_forked(
+    fn: Callable[..., Any], calls: Sequence[tuple], done: Callable[[int, Any], None] | None = None
+) -> list[Any]:
+    """``[fn(*args) for args in calls]``, in forked worker processes when there are two or more calls and
+    cores (at most one process per call), else in this one. ``done(i, result)`` runs in this process as
+    each call finishes (in the order they finish). An exception of a call is raised here, as in the plain
+    loop; the calls not started by then are not run (those running finish)."""
+    jobs = min(len(calls), cores())
+    results: list[Any] = [None] * len(calls)
+    if jobs < 2:
+        for i, args in enumerate(calls):
+            results[i] = fn(*args)
+            if done is not None:
+                done(i, results[i])
+        return results
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+        futures = {pool.submit(fn, *args): i for i, args in enumerate(calls)}
+        try:
+            for fut in as_completed(futures):
+                i = futures[fut]
+                results[i] = fut.result()
+                if done is not None:
+                    done(i, results[i])
+        except BaseException:
+            pool.shutdown(cancel_futures=True)  # the calls not started yet are not run
+            raise
+    return results
