@@ -50,6 +50,20 @@ def test_reproduce_stage_wrapper_reports_time_memory_and_a_failing_stage(tmp_pat
     assert ext["extract_rss_full_mb"].startswith("not measured")
 
 
+def test_reproduce_counts_the_side_by_side_evaluates_once_as_make_runs_them():
+    groups = [[step[0] for step in g] for g in rep._groups()]
+    assert ["evaluate", "evaluate_response"] in groups and sum(groups, []) == list(rep.STAGES)
+    walls = {"evaluate": 40.0, "evaluate_response": 45.0}
+    stages = [
+        {"stage": s, "wall_s": walls.get(s, 10.0), "cpu_s": 1.0, "peak_rss_mb": 1.0, "exit": 0,
+         "side_by_side": s in rep.SIDE_BY_SIDE}
+        for s in rep.STAGES
+    ]  # fmt: skip
+    m = rep.metrics({"scale": "mini", "stages": stages})
+    assert math.isclose(m["total_wall_min"] * 60, 10.0 * (len(rep.STAGES) - 2) + 45.0)
+    assert math.isclose(m["total_cpu_min"] * 60, len(rep.STAGES))
+
+
 def test_scaling_reports_an_exponent_per_model_and_kind():
     m = sc.scaling(factors=(1, 2), seq_rows=240, base_seqs=1, repeats=1, models=["ideal", "edd"])
     assert m["rows"] == "240 / 480"
