@@ -50,7 +50,9 @@ lock:
 
 # `make reproduce`: the built-in simulated dataset; evaluate prints the leaderboard under the paper's
 # commanded inputs, then under the calibrated wheel response (inputs=response; a dataset without wheel
-# encoders says so in one line and skips it), compare sets the protocols side by side.
+# encoders says so in one line and skips it), compare sets the protocols side by side. The two evaluates
+# run at the same time (pipeline/side_by_side.py: they write apart; the second's output is printed after
+# the first's), the same files and MLflow records as one after the other in the time of the longer one.
 # `make reproduce SOURCE=amrl_txt|bag|drive_df DATA=<dir>`: the same benchmark on your data (no simulation). Every stage gets the same source arguments, plus any
 # Hydra overrides in ARGS (e.g. ARGS="robot=husky source.file=husky_windows.parquet").
 ARGS ?=
@@ -70,8 +72,8 @@ endif
 	$(SKB) groundtruth $(SRC_ARGS)
 	$(SKB) split $(SRC_ARGS)
 	$(SKB) calibrate $(SRC_ARGS)
-	$(SKB) evaluate $(SRC_ARGS)
-	$(SKB) evaluate $(SRC_ARGS) inputs=response
+	$(BIN)/python -m skidbench.pipeline.side_by_side \
+		$(SKB) evaluate $(SRC_ARGS) :: $(SKB) evaluate $(SRC_ARGS) inputs=response
 	$(SKB) compare $(SRC_ARGS)
 
 # `make readme-numbers OUT=<dir>` after `make reproduce OUT=<dir>` (a fresh root, the default mini scale):

@@ -11,7 +11,10 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
+import multiprocessing
+import os
 import shutil
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import hydra
@@ -101,8 +104,9 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
         shutil.rmtree(stamp_file(layout.root, "calibrate"), ignore_errors=True)
     usage = calibration_usage()  # the models say how they take the constants; the calibration knows none
     docs, recomputed = {}, []
-    for terrain in terrains:
-        docs[terrain], fresh = calibrate_terrain(layout, terrain, spec, s, str(cfg.dataset), usage)
+    results = _calibrate_all(layout, terrains, spec, s, str(cfg.dataset), usage)
+    for terrain, (doc, fresh) in zip(terrains, results, strict=True):
+        docs[terrain] = doc
         if fresh:
             recomputed.append(terrain)
     print(
@@ -118,6 +122,29 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     if recomputed and bool(cfg.get("track", True)):
         log_run(cfg, layout, docs, spec.name)
     return docs
+
+
+def _calibrate_all(layout, terrains: list[str], spec, s, dataset: str, usage) -> list[tuple[dict, bool]]:
+    """:func:`calibrate_terrain` of every terrain, in order. The terrains are independent (each its own
+    Train files, document and stamp), so they are computed in forked worker processes, one per core (at
+    most one per terrain): the same documents as one after the other, in about half the time on two
+    cores. Not a setting: every config key is a parameter of the MLflow runs, and how many processes
+    compute the documents changes nothing in them."""
+    jobs = min(len(terrains), _cores())
+    if jobs < 2:
+        return [calibrate_terrain(layout, t, spec, s, dataset, usage) for t in terrains]
+    # fork: the workers share this process's imports instead of loading them again
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+        futures = [pool.submit(calibrate_terrain, layout, t, spec, s, dataset, usage) for t in terrains]
+        return [f.result() for f in futures]
+
+
+def _cores() -> int:
+    """The processors this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
 
 
 def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str) -> str:

@@ -223,9 +223,9 @@ class StereoRenderer:
         self._sky = np.tile((170.0 + 40.0 * v / self.height)[:, None], (1, self.width)).astype(np.uint8)
         self._rows = v
         self._inst = None
-        self._uu, self._vv = np.meshgrid(
-            np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
-        )
+        # pixel column and row coordinates (float32, as the inverse depth of a face is computed from them)
+        self._u = np.arange(self.width, dtype=np.float32)
+        self._v = np.arange(self.height, dtype=np.float32)
 
     # ----------------------------------------------------------------------------------------------
     def camera_info(self) -> dict:
@@ -350,6 +350,7 @@ class StereoRenderer:
         level = np.where(np.isfinite(depth), level, -1).astype(int)
         G = np.column_stack([R_c_w[:, 0], R_c_w[:, 1], t_c_w])  # ground (X, Y, 1) -> camera
         H_img_world = K @ G
+        bands = []  # (level, first row, end row, texel -> band pixel)
         for lev in range(len(self.ground)):
             rows = np.nonzero(level == lev)[0]
             if rows.size == 0:
@@ -358,7 +359,10 @@ class StereoRenderer:
             s = self.texel * (2**lev)
             A = np.diag([s, s, 1.0])
             Tr = np.array([[1, 0, 0], [0, 1, -r0], [0, 0, 1.0]])
-            M = np.linalg.inv(Tr @ H_img_world @ A)  # band pixel -> texel
+            bands.append((lev, r0, r1, Tr @ H_img_world @ A))
+        # band pixel -> texel: the bands' inverses in one call (the same numbers as one call each)
+        inverses = np.linalg.inv(np.array([b[3] for b in bands])) if bands else []
+        for (lev, r0, r1, _), M in zip(bands, inverses, strict=True):
             band = cv2.warpPerspective(
                 self.ground[lev],
                 M,
@@ -367,9 +371,11 @@ class StereoRenderer:
                 borderMode=cv2.BORDER_WRAP,
             )
             img[r0:r1] = band
-        # fog per row towards the sky grey (rows without ground keep f = 1: unchanged)
+        # fog per row towards the sky grey (rows without ground keep f = 1: unchanged, so only the ground
+        # rows are blended)
         fog = np.exp(-np.where(np.isfinite(depth), depth, 0.0) / float(self.opts["fog_m"]))[:, None]
-        img = (img * fog + 150.0 * (1 - fog)).astype(np.uint8)
+        g = np.isfinite(depth)
+        img[g] = (img[g] * fog[g] + 150.0 * (1 - fog[g])).astype(np.uint8)
         # ---- boxes: visible vertical faces, z-buffered
         self._draw_faces(img, zbuf, boxes, R_c_w, t_c_w, T_w_c[:3, 3])
         out = img.astype(np.int16) + noise
@@ -394,10 +400,13 @@ class StereoRenderer:
         if faces is None:
             return
         down_c = -R_c_w[:, 2]  # the texture's down axis in the camera
-        for j in range(len(faces.b_i)):
-            uv = self._face_outline(faces, j)
-            if uv is not None:
-                self._paint_face(img, zbuf, faces, j, uv, down_c, float(alphas[faces.b_i[j]]))
+        outlines = [self._face_outline(faces, j) for j in range(len(faces.b_i))]
+        boxes = [None if uv is None else self._pixel_box(uv) for uv in outlines]
+        maps = self._texture_maps(faces, down_c, boxes)
+        for j, (uv, box) in enumerate(zip(outlines, boxes, strict=True)):
+            if box is not None:
+                tex_maps = maps[j] if maps is not None else self._texture_maps(faces, down_c, boxes, j)[0]
+                self._paint_face(img, zbuf, faces, j, uv, box, tex_maps, float(alphas[faces.b_i[j]]))
 
     def _face_geometry(self, idx, R_c_w, t_c_w, cam) -> _Faces | None:
         """The front (not back) vertical faces of instances ``idx``, box-major, in the camera; None
@@ -446,27 +455,32 @@ class StereoRenderer:
         K = self.K
         return poly[:, :2] / poly[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
 
-    def _paint_face(self, img, zbuf, faces: _Faces, j: int, uv, down_c, alpha: float) -> None:
-        """Face ``j``'s pixels in front of ``zbuf`` within outline ``uv``: its texture, fogged, blended
-        with ``alpha`` into ``img``; the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
+    def _pixel_box(self, uv: np.ndarray) -> tuple[int, int, int, int] | None:
+        """The image pixels ``(x0, y0, x1, y1)`` (ends excluded) an outline covers; None when none."""
         umin, vmin = uv.min(axis=0).tolist()
         umax, vmax = uv.max(axis=0).tolist()
         x0, x1 = max(0, math.floor(umin)), min(self.width, math.ceil(umax) + 1)
         y0, y1 = max(0, math.floor(vmin)), min(self.height, math.ceil(vmax) + 1)
-        if x1 <= x0 or y1 <= y0:
-            return
+        return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
+
+    def _paint_face(self, img, zbuf, faces: _Faces, j: int, uv, box, tex_maps, alpha: float) -> None:
+        """Face ``j``'s pixels in front of ``zbuf`` within outline ``uv`` (pixel box ``box``): its texture
+        (``tex_maps``: :meth:`_texture_maps` per mip level), fogged, blended with ``alpha`` into ``img``;
+        the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
+        x0, y0, x1, y1 = box
         a = faces.plane[j]  # float64 scalars: the products are float64, rounded to float32 once
-        invz = (a[0] * self._uu[y0:y1, x0:x1] + a[1] * self._vv[y0:y1, x0:x1] + a[2]).astype(np.float32)
+        # a0 u + a1 v + a2 over the box: the row and column products once each, then summed per pixel
+        invz = (np.add.outer(a[1] * self._v[y0:y1], a[0] * self._u[x0:x1]) + a[2]).astype(np.float32)
         mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
         pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
         cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
         zsub = zbuf[y0:y1, x0:x1]
-        sel = (mask > 0) & (invz > zsub)
+        sel = mask.view(bool) & (invz > zsub)  # the mask holds 0 and 1
         invz_sel = invz[sel]
         if invz_sel.size == 0:
             return
         dist = 1.0 / max(float(invz_sel.max()), 1e-6)
-        patch = self._face_texture(faces, j, down_c, dist, (x0, y0, x1, y1))
+        patch = self._face_texture(dist, box, tex_maps)
         f = math.exp(-dist / float(self.opts["fog_m"]))
         sub = img[y0:y1, x0:x1]
         if alpha >= 1.0:
@@ -476,25 +490,46 @@ class StereoRenderer:
         if alpha >= 0.5:
             zsub[sel] = invz_sel
 
-    def _face_texture(self, faces: _Faces, j: int, down_c, dist: float, box) -> np.ndarray:
-        """Face ``j``'s wall texture warped onto the pixel box ``(x0, y0, x1, y1)``, from the mip level of
-        its footprint at distance ``dist`` (face coords: s along e, t down from the top, in texels)."""
-        x0, y0, x1, y1 = box
+    def _texture_maps(self, faces: _Faces, down_c, boxes, only: int | None = None) -> np.ndarray | None:
+        """Per face (or face ``only``) and wall mip level, the map from a pixel of its box (``boxes``, None
+        for a face not drawn) to its texel: face texel (i, j) -> world P0 + (i + ou) s E - (j + ov) s z,
+        offsets mod the level's tile. Every face and level at once, inverted in one call: the same numbers
+        as face by face; None when one of them is singular (then each drawn face's own, as it is drawn,
+        fails as it would have alone)."""
+        sel = np.arange(len(faces.b_i)) if only is None else np.array([only])
         K = self.K
-        foot = dist / (K[0, 0] * self.wall_texel)
+        e_c, pc0, tex_off = faces.e_c[sel], faces.pc[sel, 0], faces.tex_off[sel]
+        corner = [(0, 0) if boxes[j] is None else boxes[j][:2] for j in sel]
+        Tr = np.zeros((len(sel), 3, 3))
+        Tr[:, 0, 0] = Tr[:, 1, 1] = Tr[:, 2, 2] = 1.0
+        Tr[:, :2, 2] = -np.array(corner, dtype=float).reshape(-1, 2)
+        TK = Tr @ K
+        fwd = np.empty((len(sel), len(self.wall), 3, 3))
+        for lev, tex in enumerate(self.wall):
+            s = self.wall_texel * (2**lev)
+            n_t = tex.shape[0]
+            ou, ov = (tex_off[:, 0] % n_t) * s, (tex_off[:, 1] % n_t) * s
+            Mface = np.empty((len(sel), 3, 3))
+            Mface[:, :, 0] = e_c * s
+            Mface[:, :, 1] = down_c * s
+            Mface[:, :, 2] = pc0 - ou[:, None] * e_c - ov[:, None] * down_c
+            fwd[:, lev] = TK @ Mface
+        try:
+            return np.linalg.inv(fwd)
+        except np.linalg.LinAlgError:
+            if only is not None:
+                raise
+            return None
+
+    def _face_texture(self, dist: float, box, tex_maps: np.ndarray) -> np.ndarray:
+        """A face's wall texture warped onto the pixel box ``(x0, y0, x1, y1)``, from the mip level of its
+        footprint at distance ``dist`` (``tex_maps``: its pixel -> texel map per level)."""
+        x0, y0, x1, y1 = box
+        foot = dist / (self.K[0, 0] * self.wall_texel)
         lev = min(max(math.floor(math.log2(max(foot * 0.7, 1e-9))), 0), len(self.wall) - 1)
-        s = self.wall_texel * (2**lev)
-        tex = self.wall[lev]
-        n_t = tex.shape[0]
-        # face texel (i, j) -> world: P0 + (i + ou) * s * E - (j + ov) * s * z ; offsets mod tile
-        e_c, tex_off = faces.e_c[j], faces.tex_off[j]
-        ou, ov = int(tex_off[0]) % n_t, int(tex_off[1]) % n_t
-        Mface = np.column_stack([e_c * s, down_c * s, faces.pc[j, 0] - ou * s * e_c - ov * s * down_c])
-        Tr = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
-        Minv = np.linalg.inv(Tr @ K @ Mface)
         return cv2.warpPerspective(
-            tex,
-            Minv,
+            self.wall[lev],
+            tex_maps[lev],
             (x1 - x0, y1 - y0),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_WRAP,
