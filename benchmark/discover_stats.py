@@ -153,8 +153,7 @@ def _log_ratio2(before: np.ndarray, after: np.ndarray) -> np.ndarray:
 
 def channels_of(eid: str) -> tuple[str, ...]:
     """The velocity channels a catalogue effect changes (all three for a whole-body effect)."""
-    ch = CATALOGUE[eid].channel
-    return CHANNELS if ch < 0 else (CHANNELS[ch],)
+    return tuple(CHANNELS[c] for c in sorted(CATALOGUE[eid].channels))
 
 
 def unit_gains(before: HeldOut, after: HeldOut) -> np.ndarray:

@@ -381,7 +381,7 @@ class Augmenter:
         gain = base_gain and any(CATALOGUE[e].kind == "mult" for e in corr)
         fr = {k: v[rows] for k, v in feats.items()}
         fr["sqrt_R"] = sqrt_radius(fr["R"])  # computed once, not at every residual evaluation
-        chans = sorted({CATALOGUE[e].channel for e in corr})  # only these depend on the parameters
+        chans = sorted({c for e in corr for c in CATALOGUE[e].channels})  # what the parameters change
         tg = self.pool.target[rows][:, chans]
         if offset is not None:  # the open-ended terms' correction, held fixed while the effects are fitted
             tg = tg - offset[rows][:, chans]

@@ -42,10 +42,17 @@ class Effect:
     feature_label: str = ""  # what the residual is plotted against in the figure
     #: physical sign/range of each parameter (the effect's direction is part of its meaning)
     bounds: tuple[tuple[float, float], ...] = ()
+    #: further channels an additive effect changes through the same parameters
+    also: tuple[int, ...] = ()
 
     @property
     def n_params(self) -> int:
         return len(self.param_names)
+
+    @property
+    def channels(self) -> tuple[int, ...]:
+        """The velocity channels it changes (all three for an input transform)."""
+        return (0, 1, 2) if self.channel < 0 else (self.channel, *self.also)
 
 
 CATALOGUE: dict[str, Effect] = {
@@ -104,14 +111,16 @@ CATALOGUE: dict[str, Effect] = {
         Effect(
             "side_asymmetry",
             "Left and right sides with different effective wheel radii (tyre pressure, wear, load) "
-            "turn straight-line driving into a yaw rate proportional to forward speed.",
-            "wz += k * v_cmd",
+            "turn straight-line driving into a yaw rate proportional to forward speed, and add to the "
+            "forward speed in a turn in proportion to its yaw rate.",
+            "wz += k * v_cmd;  vx += k * chi * (B/2)^2 * w_cmd  (radii r (1 -+ e), e = k * chi * B / 2)",
             ("k",),
             2,
             "add",
             (0.0,),
             "commanded linear velocity (m/s)",
             ((-INF, INF),),
+            (0,),
         ),
         Effect(
             "curvature_dependent_icr",
@@ -169,7 +178,8 @@ def command_features(table: pd.DataFrame, wheel_radius: float, track_width: floa
     dw = r * (dwr - dwl) / B
     with np.errstate(divide="ignore", invalid="ignore"):
         R = np.where(np.abs(w) > 1e-6, np.abs(v) / np.abs(w), np.inf)
-    return {"v": v, "w": w, "dv": dv, "dw": dw, "R": R}
+    # (B/2)^2 w: half the rim-speed difference r (w_r - w_l) / 2 times B / 2 (side_asymmetry's forward part)
+    return {"v": v, "w": w, "dv": dv, "dw": dw, "R": R, "w_b2": w * (B / 2.0) ** 2}
 
 
 # -- corrections --------------------------------------------------------------------------------
@@ -191,9 +201,34 @@ def mult_factor(eid: str, p: np.ndarray, f: dict[str, np.ndarray]) -> np.ndarray
     raise KeyError(eid)
 
 
+def _chi_of(pred: np.ndarray, f: dict[str, np.ndarray]) -> float:
+    """The base model's ratio of forward to yaw gain, c_v / c_w (chi for the extended differential drive),
+    by least squares of ``pred`` on the commanded (v, w) (as ``terms.base_gains``); 1 without turns."""
+    v, w = f["v"], f["w"]
+    ok = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 2])
+    vv, ww = float(np.dot(v[ok], v[ok])), float(np.dot(w[ok], w[ok]))
+    if vv <= 1e-9 or ww <= 1e-9:
+        return 1.0
+    c_v = float(np.dot(pred[ok, 0], v[ok])) / vv
+    c_w = float(np.dot(pred[ok, 2], w[ok])) / ww
+    return c_v / c_w if abs(c_w) > 1e-9 else 1.0
+
+
+def corrections(eid: str, p: np.ndarray, f: dict[str, np.ndarray], pred: np.ndarray) -> dict[int, np.ndarray]:
+    """The additive corrections of an additive effect, channel -> (T,), given the velocity ``pred`` after
+    the multiplicative factors. ``side_asymmetry``: wheel radii r (1 - e) left, r (1 + e) right on a base
+    that turns commanded (v, w) into (c_v v, c_w w) change the yaw rate by 2 e c_w v / B = k v and the
+    forward speed by c_v e B w / 2 = k (c_v / c_w) (B/2)^2 w: a radius difference is both (on one side's
+    slip of 10 %, the forward part left alone was named as a term of its own, vx += 0.0095 w)."""
+    if eid == "side_asymmetry":
+        k = float(p[0])
+        return {2: k * f["v"], 0: k * _chi_of(pred, f) * f["w_b2"]}
+    return {CATALOGUE[eid].channel: additive(eid, p, f, pred)}
+
+
 def additive(eid: str, p: np.ndarray, f: dict[str, np.ndarray], pred: np.ndarray) -> np.ndarray:
-    """The additive correction of an additive effect (on its channel), given the velocity ``pred``
-    after the multiplicative factors."""
+    """The additive correction of an additive effect on its (first) channel, given the velocity ``pred``
+    after the multiplicative factors (every channel: :func:`corrections`)."""
     k = float(p[0])
     if eid == "angular_acceleration_slip":
         return -k * f["dw"]
@@ -220,7 +255,8 @@ def apply_effects(
     for eid, p in params.items():
         e = CATALOGUE[eid]
         if e.kind == "add":
-            out[:, e.channel] += additive(eid, p, feats, ref)
+            for ch, c in corrections(eid, p, feats, ref).items():
+                out[:, ch] += c
     return out
 
 
@@ -239,7 +275,8 @@ def base_targets(
     for eid, p in params.items():
         e = CATALOGUE[eid]
         if e.kind == "add":
-            out[:, e.channel] -= additive(eid, p, feats, ref)
+            for ch, c in corrections(eid, p, feats, ref).items():
+                out[:, ch] -= c
     safe = np.where(np.abs(fac) > 0.05, fac, np.sign(fac + 1e-12) * 0.05)
     out[:, 2] /= safe
     return out

@@ -208,3 +208,43 @@ def test_curvature_law_fit_with_the_base_reaches_the_joint_optimum(jackal):
     assert state.params["curvature_dependent_icr"] == pytest.approx([b1, b2], rel=0.02)
     assert state.base.get_params()["chi"] == pytest.approx(1.0, rel=0.01)
     assert np.sqrt(np.mean((state.pred[:, 2] - wz) ** 2)) < 1e-3
+
+
+def test_side_asymmetry_is_a_radius_difference_in_both_channels(jackal):
+    """Wheel radii r (1 - e) and r (1 + e) (the generator's physical form) move the robot exactly as the
+    extended differential drive plus ``side_asymmetry`` with k = 2 e / (B chi): the yaw rate by k v and the
+    forward speed by e B w / 2. And one side's slip of 10 % on the radius ``calibrate`` measures (r (1 - s /
+    2)) is that radius difference, so after the effect's fit no forward-speed residual is left (the vx
+    part missing, it left vx += 0.0094 w, which the term library named ``lin.wz_pred.vx``)."""
+    import dataclasses
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import discover_data as dd
+
+    from skidbench.models.effect_fit import fit_effects
+    from skidbench.models.specs import get_model_class
+
+    r, B, chi = dd.R_WHEEL, dd.TRACK, dd.CHI
+    t, v, w = dd.joystick(np.random.default_rng(5), 30.0, 1 / 30)
+    tab = pd.DataFrame({"t": t, "cmd_v": v, "cmd_w": w, "cmd_wl": (v - w * B / 2) / r,
+                        "cmd_wr": (v + w * B / 2) / r, "cmd_dwl": 0 * t, "cmd_dwr": 0 * t})  # fmt: skip
+    f = command_features(tab, r, B)
+    e = 0.02
+    vx, _, wz = dd.true_velocity(t, v, w, {"side_asymmetry": e})
+    aug = apply_effects(
+        np.column_stack([v, 0 * v, w / chi]), f, {"side_asymmetry": np.array([2 * e / (B * chi)])}
+    )
+    np.testing.assert_allclose(aug[:, 0], vx, atol=1e-12)
+    np.testing.assert_allclose(aug[:, 2], wz, atol=1e-12)
+
+    s = 0.1
+    vx, vy, wz = dd.true_velocity(t, v, w, {"one_side_slip": ("l", s)})
+    robot = dataclasses.replace(jackal, wheel_radius=r * (1 - s / 2), track_width=B)  # the wheel commands: r
+    zero = 0 * t
+    table = tab.assign(vx=vx, vy=vy, wz=wz, x=zero, y=zero, yaw=zero, valid=True, sequence=0)
+    edd = get_model_class("edd")
+    state = fit_effects(table, lambda: edd(robot), robot, ["side_asymmetry"])
+    assert state.params["side_asymmetry"][0] == pytest.approx(s / (B * chi), rel=0.01)
+    res = state.pred - np.column_stack([vx, vy, wz])
+    assert np.sqrt(np.mean(res[:, 0] ** 2)) < 1e-4 and np.sqrt(np.mean(res[:, 2] ** 2)) < 1e-4
