@@ -80,11 +80,16 @@ def _load(ep: EntryPoint) -> PluginInfo:
     return info
 
 
-#: the last :func:`discover` result, under the entry points it was made of: a distribution's name and
-#: version are parsed from its METADATA file on each look-up (8 entry points, ~5 ms a call), and one
-#: ``skidbench evaluate`` asks ~150 times; another set of entry points (a plugin installed, a test's own)
-#: is discovered anew
-_LAST: tuple[tuple, dict[str, PluginInfo]] | None = None
+#: the last :func:`discover` result, under the entry points it was made of and the plugin modules it loaded
+#: (held, and compared by identity): a distribution's name and version are parsed from its METADATA file on
+#: each look-up (8 entry points, ~5 ms a call), and one ``skidbench evaluate`` asks ~150 times; another
+#: set of entry points (a plugin installed, a test's own) or a plugin module imported anew (edited, and
+#: dropped from ``sys.modules``) is discovered anew
+_LAST: tuple[tuple, tuple, dict[str, PluginInfo]] | None = None
+
+
+def _modules(eps: list[EntryPoint]) -> tuple:
+    return tuple(sys.modules.get(ep.module) for ep in eps)
 
 
 def discover() -> dict[str, PluginInfo]:
@@ -92,9 +97,15 @@ def discover() -> dict[str, PluginInfo]:
     global _LAST
     eps = sorted(entry_points(group=GROUP), key=lambda e: e.name)
     key = tuple((ep.name, ep.value, ep.group) for ep in eps)
-    if _LAST is None or _LAST[0] != key:
-        _LAST = (key, _discover(eps))
-    return {name: replace(info) for name, info in _LAST[1].items()}
+    fresh = (
+        _LAST is not None
+        and _LAST[0] == key
+        and all(m is not None and m is c for m, c in zip(_modules(eps), _LAST[1], strict=True))
+    )
+    if not fresh:
+        found = _discover(eps)
+        _LAST = (key, _modules(eps), found)
+    return {name: replace(info) for name, info in _LAST[2].items()}
 
 
 def _discover(eps: list[EntryPoint]) -> dict[str, PluginInfo]:
