@@ -26,13 +26,17 @@ def cores() -> int:
 
 
 def map_forked(
-    fn: Callable[..., Any], calls: Sequence[tuple], done: Callable[[int, Any], None] | None = None
+    fn: Callable[..., Any],
+    calls: Sequence[tuple],
+    done: Callable[[int, Any], None] | None = None,
+    jobs: int | None = None,
 ) -> list[Any]:
     """``[fn(*args) for args in calls]``, in forked worker processes when there are two or more calls and
-    cores (at most one process per call), else in this one. ``done(i, result)`` runs in this process as
-    each call finishes (in the order they finish). An exception of a call is raised here, as in the plain
-    loop; the calls not started by then are not run (those running finish)."""
-    jobs = min(len(calls), cores())
+    cores (at most one process per call, and at most ``jobs`` when given), else in this one; the calls
+    start in their order. ``done(i, result)`` runs in this process as each call finishes (in the order they
+    finish). An exception of a call is raised here, as in the plain loop; the calls not started by then are
+    not run (those running finish)."""
+    jobs = min(len(calls), cores(), jobs or len(calls))
     results: list[Any] = [None] * len(calls)
     if jobs < 2:
         for i, args in enumerate(calls):

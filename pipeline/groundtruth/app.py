@@ -18,13 +18,13 @@ from typing import Any
 import hydra
 import numpy as np
 import pandas as pd
-from joblib import Parallel, delayed
 from omegaconf import DictConfig, OmegaConf
 
 from ..cache import Stamp, stamp_file
 from ..cli import stage
 from ..cpu import code_paths
 from ..errors import ConfigError, GroundTruthError
+from ..forked import map_forked
 from ..geometry import se3_from_xyz_rpy
 from ..io import fingerprint_file, write_json_atomic, write_text_atomic
 from ..layout import Layout, layout_from_cfg
@@ -55,12 +55,14 @@ def _extracted_bytes(layout: Layout, seq: Sequence) -> int:
 
 def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None):
     """:func:`sequence_groundtruth` in a worker process: ``(name, Trajectory, report)``. ``threads``
-    limits OpenCV's own thread pool (one per worker when the workers already fill the cores: its idle
-    threads otherwise spin and take CPU time from the other worker)."""
+    limits OpenCV's and the BLAS library's thread pools (one per worker when the workers already fill the
+    cores: their idle threads otherwise spin and take CPU time from the other worker)."""
     if threads is not None:
         import cv2
+        from threadpoolctl import threadpool_limits
 
         cv2.setNumThreads(threads)
+        threadpool_limits(threads)
     traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
     report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/cpu.py)
     return seq.name, traj, report
@@ -334,10 +336,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     jobs = int(gt_cfg.get("jobs", 1)) if len(stale) > 1 and str(gt_cfg.method) == "vo" else 1
     by_name = {seq.name: (seq, stamp, key) for seq, stamp, key in stale}
     order = sorted(stale, key=lambda item: -_extracted_bytes(layout, item[0]))
-    computed = Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
-        delayed(_sequence_worker)(cfg, layout, manifest, seq, 1 if jobs > 1 else None) for seq, _, _ in order
-    )
-    for name, traj, report in computed:
+
+    def write(_: int, computed: tuple[str, Trajectory, dict]) -> None:
+        name, traj, report = computed
         seq, stamp, key = by_name[name]
         score = _write_sequence(gt_cfg, layout, seq, traj, report)
         if score:
@@ -345,6 +346,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         stamp.record(key, [layout.groundtruth / f"{seq.name}.tum", layout.groundtruth / f"{seq.name}.json"])
         if seq.category == "loop":
             loops[seq.name] = traj
+
+    # forked workers (pipeline/forked.py): they share this process's imports instead of loading them again
+    threads = 1 if jobs > 1 else None
+    map_forked(_sequence_worker, [(cfg, layout, manifest, seq, threads) for seq, _, _ in order], write, jobs)
     result = _loop_report(cfg, manifest, loops, truth_scores)
     _write_if_changed(layout.groundtruth / LOOP_REPORT, result)
     n = len(manifest.sequences)
