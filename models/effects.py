@@ -203,14 +203,13 @@ def mult_factor(eid: str, p: np.ndarray, f: dict[str, np.ndarray]) -> np.ndarray
 
 def _chi_of(pred: np.ndarray, f: dict[str, np.ndarray]) -> float:
     """The base model's ratio of forward to yaw gain, c_v / c_w (chi for the extended differential drive),
-    by least squares of ``pred`` on the commanded (v, w) (as ``terms.base_gains``); 1 without turns."""
+    by least squares of ``pred`` on the commanded (v, w) over its finite rows (:func:`terms.base_gains`);
+    1 without turns or without forward motion."""
     v, w = f["v"], f["w"]
     ok = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 2])
-    vv, ww = float(np.dot(v[ok], v[ok])), float(np.dot(w[ok], w[ok]))
-    if vv <= 1e-9 or ww <= 1e-9:
+    if float(np.dot(v[ok], v[ok])) <= 1e-9 or float(np.dot(w[ok], w[ok])) <= 1e-9:
         return 1.0
-    c_v = float(np.dot(pred[ok, 0], v[ok])) / vv
-    c_w = float(np.dot(pred[ok, 2], w[ok])) / ww
+    c_v, c_w = termlib.base_gains({"v": v, "w": w, "vx_pred": pred[:, 0], "wz_pred": pred[:, 2]}, ok)
     return c_v / c_w if abs(c_w) > 1e-9 else 1.0
 
 
