@@ -42,6 +42,10 @@ def inject(final: Path, spec: str | None = None) -> None:
     if action == "stop":  # frozen until SIGCONT
         os.kill(os.getpid(), signal.SIGSTOP)
     if action == "int":  # Ctrl-C: the handler raises KeyboardInterrupt before the next bytecode
+        if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+            # started from a shell's background job (`make test &` in a script), which ignores SIGINT and
+            # so hands its children an ignored Ctrl-C: a terminal's Ctrl-C reaches a foreground stage
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         os.kill(os.getpid(), signal.SIGINT)
     code = {"enospc": errno.ENOSPC, "eacces": errno.EACCES}.get(action)
     if code is not None:
