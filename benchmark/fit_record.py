@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from skidbench.models import fitting
+from skidbench.models import fitting, registry
 from skidbench.pipeline import provenance
 from skidbench.pipeline.errors import one_line
 from skidbench.pipeline.wheel_response import WheelResponse
@@ -27,7 +27,7 @@ ENTRY_POINT_GROUP = "skidbench.models"
 
 
 def installed_models() -> dict[str, md.EntryPoint]:
-    return {ep.name: ep for ep in md.entry_points(group=ENTRY_POINT_GROUP)}
+    return {ep.name: ep for ep in registry.entry_points(group=ENTRY_POINT_GROUP)}
 
 
 def plugin_package(model_name: str, model: Any = None) -> str:

@@ -12,13 +12,43 @@ or breaks the interface is reported as one line naming it and the problem; the o
 
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import dataclass, replace
-from importlib.metadata import EntryPoint, entry_points
+from importlib import metadata
+from importlib.metadata import EntryPoint
 
 from .base import KinematicModel, ModelError
 
 GROUP = "skidbench.models"
+
+#: group -> (the state of sys.path it was read under, its entry points): ``importlib.metadata``'s
+#: ``entry_points`` reads the entry-point file of every installed distribution on each call (~10 ms on a
+#: usual environment; ``skidbench evaluate`` asks for the group a few times per model and terrain)
+_SCANNED: dict[str, tuple[tuple, tuple[EntryPoint, ...]]] = {}
+
+
+def _path_state() -> tuple:
+    """``sys.path`` with each folder's modification time: installing, upgrading or removing a distribution
+    adds or removes its metadata folder (``*.dist-info``) in a folder of the path, which changes that
+    folder's time (so does a new ``.egg-link`` or ``.pth`` of an editable install)."""
+    state = []
+    for entry in sys.path:
+        try:
+            state.append((entry, os.stat(entry or ".").st_mtime_ns))
+        except OSError:
+            state.append((entry, None))
+    return tuple(state)
+
+
+def entry_points(group: str) -> list[EntryPoint]:
+    """The entry points of ``group``, as :func:`importlib.metadata.entry_points` gives them, read again only
+    when ``sys.path`` or one of its folders changed (:func:`_path_state`)."""
+    state = _path_state()
+    hit = _SCANNED.get(group)
+    if hit is None or hit[0] != state:
+        hit = _SCANNED[group] = (state, tuple(metadata.entry_points(group=group)))
+    return list(hit[1])
 
 
 @dataclass

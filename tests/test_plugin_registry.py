@@ -81,3 +81,29 @@ def test_skidbench_models_lists_good_plugins_and_one_line_per_broken_one(with_pl
     errs = err.strip().splitlines()
     assert len(errs) == 3 and all(line.startswith("skidbench models: plugin ") for line in errs)
     assert any("plugin broken" in line for line in errs)
+
+
+def test_a_distribution_installed_after_the_first_look_is_found(tmp_path, monkeypatch):
+    """The group's entry points are read once and kept while ``sys.path`` and its folders are unchanged; a
+    distribution installed into a folder of the path (its ``*.dist-info`` created there, as pip does) is
+    seen on the next look, and one removed is gone."""
+    from importlib import metadata
+
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = registry.entry_points(registry.GROUP)
+    assert sorted(e.name for e in before) == sorted(
+        e.name for e in metadata.entry_points(group=registry.GROUP)
+    )
+    assert registry.entry_points(registry.GROUP) == before  # kept: nothing changed
+
+    info = tmp_path / "skidbench_extra-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: skidbench-extra\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[skidbench.models]\nextra = skidbench_extra:Extra\n")
+    (extra,) = [e for e in registry.entry_points(registry.GROUP) if e.name == "extra"]
+    assert extra.value == "skidbench_extra:Extra" and extra.dist.version == "1.0"
+
+    for f in info.iterdir():
+        f.unlink()
+    info.rmdir()
+    assert "extra" not in {e.name for e in registry.entry_points(registry.GROUP)}
