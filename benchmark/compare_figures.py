@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.pipeline.errors import one_line
+from skidbench.pipeline.forked import map_forked
 from skidbench.pipeline.layout import Layout
 
 from . import figures as figs
@@ -233,16 +234,38 @@ def _terrain_jobs(
     ]  # fmt: skip
 
 
+#: the jobs of the :func:`draw_figures` call in progress, read by its forked workers (a job is a closure over
+#: the board and the layout: the workers inherit it, it is not sent to them)
+_JOBS: tuple[FigureJob, ...] = ()
+
+
+def _draw_job(i: int, path: Path) -> tuple[Path | None, str | None]:
+    """Draw job ``i`` of :data:`_JOBS` into ``path``: (the file, None), or (None, the note of why not)."""
+    _, caption, draw = _JOBS[i]
+    try:
+        return draw(path), None
+    except Exception as exc:  # a figure that needs local data we do not have: say so, go on
+        return None, f"{caption.split(':')[0]} skipped: {type(exc).__name__}: {one_line(str(exc))[:300]}"
+
+
 def draw_figures(jobs: Sequence[FigureJob], out: Path, files: list[Path], notes: list[str]) -> list[str]:
-    """Draw each figure into ``out`` (appended to ``files``); the report's Markdown of those drawn. A figure
-    that needs data this root does not have is skipped with a note, and the others go on."""
+    """Draw each figure into ``out`` (appended to ``files``, in the order of ``jobs``); the report's Markdown
+    of those drawn. A figure that needs data this root does not have is skipped with a note, and the others
+    go on. The figures are independent (each reads what it draws and writes its own file): they are drawn
+    in forked worker processes, one per core (:func:`~skidbench.pipeline.forked.map_forked`), the same
+    files as one after the other."""
+    global _JOBS
+    _JOBS = tuple(jobs)
+    try:
+        drawn = map_forked(_draw_job, [(i, out / name) for i, (name, _, _) in enumerate(_JOBS)])
+    finally:
+        _JOBS = ()
     fig_md: list[str] = []
-    for name, caption, draw in jobs:
-        try:
-            files.append(draw(out / name))
-            fig_md.append(f"### {caption}\n\n![{caption}]({name})\n")
-        except Exception as exc:  # a figure that needs local data we do not have: say so, go on
-            note = f"{caption.split(':')[0]} skipped: {type(exc).__name__}: {one_line(str(exc))[:300]}"
+    for (name, caption, _), (path, note) in zip(jobs, drawn, strict=True):
+        if note is not None:
             log.warning("%s", note)
             notes.append(note)
+            continue
+        files.append(path)
+        fig_md.append(f"### {caption}\n\n![{caption}]({name})\n")
     return fig_md

@@ -4,7 +4,9 @@ other, in about a core's share of the time.
 A stage whose items are independent (calibrate's terrains, extract's bags: each its own inputs, outputs and
 stamp) maps them with :func:`map_forked`. Fork, not spawn: the workers share the stage's imports and
 arguments instead of loading them again (a fresh interpreter takes seconds to import the stack), and they
-start before the stage has opened any store or thread pool of its own. How many processes compute the
+start before the stage has opened any store or thread pool of its own, or they never use one: compare's
+figures (:func:`skidbench.benchmark.compare_figures.draw_figures`) are drawn after the MLflow store was
+read, from the board and the files they inherit, and a worker ends without closing what it inherited. How many processes compute the
 results changes nothing in them, so it is not a setting (every config key is a parameter of the MLflow runs).
 """
 

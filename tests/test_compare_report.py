@@ -381,3 +381,33 @@ def test_compare_draws_figs_5_to_7_from_what_evaluate_wrote_with_splits_and_fits
     for f in figures:
         assert (ds / "reports" / f).stat().st_size > 10_000
     assert "accelerations [-8.0, 0.0, 8.0] rad/s²" in out.report.read_text()  # the ones evaluate computed
+
+
+def test_figures_are_drawn_apart_in_job_order_and_a_failing_one_is_a_note(tmp_path):
+    """compare's figures in forked workers (one per core): the files and the report's entries come in the
+    order of the jobs, each job's file is written by a worker when there are two cores, and a job that
+    raises is one note naming its figure while the others are drawn."""
+    import os
+
+    from skidbench.benchmark.compare_figures import draw_figures
+    from skidbench.pipeline.forked import cores
+
+    def write(path):
+        path.write_text(str(os.getpid()))
+        return path
+
+    def fails(path):
+        raise FileNotFoundError("no fits/friction/tile.json")
+
+    jobs = [
+        ("a.png", "Fig. 3: first", write),
+        ("b.png", "Fig. 6: needs fits", fails),
+        ("c.png", "Fig. 7: last", write),
+    ]
+    files, notes = [], []
+    md = draw_figures(jobs, tmp_path, files, notes)
+    assert files == [tmp_path / "a.png", tmp_path / "c.png"]
+    assert [m.splitlines()[0] for m in md] == ["### Fig. 3: first", "### Fig. 7: last"]
+    assert notes == ["Fig. 6 skipped: FileNotFoundError: no fits/friction/tile.json"]
+    pids = {int(f.read_text()) for f in files}
+    assert (os.getpid() not in pids) == (cores() >= 2)
