@@ -8,17 +8,37 @@ the time of the longer one instead of the sum. The first command's output is sho
 command's (stdout and stderr, in the order written) waits in a temporary file and is printed when the
 commands before it have ended. Ctrl-C reaches every command (they share the terminal's process group) and
 each ends as it would alone. The exit status is the first non-zero status in command order (0 when all
-succeed), so ``make`` stops as it would have after that command.
+succeed), so ``make`` stops as it would have after that command. Each command gets its share of the cores
+for its BLAS/OpenMP threads (:func:`shared_env`): two NumPy processes with OpenBLAS's default of a thread
+per core oversubscribe the cores, and OpenBLAS's waiting threads spin on them.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
 import tempfile
 
+from .forked import cores
+
 SEPARATOR = "::"
+#: the thread counts of the numerical libraries (NumPy's OpenBLAS, OpenMP, MKL) a command is given
+BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def shared_env(n_commands: int, env: dict[str, str] | None = None) -> dict[str, str]:
+    """``env`` (default: this process's environment) with each of :data:`BLAS_THREAD_VARS` that is not set
+    at ``cores // n_commands`` (at least 1): ``n_commands`` at once share the cores. Measured on the mini
+    dataset's two evaluates side by side (2 cores, alternated runs, 2026-11-27): 38.6 / 28.3 s wall and
+    71 / 53 CPU-s with OpenBLAS's two threads each, 34.8 / 26.7 s and 66 / 50 CPU-s with one; the same
+    leaderboards to the printed digit."""
+    env = dict(os.environ if env is None else env)
+    per = str(max(1, cores() // max(1, n_commands)))
+    for var in BLAS_THREAD_VARS:
+        env.setdefault(var, per)
+    return env
 
 
 def split_commands(argv: list[str]) -> list[list[str]]:
@@ -49,11 +69,12 @@ def run(commands: list[list[str]]) -> int:
         return 0
     sys.stdout.flush()
     rest = []
+    env = shared_env(len(commands))
     try:
-        first = subprocess.Popen(commands[0])
+        first = subprocess.Popen(commands[0], env=env)
         for cmd in commands[1:]:
             out = tempfile.TemporaryFile()
-            rest.append((subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT), out))
+            rest.append((subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env), out))
     except OSError as exc:
         print(f"side_by_side: cannot start {exc.filename}: {exc.strerror}", file=sys.stderr)
         for proc, _ in rest:

@@ -45,3 +45,26 @@ def test_the_first_failure_in_command_order_is_the_status(capfd):
     assert capfd.readouterr().out.splitlines() == ["a", "b"]
     assert run([py("raise SystemExit(4)"), py("print('still printed')")]) == 4
     assert "still printed" in capfd.readouterr().out
+
+
+def test_each_command_gets_its_share_of_the_cores_for_blas_threads(monkeypatch):
+    """n commands at once: each numerical library's thread count at cores // n (at least one), unless the
+    user set it."""
+    from skidbench.pipeline import side_by_side as sbs
+
+    monkeypatch.setattr(sbs, "cores", lambda: 8)
+    env = sbs.shared_env(2, {"PATH": "/bin", "OMP_NUM_THREADS": "3"})
+    assert env["OPENBLAS_NUM_THREADS"] == "4" and env["MKL_NUM_THREADS"] == "4"
+    assert env["OMP_NUM_THREADS"] == "3" and env["PATH"] == "/bin"  # the user's setting is kept
+    monkeypatch.setattr(sbs, "cores", lambda: 2)
+    assert sbs.shared_env(3, {})["OPENBLAS_NUM_THREADS"] == "1"
+
+
+def test_the_commands_run_with_the_shared_thread_counts(capfd, monkeypatch):
+    from skidbench.pipeline import side_by_side as sbs
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setattr(sbs, "cores", lambda: 4)
+    show = [sys.executable, "-c", "import os; print(os.environ['OPENBLAS_NUM_THREADS'])"]
+    assert sbs.run([show, show]) == 0
+    assert capfd.readouterr().out.split() == ["2", "2"]
