@@ -41,3 +41,21 @@ def test_an_item_error_reaches_the_stage_as_itself(monkeypatch):
     monkeypatch.setattr(forked, "cores", lambda: 2)
     with pytest.raises(ExtractError, match="bag 3: truncated"):
         forked.map_forked(_fails_on_three, [(x,) for x in range(6)])
+
+
+def _blas_threads(_: int) -> int:
+    from threadpoolctl import threadpool_info
+
+    return max((i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"), default=1)
+
+
+def test_each_worker_gets_its_share_of_the_cores_for_blas(monkeypatch):
+    """Two workers on two cores: one BLAS thread each (a forked worker would inherit the parent's two); this
+    process's own pool is left as it was."""
+    from threadpoolctl import threadpool_limits
+
+    monkeypatch.setattr(forked, "cores", lambda: 2)
+    with threadpool_limits(limits=2, user_api="blas"):  # as a 2-core machine starts it
+        assert _blas_threads(0) == 2
+        assert forked.map_forked(_blas_threads, [(0,), (1,)]) == [1, 1]
+        assert _blas_threads(0) == 2
