@@ -10,6 +10,7 @@ killed run resumes where it stopped; ``force=true`` re-simulates everything.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import multiprocessing
@@ -17,6 +18,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,7 @@ from typing import Any
 import cv2
 import hydra
 from omegaconf import DictConfig, OmegaConf
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from ..cache import Stamp
@@ -180,6 +183,26 @@ def _stamp_key(stamp: Stamp, index: int, spec: SequenceSpec, cfg: DictConfig, si
     )
 
 
+@contextlib.contextmanager
+def _one_thread_per_worker(forking: bool) -> Iterator[None]:
+    """When the sequences run in forked workers (``forking``): OpenCV, BLAS and OpenMP single-threaded in
+    them, set here before the renderer is built and the workers fork (changing OpenCV's inside a forked
+    child hangs on the parent's thread pool), and restored after. The workers already fill the cores, and
+    idle pool threads spin, taking CPU time from the other workers: `make bench BENCH=render`, 8.2 CPU-ms a
+    stereo pair with one OpenCV thread, 18.4 with two; `skidbench simulate scale=tiny` (2026-11-27), 18.2 s
+    wall and 31.4 CPU-s with OpenBLAS's two threads a worker, 15.5 s and 25.6 with one, the same bags."""
+    if not forking:
+        yield
+        return
+    cv2_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        cv2.setNumThreads(cv2_threads)
+
+
 def _simulate_all(todo: list, jobs: int, desc: str, finish) -> None:
     """Simulate the sequences ``todo`` (in ``jobs`` forked workers when more than one), with a progress
     bar in simulated seconds; ``finish(item, moments)`` after each. ``_CONTEXT`` is set."""
@@ -268,22 +291,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         moments[spec.name] = result
 
     if todo:
-        if jobs > 1 and len(todo) > 1:
-            # OpenCV single-threaded in the workers (set here, before the renderer is built and the
-            # workers fork: changing it inside a forked child hangs on the parent's thread pool). The
-            # workers already fill the cores, and OpenCV's idle pool threads spin, taking CPU time from
-            # the other workers (`make bench BENCH=render`: 8.2 CPU-ms a stereo pair with one thread,
-            # 18.4 with two).
-            cv2_threads = cv2.getNumThreads()
-            cv2.setNumThreads(1)
-        _CONTEXT.update(
-            robot=robot, terrains=terrains, drive=drive, tyre=tyre, run=run, seed=seed, fmt=fmt,
-            renderer=make_renderer(robot, cfg, seed),
-        )  # fmt: skip
-        _simulate_all(todo, jobs, f"simulate {layout.dataset}", finish)
-        _CONTEXT.clear()
-        if jobs > 1 and len(todo) > 1:
-            cv2.setNumThreads(cv2_threads)
+        with _one_thread_per_worker(jobs > 1 and len(todo) > 1):
+            _CONTEXT.update(
+                robot=robot, terrains=terrains, drive=drive, tyre=tyre, run=run, seed=seed, fmt=fmt,
+                renderer=make_renderer(robot, cfg, seed),
+            )  # fmt: skip
+            try:
+                _simulate_all(todo, jobs, f"simulate {layout.dataset}", finish)
+            finally:
+                _CONTEXT.clear()
 
     results = [
         {"spec": s, "path": bag_path(bags_dir, s.name, fmt), "moments": moments[s.name]} for _, s in selected
