@@ -212,13 +212,18 @@ XDIST_ALONE = docs_blocks_alone()
 #: on 2026-11-25 (pytest tests/test_mlflow_server.py tests/test_mlflow_ui_browser.py, the machine loaded).
 #: The README's own-data block (`make reproduce` on the AMRL fixture) was the third-longest test of
 #: `make test --durations=80` on 2026-11-25 (462 s, the machine loaded; the quick start and curvature
-#: over 1800 s).
+#: over 1800 s). A per-test clock over `make test` on 2026-11-27 (the machine quiet): the micro dataset's
+#: group (the reliability tests and test_datasets_home) 234 s of wall, the quick start's 220 s, the lab's
+#: server 66 s, test_discover_protocol's one test 30 s; the micro group started half-way through the run and
+#: test_discover_protocol was among the last units.
 XDIST_FIRST = (
     "readme_reproduce",
+    "micro_root",
     "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
     "[curvature_dependent_icr]",
     *XDIST_ALONE,
     "lab_server",
+    "tests/test_discover_protocol.py",
 )
 
 
