@@ -23,11 +23,9 @@ from .scoring import TestSequence
 
 log = logging.getLogger(__name__)
 
-ENTRY_POINT_GROUP = "skidbench.models"
-
 
 def installed_models() -> dict[str, md.EntryPoint]:
-    return {ep.name: ep for ep in registry.entry_points(group=ENTRY_POINT_GROUP)}
+    return {ep.name: ep for ep in registry.entry_points(group=registry.GROUP)}
 
 
 def plugin_package(model_name: str, model: Any = None) -> str:

@@ -31,9 +31,9 @@ def cores() -> int:
 def _share_cores(threads: int) -> None:
     """A worker's start: its numerical libraries (BLAS, OpenMP) at ``threads`` threads. A forked worker
     inherits the parent's thread pools sized for every core; a worker per core with that many threads each
-    oversubscribes the cores, and OpenBLAS's waiting threads spin on them (calibrate on mini, 2026-11-27,
-    alternated runs: 13.1 / 11.8 s wall and 17.8 / 16.8 CPU-s with them, 9.3 / 8.9 s and 11.5 / 10.9 with
-    one thread a worker; the same calibrations)."""
+    oversubscribes the cores, and OpenBLAS's waiting threads spin on them (`skidbench calibrate force=true`
+    on mini, 2026-11-27, alternated runs: 14.5 / 12.5 s wall and 17.8 / 17.4 CPU-s without this limit,
+    11.6 / 9.7 s and 14.0 / 12.2 CPU-s with it; the same calibrations)."""
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=threads)

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
+from skidbench.pipeline.side_by_side import BLAS_THREAD_VARS  # imports no numerical library
+
 REPO = Path(__file__).resolve().parents[1]
 
 #: one BLAS/OpenMP thread per test process and the commands it starts (a variable already set is kept): the
@@ -19,9 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 #: default on 2 cores) oversubscribe the cores, and OpenBLAS's waiting threads spin on them. Measured on
 #: four discovery tests (`pytest -n 2 tests/test_discover_hidden.py -k ...`, alternated, 2026-11-27): 55 and
 #: 44 s wall, 104 and 86 CPU-s with two threads; 22 and 24 s, 41 and 45 CPU-s with one.
-BLAS_THREADS = {v: "1" for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
-for _var, _n in BLAS_THREADS.items():
-    os.environ.setdefault(_var, _n)
+for _var in BLAS_THREAD_VARS:
+    os.environ.setdefault(_var, "1")
 # SKIDBENCH_SHARED_REAL: where the real recordings are when the checkout is not next to ../shared (a worktree)
 SHARED_REAL = Path(os.environ.get("SKIDBENCH_SHARED_REAL", REPO.parent / "shared" / "data" / "real"))
 

@@ -55,14 +55,12 @@ def _extracted_bytes(layout: Layout, seq: Sequence) -> int:
 
 def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None):
     """:func:`sequence_groundtruth` in a worker process: ``(name, Trajectory, report)``. ``threads``
-    limits OpenCV's and the BLAS library's thread pools (one per worker when the workers already fill the
-    cores: their idle threads otherwise spin and take CPU time from the other worker)."""
+    limits OpenCV's thread pool (one per worker when the workers already fill the cores: its idle threads
+    otherwise spin and take CPU time from the other worker; :func:`~..forked.map_forked` limits BLAS's)."""
     if threads is not None:
         import cv2
-        from threadpoolctl import threadpool_limits
 
         cv2.setNumThreads(threads)
-        threadpool_limits(threads)
     traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
     report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/cpu.py)
     return seq.name, traj, report
