@@ -1,11 +1,15 @@
 """DRIVE's own files: pandas pickles (``raw_dataframe.pkl``, ``torch_ready_dataframe.pkl``,
-``slip_dataset_all.pkl``) read through the restricted unpickler, as pandas 1.5, 2.2 and the installed one
-write them; anything a dataframe does not hold is refused as unsafe, before it is imported or called."""
+``slip_dataset_all.pkl``) read through the restricted unpickler, as pandas 1.5, 2.0-2.3, 3.0 and the
+installed one write them, and one file DRIVE published (pandas older than 1.5: its blocks are
+``functools.partial(new_block, ndim=2)``); anything a dataframe does not hold is refused as unsafe, before
+it is imported or called."""
 
 from __future__ import annotations
 
+import functools
 import gzip
 import pickle
+import re
 import sys
 from pathlib import Path
 
@@ -52,10 +56,63 @@ def test_pickles_of_older_pandas_read_as_the_frames_they_hold(pickled, tmp_path)
         assert detect_form(got, path) == FORM_OF[name]
 
 
-def test_the_fixtures_cover_two_pandas_versions_of_every_form():
+def test_the_fixtures_cover_every_pandas_minor_version_from_1_5_to_3_0():
     tags = {(p.name.split(".pandas")[0], p.name.split(".pandas")[1][:3]) for p in FIX.glob("*.pkl.gz")}
-    assert {t for t in tags if t[0] in FORMS} == {(n, v) for n in FORMS for v in ("1.5", "2.2")}
-    assert ("raw_dataframe_typed", "2.3") in tags
+    assert {t for t in tags if t[0] in FORMS} >= {(n, v) for n in FORMS for v in ("1.5", "2.2")}
+    assert {v for n, v in tags if n == "raw_dataframe"} == {"1.5", "2.0", "2.1", "2.2", "2.3", "3.0"}
+    assert {v for n, v in tags if n == "raw_dataframe_typed"} == {"1.5", "2.3", "3.0"}
+
+
+DRIVE_PKL = FIX / "drive" / "raw_dataframe.gravel_test_wg.pkl"
+
+
+def test_a_pickle_drive_published_with_pandas_partial_blocks_reads_as_its_raw_form(tmp_path):
+    """DRIVE's own raw_dataframe.pkl (pandas < 1.5: every block rebuilt through functools.partial around
+    pandas' new_block) reads as the two text rows it holds, plain and gzip-compressed."""
+    from skidbench.pipeline.sources.drive_files import typed_raw_frame
+
+    data = DRIVE_PKL.read_bytes()
+    assert b"functools" in data and b"partial" in data and b"new_block" in data  # the layout under test
+    (tmp_path / "raw_dataframe.pkl.gz").write_bytes(gzip.compress(data))
+    for path in (DRIVE_PKL, tmp_path / "raw_dataframe.pkl.gz"):
+        df = read_frame(path)
+        assert df.shape == (2, 22) and detect_form(df, path) == ("raw", "raw+icp")
+        assert str(df["ros_time"].iloc[1]) == "1720021356273697920" and df["calib_state"].iloc[1] == "idle"
+    typed = typed_raw_frame(df, DRIVE_PKL, ["ros_time", "cmd_vel_x", "meas_left_vel", "icp_quat_w"])
+    assert len(typed) == 1 and typed["icp_quat_w"].iloc[0] == 1.0  # the zero placeholder row dropped
+
+
+NEW_BLOCK = ("pandas.core.internals.blocks", "new_block")
+#: partials a pickle may hold, by what they wrap: refused unless around pandas' block constructor with ndim
+PARTIALS = {
+    "DataFrame": ((pd.DataFrame, {"a": [1]}), {}, r"around pandas(\.core\.frame)?\.DataFrame, not one of"),
+    "ndarray": ((np.ndarray,), {}, r"around numpy\.ndarray, not one of pandas' block constructors"),
+    "bound args": ((NEW_BLOCK, np.zeros((1, 2))), {"ndim": 2}, r"arguments pandas never binds"),
+    "other keyword": ((NEW_BLOCK,), {"ndim": 2, "refs": None}, r"keywords \['ndim', 'refs'\]"),
+    "ndim 7": ((NEW_BLOCK,), {"ndim": 7}, r"arguments pandas never binds"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(PARTIALS))
+def test_functools_partial_is_admitted_only_around_pandas_block_constructors(case, tmp_path):
+    from pandas.core.internals import blocks
+
+    (func, *args), keywords, why = PARTIALS[case]
+    func = blocks.new_block if func == NEW_BLOCK else func
+    path = tmp_path / "raw_dataframe.pkl"
+    path.write_bytes(pickle.dumps(functools.partial(func, *args, **keywords), protocol=4))
+    with pytest.raises(
+        UnsafePickleError, match=r"raw_dataframe\.pkl: refused as unsafe: the pickle calls"
+    ) as e:
+        read_frame(path)
+    assert re.search(why, str(e.value)) and "\n" not in str(e.value)
+
+
+def test_a_partial_around_a_refused_global_is_refused_at_that_global(tmp_path):
+    path = tmp_path / "raw_dataframe.pkl"
+    path.write_bytes(pickle.dumps(functools.partial(print, "pwned")))
+    with pytest.raises(UnsafePickleError, match=r"the pickle calls builtins\.print, which a pandas"):
+        read_frame(path)
 
 
 #: pandas' data types besides float and text, one column (or index) each: read, never refused as unsafe
@@ -154,6 +211,12 @@ def test_a_damaged_or_foreign_pickle_is_one_line(tmp_path):
     with pytest.raises(SourceError, match=r"cut\.pkl: not a readable pandas pickle") as e:
         read_frame(tmp_path / "cut.pkl")
     assert "\n" not in str(e.value)
+    (tmp_path / "empty.pkl").write_bytes(b"")  # DRIVE's data_raw.pkl files are empty
+    with pytest.raises(SourceError, match=r"empty\.pkl: an empty file \(0 bytes\)"):
+        read_frame(tmp_path / "empty.pkl")
+    (tmp_path / "lfs.pkl").write_text("version https://git-lfs.github.com/spec/v1\noid sha256:00\nsize 9\n")
+    with pytest.raises(SourceError, match=r"lfs\.pkl: a Git LFS pointer, not the file itself; run `git lfs"):
+        read_frame(tmp_path / "lfs.pkl")
     (tmp_path / "list.pkl").write_bytes(pickle.dumps([1.0, 2.0]))
     with pytest.raises(SourceError, match=r"list\.pkl: the pickle holds a list, not a DRIVE dataframe"):
         read_frame(tmp_path / "list.pkl")

@@ -7,8 +7,11 @@ unpickler (:class:`DataFrameUnpickler`, the "restricting globals" recipe of Pyth
 on top of pandas' own compatibility unpickler): it admits only the (module, name) pairs in
 :data:`ALLOWED_GLOBALS`, the pandas and numpy types a dataframe of numbers and text holds as pandas
 1.x-3.x and numpy 1.x-2.x write it (float, int, bool and text columns, pandas' nullable ones and pd.NA,
-categories, datetimes with a UTC offset, timedeltas, their indexes and a MultiIndex); anything else is
-refused in one line as unsafe, before it is called.
+categories, datetimes with a UTC offset, timedeltas, their indexes and a MultiIndex), and the calls pandas
+itself makes to rebuild them. pandas 1.3-1.4 pickle each block as ``functools.partial(new_block,
+ndim=n)(values, placement)`` (most of DRIVE's published pickles): ``functools.partial`` is admitted only
+around pandas' own block constructors (:data:`BLOCK_CONSTRUCTORS`) with ``ndim`` its one keyword
+(:class:`_BlockPartial`). Anything else is refused in one line as unsafe, before it is called.
 
 **Forms.** :func:`detect_form` picks the form from the columns: ``windows`` (every window version DRIVE
 wrote: the 578-column ``torch_ready``, the 1218-column ``slip_dataset_all``, any newer one with more
@@ -25,7 +28,9 @@ number in a needed column is reported.
 from __future__ import annotations
 
 import bz2
+import datetime
 import gzip
+import importlib.util
 import io
 import logging
 import lzma
@@ -97,17 +102,74 @@ _PANDAS_TYPES = {
     ("datetime", "timezone"), ("datetime", "timedelta"),  # a UTC-offset time zone (pandas 2-3's UTC)
     ("pytz", "_UTC"),  # pandas 1.x's UTC
 }  # fmt: skip
+#: pandas' block constructors, the one thing a pickle may wrap in ``functools.partial`` (pandas 1.3-1.4's
+#: ``SharedBlock.__reduce__``: ``partial(new_block, ndim=n)``; pandas' unpickler maps ``new_block`` to
+#: ``_unpickle_block``, which takes the same arguments)
+BLOCK_CONSTRUCTORS = frozenset({
+    ("pandas.core.internals.blocks", "new_block"), ("pandas._libs.internals", "_unpickle_block"),
+})  # fmt: skip
 _PYTHON = {
     ("builtins", "slice"), ("__builtin__", "slice"),
     ("builtins", "bytearray"), ("__builtin__", "bytearray"),
     ("_codecs", "encode"),  # how protocol 2 writes bytes
 }  # fmt: skip
-#: every global a DRIVE dataframe pickle may name (after pandas' renames of legacy names)
-ALLOWED_GLOBALS = frozenset(_NUMPY | _PANDAS | _PANDAS_TYPES | _PYTHON)
+#: every global a DRIVE dataframe pickle may name (after pandas' renames of legacy names), and
+#: ``functools.partial`` as :class:`_BlockPartial`
+ALLOWED_GLOBALS = frozenset(_NUMPY | _PANDAS | _PANDAS_TYPES | _PYTHON | BLOCK_CONSTRUCTORS)
+_PARTIAL = ("functools", "partial")
 
 
 class UnsafePickleError(SourceError):
     """A pickle that names a global a dataframe of numbers and text does not hold."""
+
+
+def _unsafe(path: Path, what: str) -> UnsafePickleError:
+    return UnsafePickleError(
+        f"{path}: refused as unsafe: the pickle calls {what} (unpickling it could run code); convert the "
+        "file to Parquet (pandas.read_pickle(f).to_parquet(...)) where you trust its origin"
+    )
+
+
+class _BlockPartial:
+    """``functools.partial`` while a dataframe is unpickled: pandas 1.3-1.4's ``partial(new_block,
+    ndim=n)`` and nothing else. A pickle builds a partial as ``partial(func)``, then sets its state
+    ``(func, args, keywords, dict)``; each step is checked before anything is called: ``func`` one of
+    pandas' block constructors (``constructors``: the very objects :data:`BLOCK_CONSTRUCTORS` names), no
+    bound arguments, ``ndim`` (1 or 2) the one keyword. Called with (values, placement), it builds the
+    block."""
+
+    path: Path = Path("?")
+    constructors: tuple = ()
+
+    def __init__(self, func, *args, **keywords) -> None:
+        self._set(func, args, keywords, None)
+
+    def __setstate__(self, state) -> None:
+        if not (isinstance(state, tuple) and len(state) == 4):
+            raise _unsafe(
+                self.path, "functools.partial with a state that is not (func, args, keywords, dict)"
+            )
+        self._set(*state)
+
+    def _set(self, func, args, keywords, extra) -> None:
+        if not any(func is f for f in self.constructors):
+            what = f"{getattr(func, '__module__', '?')}.{getattr(func, '__qualname__', type(func).__name__)}"
+            raise _unsafe(
+                self.path, f"functools.partial around {what}, not one of pandas' block constructors"
+            )
+        keywords = dict(keywords or {})
+        if args or extra or set(keywords) - {"ndim"} or keywords.get("ndim", 2) not in (1, 2):
+            raise _unsafe(
+                self.path,
+                f"functools.partial around pandas' block constructor with arguments pandas never binds "
+                f"(args {args!r}, keywords {sorted(keywords)})",
+            )
+        self.func, self.ndim = func, keywords.get("ndim")
+
+    def __call__(self, values, placement):
+        if self.ndim is None:
+            raise _unsafe(self.path, "pandas' block constructor through functools.partial without its ndim")
+        return self.func(values, placement, ndim=self.ndim)
 
 
 def _compat_unpickler() -> type:
@@ -132,15 +194,32 @@ class DataFrameUnpickler(_compat_unpickler()):
         except ImportError:  # pragma: no cover
             renames = {}
         key = renames.get((module, name), (module, name))
+        if key == _PARTIAL:  # pandas 1.3-1.4's blocks: checked as the pickle builds it
+            return type("BlockPartial", (_BlockPartial,), {"path": self.path, "constructors": self._blocks()})
         if key not in ALLOWED_GLOBALS:
-            raise UnsafePickleError(
-                f"{self.path}: refused as unsafe: the pickle calls {module}.{name}, which a pandas dataframe "
-                "of numbers and text does not hold (unpickling it could run code); convert the file to "
-                "Parquet (pandas.read_pickle(f).to_parquet(...)) where you trust its origin"
+            raise _unsafe(
+                self.path, f"{module}.{name}, which a pandas dataframe of numbers and text does not hold"
             )
+        if key == ("pytz", "_UTC") and importlib.util.find_spec("pytz") is None:
+            return _utc  # pandas 1.x's UTC; pandas 3 no longer installs pytz
         if np.lib.NumpyVersion(np.__version__) >= "2.0.0" and key[0].startswith("numpy.core."):
             key = ("numpy._core." + key[0].removeprefix("numpy.core."), key[1])  # numpy 1.x's names
         return super().find_class(*key)
+
+    def _blocks(self) -> tuple:
+        """The installed pandas' block constructors, as this unpickler resolves their names."""
+        found = []
+        for key in sorted(BLOCK_CONSTRUCTORS):
+            try:
+                found.append(self.find_class(*key))
+            except (AttributeError, ImportError):  # a pandas without one of the names
+                continue
+        return tuple(found)
+
+
+def _utc() -> datetime.tzinfo:
+    """What ``pytz._UTC()`` unpickles to where pytz is not installed: the same UTC, the standard library's."""
+    return datetime.UTC
 
 
 _MAGIC = {b"\x1f\x8b": gzip.open, b"BZh": bz2.open, b"\xfd7zXZ": lzma.open}
@@ -171,11 +250,15 @@ def read_frame(path: Path) -> pd.DataFrame:
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            head = fh.read(6)
+            head = fh.read(32)
     except FileNotFoundError as exc:
         raise SourceError(f"{path}: no such file; set source.root and source.file") from exc
     except IsADirectoryError as exc:
         raise SourceError(f"{path}: a folder, not a DRIVE file; set source.file") from exc
+    if not head:
+        raise SourceError(f"{path}: an empty file (0 bytes), not a DRIVE file; copy or download it again")
+    if head.startswith(b"version https://git-lfs"):  # a clone without `git lfs pull`
+        raise SourceError(f"{path}: a Git LFS pointer, not the file itself; run `git lfs pull` where it is")
     if head[:1] == b"\x80" or any(head.startswith(m) for m in _MAGIC):
         return read_pickle_frame(path)
     try:
