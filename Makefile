@@ -51,7 +51,7 @@ lock:
 # `make reproduce`: the built-in simulated dataset; evaluate prints the leaderboard under the paper's
 # commanded inputs, then under the calibrated wheel response (inputs=response; a dataset without wheel
 # encoders says so in one line and skips it), compare sets the protocols side by side. The two evaluates
-# run at the same time (pipeline/side_by_side.py: they write apart; the second's output is printed after
+# run at the same time (pipeline/runner/side_by_side.py: they write apart; the second's output is printed after
 # the first's), the same files and MLflow records as one after the other in the time of the longer one.
 # `make reproduce SOURCE=amrl_txt|bag|drive_df DATA=<dir>`: the same benchmark on your data (no simulation). Every stage gets the same source arguments, plus any
 # Hydra overrides in ARGS (e.g. ARGS="robot=husky source.file=husky_windows.parquet").
@@ -72,7 +72,7 @@ endif
 	$(SKB) groundtruth $(SRC_ARGS)
 	$(SKB) split $(SRC_ARGS)
 	$(SKB) calibrate $(SRC_ARGS)
-	$(BIN)/python -m skidbench.pipeline.side_by_side \
+	$(BIN)/python -m skidbench.pipeline.runner.side_by_side \
 		$(SKB) evaluate $(SRC_ARGS) :: $(SKB) evaluate $(SRC_ARGS) inputs=response
 	$(SKB) compare $(SRC_ARGS)
 
@@ -103,7 +103,7 @@ endif
 # The MLflow UI on the local store (the one evaluate/compare use unless MLFLOW_TRACKING_URI is set). First
 # prints, per dataset, the page to open: the runs of its latest evaluate with the RMSRE columns.
 mlflow-ui: setup
-	@$(BIN)/python -c 'from skidbench.benchmark.mlflow_ui import print_ui_links as p; \
+	@$(BIN)/python -c 'from skidbench.benchmark.tracking.mlflow_ui import print_ui_links as p; \
 		p("sqlite:///$(SKIDBENCH_OUT)/mlflow.db", "http://127.0.0.1:5000")'
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(SKIDBENCH_OUT)/mlflow.db --port 5000
 

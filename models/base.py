@@ -1,14 +1,14 @@
 """The model plugin interface (scikit-learn style).
 
 A model predicts body velocities (vx, vy, wz) from the columns of a split table (see
-``skidbench.pipeline.schema.SPLIT_COLUMNS``). It is fitted per terrain on the Train split, and its
+``skidbench.pipeline.core.schema.SPLIT_COLUMNS``). It is fitted per terrain on the Train split, and its
 parameters are plain JSON data (``params``) plus, for a learned model, named numpy arrays (``arrays``:
 saved beside the JSON as ``.npz``, logged to MLflow, reloaded by ``evaluate``). Built-in models and
 third-party plugins register the same way: an entry point in the group ``skidbench.models``
 (``name = "package.module:Class"``). The whole contract: docs/plugins.md.
 
 ``predict``'s table holds several sequences concatenated (``sequence`` column, ``t`` restarting at 0 in
-each) and only the input protocol's columns (``skidbench.pipeline.protocol.INPUT_COLUMNS``: ``t sequence
+each) and only the input protocol's columns (``skidbench.pipeline.core.protocol.INPUT_COLUMNS``: ``t sequence
 cmd_v cmd_w cmd_wl cmd_wr cmd_dwl cmd_dwr``). A model may also define ``predict_cov(table) -> (T, 3, 3)``,
 the predictive covariance of (vx, vy, wz) per row; the horizon evaluation then scores its pose
 uncertainty. ``error_autocorrelation_`` (optional, (L, 3), lag 0 = 1, lags of the table's clock) says how
@@ -37,8 +37,8 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from skidbench.pipeline.errors import SkidbenchError
-from skidbench.pipeline.robot import Robot
+from skidbench.pipeline.core.errors import SkidbenchError
+from skidbench.pipeline.core.robot import Robot
 
 
 class ModelError(SkidbenchError):
@@ -51,7 +51,8 @@ class KinematicModel(ABC):
     #: split columns ``fit`` and ``predict`` read (``valid``, ``vx``, ``vy``, ``wz`` are implied for fit)
     required_columns: ClassVar[tuple[str, ...]] = ("cmd_wl", "cmd_wr")
     #: the robot constants this model takes from the ``calibrate`` stage (effective values identified on
-    #: the terrain's Train split, ``skidbench.pipeline.calibration``); the others stay the spec sheet's,
+    #: the terrain's Train split, ``skidbench.pipeline.calibrate.calibration``); the others stay the spec
+    # sheet's,
     #: because the model's own parameters absorb them. Default: the effective wheel radius only (what r
     #: means in any kinematic model); a model whose geometry is the physical track keeps it.
     calibrated_constants: ClassVar[tuple[str, ...]] = ("wheel_radius",)

@@ -165,9 +165,13 @@ def calibrated(spec, train: list[tuple[Any, dict]]):
     commands on settled straight rows, as for data without encoders), as ``skidbench discover`` on a
     dataset's own splits gives it to the base model."""
     from skidbench.models.base import calibrated_constants
-    from skidbench.models.specs import get_model_class
-    from skidbench.pipeline.calibration import CalibrationSettings, calibrate_table, calibrated_robot
-    from skidbench.pipeline.schema import concat_sequences
+    from skidbench.models.registry.specs import get_model_class
+    from skidbench.pipeline.calibrate.calibration import (
+        CalibrationSettings,
+        calibrate_table,
+        calibrated_robot,
+    )
+    from skidbench.pipeline.core.schema import concat_sequences
 
     doc = calibrate_table(concat_sequences(train), spec, CalibrationSettings())
     return calibrated_robot(spec, doc, calibrated_constants(get_model_class("edd")))
@@ -214,11 +218,11 @@ def false_catalogue_names(c: dict[str, Any], steps: list[dict[str, Any]]) -> lis
 
 
 def run_case(c: dict[str, Any]) -> dict[str, Any]:
-    from skidbench.benchmark.discover import discover_terrain
-    from skidbench.benchmark.discover_pool import prepare_pool
-    from skidbench.models.effect_fit import DiscoverError, DiscoverSettings, build_pool
-    from skidbench.models.specs import get_model_class
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.benchmark.discovery.discover import discover_terrain
+    from skidbench.benchmark.discovery.pool import prepare_pool
+    from skidbench.models.augmented.fit import DiscoverError, DiscoverSettings, build_pool
+    from skidbench.models.registry.specs import get_model_class
+    from skidbench.pipeline.core.robot import load_robot
 
     started = time.process_time()
     jackal = load_robot("jackal")

@@ -18,11 +18,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from skidbench.pipeline.core.layout import default_out_root
+from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.extract.bag import ExtractOptions, extract_bag
 from skidbench.pipeline.extract.reader import default_typestore, topic_specs
 from skidbench.pipeline.extract.synthetic import JACKAL_TOPICS, write_bag
-from skidbench.pipeline.layout import default_out_root
-from skidbench.pipeline.manifest import Manifest
 
 from . import child_env, register
 from .harness import peak_rss_mb

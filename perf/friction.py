@@ -16,13 +16,13 @@ import time
 
 import numpy as np
 
-from skidbench.models.friction import DEFAULT_PARAMS
-from skidbench.models.friction_balance import FrictionGeometry, body_velocity
-from skidbench.models.friction_solver import solve, solve_reference
+from skidbench.models.friction.balance import FrictionGeometry, body_velocity
+from skidbench.models.friction.model import DEFAULT_PARAMS
+from skidbench.models.friction.solver import solve, solve_reference
 
 
 def _jackal():
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
 
     return load_robot("jackal")
 

@@ -2,7 +2,7 @@
 
 Data: the ``scaling`` comparison's 16x case (32 synthetic Train sequences of 1,500 rows, 48,000 rows; ground
 truth from an extended differential drive with side slip and noise, so the friction model is not the
-truth), read back from split files and fitted as :func:`skidbench.models.fitting.fit_model` fits it
+truth), read back from split files and fitted as :func:`skidbench.models.fitting.fit.fit_model` fits it
 (configured initial parameters and options). ``quick``: the 1x case (3,000 rows).
 
 - old: ``perf/friction_legacy.py``, the version-1.5 solve and fit frozen (finite-difference
@@ -36,10 +36,10 @@ def training_table(n_seq: int, seq_rows: int = SEQ_ROWS):
     sequences."""
     from hydra import initialize_config_module
 
-    from skidbench.models.fitting import ModelConfigs, build_model
-    from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.robot import robot_from_hydra
-    from skidbench.pipeline.schema import concat_sequences, list_split_files, read_split
+    from skidbench.models.fitting.fit import ModelConfigs, build_model
+    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.robot import robot_from_hydra
+    from skidbench.pipeline.core.schema import concat_sequences, list_split_files, read_split
 
     from .scaling import _compose, write_splits
 
@@ -76,9 +76,9 @@ def robust_cost(model, table, params: dict) -> float:
 def compare(n_seq: int) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
-    from skidbench.models.friction import FrictionBased
-    from skidbench.models.friction_balance import FrictionGeometry
-    from skidbench.models.friction_solver import solve
+    from skidbench.models.friction.balance import FrictionGeometry
+    from skidbench.models.friction.model import FrictionBased
+    from skidbench.models.friction.solver import solve
 
     from .friction_legacy import LegacyFrictionFit
 

@@ -18,8 +18,7 @@ from scipy.optimize import least_squares
 
 from skidbench.models.base import ModelError
 from skidbench.models.columns import mse, targets, training_rows
-from skidbench.models.friction import ACCEL_SCALES, FALLBACK_ITER, FrictionBased
-from skidbench.models.friction_balance import (
+from skidbench.models.friction.balance import (
     PARAM_NAMES,
     FrictionGeometry,
     body_velocity,
@@ -27,8 +26,9 @@ from skidbench.models.friction_balance import (
     param_vector,
     residual,
 )
-from skidbench.models.friction_fit import PARAM_RANGES
-from skidbench.models.friction_solver import SolveResult, low_slip_start
+from skidbench.models.friction.fit import PARAM_RANGES
+from skidbench.models.friction.model import ACCEL_SCALES, FALLBACK_ITER, FrictionBased
+from skidbench.models.friction.solver import SolveResult, low_slip_start
 
 log = logging.getLogger(__name__)
 

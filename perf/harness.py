@@ -24,7 +24,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from skidbench.pipeline.io import write_json_atomic, write_text_atomic
+from skidbench.pipeline.core.io import write_json_atomic, write_text_atomic
 
 from . import check, child_env, load_all
 

@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from skidbench.benchmark.horizon import naive_window_errors, window_errors
-from skidbench.pipeline.geometry import integrate_body_velocity, wrap_angle
+from skidbench.benchmark.scoring.horizon import naive_window_errors, window_errors
+from skidbench.pipeline.core.geometry import integrate_body_velocity, wrap_angle
 
 from . import register
 

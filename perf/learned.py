@@ -30,14 +30,14 @@ def husky_train(tmp: Path):
     """(cfg, Train table) of the DRIVE Husky through the pipeline's stages into ``tmp``."""
     from hydra import compose, initialize_config_module
 
-    from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.manifest import Manifest
-    from skidbench.pipeline.schema import concat_sequences, read_split
+    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.manifest import Manifest
+    from skidbench.pipeline.core.schema import concat_sequences, read_split
 
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp)}
     for stage in ("extract", "groundtruth", "split"):
         subprocess.run(
-            [sys.executable, "-m", "skidbench.pipeline.cli", stage, *ARGS],
+            [sys.executable, "-m", "skidbench.pipeline.cli.main", stage, *ARGS],
             env=env, check=True, capture_output=True, text=True,
         )  # fmt: skip
     with initialize_config_module("skidbench.conf", version_base="1.3"):
@@ -50,8 +50,8 @@ def husky_train(tmp: Path):
 def compare(quick: bool) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
-    from skidbench.models.fitting import ModelConfigs, build_model
-    from skidbench.pipeline.robot import robot_from_hydra
+    from skidbench.models.fitting.fit import ModelConfigs, build_model
+    from skidbench.pipeline.core.robot import robot_from_hydra
 
     if not (DRIVE / "husky_windows.parquet").is_file():
         return {"note": f"{DRIVE}/husky_windows.parquet absent; nothing measured"}

@@ -8,7 +8,7 @@ stages done are reported, the total says incomplete).
 
 Each stage runs as ``skidbench <stage> scale=<s> seed=0`` in its own process, under a small wrapper
 (``python -m perf.reproduce stage <json> <stage> [overrides]``) that runs the CLI
-in-process (``runpy``, as ``python -m skidbench.pipeline.cli``) and at exit writes its own ``VmHWM`` (the
+in-process (``runpy``, as ``python -m skidbench.pipeline.cli.main``) and at exit writes its own ``VmHWM`` (the
 high-water mark of the stage's process image) and ``RUSAGE_CHILDREN``'s ``ru_maxrss`` (the largest process
 the stage started and waited for, e.g. the simulator's workers). Not ``/usr/bin/time -v`` nor the
 benchmark's own ``RUSAGE_CHILDREN``: a process started by fork/vfork+exec inherits its parent's resident
@@ -32,13 +32,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from skidbench.pipeline.layout import default_out_root
+from skidbench.pipeline.core.layout import default_out_root
 
 from . import child_env, register
 from .harness import peak_rss_mb
 
 #: the steps of ``make reproduce``: (label, stage, its extra arguments); evaluate runs twice, under the
-#: paper's ``commanded`` inputs and under the calibrated wheel ``response`` (pipeline/protocol.py)
+#: paper's ``commanded`` inputs and under the calibrated wheel ``response`` (pipeline/core/protocol.py)
 STEPS = (
     ("simulate", "simulate", ()),
     ("extract", "extract", ()),
@@ -50,7 +50,7 @@ STEPS = (
     ("compare", "compare", ()),
 )
 STAGES = tuple(label for label, _, _ in STEPS)
-#: steps `make reproduce` runs side by side (pipeline/side_by_side.py): started together, the next step
+#: steps `make reproduce` runs side by side (pipeline/runner/side_by_side.py): started together, the next step
 #: after the longer one; the total wall counts the longer one
 SIDE_BY_SIDE = ("evaluate", "evaluate_response")
 SCALE_ENV = "SKIDBENCH_BENCH_SCALE"
@@ -219,11 +219,11 @@ def _stage_main(report: str, stage: str, args: list[str]) -> None:
         Path(report).write_text(json.dumps({"self_mb": peak_rss_mb(), "children_mb": children}))
 
     atexit.register(write)
-    # the CLI run as a program, in this process (``python -m skidbench.pipeline.cli <stage> ...``): the
+    # the CLI run as a program, in this process (``python -m skidbench.pipeline.cli.main <stage> ...``): the
     # harness measures the command line itself, run by name as a user runs it, not imported; in this
     # process, because a subprocess would inherit this process's size as its RSS floor (above)
     sys.argv = ["skidbench", stage, *args]
-    runpy.run_module("skidbench.pipeline.cli", run_name="__main__", alter_sys=True)
+    runpy.run_module("skidbench.pipeline.cli.main", run_name="__main__", alter_sys=True)
 
 
 if __name__ == "__main__":

@@ -1,11 +1,11 @@
 """Scaling: fit and evaluation time of every built-in model at 1x, 4x and 16x the data; the cost must grow
 linearly (log-log slope, the exponent, about 1).
 
-Data: synthetic split tables (``models/synthetic.py``: smooth random commands, ground truth from an
+Data: synthetic split tables (``models/fitting/synthetic.py``: smooth random commands, ground truth from an
 extended differential drive with side slip and noise), written as Train and CV split files of
 ``SEQ_ROWS``-row sequences (50 s at 30 Hz) under a temporary out root; 1x = 2 sequences (3,000 rows),
 4x = 8, 16x = 32 (48,000 rows). Fit is ``model.fit`` on the concatenated Train table, built
-as :func:`skidbench.models.fitting.fit_model` builds it (configured initial params and options; reading,
+as :func:`skidbench.models.fitting.fit.fit_model` builds it (configured initial params and options; reading,
 config composition and fingerprinting are a constant ~0.3 s per fit and are not timed);
 evaluation is :func:`benchmark.scoring.predict_split` + :func:`score_split` at the 6 s horizon on a CV
 split of the same size, always of the model fitted at 1x: the same parameters at every size (a model
@@ -37,7 +37,7 @@ BUILTIN_PACKAGE = "skidbench"
 
 
 def builtin_models() -> list[str]:
-    from skidbench.models.registry import discover
+    from skidbench.models.registry.plugins import discover
 
     return [n for n, i in discover().items() if i.ok and i.package == BUILTIN_PACKAGE]
 
@@ -47,10 +47,10 @@ def write_splits(
 ) -> None:
     """Train and CV split files (``n_seq`` sequences each) of one terrain, and the manifest that lists
     them with any other terrain already written there (stages read their sequences from it)."""
-    from skidbench.models.linear import ExtendedDifferentialDrive
-    from skidbench.models.synthetic import command_table, label_with
-    from skidbench.pipeline.manifest import Manifest, Sequence
-    from skidbench.pipeline.schema import write_split
+    from skidbench.models.fitting.synthetic import command_table, label_with
+    from skidbench.models.kinematic.linear import ExtendedDifferentialDrive
+    from skidbench.pipeline.core.manifest import Manifest, Sequence
+    from skidbench.pipeline.core.schema import write_split
 
     seqs = []
     truth = ExtendedDifferentialDrive(robot, {"chi": 1.5})
@@ -90,13 +90,13 @@ def time_model(cfg, name: str, repeats: int, eval_params: tuple | None = None) -
     """Best-of CPU and wall seconds of fit (``model.fit`` on the Train table, as ``fit_model`` calls it)
     and evaluation (predict + score the CV split) of the model ``eval_params`` (``(to_json(), arrays)``;
     default the model just fitted); ``"fitted"``: the fitted model's ``(to_json(), arrays)``."""
-    from skidbench.benchmark.horizon import HorizonConfig
-    from skidbench.benchmark.scoring import predict_split, score_split
-    from skidbench.benchmark.testsets import load_test_split, split_files
-    from skidbench.models.fitting import ModelConfigs, build_model
-    from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.robot import robot_from_hydra
-    from skidbench.pipeline.schema import concat_sequences, read_split
+    from skidbench.benchmark.evaluate.testsets import load_test_split, split_files
+    from skidbench.benchmark.scoring.horizon import HorizonConfig
+    from skidbench.benchmark.scoring.predictions import predict_split, score_split
+    from skidbench.models.fitting.fit import ModelConfigs, build_model
+    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.robot import robot_from_hydra
+    from skidbench.pipeline.core.schema import concat_sequences, read_split
 
     layout = layout_from_cfg(cfg)
     train = concat_sequences([read_split(p) for p in split_files(layout, "tile", "train")])
@@ -138,7 +138,7 @@ def scaling(
     from hydra import initialize_config_module
     from threadpoolctl import threadpool_limits
 
-    from skidbench.pipeline.robot import robot_from_hydra
+    from skidbench.pipeline.core.robot import robot_from_hydra
 
     models = list(models or builtin_models())
     out: dict[str, Any] = {}

@@ -41,13 +41,13 @@ COMMANDS: dict[str, list[str]] = {
     },
 }
 MODULES = {
-    "cli": "skidbench.pipeline.cli",
+    "cli": "skidbench.pipeline.cli.main",
     "extract": "skidbench.pipeline.extract.app",
     "groundtruth": "skidbench.pipeline.groundtruth.app",
     "split": "skidbench.pipeline.splits.app",
-    "calibrate": "skidbench.pipeline.calibrate_app",
-    "evaluate": "skidbench.benchmark.evaluate_app",
-    "compare": "skidbench.benchmark.compare_app",
+    "calibrate": "skidbench.pipeline.calibrate.app",
+    "evaluate": "skidbench.benchmark.evaluate.app",
+    "compare": "skidbench.benchmark.board.app",
 }
 
 

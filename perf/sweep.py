@@ -41,7 +41,7 @@ DATASET = "bench-sweep"
 
 
 def write_data(out_root: Path, seq_rows: int = 1500) -> None:
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
 
     from .scaling import write_splits
 
@@ -54,12 +54,13 @@ def run_sweep(
     out_root: Path, models: tuple[str, ...], launcher: list[str], tag: str, cluster: Any = None
 ) -> dict[str, Any]:
     """One ``skidbench fit -m`` sweep in a fresh process: wall and CPU seconds (with ``cluster``, a
-    :class:`~skidbench.benchmark.cluster.LocalCluster`, its processes' CPU during the sweep), its log."""
+    :class:`~skidbench.pipeline.runner.cluster.LocalCluster`, its processes' CPU during the sweep), its
+    log."""
     env = dict(os.environ)
     env.update({"SKIDBENCH_OUT": str(out_root), "RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"})
     env.pop("MLFLOW_TRACKING_URI", None)
     cmd = [
-        sys.executable, "-m", "skidbench.pipeline.cli", "fit", "-m", f"dataset={DATASET}",
+        sys.executable, "-m", "skidbench.pipeline.cli.main", "fit", "-m", f"dataset={DATASET}",
         f"model={','.join(models)}", f"terrain={','.join(TERRAINS)}", "reuse=false",
         f"mlflow.tracking_uri=sqlite:///{out_root / f'mlflow-{tag}.db'}", *launcher,
     ]  # fmt: skip
@@ -106,7 +107,7 @@ class _ClusterCPU:
 
 
 def sweep(quick: bool = False) -> dict[str, Any]:
-    from skidbench.benchmark.cluster import local_cluster
+    from skidbench.pipeline.runner.cluster import local_cluster
 
     joblib = ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"]
     res: dict[str, dict[str, Any]] = {}

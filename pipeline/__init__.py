@@ -8,7 +8,7 @@ same bytes on every machine of the benchmark's kind); it must run before NumPy l
 subpackages import this one first.
 """
 
-from .cpu import pin as _pin_code_paths
+from skidbench.pipeline.runner.cpu import pin as _pin_code_paths
 
 _pin_code_paths()
 

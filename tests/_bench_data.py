@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 
 from skidbench.models.base import KinematicModel
-from skidbench.pipeline.geometry import integrate_body_velocity
-from skidbench.pipeline.robot import Robot
-from skidbench.pipeline.schema import write_split
+from skidbench.pipeline.core.geometry import integrate_body_velocity
+from skidbench.pipeline.core.robot import Robot
+from skidbench.pipeline.core.schema import write_split
 
 JACKAL = Robot("jackal", 16.0, 0.098, 0.37559, 0.262, 0.508, 0.430)
 TRUE_CHI = 0.7  # the "terrain": yaw rate is 70 % of the ideal one
@@ -57,7 +57,7 @@ def write_splits(
 ) -> None:
     """<ds_root>/splits/<terrain>/<split>/<seq>.parquet with a few synthetic sequences, and the manifest
     that lists them (<ds_root>/raw/manifest.json: stages take their sequences from it)."""
-    from skidbench.pipeline.manifest import Manifest, Sequence
+    from skidbench.pipeline.core.manifest import Manifest, Sequence
 
     counts = counts or {"train": 2, "cv": 1, "ld": 1}
     seed = 0
@@ -144,11 +144,11 @@ class Fit:
 
 
 def fit_fn(settings, model_name, terrain):
-    """A stand-in for skidbench.models.fitting.fit_model (``settings`` a FitSettings) on the synthetic
+    """A stand-in for skidbench.models.fitting.fit.fit_model (``settings`` a FitSettings) on the synthetic
     splits."""
     import time
 
-    from skidbench.pipeline.schema import concat_sequences, load_split_tables
+    from skidbench.pipeline.core.schema import concat_sequences, load_split_tables
 
     tables = load_split_tables(settings.layout.splits, terrain, "train")
     table = concat_sequences(tables)
@@ -168,15 +168,16 @@ def compose(config_name: str, out_root: Path, overrides=()):
 
 
 def calibrate_splits(cfg) -> list[str]:
-    """Run the ``calibrate`` stage's per-terrain step (pipeline/calibration.py) for ``cfg``'s dataset and
+    """Run the ``calibrate`` stage's per-terrain step (pipeline/calibrate/calibration.py) for ``cfg``'s
+    dataset and
     robot on every terrain with Train files: ``fit`` and ``evaluate`` read its output and only
     ``calibrate`` computes it. 20 bootstrap draws (the intervals are not what these tests check).
     Returns the terrains calibrated."""
     import dataclasses
 
-    from skidbench.pipeline.calibration import calibrate_terrain, settings_from_cfg
-    from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.robot import robot_from_hydra
+    from skidbench.pipeline.calibrate.calibration import calibrate_terrain, settings_from_cfg
+    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.robot import robot_from_hydra
 
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)

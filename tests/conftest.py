@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
-from skidbench.pipeline.side_by_side import BLAS_THREAD_VARS  # imports no numerical library
+from skidbench.pipeline.runner.side_by_side import BLAS_THREAD_VARS  # imports no numerical library
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -30,7 +30,7 @@ SHARED_REAL = Path(os.environ.get("SKIDBENCH_SHARED_REAL", REPO.parent / "shared
 def pytest_configure(config):
     """The config's resolvers (``${skidbench.dataset:...}``), registered as the CLI registers them before
     composing: tests compose configs with Hydra's compose API and read ``cfg.dataset``."""
-    from skidbench.pipeline.layout import register_resolvers
+    from skidbench.pipeline.core.layout import register_resolvers
 
     register_resolvers()
 
@@ -46,7 +46,7 @@ def shared_real() -> Path:
 @pytest.fixture(scope="session")
 def jackal():
     """The Jackal of conf/robot/jackal.yaml."""
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
 
     return load_robot("jackal")
 

@@ -168,7 +168,7 @@ def motor_lag(x: np.ndarray, tau: float, dt: np.ndarray) -> np.ndarray:
 
 
 def integrate(t, vx, vy, wz):
-    from skidbench.pipeline.geometry import integrate_body_velocity
+    from skidbench.pipeline.core.geometry import integrate_body_velocity
 
     vel = np.column_stack([vx, vy, wz])
     return integrate_body_velocity(np.zeros(3), vel[:-1], np.diff(t))
@@ -180,7 +180,7 @@ def vo_poses(rng, t_true, pose, rate_hz=20.0, drift=0.004, jitter_m=0.003, jitte
     x = np.interp(t, t_true, pose[:, 0])
     y = np.interp(t, t_true, pose[:, 1])
     yaw = np.interp(t, t_true, pose[:, 2])
-    from skidbench.pipeline.geometry import se2_relative
+    from skidbench.pipeline.core.geometry import se2_relative
 
     true = np.column_stack([x, y, yaw])
     rel = se2_relative(true[:-1], true[1:])  # per-frame motion
@@ -220,7 +220,7 @@ def to_split(cmd: pd.DataFrame, loc: pd.DataFrame, rate_hz: float = 30.0) -> pd.
     """What the split stage makes of one sequence (:func:`skidbench.pipeline.splits.build.build_split_table`
     on the Jackal: the 30 Hz clock, the zero-order hold of the commands, the Savitzky-Golay velocities of
     the poses); ``attrs["cmd_association"]``: the timing of the hold, as the split file's metadata has it."""
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
     from skidbench.pipeline.splits.build import build_split_table
 
     def ns(t) -> np.ndarray:
@@ -264,8 +264,8 @@ def write_splits(raw, root: Path, terrain: str = "tile") -> Path:
     """Write split Parquet files (``<root>/<terrain>/<split>/<seq>.parquet``) and, for ``root`` a dataset's
     ``splits`` folder, the manifest that lists them (``<root>/../raw/manifest.json``, other terrains kept:
     stages take their sequences from it); returns root."""
-    from skidbench.pipeline.manifest import Manifest, Sequence
-    from skidbench.pipeline.schema import write_split
+    from skidbench.pipeline.core.manifest import Manifest, Sequence
+    from skidbench.pipeline.core.schema import write_split
 
     manifest_path = Path(root).parent / "raw" / "manifest.json"
     listed = Manifest.read(manifest_path).sequences if manifest_path.is_file() else []

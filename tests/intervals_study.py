@@ -1,4 +1,5 @@
-"""The coverage study behind benchmark/intervals.py's choice of interval (docs/intervals.md): the fraction of
+"""The coverage study behind benchmark/scoring/intervals.py's choice of interval (docs/intervals.md): the
+fraction of
 95 % intervals of an RMSRE that hold its true value, per method, number of blocks and error correlation.
 
     .venv/bin/python tests/intervals_study.py [--reps 300]
@@ -13,7 +14,8 @@ lognormal, exp(log 5 + 0.5 x), x standard normal and:
 
 Methods, from the same block resamples (2000): ``percentile``, ``bca`` (jackknife over blocks),
 ``bootstrap-t`` (each resample studentized by its block-influence standard error; the original's with the
-covariance of adjacent blocks) and ``ours`` (:func:`skidbench.benchmark.intervals.estimate`: the bootstrap
+covariance of adjacent blocks) and ``ours`` (:func:`skidbench.benchmark.scoring.intervals.estimate`: the
+bootstrap
 standard error of log RMSRE widened by the adjacent blocks' covariance, Student-t quantile with K-1
 degrees of freedom); and the widths (hi - lo) / estimate of the last two, median and largest. Not a test:
 it prints the table docs/intervals.md quotes.
@@ -28,7 +30,7 @@ import numpy as np
 import scipy.signal
 import scipy.stats
 
-from skidbench.benchmark import intervals as iv
+from skidbench.benchmark.scoring import intervals as iv
 
 H, SPACING = 6.0, 0.2
 PER_BLOCK = int(round(H / SPACING))

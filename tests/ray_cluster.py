@@ -1,4 +1,4 @@
-"""A real local Ray cluster for tests (:func:`skidbench.benchmark.cluster.local_cluster`: ``ray start
+"""A real local Ray cluster for tests (:func:`skidbench.pipeline.runner.cluster.local_cluster`: ``ray start
 --head`` on 127.0.0.1, small resources) in the tests' environment, and a Hydra callback that kills its own
 worker process once, mid-task (fault injection for the Ray sweeps)."""
 
@@ -19,7 +19,7 @@ TESTS = Path(__file__).resolve().parent
 def running_ray_cluster(num_cpus: int = 2) -> Iterator[str]:
     """A one-node cluster on 127.0.0.1 whose workers can import this folder (see :func:`ray_env`); yields
     its address."""
-    from skidbench.benchmark.cluster import local_cluster
+    from skidbench.pipeline.runner.cluster import local_cluster
 
     with local_cluster(num_cpus=num_cpus, env=ray_env()) as cluster:
         yield cluster.address
@@ -47,7 +47,7 @@ class KillOnce(Callback):
         self.marker = marker
 
     def on_job_start(self, config, **kwargs) -> None:
-        from skidbench.benchmark import tracking
+        from skidbench.benchmark.tracking import store as tracking
 
         original = tracking.Tracker.end
         if getattr(original, "chaos", False):

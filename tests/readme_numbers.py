@@ -1,7 +1,8 @@
 """The README's `make reproduce` numbers and the machine-readable record they were copied from.
 
 A `make reproduce` run writes, through `skidbench compare`, one leaderboard per input protocol with every
-row's run id and provenance (``<out>/sim-mini/reports/leaderboard-<protocol>.csv``, benchmark/boards.py).
+row's run id and provenance (``<out>/sim-mini/reports/leaderboard-<protocol>.csv``,
+benchmark/board/boards.py).
 :func:`record_from_reports` reduces those files to what the README shows (per protocol and model, the mean
 over terrains of trans CV / trans LD / rot CV / rot LD, RMSRE % at 6 s) with where they come from (the
 command, the date, the commit, the library versions, the run ids); ``python tests/readme_numbers.py <out>
@@ -46,7 +47,7 @@ def _means(rows) -> dict[str, float]:
     registry's ``over_terrains``)."""
     import numpy as np
 
-    from skidbench.benchmark import metrics as mt
+    from skidbench.benchmark.scoring import metrics as mt
 
     ok = rows[rows["status"] == "FINISHED"]
     out = {}

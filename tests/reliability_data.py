@@ -52,7 +52,7 @@ def skidbench(
     if "MLFLOW_TRACKING_URI" not in (env or {}):
         e.pop("MLFLOW_TRACKING_URI", None)
     args = STAGE_ARGS.get(stage, SCALE) if base is None else base
-    cmd = [sys.executable, "-m", "skidbench.pipeline.cli", stage, *args, *extra]
+    cmd = [sys.executable, "-m", "skidbench.pipeline.cli.main", stage, *args, *extra]
     proc = subprocess.run(
         ["nice", "-n", "5", *cmd], env=e, capture_output=True, text=True, timeout=600, start_new_session=True
     )

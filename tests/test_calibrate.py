@@ -19,11 +19,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.pipeline.calibration import CalibrationSettings, calibrate_table  # noqa: E402
-from skidbench.pipeline.schema import (
-    concat_sequences,  # noqa: E402
-    write_split,  # noqa: E402
-)
+from skidbench.pipeline.calibrate.calibration import CalibrationSettings, calibrate_table  # noqa: E402
+from skidbench.pipeline.core.schema import concat_sequences, write_split
 
 R_TRUE = dd.R_WHEEL * 1.06  # effective radius, 6 % over the spec sheet (dd.R_WHEEL = the Jackal's)
 B_TRUE = dd.TRACK * 1.45  # effective track (ICR spread), 45 % over the spec sheet
@@ -70,7 +67,7 @@ def _sequence(rng, duration: float, kind: str = "train", lag: tuple[float, float
 @pytest.fixture(scope="module")
 def calib_root(tmp_path_factory) -> Path:
     """An output root with dataset ``calib``: splits of one terrain (6 Train sequences, one CV, one LD)."""
-    from skidbench.pipeline.manifest import Manifest, Sequence
+    from skidbench.pipeline.core.manifest import Manifest, Sequence
 
     root = tmp_path_factory.mktemp("calib")
     rng = np.random.default_rng(5)
@@ -83,13 +80,13 @@ def calib_root(tmp_path_factory) -> Path:
             df = _sequence(rng, dur, "cv" if split == "cv" else "train")
             write_split(df, root / "calib" / "splits" / "tile" / split / f"{name}.parquet", meta)
             seqs.append(Sequence(name, "tile", split, f"{name}.bag"))
-    # stages take their sequences from the manifest (pipeline/layout.py)
+    # stages take their sequences from the manifest (pipeline/core/layout.py)
     Manifest(seqs, base=root / "calib" / "raw").write(root / "calib" / "raw" / "manifest.json")
     return root
 
 
 def _train_table(root: Path, encoders: bool = True):
-    from skidbench.pipeline.schema import load_split_tables
+    from skidbench.pipeline.core.schema import load_split_tables
 
     tables = load_split_tables(root / "calib" / "splits", "tile", "train")
     table = concat_sequences(tables)
@@ -130,8 +127,8 @@ def test_calibration_identifies_an_injected_dead_time_and_lag_of_the_wheels(jack
     """The wheel response ``calibrate`` writes next to the radius and track width recovers the encoders'
     dead time (to one 30 Hz clock step) and lag (to 10 %), with its structure chosen on held-out blocks and
     an uncertainty per parameter; the ``response`` inputs built from it then match the encoders."""
-    from skidbench.pipeline.calibration import wheel_response_of
-    from skidbench.pipeline.protocol import model_inputs
+    from skidbench.pipeline.calibrate.calibration import wheel_response_of
+    from skidbench.pipeline.core.protocol import model_inputs
 
     rng = np.random.default_rng(11)
     tables = [(_sequence(rng, 40.0, lag=(0.2, 0.35)), {"sequence": f"s{i}"}) for i in range(4)]
@@ -169,9 +166,13 @@ def _cfg(root: Path, *over: str):
 
 
 def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(calib_root, jackal):
-    from skidbench.models.fitting import FitSettings, fit_model
-    from skidbench.pipeline.calibration import MissingCalibrationError, calibrate_terrain, settings_from_cfg
-    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.models.fitting.fit import FitSettings, fit_model
+    from skidbench.pipeline.calibrate.calibration import (
+        MissingCalibrationError,
+        calibrate_terrain,
+        settings_from_cfg,
+    )
+    from skidbench.pipeline.core.layout import layout_from_cfg
 
     cfg = _cfg(calib_root)
     # fit never calibrates: without `skidbench calibrate` it stops and says to run it
@@ -221,16 +222,16 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     import dataclasses
     import shutil
 
-    from skidbench.models.fitting import FitSettings, fit_model
-    from skidbench.pipeline.calibration import (
+    from skidbench.models.fitting.fit import FitSettings, fit_model
+    from skidbench.pipeline.calibrate.calibration import (
         Calibrations,
         MissingCalibrationError,
         calibrate_terrain,
         calibration_doc,
         settings_from_cfg,
     )
-    from skidbench.pipeline.layout import layout_from_cfg
-    from skidbench.pipeline.schema import read_split
+    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.schema import read_split
 
     for part in ("splits", "raw"):  # a copy: this test changes its Train files
         shutil.copytree(calib_root / "calib" / part, tmp_path / "calib" / part)
@@ -294,7 +295,7 @@ def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlf
 ):
     from hydra import compose, initialize_config_module
 
-    from skidbench.pipeline import calibrate_app
+    from skidbench.pipeline.calibrate import app as calibrate_app
 
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose("calibrate", [f"out_root={calib_root}", "dataset=calib", "force=true"])
@@ -325,8 +326,8 @@ def test_calibrate_stage_writes_json_prints_spec_next_to_calibrated_and_logs_mlf
 def test_drive_fixtures_run_through_calibrate(shared_real, tmp_path):
     from hydra import compose, initialize_config_module
 
-    from skidbench.pipeline import calibrate_app
-    from skidbench.pipeline.api import prepare_splits
+    from skidbench.pipeline.calibrate import app as calibrate_app
+    from skidbench.pipeline.cli.api import prepare_splits
 
     for robot in ("husky", "warthog"):
         with initialize_config_module("skidbench.conf", version_base="1.3"):

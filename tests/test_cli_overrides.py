@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
-from skidbench.pipeline import cli
-from skidbench.pipeline.errors import ConfigError
-from skidbench.pipeline.overrides import check_overrides
+from skidbench.pipeline.cli import main as cli
+from skidbench.pipeline.cli.overrides import check_overrides
+from skidbench.pipeline.core.errors import ConfigError
 
 # (stage, overrides, the whole message after "skidbench <stage>: error: ")
 MISSPELT = [
@@ -96,7 +96,7 @@ def test_a_stage_that_is_not_a_hydra_app_is_not_checked():
 
 def test_the_console_script_prints_one_line_and_exits_2(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "skidbench.pipeline.cli", "groundtruth", "groundtruth.orbslam.dri=/x"],
+        [sys.executable, "-m", "skidbench.pipeline.cli.main", "groundtruth", "groundtruth.orbslam.dri=/x"],
         capture_output=True,
         text=True,
         timeout=120,

@@ -16,8 +16,9 @@ from mlflow_server import free_port, running_mlflow_server
 from ray_cluster import ray_env, running_ray_cluster
 from reliability_data import skidbench
 
-from skidbench.benchmark import tracking as trk
-from skidbench.pipeline.io import process_alive
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.pipeline.core.io import process_alive
 
 needs_ray = pytest.mark.skipif(
     importlib.util.find_spec("ray") is None,
@@ -72,7 +73,7 @@ def _fit_results(runs) -> dict[tuple[str, str], tuple]:
     for r in runs:
         if r.info.status != "FINISHED":
             continue
-        key = (r.data.tags[trk.TAG_MODEL], r.data.tags[trk.TAG_TERRAIN])
+        key = (r.data.tags[run_tags.TAG_MODEL], r.data.tags[run_tags.TAG_TERRAIN])
         assert key not in out, f"two finished runs of {key}"
         params = {k: v for k, v in r.data.params.items() if k.startswith("fitted.")}
         out[key] = (r.data.metrics["fit_loss"], r.data.metrics["n_train"], params)
@@ -106,11 +107,13 @@ def test_a_ray_sweep_survives_a_killed_worker_and_logs_each_fit_once_with_the_jo
     assert status == Counter({"FINISHED": 6, "KILLED": 1}), status
     by_id = {r.info.run_id: r for r in runs}
     assert by_id[killed_run].info.status == "KILLED"
-    assert by_id[killed_run].data.tags[trk.TAG_REASON]  # says why
+    assert by_id[killed_run].data.tags[run_tags.TAG_REASON]  # says why
     # the retried job has exactly one finished run, under the same key as its dead attempt
-    key = by_id[killed_run].data.tags[trk.TAG_RUN_KEY]
-    assert [r.info.status for r in runs if r.data.tags.get(trk.TAG_RUN_KEY) == key].count("FINISHED") == 1
-    assert len({r.data.tags[trk.TAG_RUN_KEY] for r in runs}) == 6
+    key = by_id[killed_run].data.tags[run_tags.TAG_RUN_KEY]
+    assert [r.info.status for r in runs if r.data.tags.get(run_tags.TAG_RUN_KEY) == key].count(
+        "FINISHED"
+    ) == 1
+    assert len({r.data.tags[run_tags.TAG_RUN_KEY] for r in runs}) == 6
     assert len({r.data.tags["skidbench.sweep_id"] for r in runs}) == 1
     assert _fit_results(runs) == reference  # same losses, rows and fitted parameters as joblib's
 
@@ -126,15 +129,15 @@ def test_evaluate_runs_one_ray_task_per_dataset_into_one_mlflow_server(out_root,
     scores = {}
     for ds in DATASETS:
         runs = _runs(mlflow_uri, f"skidbench-{ds}")
-        parents = [r for r in runs if r.data.tags[trk.TAG_ROLE] == "parent"]
+        parents = [r for r in runs if r.data.tags[run_tags.TAG_ROLE] == "parent"]
         assert [p.info.status for p in parents] == ["FINISHED"]
-        children = [r for r in runs if r.data.tags.get(trk.TAG_PARENT) == parents[0].info.run_id]
-        assert sorted((c.data.tags[trk.TAG_MODEL], c.data.tags[trk.TAG_TERRAIN]) for c in children) == sorted(
-            (m, t) for m in MODELS for t in TERRAINS
-        )
+        children = [r for r in runs if r.data.tags.get(run_tags.TAG_PARENT) == parents[0].info.run_id]
+        assert sorted(
+            (c.data.tags[run_tags.TAG_MODEL], c.data.tags[run_tags.TAG_TERRAIN]) for c in children
+        ) == sorted((m, t) for m in MODELS for t in TERRAINS)
         assert {c.info.status for c in children} == {"FINISHED"}
         scores[ds] = {
-            (c.data.tags[trk.TAG_MODEL], c.data.tags[trk.TAG_TERRAIN]): c.data.metrics[
+            (c.data.tags[run_tags.TAG_MODEL], c.data.tags[run_tags.TAG_TERRAIN]): c.data.metrics[
                 "cv_6s_trans_rmsre_pct"
             ]
             for c in children
@@ -172,18 +175,18 @@ def test_a_retried_job_closes_its_dead_attempts_runs_and_logs_once(tmp_path):
     """Tracker.claim_key, the store side of a retry: an open run of the key (from any machine) and its
     open children are marked KILLED; once a run of the key finished, the job logs nothing more."""
     tracker = trk.Tracker(f"sqlite:///{tmp_path / 'm.db'}", "claims", artifact_root=tmp_path / "art")
-    other_machine = {trk.TAG_HOST: "node-7", trk.TAG_BOOT: "another-boot", trk.TAG_PID: "1"}
+    other_machine = {run_tags.TAG_HOST: "node-7", run_tags.TAG_BOOT: "another-boot", run_tags.TAG_PID: "1"}
     key = "20261123-120000-000000/3"
-    dead = tracker.start("attempt 1", {trk.TAG_RUN_KEY: key})
+    dead = tracker.start("attempt 1", {run_tags.TAG_RUN_KEY: key})
     tracker.log(dead, tags=other_machine)  # reap_dead_runs cannot judge another machine's process
     child = tracker.start("child", {}, parent_id=dead)
-    unrelated = tracker.start("another job", {trk.TAG_RUN_KEY: key[:-1] + "4"})
+    unrelated = tracker.start("another job", {run_tags.TAG_RUN_KEY: key[:-1] + "4"})
     assert tracker.reap_dead_runs() == []
     assert tracker.claim_key(key) is None
     status = {r: tracker.client.get_run(r).info.status for r in (dead, child, unrelated)}
     assert status == {dead: "KILLED", child: "KILLED", unrelated: "RUNNING"}
-    assert "retried" in tracker.client.get_run(dead).data.tags[trk.TAG_REASON]
-    with tracker.run("attempt 2", {trk.TAG_RUN_KEY: key}) as second:
+    assert "retried" in tracker.client.get_run(dead).data.tags[run_tags.TAG_REASON]
+    with tracker.run("attempt 2", {run_tags.TAG_RUN_KEY: key}) as second:
         pass
     assert tracker.claim_key(key) == second  # a third attempt finds the finished run: logs nothing
     assert tracker.client.get_run(dead).info.status == "KILLED"
@@ -193,8 +196,8 @@ def test_a_retried_evaluate_job_whose_first_attempt_finished_logs_nothing_again(
     from _bench_data import compose, fit_fn
     from _bench_data import write_splits as write_chi_splits
 
-    from skidbench.benchmark import sweep
-    from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
+    from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+    from skidbench.benchmark.tracking import sweep
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     write_chi_splits(tmp_path / "sim-mini")

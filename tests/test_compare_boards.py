@@ -1,4 +1,5 @@
-"""One board per dataset and protocol (benchmark/selection.py, boards.py, compare.py): the newest complete run
+"""One board per dataset and protocol (benchmark/board/selection.py, boards.py, compare.py): the newest
+complete run
 of each (model, terrain) across evaluates, newer incomplete runs left out and named, leaderboard files kept
 with a time stamp and provenance per row, `compare dataset=<name>` on a root with two datasets; and loud,
 recoverable failures (a model that raises in predict: its traceback saved; exit statuses 3 and 130).
@@ -18,12 +19,13 @@ import pandas as pd
 import pytest
 from _bench_data import compose, fit_fn, write_splits
 
-from skidbench.benchmark import boards as brd
-from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.compare_app import run as run_compare
-from skidbench.benchmark.evaluate import format_result
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.benchmark.failures import TRACEBACK_ARTIFACT, failure_summary
+from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board.app import run as run_compare
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+from skidbench.benchmark.evaluate.console import format_result
+from skidbench.benchmark.evaluate.failures import TRACEBACK_ARTIFACT, failure_summary
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
 
 DS = "sim-mini"
 OTHER = "drive-other-abc123"  # a second dataset of the root, of another source
@@ -52,8 +54,8 @@ def root(tmp_path_factory):
 def _record(cfg, ds_root):
     """The dataset.json and an extracted table a stage would have written (`skidbench datasets` lists
     folders with one)."""
-    from skidbench.pipeline.dataset import identity_from_cfg, record
-    from skidbench.pipeline.layout import Layout
+    from skidbench.pipeline.core.layout import Layout
+    from skidbench.pipeline.datasets.identity import identity_from_cfg, record
 
     layout = Layout(ds_root.parent, ds_root.name)
     record(layout, identity_from_cfg(cfg))
@@ -73,11 +75,14 @@ def _other_dataset(out):
     (ds / "extracted" / "s").mkdir(parents=True)
     pd.DataFrame({"stamp_ns": [0]}).to_parquet(ds / "extracted" / "s" / "cmd_vel.parquet")
     tracker = trk.Tracker(f"sqlite:///{out / 'mlflow.db'}", f"skidbench-{OTHER}", dataset_id=OTHER_ID)
-    tags = {trk.TAG_DATASET: OTHER, trk.TAG_INPUTS: "commanded"}
-    parent = tracker.start("evaluate other", {**tags, trk.TAG_ROLE: "parent"})
+    tags = {run_tags.TAG_DATASET: OTHER, run_tags.TAG_INPUTS: "commanded"}
+    parent = tracker.start("evaluate other", {**tags, run_tags.TAG_ROLE: "parent"})
     for model, err in (("alpha", 10.0), ("beta", 20.0)):
-        child = tracker.start(f"{model}/grass", {**tags, trk.TAG_ROLE: "child", trk.TAG_MODEL: model,
-                                                 trk.TAG_TERRAIN: "grass"}, parent)  # fmt: skip
+        child = tracker.start(
+            f"{model}/grass",
+            {**tags, run_tags.TAG_ROLE: "child", run_tags.TAG_MODEL: model, run_tags.TAG_TERRAIN: "grass"},
+            parent,
+        )
         metrics = {f"{s}_6s_{k}_rmsre_pct": err for s in ("cv", "ld") for k in ("trans", "rot")}
         tracker.log(child, metrics=metrics, params={"min_distance_m": "0.5", "min_rotation_deg": "10.0"})
         tracker.end(child)
@@ -116,7 +121,9 @@ def test_a_model_evaluated_alone_lands_on_the_full_board(root):
     assert (board["env.numpy"] == numpy.__version__).all() and board["skidbench_version"].str.len().gt(
         0
     ).all()
-    assert by_model.loc["chi", "code_digest"] != ""  # the digest of the model's code (pipeline/provenance.py)
+    assert (
+        by_model.loc["chi", "code_digest"] != ""
+    )  # the digest of the model's code (pipeline/runner/environment.py)
     # the protocols table shows every model of the board, not only the newest evaluate's
     shown = {line.split("|")[1].strip() for line in res.decomposition_md.splitlines()[2:]}
     assert {"chi", "ideal_t"} <= shown
@@ -155,8 +162,13 @@ def test_newer_runs_that_are_not_complete_are_left_out_and_named(root):
     out, runs = root
     tracker = trk.Tracker(f"sqlite:///{out / 'mlflow.db'}", f"skidbench-{DS}",
                           dataset_id=runs[0].children[0] and _dataset_id(out))  # fmt: skip
-    tags = {trk.TAG_DATASET: DS, trk.TAG_INPUTS: "commanded", trk.TAG_ROLE: "child", trk.TAG_MODEL: "chi",
-            trk.TAG_TERRAIN: "tile"}  # fmt: skip
+    tags = {
+        run_tags.TAG_DATASET: DS,
+        run_tags.TAG_INPUTS: "commanded",
+        run_tags.TAG_ROLE: "child",
+        run_tags.TAG_MODEL: "chi",
+        run_tags.TAG_TERRAIN: "tile",
+    }
     killed = tracker.start("chi/tile", tags)
     tracker.kill(killed)
     res = run_compare(compose("compare", out, NO_FIGS))
@@ -185,7 +197,7 @@ def test_compare_names_any_dataset_of_the_root(root):
     out, runs = root
     env = {**os.environ, "SKIDBENCH_OUT": str(out)}
     env.pop("MLFLOW_TRACKING_URI", None)
-    cmd = [sys.executable, "-m", "skidbench.pipeline.cli", "compare", f"dataset={OTHER}", *NO_FIGS]
+    cmd = [sys.executable, "-m", "skidbench.pipeline.cli.main", "compare", f"dataset={OTHER}", *NO_FIGS]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| 1 | alpha |" in proc.stdout and "| 2 | beta |" in proc.stdout
@@ -204,7 +216,7 @@ def test_compare_names_any_dataset_of_the_root(root):
     res = run_compare(compose("compare", out, NO_FIGS))  # the default dataset is still the simulated one
     assert res.dataset == DS and "| chi |" in res.leaderboard_md
 
-    from skidbench.benchmark.selection import dataset_boards
+    from skidbench.benchmark.board.selection import dataset_boards
 
     boards = dataset_boards(f"sqlite:///{out / 'mlflow.db'}", {DS: _dataset_id(out), OTHER: OTHER_ID})
     assert boards[OTHER] == [
@@ -235,8 +247,8 @@ def test_leaderboard_files_are_kept_with_a_time_stamp_and_a_latest_copy(tmp_path
 
 
 def test_a_stage_with_failed_runs_exits_3_and_an_interrupt_130_in_one_line(capsys):
-    from skidbench.pipeline.cli import stage
-    from skidbench.pipeline.errors import EXIT_INTERRUPTED, EXIT_PARTIAL, PartialFailure
+    from skidbench.pipeline.cli.main import stage
+    from skidbench.pipeline.core.errors import EXIT_INTERRUPTED, EXIT_PARTIAL, PartialFailure
 
     @stage("evaluate", home=False, runs=True, interrupted="its open runs are marked KILLED")
     def partly(cfg=None):

@@ -11,14 +11,16 @@ import pandas as pd
 import pytest
 from _bench_data import JACKAL, TRUE_CHI, calibrate_splits, compose, fit_fn, write_splits
 
-from skidbench.benchmark import figures as figs
-from skidbench.benchmark import report_data as rd
-from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.compare import CompareError, format_console, markdown_table
-from skidbench.benchmark.compare_app import run as run_compare
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.pipeline.layout import layout_from_cfg
-from skidbench.pipeline.schema import read_split
+from skidbench.benchmark.board.app import run as run_compare
+from skidbench.benchmark.board.tables import CompareError, markdown_table
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+from skidbench.benchmark.report import data as rd
+from skidbench.benchmark.report import figures as figs
+from skidbench.benchmark.report.markdown import format_console
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.pipeline.core.layout import layout_from_cfg
+from skidbench.pipeline.core.schema import read_split
 
 DS = "sim-mini"
 
@@ -88,10 +90,11 @@ def test_latest_parent_by_default_with_failed_rows_and_reasons(two_evaluations):
 
 
 def test_the_end_position_error_is_logged_printed_and_on_the_leaderboard(two_evaluations):
-    """The registry's absolute end-position error (benchmark/metrics.py) reaches every output: each child
+    """The registry's absolute end-position error (benchmark/scoring/metrics.py) reaches every output: each
+    child
     run's MLflow metrics, evaluate's console summary, compare's leaderboard files (the mean over terrains
     of the logged values) and console."""
-    from skidbench.benchmark.evaluate import format_result
+    from skidbench.benchmark.evaluate.console import format_result
 
     out, _, second = two_evaluations
     client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
@@ -148,7 +151,7 @@ def test_compare_ranks_the_runs_of_the_protocol_asked_for(two_evaluations):
 
 
 def test_a_board_of_two_protocols_is_refused():
-    from skidbench.benchmark.compare import summary_table
+    from skidbench.benchmark.board.tables import summary_table
 
     board = pd.DataFrame(
         {"model": ["chi", "chi"], "inputs": ["commanded", "response"], "terrain": ["tile", "tile"],
@@ -213,14 +216,14 @@ def test_compare_links_the_parent_and_a_saved_view_of_its_children_in_the_model_
 def test_each_protocol_and_each_user_has_a_latest_view_of_its_own(two_evaluations, tmp_path, monkeypatch):
     import json
 
-    from skidbench.benchmark.mlflow_ui import TAG_SAVED_VIEW, latest_key
+    from skidbench.benchmark.tracking.mlflow_ui import TAG_SAVED_VIEW, latest_key
 
     out, first, second = two_evaluations
     exp = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}").get_experiment_by_name(f"skidbench-{DS}")
     views = {k.removeprefix(TAG_SAVED_VIEW): json.loads(json.loads(v)["state"]) for k, v in exp.tags.items()
              if k.startswith(TAG_SAVED_VIEW)}  # fmt: skip
     assert latest_key("commanded") in views
-    assert latest_key("commanded").endswith("-" + trk.current_user())
+    assert latest_key("commanded").endswith("-" + run_tags.current_user())
     # the latest view under one protocol shows the latest evaluate under that protocol, whatever came after
     assert views[latest_key("commanded")]["searchFilter"].endswith(f"'{second.parent_run_id}'")
     assert f"evaluate-{first.parent_run_id[:8]}" in views
@@ -267,7 +270,7 @@ def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluat
 def test_compare_names_other_experiments_holding_runs_of_the_same_content(tmp_path):
     """One recording under two dataset names (two mount points, each with its automatic name): two
     experiments; compare's board of one says, in one line, where the other's runs are and what to type."""
-    from skidbench.benchmark import selection as sel
+    from skidbench.benchmark.board import selection as sel
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     here = trk.Tracker(uri, "skidbench-amrl-day2-aaaaaa", artifact_root=tmp_path, dataset_id="c0ffee")
@@ -281,7 +284,7 @@ def test_compare_names_other_experiments_holding_runs_of_the_same_content(tmp_pa
 
 
 def test_the_parent_run_shows_the_leaderboard_and_each_models_mean_and_gap_to_the_next():
-    from skidbench.benchmark.mlflow_ui import leaderboard
+    from skidbench.benchmark.tracking.mlflow_ui import leaderboard
 
     rows = [("a+b", "tile", "FINISHED", {"x": 1.0, "y": 9.0}), ("a+b", "grass", "FINISHED", {"x": 3.0,
             "y": 7.0}), ("c", "tile", "FINISHED", {"x": 4.0, "y": 1.0}), ("c", "grass", "FAILED", {}),
@@ -389,8 +392,8 @@ def test_figures_are_drawn_apart_in_job_order_and_a_failing_one_is_a_note(tmp_pa
     raises is one note naming its figure while the others are drawn."""
     import os
 
-    from skidbench.benchmark.compare_figures import draw_figures
-    from skidbench.pipeline.forked import cores
+    from skidbench.benchmark.report.compare_figures import draw_figures
+    from skidbench.pipeline.runner.forked import cores
 
     def write(path):
         path.write_text(str(os.getpid()))

@@ -1,4 +1,5 @@
-"""A board's intervals, ranking rule and the paper's claim (benchmark/standings.py), on synthetic windows:
+"""A board's intervals, ranking rule and the paper's claim (benchmark/scoring/standings.py), on synthetic
+windows:
 compare's cells equal what evaluate logs, a model with one pathological metric does not lead, the claim is
 "holds", "does not hold" or "not resolved by these data" as the differences are resolved, and a board of
 one-window splits ranks nothing and says why."""
@@ -11,13 +12,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.benchmark import compare, publish
-from skidbench.benchmark import intervals as iv
-from skidbench.benchmark import metrics as mt
-from skidbench.benchmark import standings as st
-from skidbench.benchmark.boards import Board
-from skidbench.benchmark.floor import FLOOR
-from skidbench.benchmark.scoring import summarise
+from skidbench.benchmark.board import compare
+from skidbench.benchmark.board.boards import Board
+from skidbench.benchmark.release import publish
+from skidbench.benchmark.scoring import intervals as iv
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring import standings as st
+from skidbench.benchmark.scoring.floor import FLOOR
+from skidbench.benchmark.scoring.predictions import summarise
 
 H = 6.0
 
@@ -171,7 +173,7 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
 def test_figs_3_4_draw_each_cells_interval_and_the_floor(tmp_path, monkeypatch):
     import matplotlib.axes
 
-    from skidbench.benchmark import figures as figs
+    from skidbench.benchmark.report import figures as figs
 
     w = _board({"edd": {"trans": {"cv": 7, "ld": 6}}, FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}},
                terrains=("grass",), seconds=30.0)  # fmt: skip

@@ -1,4 +1,4 @@
-"""The declared schema (pipeline/config_schema.py): every key of every stage's config, under every
+"""The declared schema (pipeline/cli/config_schema.py): every key of every stage's config, under every
 group option, is declared; every shipped default passes; a value out of type or range is one line naming
 the key, the value and what is allowed."""
 
@@ -8,9 +8,9 @@ from importlib import resources
 
 import pytest
 
-from skidbench.pipeline.config_schema import SCHEMA, check_value, spec_for
-from skidbench.pipeline.errors import ConfigError
-from skidbench.pipeline.overrides import _compose, leaves, validate
+from skidbench.pipeline.cli.config_schema import SCHEMA, check_value, spec_for
+from skidbench.pipeline.cli.overrides import _compose, leaves, validate
+from skidbench.pipeline.core.errors import ConfigError
 
 STAGES = sorted(p.name[:-5] for p in resources.files("skidbench.conf").iterdir() if p.name.endswith(".yaml"))
 GROUPS = {
@@ -38,7 +38,7 @@ def _configs():
 def test_every_key_is_declared_and_every_default_is_valid(stage, overrides):
     cfg = _compose(stage, overrides)
     undeclared = [key for key, _ in leaves(cfg) if spec_for(key) is None]
-    assert not undeclared, f"declare these in pipeline/config_schema.py SCHEMA: {undeclared}"
+    assert not undeclared, f"declare these in pipeline/cli/config_schema.py SCHEMA: {undeclared}"
     validate(cfg)
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skidbench.pipeline import geometry as g
+from skidbench.pipeline.core import geometry as g
 
 
 def test_compose_with_inverse_is_identity():

@@ -5,8 +5,8 @@ import json
 import pyarrow as pa
 import pytest
 
-from skidbench.pipeline.cache import STAMP_SCHEMA, Stamp, stamp_file
-from skidbench.pipeline.io import atomic_path, read_parquet_metadata, write_parquet_atomic
+from skidbench.pipeline.core.cache import STAMP_SCHEMA, Stamp, stamp_file
+from skidbench.pipeline.core.io import atomic_path, read_parquet_metadata, write_parquet_atomic
 
 
 def test_failed_write_leaves_no_file_and_keeps_the_old_one(tmp_path):

@@ -1,4 +1,5 @@
-"""One dataset, one home (pipeline/dataset.py): datasets run one after the other in one output root keep
+"""One dataset, one home (pipeline/datasets/identity.py): datasets run one after the other in one output root
+keep
 their folders, MLflow experiments and runs apart; stages take terrains and sequences from the current
 manifest; two roots at one explicit name are refused in one line."""
 
@@ -18,14 +19,14 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
-from skidbench.pipeline.dataset import (
+from skidbench.pipeline.core.layout import layout_from_cfg
+from skidbench.pipeline.datasets.identity import (
     DatasetError,
     home_from_cfg,
     identity_from_cfg,
     list_datasets,
     open_home,
 )
-from skidbench.pipeline.layout import layout_from_cfg
 
 FIXTURE = Path(__file__).parent / "fixtures" / "amrl"
 EVALUATE = ["models=[ideal,edd]", "log_figures=false"]
@@ -55,8 +56,10 @@ def cfg(stage: str, out: Path, *over: str):
 
 def run_stage(stage: str, out: Path, *over: str):
     """A stage as the CLI runs it (``stage`` wrapper: open_home first), in this process."""
-    from skidbench.benchmark import compare_app, discover_app, evaluate_app
-    from skidbench.pipeline import calibrate_app
+    from skidbench.benchmark.board import app as compare_app
+    from skidbench.benchmark.discovery import app as discover_app
+    from skidbench.benchmark.evaluate import app as evaluate_app
+    from skidbench.pipeline.calibrate import app as calibrate_app
     from skidbench.pipeline.extract import app as extract
     from skidbench.pipeline.groundtruth import app as groundtruth
     from skidbench.pipeline.splits import app as split
@@ -96,8 +99,8 @@ def child_runs(out: Path, layout) -> pd.DataFrame:
 def assert_both_intact(out: Path, a: tuple, b: tuple, results: dict) -> None:
     """Each dataset's folder, manifest terrains, split files, MLflow experiment, compare and discovery
     hold its own terrain only."""
-    from skidbench.benchmark import tracking as trk
-    from skidbench.benchmark.compare import select_runs
+    from skidbench.benchmark.board.compare import select_runs
+    from skidbench.benchmark.tracking import store as trk
 
     for (source, terrain), other in ((a, b[1]), (b, a[1])):
         c = cfg("compare", out, *source)
@@ -234,7 +237,7 @@ def test_two_mount_points_of_one_dataset_are_one_dataset_id(tmp_path, capsys):
 
 
 def test_a_folder_recorded_by_its_path_by_an_earlier_release_is_upgraded_with_a_note(tmp_path, capsys):
-    from skidbench.pipeline.layout import NAME_FP_LEN, fingerprint_of
+    from skidbench.pipeline.core.layout import NAME_FP_LEN, fingerprint_of
 
     out, root = tmp_path / "out", tmp_path / "day1"
     shutil.copytree(FIXTURE / "Tile", root / "Tile")
@@ -276,7 +279,7 @@ def test_two_roots_at_one_explicit_name_are_one_line_error_unless_replace(tmp_pa
     # through the CLI: one line on stderr, exit status 2, nothing of the first dataset lost
     env = {**os.environ, "SKIDBENCH_OUT": str(out)}
     proc = subprocess.run(
-        [sys.executable, "-m", "skidbench.pipeline.cli", "split", *args(roots[1])],
+        [sys.executable, "-m", "skidbench.pipeline.cli.main", "split", *args(roots[1])],
         env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 2

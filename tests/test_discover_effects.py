@@ -9,16 +9,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.benchmark.discover_stats import sign_flip_pvalue
-from skidbench.models.effects import (
+from skidbench.benchmark.discovery.stats import sign_flip_pvalue
+from skidbench.models.augmented.effects import (
     CATALOGUE,
     EFFECT_IDS,
     apply_effects,
     base_targets,
     command_features,
-    lag_response,
 )
-from skidbench.pipeline.wheel_response import lag_filter
+from skidbench.pipeline.calibrate.wheel_response import lag_filter, lag_response
 
 SPEC = Path(__file__).resolve().parents[2] / "shared" / "SPEC.md"
 SPEC_IDS = (
@@ -91,8 +90,8 @@ def test_augmented_fit_recovers_the_lag_of_data_made_by_the_lag(jackal):
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import discover_data as dd
 
-    from skidbench.models.effect_fit import fit_effects
-    from skidbench.models.specs import get_model_class
+    from skidbench.models.augmented.fit import fit_effects
+    from skidbench.models.registry.specs import get_model_class
 
     r, B = jackal.wheel_radius, jackal.track_width
     frames = []
@@ -132,7 +131,7 @@ def test_sign_flip_p_value_is_exact_and_one_sided():
 
 
 def test_search_wide_p_value_is_the_sign_flip_p_value_of_the_best_of_the_candidates():
-    from skidbench.benchmark.discover_stats import search_pvalues
+    from skidbench.benchmark.discovery.stats import search_pvalues
 
     d = np.array([0.3, 0.2, 0.1, 0.4, 0.2, -0.05, 0.3, 0.1])
     # one candidate (or copies of it): the one-candidate sign-flip p-value
@@ -156,9 +155,9 @@ def test_commands_aligned_with_the_grid_leave_no_timing_error():
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import discover_data as dd
 
-    from skidbench.benchmark.discover_pool import align_commands
-    from skidbench.models.effect_fit import DiscoverSettings, build_pool
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.benchmark.discovery.pool import align_commands
+    from skidbench.models.augmented.fit import DiscoverSettings, build_pool
+    from skidbench.pipeline.core.robot import load_robot
 
     jackal = load_robot("jackal")
     vo = dd.vo_poses
@@ -186,8 +185,8 @@ def test_curvature_law_fit_with_the_base_reaches_the_joint_optimum(jackal):
     straight line): the augmented fit of ``edd`` + ``curvature_dependent_icr`` recovers b1, b2 and edd's
     chi = 1 (the base's chi alone, 1.38 here, absorbs the law's mean; alternating from it used to stall at
     b1 = 0.58, b2 = 17, chi = 1.30 and leave a yaw-rate residual proportional to |v| sign(w))."""
-    from skidbench.models.effect_fit import fit_effects
-    from skidbench.models.specs import get_model_class
+    from skidbench.models.augmented.fit import fit_effects
+    from skidbench.models.registry.specs import get_model_class
 
     rng = np.random.default_rng(4)
     n = 1500
@@ -222,8 +221,8 @@ def test_side_asymmetry_is_a_radius_difference_in_both_channels(jackal):
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import discover_data as dd
 
-    from skidbench.models.effect_fit import fit_effects
-    from skidbench.models.specs import get_model_class
+    from skidbench.models.augmented.fit import fit_effects
+    from skidbench.models.registry.specs import get_model_class
 
     r, B, chi = dd.R_WHEEL, dd.TRACK, dd.CHI
     t, v, w = dd.joystick(np.random.default_rng(5), 30.0, 1 / 30)

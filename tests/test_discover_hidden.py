@@ -21,10 +21,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain  # noqa: E402
-from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
-from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
-from skidbench.models.effects import EFFECT_IDS  # noqa: E402
+from skidbench.benchmark.discovery.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discovery.pool import prepare_pool  # noqa: E402
+from skidbench.models.augmented.effects import EFFECT_IDS  # noqa: E402
+from skidbench.models.augmented.fit import DiscoverSettings, build_pool  # noqa: E402
 
 N_TRAIN = 8  # Train sequences per data set
 DURATION = 36.0  # s each
@@ -32,7 +32,7 @@ CLI_EFFECT = "speed_dependent_turn_slip"  # this one goes through amrl_txt text 
 
 
 def _discover(effects: list[str], seed: int, jackal):
-    from skidbench.models.specs import get_model_class
+    from skidbench.models.registry.specs import get_model_class
 
     edd = get_model_class("edd")
     raw = dd.dataset(dd.hidden(effects), seed, n_train=N_TRAIN, duration=DURATION)

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
 from skidbench.models.base import ModelError  # noqa: E402
-from skidbench.models.specs import get_model_class  # noqa: E402
+from skidbench.models.registry.specs import get_model_class  # noqa: E402
 
 EFFECT = "angular_acceleration_slip"
 SPEC = f"edd+{EFFECT}"
@@ -62,8 +62,8 @@ def test_augmented_and_discovered_rows_beat_their_base_in_mlflow_and_the_leaderb
     # an earlier compare in this process exported its store (mlflow.set_tracking_uri): use this root's
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
 
-    from skidbench.benchmark.compare_app import run as run_compare
-    from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
+    from skidbench.benchmark.board.app import run as run_compare
+    from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
 
     # what `skidbench discover` writes (its contract: per terrain the base model and the effects)
     disc = hidden_root / "hidden" / "discovery" / "discovery.json"
@@ -108,8 +108,8 @@ def _compose_compare(root: Path):
 
 
 def test_augmented_model_round_trips_through_its_json(hidden_root):
-    from skidbench.models.fitting import FitSettings, fit_model, load_fitted
-    from skidbench.pipeline.schema import load_split_tables
+    from skidbench.models.fitting.fit import FitSettings, fit_model, load_fitted
+    from skidbench.pipeline.core.schema import load_split_tables
 
     cfg = _cfg(hidden_root, "calibrate.use=false")  # the JSON round trip, not the calibration
     res = fit_model(FitSettings.from_cfg(cfg), "edd+actuator_lag", "tile")
@@ -120,7 +120,7 @@ def test_augmented_model_round_trips_through_its_json(hidden_root):
 
 
 def test_discovered_without_a_discovery_is_a_one_line_error(tmp_path):
-    from skidbench.models.fitting import FitSettings, fit_model
+    from skidbench.models.fitting.fit import FitSettings, fit_model
 
     raw = dd.dataset({}, 3, n_train=2, duration=20.0)
     dd.write_splits(raw, tmp_path / "hidden" / "splits", "tile")

@@ -15,11 +15,11 @@ from scipy.signal import lfilter
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain  # noqa: E402
-from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
-from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
-from skidbench.pipeline.schema import concat_sequences  # noqa: E402
-from skidbench.pipeline.wheel_response import identify_response  # noqa: E402
+from skidbench.benchmark.discovery.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discovery.pool import prepare_pool  # noqa: E402
+from skidbench.models.augmented.fit import DiscoverSettings, build_pool  # noqa: E402
+from skidbench.pipeline.calibrate.wheel_response import identify_response  # noqa: E402
+from skidbench.pipeline.core.schema import concat_sequences  # noqa: E402
 
 TAU = dd.DEFAULT_SIZES["actuator_lag"]
 
@@ -45,7 +45,7 @@ def _with_encoders(cmd: pd.DataFrame, loc: pd.DataFrame) -> pd.DataFrame:
 
 @pytest.mark.slow
 def test_actuator_lag_is_named_under_commanded_and_not_again_under_response(jackal):
-    from skidbench.models.specs import get_model_class
+    from skidbench.models.registry.specs import get_model_class
 
     edd = get_model_class("edd")
     raw = dd.dataset(dd.hidden(["actuator_lag"]), 104, n_train=8, duration=36.0)

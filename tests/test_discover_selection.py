@@ -15,7 +15,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.models.effect_fit import DiscoverError  # noqa: E402
+from skidbench.models.augmented.fit import DiscoverError  # noqa: E402
 
 
 def _dataset(root: Path, train_s: float) -> Path:
@@ -33,7 +33,7 @@ def _dataset(root: Path, train_s: float) -> Path:
 def _run(root: Path, *over: str):
     from hydra import compose, initialize_config_module
 
-    from skidbench.benchmark.discover_app import run
+    from skidbench.benchmark.discovery.app import run
 
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose(
@@ -97,7 +97,7 @@ def test_discovered_refuses_a_discovery_that_selected_on_the_test_splits(tmp_pat
     from hydra import compose, initialize_config_module
 
     from skidbench.models.base import ModelError
-    from skidbench.models.fitting import FitSettings, resolve_model_spec
+    from skidbench.models.fitting.fit import FitSettings, resolve_model_spec
 
     path = tmp_path / "hidden" / "discovery" / "discovery.json"
     path.parent.mkdir(parents=True)

@@ -1,4 +1,4 @@
-"""Open-ended discovery (models/terms.py): effects outside the catalogue are named by a term that
+"""Open-ended discovery (models/augmented/terms.py): effects outside the catalogue are named by a term that
 matches them, with the constant that was injected, and no catalogue effect is named falsely.
 
 The closed forms first (the slip term is eq. (8) on the extended differential drive; STLSQ recovers a
@@ -19,13 +19,13 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discover import discover_terrain  # noqa: E402
-from skidbench.benchmark.discover_pool import prepare_pool  # noqa: E402
-from skidbench.models import term_screen as ts  # noqa: E402
-from skidbench.models import terms as tl  # noqa: E402
-from skidbench.models.effect_fit import DiscoverSettings, build_pool  # noqa: E402
-from skidbench.models.effects import augmented_prediction  # noqa: E402
-from skidbench.models.specs import get_model_class  # noqa: E402
+from skidbench.benchmark.discovery import term_screen as ts  # noqa: E402
+from skidbench.benchmark.discovery.discover import discover_terrain  # noqa: E402
+from skidbench.benchmark.discovery.pool import prepare_pool  # noqa: E402
+from skidbench.models.augmented import terms as tl  # noqa: E402
+from skidbench.models.augmented.effects import augmented_prediction  # noqa: E402
+from skidbench.models.augmented.fit import DiscoverSettings, build_pool  # noqa: E402
+from skidbench.models.registry.specs import get_model_class  # noqa: E402
 
 R, B = dd.R_WHEEL, dd.TRACK
 
@@ -144,7 +144,7 @@ def test_knots_of_a_load_limit_are_refined_together_to_the_injected_ones():
     # they are the injected ones. The loss: the term's own least squares (its theta fitted) on its rows
     import types
 
-    from skidbench.benchmark.discover import refine_knots
+    from skidbench.benchmark.discovery.discover import refine_knots
 
     rng = np.random.default_rng(6)
     t, v, w = dd.joystick(rng, 300.0, 1 / 30)

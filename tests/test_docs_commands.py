@@ -33,7 +33,7 @@ import pytest
 from conftest import SHARED_REAL
 from doc_blocks import BLOCKS, MODES, REPO, commands, doc_env, parse_blocks, publishing, quickstart, run_block
 
-from skidbench.pipeline.overrides import check_overrides, validate
+from skidbench.pipeline.cli.overrides import check_overrides, validate
 
 MAKE_STAGES = {  # what the Makefile's targets run (make reproduce / make discover)
     "reproduce": ("extract", "groundtruth", "split", "calibrate", "evaluate", "compare"),
@@ -81,10 +81,10 @@ def _stage_lines(cmd: str) -> list[tuple[str, list[str]]]:
 
 def _positional(stage: str, args: list[str]) -> list[str]:
     """A stage's positional arguments (``skidbench export <dataset> <dir>``) as the CLI turns them into
-    overrides (``pipeline/cli.py`` ``positional_overrides``)."""
+    overrides (``pipeline/cli/main.py`` ``positional_overrides``)."""
     import importlib
 
-    from skidbench.pipeline.cli import STAGES, positional_overrides
+    from skidbench.pipeline.cli.main import STAGES, positional_overrides
 
     if stage not in STAGES:
         return args

@@ -12,10 +12,11 @@ import pandas as pd
 import pytest
 from _bench_data import compose, fit_fn, write_splits
 
-from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.benchmark.horizon import EvaluationError
-from skidbench.pipeline.layout import Layout
+from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.pipeline.core.layout import Layout
 
 DS = "sim-mini"
 
@@ -156,12 +157,16 @@ def test_unreachable_tracking_server_is_one_line_error_fast(tmp_path, monkeypatc
 
 
 def test_metric_names_and_flatten():
-    assert trk.metric_key("translational", "cv", 6.0) == "cv_6s_trans_rmsre_pct"
-    assert trk.metric_key("rotational", "ld", 2.5) == "ld_2.5s_rot_rmsre_pct"
-    assert trk.rank_key("ld_trans", 6.0) == "ld_6s_trans_rmsre_pct"
+    assert mt.metric_key("translational", "cv", 6.0) == "cv_6s_trans_rmsre_pct"
+    assert mt.metric_key("rotational", "ld", 2.5) == "ld_2.5s_rot_rmsre_pct"
+    assert mt.rank_key("ld_trans", 6.0) == "ld_6s_trans_rmsre_pct"
     with pytest.raises(EvaluationError, match="rank_by='translational_ld'"):
-        trk.rank_key("translational_ld", 6.0)
-    assert trk.flatten({"a": {"b": 1, "c": [1, 2]}, "d": None}) == {"a.b": "1", "a.c": "[1, 2]", "d": "null"}
+        mt.rank_key("translational_ld", 6.0)
+    assert run_tags.flatten({"a": {"b": 1, "c": [1, 2]}, "d": None}) == {
+        "a.b": "1",
+        "a.c": "[1, 2]",
+        "d": "null",
+    }
     assert not math.isnan(0.0)
 
 
@@ -169,10 +174,10 @@ def test_the_evaluate_stamp_changes_when_a_models_config_changes(tmp_path, monke
     """A changed conf/model/<name>.yaml (initial params, options) re-runs evaluate, like a new version."""
     from hydra import compose, initialize_config_module
 
-    from skidbench.benchmark import evaluate_app
-    from skidbench.models import fitting
-    from skidbench.pipeline.cache import Stamp
-    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.benchmark.evaluate import app as evaluate_app
+    from skidbench.models.fitting import fit as fitting
+    from skidbench.pipeline.core.cache import Stamp
+    from skidbench.pipeline.core.layout import layout_from_cfg
 
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose("evaluate", [f"out_root={tmp_path}", "models=[edd,friction]"])
@@ -195,8 +200,8 @@ def _constant_twist_sequence(name: str, n: int, rate_hz: float, v: float, w: flo
     (no slip): the ideal model's prediction."""
     from _bench_data import JACKAL
 
-    from skidbench.benchmark.scoring import TestSequence
-    from skidbench.pipeline.geometry import integrate_body_velocity
+    from skidbench.benchmark.scoring.predictions import TestSequence
+    from skidbench.pipeline.core.geometry import integrate_body_velocity
 
     t = np.arange(n) / rate_hz
     wl, wr = JACKAL.wheel_rates_from_twist(np.full(n, v), np.full(n, w))
@@ -216,8 +221,8 @@ def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_
     minimum rotation: no rotational window, RMSRE NaN); an arc of 0.5 rad/s turns by 3 rad in 6 s."""
     from _bench_data import JACKAL, IdealModel
 
-    from skidbench.benchmark.horizon import HorizonConfig
-    from skidbench.benchmark.scoring import predict_and_score
+    from skidbench.benchmark.scoring.horizon import HorizonConfig
+    from skidbench.benchmark.scoring.predictions import predict_and_score
 
     rate, h = 30.0, 6.0
     tests = {
@@ -231,13 +236,13 @@ def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_
         model, tests, [h], HorizonConfig(h, 0.5, np.deg2rad(10.0)), on_step=steps.append
     )
     n_h = round(h * rate)
-    assert metrics[trk.windows_key("translational", "cv", h)] == (600 - n_h) + (300 - n_h)
-    assert metrics[trk.windows_key("rotational", "cv", h)] == 0
-    assert math.isnan(metrics[trk.metric_key("rotational", "cv", h)])
-    assert metrics[trk.windows_key("translational", "ld", h)] == 600 - n_h
-    assert metrics[trk.windows_key("rotational", "ld", h)] == 600 - n_h
-    for key in (trk.metric_key("translational", "cv", h), trk.metric_key("translational", "ld", h),
-                trk.metric_key("rotational", "ld", h)):  # fmt: skip
+    assert metrics[mt.windows_key("translational", "cv", h)] == (600 - n_h) + (300 - n_h)
+    assert metrics[mt.windows_key("rotational", "cv", h)] == 0
+    assert math.isnan(metrics[mt.metric_key("rotational", "cv", h)])
+    assert metrics[mt.windows_key("translational", "ld", h)] == 600 - n_h
+    assert metrics[mt.windows_key("rotational", "ld", h)] == 600 - n_h
+    for key in (mt.metric_key("translational", "cv", h), mt.metric_key("translational", "ld", h),
+                mt.metric_key("rotational", "ld", h)):  # fmt: skip
         assert metrics[key] == 0.0
     assert "predict_time_s" in metrics
     assert list(windows.columns[:3]) == ["split", "horizon_s", "sequence"]
@@ -257,7 +262,7 @@ def test_every_metric_is_logged_with_its_interval_and_blocks_and_the_floor_on_th
     """docs/intervals.md: each child logs <metric>_ci_lo/_ci_hi and the blocks behind it; the parent logs the
     floor of each terrain (the ground truth's own velocities through the same windows) and its
     windows go where compare reads them; evaluate's summary prints the intervals and the floor."""
-    from skidbench.benchmark.evaluate import format_result
+    from skidbench.benchmark.evaluate.console import format_result
 
     out, _, res = bench
     runs = _runs(out, res.parent_run_id)

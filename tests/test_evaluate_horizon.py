@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skidbench.benchmark.horizon import (
+from skidbench.benchmark.scoring.horizon import (
     EvaluationError,
     HorizonConfig,
     naive_window_errors,
@@ -13,7 +13,7 @@ from skidbench.benchmark.horizon import (
     window_errors,
     window_trajectory,
 )
-from skidbench.pipeline.geometry import integrate_body_velocity
+from skidbench.pipeline.core.geometry import integrate_body_velocity
 
 
 def _drive(T=1500, dt=1 / 30, seed=3):

@@ -1,5 +1,5 @@
-"""Confidence intervals, paired comparisons, the ranking rule (benchmark/intervals.py) and the floor
-(benchmark/floor.py): coverage at the nominal rate on errors of known correlation, exact zeros where
+"""Confidence intervals, paired comparisons, the ranking rule (benchmark/scoring/intervals.py) and the floor
+(benchmark/scoring/floor.py): coverage at the nominal rate on errors of known correlation, exact zeros where
 there is no difference, resolution only where the blocks allow it, and a floor near zero on exact truth."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 import scipy.signal
 
-from skidbench.benchmark import intervals as iv
-from skidbench.benchmark.floor import FLOOR, floor_windows
-from skidbench.benchmark.horizon import HorizonConfig, rmsre
+from skidbench.benchmark.scoring import intervals as iv
+from skidbench.benchmark.scoring.floor import FLOOR, floor_windows
+from skidbench.benchmark.scoring.horizon import HorizonConfig, rmsre
 
 H = 6.0
 SPACING = 0.2  # s between window starts: a block (two horizons, 12 s) holds 60 windows
@@ -177,7 +177,7 @@ def test_the_floor_on_the_simulators_exact_truth_is_near_zero():
 
     import yaml
 
-    from skidbench.pipeline.robot import Robot
+    from skidbench.pipeline.core.robot import Robot
     from skidbench.pipeline.simulate.physics import load_physics
     from skidbench.pipeline.simulate.scenarios import SequenceSpec
     from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence

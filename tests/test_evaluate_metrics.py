@@ -1,4 +1,5 @@
-"""The metric registry (benchmark/metrics.py) and the pure scoring (benchmark/scoring.py): names kept,
+"""The metric registry (benchmark/scoring/metrics.py) and the pure scoring
+(benchmark/scoring/predictions.py): names kept,
 keys that parse back, and the absolute end-position error against closed forms."""
 
 from __future__ import annotations
@@ -9,10 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.benchmark import metrics as mt
-from skidbench.benchmark.horizon import EvaluationError, HorizonConfig
-from skidbench.benchmark.scoring import TestSequence, score_split, summarise
-from skidbench.pipeline.geometry import integrate_body_velocity
+from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring.horizon import HorizonConfig
+from skidbench.benchmark.scoring.predictions import TestSequence, score_split, summarise
+from skidbench.pipeline.core.geometry import integrate_body_velocity
 
 RATE, H = 20.0, 6.0
 

@@ -1,4 +1,4 @@
-"""Transfer evaluation (benchmark/transfer.py): fit on dataset A's Train, score dataset B's CV/LD."""
+"""Transfer evaluation (benchmark/evaluate/transfer.py): fit on dataset A's Train, score dataset B's CV/LD."""
 
 from __future__ import annotations
 
@@ -8,11 +8,12 @@ import mlflow
 import pytest
 from _bench_data import compose, fit_fn, sequence_table, write_splits
 
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.benchmark.horizon import EvaluationError, count_windows
-from skidbench.pipeline.layout import Layout
-from skidbench.pipeline.manifest import Manifest, Sequence
-from skidbench.pipeline.schema import write_split
+from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+from skidbench.benchmark.scoring.horizon import count_windows
+from skidbench.pipeline.core.layout import Layout
+from skidbench.pipeline.core.manifest import Manifest, Sequence
+from skidbench.pipeline.core.schema import write_split
 
 SCORED = "sim-mini"  # the default dataset of the composed config: B, yaw rate 0.7 of the ideal
 TRAIN = "lastweek"  # A: the same robot on a surface where the yaw rate is 0.4 of the ideal

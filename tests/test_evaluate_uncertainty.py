@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skidbench.benchmark.horizon import (
+from skidbench.benchmark.scoring.horizon import (
     CHI2_95_1DOF,
     CHI2_95_2DOF,
     correlation_inflation,
     window_errors,
 )
-from skidbench.pipeline.geometry import integrate_body_velocity
+from skidbench.pipeline.core.geometry import integrate_body_velocity
 
 N_SEQ = 1500  # independent sequences, one window each: coverage sampling std = sqrt(.95 .05 / 1500) = 0.56 %
 STD = np.array([0.08, 0.05, 0.06])  # vx m/s, vy m/s, wz rad/s

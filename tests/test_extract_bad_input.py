@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from test_extract_roundtrip import extract_cfg
 
-from skidbench.pipeline.errors import ConfigError, ExtractError
+from skidbench.pipeline.core.errors import ConfigError, ExtractError
 from skidbench.pipeline.extract import bag as bag_module
 from skidbench.pipeline.extract.app import run
 from skidbench.pipeline.extract.synthetic import JACKAL_TOPICS, write_bag
@@ -132,7 +132,7 @@ def test_the_cli_prints_one_line_and_exits_2(tmp_path):
     path = tmp_path / "x.txt"
     path.write_text("nope")
     proc = subprocess.run(
-        [sys.executable, "-m", "skidbench.pipeline.cli", "extract", "source=bag", f"source.root={path}"]
+        [sys.executable, "-m", "skidbench.pipeline.cli.main", "extract", "source=bag", f"source.root={path}"]
         + ["source.terrain=t", "source.category=cv", f"out_root={tmp_path / 'out'}"],
         capture_output=True,
         text=True,

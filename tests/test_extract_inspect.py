@@ -14,8 +14,8 @@ from test_extract_real import BAG, OVERRIDES
 from test_extract_roundtrip import extract_cfg
 from test_extract_single_file import _tables, bare_file
 
-from skidbench.pipeline import cli
-from skidbench.pipeline.errors import ExtractError
+from skidbench.pipeline.cli import main as cli
+from skidbench.pipeline.core.errors import ExtractError
 from skidbench.pipeline.extract.app import run
 from skidbench.pipeline.extract.inspect import inspect_bag, propose
 from skidbench.pipeline.extract.synthetic import write_bag

@@ -46,7 +46,7 @@ def test_the_real_bag_extracts_with_its_own_topic_names(tmp_path, shared_real):
 
 @pytest.mark.shared
 def test_the_real_bag_with_default_topics_names_what_to_set(tmp_path, shared_real):
-    from skidbench.pipeline.errors import ExtractError
+    from skidbench.pipeline.core.errors import ExtractError
 
     with pytest.raises(ExtractError, match=r"/cmd_vel not found .*/vesc_drive.*source.topics.cmd_vel.topic"):
         run(extract_cfg(tmp_path / "out", shared_real / BAG, "source.terrain=lab", "source.category=ld"))

@@ -184,7 +184,7 @@ def test_a_rerun_with_unchanged_bag_and_config_skips_the_work(tmp_path):
 
 
 def test_a_bag_tree_becomes_a_manifest_with_terrain_and_category(tmp_path):
-    from skidbench.pipeline.manifest import Manifest
+    from skidbench.pipeline.core.manifest import Manifest
 
     make_bag(tmp_path / "bags", "ros1", name="a")
     make_bag(tmp_path / "bags", "sqlite3", name="b")
@@ -198,7 +198,7 @@ def test_a_bag_tree_becomes_a_manifest_with_terrain_and_category(tmp_path):
 
 
 def test_a_manifest_of_simulated_bags_is_extracted_sequence_by_sequence(tmp_path):
-    from skidbench.pipeline.manifest import Manifest, Sequence
+    from skidbench.pipeline.core.manifest import Manifest, Sequence
 
     raw = tmp_path / "out" / "sim-tiny" / "raw"
     (raw / "bags").mkdir(parents=True)

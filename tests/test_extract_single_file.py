@@ -17,7 +17,7 @@ from test_extract_bad_input import assert_nothing_left, assert_one_line, seq_dir
 from test_extract_real import BAG, OVERRIDES
 from test_extract_roundtrip import extract_cfg
 
-from skidbench.pipeline.errors import ConfigError, ExtractError
+from skidbench.pipeline.core.errors import ConfigError, ExtractError
 from skidbench.pipeline.extract.app import run
 from skidbench.pipeline.extract.reader import discover_sequences
 from skidbench.pipeline.extract.synthetic import write_bag

@@ -1,4 +1,4 @@
-"""Stages map their independent items in forked workers (pipeline/forked.py): the results must be those
+"""Stages map their independent items in forked workers (pipeline/runner/forked.py): the results must be those
 of the plain loop, in call order, and a failing item must fail the stage as it would alone."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from skidbench.pipeline import forked
-from skidbench.pipeline.errors import ExtractError
+from skidbench.pipeline.core.errors import ExtractError
+from skidbench.pipeline.runner import forked
 
 
 def _square_and_pid(x: int) -> tuple[int, int]:

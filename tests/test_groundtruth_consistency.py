@@ -64,11 +64,11 @@ def test_split_refuses_a_flipped_sequence_unless_allowed(jackal, tmp_path):
     numbers; ``split.allow_flagged=true`` writes it with the gate's numbers in its metadata."""
     from hydra import compose, initialize_config_module
 
-    from skidbench.pipeline.errors import SplitError
+    from skidbench.pipeline.core.errors import SplitError
+    from skidbench.pipeline.core.io import read_parquet_metadata
+    from skidbench.pipeline.core.layout import Layout
+    from skidbench.pipeline.core.manifest import Manifest, Sequence
     from skidbench.pipeline.groundtruth.trajectory import Trajectory, write_tum
-    from skidbench.pipeline.io import read_parquet_metadata
-    from skidbench.pipeline.layout import Layout
-    from skidbench.pipeline.manifest import Manifest, Sequence
     from skidbench.pipeline.sources.common import TWIST_COLUMNS, stamped, write_sequence
     from skidbench.pipeline.splits.app import run as split_run
     from skidbench.pipeline.splits.app import split_sequence

@@ -7,14 +7,9 @@ import logging
 import numpy as np
 import pytest
 
-from skidbench.pipeline.errors import GroundTruthError
-from skidbench.pipeline.geometry import quaternion_from_yaw, se3_from_xyz_rpy, se3_matrix
-from skidbench.pipeline.groundtruth.orbslam import (
-    base_to_camera,
-    detect_unit,
-    read_orbslam,
-    write_orbslam,
-)
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import quaternion_from_yaw, se3_from_xyz_rpy, se3_matrix
+from skidbench.pipeline.groundtruth.orbslam import base_to_camera, detect_unit, read_orbslam, write_orbslam
 
 T_B_C = se3_from_xyz_rpy(np.array([0.20, 0.06, 0.30]), np.array([-np.pi / 2, 0.0, -np.pi / 2]))
 T0 = 1_700_000_000_123_456_789

@@ -15,16 +15,16 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import get_types_from_msg
 
-from skidbench.pipeline.errors import GroundTruthError
-from skidbench.pipeline.extract.app import run as extract
-from skidbench.pipeline.extract.synthetic import T0_NS, _Factory, typestore_for
-from skidbench.pipeline.geometry import (
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import (
     matrix_to_quaternion,
     quaternion_slerp,
     quaternion_to_matrix,
     se3_inverse,
     se3_matrix,
 )
+from skidbench.pipeline.extract.app import run as extract
+from skidbench.pipeline.extract.synthetic import T0_NS, _Factory, typestore_for
 from skidbench.pipeline.groundtruth.app import run as groundtruth
 from skidbench.pipeline.groundtruth.tf import compose_tf, interpolate_edge
 from skidbench.pipeline.groundtruth.trajectory import read_tum

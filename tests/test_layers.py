@@ -1,14 +1,17 @@
 """The layers of the package run one way (CONTRIBUTING.md, "Layers"): every import, including one inside a
-function, goes to the same layer or one below, and no two modules import each other in a circle.
+function, goes to the same layer or one below, and no two modules import each other in a circle. The layers
+are read from the folders, never from a list of file names:
 
-    core        pipeline/{errors,geometry,io,cache,layout,manifest,schema,robot,protocol,constants}
-    stages      the rest of pipeline/ (simulate, extract, groundtruth, splits, sources, calibration, ...)
+    core        pipeline/core/
+    stages      every other sub-package of pipeline/ (simulate, extract, groundtruth, splits, sources,
+                calibrate, datasets, runner)
     models      models/
-    benchmark   benchmark/ (evaluation, tracking, comparison, discovery)
-    apps        every stage's Hydra entry point (``app.py``, ``*_app.py``), ``pipeline/cli.py`` and the stage
-                plumbing beside it (``pipeline/stage.py``, ``pipeline/overrides.py``)
+    benchmark   benchmark/ (scoring, evaluate, tracking, board, report, release, discovery)
+    apps        pipeline/cli/ and every stage's Hydra entry point (``app.py``, ``*_app.py``)
 
-The check reads the source (``ast``), so it also sees imports that a test run would never execute.
+Inside the benchmark, ``benchmark/scoring/`` is pure maths: it never opens a file, never imports MLflow,
+plotting or a store, and of the benchmark imports only itself and ``benchmark/errors.py``. The check reads
+the source (``ast``), so it also sees imports that a test run would never execute.
 """
 
 from __future__ import annotations
@@ -20,9 +23,6 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("pipeline", "models", "benchmark")
-CORE = {"errors", "geometry", "io", "cache", "layout", "manifest", "schema", "robot", "protocol", "constants"}
-#: modules of the app layer by their dotted name below ``skidbench.`` (beside every ``*_app``)
-APP_MODULES = {"pipeline.cli", "pipeline.api", "pipeline.overrides", "pipeline.stage", "models.app"}
 RANK = {"core": 0, "stages": 1, "models": 2, "benchmark": 3, "apps": 4}
 
 
@@ -35,14 +35,15 @@ def module_name(path: Path) -> str:
 
 
 def layer(mod: str) -> str | None:
-    """The layer of a module named below ``skidbench.`` (``pipeline.io``), None if not ours."""
+    """The layer of a module named below ``skidbench.`` (``pipeline.core.io``), None if not ours: its
+    folder decides, and an ``app`` / ``*_app`` module is an app wherever it sits."""
     parts = mod.split(".")
     if parts[0] not in PACKAGES:
         return None
-    if mod in APP_MODULES or parts[-1] == "app" or parts[-1].endswith("_app"):
+    if parts[-1] == "app" or parts[-1].endswith("_app") or parts[:2] == ["pipeline", "cli"]:
         return "apps"
     if parts[0] == "pipeline":
-        return "core" if len(parts) == 2 and parts[1] in CORE else "stages"
+        return "core" if parts[:2] == ["pipeline", "core"] else "stages"
     return parts[0]
 
 
@@ -127,7 +128,8 @@ def test_the_check_sees_imports_inside_functions(tmp_path):
     src.write_text("def f():\n    from skidbench.benchmark import evaluate\n")
     assert imports_of("models.x", src, {"benchmark.evaluate"}) == [(2, "benchmark.evaluate")]
     assert layer("models.x") == "models" and layer("benchmark.evaluate") == "benchmark"
-    assert layer("pipeline.io") == "core" and layer("pipeline.calibrate_app") == "apps"
+    assert layer("pipeline.core.io") == "core" and layer("pipeline.calibrate.app") == "apps"
+    assert layer("pipeline.cli.overrides") == "apps" and layer("pipeline.splits.build") == "stages"
 
 
 def test_the_installed_package_never_imports_the_perf_harness():
@@ -146,22 +148,80 @@ def test_the_installed_package_never_imports_the_perf_harness():
     assert not found, "\n".join(found)
 
 
-#: the benchmark's pure modules: scoring and its metrics (no MLflow, no files, no figures); of the benchmark
-#: layer they import only each other, so that a server, a notebook or a test can score without a store
-PURE = {"benchmark.horizon", "benchmark.metrics", "benchmark.scoring", "benchmark.intervals"}
-IMPURE_LIBS = {"mlflow", "matplotlib", "pyarrow", "ray", "hydra", "omegaconf"}
+#: libraries the pure scoring maths must not import: a store, figures, files' formats, configuration
+IMPURE_LIBS = {"mlflow", "matplotlib", "pyarrow", "ray", "hydra", "omegaconf", "json", "pickle", "shutil"}
+#: calls that read or write a file (``open`` itself, and the readers and writers of pandas, NumPy, pathlib)
+FILE_CALLS = {
+    "open",
+    "read_parquet",
+    "to_parquet",
+    "read_csv",
+    "to_csv",
+    "read_text",
+    "write_text",
+    "read_bytes",
+    "write_bytes",
+    "load",
+    "save",
+    "savez",
+    "loadtxt",
+    "savetxt",
+    "read_table",
+}
+SCORING = "benchmark.scoring"
+#: what scoring may import of the benchmark: itself and the benchmark's exception
+SCORING_MAY_IMPORT = ("benchmark.scoring", "benchmark.errors")
 
 
-def test_scoring_and_metrics_are_pure(graph):
-    found = []
-    for mod in sorted(PURE):
-        path = REPO / (mod.replace(".", "/") + ".py")
-        found += [f"{mod}:{line} imports {dep} ({layer(dep)})" for line, dep in graph[mod]
-                  if layer(dep) == "benchmark" and dep not in PURE]  # fmt: skip
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import | ast.ImportFrom) and not getattr(node, "level", 0):
-                names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
-                found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] in IMPURE_LIBS]
-            if isinstance(node, ast.Name) and node.id == "open":
-                found.append(f"{mod}:{node.lineno} opens a file")
+def impurities(mod: str, path: Path, deps: list[tuple[int, str]]) -> list[str]:
+    """Why ``mod`` (a module of benchmark/scoring/) is not pure: each import of the benchmark outside
+    scoring, of an impure library or of the pipeline's file I/O, and each call that opens a file."""
+    found = [f"{mod}:{line} imports {dep}" for line, dep in deps
+             if (layer(dep) == "benchmark" and not dep.startswith(SCORING_MAY_IMPORT))
+             or dep == "pipeline.core.io"]  # fmt: skip
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import | ast.ImportFrom) and not getattr(node, "level", 0):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            found += [f"{mod}:{node.lineno} imports {n}" for n in names if n.split(".")[0] in IMPURE_LIBS]
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else ""
+            if name in FILE_CALLS:
+                found.append(f"{mod}:{node.lineno} calls {name}() (a file)")
+    return found
+
+
+def test_scoring_is_pure_maths(graph):
+    mods = our_modules()
+    scoring = sorted(m for m in mods if m == SCORING or m.startswith(SCORING + "."))
+    assert len(scoring) >= 5, scoring  # the folder is there and holds the maths
+    found = [f for m in scoring for f in impurities(m, mods[m], graph[m])]
     assert not found, "\n".join(found)
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        "import mlflow\n",
+        "def f(p):\n    return open(p).read()\n",
+        "import pandas as pd\nx = pd.read_parquet('w')\n",
+        "from skidbench.benchmark.tracking import store\n",
+    ],
+)
+def test_the_purity_check_fails_a_scoring_module_that_opens_a_file_or_imports_mlflow(tmp_path, body):
+    src = tmp_path / "bad.py"
+    src.write_text(body)
+    mod = "benchmark.scoring.bad"
+    deps = imports_of(mod, src, {"benchmark.tracking.store", "benchmark.scoring"})
+    assert impurities(mod, src, deps), body
+
+
+def test_every_folder_of_the_package_is_a_concern_of_at_most_eleven_modules():
+    """``ls`` of a top folder tells its concerns: each sub-package holds one, small enough to read."""
+    tall = {}
+    for pkg in PACKAGES:
+        for init in (REPO / pkg).rglob("__init__.py"):
+            n = len([p for p in init.parent.glob("*.py") if p.name != "__init__.py"])
+            if init.parent != REPO / pkg and n > 11:
+                tall[str(init.parent.relative_to(REPO))] = n
+    assert not tall, tall

@@ -1,4 +1,5 @@
-"""Run bookkeeping on a local store (benchmark/bookkeeping.py): which RUNNING runs `skidbench runs --reap`
+"""Run bookkeeping on a local store (benchmark/tracking/bookkeeping.py): which RUNNING runs `skidbench runs
+--reap`
 marks KILLED (a dead process of this machine; another machine's run without a recent heartbeat) and which
 it leaves alone (a live process of this machine, whatever its age; another machine's run with a recent
 heartbeat), the PENDING logged models it marks FAILED, and how a tracking server that does not answer is
@@ -14,9 +15,9 @@ import pytest
 from mlflow import MlflowClient
 from mlflow.entities import LoggedModelStatus
 
-from skidbench.benchmark import bookkeeping as bk
-from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.provenance import (
+from skidbench.benchmark.tracking import bookkeeping as bk
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking.tags import (
     TAG_HEARTBEAT,
     TAG_HOST,
     TAG_PID,

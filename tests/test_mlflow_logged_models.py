@@ -16,11 +16,11 @@ import pandas as pd
 import pytest
 from _bench_data import compose, sequence_table, write_splits
 
-from skidbench.benchmark import tracking as trk
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.benchmark.mlflow_model import INPUT_COLUMNS
-from skidbench.benchmark.provenance import current_user
-from skidbench.models.fitting import FitSettings, load_fitted
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.benchmark.tracking.mlflow_model import INPUT_COLUMNS
+from skidbench.benchmark.tracking.tags import current_user
+from skidbench.models.fitting.fit import FitSettings, load_fitted
 
 DS = "sim-mini"
 pytestmark = pytest.mark.slow  # real fits, logged models, a fresh interpreter importing MLflow: 86 s (loaded)
@@ -78,7 +78,7 @@ def test_a_logged_model_loads_and_predicts_in_a_plain_python_process(real_models
 def test_a_logged_models_requirements_pin_skidbench_and_the_libraries_it_ran_with(real_models):
     from pathlib import Path
 
-    from skidbench.pipeline.provenance import version_of
+    from skidbench.pipeline.runner.environment import version_of
 
     out, cfg, res, client, runs = real_models
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
@@ -107,7 +107,7 @@ def test_runs_describe_themselves_and_carry_only_their_own_models_config(real_mo
     saved = json.loads((out / DS / "fits" / "roc" / "tile.json").read_text())["params"]
     assert fitted and {k: float(v) for k, v in fitted.items()} == pytest.approx(saved)
     # a description with dataset, protocol, horizon and the command that reproduces the run
-    note = roc_run.data.tags[trk.TAG_NOTE]
+    note = roc_run.data.tags[run_tags.TAG_NOTE]
     for part in (f"`{DS}`", "`commanded`", "6 s", "skidbench fit", "models=[roc]", "terrains=[tile]"):
         assert part in note
     # who and what created it
@@ -123,7 +123,7 @@ def test_runs_describe_themselves_and_carry_only_their_own_models_config(real_mo
     assert json.loads(ld.dataset.profile)["num_rows"] == 600  # 20 s at 30 Hz
     # the experiment opens on its runs in the MLflow 3 UI
     exp = client.get_experiment(parent.info.experiment_id)
-    assert exp.tags[trk.TAG_EXPERIMENT_KIND] == "custom_model_development"
+    assert exp.tags[run_tags.TAG_EXPERIMENT_KIND] == "custom_model_development"
 
 
 def test_parent_runs_are_unique_and_searchable(real_models):
@@ -153,9 +153,9 @@ def test_pyfunc_signature_rejects_a_table_without_the_protocols_columns(real_mod
 
 
 def test_a_fit_runs_model_is_logged_too(real_models):
-    from skidbench.models.app import log_fit_run
-    from skidbench.models.fitting import FitSettings, fit_model
-    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.models.fitting.app import log_fit_run
+    from skidbench.models.fitting.fit import FitSettings, fit_model
+    from skidbench.pipeline.core.layout import layout_from_cfg
 
     out, _, _, client, runs = real_models
     cfg = compose("fit", out, ["model=roc", "terrain=tile", "calibrate.use=false"])
@@ -164,4 +164,4 @@ def test_a_fit_runs_model_is_logged_too(real_models):
     assert run.data.params["fitted.b1"] == runs["roc"].data.params["fitted.b1"]
     model = client.get_logged_model(run.data.tags["skidbench.logged_model"])
     assert model.source_run_id == run.info.run_id
-    assert "skidbench fit model=roc terrain=tile" in run.data.tags[trk.TAG_NOTE]
+    assert "skidbench fit model=roc terrain=tile" in run.data.tags[run_tags.TAG_NOTE]

@@ -19,7 +19,7 @@ import pytest
 from _bench_data import compose, write_splits
 from mlflow_server import postgres_missing, wait_until_gone
 
-from skidbench.benchmark.compare_app import run as run_compare
+from skidbench.benchmark.board.app import run as run_compare
 
 # subprocess pipelines, servers and sweeps: part of `make test`, not of `make test-fast`
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(bool(postgres_missing()), reason=str(postgres_missing()))]
@@ -42,7 +42,7 @@ def evaluate(out_root: Path, uri: str, user: str, *args: str, env: dict | None =
     """``skidbench evaluate`` of ``user`` on the dataset under ``out_root``, through the server ``uri``."""
     e = {**os.environ, "SKIDBENCH_OUT": str(out_root), "MLFLOW_TRACKING_URI": uri, "SKIDBENCH_USER": user}
     e.update(env or {})
-    cmd = [sys.executable, "-m", "skidbench.pipeline.cli", "evaluate", *EVALUATE, *args]
+    cmd = [sys.executable, "-m", "skidbench.pipeline.cli.main", "evaluate", *EVALUATE, *args]
     return subprocess.Popen(cmd, env=e, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)  # fmt: skip
 
@@ -59,8 +59,9 @@ def test_people_starting_on_one_new_experiment_at_once_all_get_it_tagged(server)
     losers of that race try again, tracking.lost_insert_race)."""
     from mlflow import MlflowClient
 
-    from skidbench.benchmark import mlflow_ui as mu
-    from skidbench.benchmark import tracking as trk
+    from skidbench.benchmark.tracking import mlflow_ui as mu
+    from skidbench.benchmark.tracking import store as trk
+    from skidbench.benchmark.tracking import tags as run_tags
 
     name, n = "skidbench-race", 6
     start = threading.Barrier(n)
@@ -77,7 +78,7 @@ def test_people_starting_on_one_new_experiment_at_once_all_get_it_tagged(server)
         ids = list(pool.map(one, range(n)))
     exp = MlflowClient(server.uri).get_experiment_by_name(name)
     assert set(ids) == {exp.experiment_id}
-    assert exp.tags[trk.TAG_EXPERIMENT_KIND] == trk.EXPERIMENT_KIND
+    assert exp.tags[run_tags.TAG_EXPERIMENT_KIND] == run_tags.EXPERIMENT_KIND
     assert json.loads(exp.tags[mu.TAG_SAVED_VIEW + "latest-race"])["name"] in {f"view {k}" for k in range(n)}
 
 
@@ -190,7 +191,7 @@ def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_o
         "parent",
     ]  # the one it was logging
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path), "MLFLOW_TRACKING_URI": server.uri}
-    reap = subprocess.run([sys.executable, "-m", "skidbench.pipeline.cli", "runs", "--reap"], env=env,
+    reap = subprocess.run([sys.executable, "-m", "skidbench.pipeline.cli.main", "runs", "--reap"], env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert reap.returncode == 0, reap.stderr[-3000:]
     assert f"{len(left)} of them marked KILLED" in reap.stdout

@@ -17,9 +17,9 @@ import pytest
 from _bench_data import compose, fit_fn, write_splits
 from browser import CHROMIUM, chromium, page_value, text_of
 
-from skidbench.benchmark.compare_app import run as run_compare
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.benchmark.provenance import current_user
+from skidbench.benchmark.board.app import run as run_compare
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
+from skidbench.benchmark.tracking.tags import current_user
 
 DS = "sim-mini"
 EXPERIMENT = "skidbench-ui"

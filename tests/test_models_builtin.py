@@ -8,17 +8,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.benchmark.horizon import window_errors
+from skidbench.benchmark.scoring.horizon import window_errors
 from skidbench.models.base import ModelError
-from skidbench.models.enhanced import EnhancedKinematic
-from skidbench.models.friction import FrictionBased
-from skidbench.models.friction_balance import FrictionGeometry, body_velocity
-from skidbench.models.friction_solver import solve, solve_reference
-from skidbench.models.ideal import IdealDifferentialDrive
-from skidbench.models.linear import ExtendedDifferentialDrive, FullLinear
-from skidbench.models.roc import RocBased
-from skidbench.models.specs import get_model_class
-from skidbench.models.synthetic import command_table, label_with
+from skidbench.models.fitting.synthetic import command_table, label_with
+from skidbench.models.friction.balance import FrictionGeometry, body_velocity
+from skidbench.models.friction.model import FrictionBased
+from skidbench.models.friction.solver import solve, solve_reference
+from skidbench.models.kinematic.enhanced import EnhancedKinematic
+from skidbench.models.kinematic.ideal import IdealDifferentialDrive
+from skidbench.models.kinematic.linear import ExtendedDifferentialDrive, FullLinear
+from skidbench.models.kinematic.roc import RocBased
+from skidbench.models.registry.specs import get_model_class
 
 TRUE_FRICTION = {"mu_r": 0.05, "mu_x": 0.9, "mu_y": 0.6, "lambda": 6.0, "C": 0.3}
 
@@ -103,9 +103,9 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     """Turning that does not depend on the radius of curvature (edd's constant chi = 1.6): roc's best fit
     is b2 = 0, chi = 1 + b1 = edd's; the fit says so (fit_info_["at_bound"]), and compare's note names
     it with the terrain and value. A roc-shaped truth reports nothing."""
-    from skidbench.benchmark.compare import _fit_findings
-    from skidbench.models.saved import fit_findings
-    from skidbench.pipeline.layout import Layout
+    from skidbench.benchmark.board.compare import _fit_findings
+    from skidbench.models.registry.saved import fit_findings
+    from skidbench.pipeline.core.layout import Layout
 
     fitted = RocBased(jackal).fit(
         label_with(table, ExtendedDifferentialDrive(jackal, {"chi": 1.6}).predict(table))
@@ -131,8 +131,9 @@ def test_roc_on_data_without_a_radius_effect_reports_b2_at_its_bound(jackal, tab
     (note,) = _fit_findings(layout, board, "commanded")
     assert note.startswith("roc degenerates to edd on this data: b2 at its bound (grass: b2 = ")
     # and under evaluate's board (its console print), for the runs that finished
-    from skidbench.benchmark import evaluate_app
-    from skidbench.benchmark.evaluate import BenchmarkResult, ChildResult, format_result
+    from skidbench.benchmark.evaluate import app as evaluate_app
+    from skidbench.benchmark.evaluate.console import format_result
+    from skidbench.benchmark.evaluate.evaluation import BenchmarkResult, ChildResult
 
     done = BenchmarkResult("uri", "ds", "p", [ChildResult(m, "grass", m, "FINISHED") for m in ("roc", "edd")])
     assert f"\nnote: {note}" in format_result(done, evaluate_app._findings(layout, done))
@@ -308,7 +309,7 @@ def test_a_step_friction_cannot_deliver_is_predicted_at_the_largest_balanced_acc
     physical force balance: the prediction is the solve at the first fraction of the commanded
     acceleration (ACCEL_SCALES) that has a root with slip ratios in [-1, 1], so the body speed stays
     within 0..2 r omega; without the fallback the same step is not physical."""
-    from skidbench.models.friction import ACCEL_SCALES
+    from skidbench.models.friction.model import ACCEL_SCALES
 
     geo = FrictionGeometry.from_robot(jackal)
     wl = np.array([6.0, 6.0, 6.0, -4.0])

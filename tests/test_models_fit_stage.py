@@ -13,8 +13,8 @@ import pytest
 from _bench_data import calibrate_splits
 
 from skidbench.models.base import ModelError
-from skidbench.models.synthetic import write_train_splits as make_splits
-from skidbench.pipeline.schema import write_split
+from skidbench.models.fitting.synthetic import write_train_splits as make_splits
+from skidbench.pipeline.core.schema import write_split
 
 
 def compose(out_root: Path, overrides=()):
@@ -28,7 +28,7 @@ def compose(out_root: Path, overrides=()):
 
 
 def test_fit_model_writes_json_and_load_fitted_reads_it(tmp_path, jackal):
-    from skidbench.models.fitting import FitSettings, fit_model, load_fitted
+    from skidbench.models.fitting.fit import FitSettings, fit_model, load_fitted
 
     make_splits(tmp_path, jackal)
     cfg = compose(tmp_path, ["model=edd", "terrain=tile"])
@@ -45,7 +45,7 @@ def test_fit_model_writes_json_and_load_fitted_reads_it(tmp_path, jackal):
 
 
 def test_fit_on_a_split_without_the_needed_columns_names_the_model(tmp_path, jackal):
-    from skidbench.models.fitting import FitSettings, fit_model
+    from skidbench.models.fitting.fit import FitSettings, fit_model
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     cfg = compose(tmp_path, ["terrain=tile"])
@@ -58,7 +58,7 @@ def test_fit_on_a_split_without_the_needed_columns_names_the_model(tmp_path, jac
 def run_cli(args, out_root: Path):
     env = {**os.environ, "SKIDBENCH_OUT": str(out_root)}
     return subprocess.run(
-        [sys.executable, "-m", "skidbench.pipeline.cli", *args],
+        [sys.executable, "-m", "skidbench.pipeline.cli.main", *args],
         env=env,
         cwd=out_root,
         capture_output=True,
@@ -90,7 +90,7 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
     f = next((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))
     import pandas as pd
 
-    from skidbench.pipeline.schema import read_split
+    from skidbench.pipeline.core.schema import read_split
 
     df, meta = read_split(f)
     df.loc[3, "cmd_wl"] = np.nan
@@ -106,9 +106,10 @@ def test_cli_error_is_one_line_naming_the_model(tmp_path, jackal):
 
 def test_a_manifest_sequence_without_its_split_file_is_one_error_naming_it(tmp_path, jackal):
     """One split lookup (Layout.require_split_files): fit and evaluate say the same of a missing file."""
-    from skidbench.benchmark.testsets import EvaluationError, split_files
-    from skidbench.models.fitting import FitSettings, fit_model
-    from skidbench.pipeline.layout import layout_from_cfg
+    from skidbench.benchmark.errors import EvaluationError
+    from skidbench.benchmark.evaluate.testsets import split_files
+    from skidbench.models.fitting.fit import FitSettings, fit_model
+    from skidbench.pipeline.core.layout import layout_from_cfg
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     gone = sorted((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))[0]
@@ -127,8 +128,8 @@ def test_a_fit_is_reused_until_one_of_its_inputs_changes(tmp_path, jackal, monke
     """One definition of up to date (fitting.fit_stamp): each input of a fit refits when it changes."""
     import dataclasses
 
-    from skidbench.models import fitting
-    from skidbench.pipeline.wheel_response import WheelResponse
+    from skidbench.models.fitting import fit as fitting
+    from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     base = ["model=edd", "terrain=tile", "calibrate.use=false"]  # the calibration: the next test
@@ -168,7 +169,7 @@ def test_a_fit_is_reused_until_one_of_its_inputs_changes(tmp_path, jackal, monke
     assert not res.reused and json.loads(path.read_text())["params"] == res.model.params
     # a changed split file
     f = sorted((tmp_path / "sim-mini" / "splits" / "tile" / "train").glob("*.parquet"))[0]
-    from skidbench.pipeline.schema import read_split
+    from skidbench.pipeline.core.schema import read_split
 
     df, meta = read_split(f)
     write_split(df.iloc[:-10].reset_index(drop=True), f, meta)
@@ -176,7 +177,7 @@ def test_a_fit_is_reused_until_one_of_its_inputs_changes(tmp_path, jackal, monke
 
 
 def test_a_fit_whose_hooks_did_not_finish_is_not_up_to_date(tmp_path, jackal):
-    from skidbench.models.fitting import FitSettings, fit_model
+    from skidbench.models.fitting.fit import FitSettings, fit_model
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     cfg = compose(tmp_path, ["model=edd", "terrain=tile", "calibrate.use=false"])
@@ -204,8 +205,8 @@ def test_skidbench_fit_after_evaluate_is_up_to_date_and_the_other_way_round(tmp_
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
-    from skidbench.benchmark.fit_record import default_fit_fn
-    from skidbench.models.fitting import FitSettings
+    from skidbench.benchmark.evaluate.fit_record import default_fit_fn
+    from skidbench.models.fitting.fit import FitSettings
 
     make_splits(tmp_path, jackal, terrains=("tile",))
     GlobalHydra.instance().clear()

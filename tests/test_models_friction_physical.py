@@ -8,13 +8,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.models.friction import FrictionBased
-from skidbench.models.friction_balance import FrictionGeometry, body_velocity
-from skidbench.models.friction_fit import PARAM_RANGES, bound_report
-from skidbench.models.friction_solver import solve
-from skidbench.models.synthetic import command_table, label_with
-from skidbench.pipeline import wheel_response as actuator
-from skidbench.pipeline.robot import load_robot
+from skidbench.models.fitting.synthetic import command_table, label_with
+from skidbench.models.friction.balance import FrictionGeometry, body_velocity
+from skidbench.models.friction.fit import PARAM_RANGES, bound_report
+from skidbench.models.friction.model import FrictionBased
+from skidbench.models.friction.solver import solve
+from skidbench.pipeline.calibrate import wheel_response as actuator
+from skidbench.pipeline.core.robot import load_robot
 
 #: physically plausible friction on a Husky-sized robot; lambda |s| stays under mu_x (mu_x identifiable
 #: only at saturation, so it is not asserted)
@@ -210,7 +210,7 @@ def drive_husky_fit(shared_real, tmp_path_factory):
     sequences, cut where DRIVE's windows are not back to back)."""
     from drive_data import drive_splits, split_table
 
-    from skidbench.pipeline.protocol import fit_table
+    from skidbench.pipeline.core.protocol import fit_table
 
     splits = drive_splits(shared_real / "drive", tmp_path_factory.mktemp("drive"), "husky")
     husky = load_robot("husky")
@@ -224,7 +224,8 @@ def drive_husky_fit(shared_real, tmp_path_factory):
 @pytest.mark.slow
 def test_drive_husky_fit_under_response_keeps_every_parameter_off_its_bounds(drive_husky_fit):
     """Real data: the wheels' dead time and lag come from the encoders (the calibration's wheel response,
-    pipeline/wheel_response.py), and the friction model driven by it has every parameter more than 1 % of
+    pipeline/calibrate/wheel_response.py), and the friction model driven by it has every parameter more than
+    1 % of
     its (log) range inside its bounds: those 1.5 pressed against one (mu_r at 0.499 of 0.5) and mu_y,
     which 1.6 ran to 3.0 of 3.0 along mu_y / C (the Husky's lateral law is linear over its slip angles:
     1.7 holds mu_y, reported as not identified, and fits the lateral stiffness mu_y / C)."""
@@ -247,7 +248,7 @@ def test_drive_husky_fit_under_response_keeps_every_parameter_off_its_bounds(dri
 def test_fit_quality_metrics_flatten_margins_and_stderr_for_mlflow():
     from types import SimpleNamespace
 
-    from skidbench.benchmark.fit_record import fit_quality_metrics
+    from skidbench.benchmark.evaluate.fit_record import fit_quality_metrics
 
     info = {
         "param_bound_margin": {"mu_r": 0.3},

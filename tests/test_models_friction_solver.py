@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import scipy.constants
 
-from skidbench.models.friction import FrictionBased
-from skidbench.models.friction_balance import (
+from skidbench.models.fitting.synthetic import command_table, label_with
+from skidbench.models.friction.balance import (
     FrictionGeometry,
     balance_jacobians,
     body_velocity,
@@ -18,9 +18,9 @@ from skidbench.models.friction_balance import (
     residual,
     velocity_sensitivity,
 )
-from skidbench.models.friction_solver import solve, solve_reference
-from skidbench.models.synthetic import command_table, label_with
-from skidbench.pipeline.constants import STANDARD_GRAVITY
+from skidbench.models.friction.model import FrictionBased
+from skidbench.models.friction.solver import solve, solve_reference
+from skidbench.pipeline.core.constants import STANDARD_GRAVITY
 
 PARAMS = np.array([0.05, 0.9, 0.6, 6.0, 0.3])  # mu_r, mu_x, mu_y, lambda, C
 
@@ -122,7 +122,8 @@ def test_sensitivity_of_steps_without_a_root_is_the_least_squares_one(jackal):
 def test_a_world_of_other_gravity_is_the_same_model_with_its_force_coefficients_scaled(jackal):
     """The models' g is standard gravity; a world of another g (the simulator's 9.81) costs nothing: every
     ground force of eqs. (5)-(7) is a coefficient times N, N proportional to g, so the balance under g' with
-    mu_r, mu_x, mu_y, lambda scaled by g / g' (C unchanged) has the same roots (pipeline/constants.py)."""
+    mu_r, mu_x, mu_y, lambda scaled by g / g' (C unchanged) has the same roots
+    (pipeline/core/constants.py)."""
     assert STANDARD_GRAVITY == scipy.constants.g
     std = FrictionGeometry.from_robot(jackal)
     assert std.g == STANDARD_GRAVITY

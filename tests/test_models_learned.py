@@ -12,14 +12,14 @@ import pytest
 from omegaconf import OmegaConf
 
 from skidbench.models.base import ModelError
-from skidbench.models.drive_blr import DriveBLR
-from skidbench.models.fitting import FitSettings, ModelConfigs, fit_model, load_fitted, model_config
-from skidbench.models.gp_residual import GPResidual, recent_wheel_acceleration
-from skidbench.models.ideal import IdealDifferentialDrive
-from skidbench.models.linear import ExtendedDifferentialDrive
-from skidbench.models.saved import load_arrays, save_arrays
-from skidbench.models.synthetic import command_table, label_with, write_train_splits
-from skidbench.pipeline.schema import concat_sequences
+from skidbench.models.fitting.fit import FitSettings, ModelConfigs, fit_model, load_fitted, model_config
+from skidbench.models.fitting.synthetic import command_table, label_with, write_train_splits
+from skidbench.models.kinematic.ideal import IdealDifferentialDrive
+from skidbench.models.kinematic.linear import ExtendedDifferentialDrive
+from skidbench.models.learned.drive_blr import DriveBLR
+from skidbench.models.learned.gp_residual import GPResidual, recent_wheel_acceleration
+from skidbench.models.registry.saved import load_arrays, save_arrays
+from skidbench.pipeline.core.schema import concat_sequences
 
 NOISE = np.array([0.05, 0.02, 0.04])  # injected velocity noise std (vx m/s, vy m/s, wz rad/s)
 
@@ -227,7 +227,7 @@ def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal
 
     import dataclasses
 
-    import skidbench.models.fitting as fitting
+    import skidbench.models.fitting.fit as fitting
 
     infos = fitting.discover()
     bumped = {**infos, "gp_residual": dataclasses.replace(infos["gp_residual"], package_version="9.9")}
@@ -238,7 +238,7 @@ def test_fitted_arrays_round_trip_through_the_fit_files_exactly(tmp_path, jackal
 
 
 def test_fitted_arrays_round_trip_through_mlflow_artifacts_exactly(tmp_path):
-    from skidbench.benchmark.tracking import Tracker
+    from skidbench.benchmark.tracking.store import Tracker
 
     arrays = {"w": np.random.default_rng(0).normal(size=(7, 3)), "idx": np.arange(5, dtype=np.int32)}
     path = tmp_path / "tile.arrays.npz"
@@ -300,7 +300,7 @@ def test_a_seeded_model_refits_with_another_seed_without_touching_its_saved_fit(
     """evaluate seeds=N (docs/intervals.md, "Seeds"): a model with a ``seed`` option is refitted with
     another seed on the same Train table; its inducing points differ, the saved fit stays the configured
     seed's, and a deterministic model declares no seed."""
-    from skidbench.models.fitting import is_seeded, refit_from_cfg
+    from skidbench.models.fitting.fit import is_seeded, refit_from_cfg
 
     write_train_splits(tmp_path, jackal, terrains=("tile",), n=800)
     cfg = compose_fit(

@@ -9,8 +9,8 @@ from importlib.metadata import EntryPoint
 
 import pytest
 
-from skidbench.models import registry
 from skidbench.models.base import ModelError
+from skidbench.models.registry import plugins as registry
 
 BUILTINS = {"ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual"}
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from skidbench.models.synthetic import write_train_splits
+from skidbench.models.fitting.synthetic import write_train_splits
 
 REPO = Path(__file__).resolve().parents[1]
 PLUGIN = REPO / "examples" / "skidbench-ridge"
@@ -58,7 +58,7 @@ def venv_python(tmp_path_factory) -> Path:
 def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_path, jackal, venv_python):
     py = venv_python
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
-    cli = [str(py), "-m", "skidbench.pipeline.cli"]
+    cli = [str(py), "-m", "skidbench.pipeline.cli.main"]
     listing = run([*cli, "models"], env=env).stdout
     rows = {line.split()[0]: line for line in listing.splitlines()[1:]}
     assert "skidbench-ridge" in rows["ridge"] and "friction" in rows
@@ -81,7 +81,7 @@ def test_example_plugin_installs_into_a_fresh_venv_and_fits_like_a_builtin(tmp_p
     assert (
         "ridge"
         not in subprocess.run(
-            [sys.executable, "-m", "skidbench.pipeline.cli", "models"], capture_output=True, text=True
+            [sys.executable, "-m", "skidbench.pipeline.cli.main", "models"], capture_output=True, text=True
         ).stdout
     )
 
@@ -93,7 +93,7 @@ def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(
     by the fit stage with its arrays in ``<terrain>.arrays.npz``, reloaded and predicting with variance."""
     py = venv_python
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
-    cli = [str(py), "-m", "skidbench.pipeline.cli"]
+    cli = [str(py), "-m", "skidbench.pipeline.cli.main"]
     listing = run([*cli, "models"], env=env).stdout
     assert "skidbench-slipgrid" in {line.split()[0]: line for line in listing.splitlines()[1:]}["slipgrid"]
 
@@ -111,8 +111,8 @@ def test_example_learned_plugin_installs_into_a_fresh_venv_and_saves_its_arrays(
     assert {"mean", "var", "v_edges", "w_edges"} <= set(saved["arrays"]["names"])
     check = (
         "import numpy as np; from pathlib import Path; from omegaconf import OmegaConf;"
-        "from skidbench.models.fitting import FitSettings, load_fitted;"
-        "from skidbench.models.synthetic import command_table;"
+        "from skidbench.models.fitting.fit import FitSettings, load_fitted;"
+        "from skidbench.models.fitting.synthetic import command_table;"
         f"cfg = OmegaConf.create({{'out_root': {str(tmp_path / 'out')!r}, 'dataset': 'sim-mini',"
         "'robot': OmegaConf.load(__import__('importlib.resources').resources.files('skidbench.conf')"
         ".joinpath('robot/jackal.yaml')), 'calibrate': {'use': False}});"
@@ -164,7 +164,7 @@ def test_example_source_installs_into_a_fresh_venv_and_extracts_like_a_builtin(t
     logs = tmp_path / "logs"
     expected = _rostopic_logs(logs)
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path / "out")}
-    cli = [str(venv_python), "-m", "skidbench.pipeline.cli", "extract", "source=rostopic_csv"]
+    cli = [str(venv_python), "-m", "skidbench.pipeline.cli.main", "extract", "source=rostopic_csv"]
     run([*cli, f"source.root={logs}", "source.dataset=csvlogs"], env=env, cwd=tmp_path)
 
     ds = tmp_path / "out" / "csvlogs"

@@ -1,4 +1,5 @@
-"""The input protocol (pipeline/protocol.py): a model sees only its inputs, every model the same ones, and
+"""The input protocol (pipeline/core/protocol.py): a model sees only its inputs, every model the same ones,
+and
 the protocols' round trips."""
 
 from __future__ import annotations
@@ -12,14 +13,15 @@ import pandas as pd
 import pytest
 from _bench_data import JACKAL, compose, sequence_table, write_splits
 
-from skidbench.benchmark import evaluate as ev
-from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
-from skidbench.models import registry
+from skidbench.benchmark.evaluate import evaluation as ev
+from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
 from skidbench.models.base import KinematicModel, ModelError
-from skidbench.models.fitting import check_inputs
-from skidbench.models.ideal import IdealDifferentialDrive
-from skidbench.models.linear import ExtendedDifferentialDrive
-from skidbench.pipeline.protocol import (
+from skidbench.models.fitting.fit import check_inputs
+from skidbench.models.kinematic.ideal import IdealDifferentialDrive
+from skidbench.models.kinematic.linear import ExtendedDifferentialDrive
+from skidbench.models.registry import plugins as registry
+from skidbench.pipeline.calibrate.wheel_response import WheelResponse, wheel_response
+from skidbench.pipeline.core.protocol import (
     INPUT_COLUMNS,
     PROTOCOLS,
     TARGET_COLUMNS,
@@ -28,8 +30,7 @@ from skidbench.pipeline.protocol import (
     fit_table,
     model_inputs,
 )
-from skidbench.pipeline.schema import concat_sequences
-from skidbench.pipeline.wheel_response import WheelResponse, wheel_response
+from skidbench.pipeline.core.schema import concat_sequences
 
 DS = "sim-mini"
 SEEN: dict[str, list[pd.DataFrame]] = {}
@@ -215,8 +216,8 @@ def test_unknown_protocol_is_one_line():
 
 
 def test_measured_skips_a_split_without_encoders_in_one_line_and_a_dataset_without_any(tmp_path, plugins):
-    from skidbench.benchmark.evaluate import ProtocolSkipped
-    from skidbench.pipeline.schema import read_split, write_split
+    from skidbench.benchmark.evaluate.evaluation import ProtocolSkipped
+    from skidbench.pipeline.core.schema import read_split, write_split
 
     write_splits(tmp_path / DS, terrains=("tile",))
     cv = next((tmp_path / DS / "splits" / "tile" / "cv").glob("*.parquet"))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from skidbench.pipeline import cpu, provenance
+from skidbench.pipeline.runner import cpu, environment
 
 REPO = Path(__file__).resolve().parents[1]
 V3 = frozenset({"sse4_2", "avx", "avx2", "fma", "f16c", "bmi1", "bmi2"})
@@ -52,7 +52,7 @@ def test_importing_any_skidbench_subpackage_pins_before_numpy_loads_in_a_fresh_p
         pytest.skip("this processor has no x86-64-v3 level to pin to")
     code = (
         "import os, sys\nimport skidbench.models.base\n"
-        "from skidbench.pipeline.cpu import code_paths, pins\n"
+        "from skidbench.pipeline.runner.cpu import code_paths, pins\n"
         "print(all(os.environ.get(k) == v for k, v in pins().items()), code_paths()['openblas'])"
     )
     ok, blas = _fresh_python(code).split(maxsplit=1)
@@ -71,66 +71,66 @@ def test_a_package_has_one_digest_wherever_it_is_installed_and_an_edit_changes_i
         (pkg / "__pycache__").mkdir()
         (pkg / "__pycache__" / "model.cpython-311.pyc").write_bytes(os.urandom(16))  # never counted
     a, b = tmp_path / "a" / "plug", tmp_path / "b" / "plug"
-    assert provenance.tree_digest(a) == provenance.tree_digest(b)
-    assert provenance.tree_digest(a)[1] == 3
+    assert environment.tree_digest(a) == environment.tree_digest(b)
+    assert environment.tree_digest(a)[1] == 3
     (b / "model.py").write_text("K = 2\n")  # same size, same name: content counts
-    assert provenance.tree_digest(a)[0] != provenance.tree_digest(b)[0]
+    assert environment.tree_digest(a)[0] != environment.tree_digest(b)[0]
     (b / "model.py").write_text("K = 1\n")
     (b / "sub" / "data.yaml").rename(b / "sub" / "other.yaml")  # a renamed file counts too
-    assert provenance.tree_digest(a)[0] != provenance.tree_digest(b)[0]
+    assert environment.tree_digest(a)[0] != environment.tree_digest(b)[0]
 
 
 def test_a_builtin_models_code_is_skidbench_models_files_and_enters_its_requirements():
-    from skidbench.models.linear import ExtendedDifferentialDrive
+    from skidbench.models.kinematic.linear import ExtendedDifferentialDrive
 
-    ident = provenance.code_identity(ExtendedDifferentialDrive, "skidbench")
-    assert ident.distribution == "skidbench" and ident.version == provenance.version_of("skidbench")
-    digest, n = provenance.tree_digest(REPO / "models")
+    ident = environment.code_identity(ExtendedDifferentialDrive, "skidbench")
+    assert ident.distribution == "skidbench" and ident.version == environment.version_of("skidbench")
+    digest, n = environment.tree_digest(REPO / "models")
     assert (ident.digest, ident.files) == (digest, n)
-    assert ident.requires["numpy"] == provenance.version_of("numpy")  # skidbench's own requirements
-    reqs = provenance.requirements_of(ident)
-    assert reqs[:2] == [f"skidbench=={ident.version}", f"mlflow=={provenance.version_of('mlflow')}"]
-    assert f"scipy=={provenance.version_of('scipy')}" in reqs
+    assert ident.requires["numpy"] == environment.version_of("numpy")  # skidbench's own requirements
+    reqs = environment.requirements_of(ident)
+    assert reqs[:2] == [f"skidbench=={ident.version}", f"mlflow=={environment.version_of('mlflow')}"]
+    assert f"scipy=={environment.version_of('scipy')}" in reqs
 
 
 def test_a_plugins_requirements_name_its_distribution_and_its_libraries():
-    ident = provenance.CodeIdentity(
+    ident = environment.CodeIdentity(
         "ridge.model", "skidbench-ridge", "0.3", "d" * 32, 2, {"scikit-learn": "1.7.2", "numpy": "2.4.6"}
     )
-    reqs = provenance.requirements_of(ident)
+    reqs = environment.requirements_of(ident)
     assert "skidbench-ridge==0.3" in reqs and "scikit-learn==1.7.2" in reqs
     assert sum(r.startswith("numpy") for r in reqs) == 1  # one pin per library
-    tags = provenance.code_tags(ident)
+    tags = environment.code_tags(ident)
     assert tags["skidbench.code.digest"] == "d" * 32
     assert tags["skidbench.code.requires"] == "scikit-learn==1.7.2 numpy==2.4.6"
 
 
 def test_the_lock_check_names_each_installed_version_that_differs(tmp_path):
-    np_version = provenance.version_of("numpy")
+    np_version = environment.version_of("numpy")
     lock = tmp_path / "requirements.lock"
     lock.write_text(f"# header\nnumpy=={np_version} \\\n    --hash=sha256:00\n    # via skidbench\n")
-    assert provenance.lock_status(lock).endswith(" match")
+    assert environment.lock_status(lock).endswith(" match")
     lock.write_text("numpy==0.0.1 \\\n    --hash=sha256:00\nno-such-dist-xyz==1.0\n")
-    status = provenance.lock_status(lock)
+    status = environment.lock_status(lock)
     assert f"numpy {np_version}!=0.0.1" in status and "no-such-dist-xyz missing!=1.0" in status
-    assert "no lock" in provenance.lock_status(tmp_path / "absent.lock")
+    assert "no lock" in environment.lock_status(tmp_path / "absent.lock")
 
 
 def test_the_repositorys_lock_pins_what_this_environment_runs():
     """`make setup` installs requirements.lock: an environment it made matches it (a failure here means the
     lock and pyproject.toml drifted apart, or the environment was changed by hand: `make setup`)."""
-    status = provenance.lock_status()
+    status = environment.lock_status()
     if status.startswith("no lock"):
         pytest.skip("skidbench is not installed from its source tree")
     assert status.endswith(" match"), status
 
 
 def test_run_tags_carry_version_commit_libraries_platform_and_code_paths():
-    tags = provenance.run_tags()
-    assert tags["skidbench.version"] == provenance.version_of("skidbench")
-    assert tags["skidbench.git_commit"] == provenance.git_commit()
+    tags = environment.run_tags()
+    assert tags["skidbench.version"] == environment.version_of("skidbench")
+    assert tags["skidbench.git_commit"] == environment.git_commit()
     for lib in ("numpy", "scipy", "numba", "pandas", "pyarrow", "mlflow"):
-        assert tags[f"skidbench.env.{lib}"] == provenance.version_of(lib)
+        assert tags[f"skidbench.env.{lib}"] == environment.version_of(lib)
     assert tags["skidbench.env.python"].endswith(".".join(map(str, sys.version_info[:3])))
     assert "openblas=" in tags["skidbench.env.code_paths"]
     assert all(isinstance(v, str) and v for v in tags.values())

@@ -22,9 +22,9 @@ import pytest
 from browser import CHROMIUM, console_messages, run_chromium, text_of
 from doc_blocks import doc_env
 
-from skidbench.benchmark import metrics as mt
-from skidbench.benchmark.bundle import BundleError, verify
-from skidbench.pipeline.protocol import INPUT_COLUMNS, TARGET_COLUMNS
+from skidbench.benchmark.release.bundle import BundleError, verify
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.pipeline.core.protocol import INPUT_COLUMNS, TARGET_COLUMNS
 
 pytestmark = pytest.mark.slow
 
@@ -34,7 +34,8 @@ MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_b
 #: solver, a learned one with fitted arrays): the cost of the test; every built-in model was measured by hand
 #: (docs/publishing.md, "Measured"; the walkthrough's test leaves its evaluate line out)
 ROUND_TRIP = ("ideal", "friction", "gp_residual")
-#: every metric evaluate logs at the 6 s horizon, and the window counts behind them (benchmark/metrics.py)
+#: every metric evaluate logs at the 6 s horizon, and the window counts behind them
+# (benchmark/scoring/metrics.py)
 CELLS = [
     k for m in mt.METRICS for s in ("cv", "ld") for k in (m.metric_key(s, 6.0), m.windows_key(s, 6.0)) if k
 ]
@@ -158,10 +159,10 @@ def test_import_refuses_a_changed_missing_or_unlisted_file_in_one_line(bundle, t
 
 
 def test_the_imported_bundle_evaluated_again_gives_the_exported_board_cell_for_cell(bundle, imported):
-    from skidbench.benchmark import boards as brd
-    from skidbench.benchmark.tracking import Tracker
-    from skidbench.pipeline.dataset import read_record
-    from skidbench.pipeline.layout import Layout
+    from skidbench.benchmark.board import boards as brd
+    from skidbench.benchmark.tracking.store import Tracker
+    from skidbench.pipeline.core.layout import Layout
+    from skidbench.pipeline.datasets.identity import read_record
 
     exported = brd.read_board(bundle / "board" / "commanded.json").rows
     layout = Layout(imported, DS)
@@ -198,10 +199,10 @@ def ideal_predictions(walkthrough) -> Path:
 def test_scored_predictions_of_the_ideal_model_equal_its_plugin_cell_for_cell(
     imported, ideal_predictions, publishing_walkthrough
 ):
-    from skidbench.benchmark import boards as brd
-    from skidbench.benchmark.tracking import Tracker
-    from skidbench.pipeline.dataset import read_record
-    from skidbench.pipeline.layout import Layout
+    from skidbench.benchmark.board import boards as brd
+    from skidbench.benchmark.tracking.store import Tracker
+    from skidbench.pipeline.core.layout import Layout
+    from skidbench.pipeline.datasets.identity import read_record
 
     name = ideal_predictions.stem  # score's default name of a predictions file
     assert f"{name} (external" in walkthrough_stdout(publishing_walkthrough, "score")

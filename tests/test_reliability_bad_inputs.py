@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent / "bad_inputs"))
 from make_corpus import make  # noqa: E402
 
-from skidbench.pipeline.errors import ExtractError, GroundTruthError, SourceError  # noqa: E402
+from skidbench.pipeline.core.errors import ExtractError, GroundTruthError, SourceError  # noqa: E402
 from skidbench.pipeline.sources.drive_files import UnsafePickleError  # noqa: E402
 
 E, R = "error", "repair"
@@ -144,7 +144,7 @@ def _read(reader: str, corpus: Path, name: str, opts: dict, tmp_path: Path) -> P
     elif reader == "drive":
         from omegaconf import OmegaConf
 
-        from skidbench.pipeline.robot import load_robot
+        from skidbench.pipeline.core.robot import load_robot
         from skidbench.pipeline.sources.contract import settings_from
         from skidbench.pipeline.sources.drive_df import DriveSettings, _read_file
 

@@ -36,7 +36,7 @@ NEW = "out_root={fresh}"  # an empty output root of the test's own
 
 # (case, argv, fragments the error line must hold: the key or file, and the problem)
 CASES = [
-    # -- values: type and range, against the declared schema (pipeline/config_schema.py) --------------
+    # -- values: type and range, against the declared schema (pipeline/cli/config_schema.py) --------------
     ("horizons a list of words", ["evaluate", *A, "horizons=[abc]"], ["horizons=[abc]", "number > 0"]),
     ("horizons a word", ["evaluate", *A, "horizons=abc"], ["horizons=abc", "list"]),
     ("horizons empty", ["evaluate", *A, "horizons=[]"], ["horizons=[]", "non-empty"]),
@@ -335,7 +335,7 @@ def test_an_unwritable_output_root_is_one_line_at_the_command_line(tmp_path):
     ro = _unwritable_folder(tmp_path)
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "skidbench.pipeline.cli", "datasets", f"out_root={ro}/out"],
+            [sys.executable, "-m", "skidbench.pipeline.cli.main", "datasets", f"out_root={ro}/out"],
             capture_output=True, text=True, timeout=120,
         )  # fmt: skip
     finally:

@@ -26,7 +26,7 @@ def _same(metrics: dict) -> dict:
 
 
 def _evaluate(micro_root, root):
-    from skidbench.benchmark.evaluate_app import benchmark as run_benchmark
+    from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
 
     copy_splits(micro_root, root)
     with initialize_config_module("skidbench.conf", version_base="1.3"):
@@ -121,8 +121,8 @@ def test_a_plugin_edited_in_place_without_a_version_bump_is_refitted(micro_root,
     import sys
     from importlib.metadata import EntryPoint
 
-    from skidbench.models import registry
-    from skidbench.models.fitting import FitSettings, fit_model
+    from skidbench.models.fitting.fit import FitSettings, fit_model
+    from skidbench.models.registry import plugins as registry
 
     pkg = tmp_path / "site" / "scaled_plugin"
     pkg.mkdir(parents=True)

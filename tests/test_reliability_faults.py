@@ -135,7 +135,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
 
     from mlflow import MlflowClient
 
-    from skidbench.benchmark import tracking as trk
+    from skidbench.benchmark.tracking import tags as run_tags
 
     root = tmp_path / "out"
     copy_splits(micro_root, root)
@@ -159,7 +159,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
     for run_id, run in dead.items():
         if run.info.status == "RUNNING":
             assert after[run_id].info.status == "KILLED"
-            assert "ended without closing the run" in after[run_id].data.tags[trk.TAG_REASON]
+            assert "ended without closing the run" in after[run_id].data.tags[run_tags.TAG_REASON]
     new = [r for k, r in after.items() if k not in dead]
     assert sorted(r.info.status for r in new) == ["FINISHED"] * 3
     assert tmp_files(root) == []
@@ -167,7 +167,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
     skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
     assert sorted(board["model"]) == ["edd", "ideal"] and (board["status"] == "FINISHED").all()
-    (parent,) = [r for r in new if r.data.tags[trk.TAG_ROLE] == "parent"]
+    (parent,) = [r for r in new if r.data.tags[run_tags.TAG_ROLE] == "parent"]
     assert set(board["parent_run_id"]) == {parent.info.run_id}
     assert (
         f"1 evaluate run(s): `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()

@@ -1,4 +1,5 @@
-"""`make reproduce` runs its two evaluates side by side (pipeline/side_by_side.py): they must run at the same
+"""`make reproduce` runs its two evaluates side by side (pipeline/runner/side_by_side.py): they must run at
+the same
 time, print as if they had run in turn, and fail `make` as the first failing one would have."""
 
 from __future__ import annotations
@@ -6,7 +7,7 @@ from __future__ import annotations
 import sys
 import time
 
-from skidbench.pipeline.side_by_side import run, split_commands
+from skidbench.pipeline.runner.side_by_side import run, split_commands
 
 
 def py(code: str) -> list[str]:
@@ -50,7 +51,7 @@ def test_the_first_failure_in_command_order_is_the_status(capfd):
 def test_each_command_gets_its_share_of_the_cores_for_blas_threads(monkeypatch):
     """n commands at once: each numerical library's thread count at cores // n (at least one), unless the
     user set it."""
-    from skidbench.pipeline import side_by_side as sbs
+    from skidbench.pipeline.runner import side_by_side as sbs
 
     monkeypatch.setattr(sbs, "cores", lambda: 8)
     env = sbs.shared_env(2, {"PATH": "/bin", "OMP_NUM_THREADS": "3"})
@@ -61,7 +62,7 @@ def test_each_command_gets_its_share_of_the_cores_for_blas_threads(monkeypatch):
 
 
 def test_the_commands_run_with_the_shared_thread_counts(capfd, monkeypatch):
-    from skidbench.pipeline import side_by_side as sbs
+    from skidbench.pipeline.runner import side_by_side as sbs
 
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
     monkeypatch.setattr(sbs, "cores", lambda: 4)

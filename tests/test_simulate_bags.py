@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from skidbench.pipeline.manifest import Manifest
+from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.simulate.app import run
 from skidbench.pipeline.simulate.bag import TOPICS
 
@@ -107,7 +107,7 @@ def test_ros2_bags_are_readable(tmp_path, fmt):
 
 
 def test_bad_format_is_a_one_line_error(tmp_path):
-    from skidbench.pipeline.errors import SimulateError
+    from skidbench.pipeline.core.errors import SimulateError
 
     with pytest.raises(SimulateError, match="format='ros3'"):
         simulate(tmp_path, "format=ros3")

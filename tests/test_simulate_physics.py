@@ -12,8 +12,8 @@ from importlib.resources import files
 import pytest
 import yaml
 
-from skidbench.pipeline.errors import SimulateError
-from skidbench.pipeline.robot import Robot
+from skidbench.pipeline.core.errors import SimulateError
+from skidbench.pipeline.core.robot import Robot
 from skidbench.pipeline.simulate.physics import WORLD_GRAVITY, SkidSteerSim, brush_force, load_physics
 
 TERRAINS = ("tile", "asphalt", "grass")

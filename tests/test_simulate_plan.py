@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from skidbench.pipeline.errors import SimulateError
-from skidbench.pipeline.robot import Robot
+from skidbench.pipeline.core.errors import SimulateError
+from skidbench.pipeline.core.robot import Robot
 from skidbench.pipeline.simulate.card import PAPER_TABLE_I
 from skidbench.pipeline.simulate.physics import load_physics
 from skidbench.pipeline.simulate.scenarios import SequenceSpec, plan_sequences

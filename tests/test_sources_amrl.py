@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-from skidbench.pipeline.errors import SourceError
-from skidbench.pipeline.schema import SPLIT_COLUMNS, list_split_files, read_split
+from skidbench.pipeline.core.errors import SourceError
+from skidbench.pipeline.core.schema import SPLIT_COLUMNS, list_split_files, read_split
 from skidbench.pipeline.sources.amrl_txt import read_rows, read_sequence
 
 FIXTURE = Path(__file__).parent / "fixtures" / "amrl"
@@ -23,8 +23,8 @@ def config(stage: str, out: Path, root: Path, *extra: str):
 
 
 def home(out: Path, root: Path) -> Path:
-    """The dataset's folder: named from the root (pipeline/dataset.py)."""
-    from skidbench.pipeline.layout import layout_from_cfg
+    """The dataset's folder: named from the root (pipeline/datasets/identity.py)."""
+    from skidbench.pipeline.core.layout import layout_from_cfg
 
     return layout_from_cfg(config("split", out, root)).root
 

@@ -16,12 +16,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.pipeline.dataset import check_source_settings
-from skidbench.pipeline.errors import ConfigError, SourceError
+from skidbench.pipeline.core.errors import ConfigError, SourceError
+from skidbench.pipeline.core.layout import Layout
+from skidbench.pipeline.core.manifest import Manifest
+from skidbench.pipeline.core.robot import load_robot
+from skidbench.pipeline.datasets.identity import check_source_settings
 from skidbench.pipeline.extract.bag import ExtractOptions
-from skidbench.pipeline.layout import Layout
-from skidbench.pipeline.manifest import Manifest
-from skidbench.pipeline.robot import load_robot
 from skidbench.pipeline.sources import registry
 from skidbench.pipeline.sources.contract import (
     SourceContext,

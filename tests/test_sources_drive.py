@@ -9,9 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.pipeline.errors import GroundTruthError
-from skidbench.pipeline.geometry import se2_compose
-from skidbench.pipeline.sources.drive_df import WindowSettings, raw_to_sequences, windows_to_sequences
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import se2_compose
+from skidbench.pipeline.sources.drive_df import raw_to_sequences
+from skidbench.pipeline.sources.drive_windows import WindowSettings, windows_to_sequences
 
 
 def test_windows_chain_into_train_cv_ld_sequences(shared_real):
@@ -43,7 +44,7 @@ def test_windows_chain_into_train_cv_ld_sequences(shared_real):
 def test_windows_pipeline_writes_splits_and_a_card(shared_real, tmp_path):
     from hydra import compose, initialize_config_module
 
-    from skidbench.pipeline.api import prepare_splits
+    from skidbench.pipeline.cli.api import prepare_splits
 
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         over = [
@@ -144,10 +145,10 @@ def test_drive_splits_run_under_all_three_input_protocols(shared_real, tmp_path,
     under each protocol sees only the protocol's inputs and predicts finite velocities."""
     from drive_data import drive_splits, split_table
 
-    from skidbench.models.linear import FullLinear
-    from skidbench.pipeline.protocol import INPUT_COLUMNS, PROTOCOLS, fit_table, model_inputs
-    from skidbench.pipeline.robot import load_robot
-    from skidbench.pipeline.wheel_response import identify_response
+    from skidbench.models.kinematic.linear import FullLinear
+    from skidbench.pipeline.calibrate.wheel_response import identify_response
+    from skidbench.pipeline.core.protocol import INPUT_COLUMNS, PROTOCOLS, fit_table, model_inputs
+    from skidbench.pipeline.core.robot import load_robot
 
     splits = drive_splits(shared_real / "drive", tmp_path, robot, *over)
     spec = load_robot(robot)

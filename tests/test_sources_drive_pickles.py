@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.pipeline.errors import SourceError
+from skidbench.pipeline.core.errors import SourceError
 from skidbench.pipeline.sources.drive_files import ALLOWED_GLOBALS, UnsafePickleError, detect_form, read_frame
 
 FIX = Path(__file__).parent / "fixtures" / "drive_pkl"
@@ -226,7 +226,7 @@ def test_a_pickle_extracts_the_same_sequences_as_its_parquet(tmp_path):
     from omegaconf import OmegaConf
     from test_sources_drive_synthetic import drive_like_frame
 
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
     from skidbench.pipeline.sources.contract import settings_from
     from skidbench.pipeline.sources.drive_df import DriveSettings, _read_file
 

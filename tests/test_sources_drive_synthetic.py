@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from skidbench.pipeline.geometry import se2_compose
-from skidbench.pipeline.sources.drive_df import (
-    WINDOW,
+from skidbench.pipeline.core.geometry import se2_compose
+from skidbench.pipeline.sources.drive_files import WINDOW
+from skidbench.pipeline.sources.drive_windows import (
     WindowSettings,
     command_gain,
     fresh_samples,

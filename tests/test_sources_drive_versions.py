@@ -11,19 +11,12 @@ import pandas as pd
 import pytest
 from test_sources_drive_synthetic import drive_like_frame
 
-from skidbench.pipeline.errors import ConfigError, SourceError
-from skidbench.pipeline.robot import load_robot
-from skidbench.pipeline.sources.drive_df import (
-    COMMAND,
-    SLIP_BLOCKS,
-    WINDOW,
-    WindowSettings,
-    classify_rows,
-    detect_form,
-    raw_to_sequences,
-    window_segments,
-    windows_to_sequences,
-)
+from skidbench.pipeline.core.errors import ConfigError, SourceError
+from skidbench.pipeline.core.robot import load_robot
+from skidbench.pipeline.sources.drive_df import raw_to_sequences
+from skidbench.pipeline.sources.drive_files import SLIP_BLOCKS, WINDOW, detect_form
+from skidbench.pipeline.sources.drive_rows import COMMAND, classify_rows
+from skidbench.pipeline.sources.drive_windows import WindowSettings, window_segments, windows_to_sequences
 
 STEPS = [(0.6, 0.0), (0.0, 0.8), (-0.4, 0.3), (0.9, -0.5), (0.3, 0.2)]
 
@@ -254,7 +247,7 @@ def test_a_husky_with_its_own_command_kinematics_is_scored_with_them(tmp_path, c
     info = json.loads(next((tmp_path / "out").glob("*/extracted/husky_train_00/_extract.json")).read_text())
     assert info["robot_checks"]["cmd_kinematics"]["value"] == [0.165, 0.55]
     assert info["robot_checks"]["cmd_kinematics"]["configured"] == [0.3, 1.08]
-    from skidbench.pipeline.layout import Layout
+    from skidbench.pipeline.core.layout import Layout
     from skidbench.pipeline.splits.app import recording_section
 
     ds = next((tmp_path / "out").glob("*/extracted")).parent.name

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from skidbench.pipeline.errors import SplitError
-from skidbench.pipeline.layout import Layout
+from skidbench.pipeline.core.errors import SplitError
+from skidbench.pipeline.core.layout import Layout
 from skidbench.pipeline.splits.app import check_flag
 from skidbench.pipeline.splits.build import body_velocities, build_split_table, hold
 
@@ -107,8 +107,8 @@ def test_wheel_commands_are_clipped_to_the_robots_max_wheel_rate(jackal):
 
 @pytest.mark.parametrize("bad", [0, -3.0, "fast", float("nan")])
 def test_a_bad_max_wheel_rate_fails_when_the_robot_is_loaded(bad):
-    from skidbench.pipeline.errors import ConfigError
-    from skidbench.pipeline.robot import Robot
+    from skidbench.pipeline.core.errors import ConfigError
+    from skidbench.pipeline.core.robot import Robot
 
     base = {"name": "r", "mass": 10.0, "wheel_radius": 0.1, "track_width": 0.4, "wheelbase": 0.3}
     assert Robot.from_config(base).max_wheel_rate is None
@@ -140,6 +140,6 @@ def test_command_association_offset_is_the_excess_age_of_the_sampled_hold():
 
 
 def load_robot_jackal():
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
 
     return load_robot("jackal")

@@ -1,11 +1,11 @@
-"""Time association (pipeline/timesync.py) on closed-form cases: exact stamps, ties, gaps, coverage."""
+"""Time association (pipeline/core/timesync.py) on closed-form cases: exact stamps, ties, gaps, coverage."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from skidbench.pipeline.timesync import bracket, hold, interp_se2, interp_with_gaps, nearest
+from skidbench.pipeline.core.timesync import bracket, hold, interp_se2, interp_with_gaps, nearest
 
 REF = np.array([100, 200, 300, 1000], dtype=np.int64)
 

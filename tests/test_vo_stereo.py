@@ -9,13 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from skidbench.pipeline.errors import GroundTruthError
-from skidbench.pipeline.geometry import quaternion_from_yaw, se3_from_xyz_rpy
-from skidbench.pipeline.groundtruth.loop import (
-    evaluate_against_truth,
-    loop_error,
-    summarize_loops,
-)
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import quaternion_from_yaw, se3_from_xyz_rpy
+from skidbench.pipeline.groundtruth.loop import evaluate_against_truth, loop_error, summarize_loops
 from skidbench.pipeline.groundtruth.stereo_vo import (
     StereoCamera,
     StereoVO,

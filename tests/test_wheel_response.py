@@ -1,4 +1,5 @@
-"""The general wheel response (pipeline/wheel_response.py, the calibration's): its recursion against the
+"""The general wheel response (pipeline/calibrate/wheel_response.py, the calibration's): its recursion
+against the
 definition, its reduction to the delay + lag model, identification round trips on responses simulated
 from synthetic commands, the structure choice on held-out Train blocks, its uncertainty, and the DRIVE
 Warthog's encoders."""
@@ -9,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.pipeline import wheel_response as actuator
-from skidbench.pipeline.wheel_response import WheelResponse
+from skidbench.pipeline.calibrate import wheel_response as actuator
+from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 
 RATE = 30.0
 
@@ -148,8 +149,8 @@ def test_structure_choice_keeps_the_delay_lag_model_on_data_it_generated():
 def test_friction_no_longer_takes_an_actuator_option_nor_keeps_an_old_fits_response():
     """1.9: the wheel response is a calibration shared by every model (inputs=response), not friction's."""
     from skidbench.models.base import ModelError
-    from skidbench.models.friction import FrictionBased
-    from skidbench.pipeline.robot import load_robot
+    from skidbench.models.friction.model import FrictionBased
+    from skidbench.pipeline.core.robot import load_robot
 
     husky = load_robot("husky")
     with pytest.raises(ModelError, match="options.actuator was removed"):

@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 class RayLauncher(Launcher):
     def __init__(self, **settings: Any) -> None:
-        from skidbench.benchmark.cluster import RaySettings
+        from skidbench.pipeline.runner.cluster import RaySettings
 
         plain = {k: OmegaConf.to_object(v) if OmegaConf.is_config(v) else v for k, v in settings.items()}
         self.settings = RaySettings(**plain)
@@ -27,9 +27,9 @@ class RayLauncher(Launcher):
         self.task_function = task_function
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from skidbench.benchmark.cluster import launch
-        from skidbench.pipeline.cli import exit_with_error
-        from skidbench.pipeline.errors import ClusterError
+        from skidbench.pipeline.cli.main import exit_with_error
+        from skidbench.pipeline.core.errors import ClusterError
+        from skidbench.pipeline.runner.cluster import launch
 
         ctx, fn, cfg = self.hydra_context, self.task_function, self.config
         assert ctx is not None and fn is not None and cfg is not None

@@ -14,14 +14,14 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ..cli import stage
-from ..dataset import identity_from_cfg, record
-from ..layout import layout_from_cfg, prune_stale
-from ..manifest import Manifest
-from ..robot import robot_from_hydra
-from ..sources import registry
-from ..sources.contract import SourceContext
-from .bag import ExtractOptions
+from skidbench.pipeline.cli.main import stage
+from skidbench.pipeline.core.layout import layout_from_cfg, prune_stale
+from skidbench.pipeline.core.manifest import Manifest
+from skidbench.pipeline.core.robot import robot_from_hydra
+from skidbench.pipeline.datasets.identity import identity_from_cfg, record
+from skidbench.pipeline.extract.bag import ExtractOptions
+from skidbench.pipeline.sources import registry
+from skidbench.pipeline.sources.contract import SourceContext
 
 log = logging.getLogger("skidbench.extract")
 
@@ -50,7 +50,7 @@ def run(cfg: DictConfig) -> Any:
     ctx = SourceContext(robot=robot_from_hydra(cfg.robot), layout=layout, options=options_from_cfg(cfg))
     records = source.extract(settings, ctx)
     # the manifest just written is the current one: outputs of sequences it lacks go, and the identity
-    # record (pipeline/dataset.py) lists its terrains
+    # record (pipeline/datasets/identity.py) lists its terrains
     removed = prune_stale(layout, Manifest.read(layout.manifest))
     if removed:
         log.info("extract: removed %d output(s) of sequences no longer in %s", len(removed), layout.manifest)

@@ -18,10 +18,10 @@ from typing import Any
 
 from tqdm import tqdm
 
-from ..cache import Stamp
-from ..errors import ConfigError
-from ..io import write_json_atomic
-from .convert import (
+from skidbench.pipeline.core.cache import Stamp
+from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.core.io import write_json_atomic
+from skidbench.pipeline.extract.convert import (
     CONVERTERS,
     IMAGE_MODES,
     TF_MESSAGE,
@@ -31,11 +31,17 @@ from .convert import (
     schema_for,
     tf_rows,
 )
-from .reader import DEFAULT_STORES, TopicSpec, iter_messages, open_bag, select_connections
-from .writer import SequenceWriter, TableSink
+from skidbench.pipeline.extract.reader import (
+    DEFAULT_STORES,
+    TopicSpec,
+    iter_messages,
+    open_bag,
+    select_connections,
+)
+from skidbench.pipeline.extract.writer import SequenceWriter, TableSink
 
 EXTRACT_INFO = "_extract.json"
-STAMP = ".stamp.json"  # skidbench.pipeline.cache: skip a sequence whose bag and config are unchanged
+STAMP = ".stamp.json"  # skidbench.pipeline.core.cache: skip a sequence whose bag and config are unchanged
 EXTRACT_SCHEMA = 1
 
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
-from ..forked import map_forked
-from ..manifest import Manifest
-from ..sources.contract import Source, SourceContext
+from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.core.manifest import Manifest
+from skidbench.pipeline.runner.forked import map_forked
+from skidbench.pipeline.sources.contract import Source, SourceContext
 
 log = logging.getLogger("skidbench.extract")
 AUTO = "auto"  # source.topics=auto: each bag's topics chosen by `skidbench inspect`'s proposal
@@ -47,10 +47,10 @@ class BagSource(Source):
         written to ``<ds>/raw/manifest.json``, so later stages find terrain and category the same way for
         every source."""
         # deferred: the bag readers (rosbags) take seconds to import, and every stage loads this class
-        # to check its settings (pipeline/dataset.py)
+        # to check its settings (pipeline/datasets/identity.py)
         from tqdm import tqdm
 
-        from .reader import bag_format, discover_sequences, topic_specs
+        from skidbench.pipeline.extract.reader import bag_format, discover_sequences, topic_specs
 
         layout, opts = ctx.layout, ctx.options
         topics = settings.topics or {}
@@ -97,7 +97,7 @@ class BagSource(Source):
 def _extract_one(bag: Path, out: Path, specs, auto: bool, opts, meta: dict[str, Any]) -> dict[str, Any]:
     """One bag's tables (:func:`.bag.extract_bag`; its topics proposed by ``skidbench inspect`` when
     ``auto``); its ``_extract.json`` record."""
-    from .bag import extract_bag
-    from .inspect import auto_specs
+    from skidbench.pipeline.extract.bag import extract_bag
+    from skidbench.pipeline.extract.inspect import auto_specs
 
     return extract_bag(bag, out, auto_specs(bag, opts.typestores) if auto else specs, opts, meta)

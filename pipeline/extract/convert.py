@@ -14,7 +14,7 @@ from typing import Any
 
 import pyarrow as pa
 
-from ..errors import ExtractError
+from skidbench.pipeline.core.errors import ExtractError
 
 F64 = pa.float64()
 STR = pa.string()
@@ -259,7 +259,7 @@ def image_file(msg: Any) -> tuple[str, bytes]:
     describe them)."""
     if hasattr(msg, "format"):
         return image_suffix(msg.format), msg.data.tobytes()
-    from .images import png_bytes  # OpenCV only where images are written as files
+    from skidbench.pipeline.extract.images import png_bytes  # OpenCV only where images are written as files
 
     png = png_bytes(msg)
     return (".png", png) if png is not None else (".raw", msg.data.tobytes())

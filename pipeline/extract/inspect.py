@@ -22,10 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ExtractError, SkidbenchError, one_line
-from ..layout import register_resolvers
-from .convert import normalize_msgtype, schema_for
-from .reader import _BAG_ERRORS, DEFAULT_STORES, TopicSpec, _bag_error, bag_format, find_bags, open_bag
+from skidbench.pipeline.core.errors import ExtractError, SkidbenchError, one_line
+from skidbench.pipeline.core.layout import register_resolvers
+from skidbench.pipeline.extract.convert import normalize_msgtype, schema_for
+from skidbench.pipeline.extract.reader import (
+    _BAG_ERRORS,
+    DEFAULT_STORES,
+    TopicSpec,
+    _bag_error,
+    bag_format,
+    find_bags,
+    open_bag,
+)
 
 log = logging.getLogger("skidbench.extract")
 

@@ -29,9 +29,9 @@ from rosbags.rosbag1 import ReaderError as Rosbag1Error
 from rosbags.rosbag2 import ReaderError as Rosbag2Error
 from rosbags.typesys import Stores, TypesysError, get_typestore
 
-from ..errors import ConfigError, ExtractError
-from ..manifest import CATEGORIES, Manifest, Sequence
-from .convert import normalize_msgtype
+from skidbench.pipeline.core.errors import ConfigError, ExtractError
+from skidbench.pipeline.core.manifest import CATEGORIES, Manifest, Sequence
+from skidbench.pipeline.extract.convert import normalize_msgtype
 
 ROS1, ROS2 = "ros1", "ros2"
 ROS2_METADATA = "metadata.yaml"

@@ -16,7 +16,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
-from .reader import ROS1, ROS2, default_typestore
+from skidbench.pipeline.extract.reader import ROS1, ROS2, default_typestore
 
 FORMATS = ("ros1", "sqlite3", "mcap")
 T0_NS = 1_700_000_000_000_000_000  # bag clock at the first message (ns)

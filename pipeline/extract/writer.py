@@ -1,7 +1,7 @@
 """Streaming, all-or-nothing output of one extracted sequence.
 
 Rows are buffered in small batches and appended with ``pyarrow.parquet.ParquetWriter`` to temporary
-files (:func:`skidbench.pipeline.io.atomic_path`), so memory stays bounded by the batch size whatever the
+files (:func:`skidbench.pipeline.core.io.atomic_path`), so memory stays bounded by the batch size whatever the
 bag's length. Only when the whole bag has been read are the temporary files renamed to their final
 names; on any error every temporary file of the sequence is removed and the previous output (if any)
 stays as it was.
@@ -17,8 +17,8 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..io import TMP_PREFIX, atomic_path
-from .convert import rows_to_batch
+from skidbench.pipeline.core.io import TMP_PREFIX, atomic_path
+from skidbench.pipeline.extract.convert import rows_to_batch
 
 
 class TableSink:

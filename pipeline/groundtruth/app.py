@@ -20,19 +20,19 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from ..cache import Stamp, stamp_file
-from ..cli import stage
-from ..cpu import code_paths
-from ..errors import ConfigError, GroundTruthError
-from ..forked import map_forked
-from ..geometry import se3_from_xyz_rpy
-from ..io import fingerprint_file, write_json_atomic, write_text_atomic
-from ..layout import Layout, layout_from_cfg
-from ..manifest import Manifest, Sequence
-from .orbslam import read_orbslam
-from .pose_topic import read_pose_table
-from .tf import is_tf_table, read_tf_trajectory
-from .trajectory import Trajectory, read_tum, write_tum
+from skidbench.pipeline.cli.main import stage
+from skidbench.pipeline.core.cache import Stamp, stamp_file
+from skidbench.pipeline.core.errors import ConfigError, GroundTruthError
+from skidbench.pipeline.core.geometry import se3_from_xyz_rpy
+from skidbench.pipeline.core.io import fingerprint_file, write_json_atomic, write_text_atomic
+from skidbench.pipeline.core.layout import Layout, layout_from_cfg
+from skidbench.pipeline.core.manifest import Manifest, Sequence
+from skidbench.pipeline.groundtruth.orbslam import read_orbslam
+from skidbench.pipeline.groundtruth.pose_topic import read_pose_table
+from skidbench.pipeline.groundtruth.tf import is_tf_table, read_tf_trajectory
+from skidbench.pipeline.groundtruth.trajectory import Trajectory, read_tum, write_tum
+from skidbench.pipeline.runner.cpu import code_paths
+from skidbench.pipeline.runner.forked import map_forked
 
 log = logging.getLogger("skidbench.groundtruth")
 
@@ -62,7 +62,7 @@ def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: S
 
         cv2.setNumThreads(threads)
     traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
-    report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/cpu.py)
+    report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/runner/cpu.py)
     return seq.name, traj, report
 
 
@@ -182,7 +182,7 @@ def stage_config(cfg: DictConfig) -> dict[str, Any]:
     gt.pop("jobs", None)  # how many processes compute it does not change the result
     out = {"groundtruth": gt, "robot": OmegaConf.to_container(cfg.robot, resolve=True)}
     if gt.get("method") == "vo":  # VO reads the stereo topics of source.topics
-        from .vo import source_image_topics
+        from skidbench.pipeline.groundtruth.vo import source_image_topics
 
         out["vo_topics"] = source_image_topics(cfg.source.get("topics"))
     return out
@@ -215,7 +215,7 @@ def _no_pose_table(path: Path, ext: Path, seq: str) -> str:
 def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[str, float] | None:
     """The ground truth against the simulator's truth (:func:`.loop.evaluate_against_truth`: start-pose
     aligned absolute error and ``horizon_s`` relative error); None when they do not overlap in time."""
-    from .loop import evaluate_against_truth
+    from skidbench.pipeline.groundtruth.loop import evaluate_against_truth
 
     try:
         return evaluate_against_truth(gt, truth, rpe_window_s=horizon_s)
@@ -345,7 +345,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if seq.category == "loop":
             loops[seq.name] = traj
 
-    # forked workers (pipeline/forked.py): they share this process's imports instead of loading them again
+    # forked workers (pipeline/runner/forked.py): they share this process's imports instead of loading them
+    # again
     threads = 1 if jobs > 1 else None
     map_forked(_sequence_worker, [(cfg, layout, manifest, seq, threads) for seq, _, _ in order], write, jobs)
     result = _loop_report(cfg, manifest, loops, truth_scores)

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import GroundTruthError
-from ..geometry import se2_relative, wrap_angle
-from ..timesync import interp_se2
-from .trajectory import Trajectory
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import se2_relative, wrap_angle
+from skidbench.pipeline.core.timesync import interp_se2
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
 
 PAPER_TRANS_BOUND = 0.004  # 0.4 %
 PAPER_ROT_BOUND = 0.002  # 0.2 %

@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GroundTruthError
-from ..geometry import matrix_to_quaternion, se3_inverse, se3_matrix
-from ..timesync import nearest
-from .pose_topic import clean_poses
-from .trajectory import Trajectory
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import matrix_to_quaternion, se3_inverse, se3_matrix
+from skidbench.pipeline.core.timesync import nearest
+from skidbench.pipeline.groundtruth.pose_topic import clean_poses
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +264,7 @@ def write_orbslam(
 ) -> None:
     """Write camera poses as ORB-SLAM does (``tum``: s, ``euroc``: ns, ``kitti``: 12 numbers + times file
     in s from the first frame). For tests and for converting other tools' output."""
-    from ..io import write_text_atomic
+    from skidbench.pipeline.core.io import write_text_atomic
 
     q = matrix_to_quaternion(T_c0_ci[:, :3, :3])
     t = T_c0_ci[:, :3, 3]

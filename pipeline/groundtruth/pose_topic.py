@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import GroundTruthError
-from ..geometry import quaternion_from_yaw
-from .trajectory import Trajectory
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import quaternion_from_yaw
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """A bag's stereo pairs for visual odometry: camera_info, image topics, and the left/right pairing.
 
 Streams a bag's compressed or raw images with rosbags' AnyReader (never holding more than a few frames),
-pairs left and right by header stamp (:func:`skidbench.pipeline.timesync.nearest` within
+pairs left and right by header stamp (:func:`skidbench.pipeline.core.timesync.nearest` within
 ``max_pair_dt_ms``) and decodes each pair to 8-bit grey for :class:`.stereo_vo.StereoVO`.
 """
 
@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import GroundTruthError, one_line
-from ..extract.convert import header_stamp_ns
-from ..extract.images import ImageDecodeError, gray8
-from ..extract.reader import DEFAULT_STORES, open_bag
-from ..timesync import nearest
-from .stereo_vo import StereoCamera, VOConfig
+from skidbench.pipeline.core.errors import GroundTruthError, one_line
+from skidbench.pipeline.core.timesync import nearest
+from skidbench.pipeline.extract.convert import header_stamp_ns
+from skidbench.pipeline.extract.images import ImageDecodeError, gray8
+from skidbench.pipeline.extract.reader import DEFAULT_STORES, open_bag
+from skidbench.pipeline.groundtruth.stereo_vo import StereoCamera, VOConfig
 
 __all__ = ["open_stereo_bag", "read_stereo_camera", "check_image_topics", "iter_stereo_frames"]
 

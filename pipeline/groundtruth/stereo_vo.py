@@ -32,10 +32,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry import matrix_to_quaternion, se3_inverse
-from .orbslam import base_to_camera, camera_to_base
-from .trajectory import Trajectory
-from .vo_settings import StereoCamera, VOConfig, VOStats, camera_extrinsic
+from skidbench.pipeline.core.geometry import matrix_to_quaternion, se3_inverse
+from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
+from skidbench.pipeline.groundtruth.vo_settings import StereoCamera, VOConfig, VOStats, camera_extrinsic
 
 __all__ = [
     "VOConfig",

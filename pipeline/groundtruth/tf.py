@@ -30,11 +30,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from ..errors import GroundTruthError
-from ..geometry import matrix_to_quaternion, quaternion_slerp, se3_inverse, se3_matrix
-from ..timesync import bracket
-from .pose_topic import clean_poses
-from .trajectory import Trajectory
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import matrix_to_quaternion, quaternion_slerp, se3_inverse, se3_matrix
+from skidbench.pipeline.core.timesync import bracket
+from skidbench.pipeline.groundtruth.pose_topic import clean_poses
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

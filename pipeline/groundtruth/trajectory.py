@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GroundTruthError
-from ..geometry import quaternion_to_matrix, yaw_from_quaternion
-from ..io import write_text_atomic
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import quaternion_to_matrix, yaw_from_quaternion
+from skidbench.pipeline.core.io import write_text_atomic
 
 
 @dataclass

@@ -21,11 +21,22 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from ..errors import GroundTruthError, SkidbenchError, one_line
-from .orbslam import base_to_camera, camera_to_base
-from .stereo_bag import check_image_topics, iter_stereo_frames, open_stereo_bag, read_stereo_camera
-from .stereo_vo import StereoCamera, StereoVO, VOConfig, VOStats, camera_extrinsic
-from .trajectory import Trajectory
+from skidbench.pipeline.core.errors import GroundTruthError, SkidbenchError, one_line
+from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
+from skidbench.pipeline.groundtruth.stereo_bag import (
+    check_image_topics,
+    iter_stereo_frames,
+    open_stereo_bag,
+    read_stereo_camera,
+)
+from skidbench.pipeline.groundtruth.stereo_vo import (
+    StereoCamera,
+    StereoVO,
+    VOConfig,
+    VOStats,
+    camera_extrinsic,
+)
+from skidbench.pipeline.groundtruth.trajectory import Trajectory
 
 __all__ = [
     "VOConfig",

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import GroundTruthError
-from ..geometry import se3_from_xyz_rpy
+from skidbench.pipeline.core.errors import GroundTruthError
+from skidbench.pipeline.core.geometry import se3_from_xyz_rpy
 
 
 @dataclass

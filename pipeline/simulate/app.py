@@ -29,18 +29,18 @@ from omegaconf import DictConfig, OmegaConf
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from ..cache import Stamp
-from ..cli import stage
-from ..errors import SimulateError
-from ..io import atomic_path, fingerprint_file, write_text_atomic
-from ..layout import layout_from_cfg
-from ..manifest import Manifest, Sequence
-from ..robot import Robot, robot_from_hydra
-from .bag import FORMATS, BagSink, bag_path
-from .card import build_rows, render_card, sequence_moments
-from .physics import load_physics
-from .scenarios import SequenceSpec, plan_sequences
-from .sequence import RunSettings, simulate_sequence
+from skidbench.pipeline.cli.main import stage
+from skidbench.pipeline.core.cache import Stamp
+from skidbench.pipeline.core.errors import SimulateError
+from skidbench.pipeline.core.io import atomic_path, fingerprint_file, write_text_atomic
+from skidbench.pipeline.core.layout import layout_from_cfg
+from skidbench.pipeline.core.manifest import Manifest, Sequence
+from skidbench.pipeline.core.robot import Robot, robot_from_hydra
+from skidbench.pipeline.simulate.bag import FORMATS, BagSink, bag_path
+from skidbench.pipeline.simulate.card import build_rows, render_card, sequence_moments
+from skidbench.pipeline.simulate.physics import load_physics
+from skidbench.pipeline.simulate.scenarios import SequenceSpec, plan_sequences
+from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence
 
 log = logging.getLogger("skidbench.simulate")
 
@@ -58,7 +58,7 @@ def make_renderer(robot: Robot, cfg: DictConfig, seed: int):
     if not cfg.images:
         return None
     try:
-        from .render import StereoRenderer
+        from skidbench.pipeline.simulate.render import StereoRenderer
     except ImportError as exc:
         raise SimulateError(
             f"pipeline/simulate/render.py: stereo renderer unavailable ({exc}); set images=false"

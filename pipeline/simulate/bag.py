@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import SimulateError
-from ..extract.reader import ROS1, ROS2, default_typestore
+from skidbench.pipeline.core.errors import SimulateError
+from skidbench.pipeline.extract.reader import ROS1, ROS2, default_typestore
 
 FORMATS = ("ros1", "ros2", "mcap")
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..table1 import PAPER_TABLE_I
+from skidbench.pipeline.splits.table1 import PAPER_TABLE_I
 
 COLUMNS = (
     "duration",

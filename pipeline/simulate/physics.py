@@ -30,11 +30,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-from ..errors import SimulateError
-from ..robot import Robot
+from skidbench.pipeline.core.errors import SimulateError
+from skidbench.pipeline.core.robot import Robot
 
 #: the simulated world's gravity (m/s^2): a property of this world, not the models' standard gravity
-#: (``pipeline/constants.py``); every simulated dataset was made with it
+#: (``pipeline/core/constants.py``); every simulated dataset was made with it
 WORLD_GRAVITY = 9.81
 
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry import se3_from_xyz_rpy
+from skidbench.pipeline.core.geometry import se3_from_xyz_rpy
 
 DEFAULTS = {
     "width": 320,

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import SimulateError
+from skidbench.pipeline.core.errors import SimulateError
 
 TERRAINS = ("tile", "asphalt", "grass")
 CATEGORIES = ("train", "cv", "ld")

@@ -15,10 +15,16 @@ from typing import Any
 
 import numpy as np
 
-from ..robot import Robot
-from .bag import POSE_COV, TRUTH_COV, TWIST_COV, BagSink
-from .physics import WORLD_GRAVITY, DriveParams, SkidSteerSim, TerrainParams, TyreParams
-from .scenarios import SequenceSpec, make_driver, sequence_rng
+from skidbench.pipeline.core.robot import Robot
+from skidbench.pipeline.simulate.bag import POSE_COV, TRUTH_COV, TWIST_COV, BagSink
+from skidbench.pipeline.simulate.physics import (
+    WORLD_GRAVITY,
+    DriveParams,
+    SkidSteerSim,
+    TerrainParams,
+    TyreParams,
+)
+from skidbench.pipeline.simulate.scenarios import SequenceSpec, make_driver, sequence_rng
 
 
 @dataclass(frozen=True)

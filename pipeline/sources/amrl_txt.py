@@ -24,9 +24,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SourceError
-from ..manifest import Sequence
-from .contract import TWIST_COLUMNS, SourceContext, SourceData, SourceSequence, Tables, TableSource, stamped
+from skidbench.pipeline.core.errors import SourceError
+from skidbench.pipeline.core.manifest import Sequence
+from skidbench.pipeline.sources.contract import (
+    TWIST_COLUMNS,
+    SourceContext,
+    SourceData,
+    SourceSequence,
+    Tables,
+    TableSource,
+    stamped,
+)
 
 log = logging.getLogger(__name__)
 

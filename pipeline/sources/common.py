@@ -16,8 +16,8 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from ..cache import Stamp, stamp_file
-from ..io import fingerprint_file, write_json_atomic, write_parquet_atomic
+from skidbench.pipeline.core.cache import Stamp, stamp_file
+from skidbench.pipeline.core.io import fingerprint_file, write_json_atomic, write_parquet_atomic
 
 EXTRACT_INFO = "_extract.json"
 TWIST_COLUMNS = ("linear_x", "linear_y", "linear_z", "angular_x", "angular_y", "angular_z")

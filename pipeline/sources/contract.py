@@ -6,12 +6,12 @@ built-in ``bag``, ``amrl_txt`` and ``drive_df`` register the same way, in ``pypr
 
 - its settings: an instance of the source's ``Settings`` (a frozen dataclass whose fields are the
   ``source.*`` keys it reads; :func:`settings_from` builds it from the config), never the whole config;
-- a :class:`SourceContext`: the robot, the dataset's :class:`~skidbench.pipeline.layout.Layout` and the
+- a :class:`SourceContext`: the robot, the dataset's :class:`~skidbench.pipeline.core.layout.Layout` and the
   extract stage's options.
 
 A :class:`TableSource` (every file-based source) returns what it read as :class:`SourceData`: typed
 :class:`SourceSequence` records, each with its :class:`Tables` (the extracted-table columns of
-CONTRIBUTING.md). The stage checks them (one :class:`~skidbench.pipeline.errors.SourceError` line naming
+CONTRIBUTING.md). The stage checks them (one :class:`~skidbench.pipeline.core.errors.SourceError` line naming
 the file), writes every sequence's folder and the manifest only after the whole source was read, and
 skips the read when the input files, settings, robot and ``version`` are unchanged. A source that must
 stream (the bag reader: images) subclasses :class:`Source` and writes through ``extract`` itself.
@@ -30,15 +30,21 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from ..errors import ConfigError, SourceError
-from ..io import write_json_atomic
-from ..layout import Layout
-from ..manifest import CATEGORIES, Manifest, Sequence
-from ..robot import Robot
-from .common import TWIST_COLUMNS, record_stamp, source_stamp, stamped, write_sequence
+from skidbench.pipeline.core.errors import ConfigError, SourceError
+from skidbench.pipeline.core.io import write_json_atomic
+from skidbench.pipeline.core.layout import Layout
+from skidbench.pipeline.core.manifest import CATEGORIES, Manifest, Sequence
+from skidbench.pipeline.core.robot import Robot
+from skidbench.pipeline.sources.common import (
+    TWIST_COLUMNS,
+    record_stamp,
+    source_stamp,
+    stamped,
+    write_sequence,
+)
 
 if TYPE_CHECKING:
-    from ..extract.bag import ExtractOptions
+    from skidbench.pipeline.extract.bag import ExtractOptions
 
 __all__ = [
     "TWIST_COLUMNS", "Source", "SourceContext", "SourceData", "SourceSequence", "TableSource", "Tables",

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, SourceError
+from skidbench.pipeline.core.errors import ConfigError, SourceError
 
 log = logging.getLogger("skidbench.pipeline.sources.drive_df")
 
@@ -195,7 +195,7 @@ def _speed_gain(path: Path, robot, ml, mr, v, limit, out: dict) -> None:
 # -- the command kinematics ---------------------------------------------------------------------------
 def spec_sheets() -> dict[str, tuple[float, float]]:
     """Every packaged robot's spec-sheet (wheel radius, track width), by name."""
-    from ..robot import load_robot
+    from skidbench.pipeline.core.robot import load_robot
 
     names = sorted(
         p.name[:-5] for p in (files("skidbench.conf") / "robot").iterdir() if p.name.endswith(".yaml")

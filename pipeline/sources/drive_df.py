@@ -86,16 +86,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..errors import ConfigError, SourceError
-from ..geometry import yaw_from_quaternion
-from .common import TWIST_COLUMNS, category_by_rank, stamped
-from .contract import SourceContext, SourceData, SourceSequence, Tables, TableSource
-from .drive_checks import Recording, check_recording, robot_checks
-from .drive_files import (  # noqa: F401 - re-exported: the reader's public names
+from skidbench.pipeline.core.errors import ConfigError, SourceError
+from skidbench.pipeline.core.geometry import yaw_from_quaternion
+from skidbench.pipeline.sources.common import TWIST_COLUMNS, category_by_rank, stamped
+from skidbench.pipeline.sources.contract import SourceContext, SourceData, SourceSequence, Tables, TableSource
+from skidbench.pipeline.sources.drive_checks import Recording, check_recording, robot_checks
+from skidbench.pipeline.sources.drive_files import (
     RAW_COLUMNS,
-    SLIP_BLOCKS,
-    WINDOW,
-    WINDOW_BLOCKS,
     check_form,
     check_paths,
     detect_form,
@@ -103,15 +100,14 @@ from .drive_files import (  # noqa: F401 - re-exported: the reader's public name
     ros_time_ns,
     typed_raw_frame,
 )
-from .drive_rows import COMMAND, IDLE, OTHER, DriveSequence, classify_rows, segments_of  # noqa: F401
-from .drive_windows import (  # noqa: F401
-    HELD_KEEP,
+from skidbench.pipeline.sources.drive_rows import (
+    COMMAND,
+    DriveSequence,
+    classify_rows,
+    segments_of,
+)
+from skidbench.pipeline.sources.drive_windows import (
     WindowSettings,
-    chain_windows,
-    command_gain,
-    fresh_samples,
-    window_breaks,
-    window_motion,
     window_segments,
     windows_to_sequences,
 )

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import ConfigError, SourceError
+from skidbench.pipeline.core.errors import ConfigError, SourceError
 
 log = logging.getLogger("skidbench.pipeline.sources.drive_df")
 

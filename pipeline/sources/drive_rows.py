@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .contract import Tables
+from skidbench.pipeline.sources.contract import Tables
 
 #: row classes of a recording
 COMMAND, OTHER, IDLE = "command", "other", "idle"

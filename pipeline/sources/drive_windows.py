@@ -16,14 +16,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import SourceError
-from ..geometry import se2_compose
-from ..robot import twist_from_wheel_rates
-from .common import TWIST_COLUMNS, category_by_rank, stamped
-from .contract import Tables
-from .drive_checks import Recording, check_recording, identify_cmd_kinematics, robot_checks, warn_disagreement
-from .drive_files import WINDOW, WINDOW_BLOCKS
-from .drive_rows import DriveSequence, classify_rows, segments_of
+from skidbench.pipeline.core.errors import SourceError
+from skidbench.pipeline.core.geometry import se2_compose
+from skidbench.pipeline.core.robot import twist_from_wheel_rates
+from skidbench.pipeline.sources.common import TWIST_COLUMNS, category_by_rank, stamped
+from skidbench.pipeline.sources.contract import Tables
+from skidbench.pipeline.sources.drive_checks import (
+    Recording,
+    check_recording,
+    identify_cmd_kinematics,
+    robot_checks,
+    warn_disagreement,
+)
+from skidbench.pipeline.sources.drive_files import WINDOW, WINDOW_BLOCKS
+from skidbench.pipeline.sources.drive_rows import DriveSequence, classify_rows, segments_of
 
 log = logging.getLogger("skidbench.pipeline.sources.drive_df")
 

@@ -18,8 +18,8 @@ from collections.abc import Mapping
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from ..errors import ConfigError
-from .contract import Source, settings_from
+from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.sources.contract import Source, settings_from
 
 GROUP = "skidbench.sources"
 

@@ -22,18 +22,18 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from ..cache import Stamp, stamp_file
-from ..cli import stage
-from ..errors import SplitError
-from ..groundtruth.consistency import GateConfig, consistency, describe
-from ..groundtruth.trajectory import read_tum
-from ..io import fingerprint_file, read_parquet_metadata, write_text_atomic
-from ..layout import Layout, layout_from_cfg, prune_stale
-from ..manifest import SPLITS, Manifest, Sequence
-from ..robot import Robot, robot_from_hydra
-from ..schema import write_split
-from .build import build_split_table
-from .card import dataset_card
+from skidbench.pipeline.cli.main import stage
+from skidbench.pipeline.core.cache import Stamp, stamp_file
+from skidbench.pipeline.core.errors import SplitError
+from skidbench.pipeline.core.io import fingerprint_file, read_parquet_metadata, write_text_atomic
+from skidbench.pipeline.core.layout import Layout, layout_from_cfg, prune_stale
+from skidbench.pipeline.core.manifest import SPLITS, Manifest, Sequence
+from skidbench.pipeline.core.robot import Robot, robot_from_hydra
+from skidbench.pipeline.core.schema import write_split
+from skidbench.pipeline.groundtruth.consistency import GateConfig, consistency, describe
+from skidbench.pipeline.groundtruth.trajectory import read_tum
+from skidbench.pipeline.splits.build import build_split_table
+from skidbench.pipeline.splits.card import dataset_card
 
 log = logging.getLogger("skidbench.split")
 

@@ -24,7 +24,8 @@ commensurate (45 Hz commands on a 30 Hz grid: two phases only) the sampled comma
 a quarter command period (+-5.6 ms) older or younger than what the velocities see, set by sub-sample
 rounding of where the grid starts; a model sees that as a lag or a lead of the commands. ``offset_s`` =
 mean sampled age - time-average age (s; positive: the sampled commands are older). Discovery shifts its
-command regressors by it (:func:`skidbench.benchmark.discover.align_commands`); the benchmark's models
+command regressors by it (:func:`skidbench.benchmark.discovery.discover.align_commands`); the benchmark's
+models
 take the table as it is.
 
 Encoders: linear interpolation of the measured wheel rates; null outside their coverage or where two
@@ -47,9 +48,9 @@ import numpy as np
 import pandas as pd
 from scipy.signal import savgol_filter
 
-from ..robot import Robot
-from ..schema import SPLIT_COLUMNS
-from ..timesync import hold, interp_with_gaps
+from skidbench.pipeline.core.robot import Robot
+from skidbench.pipeline.core.schema import SPLIT_COLUMNS
+from skidbench.pipeline.core.timesync import hold, interp_with_gaps
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..robot import Robot
-from ..schema import list_split_files, read_split
-from ..table1 import PAPER_TABLE_I
+from skidbench.pipeline.core.robot import Robot
+from skidbench.pipeline.core.schema import list_split_files, read_split
+from skidbench.pipeline.splits.table1 import PAPER_TABLE_I
 
 COLUMNS = ["duration_s", "distance_m", "abs_rotation_kdeg", "lin_mean", "lin_std", "ang_mean", "ang_std",
            "slip_mean", "slip_std"]  # fmt: skip

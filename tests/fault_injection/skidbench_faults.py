@@ -6,11 +6,11 @@ whose final path contains ``substring``, after the temporary file is written and
 sends SIGINT to the process (Ctrl-C: Python raises KeyboardInterrupt there); ``stop`` sends SIGSTOP to the
 process (it waits there until the test sends SIGCONT: something happens mid-run);
 ``enospc`` / ``eacces`` raise that OSError (a full disk / a permission error), which
-``skidbench.pipeline.io.atomic_path`` then handles as it would a real one.
+``skidbench.pipeline.core.io.atomic_path`` then handles as it would a real one.
 
-:func:`install` replaces ``skidbench.pipeline.io.atomic_path`` by a wrapper before any stage module
+:func:`install` replaces ``skidbench.pipeline.core.io.atomic_path`` by a wrapper before any stage module
 imports it (sitecustomize.py in this folder calls it at start-up), so every write of every stage goes
-through the hook, the writes inside ``skidbench.pipeline.io`` included.
+through the hook, the writes inside ``skidbench.pipeline.core.io`` included.
 """
 
 from __future__ import annotations
@@ -53,8 +53,9 @@ def inject(final: Path, spec: str | None = None) -> None:
 
 
 def install() -> None:
-    """Wrap ``skidbench.pipeline.io.atomic_path`` so :func:`inject` runs between a write and its rename."""
-    from skidbench.pipeline import io
+    """Wrap ``skidbench.pipeline.core.io.atomic_path`` so :func:`inject` runs between a write and its
+    rename."""
+    from skidbench.pipeline.core import io
 
     original = io.atomic_path
     if getattr(original, "_fault_hook", False):

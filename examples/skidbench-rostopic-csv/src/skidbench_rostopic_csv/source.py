@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from skidbench.pipeline.errors import SourceError
-from skidbench.pipeline.geometry import yaw_from_quaternion
-from skidbench.pipeline.manifest import CATEGORIES
+from skidbench.pipeline.core.errors import SourceError
+from skidbench.pipeline.core.geometry import yaw_from_quaternion
+from skidbench.pipeline.core.manifest import CATEGORIES
 from skidbench.pipeline.sources.contract import (
     TWIST_COLUMNS,
     SourceContext,

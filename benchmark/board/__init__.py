@@ -1,0 +1,1 @@
+"""``skidbench compare``: which runs a board is made of, its rows and tables."""

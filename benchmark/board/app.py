@@ -1,0 +1,29 @@
+"""``skidbench compare``: leaderboard and the paper's figures as a Hydra app (``conf/compare.yaml``)."""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from skidbench.pipeline.cli.main import stage
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="compare")
+@stage("compare", home=False)  # the dataset is the one named (benchmark/board/selection.py)
+def main(cfg: DictConfig) -> None:
+    from skidbench.benchmark.report.markdown import format_console
+
+    print(format_console(run(cfg)), flush=True)
+
+
+def run(cfg: DictConfig):
+    """The stage: the dataset, store and experiment the config names (``open_target_from_cfg``), the
+    settings compare reads of the config as it stands for that dataset, then :func:`run_compare`."""
+    from skidbench.benchmark.board.compare import CompareSettings, open_target_from_cfg, run_compare
+
+    cfg, target, tracker = open_target_from_cfg(cfg)
+    return run_compare(CompareSettings.from_cfg(cfg), target, tracker)
+
+
+if __name__ == "__main__":
+    main()

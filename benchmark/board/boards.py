@@ -1,0 +1,320 @@
+"""A dataset's board under one input protocol, every row with its provenance: compare's leaderboard files
+(``reports/leaderboard-<protocol>[-<UTC stamp>].csv|.md``), what ``skidbench export`` puts in a bundle
+(``board/<protocol>.csv|json``) and what ``skidbench publish`` shows.
+
+The rows are compare's (:func:`skidbench.benchmark.board.selection.latest_complete`: the newest complete run
+of
+each (model, terrain) under the protocol, across evaluates, external rows of ``skidbench score``
+included), so a board here and compare's leaderboard files hold the same numbers. Each row adds where it
+comes from: its run and parent run, the digest of the options it was made with (the model's config, the
+protocol, the scoring and calibration settings: tag ``skidbench.options_digest``), the model's version
+and code, skidbench's version and commit, the libraries' versions, the dataset's identity and the
+fingerprint of the split files it was scored on, whether it is an external row (and its predictions
+file's sha256), its start time and the command that reproduces it (from the run's description). The
+settings every row was scored with (horizons, test splits, the metric's minimum distance and rotation) are
+those of the newest evaluate the rows come from.
+
+Leaderboard files are never overwritten silently: each compare writes ``leaderboard-<protocol>-<UTC
+stamp>.csv|.md`` (unless the rows are those of the latest file: then it says so) and a ``latest`` copy,
+``leaderboard-<protocol>.csv|.md``, beside them.
+"""
+
+from __future__ import annotations
+
+import ast
+import datetime as dt
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from skidbench.benchmark.scoring.floor import FLOOR
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.pipeline.core.io import write_json_atomic, write_text_atomic
+from skidbench.pipeline.core.layout import Layout
+from skidbench.pipeline.core.protocol import PROTOCOLS
+
+#: the columns a board adds to compare's, in this order (then ``env.<library>`` columns: the versions)
+PROVENANCE_COLUMNS = (
+    "parent_run_id",
+    "start_time_utc",
+    "options_digest",
+    "model_version",
+    "package",
+    "code_version",
+    "code_digest",
+    "skidbench_version",
+    "git_commit",
+    "dataset_id",
+    "splits_fingerprint",
+    "external",
+    "predictions_sha256",
+    "reproduce",
+)
+TAG_OPTIONS = "skidbench.options_digest"  # the options a child run was made with (evaluate's _start_child)
+TAG_SKIDBENCH_VERSION = "skidbench.version"
+TAG_CODE = "skidbench.code."  # + version, digest, ...: the model's code (its distribution and files)
+TAG_ENV = "skidbench.env."  # + library: the versions and platform a run was made with
+#: the versions a leaderboard row always has a column for (empty when its run did not record them)
+ENV_COLUMNS = ("python", "numpy", "scipy", "numba", "pandas", "pyarrow", "mlflow")
+#: the parent evaluate's parameters every row of its board was scored with (and their defaults)
+SETTING_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "models")
+
+
+@dataclass
+class Board:
+    """The board of one input protocol: its rows (compare's columns, then :data:`PROVENANCE_COLUMNS`),
+    the parent run they hang from, the settings they were scored with and the horizon shown."""
+
+    protocol: str
+    parent_run_id: str
+    horizon: float
+    settings: dict[str, Any] = field(default_factory=dict)
+    rows: pd.DataFrame = field(default_factory=pd.DataFrame)
+
+
+def _literal(text: Any) -> Any:
+    """An MLflow param (a string) back to its value: ``"[6.0]"`` -> [6.0], ``"0.5"`` -> 0.5."""
+    if text is None:
+        return None
+    try:
+        return ast.literal_eval(str(text))
+    except (ValueError, SyntaxError):
+        return str(text)
+
+
+def parent_settings(tracker: trk.Tracker, parent_id: str) -> dict[str, Any]:
+    """The settings of an evaluate (or score) parent run, from its params (``SETTING_KEYS``)."""
+    params = tracker.client.get_run(parent_id).data.params
+    return {k: _literal(params[k]) for k in SETTING_KEYS if k in params}
+
+
+def _reproduce(note: Any) -> str:
+    """The command(s) of a run's description (the fenced block after "Reproduce:"), one per line."""
+    m = re.search(r"Reproduce:\s*```\n(.*?)\n```", str(note or ""), flags=re.S)
+    return m.group(1).strip() if m else ""
+
+
+def _col(runs: pd.DataFrame, name: str) -> pd.Series:
+    return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
+
+
+def _tags(runs: pd.DataFrame, prefix: str) -> list[str]:
+    """The names after ``prefix`` of the tags some run has (``tags.<prefix><name>`` columns)."""
+    head = f"tags.{prefix}"
+    return [c[len(head) :] for c in runs.columns if c.startswith(head)]
+
+
+def provenance(runs: pd.DataFrame) -> pd.DataFrame:
+    """Per run (``run_id``, :data:`PROVENANCE_COLUMNS`, then ``env.<name>`` for :data:`ENV_COLUMNS` and
+    every other environment tag a run has) from the runs' tags (a search_runs frame)."""
+    start = pd.to_datetime(runs["start_time"], utc=True, errors="coerce")
+    tag = lambda name: _col(runs, f"tags.{name}").fillna("").astype(str)  # noqa: E731
+    out = pd.DataFrame(
+        {
+            "run_id": runs["run_id"],
+            "parent_run_id": tag(run_tags.TAG_PARENT),
+            "start_time_utc": start.dt.strftime("%Y-%m-%d %H:%M:%S").fillna(""),
+            "options_digest": tag(TAG_OPTIONS),
+            "model_version": tag(run_tags.TAG_MODEL_VERSION),
+            "package": tag(run_tags.TAG_PLUGIN),
+            "code_version": tag(TAG_CODE + "version"),
+            "code_digest": tag(TAG_CODE + "digest"),
+            "skidbench_version": tag(TAG_SKIDBENCH_VERSION),
+            "git_commit": tag(run_tags.TAG_GIT),
+            "dataset_id": tag(run_tags.TAG_DATASET_ID),
+            "splits_fingerprint": tag(run_tags.TAG_FINGERPRINT),
+            "external": _col(runs, f"tags.{run_tags.TAG_EXTERNAL}").fillna("false").eq("true"),
+            "predictions_sha256": tag(run_tags.TAG_PREDICTIONS_SHA256),
+            "reproduce": _col(runs, f"tags.{run_tags.TAG_NOTE}").map(_reproduce),
+        }
+    )
+    for name in dict.fromkeys([*ENV_COLUMNS, *sorted(_tags(runs, TAG_ENV))]):  # one order, whatever the runs
+        out[f"env.{name}"] = tag(TAG_ENV + name)
+    return out
+
+
+def with_provenance(board: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
+    """compare's board rows (``board_from_runs``) and the provenance of each row's run."""
+    prov = provenance(runs)
+    prov = prov.drop(columns=[c for c in prov.columns if c in board.columns and c != "run_id"])
+    rows = board.merge(prov, on="run_id", how="left")
+    rows["start_time"] = rows["start_time"].astype(str)
+    return rows.reset_index(drop=True)
+
+
+def protocol_board(tracker: trk.Tracker, protocol: str, filter_string: str | None = None) -> Board | None:
+    """The board of ``protocol`` (None when it has no evaluate), with provenance: the newest complete
+    run of each (model, terrain) at the first horizon of the protocol's latest evaluate."""
+    from skidbench.benchmark.board.selection import NoRuns, board_from_runs, latest_complete
+
+    parent = tracker.latest_parent(protocol)
+    if parent is None:
+        return None
+    settings = parent_settings(tracker, parent)
+    horizons = settings.get("horizons") or [6.0]
+    horizon = float(horizons[0] if isinstance(horizons, list | tuple) else horizons)
+    try:
+        sel = latest_complete(tracker, protocol, horizon, filter_string)
+    except NoRuns:
+        return None
+    board = board_from_runs(sel.runs, horizon)
+    newest = sel.parents[0] if sel.parents else parent
+    if newest != parent:
+        settings = parent_settings(tracker, newest)
+    return Board(protocol, newest, horizon, settings, with_provenance(board, sel.runs))
+
+
+def all_boards(tracker: trk.Tracker, filter_string: str | None = None) -> dict[str, Board]:
+    """``{protocol: board}`` of every protocol with an evaluate, in the order of ``PROTOCOLS``."""
+    out = {}
+    for p in PROTOCOLS:
+        b = protocol_board(tracker, p, filter_string)
+        if b is not None:
+            out[p] = b
+    return out
+
+
+# -- compare's leaderboard files ----------------------------------------------------------------------
+def utc_stamp(when: dt.datetime | None = None) -> str:
+    """``20261125T101500Z``: a file name's UTC time stamp."""
+    return (when or dt.datetime.now(dt.UTC)).strftime("%Y%m%dT%H%M%SZ")
+
+
+def leaderboard_paths(folder: Path, protocol: str, stamp: str | None = None) -> tuple[Path, Path]:
+    """``(<folder>/leaderboard-<protocol>[-<stamp>].csv, .md)``; no stamp: the latest copy."""
+    stem = f"leaderboard-{protocol}" + (f"-{stamp}" if stamp else "")
+    return Path(folder) / f"{stem}.csv", Path(folder) / f"{stem}.md"
+
+
+def write_leaderboard(folder: Path, protocol: str, csv_text: str, md_text: str) -> tuple[list[Path], str]:
+    """Writes one protocol's leaderboard: ``leaderboard-<protocol>-<UTC stamp>.csv|.md`` (kept) and the
+    latest copy ``leaderboard-<protocol>.csv|.md``, each atomically. When the rows (the CSV) are those of
+    the latest copy, no new stamped pair is written and the latest ``.md`` is rewritten only. Returns the
+    files written and a line saying what happened."""
+    folder = Path(folder)
+    latest_csv, latest_md = leaderboard_paths(folder, protocol)
+    if latest_csv.is_file() and latest_csv.read_text() == csv_text:
+        write_text_atomic(latest_md, md_text)
+        return [latest_csv, latest_md], f"{latest_csv.name}: the same rows as before (no new stamped copy)"
+    stamp = utc_stamp()
+    csv, md = leaderboard_paths(folder, protocol, stamp)
+    k = 1
+    while csv.exists() or md.exists():  # two compares within one second: never overwrite a kept file
+        k += 1
+        csv, md = leaderboard_paths(folder, protocol, f"{stamp}-{k}")
+    write_text_atomic(csv, csv_text)
+    write_text_atomic(md, md_text)
+    write_text_atomic(latest_csv, csv_text)
+    write_text_atomic(latest_md, md_text)
+    return [csv, md, latest_csv, latest_md], f"{csv.name} (latest: {latest_csv.name})"
+
+
+def _plain(v: Any) -> Any:
+    """A cell as JSON: NaN -> None, numpy scalars -> Python."""
+    if isinstance(v, float | np.floating):
+        return None if not np.isfinite(v) else float(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    return v
+
+
+def write_board(board: Board, folder: Path, extra: dict[str, Any] | None = None) -> list[Path]:
+    """``<folder>/<protocol>.csv`` (the rows) and ``<protocol>.json`` (the settings, the parent run and
+    the rows as records; ``extra`` added at the top level), atomically. Returns both paths."""
+    folder = Path(folder)
+    csv = folder / f"{board.protocol}.csv"
+    js = folder / f"{board.protocol}.json"
+    write_text_atomic(csv, board.rows.to_csv(index=False))
+    records = [{k: _plain(v) for k, v in r.items()} for r in board.rows.to_dict("records")]
+    write_json_atomic(
+        js,
+        {
+            "protocol": board.protocol,
+            "parent_run_id": board.parent_run_id,
+            "horizon_s": board.horizon,
+            "settings": board.settings,
+            "written_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M:%S"),
+            **(extra or {}),
+            "rows": records,
+        },
+    )
+    return [csv, js]
+
+
+def read_board(path: Path) -> Board:
+    """A board written by :func:`write_board` (its ``.json``)."""
+    doc = json.loads(Path(path).read_text())
+    rows = pd.DataFrame(doc.get("rows") or [])
+    return Board(str(doc["protocol"]), str(doc.get("parent_run_id") or ""), float(doc.get("horizon_s", 6.0)),
+                 dict(doc.get("settings") or {}), rows)  # fmt: skip
+
+
+def _ranked_by(rank_key: str) -> str:
+    """What a board ranks by: ``mean4`` (the ranking rule's aggregate, docs/intervals.md) or one metric."""
+    if rank_key == "mean4":
+        return ("the mean of the four RMSREs over terrains, with paired 95 % intervals: best only when "
+                "resolved from every other model, else tied (docs/intervals.md)")  # fmt: skip
+    return f"the mean over terrains of `{rank_key}`"
+
+
+def leaderboard_header(
+    dataset: str, dataset_id: str | None, experiment: str, protocol: str, parent: str | None,
+    horizon: float, rank_key: str, when: str, left_out: list[str],
+) -> list[str]:  # fmt: skip
+    """The lines above a leaderboard file's tables: what it is, the command that wrote it and when, which
+    runs its rows are (``parent``: one evaluate's; None: the newest complete ones), the newer runs left
+    out."""
+    which = (
+        f"the child runs of evaluate run {parent}"
+        if parent
+        else "the newest complete (FINISHED) run of each (model, terrain) of this dataset under this "
+        "protocol, across evaluates"
+    )
+    cmd = f"skidbench compare dataset={dataset} inputs={protocol}" + (
+        f" parent_run_id={parent}" if parent else ""
+    )
+    lines = [
+        f"# Leaderboard: dataset {dataset}, inputs={protocol}, {horizon:g} s horizon",
+        "",
+        f"Written by `{cmd}` on {when}. Rows: {which}. Ranked by {_ranked_by(rank_key)} "
+        f"(lower is better). Dataset identity `{dataset_id or '?'}`; MLflow experiment `{experiment}`. "
+        "The CSV beside this file has every row's run id, options digest, versions and commit.",
+    ]
+    if left_out:
+        lines += ["", "Newer runs left out (the board keeps the complete run named):", ""]
+        lines += [f"- {line}" for line in left_out]
+    return lines
+
+
+def read_windows(
+    layout: Layout, rows: pd.DataFrame, protocol: str, horizon_s: float
+) -> tuple[dict[tuple[str, str], pd.DataFrame], list[str]]:
+    """The windows at ``horizon_s`` of every FINISHED (model, terrain) of a board (``rows``: model, terrain,
+    status) and of the floor of each of its terrains: ``{(model, terrain): windows}``, and a note per table
+    that could not be read (a run whose files are elsewhere: its cells keep their logged intervals)."""
+    out, notes = {}, []
+    ok = rows[rows["status"] == "FINISHED"]
+    wanted = [(str(m), str(t)) for m, t in zip(ok["model"], ok["terrain"], strict=True)]
+    wanted += [(FLOOR, str(t)) for t in sorted(ok["terrain"].unique())]
+    for model, terrain in wanted:
+        stem = layout.eval_stem(model, terrain, protocol)
+        path = stem.with_name(stem.name + ".windows.parquet")
+        try:
+            w = pd.read_parquet(path)
+        except (OSError, ValueError) as exc:
+            if model != FLOOR:  # an evaluate from before the floor existed: no floor row, silently
+                notes.append(f"{model}/{terrain}: no per-window table ({path.name}: {type(exc).__name__})")
+            continue
+        if len(w) and "horizon_s" in w:
+            w = w[np.isclose(w["horizon_s"].to_numpy(float), horizon_s)]
+        if len(w):
+            out[(model, terrain)] = w
+    return out, notes

@@ -1,0 +1,509 @@
+"""`skidbench compare`: the leaderboard from ``mlflow.search_runs`` and the paper's Figs. 3-7, written to
+``<out_root>/<dataset>/reports/`` (report.md, leaderboard-<protocol>.md/.csv and their time-stamped copies,
+fig*.png) and logged to MLflow.
+
+The dataset is ``dataset=<name>`` (any dataset of the output root; its ``dataset.json`` gives the identity
+its runs carry, so no source arguments are needed), the dataset of ``parent_run_id=<run id>``, or of the
+runs of ``mlflow.experiment=<name>`` (benchmark/board/selection.py ``resolve_target``). The rows: by default
+(``parent_run_id=latest``) the newest complete run of each (model, terrain) under the input protocol
+(``inputs``), across evaluates (``selection.latest_complete``): a model evaluated alone joins the board
+beside the others, and the newer runs that are not complete (failed, killed, running, other split files)
+are left out and named; of the caller's own runs (``user``: null = yours, i.e. ``mlflow.user``, a name, or
+``all``), and when someone else evaluated the dataset after you a note says so. ``parent_run_id=<run
+id>``: one evaluate's runs; null: every child run (which must
+then be of one protocol); ``filter``: an MLflow filter string on top. Runs of different protocols are
+never ranked together: compare writes one leaderboard per protocol (benchmark/board/boards.py, every row with
+its run id, options digest and versions) and the report sets the protocols side by side per model: what
+the wheel response explains (commanded -> response) and what remains when the wheels are known (response
+-> measured).
+Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 and the wheel response from what evaluate wrote
+next to each run's per-window table (benchmark/report/data.py): compare reads no split, loads no fit and
+predicts nothing. A figure whose data is absent is skipped, with a note in the report.
+"""
+
+from __future__ import annotations
+
+import copy
+import datetime as dt
+import hashlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board import selection as sel
+from skidbench.benchmark.board.selection import board_from_runs
+from skidbench.benchmark.board.tables import (
+    SPLITS,
+    CompareError,
+    check_one_protocol,
+    decomposition_table,
+    leaderboard_texts,
+    markdown_table,
+    report_detail,
+    summary_table,
+)
+from skidbench.benchmark.report.compare_figures import FigureSettings, draw_figures, figure_jobs
+from skidbench.benchmark.report.markdown import (
+    ReportContent,
+    ReportSettings,
+    report_md,
+    sort_key,
+)
+from skidbench.benchmark.scoring import intervals as iv
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring import standings as st
+from skidbench.benchmark.scoring.floor import FLOOR
+from skidbench.benchmark.tracking import mlflow_ui as mu
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.models.registry.saved import board_findings
+from skidbench.pipeline.core.errors import one_line
+from skidbench.pipeline.core.io import write_text_atomic
+from skidbench.pipeline.core.layout import Layout, layout_from_cfg
+from skidbench.pipeline.core.protocol import PROTOCOLS, protocol_from_cfg
+
+log = logging.getLogger(__name__)
+
+
+# -- selecting runs ---------------------------------------------------------------------------------
+def select_runs(
+    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None
+) -> tuple[pd.DataFrame, str | None]:
+    """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None);
+    ``inputs``: only runs of that input protocol."""
+    import mlflow
+
+    parent = parent_run_id
+    if parent == "latest":
+        parent = tracker.latest_parent(inputs)
+        if parent is None:
+            raise CompareError(
+                f"no `skidbench evaluate` run{f' under inputs={inputs}' if inputs else ''} in experiment "
+                f"{tracker.experiment_name!r} at {tracker.uri}; run it first (or set mlflow.experiment)"
+            )
+    clauses = [f"tags.`{run_tags.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
+    if inputs:
+        clauses.append(f"tags.`{run_tags.TAG_INPUTS}` = '{inputs}'")
+    if parent:
+        clauses.append(f"tags.`{run_tags.TAG_PARENT}` = '{parent}'")
+    if filter_string:
+        clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
+    mlflow.set_tracking_uri(tracker.uri)
+    try:
+        runs = mlflow.search_runs(
+            experiment_ids=tracker.search_ids() or [tracker.experiment_id],
+            filter_string=" AND ".join(clauses),
+            order_by=["attributes.start_time DESC"],
+            output_format="pandas",
+        )
+    except mlflow.exceptions.MlflowException as exc:
+        raise CompareError(f"MLflow search_runs: {one_line(exc.message)[:300]} (check filter=...)") from None
+    if parent and not runs.empty:  # the external rows of `skidbench score` join every evaluate's board
+        runs = with_external_runs(tracker, runs, parent, inputs, filter_string)
+    if runs.empty:
+        what = f"parent run {parent}" if parent else f"experiment {tracker.experiment_name!r}"
+        raise CompareError(f"no model runs match in {what} (filter: {filter_string or 'none'})")
+    return runs, parent
+
+
+def with_external_runs(
+    tracker: trk.Tracker, runs: pd.DataFrame, parent: str, inputs: str | None, filter_string: str | None
+) -> pd.DataFrame:
+    """``runs`` (an evaluate's child runs) and the external runs (``skidbench score``,
+    benchmark/release/score.py:
+    tag ``skidbench.external``) of the same dataset and protocol scored on the same split files (per terrain,
+    the split fingerprint of the runs)."""
+    import mlflow
+
+    if inputs is None:
+        inputs = tracker.client.get_run(parent).data.tags.get(run_tags.TAG_INPUTS)
+    clauses = [f"tags.`{run_tags.TAG_ROLE}` = 'child'", f"tags.`{run_tags.TAG_EXTERNAL}` = 'true'"]
+    clauses += tracker.dataset_filter()
+    if inputs:
+        clauses.append(f"tags.`{run_tags.TAG_INPUTS}` = '{inputs}'")
+    if filter_string:
+        clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
+    ext = mlflow.search_runs(experiment_ids=tracker.search_ids(), filter_string=" AND ".join(clauses),
+                             order_by=["attributes.start_time DESC"], output_format="pandas")  # fmt: skip
+    if ext.empty:
+        return runs
+    terrain, fingerprint = f"tags.{run_tags.TAG_TERRAIN}", f"tags.{run_tags.TAG_FINGERPRINT}"
+    fp = dict(zip(_col(runs, terrain), _col(runs, fingerprint), strict=True))
+    same = [
+        fp.get(t) == f and r not in set(runs["run_id"])
+        for t, f, r in zip(_col(ext, terrain), _col(ext, fingerprint), ext["run_id"], strict=True)
+    ]  # fmt: skip
+    return pd.concat([runs, ext[same]], ignore_index=True) if any(same) else runs
+
+
+def _col(runs: pd.DataFrame, name: str) -> pd.Series:
+    return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
+
+
+# -- the stage ---------------------------------------------------------------------------------------
+@dataclass
+class CompareResult:
+    report: Path
+    leaderboard_md: str
+    parent_run_id: str | None
+    files: list[Path] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    inputs: str = "commanded"
+    decomposition_md: str = ""
+    links: dict[str, str] = field(default_factory=dict)  # what -> MLflow UI URL
+    left_out: list[str] = field(default_factory=list)  # newer runs not on the board, and why (one line each)
+    written: list[str] = field(default_factory=list)  # the leaderboard files, one line per protocol
+    dataset: str = ""
+    parents: list[str] = field(default_factory=list)  # the evaluate runs the board's rows hang from
+    claim: str = ""  # the paper's claim: overall verdict, then per terrain
+
+
+def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
+    """The dataset compare reads, its store and experiment: ``(cfg with that dataset and experiment,
+    target, tracker)`` (:func:`selection.target_from_cfg`). CompareError (one line) when there is no store,
+    no such dataset or run; StaleInputError when the dataset's last evaluate failed as a stage (a model run
+    that failed does not count)."""
+    from mlflow.tracking import MlflowClient
+    from omegaconf import OmegaConf, open_dict
+
+    from skidbench.pipeline.core.cache import check_producers
+    from skidbench.pipeline.datasets.imported import check_stage
+
+    uri = trk.tracking_uri_from_cfg(cfg, layout_from_cfg(cfg))
+    if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
+        raise CompareError(
+            f"no MLflow store at {uri}: nothing was evaluated under this output root; "
+            "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
+        )
+    trk.check_reachable(uri, float((cfg.get("mlflow") or {}).get("timeout_s", 5.0)))
+    try:
+        target = sel.target_from_cfg(cfg, MlflowClient(tracking_uri=uri))
+    except sel.SelectionError as exc:
+        raise CompareError(str(exc)) from None
+    if target.note:
+        log.info("compare: %s", target.note)
+    if OmegaConf.is_config(cfg) and (cfg.dataset, cfg.mlflow.experiment) != (target.name, target.experiment):
+        cfg = copy.deepcopy(cfg)
+        with open_dict(cfg):
+            cfg.dataset = target.name
+            cfg.mlflow.experiment = target.experiment
+    if target.layout.root.is_dir():
+        check_producers(target.layout.root, "compare")
+        check_stage(cfg.get("robot") if hasattr(cfg, "get") else None, "compare", target.layout.root)
+    return cfg, target, trk.tracker_from_cfg(cfg, target.layout, dataset_id=target.dataset_id or "")
+
+
+def protocol_selections(
+    tracker: trk.Tracker, horizon_s: float, filter_string: str | None, user: str | None = None
+) -> dict[str, sel.Selection]:
+    """``{protocol: selection}`` of every input protocol the dataset has runs under (the newest complete
+    run of each (model, terrain): :func:`selection.latest_complete`), in the order of ``PROTOCOLS``."""
+    out = {}
+    for p in PROTOCOLS:
+        try:
+            out[p] = sel.latest_complete(tracker, p, horizon_s, filter_string, user)
+        except sel.NoRuns:
+            continue
+    return out
+
+
+@dataclass(frozen=True)
+class CompareSettings:
+    """What compare's orchestration reads of the config (made by the compare app, after
+    :func:`open_target_from_cfg` set the dataset and experiment found): the horizon, which runs
+    (``parent_run_id``, ``user``, ``filter``, the protocol asked for), how to rank, the report, the figures
+    and whether to log to MLflow."""
+
+    horizon: float
+    parent_run_id: str | None  # "latest", a run id, or None (every child run)
+    user: str | None  # sel.whose: the caller's own runs unless user=<name> | all
+    filter: str | None
+    asked: str | None  # the checked protocol of ``inputs`` with parent_run_id=latest, else None
+    inputs: str  # the configured protocol (unchecked), for a board whose protocol is not one of PROTOCOLS
+    rank_by: str
+    intervals: iv.IntervalConfig
+    report: ReportSettings
+    figures: FigureSettings
+    ui_url: str | None
+    log_to_mlflow: bool
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> CompareSettings:
+        parent = cfg.get("parent_run_id", "latest")
+        parent_arg = None if parent in (None, "", "null") else str(parent)
+        return cls(
+            horizon=float(cfg.horizon),
+            parent_run_id=parent_arg,
+            user=sel.whose(cfg.get("user")),
+            filter=cfg.get("filter"),
+            asked=protocol_from_cfg(cfg) if parent_arg == "latest" else None,
+            inputs=str(cfg.get("inputs") or "commanded"),
+            rank_by=str(cfg.get("rank_by") or st.AGGREGATE),
+            intervals=iv.IntervalConfig.from_cfg(cfg),
+            report=ReportSettings.from_cfg(cfg),
+            figures=FigureSettings.from_cfg(cfg),
+            ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
+            log_to_mlflow=bool(cfg.get("log_to_mlflow", True)),
+        )
+
+
+def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -> CompareResult:
+    """Compare's orchestration on the dataset ``target`` of ``tracker``'s store and experiment (the compare
+    app makes the three: :func:`open_target_from_cfg`, :meth:`CompareSettings.from_cfg`)."""
+    layout = target.layout
+    horizon = cs.horizon
+    parent_arg = cs.parent_run_id
+    user = cs.user
+    # latest: the newest complete run of each (model, terrain) under cs.asked, across evaluates; a run
+    # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
+    # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
+    try:
+        selections = protocol_selections(tracker, horizon, cs.filter, user)
+    except sel.SelectionError as exc:
+        raise CompareError(str(exc)) from None
+    # cs.asked None: the runs of parent_arg
+    runs, parent, left_out = _chosen_runs(target, tracker, selections, cs.asked, parent_arg, cs.filter, user)
+    board = board_from_runs(runs, horizon)
+    protocol = check_one_protocol(board)
+    # the protocol of the runs shown (the files evaluate wrote for them)
+    inputs = protocol if protocol in PROTOCOLS else cs.inputs
+    _check_horizon(runs, horizon)
+    settings = cs.report
+    interval_notes: list[str] = []
+    standings = standings_of(cs.rank_by, cs.intervals, layout, board, protocol, horizon, interval_notes)
+    summary = summary_table(board, horizon, settings.rank_by, standings)
+    parents = sel.Selection(protocol, horizon, runs).parents if parent is None else [parent]
+    links = ui_links(settings, cs.ui_url, tracker, parents[0] if len(parents) == 1 else None, board, horizon)
+    detail = report_detail(board, horizon, standings)
+    out = layout.reports
+    out.mkdir(parents=True, exist_ok=True)
+    shown_boards = {protocol: (board, runs, left_out)}
+    if parent is None:  # every protocol's board of the dataset, from the same selection
+        for p, s in selections.items():
+            if p != protocol:
+                shown_boards[p] = (board_from_runs(s.runs, horizon), s.runs, s.left_out)
+
+    def standings_for(p: str, b: pd.DataFrame) -> st.Standings | None:  # another protocol's: its own windows
+        if p == protocol:
+            return standings
+        return standings_of(cs.rank_by, cs.intervals, layout, b, p, horizon, [])
+
+    boards = _BoardsShown(target, tracker.experiment_name, parent, horizon, settings.rank_by, shown_boards)
+    files, written, lb_md = _write_boards(boards, out, protocol, summary, standings_for)
+    boards_of = (  # the protocols side by side: the dataset's board of each
+        {p: b for p, (b, _r, _lo) in shown_boards.items()}
+        if parent is None
+        else {p: board_from_runs(s.runs, horizon) for p, s in selections.items()}
+    )
+    decomp, shown, decomp_md = _decomposition(boards_of, horizon)
+    notes: list[str] = _fit_findings(layout, board, inputs) + interval_notes
+    newer = sel.newer_elsewhere(tracker, runs, protocol, cs.filter, user) if parent_arg == "latest" else None
+    notes += [n for n in (newer, sel.same_data_elsewhere(tracker)) if n]
+    log_mlflow = cs.log_to_mlflow
+    log_to = _log_target(tracker, parent, parents, log_mlflow, notes)
+    fs = cs.figures
+    fig_md: list[str] = []
+    if fs.enabled:
+        jobs = figure_jobs(fs, layout, board, horizon, inputs, standings, decomp, shown)
+        fig_md = draw_figures(jobs, out, files, notes)
+
+    report = out / "report.md"
+    content = ReportContent(tracker.uri, tracker.experiment_name, parent, board, summary, detail, horizon,
+                            protocol, fig_md, notes, decomp_md, shown, links, target.record or {}, parents,
+                            left_out, standings)  # fmt: skip
+    write_text_atomic(report, report_md(settings, content))
+    files.append(report)
+    if log_mlflow:
+        _log_report(tracker, log_to, settings.dataset, protocol, files)
+    claim = ""
+    if standings is not None:
+        claim = "; ".join(f"{scope}: {v}" for scope, (v, _) in standings.claim.items())
+    return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links, left_out, written,
+                         target.name, parents, claim)  # fmt: skip
+
+
+def _chosen_runs(
+    target: sel.Target,
+    tracker: trk.Tracker,
+    selections: dict[str, sel.Selection],
+    asked: str | None,
+    parent_arg: str | None,
+    filter_string: str | None,
+    user: str | None,
+) -> tuple[pd.DataFrame, str | None, list[str]]:
+    """The runs of the board, the parent run they were selected by and the newer runs left out: with
+    ``asked`` (a protocol), the newest complete run of each (model, terrain) under it across evaluates
+    (parent None); else the runs of ``parent_arg`` (:func:`select_runs`). CompareError (one line) when the
+    protocol asked for has no complete run."""
+    if asked is None:
+        runs, parent = select_runs(tracker, parent_arg, filter_string, None)
+        return runs, parent, []
+    protocol = asked
+    if protocol not in selections and user and sel.not_yours(tracker, protocol, filter_string, user):
+        raise CompareError(sel.not_yours(tracker, protocol, filter_string, user))
+    if protocol not in selections:
+        others = f" (runs exist under inputs={', '.join(selections)})" if selections else ""
+        if filter_string:
+            others = f" matching filter {filter_string}" + others
+        raise CompareError(
+            f"no complete model run under inputs={protocol} of dataset {target.name} in experiment "
+            f"{tracker.experiment_name!r} at {tracker.uri}{others}; run `skidbench evaluate"
+            f"{'' if protocol == 'commanded' else f' inputs={protocol}'}` first"
+        )
+    return selections[protocol].runs, None, selections[protocol].left_out
+
+
+def _check_horizon(runs: pd.DataFrame, horizon: float) -> None:
+    """CompareError when the runs logged no paper RMSRE at ``horizon``."""
+    if not any(
+        m.metric_key(s, horizon) in runs.columns.str.removeprefix("metrics.")
+        for m in mt.PAPER
+        for s in SPLITS
+    ):
+        raise CompareError(
+            f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
+        )
+
+
+@dataclass(frozen=True)
+class _BoardsShown:
+    """The boards a compare writes, one per protocol ``{protocol: (board, runs, left out)}``, and what
+    their headers name."""
+
+    target: sel.Target
+    experiment_name: str
+    parent: str | None
+    horizon: float
+    rank_by: str
+    boards: dict[str, tuple[pd.DataFrame, pd.DataFrame, list[str]]]
+
+
+def _write_boards(
+    shown: _BoardsShown,
+    out: Path,
+    protocol: str,
+    summary: pd.DataFrame,
+    standings_of: Callable[[str, pd.DataFrame], st.Standings | None],
+) -> tuple[list[Path], list[str], str]:
+    """Write each protocol's leaderboard (:func:`boards.write_leaderboard`): ``(files, one line per
+    protocol, the ranked table's Markdown of the protocol shown)``."""
+    files: list[Path] = []
+    written: list[str] = []
+    when = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    lb_md = markdown_table(summary)
+    rank_by, horizon, target = shown.rank_by, shown.horizon, shown.target
+    for p, (b, r, lo) in shown.boards.items():
+        rank_key = st.AGGREGATE if rank_by == st.AGGREGATE else mt.rank_key(rank_by, horizon)
+        header = brd.leaderboard_header(target.name, target.dataset_id, shown.experiment_name, p,
+                                        shown.parent, horizon, rank_key, when, lo)  # fmt: skip
+        csv_text, md_text, md_ranked = leaderboard_texts(b, r, horizon, rank_by, header, standings_of(p, b))
+        paths, line = brd.write_leaderboard(out, p, csv_text, md_text)
+        files += paths
+        written.append(f"leaderboard inputs={p}: {line}")
+        if p == protocol:
+            lb_md = md_ranked
+    return files, written, lb_md
+
+
+def _decomposition(boards_of: dict[str, pd.DataFrame], horizon: float) -> tuple[pd.DataFrame, list[str], str]:
+    """The protocols side by side (:func:`board_tables.decomposition_table`), the protocols it shows
+    ([] when none) and its Markdown ("" when none)."""
+    decomp = decomposition_table(boards_of, horizon)
+    shown = decomp.attrs.get("protocols", []) if len(decomp) else []
+    decomp_md = markdown_table(decomp[[c for c in decomp.columns if not c.startswith("_")]]) if shown else ""
+    return decomp, shown, decomp_md
+
+
+def _log_target(
+    tracker: trk.Tracker, parent: str | None, parents: list[str], log_mlflow: bool, notes: list[str]
+) -> str | None:
+    """The evaluate run every row hangs from, to log the report to; None (a compare run) when the rows come
+    from several evaluates or from another person's (left as they made it; a note says so)."""
+    log_to = parent or (parents[0] if len(parents) == 1 else None)
+    owner = tracker.client.get_run(log_to).data.tags.get(run_tags.TAG_USER) if log_to else None
+    if log_to and owner != run_tags.current_user():  # another person's evaluate run is left as they made it
+        log_to = None
+        if log_mlflow:
+            notes.append(f"the report is logged to a compare run of yours, not to {owner}'s evaluate run")
+    return log_to
+
+
+def _log_report(
+    tracker: trk.Tracker, run_id: str | None, dataset: str, protocol: str, files: list[Path]
+) -> None:
+    """Log the report's files to ``run_id``, or to a new compare run of the caller's when None."""
+    if run_id is None:
+        run_id = tracker.start(
+            f"compare {dataset}",
+            {run_tags.TAG_ROLE: "compare", run_tags.TAG_DATASET: str(dataset), run_tags.TAG_INPUTS: protocol},
+        )
+        tracker.end(run_id)
+    for f in files:
+        tracker.artifact(run_id, f, "report")
+
+
+def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
+    """The findings of the board's fits (a parameter at its bound: ``roc degenerates to edd on this data:
+    b2 at its bound``), for the console notes and the report's Notes (models/fitting/fit.py formats them)."""
+    done = board[board["status"] == "FINISHED"] if "status" in board else board
+    rows = list(zip(done["model"].astype(str), done["terrain"].astype(str), strict=True))
+    return board_findings(layout, rows, inputs)
+
+
+def standings_of(
+    rank_by: str,
+    intervals: iv.IntervalConfig,
+    layout: Layout,
+    board: pd.DataFrame,
+    protocol: str,
+    horizon: float,
+    notes: list[str],
+) -> st.Standings | None:
+    """The board's intervals, ranking (by ``rank_by``) and claim from the per-window tables evaluate wrote
+    (:mod:`skidbench.benchmark.scoring.standings`), or None (with a note) when there are none to read."""
+    if rank_by != st.AGGREGATE:
+        mt.rank_key(rank_by, horizon)  # a bad rank_by: one line
+    windows, missing = brd.read_windows(layout, board, protocol, horizon)
+    notes += [f"paired intervals: {m}" for m in missing]
+    if not any(m != FLOOR for m, _ in windows):
+        notes.append(
+            "no per-window table of these runs here: the leaderboard shows the logged intervals, ranked "
+            "by point estimate (no paired comparison)"
+        )
+        return None
+    return st.build(windows, horizon, intervals, rank_by)
+
+
+def ui_links(
+    settings: ReportSettings,
+    ui_url: str | None,
+    tracker: trk.Tracker,
+    parent: str | None,
+    board: pd.DataFrame,
+    horizon: float,
+) -> dict[str, str]:
+    """MLflow UI links (model-training pages, not the GenAI ones): the parent run's page, and a saved view
+    of the runs shown (the RMSRE columns first, best first; :mod:`mlflow_ui`) as a table and as charts of
+    the RMSRE per run; ``ui_url``: the UI's address (``mlflow.ui_url``; None: from the store's)."""
+    uri, exp = tracker.uri, tracker.experiment_id
+    cols, _ = mu.board_columns(("ld", "cv"), horizon)
+    order = sort_key(settings.rank_by, horizon)  # the aggregate is not a logged metric: sort by ld_trans
+    links = {}
+    if parent:
+        links["parent run"] = mu.run_url(uri, exp, parent, ui_url)
+        key, title = f"evaluate-{parent[:8]}", tracker.client.get_run(parent).info.run_name
+        search = mu.children_of(parent)
+    else:  # every child run compare selected: a view of those runs
+        ids = ", ".join(f"'{r}'" for r in board["run_id"])
+        digest = hashlib.sha256(ids.encode()).hexdigest()[:8]
+        key, title = f"compare-{digest}", f"compare {settings.dataset}: {len(board)} runs"
+        search = f"attributes.run_id IN ({ids})"
+    mu.save_view(tracker.client, exp, key, title, mu.view_state(search, cols, order, mu.chart_title(horizon)))
+    links["runs table (saved view)"] = mu.view_url(uri, exp, key, ui_url)
+    links["charts of its model runs"] = mu.view_url(uri, exp, key, ui_url, charts=True)
+    return links

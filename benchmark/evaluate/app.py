@@ -1,0 +1,170 @@
+"""``skidbench evaluate``: the horizon benchmark as a Hydra app (config ``conf/evaluate.yaml``)."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from skidbench.pipeline.cli.main import stage
+
+log = logging.getLogger(__name__)
+
+
+INTERRUPTED = (
+    "its open MLflow runs are marked KILLED; what finished before stays, and `skidbench compare` ranks the "
+    "complete runs (re-run evaluate to complete the others)"
+)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="evaluate")
+@stage("evaluate", runs=True, interrupted=INTERRUPTED)
+def main(cfg: DictConfig) -> None:
+    from skidbench.benchmark.evaluate.failures import failure_summary
+    from skidbench.pipeline.core.errors import PartialFailure
+
+    result, _ = run(cfg)
+    if result is not None and result.failed and not _in_sweep():
+        raise PartialFailure(failure_summary(result))  # exit status 3 (pipeline/core/errors.py)
+
+
+def _in_sweep() -> bool:
+    """Is this a job of a Hydra multirun (``-m``)? Its failed runs do not stop the other jobs."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        return HydraConfig.get().mode == RunMode.MULTIRUN
+    except (ImportError, ValueError):
+        return False
+
+
+def run(cfg: DictConfig):
+    """The stage: skipped (the cached result) when its stamp is fresh and its parent run exists, else
+    :func:`run_benchmark`. Returns ``(result, skipped)``."""
+    from skidbench.benchmark.evaluate.console import format_result
+    from skidbench.benchmark.evaluate.evaluation import ProtocolSkipped, last_file
+    from skidbench.pipeline.core.cache import Stamp, stamp_file
+    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.protocol import protocol_from_cfg
+
+    layout = layout_from_cfg(cfg)
+    inputs = protocol_from_cfg(cfg)
+    # one stamp per input protocol: evaluating under another protocol does not stale this one
+    name = "evaluate.json" if inputs == "commanded" else f"evaluate.{inputs}.json"
+    stamp = Stamp(stamp_file(layout.root, "evaluate", name), "evaluate")
+    if not cfg.get("force", False) and stamp.is_fresh(_stamp_key(cfg, layout, stamp)):
+        cached = _cached_result(cfg, layout, stamp)
+        if cached is not None:
+            print(format_result(cached, _findings(layout, cached)), flush=True)
+            print(
+                f"evaluate: inputs unchanged (split files, fits, config) and parent run "
+                f"{cached.parent_run_id} exists; skipped (force=true re-runs)",
+                flush=True,
+            )
+            return cached, True
+    try:
+        result = benchmark(cfg)
+    except ProtocolSkipped as exc:  # e.g. inputs=response on data without wheel encoders: said, not failed
+        print(f"evaluate: {exc}", flush=True)
+        return None, True
+    print(format_result(result, _findings(layout, result)), flush=True)
+    if result.failed:
+        log.warning(
+            "%d of %d model run(s) FAILED (marked FAILED in MLflow with the reason)",
+            len(result.failed),
+            len(result.children),
+        )
+    else:  # the key is taken after the run: the fits it (re)wrote are part of it
+        stamp.record(_stamp_key(cfg, layout, stamp), [last_file(layout, inputs)])
+    return result, False
+
+
+def benchmark(cfg: DictConfig, fit_fn=None, log_figures: bool | None = None):
+    """:func:`~skidbench.benchmark.evaluate.evaluation.run_benchmark` with the config's settings
+    (:meth:`~skidbench.benchmark.evaluate.settings.EvaluateSettings.from_cfg`), never skipped."""
+    from skidbench.benchmark.evaluate.evaluation import run_benchmark
+    from skidbench.benchmark.evaluate.settings import EvaluateSettings
+
+    return run_benchmark(EvaluateSettings.from_cfg(cfg), fit_fn, log_figures)
+
+
+def _findings(layout, result) -> list[str]:
+    """What the fits behind the board found (a parameter at its bound), printed under it as compare does."""
+    from skidbench.models.registry.saved import board_findings
+
+    rows = [(c.model, c.terrain) for c in result.children if c.status == "FINISHED"]
+    return board_findings(layout, rows, result.inputs)
+
+
+def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
+    """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
+    each model's version and config."""
+    from skidbench.models.fitting.fit import ModelConfigs, model_config
+    from skidbench.models.registry.plugins import discover
+    from skidbench.models.registry.saved import arrays_file
+    from skidbench.pipeline.core.layout import split_terrains
+    from skidbench.pipeline.core.manifest import Manifest
+
+    # the current manifest's split files, fits and calibrations, never whatever else lies in the folders
+    manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
+    files = [p for p in layout.split_files(manifest) if p.is_file()]
+    terrains = split_terrains(manifest)
+    from skidbench.pipeline.core.protocol import protocol_from_cfg
+
+    inputs = protocol_from_cfg(cfg)
+    files += [layout.fit_file(str(m), t, inputs) for m in cfg.models for t in terrains]
+    files += [arrays_file(layout.fit_file(str(m), t, inputs)) for m in cfg.models for t in terrains]
+    files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
+    if "discovered" in [str(m) for m in cfg.models]:
+        files.append(layout.discovery / "discovery.json")
+    files = [p for p in files if p.is_file()]
+    conf = OmegaConf.to_container(cfg, resolve=True)
+    conf.pop("force", None)  # how to run, not what
+    # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
+    plugins = discover()
+    conf["model_versions"] = {
+        str(m): [getattr(info, "version", None), getattr(info, "package_version", None)]
+        for m in cfg.models
+        for info in [plugins.get(str(m).split("+")[0])]
+    }
+    # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
+    configs = ModelConfigs.from_cfg(cfg)
+    conf["model_configs"] = {str(m): model_config(configs, str(m)) for m in cfg.models}
+    return stamp.key(files, conf)
+
+
+def _cached_result(cfg: DictConfig, layout, stamp):
+    """The last result when its parent run still exists in the configured MLflow store, else None."""
+    from skidbench.benchmark.evaluate.evaluation import BenchmarkResult, ChildResult
+    from skidbench.benchmark.tracking import store as trk
+    from skidbench.benchmark.tracking import tags as run_tags
+
+    try:
+        from skidbench.benchmark.evaluate.evaluation import last_file
+        from skidbench.pipeline.core.protocol import protocol_from_cfg
+
+        last = json.loads(last_file(layout, protocol_from_cfg(cfg)).read_text())
+        tracker = trk.tracker_from_cfg(cfg, layout)
+        if last.get("tracking_uri") != tracker.uri:
+            return None
+        run = tracker.client.get_run(last["parent_run_id"])
+        if run.info.lifecycle_stage != "active" or run.info.experiment_id != tracker.experiment_id:
+            return None
+        if tracker.dataset_id and run.data.tags.get(run_tags.TAG_DATASET_ID) != tracker.dataset_id:
+            return None  # a run of another dataset at this name (source.replace=true), or an older one
+    except Exception as exc:  # no such run / store: evaluate again
+        log.info("evaluate: cached result not usable (%s); re-running", type(exc).__name__)
+        return None
+    children = [ChildResult(**c) for c in last.get("children", [])]
+    return BenchmarkResult(
+        last["tracking_uri"], last["experiment"], last["parent_run_id"], children,
+        last.get("inputs", "commanded"), list(last.get("skipped") or []),
+        {str(t): dict(m) for t, m in (last.get("floor") or {}).items()},  # every board shows the floor
+    )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

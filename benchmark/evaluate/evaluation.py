@@ -1,0 +1,574 @@
+"""The 6 s horizon benchmark (SPEC.md "Evaluation"): fit every model on each terrain's Train split,
+predict and score the CV and LD sequences (:mod:`skidbench.benchmark.scoring.predictions`, pure) and log
+every metric
+of :mod:`skidbench.benchmark.scoring.metrics` per model, terrain, split and horizon to MLflow
+(:mod:`skidbench.benchmark.tracking.store`).
+
+:func:`run_benchmark` is the stage without Hydra (its settings: benchmark/evaluate/settings.py);
+``evaluate_app.main`` is the CLI (``evaluate_app.benchmark``: the settings from the config). Data problems
+that make the benchmark meaningless (no splits, an empty test split, a horizon longer than every sequence) are
+raised as one-line :class:`EvaluationError` before any run is created; a model that fails to fit or
+predict gets its child run marked FAILED with the reason, and the others carry on.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.evaluate.failures import fail_run, kill_run
+from skidbench.benchmark.evaluate.fit_record import (
+    default_fit_fn,
+    fit_description,
+    fit_quality_metrics,
+    installed_models,
+    log_model,
+    model_code,
+    num,
+    options_tags,
+    plugin_package,
+)
+from skidbench.benchmark.evaluate.references import log_floor, seed_spread
+from skidbench.benchmark.evaluate.settings import EvaluateSettings
+from skidbench.benchmark.evaluate.testsets import (
+    TRAIN,
+    EvaluationData,
+    load_evaluation_data,
+    split_fingerprint,
+)
+from skidbench.benchmark.evaluate.transfer import training_layout
+from skidbench.benchmark.report.data import ReportDataSettings, write_report_data, write_wheel_response_steps
+from skidbench.benchmark.scoring import intervals as iv
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring.floor import FLOOR
+from skidbench.benchmark.scoring.horizon import HorizonConfig
+from skidbench.benchmark.scoring.predictions import Inputs, TestSequence, predict_and_score
+from skidbench.benchmark.tracking import mlflow_ui as mu
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.models.fitting.fit import FitSettings, model_config
+from skidbench.pipeline.core.errors import one_line
+from skidbench.pipeline.core.io import write_json_atomic, write_parquet_atomic
+from skidbench.pipeline.core.layout import Layout
+from skidbench.pipeline.core.schema import concat_sequences, read_split
+from skidbench.pipeline.runner import environment
+
+log = logging.getLogger(__name__)
+
+
+class ProtocolSkipped(EvaluationError):
+    """No terrain of the dataset can be driven by the input protocol (e.g. ``measured`` without encoders):
+    the protocol is skipped for the dataset, which is not an error of the run (``skidbench evaluate``
+    prints the line and exits 0)."""
+
+
+# -- the benchmark ----------------------------------------------------------------------------------
+@dataclass
+class ChildResult:
+    model: str
+    terrain: str
+    run_id: str
+    status: str
+    metrics: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+    inputs: str = "commanded"
+    traceback: str = ""  # where a FAILED run's traceback is (MLflow artifact, file, stage log)
+
+
+@dataclass
+class BenchmarkResult:
+    tracking_uri: str
+    experiment: str
+    parent_run_id: str
+    children: list[ChildResult]
+    inputs: str = "commanded"
+    skipped: list[str] = field(default_factory=list)  # one line per (terrain, split) the protocol skipped
+    floor: dict[str, dict[str, float]] = field(default_factory=dict)  # terrain -> the floor's metrics
+
+    @property
+    def failed(self) -> list[ChildResult]:
+        return [c for c in self.children if c.status != "FINISHED"]
+
+    def table(self) -> pd.DataFrame:
+        rows = [
+            {"model": c.model, "inputs": c.inputs, "terrain": c.terrain, "status": c.status, **c.metrics}
+            for c in self.children
+        ]
+        return pd.DataFrame(rows)
+
+
+def run_benchmark(
+    es: EvaluateSettings,
+    fit_fn: Callable[[FitSettings, str, str], Any] | None = None,
+    log_figures: bool | None = None,
+) -> BenchmarkResult:
+    """Fit, predict and score every (model, terrain); log to MLflow. ``fit_fn(settings, model, terrain)``
+    (``settings`` a :class:`FitSettings`) returns a FitResult-like object (``model``, ``path``, ``fit_loss``,
+    ``fit_time_s``, ``n_train``); default :func:`skidbench.models.fitting.fit.fit_model`. ``log_figures``:
+    None for the settings'."""
+    layout, models, terrains, splits, horizons = es.layout, es.models, es.terrains, es.splits, es.horizons
+    protocol = es.protocol
+    log_figures = es.log_figures if log_figures is None else log_figures
+    fit_fn = fit_fn or _checked_default_fit_fn(models)
+    # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags
+    # (benchmark/evaluate/transfer.py)
+    fit_fn, transfer_tags = training_layout(es.transfer, es.fit, fit_fn)
+
+    # 1. the data, checked before anything is logged
+    data = load_evaluation_data(layout, es.fit.calibrations, terrains, splits, horizons, protocol)
+    tests, files_of = data.tests, data.files_of
+    skipped, terrains = data.skipped, data.terrains
+    for line in skipped:
+        log.warning("%s", line)
+        print(line, flush=True)
+    if not terrains:
+        raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
+
+    # 2. the store (an unreachable server is one line, here)
+    tracker = es.store.open()
+    params = run_tags.config_params(es.conf)  # no model's config on the parent: each child logs its own
+    commit = environment.git_commit()
+    # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
+    env_tags = environment.run_tags()
+    common_tags = {run_tags.TAG_DATASET: es.dataset, **env_tags, run_tags.TAG_GIT: commit, **transfer_tags}
+    children: list[ChildResult] = []
+    from mlflow.exceptions import MlflowException
+
+    from skidbench.benchmark.tracking.sweep import run_key
+
+    job_key = run_key()
+    try:
+        done = tracker.claim_key(job_key) if job_key else None
+        if done:  # a retried job whose earlier attempt finished: its runs are the result
+            return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
+                                                       _logged_children(tracker, done), protocol,
+                                                       skipped))  # fmt: skip
+        about = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
+        parent_tags = {
+            **common_tags,
+            **({run_tags.TAG_RUN_KEY: job_key} if job_key else {}),
+            run_tags.TAG_ROLE: "parent",
+            run_tags.TAG_FINGERPRINT: split_fingerprint(sum(files_of.values(), []), layout.splits),
+            run_tags.TAG_INPUTS: protocol,
+            "skidbench.models": ",".join(models),
+            "skidbench.terrains": ",".join(terrains),
+            run_tags.TAG_NOTE: about,
+        }
+        name = tracker.unique_run_name(run_tags.parent_run_name("evaluate", es.dataset, protocol))
+        with tracker.run(name, parent_tags) as parent_id:
+            tracker.log(parent_id, params=params)
+            if skipped:
+                tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
+            datasets_of = {t: _split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
+            tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
+            ctx = ChildContext(es.inputs_text, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
+                               fit_fn, es.fit, es.conf, common_tags, log_figures, es.intervals,
+                               es.seeds)  # fmt: skip
+            floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
+            _log_board(ctx, children, splits, protocol, about)
+            save_views(tracker, parent_id, splits, horizons, protocol)
+    except MlflowException as exc:
+        raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
+    return _write_last(
+        layout,
+        BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped, floor),
+    )
+
+
+def _run_terrains(
+    ctx: ChildContext, models: list[str], data: EvaluationData, datasets_of: dict, protocol: str,
+    children: list[ChildResult],
+) -> dict[str, dict[str, float]]:  # fmt: skip
+    """Every terrain's references (wheel-response steps, the floor) and every model's child run on it
+    (appended to ``children``, as they finish); returns the floor's metrics per terrain."""
+    floor: dict[str, dict[str, float]] = {}
+    for terrain in data.terrains:
+        td = TerrainData(terrain, data.tests[terrain], data.inputs_of[terrain], datasets_of[terrain],
+                         split_fingerprint(data.files_of[terrain], ctx.layout.splits))  # fmt: skip
+        floor[terrain] = _log_terrain_references(ctx, td, protocol)
+        children += [_run_child(ctx, model_name, td) for model_name in models]
+    return floor
+
+
+def _checked_default_fit_fn(models: list[str]) -> Callable[[Any, str, str], Any]:
+    """The default fit function, once every model named is installed (an augmented spec
+    ``base+effect+...``: a known base and known effects); EvaluationError (one line) otherwise."""
+    from skidbench.models.registry.plugins import is_model_spec
+    from skidbench.models.registry.specs import get_model_class
+
+    known = installed_models()
+    for m in models:
+        if "+" in m:
+            get_model_class(m)
+    unknown = [m for m in models if known and m not in known and not is_model_spec(m)]
+    if unknown:
+        raise EvaluationError(
+            f"unknown model(s) {unknown}; installed: {sorted(known)} (`skidbench models` lists them)"
+        )
+    return default_fit_fn()
+
+
+def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -> dict[str, float]:
+    """What the parent run holds of a terrain beside its models' runs: the wheel response's steps (report
+    data) and the floor (the ground truth's own velocities); returns the floor's metrics."""
+    steps = write_wheel_response_steps(ctx.fit.calibrations, ctx.layout, td.terrain)
+    ctx.tracker.artifact(ctx.parent_id, steps, "report_data")
+    stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
+    return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
+                     ctx.intervals, protocol)  # fmt: skip
+
+
+def _log_board(
+    ctx: ChildContext, children: list[ChildResult], splits: list[str], protocol: str, about: str
+) -> None:
+    """The parent run's leaderboard metrics, run counts, status and note (the board, then ``about``)."""
+    n_failed = sum(c.status != "FINISHED" for c in children)
+    rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
+    board, board_metrics = mu.evaluate_leaderboard(rows, splits, ctx.horizons[0], protocol)
+    ctx.tracker.log(
+        ctx.parent_id,
+        metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
+        tags={
+            run_tags.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED",
+            run_tags.TAG_NOTE: board + about,
+        },
+    )
+
+
+def last_file(layout: Layout, protocol: str = "commanded") -> Path:
+    """``eval/last_evaluate[.<protocol>].json``: the last result under a protocol."""
+    return layout.eval / (
+        "last_evaluate.json" if protocol == "commanded" else f"last_evaluate.{protocol}.json"
+    )
+
+
+def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
+    write_json_atomic(
+        last_file(layout, result.inputs),
+        {
+            "tracking_uri": result.tracking_uri,
+            "experiment": result.experiment,
+            "parent_run_id": result.parent_run_id,
+            "inputs": result.inputs,
+            "skipped": result.skipped,
+            "children": [c.__dict__ for c in result.children],
+            "floor": result.floor,
+        },
+    )
+    return result
+
+
+def _logged_children(tracker, parent_id: str) -> list[ChildResult]:
+    """The child runs of a finished parent run, as results (a retried job that had already finished)."""
+    runs = tracker.client.search_runs(
+        [tracker.experiment_id],
+        filter_string=f"tags.`{run_tags.TAG_PARENT}` = '{parent_id}'",
+        max_results=10000,
+    )
+    return [
+        ChildResult(
+            r.data.tags.get(run_tags.TAG_MODEL, "?"),
+            r.data.tags.get(run_tags.TAG_TERRAIN, "?"),
+            r.info.run_id,
+            r.info.status,
+            dict(r.data.metrics),
+            r.data.tags.get(run_tags.TAG_REASON, ""),
+            r.data.tags.get(run_tags.TAG_INPUTS, "commanded"),
+        )
+        for r in sorted(runs, key=lambda r: r.info.start_time)
+    ]
+
+
+# -- one child run: a model on a terrain ------------------------------------------------------------
+@dataclass(frozen=True)
+class ChildContext:
+    """What every child run of one evaluate parent run shares: the config (and its plain-container form
+    ``conf`` the params are logged from), the store, the parent run, the output layout, the horizons and
+    window thresholds, the fit function, the tags every child carries and whether to draw figures."""
+
+    inputs_text: str  # ``inputs`` as the config spells it
+    report_data: ReportDataSettings
+    tracker: Any
+    parent_id: str
+    layout: Layout
+    horizons: Sequence[float]
+    hcfg: HorizonConfig
+    fit_fn: Callable[[FitSettings, str, str], Any]
+    fit: FitSettings  # what fit_fn is called with
+    conf: dict[str, Any]
+    tags: dict[str, str]
+    log_figures: bool
+    intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
+    seeds: int = 1  # fits of a model with random parts (evaluate's ``seeds``)
+
+
+@dataclass(frozen=True)
+class TerrainData:
+    """What every model of one terrain is scored on: the test sequences per split, the inputs that drive
+    the models, the splits as MLflow dataset inputs and the fingerprint of the terrain's split files."""
+
+    terrain: str
+    tests: dict[str, list[TestSequence]]
+    inputs: Inputs = field(default_factory=Inputs)
+    datasets: Sequence[trk.SplitData] = ()
+    fingerprint: str = ""
+
+
+class _Stage:
+    """The step a child run is at; a failure's reason reads ``"<stage> failed: <Type>: <message>"``."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __call__(self, name: str) -> None:
+        self.name = name
+
+
+def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResult:
+    """Fit ``model_name`` on ``td.terrain``'s Train split, score it on every test split and log it all to
+    one child run; an exception of the model (fit, predict, scoring, its outputs) ends that run FAILED with
+    the reason and its traceback (benchmark/evaluate/failures.py) and the benchmark carries on (an MLflow
+    store
+    error does not; an interrupt ends the run KILLED and stops the benchmark)."""
+    protocol = td.inputs.protocol
+    run_id = _start_child(ctx, model_name, td)
+    stage = _Stage("fit")
+    stem = ctx.layout.eval_stem(model_name, td.terrain, protocol)
+    try:
+        fit = _fit_and_log(ctx, run_id, model_name, td, stem)
+        stage("logging the model")
+        record_path = stem.with_name(stem.name + ".mlflow_model.json")
+        log_model(ctx.inputs_text, ctx.tracker, run_id, fit, model_name, td.terrain,
+                  record_path, next(iter(td.tests.values()))[0])  # fmt: skip
+        stage("predict")
+        metrics, windows, velocities = predict_and_score(
+            fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
+        )
+        if ctx.seeds > 1 and "seed" in (getattr(fit.model, "options", None) or {}):  # random parts
+            stage("other seeds")
+            from skidbench.models.fitting.fit import refit_of
+
+            refit = refit_of(ctx.fit, model_name, td.terrain)
+            spread = seed_spread(
+                refit, fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, ctx.seeds, metrics
+            )
+            metrics.update(spread)
+        stage("logging")
+        _log_windows(ctx, run_id, model_name, td, stem, windows)
+        stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
+        _log_report_data(ctx, run_id, model_name, td, stem, fit.model, windows, velocities)
+        _finish_child(ctx.tracker, run_id, metrics)
+        log.info("%s/%s: %s", model_name, td.terrain, _brief(metrics))
+        return ChildResult(model_name, td.terrain, run_id, "FINISHED", metrics, inputs=protocol)
+    except KeyboardInterrupt:
+        kill_run(ctx.tracker, run_id)
+        raise
+    except Exception as exc:
+        from mlflow.exceptions import MlflowException
+
+        if isinstance(exc, MlflowException):
+            raise
+        reason, where = fail_run(ctx.tracker, run_id, stem, f"{model_name}/{td.terrain}", stage.name, exc)
+        return ChildResult(model_name, td.terrain, run_id, "FAILED", reason=reason, inputs=protocol,
+                           traceback=where)  # fmt: skip
+
+
+def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
+    """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
+    protocol = td.inputs.protocol
+    model_conf = model_config(ctx.fit.models, model_name)
+    run_id = ctx.tracker.start(
+        f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
+        {
+            **ctx.tags,
+            run_tags.TAG_FINGERPRINT: td.fingerprint,
+            run_tags.TAG_ROLE: "child",
+            run_tags.TAG_MODEL: model_name,
+            run_tags.TAG_TERRAIN: td.terrain,
+            run_tags.TAG_INPUTS: protocol,
+            **options_tags(ctx.conf, model_conf, protocol),
+            run_tags.TAG_NOTE: _describe(
+                ctx.layout, ctx.inputs_text, [model_name], [td.terrain], list(td.tests), ctx.horizons
+            ),
+        },
+        ctx.parent_id,
+    )
+    params = run_tags.config_params(ctx.conf, model_conf)  # this model's config only
+    ctx.tracker.log(run_id, params={**params, "model": model_name, "terrain": td.terrain, "inputs": protocol})
+    ctx.tracker.log_datasets(run_id, td.datasets)
+    return run_id
+
+
+def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path) -> Any:
+    """Fits the model (``ctx.fit_fn``) and logs what the fit is: its loss, time and size, the model's
+    version and package, its fit diagnostics, the parameters of :func:`fit_description`, and the fitted
+    model's files (``<stem>.params.json``, a learned model's ``<stem>.arrays.npz``). Returns the fit."""
+    tracker = ctx.tracker
+    fit = ctx.fit_fn(ctx.fit, model_name, td.terrain)
+    model = fit.model
+    tracker.log(
+        run_id,
+        metrics={
+            "fit_loss": num(getattr(fit, "fit_loss", None)),
+            "fit_time_s": num(getattr(fit, "fit_time_s", None)),
+            "n_train": num(getattr(fit, "n_train", None)),
+        },
+        tags={
+            run_tags.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
+            run_tags.TAG_PLUGIN: plugin_package(model_name, model),
+            **environment.code_tags(model_code(model_name, model)),
+        },
+    )
+    bound_metrics = fit_quality_metrics(fit)
+    if bound_metrics:
+        tracker.log(run_id, metrics=bound_metrics)
+    described = fit_description(fit, td.inputs.response)
+    if described:
+        tracker.log(run_id, params=described)
+    params_json = stem.with_name(stem.name + ".params.json")
+    write_json_atomic(params_json, model.to_json())
+    tracker.artifact(run_id, params_json, "fit")
+    arrays = dict(getattr(model, "arrays", None) or {})
+    if arrays:  # a learned model's fitted arrays, as the fit stage saved them
+        from skidbench.models.registry.saved import save_arrays
+
+        arrays_npz = stem.with_name(stem.name + ".arrays.npz")
+        save_arrays(arrays_npz, arrays)
+        tracker.artifact(run_id, arrays_npz, "fit")
+    return fit
+
+
+def _log_windows(
+    ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path, windows: pd.DataFrame
+) -> None:
+    """Writes the per-window table ``<stem>.windows.parquet`` (what compare reads) and logs it."""
+    win_path = stem.with_name(stem.name + ".windows.parquet")
+    write_parquet_atomic(
+        pa.Table.from_pandas(windows, preserve_index=False),
+        win_path,
+        {
+            "model": model_name,
+            "terrain": td.terrain,
+            "horizons": list(ctx.horizons),
+            "run_id": run_id,
+            "inputs": td.inputs.protocol,
+        },  # fmt: skip
+    )
+    ctx.tracker.artifact(run_id, win_path, "windows")
+
+
+def _log_report_data(
+    ctx: ChildContext,
+    run_id: str,
+    model_name: str,
+    td: TerrainData,
+    stem: Path,
+    model: Any,
+    windows: pd.DataFrame,
+    velocities: dict[str, list[np.ndarray]],
+) -> None:
+    """Writes and logs what compare draws from this model beyond the metrics (report_data.py), and the
+    window-error figure when figures are logged and there is a window."""
+    settings = ctx.report_data
+    for p in write_report_data(settings, ctx.layout, stem, model, td.terrain, td.tests, velocities,
+                               ctx.horizons[0]):  # fmt: skip
+        ctx.tracker.artifact(run_id, p, "report_data")
+    if ctx.log_figures and len(windows):
+        from skidbench.benchmark.report.figures import (
+            window_error_figure,  # matplotlib: imported only when a figure is drawn
+        )
+
+        fig_path = stem.with_name(stem.name + ".errors.png")
+        window_error_figure(windows, f"{model_name} on {td.terrain} (inputs={td.inputs.protocol})", fig_path)
+        ctx.tracker.artifact(run_id, fig_path, "figures")
+
+
+def _finish_child(tracker, run_id: str, metrics: dict[str, float]) -> None:
+    """Logs the metrics, the status tag (and a warning when a split/horizon had no window) and ends the
+    run FINISHED."""
+    nan_metrics = [k for k, v in metrics.items() if not np.isfinite(v) and _over_some_windows(k)]
+    tracker.log(
+        run_id,
+        metrics=metrics,
+        tags={
+            run_tags.TAG_STATUS: "FINISHED",
+            **(
+                {"skidbench.warning": f"no window over the minimum distance/rotation for {nan_metrics}"}
+                if nan_metrics
+                else {}
+            ),
+        },
+    )
+    tracker.end(run_id, "FINISHED")
+
+
+def _over_some_windows(key: str) -> bool:
+    """Is ``key`` a metric over only some windows (over the minimum distance or rotation)?"""
+    parsed = mt.parse_key(key)
+    return parsed is not None and parsed[0].windows != mt.ALL_WINDOWS
+
+
+# -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
+def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -> str:
+    """The description of an evaluate run (parent: every model and terrain; child: one of each)."""
+    one = len(models) == 1 and len(terrains) == 1
+    cmd = run_tags.reproduce_command(
+        "evaluate", [f"models=[{','.join(models)}]", f"terrains=[{','.join(terrains)}]"] if one else [],
+        drop=("force",),
+    )  # fmt: skip
+    if one:
+        cmd = run_tags.reproduce_command("fit", [f"model={models[0]}", f"terrain={terrains[0]}"],
+                                    drop=("models", "terrains", "force")) + "\n" + cmd  # fmt: skip
+    title = (f"**{models[0]}** on **{terrains[0]}**, fitted on Train, scored on {'/'.join(splits).upper()}"
+             if one else f"Benchmark of {len(models)} models on {len(terrains)} terrains")  # fmt: skip
+    facts = {
+        "dataset": f"`{layout.dataset}` ({layout.root})",
+        "input protocol": f"`{inputs}` (what a model is given at predict time)",
+        "horizon": ", ".join(f"{h:g} s" for h in horizons),
+        "models": None if one else ", ".join(models),
+        "terrains": None if one else ", ".join(terrains),
+        "metrics": mt.describe() + "; lower is better",
+    }
+    return run_tags.describe(title, facts, cmd)
+
+
+def _split_inputs(layout: Layout, terrain, files, tests) -> list[trk.SplitData]:
+    """The Train split and the test splits of one terrain as MLflow dataset inputs."""
+    out = []
+    for split in [TRAIN, *tests]:
+        fs = [p for p in files if p.parent.name == split]
+        tables = (
+            [(s.table, {"sequence": s.name}) for s in tests[split]]
+            if split in tests
+            else [read_split(p) for p in fs]
+        )
+        name = f"{layout.dataset}/{terrain}/{split}"
+        out.append(trk.SplitData(name, split, layout.splits / terrain / split,
+                                 split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
+    return out
+
+
+def save_views(tracker, parent_id: str, splits, horizons, protocol: str) -> list[str]:
+    """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs with the
+    columns of :func:`mlflow_ui.board_columns`, best LD translational first. Returns their keys."""
+    cols, _ = mu.board_columns(splits, horizons[0])
+    name = tracker.client.get_run(parent_id).info.run_name
+    return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol,
+                                  horizons[0])  # fmt: skip
+
+
+def _brief(metrics: dict[str, float]) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if _headline(k))
+
+
+def _headline(key: str) -> bool:
+    parsed = mt.parse_key(key)
+    return parsed is not None and parsed[0].headline

@@ -1,0 +1,87 @@
+"""The rows evaluate logs beside a model's own scores (docs/intervals.md): the floor of each terrain (the
+ground truth's own velocities through the same windows, :mod:`skidbench.benchmark.scoring.floor`) and the
+spread
+of a model with random parts over several seeds (``evaluate seeds=N``)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring.floor import FLOOR, floor_windows
+from skidbench.benchmark.scoring.horizon import HorizonConfig
+from skidbench.benchmark.scoring.intervals import IntervalConfig
+from skidbench.benchmark.scoring.predictions import Inputs, TestSequence, predict_and_score, summarise
+from skidbench.pipeline.core.io import write_parquet_atomic
+
+
+def log_floor(
+    tracker: Any,
+    parent_id: str,
+    stem: Path,
+    terrain: str,
+    tests: Mapping[str, Sequence[TestSequence]],
+    horizons: Sequence[float],
+    hcfg: HorizonConfig,
+    intervals: IntervalConfig,
+    protocol: str,
+) -> dict[str, float]:
+    """The floor of one terrain, scored as a model is (every metric and its interval): its windows written
+    next to the models' (``<stem>.windows.parquet``, ``<ds>/eval/floor/<terrain>[.<inputs>]``: what
+    compare reads) and its metrics logged on the parent run as ``floor.<terrain>.<metric>``. Not a child
+    run: it is never ranked. Returns the metrics."""
+    frames, metrics = [], {}
+    for split, seqs in tests.items():
+        w = floor_windows([(s.name, s.table) for s in seqs], horizons, hcfg)
+        if len(w):
+            w.insert(0, "split", split)
+            frames.append(w)
+        metrics.update(summarise(w, split, horizons, intervals))
+    windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    path = stem.with_name(stem.name + ".windows.parquet")
+    write_parquet_atomic(pa.Table.from_pandas(windows, preserve_index=False), path,
+                         {"model": FLOOR, "terrain": terrain, "horizons": list(horizons),
+                          "inputs": protocol})  # fmt: skip
+    tracker.artifact(parent_id, path, "floor")
+    finite = {k: v for k, v in metrics.items() if np.isfinite(v)}
+    tracker.log(parent_id, metrics={f"{FLOOR}.{terrain}.{k}": v for k, v in finite.items()})
+    return metrics
+
+
+def seed_spread(
+    refit: Any,
+    model: Any,
+    tests: Mapping[str, Sequence[TestSequence]],
+    horizons: Sequence[float],
+    hcfg: HorizonConfig,
+    inputs: Inputs,
+    seeds: int,
+    metrics: Mapping[str, float],
+) -> dict[str, float]:
+    """A model with random parts (a ``seed`` option) fitted with ``seeds - 1`` more seeds (its seed + 1,
+    + 2, ...; ``refit.fit(seed)``: models/fitting/fit.py ``Refit``) and scored on the same windows: per metric
+    with an interval, ``<key>_seed_sd`` (the standard deviation over the seeds, the configured one's
+    included), ``<key>_seed_min``, ``<key>_seed_max``, and ``n_seeds``. The other seeds' fits are not
+    saved: they cost a fit each, every evaluate (docs/intervals.md, "Seeds")."""
+    keys = [m.metric_key(sp, h) for h in horizons for sp in tests for m in mt.METRICS
+            if m.bootstrap is not None and m.metric_key(sp, h) in metrics]  # fmt: skip
+    values = {k: [metrics[k]] for k in keys}
+    base = int(model.options["seed"])
+    for k in range(1, seeds):
+        got, _, _ = predict_and_score(refit.fit(base + k), tests, horizons, hcfg, inputs, intervals=None)
+        for key in keys:
+            values[key].append(got.get(key, np.nan))
+    out: dict[str, float] = {"n_seeds": float(seeds)}
+    for key, v in values.items():
+        arr = np.asarray(v, dtype=float)
+        if np.isfinite(arr).sum() >= 2:
+            out[f"{key}_seed_sd"] = round(float(np.nanstd(arr, ddof=1)), 4)
+            out[f"{key}_seed_min"], out[f"{key}_seed_max"] = float(np.nanmin(arr)), float(np.nanmax(arr))
+    return out

@@ -1,0 +1,1 @@
+"""A released benchmark: ``export`` / ``import`` bundles, ``score`` a predictions file, ``publish`` a page."""

@@ -1,0 +1,441 @@
+"""``skidbench score <dataset> --predictions <file>``: a model from anywhere, scored from a file.
+
+The contract is a file, not a Python class. A model (C++, PyTorch, MATLAB, ...) is run on the input
+tables ``skidbench export`` writes for a protocol (``inputs/<protocol>/<terrain>/<cv|ld>/<seq>.parquet``:
+pipeline/core/protocol.py ``model_inputs``, inputs only) and writes ONE Parquet or CSV file with a row per
+input row of every CV and LD sequence:
+
+    sequence, t, vx, vy, wz            body velocities (m/s, m/s, rad/s) at the row's time t (s)
+    [cov_vx_vx, cov_vx_vy, cov_vx_wz, cov_vy_vy, cov_vy_wz, cov_wz_wz]   optional: the predictive
+                                        covariance of (vx, vy, wz), all six or none
+
+The file is checked against the dataset's splits before anything is logged, each problem one line naming
+the file and the sequence: a test sequence without rows, a sequence the splits do not have, a missing
+column, a NaN or infinite value, a row count or times that differ from the split's (a shifted clock is
+named as such). Rows may come in any order (they are sorted by time within a sequence).
+
+Then every window is scored by the same machinery as ``evaluate`` (benchmark/evaluate/evaluation.py
+``score_split``/``summarise``: the same horizons, minimum distance and rotation, read from the latest
+evaluate of the protocol, else from the imported bundle, else evaluate's defaults) and logged to MLflow as
+one child run per terrain of that evaluate (``skidbench.external=true``, the file's sha256 in
+``skidbench.predictions_sha256``, model version ``external``), so ``compare`` ranks it on the same board.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+from dataclasses import dataclass, field
+from importlib.resources import files
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.evaluate.testsets import (
+    TRAIN,
+    check_horizons,
+    find_terrains,
+    load_test_split,
+    split_files,
+    split_fingerprint,
+)
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring.horizon import HorizonConfig
+from skidbench.benchmark.scoring.predictions import TestSequence, score_split, summarise
+from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.pipeline.core.errors import SkidbenchError, one_line
+from skidbench.pipeline.core.io import write_parquet_atomic
+from skidbench.pipeline.core.layout import Layout
+from skidbench.pipeline.core.protocol import check_protocol
+from skidbench.pipeline.runner import environment
+
+log = logging.getLogger(__name__)
+
+PRED_COLUMNS = ("sequence", "t", "vx", "vy", "wz")
+COV_COLUMNS = ("cov_vx_vx", "cov_vx_vy", "cov_vx_wz", "cov_vy_vy", "cov_vy_wz", "cov_wz_wz")
+#: |t - t_split| allowed (s): a clock written with 6 decimals still matches; a one-sample shift does not
+T_TOL = 1e-6
+EXTERNAL_VERSION = "external"
+
+
+class PredictionsError(SkidbenchError):
+    """A predictions file that cannot be scored (format, columns, rows, values, times)."""
+
+
+# -- reading and checking the file --------------------------------------------------------------------
+def sha256_of(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
+
+
+def read_predictions(path: Path) -> pd.DataFrame:
+    """The predictions table of a ``.parquet`` or ``.csv`` (``.csv.gz``) file, columns checked."""
+    path = Path(path)
+    if not path.is_file():
+        raise PredictionsError(f"{path}: no such file")
+    name = path.name.lower()
+    try:
+        if name.endswith((".parquet", ".pq")):
+            df = pd.read_parquet(path)
+        elif name.endswith((".csv", ".csv.gz")):
+            df = pd.read_csv(path)
+        else:
+            raise PredictionsError(f"{path}: not a .parquet or .csv file")
+    except PredictionsError:
+        raise
+    except Exception as exc:  # pyarrow / the CSV parser: the file is not what it says
+        raise PredictionsError(
+            f"{path}: unreadable ({type(exc).__name__}: {one_line(str(exc))[:200]})"
+        ) from None
+    missing = [c for c in PRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise PredictionsError(
+            f"{path}: missing column(s) {missing}; a predictions file has {', '.join(PRED_COLUMNS)} "
+            f"(and optionally {', '.join(COV_COLUMNS)})"
+        )
+    cov = [c for c in COV_COLUMNS if c in df.columns]
+    if cov and len(cov) != len(COV_COLUMNS):
+        raise PredictionsError(
+            f"{path}: covariance column(s) {sorted(set(COV_COLUMNS) - set(cov))} missing; give all six "
+            f"({', '.join(COV_COLUMNS)}) or none"
+        )
+    for c in ("t", "vx", "vy", "wz", *cov):
+        if not pd.api.types.is_numeric_dtype(df[c]):
+            raise PredictionsError(f"{path}: column {c} is not numeric (first value {df[c].iloc[0]!r})")
+    df = df.assign(sequence=df["sequence"].astype(str))
+    return df
+
+
+def _clock(t: np.ndarray) -> str:
+    if len(t) < 2:
+        return f"t {t[0]:.4g} s" if len(t) else "no rows"
+    return f"t from {t[0]:.4g} to {t[-1]:.4g} s every {np.median(np.diff(t)):.4g} s"
+
+
+def check_sequence(path: Path, seq: TestSequence, rows: pd.DataFrame) -> tuple[np.ndarray, np.ndarray | None]:
+    """(T, 3) velocities (and (T, 3, 3) covariances or None) of one test sequence's rows, aligned with its
+    split; PredictionsError (one line) for a row count, a clock or a value that is not the split's."""
+    rows = rows.sort_values("t", kind="stable")
+    t = rows["t"].to_numpy(float)
+    want = seq.table["t"].to_numpy(float)
+    where = f"{path}: sequence {seq.name}"
+    if len(t) != len(want):
+        raise PredictionsError(
+            f"{where}: {len(t)} rows, its split has {len(want)} ({_clock(want)}); one prediction per input "
+            "row"
+        )
+    if not np.all(np.isfinite(t)):
+        raise PredictionsError(f"{where}: {int(np.sum(~np.isfinite(t)))} non-finite value(s) in t")
+    diff = t - want
+    if np.any(np.abs(diff) > T_TOL):
+        k = int(np.argmax(np.abs(diff) > T_TOL))
+        shift = float(np.median(diff))
+        if np.allclose(diff, shift, atol=T_TOL):
+            raise PredictionsError(
+                f"{where}: times shifted by {shift:+.6g} s against its split (first row t={t[0]:.6g} s, the "
+                f"split's {want[0]:.6g} s); predict at the input table's own times"
+            )
+        raise PredictionsError(
+            f"{where}: row {k} has t={t[k]:.6g} s, its split {want[k]:.6g} s ({_clock(want)}); predict at "
+            "the input table's own times"
+        )
+    vel = rows[["vx", "vy", "wz"]].to_numpy(float)
+    cov = None
+    cols = ["vx", "vy", "wz"]
+    if COV_COLUMNS[0] in rows:
+        cols += list(COV_COLUMNS)
+    values = rows[cols].to_numpy(float)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        j = int(np.argmax(bad.any(axis=0)))
+        i = int(np.argmax(bad[:, j]))
+        raise PredictionsError(
+            f"{where}: {int(bad[:, j].sum())} NaN or infinite value(s) in {cols[j]} (first at t={t[i]:.6g} s)"
+        )
+    if COV_COLUMNS[0] in rows:
+        c = rows[list(COV_COLUMNS)].to_numpy(float)
+        cov = np.empty((len(c), 3, 3))
+        idx = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        for j, (a, b) in enumerate(idx):
+            cov[:, a, b] = cov[:, b, a] = c[:, j]
+        neg = np.flatnonzero((c[:, [0, 3, 5]] < 0).any(axis=1))
+        if len(neg):
+            raise PredictionsError(f"{where}: a negative variance at t={t[neg[0]]:.6g} s")
+    return vel, cov
+
+
+def align(
+    path: Path, preds: pd.DataFrame, tests: dict[str, dict[str, list[TestSequence]]]
+) -> dict[str, dict[str, tuple[list[np.ndarray], list[np.ndarray] | None]]]:
+    """Per terrain and test split: the per-sequence velocities (and covariances) of the file, in the
+    splits' order; PredictionsError for a missing or an unknown sequence or a bad sequence's rows."""
+    groups = {str(k): g for k, g in preds.groupby("sequence", sort=False)}
+    wanted = {
+        s.name: (terrain, split) for terrain, sp in tests.items() for split, seqs in sp.items() for s in seqs
+    }
+    unknown = [s for s in groups if s not in wanted]
+    if unknown:
+        raise PredictionsError(
+            f"{path}: sequence {unknown[0]!r} is not a test sequence of this dataset"
+            f"{f' (and {len(unknown) - 1} more)' if len(unknown) > 1 else ''}; its test sequences: "
+            f"{', '.join(sorted(wanted)[:8])}{' ...' if len(wanted) > 8 else ''}"
+        )
+    out: dict[str, dict[str, tuple[list[np.ndarray], list[np.ndarray] | None]]] = {}
+    for terrain, sp in tests.items():
+        for split, seqs in sp.items():
+            vels, covs = [], []
+            for s in seqs:
+                if s.name not in groups:
+                    raise PredictionsError(
+                        f"{path}: no rows for sequence {s.name} ({terrain} {split.upper()}); every "
+                        f"{split.upper()} "
+                        f"sequence of the protocol needs its predictions"
+                    )
+                v, c = check_sequence(path, s, groups[s.name])
+                vels.append(v)
+                covs.append(c)
+            has_cov = all(c is not None for c in covs)
+            out.setdefault(terrain, {})[split] = (vels, covs if has_cov else None)
+    return out
+
+
+# -- the settings every row of the board is scored with -----------------------------------------------
+def evaluate_defaults() -> dict[str, Any]:
+    """``splits``, ``horizons``, ``min_distance_m``, ``min_rotation_deg`` of the packaged evaluate.yaml."""
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.create((files("skidbench.conf") / "evaluate.yaml").read_text())
+    return {k: OmegaConf.to_container(conf, resolve=False)[k]
+            for k in ("splits", "horizons", "min_distance_m", "min_rotation_deg")}  # fmt: skip
+
+
+def board_settings(tracker: trk.Tracker, protocol: str, root: Path) -> tuple[dict[str, Any], str | None, str]:
+    """The settings to score with, the parent run to hang the rows from (None: start one) and where
+    the settings come from: the latest evaluate of ``protocol``, else the imported bundle's board, else
+    evaluate's defaults."""
+    settings = evaluate_defaults()
+    parent = tracker.latest_parent(protocol)
+    if parent is not None:
+        got = brd.parent_settings(tracker, parent)
+        settings.update({k: v for k, v in got.items() if k in settings})
+        return settings, parent, f"the latest evaluate under inputs={protocol} (run {parent})"
+    from skidbench.benchmark.release.bundle import read_bundle_doc
+
+    doc = read_bundle_doc(Path(root) / "bundle")
+    if doc:
+        metric = doc.get("metric") or {}
+        settings.update({k: metric[k] for k in settings if metric.get(k) is not None})
+        return settings, None, "the imported bundle's board"
+    return settings, None, "evaluate's defaults (no evaluate run yet)"
+
+
+# -- scoring and logging ------------------------------------------------------------------------------
+@dataclass
+class ScoreResult:
+    name: str
+    protocol: str
+    sha256: str
+    parent_run_id: str
+    rows: list[dict[str, Any]] = field(default_factory=list)  # per terrain: run_id and metrics
+    settings_from: str = ""
+    horizon: float = 6.0  # the first horizon scored (the board's)
+
+
+def default_name(path: Path) -> str:
+    stem = Path(path).name.split(".")[0]
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("_") or "external"
+
+
+def check_name(name: str) -> str:
+    """``name`` for the board; PredictionsError when it is an installed model's (whose row it would
+    replace) or not a plain name."""
+    from skidbench.benchmark.evaluate.fit_record import installed_models
+
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
+        raise PredictionsError(f"score.name={name!r}: use letters, digits, '_', '.', '-'")
+    if name in installed_models():
+        raise PredictionsError(
+            f"score.name={name}: the name of an installed model, whose row it would replace on the board; "
+            "give "
+            f"the external row its own name (e.g. score.name={name}_external)"
+        )
+    return name
+
+
+def score_predictions(
+    layout: Layout,
+    tracker: trk.Tracker,
+    path: Path,
+    name: str | None = None,
+    protocol: str = "commanded",
+) -> ScoreResult:
+    """Checks the predictions file against the splits, scores every window and logs one external child
+    run per terrain (module docstring). Nothing is logged when the file fails a check."""
+    path = Path(path).expanduser().absolute()
+    protocol = check_protocol(protocol)
+    name = check_name(name or default_name(path))
+    settings, parent, source = board_settings(tracker, protocol, layout.root)
+    splits = [str(s) for s in settings["splits"]]
+    horizons = [float(h) for h in settings["horizons"]]
+    hcfg = HorizonConfig(
+        horizons[0], float(settings["min_distance_m"]), float(np.deg2rad(float(settings["min_rotation_deg"])))
+    )
+    # 1. the splits and the file, checked before anything is logged
+    terrains = find_terrains(layout)
+    tests: dict[str, dict[str, list[TestSequence]]] = {}
+    files_of: dict[str, list[Path]] = {}
+    for terrain in terrains:
+        tests[terrain] = {}
+        files: list[Path] = []
+        for split in splits:
+            seqs = load_test_split(layout, terrain, split)
+            check_horizons(terrain, split, seqs, horizons)
+            tests[terrain][split] = [
+                s for s in seqs if len(s.table)
+            ]  # an empty sequence has no rows to predict
+            files.extend(s.path for s in seqs)
+        # the files evaluate fingerprints for a terrain (its child runs' tag): compare matches the rows by it
+        files_of[terrain] = split_files(layout, terrain, TRAIN) + files
+    preds = read_predictions(path)
+    aligned = align(path, preds, tests)
+    digest = sha256_of(path)
+    # 2. every window scored (the same functions as evaluate), then logged
+    scored = {}
+    for terrain in terrains:
+        metrics: dict[str, float] = {}
+        frames = []
+        for split in splits:
+            vels, covs = aligned[terrain][split]
+            w = score_split(tests[terrain][split], vels, horizons, hcfg, covs, None)
+            if len(w):
+                w.insert(0, "split", split)
+                frames.append(w)
+            metrics.update(summarise(w, split, horizons))
+        scored[terrain] = (metrics, pd.concat(frames, ignore_index=True) if frames else pd.DataFrame())
+    return _log(layout, tracker, path, name, protocol, digest, settings, parent, source, scored, files_of)
+
+
+def _log(
+    layout, tracker, path, name, protocol, digest, settings, parent, source, scored, files_of
+) -> ScoreResult:
+    from mlflow.exceptions import MlflowException
+
+    cmd = f"skidbench score {layout.dataset} --predictions {path} inputs={protocol} score.name={name}"
+    common = {
+        run_tags.TAG_DATASET: layout.dataset,
+        **environment.run_tags(),
+        run_tags.TAG_GIT: environment.git_commit(),
+        run_tags.TAG_INPUTS: protocol,
+    }
+    params = {
+        "splits": str(settings["splits"]),
+        "horizons": str([float(h) for h in settings["horizons"]]),
+        "min_distance_m": str(settings["min_distance_m"]),
+        "min_rotation_deg": str(settings["min_rotation_deg"]),
+        "predictions": str(path),
+        "predictions_sha256": digest,
+        "inputs": protocol,
+        "model": name,
+    }
+    rows = []
+    try:
+        own_parent = parent is None
+        if own_parent:
+            parent = tracker.start(
+                tracker.unique_run_name(run_tags.parent_run_name("score", layout.dataset, protocol)),
+                {
+                    **common,
+                    run_tags.TAG_ROLE: "parent",
+                    "skidbench.models": name,
+                    "skidbench.terrains": ",".join(scored),
+                    run_tags.TAG_NOTE: run_tags.describe(
+                        f"External predictions **{name}** scored on {layout.dataset}",
+                        {"input protocol": f"`{protocol}`", "settings from": source},
+                        cmd,
+                    ),
+                },
+            )
+            tracker.log(parent, params={k: v for k, v in params.items() if k in brd.SETTING_KEYS})
+        for terrain, (metrics, windows) in scored.items():
+            facts = {
+                "predictions": f"`{path}` (sha256 `{digest}`)",
+                "input protocol": f"`{protocol}`",
+                "terrain": terrain,
+                "settings from": source,
+                "metrics": mt.describe() + " (what evaluate logs)",
+            }
+            run_id = tracker.start(
+                f"{name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]") + " (external)",
+                {
+                    **common,
+                    run_tags.TAG_ROLE: "child",
+                    run_tags.TAG_MODEL: name,
+                    run_tags.TAG_TERRAIN: terrain,
+                    run_tags.TAG_MODEL_VERSION: EXTERNAL_VERSION,
+                    run_tags.TAG_PLUGIN: f"external predictions sha256:{digest[:12]}",
+                    run_tags.TAG_FINGERPRINT: split_fingerprint(files_of[terrain], layout.splits),
+                    run_tags.TAG_EXTERNAL: "true",
+                    run_tags.TAG_PREDICTIONS_SHA256: digest,
+                    run_tags.TAG_NOTE: run_tags.describe(
+                        f"External predictions **{name}** on **{terrain}**", facts, cmd
+                    ),
+                },
+                parent,
+            )
+            tracker.log(run_id, params={**params, "terrain": terrain})
+            stem = layout.eval_stem(name, terrain, protocol)
+            win = stem.with_name(stem.name + ".windows.parquet")
+            write_parquet_atomic(
+                pa.Table.from_pandas(windows, preserve_index=False),
+                win,
+                {
+                    "model": name,
+                    "terrain": terrain,
+                    "run_id": run_id,
+                    "inputs": protocol,
+                    "external": True,
+                    "predictions_sha256": digest,
+                },
+            )
+            tracker.artifact(run_id, win, "windows")
+            tracker.log(run_id, metrics=metrics, tags={run_tags.TAG_STATUS: "FINISHED"})
+            tracker.end(run_id, "FINISHED")
+            rows.append({"terrain": terrain, "run_id": run_id, **metrics})
+        if own_parent:
+            tracker.log(
+                parent,
+                metrics={"n_children": len(rows), "n_failed": 0},
+                tags={run_tags.TAG_STATUS: "FINISHED"},
+            )
+            tracker.end(parent, "FINISHED")
+    except MlflowException as exc:
+        raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
+    return ScoreResult(name, protocol, digest, parent, rows, source, float(settings["horizons"][0]))
+
+
+def format_score(res: ScoreResult) -> str:
+    horizon = res.horizon
+    lines = [
+        f"score: {res.name} (external, sha256 {res.sha256[:16]}...) under inputs={res.protocol}; settings "
+        "from "
+        f"{res.settings_from}; parent run {res.parent_run_id}",
+    ]
+    cols = [(m.metric_key(s, horizon), f"{s}_{horizon:g}s_{m.short} {m.label_unit}".rstrip())
+            for s in ("cv", "ld") for m in mt.HEADLINE]  # fmt: skip
+    lines.append("terrain  " + "  ".join(lab for _, lab in cols))
+    for r in res.rows:
+        lines.append(
+            f"{r['terrain']:<8} " + "  ".join(f"{r.get(k, float('nan')):>{len(lab)}.2f}" for k, lab in cols)
+        )
+    lines.append("`skidbench compare` ranks it with the evaluated models (same dataset, same protocol).")
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""The compare report: its figures and its Markdown text."""

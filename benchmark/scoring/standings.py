@@ -1,0 +1,308 @@
+"""A board's intervals, its ranking and the paper's claim, from the windows evaluate wrote (compare's side
+of :mod:`skidbench.benchmark.scoring.intervals`; docs/intervals.md).
+
+Every (model, terrain) of a board has its per-window table (``<ds>/eval/<model>/<terrain>[.<inputs>]
+.windows.parquet``), and so has the floor (benchmark/scoring/floor.py). The windows of one terrain's test
+split
+are paired across models (the same windows, the same resampled blocks) and every statistic is computed
+from them at once: each cell (model, terrain, split, metric) with its interval, equal to what evaluate
+logged; the means over terrains; the ranking aggregate (:data:`AGGREGATE`: the mean of the paper's four
+RMSREs, translational and rotational on CV and LD); the paired differences the ranking rule and the
+paper's claim are decided on. Pure: the windows come in as
+tables (:func:`skidbench.benchmark.board.boards.read_windows` reads them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from skidbench.benchmark.scoring import intervals as iv
+from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring.floor import FLOOR
+
+SPLITS = ("cv", "ld")
+#: the ranking aggregate: the mean of the paper's metrics (translational and rotational RMSRE) on CV and LD
+AGGREGATE = "mean4"
+AGGREGATE_LABEL = "mean of 4 %"
+#: the models of the paper (Rabiee & Biswas 2019), among which its claim is checked
+PAPER_MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction")
+CLAIM_MODEL = "friction"
+HOLDS, FAILS, UNRESOLVED = "holds", "does not hold", "not resolved by these data"
+
+
+@dataclass
+class Standings:
+    """What compare shows of a board beyond the logged values (every frame indexed by position):
+
+    - ``cells``: model, terrain, split, metric (name), estimate, lo, hi, n_windows, n_blocks, rankable,
+      reason;
+    - ``overall``: per model (the floor last), per paper metric and split the mean over terrains
+      (``<metric>|<split>`` estimate/lo/hi columns), the aggregate (``estimate lo hi n_blocks rankable
+      reason``), ``rank`` and ``standing``;
+    - ``per_terrain``: model, terrain, the aggregate on that terrain, rank, standing;
+    - ``verdicts``: ``overall`` and each terrain -> one line (best, tied, or nothing ranked);
+    - ``claim``: ``overall`` and each terrain -> (verdict, lines) on the paper's claim;
+    - ``ranked_by``: what the board ranks by (:data:`AGGREGATE` or a metric's ``<split>_<short>``);
+    - ``differences``: the paired difference ``a - b`` of the ranking statistic over terrains of every two
+      ranked models (a, b, estimate, lo, hi, rankable, reason, resolved), what the ranking rule decided on."""
+
+    cells: pd.DataFrame
+    overall: pd.DataFrame
+    per_terrain: pd.DataFrame
+    verdicts: dict[str, str] = field(default_factory=dict)
+    claim: dict[str, tuple[str, list[str]]] = field(default_factory=dict)
+    ranked_by: str = AGGREGATE
+    differences: pd.DataFrame = field(default_factory=pd.DataFrame)
+
+    def cell(self, model: str, terrain: str, split: str, metric: str) -> pd.Series | None:
+        c = self.cells
+        hit = c[
+            (c["model"] == model)
+            & (c["terrain"] == terrain)
+            & (c["split"] == split)
+            & (c["metric"] == metric)
+        ]
+        return hit.iloc[0] if len(hit) else None
+
+
+def order_models(models: Sequence[str]) -> list[str]:
+    """The paper's models in its order, then every other model by name (the order of every board)."""
+    known = [m for m in PAPER_MODELS if m in models]
+    return known + sorted(m for m in set(models) if m not in PAPER_MODELS)
+
+
+def _metrics_of(w: pd.DataFrame) -> list[mt.Metric]:
+    return [m for m in mt.METRICS if m.bootstrap is not None and m.column in w]
+
+
+def build(
+    windows: Mapping[tuple[str, str], pd.DataFrame],
+    horizon_s: float,
+    settings: iv.IntervalConfig | None = None,
+    rank_by: str = AGGREGATE,
+) -> Standings:
+    """Every statistic of a board from its windows (:func:`read_windows`), ranked by ``rank_by``
+    (:data:`AGGREGATE`, or ``<split>_<short>`` of a headline metric: its mean over terrains)."""
+    sample = iv.Sample(settings or iv.IntervalConfig())
+    terrains = sorted({t for _, t in windows})
+    models = _order([m for m, _ in windows if m != FLOOR])
+    has_floor = any(m == FLOOR for m, _ in windows)
+    everyone = models + ([FLOOR] if has_floor else [])
+    cell_stats: dict[tuple[str, str, str, str], iv.Stat] = {}
+    for terrain in terrains:
+        for split in SPLITS:
+            frames = {}
+            for model in everyone:
+                w = windows.get((model, terrain))
+                if w is None or "split" not in w:
+                    continue
+                w = w[w["split"] == split]
+                if not len(w):
+                    continue
+                frames[model] = pd.DataFrame(
+                    {"sequence": w["sequence"].astype(str).to_numpy(), "start": w["start"].to_numpy(),
+                     "t0": w["t0"].to_numpy(float),
+                     **{m.name: m.bootstrap.scale * m.window_values(w) for m in _metrics_of(w)}}
+                )  # fmt: skip
+            if not frames:
+                continue
+            paired = iv.pair_windows(frames)
+            key = iv.stratum_key(split, horizon_s, paired["sequence"])  # as evaluate's: the same draws
+            if key in sample.strata:  # two terrains with the same sequence names: strata of their own
+                key = f"{key}|{terrain}"
+            cols, aggs = {}, {}
+            for model, f in frames.items():
+                for m in mt.METRICS:
+                    if m.name in f:
+                        cols[f"{model}|{m.name}"] = paired[f"{m.name}.{model}"].to_numpy(float)
+                        aggs[f"{model}|{m.name}"] = m.bootstrap.aggregation
+                        cell_stats[(model, terrain, split, m.name)] = iv.cell(
+                            f"{model}|{terrain}|{split}|{m.name}", key, f"{model}|{m.name}"
+                        )
+            sample.add(key, paired["sequence"], paired["t0"].to_numpy(float), cols, horizon_s, aggs)
+    cells = _cells(sample, cell_stats)
+    paper = [m.name for m in mt.PAPER]
+
+    def agg_stat(model: str, terrain_list: Sequence[str], name: str) -> tuple[iv.Stat | None, str]:
+        """The aggregate over ``terrain_list`` (or one metric when ranking by it), or why there is none."""
+        wanted = _ranked_cells(rank_by, paper)
+        parts = []
+        for t in terrain_list:
+            for split, metric in wanted:
+                s = cell_stats.get((model, t, split, metric))
+                if s is None:
+                    return None, f"no {metric} score on {t} {split.upper()}"
+                parts.append(s)
+        return (iv.mean_of(name, parts), "") if parts else (None, "no score")
+
+    overall, differences = _rank_rows(sample, models, has_floor, terrains, agg_stat, "overall")
+    _terrain_means(sample, cell_stats, everyone, terrains, paper, overall)
+    per_terrain = pd.concat(
+        [_rank_rows(sample, models, has_floor, [t], agg_stat, t)[0].assign(terrain=t) for t in terrains],
+        ignore_index=True,
+    ) if terrains else pd.DataFrame()  # fmt: skip
+    verdicts = {"overall": iv.board_verdict(overall.set_index("model")["standing"])}
+    for t in terrains:
+        pt = per_terrain[per_terrain["terrain"] == t]
+        verdicts[t] = iv.board_verdict(pt.set_index("model")["standing"])
+    claim = {"overall": _claim(sample, cell_stats, models, terrains)}
+    for t in terrains:
+        claim[t] = _claim(sample, cell_stats, models, [t])
+    return Standings(cells, overall, per_terrain, verdicts, claim, rank_by, differences)
+
+
+def _terrain_means(sample, cell_stats, everyone, terrains, paper, overall: pd.DataFrame) -> None:
+    """Adds to ``overall`` the means over terrains of the paper's metrics with their intervals
+    (``<metric>|<split>|estimate``, ``|lo``, ``|hi``), shown beside the aggregate."""
+    for m_name in paper:
+        for split in SPLITS:
+            stats = {}
+            for model in everyone:
+                parts = [cell_stats.get((model, t, split, m_name)) for t in terrains]
+                if all(p is not None for p in parts) and parts:
+                    stats[model] = iv.mean_of(f"{model}|{m_name}|{split}", parts)
+            res = iv.estimate(sample, list(stats.values())).set_index("stat") if stats else None
+            for col in ("estimate", "lo", "hi"):
+                overall[f"{m_name}|{split}|{col}"] = [
+                    float(res.loc[stats[m].name, col]) if m in stats else np.nan for m in overall["model"]
+                ]
+
+
+def _order(models: Sequence[str]) -> list[str]:
+    uniq = list(dict.fromkeys(models))
+    return [m for m in PAPER_MODELS if m in uniq] + sorted(m for m in uniq if m not in PAPER_MODELS)
+
+
+def _ranked_cells(rank_by: str, paper: Sequence[str]) -> list[tuple[str, str]]:
+    """The (split, metric) cells the ranking statistic averages."""
+    if rank_by == AGGREGATE:
+        return [(split, m) for m in paper for split in SPLITS]
+    split, _, short = str(rank_by).partition("_")
+    return [(split, mt.get(short).name)]
+
+
+def _cells(sample: iv.Sample, cell_stats: dict) -> pd.DataFrame:
+    if not cell_stats:
+        return pd.DataFrame(columns=["model", "terrain", "split", "metric", *iv.RESULT_COLUMNS])
+    res = iv.estimate(sample, list(cell_stats.values()))
+    keys = pd.DataFrame(list(cell_stats), columns=["model", "terrain", "split", "metric"])
+    return pd.concat([keys, res], axis=1)
+
+
+def _rank_rows(
+    sample, models, has_floor, terrains, agg_stat, scope: str
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """One row per model (and the floor, last): the ranking statistic over ``terrains`` with its interval,
+    rank and standing by :func:`intervals.rank_board` on the paired differences; and those differences
+    (a, b, estimate, lo, hi, ..., resolved)."""
+    stats, why = {}, {}
+    for model in models + ([FLOOR] if has_floor else []):
+        s, reason = agg_stat(model, terrains, f"{model}|{scope}")
+        if s is None:
+            why[model] = reason
+        else:
+            stats[model] = s
+    res = iv.estimate(sample, list(stats.values())) if stats else pd.DataFrame(columns=iv.RESULT_COLUMNS)
+    res.index = list(stats)
+    rows = pd.DataFrame(index=models + ([FLOOR] if has_floor else []), columns=iv.RESULT_COLUMNS)
+    for m in rows.index:
+        if m in stats:
+            rows.loc[m] = res.loc[m]
+        else:
+            rows.loc[m, ["estimate", "lo", "hi", "rankable", "reason"]] = [
+                np.nan,
+                np.nan,
+                np.nan,
+                False,
+                why[m],
+            ]
+    entries = [m for m in models if m in stats and bool(rows.loc[m, "rankable"])]
+    diffs = [
+        iv.difference(f"{a}-{b}", stats[a], stats[b]) for i, a in enumerate(entries) for b in entries[i + 1 :]
+    ]
+    pairs = [(a, b) for i, a in enumerate(entries) for b in entries[i + 1 :]]
+    d = iv.estimate(sample, diffs) if diffs else pd.DataFrame(columns=iv.RESULT_COLUMNS)
+    d.index = pd.MultiIndex.from_tuples(pairs) if pairs else pd.MultiIndex.from_tuples([], names=["a", "b"])
+    scores = rows.loc[models].assign(rankable=lambda x: x["rankable"].astype(bool))
+    ranks = iv.rank_board(scores, d) if models else pd.DataFrame(columns=["rank", "standing"])
+    rows["rank"] = ""
+    rows["standing"] = ""
+    for m in models:
+        rows.loc[m, "rank"] = ranks.loc[m, "rank"]
+        rows.loc[m, "standing"] = ranks.loc[m, "standing"]
+    if has_floor:
+        rows.loc[FLOOR, "standing"] = "reference (the ground truth's own velocities; never ranked)"
+    out = rows.reset_index(names="model").drop(columns=["stat"])
+    d = d.drop(columns=["stat"], errors="ignore").reset_index(names=["a", "b"])
+    d["resolved"] = [bool(r and iv.resolved(lo, hi)) for r, lo, hi in zip(d["rankable"], d["lo"], d["hi"],
+                                                                           strict=True)]  # fmt: skip
+    return out, d
+
+
+def _claim(sample, cell_stats, models, terrains) -> tuple[str, list[str]]:
+    """The paper's claim ("friction-based best on LD, comparable on CV") on ``terrains`` (their mean), among
+    the paper's models that have every cell there: on each LD metric friction's paired difference from every
+    other model must be resolved below 0; on each CV metric its difference from the others' mean must not be
+    resolved above 0. ``holds`` when both are so, ``does not hold`` when another model is resolved better on
+    LD or friction resolved worse than the others' mean on CV, else ``not resolved by these data``."""
+    paper = [m.name for m in mt.PAPER]
+    where = "mean over terrains" if len(terrains) > 1 else terrains[0]
+
+    def stat(model, split, metric):
+        parts = [cell_stats.get((model, t, split, metric)) for t in terrains]
+        return iv.mean_of(f"{model}|{split}|{metric}", parts) if all(p is not None for p in parts) else None
+
+    if CLAIM_MODEL not in models or any(stat(CLAIM_MODEL, s, m) is None for s in SPLITS for m in paper):
+        return UNRESOLVED, [f"- {where}: the friction-based model has no score on every CV/LD metric here"]
+    scored = [m for m in models if all(stat(m, s, p) is not None for s in SPLITS for p in paper)]
+    others = [m for m in scored if m in PAPER_MODELS and m != CLAIM_MODEL]
+    if not others:
+        return UNRESOLVED, [f"- {where}: no other model of the paper was scored here"]
+    diffs, names = [], []
+    for m in paper:
+        fr = stat(CLAIM_MODEL, "ld", m)
+        for o in others:
+            diffs.append(iv.difference(f"ld|{m}|{o}", fr, stat(o, "ld", m)))
+            names.append(("ld", m, o))
+        fr = stat(CLAIM_MODEL, "cv", m)
+        mean_others = iv.mean_of(f"cv|{m}|others", [stat(o, "cv", m) for o in others])
+        diffs.append(iv.difference(f"cv|{m}|others", fr, mean_others))
+        names.append(("cv", m, "the others' mean"))
+    res = iv.estimate(sample, diffs)
+    lines, ld_ok, ld_bad, cv_ok, cv_bad, unrankable = [], True, False, True, False, []
+    for (split, m, other), r in zip(names, res.itertuples(index=False), strict=True):
+        if not r.rankable:
+            unrankable.append(f"{split.upper()} {m} vs {other}: {r.reason}")
+        rng = (
+            f"{r.estimate:+.2f} [{r.lo:+.2f}, {r.hi:+.2f}]"
+            if np.isfinite(r.lo)
+            else f"{r.estimate:+.2f} [n/a]"
+        )
+        if split == "ld":
+            better = r.rankable and r.hi < 0
+            worse = r.rankable and r.lo > 0
+            ld_ok &= bool(better)
+            ld_bad |= bool(worse)
+        else:
+            worse = r.rankable and r.lo > 0
+            cv_ok &= bool(r.rankable and not worse)
+            cv_bad |= bool(worse)
+        state = "resolved" if (r.rankable and iv.resolved(r.lo, r.hi)) else "not resolved"
+        lines.append(f"  - {split.upper()} {m}: friction - {other} = {rng} points ({state})")
+    if ld_bad or cv_bad:
+        verdict = FAILS
+    elif ld_ok and cv_ok:
+        verdict = HOLDS
+    else:
+        verdict = UNRESOLVED
+    head = (
+        f"- {where}: **{verdict}** (among {', '.join([CLAIM_MODEL, *others])}; LD: friction resolved better "
+        f"than every other on both metrics; CV: not resolved worse than the others' mean)"
+    )
+    if unrankable and verdict == UNRESOLVED:
+        head += f"; too few blocks: {unrankable[0]}"
+    return verdict, [head, *lines]

@@ -1,0 +1,1 @@
+"""MLflow: the store and its runs, their tags, bookkeeping, logged models and UI links."""

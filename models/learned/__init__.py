@@ -1,0 +1,1 @@
+"""Learned baselines from the literature: DRIVE's Bayesian slip regression and a GP residual model."""

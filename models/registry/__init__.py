@@ -1,0 +1,1 @@
+"""Model names to classes (entry points and augmented specs), and fitted models on disk."""

@@ -1,0 +1,392 @@
+"""The declared type and range of every value a user can set: ONE table, :data:`SCHEMA`.
+
+Each stage's composed config is checked against it before the stage starts, at the door
+(:func:`skidbench.pipeline.cli.overrides.validate`: ``skidbench.pipeline.cli.main`` checks the composed
+config before
+Hydra runs; :func:`skidbench.pipeline.cli.main.stage` again for a sweep's jobs and in-process calls).
+A value outside its declaration is one line naming the key, the value and what is allowed
+(``ConfigError``, exit status 2)::
+
+    invalid value calibrate.settle_s=-1: allowed a number >= 0 (s since the wheel commands last changed)
+
+Adding a config key is one line here: ``"<dotted key>": <spec>``. Keys may hold ``*`` for one level
+(``source.topics.*.topic``); the first matching entry wins, so put specific keys before patterns. A test
+(``tests/test_config_schema.py``) composes every stage with every group option and fails on a key the
+table does not declare, so a new key cannot skip its declaration. A missing value (``???``) is not
+checked here: the stage that needs it says which key to set.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from skidbench.pipeline.core.errors import ConfigError
+
+_INF = math.inf
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One key's declaration. ``kind``: number, integer, bool, choice, str, list, any. ``lo``/``hi``
+    bound a number (``lo_open``: strictly greater); ``choices`` for a choice; ``item`` the spec of a list's
+    items and ``min_len`` its shortest length; ``nullable``: null is allowed; ``what`` says the unit."""
+
+    kind: str
+    lo: float = -_INF
+    hi: float = _INF
+    lo_open: bool = False
+    choices: tuple[Any, ...] = ()
+    item: Spec | None = None
+    min_len: int = 0
+    nullable: bool = False
+    what: str = ""
+
+    def allowed(self) -> str:
+        """What is allowed, as words (for the one-line error)."""
+        if self.kind in ("number", "integer"):
+            word = "a number" if self.kind == "number" else "an integer"
+            parts = []
+            if self.lo > -_INF:
+                parts.append(f"{'>' if self.lo_open else '>='} {_fmt(self.lo)}")
+            if self.hi < _INF:
+                parts.append(f"<= {_fmt(self.hi)}")
+            text = f"{word} {' and '.join(parts)}".strip()
+        elif self.kind == "bool":
+            text = "true or false"
+        elif self.kind == "choice":
+            text = "one of " + "|".join(map(str, self.choices))
+        elif self.kind == "str":
+            text = "a string"
+        elif self.kind == "list":
+            item = self.item.allowed() if self.item else "anything"
+            if self.min_len > 1:
+                text = f"a list [a,b,...] of at least {self.min_len} items, each {item}"
+            else:
+                text = f"a {'non-empty ' if self.min_len else ''}list [a,b,...], each {item}"
+        else:
+            text = "anything"
+        if self.nullable:
+            text += " (or null)"
+        return f"{text} ({self.what})" if self.what else text
+
+    def accepts(self, value: Any) -> bool:
+        if value is None:
+            return self.nullable or self.kind == "any"
+        if self.kind == "any":
+            return True
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        if self.kind in ("number", "integer"):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                return False
+            if not math.isfinite(value):
+                return False
+            if self.kind == "integer" and float(value) != int(value):
+                return False
+            if value < self.lo or value > self.hi or (self.lo_open and value == self.lo):
+                return False
+            return True
+        if self.kind == "choice":
+            return any(value == c and type(value) is type(c) for c in self.choices)
+        if self.kind == "str":
+            return isinstance(value, str)
+        if self.kind == "list":
+            if not isinstance(value, (list, tuple)) or len(value) < self.min_len:
+                return False
+            return self.item is None or all(self.item.accepts(v) for v in value)
+        return False
+
+
+def _fmt(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else str(x)
+
+
+def number(lo: float = -_INF, hi: float = _INF, *, gt: float | None = None, null=False, what="") -> Spec:
+    """A real number in ``[lo, hi]`` (``gt``: strictly greater than it)."""
+    if gt is not None:
+        return Spec("number", lo=gt, hi=hi, lo_open=True, nullable=null, what=what)
+    return Spec("number", lo=lo, hi=hi, nullable=null, what=what)
+
+
+def integer(lo: float = -_INF, hi: float = _INF, *, null=False, what="") -> Spec:
+    return Spec("integer", lo=lo, hi=hi, nullable=null, what=what)
+
+
+def choice(*options: Any, null=False, what="") -> Spec:
+    return Spec("choice", choices=tuple(options), nullable=null, what=what)
+
+
+def listof(item: Spec | None = None, min_len: int = 0, *, null=False, what="") -> Spec:
+    return Spec("list", item=item, min_len=min_len, nullable=null, what=what)
+
+
+BOOL = Spec("bool")
+STR = Spec("str")
+OPT_STR = Spec("str", nullable=True)
+ANY = Spec("any")
+POS = number(gt=0)
+NONNEG = number(0)
+FRACTION = number(0, 1)
+COUNT = integer(1)
+SPLITS = ("train", "cv", "ld")
+
+# fmt: off
+SCHEMA: dict[str, Spec] = {
+    # -- common.yaml (every stage) --------------------------------------------------------------------
+    "out_root": STR,
+    "dataset": STR,
+    "seed": integer(0),
+    "inputs": choice("commanded", "response", "measured", what="the model input protocol"),
+    "train_dataset": Spec("str", nullable=True, what="a dataset under out_root to fit on"),
+    "train_terrain": Spec("str", nullable=True, what="the terrain of train_dataset to fit on"),
+    "calibrate.use": BOOL,
+    "calibrate.min_wheel_rate": number(0, what="rad/s"),
+    "calibrate.straight_ratio": number(0, 1),
+    "calibrate.min_turn_rate": number(0, what="rad/s"),
+    "calibrate.settle_s": number(0, what="s since the wheel commands last changed"),
+    "calibrate.command_change": number(gt=0, what="rad/s^2"),
+    "calibrate.min_rows": integer(1),
+    "calibrate.block_s": number(gt=0, what="s"),
+    "calibrate.bootstrap": integer(0),
+    "calibrate.ci": number(gt=0, hi=1),
+    # -- robot/ -----------------------------------------------------------------------------------------
+    "robot.name": STR,
+    "robot.mass": POS,
+    "robot.wheel_radius": number(gt=0, what="m"),
+    "robot.track_width": number(gt=0, what="m"),
+    "robot.wheelbase": number(0, what="m"),
+    "robot.body_length": POS,
+    "robot.body_width": POS,
+    "robot.cg_offset": listof(number(), 2),
+    "robot.cg_height": NONNEG,
+    "robot.inertia_z": number(gt=0, null=True, what="kg m^2"),
+    "robot.left_joints": listof(STR, 1),
+    "robot.right_joints": listof(STR, 1),
+    "robot.max_speed": number(gt=0, what="m/s"),
+    "robot.max_wheel_rate": number(gt=0, null=True, what="rad/s"),
+    "robot.camera.xyz": listof(number(), 3),
+    "robot.camera.rpy": listof(number(), 3),
+    "robot.camera.baseline": number(gt=0, what="m"),
+    "robot.camera.width": COUNT,
+    "robot.camera.height": COUNT,
+    "robot.camera.fx": POS,
+    "robot.camera.fps": number(gt=0, what="Hz"),
+    "robot.*": ANY,  # a robot config's own extras (documented in its file)
+    # -- scale/ and sim/ --------------------------------------------------------------------------------
+    "scale.name": STR,
+    "scale.simulate.durations.*.*": number(0, what="s"),
+    "scale.simulate.loops.*": integer(0),
+    "scale.simulate.loop_duration": number(gt=20, what="s; a loop trial drives > 20 s"),
+    "scale.simulate.cv_segment": number(gt=0, what="s"),
+    "sim.terrains.*.*": NONNEG,
+    "sim.drive.*": NONNEG,
+    "sim.tyre.*": NONNEG,
+    # -- source/ ----------------------------------------------------------------------------------------
+    "source.name": STR,
+    "source.kind": STR,
+    "source.dataset": STR,
+    "source.replace": BOOL,
+    "source.root": STR,
+    "source.file": Spec("any", nullable=True, what="a file name, or a list of names (one terrain each)"),
+    "source.form": choice("auto", "windows", "raw", what="the DRIVE file's form"),
+    "source.label": OPT_STR,
+    "source.terrain": Spec("any", nullable=True, what="a terrain, or a list (one per source.file)"),
+    "source.category": choice("train", "cv", "ld", "loop", null=True),
+    "source.rate_hz": number(gt=0, what="Hz"),
+    "source.split_fractions": listof(number(0, 1), 3),
+    "source.groundtruth_method": choice("vo", "orbslam", "pose_topic"),
+    "source.groundtruth_key": STR,
+    "source.identify_cmd_kinematics": BOOL,
+    "source.cmd_kinematics.*": listof(number(gt=0), 2, what="[wheel radius m, track m]"),
+    "source.cmd_limits.*": listof(number(gt=0), 2, what="[v_max m/s, w_max rad/s]"),
+    "source.break_at_jumps": BOOL,
+    "source.check_geometry": BOOL,
+    "source.topics": ANY,  # `auto`, or the mapping below
+    "source.topics.*": ANY,  # null: the topic is not in the bags
+    "source.topics.*.topic": STR,
+    "source.topics.*.type": STR,
+    "source.topics.*.required": BOOL,
+    # -- simulate.yaml ----------------------------------------------------------------------------------
+    "format": choice("ros1", "ros2", "mcap"),
+    "images": BOOL,
+    "render": ANY,
+    "render.*": ANY,  # options of pipeline/simulate/render.py's StereoRenderer
+    "dt": number(gt=0, hi=0.01, what="s, physics step"),
+    "only": listof(STR, null=True),
+    "jobs": COUNT,
+    "rates.*": number(gt=0, what="Hz"),
+    "sensors.*": number(0, what="1-sigma noise"),
+    # -- extract.yaml -----------------------------------------------------------------------------------
+    "extract.images": choice("ref", "inline", "files"),
+    "extract.batch_rows": COUNT,
+    "extract.batch_bytes": COUNT,
+    "extract.force": BOOL,
+    "extract.progress": BOOL,
+    "extract.typestores.*": STR,
+    # -- groundtruth.yaml -------------------------------------------------------------------------------
+    "groundtruth.method": choice("vo", "orbslam", "pose_topic"),
+    "groundtruth.jobs": COUNT,
+    "groundtruth.max_gap": number(gt=0, what="s"),
+    "groundtruth.pose_topic.key": STR,
+    "groundtruth.pose_topic.stamp": choice("bag_time_ns", "stamp_ns"),
+    "groundtruth.pose_topic.parent": OPT_STR,
+    "groundtruth.pose_topic.child": OPT_STR,
+    "groundtruth.pose_topic.static_key": OPT_STR,
+    "groundtruth.pose_topic.tf_max_gap": number(gt=0, what="s"),
+    "groundtruth.orbslam.dir": STR,
+    "groundtruth.orbslam.pattern": STR,
+    "groundtruth.orbslam.times_pattern": STR,
+    "groundtruth.orbslam.format": choice("auto", "tum", "euroc", "kitti"),
+    "groundtruth.orbslam.unit": choice("auto", "s", "ns"),
+    "groundtruth.orbslam.time_offset": number(what="s"),
+    "groundtruth.orbslam.associate_to": OPT_STR,
+    "groundtruth.orbslam.max_diff": number(gt=0, what="s"),
+    "groundtruth.orbslam.max_speed": number(gt=0, what="m/s"),
+    "groundtruth.truth_key": STR,
+    "groundtruth.relative_horizon": number(gt=0, what="s"),
+    "groundtruth.loop_bound.*": number(gt=0),
+    # -- split.yaml -------------------------------------------------------------------------------------
+    "split.rate_hz": number(gt=0, hi=1000, what="Hz"),
+    "split.cmd_timeout": number(gt=0, what="s"),
+    "split.allow_flagged": BOOL,
+    "split.drop_flagged": BOOL,
+    "split.consistency.min_speed": number(gt=0, what="m/s"),
+    "split.consistency.moving_wheel": number(gt=0, what="rad/s"),
+    "split.consistency.min_rows": integer(1),
+    "split.consistency.min_sign_agreement": number(0, 1),
+    "split.consistency.max_heading_offset_deg": number(0, 180, what="deg"),
+    "split.consistency.min_corr_v": number(-1, 1),
+    "split.consistency.max_uncommanded_frac": number(0, 1),
+    "split.consistency.settle_s": number(0, what="s"),
+    "split.max_gap": number(gt=0, what="s"),
+    "split.differentiator.window": integer(3),
+    "split.differentiator.order": integer(1),
+    # -- card.yaml --------------------------------------------------------------------------------------
+    "card.paper": BOOL,
+    # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
+    "force": BOOL,
+    "track": BOOL,
+    "reuse": BOOL,
+    "terrain": OPT_STR,
+    "split": choice(*SPLITS),  # fit's split (the split stage's `split` is the section above)
+    # -- model/ -----------------------------------------------------------------------------------------
+    "model.name": STR,
+    "model.params": ANY,
+    "model.params.*": number(),
+    "model.options": ANY,
+    "model.options.max_nfev": COUNT,
+    "model.options.jacobian": choice("analytic", "fd"),
+    "model.options.accel_fallback": BOOL,
+    "model.options.start": choice("steady_state", "config"),
+    "model.options.fit_params": listof(STR, 1, null=True),
+    "model.options.*": ANY,  # a model's own options (its class validates them)
+    "model.options.*.*": ANY,
+    # -- mlflow/ ----------------------------------------------------------------------------------------
+    "mlflow.tracking_uri": OPT_STR,
+    "mlflow.experiment": STR,
+    "mlflow.artifact_root": STR,
+    "mlflow.timeout_s": number(gt=0, what="s"),
+    "mlflow.ui_url": STR,
+    # -- intervals/ (benchmark/scoring/intervals.py)
+    # -------------------------------------------------------------
+    "intervals.level": number(0.5, 0.999),
+    "intervals.resamples": integer(100, 100000),
+    "intervals.block_s": number(gt=0, null=True, what="s"),
+    "intervals.min_blocks": integer(2),
+    "intervals.seed": integer(0),
+    # -- evaluate.yaml ----------------------------------------------------------------------------------
+    "models": listof(STR, 1),
+    "terrains": listof(STR, 1, null=True),
+    "splits": listof(choice(*SPLITS), 1),
+    "horizons": listof(number(gt=0), 1, what="s"),
+    "min_distance_m": number(0, what="m"),
+    "min_rotation_deg": number(0, what="deg"),
+    "log_figures": BOOL,
+    "seeds": integer(1, 100),
+    "report_data.fig6_accels": listof(number(), 1, what="rad/s^2"),
+    "report_data.fig6_grid": integer(2),
+    "report_data.fig7_windows": integer(0),
+    # -- compare.yaml -----------------------------------------------------------------------------------
+    "parent_run_id": OPT_STR,
+    "filter": OPT_STR,
+    "user": OPT_STR,
+    "horizon": number(gt=0, what="s"),
+    "rank_by": STR,
+    "figures.enabled": BOOL,
+    "figures.dpi": integer(20, 1200),
+    "figures.fig5_model": STR,
+    "figures.fig6_model": STR,
+    "figures.terrain": OPT_STR,
+    "log_to_mlflow": BOOL,
+    # -- runs.yaml --------------------------------------------------------------------------------------
+    "reap": BOOL,
+    "stale_after_s": number(gt=0, what="s"),
+    # -- export.yaml / import.yaml (benchmark/release/bundle.py)
+    # -------------------------------------------------
+    "bundle.dir": STR,
+    "bundle.licence": OPT_STR,
+    "bundle.provenance": OPT_STR,
+    "bundle.name": OPT_STR,
+    # -- score.yaml (benchmark/release/score.py) -------------------------------------------------------------
+    "score.predictions": STR,
+    "score.name": OPT_STR,
+    # -- publish.yaml (benchmark/release/publish.py)
+    # ------------------------------------------------------------
+    "publish.dir": STR,
+    "publish.figures": BOOL,
+    "publish.dpi": integer(20, 600),
+    # -- discover.yaml ----------------------------------------------------------------------------------
+    "discover.out": STR,
+    "discover.splits": OPT_STR,
+    "discover.use": listof(choice(*SPLITS), 1),
+    "discover.horizon_s": number(gt=0, what="s"),
+    "discover.folds": integer(2),
+    "discover.min_units": integer(2),
+    "discover.chunk_s": number(gt=0, what="s"),
+    "discover.alpha": number(gt=0, hi=1),
+    "discover.penalty_per_param": NONNEG,
+    "discover.min_gain": NONNEG,
+    "discover.channel_tolerance": NONNEG,
+    "discover.max_effects": integer(0),
+    "discover.candidates": listof(STR, null=True),
+    "discover.figure": BOOL,
+    "discover.open_ended": BOOL,
+    "discover.max_terms": integer(0),
+}
+# fmt: on
+
+
+def spec_for(key: str) -> Spec | None:
+    """The declaration of a dotted key (the first matching entry of :data:`SCHEMA`), else None."""
+    spec = SCHEMA.get(key)
+    if spec is not None:
+        return spec
+    depth = key.count(".")
+    for pattern, s in SCHEMA.items():
+        if "*" in pattern and pattern.count(".") == depth and fnmatch.fnmatchcase(key, pattern):
+            return s
+    return None
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, str):
+        return value if value else "''"
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_describe(v) for v in value) + "]"
+    return str(value)
+
+
+def check_value(key: str, value: Any) -> None:
+    """ConfigError (one line: the key, the value, what is allowed) when ``value`` breaks ``key``'s
+    declaration. An undeclared key is not checked here (the completeness test catches it)."""
+    spec = spec_for(key)
+    if spec is None or spec.accepts(value):
+        return
+    raise ConfigError(f"invalid value {key}={_describe(value)}: allowed {spec.allowed()}")

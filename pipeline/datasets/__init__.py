@@ -1,0 +1,1 @@
+"""A dataset's identity (which data an output folder holds), imported bundles, ``skidbench datasets``."""
