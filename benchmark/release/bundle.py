@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import hashlib
 import importlib.metadata as md
 import json
 import os
@@ -48,7 +47,7 @@ from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.tracking import store as trk
 from skidbench.pipeline.core.errors import SkidbenchError, one_line
-from skidbench.pipeline.core.io import write_json_atomic, write_parquet_atomic, write_text_atomic
+from skidbench.pipeline.core.io import sha256_file, write_json_atomic, write_parquet_atomic, write_text_atomic
 from skidbench.pipeline.core.layout import Layout, fingerprint_of, remove_atomic, split_terrains
 from skidbench.pipeline.core.manifest import SPLITS, Manifest
 from skidbench.pipeline.core.manifest import Sequence as ManifestSequence
@@ -78,14 +77,6 @@ class BundleError(SkidbenchError):
 
 
 # -- checksums ---------------------------------------------------------------------------------------
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
 def bundle_files(folder: Path) -> list[str]:
     """Every file of a bundle folder but ``SHA256SUMS``, as sorted POSIX paths relative to it."""
     return sorted(

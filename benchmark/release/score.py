@@ -23,7 +23,6 @@ one child run per terrain of that evaluate (``skidbench.external=true``, the fil
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import re
 from dataclasses import dataclass, field
@@ -51,7 +50,7 @@ from skidbench.benchmark.scoring.predictions import TestSequence, score_split, s
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.pipeline.core.errors import SkidbenchError, one_line
-from skidbench.pipeline.core.io import write_parquet_atomic
+from skidbench.pipeline.core.io import sha256_file, write_parquet_atomic
 from skidbench.pipeline.core.layout import Layout
 from skidbench.pipeline.core.protocol import check_protocol
 from skidbench.pipeline.runner import environment
@@ -70,14 +69,6 @@ class PredictionsError(SkidbenchError):
 
 
 # -- reading and checking the file --------------------------------------------------------------------
-def sha256_of(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
-
-
 def read_predictions(path: Path) -> pd.DataFrame:
     """The predictions table of a ``.parquet`` or ``.csv`` (``.csv.gz``) file, columns checked."""
     path = Path(path)
@@ -308,7 +299,7 @@ def score_predictions(
         files_of[terrain] = split_files(layout, terrain, TRAIN) + files
     preds = read_predictions(path)
     aligned = align(path, preds, tests)
-    digest = sha256_of(path)
+    digest = sha256_file(path)
     # 2. every window scored (the same functions as evaluate), then logged
     scored = {}
     for terrain in terrains:

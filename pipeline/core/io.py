@@ -177,6 +177,16 @@ def fingerprint_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    """SHA-256 hex of a file, streamed: the published checksum of a file (bundles, predictions), which
+    anyone can recompute with ``sha256sum``; :func:`fingerprint_file` is the internal, faster one."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
 def fingerprint_obj(obj: Any) -> str:
     """Fingerprint of a JSON-serialisable object (configs, parameter dicts)."""
     data = json.dumps(obj, sort_keys=True, default=_json_default).encode()
