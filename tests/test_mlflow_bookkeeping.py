@@ -161,3 +161,41 @@ def test_a_write_that_lost_an_insert_race_is_tried_again_and_any_other_refusal_i
     with pytest.raises(MlflowException, match="experiments_name_key"):
         tracker.call(write, 1, name_taken)
     assert len(calls) == 1
+
+
+def _statuses(uri: str) -> dict[str, tuple[str, str]]:
+    client = MlflowClient(uri)
+    exps = [e.experiment_id for e in client.search_experiments()]
+    return {r.info.run_name: (r.info.status, r.data.tags.get("skidbench.failure_reason", ""))
+            for r in client.search_runs(exps)}  # fmt: skip
+
+
+def test_ctrl_c_ends_every_open_run_killed_before_the_process_exits(tmp_path):
+    """In a tracker's run: a child interrupted while it is being started (before its own handler) ends
+    KILLED with its parent, a finished child stays FINISHED, and `skidbench runs` right after lists no run
+    RUNNING. Outside one (a stage's handler exits 130 with a run open): the run ends KILLED as the process
+    exits, not when a later command reaps it."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    tracker = trk.open_tracker(uri, "skidbench-x", artifact_root=tmp_path / "a")
+    with pytest.raises(KeyboardInterrupt), tracker.run("evaluate", {}) as parent:
+        tracker.end(tracker.start("done", {}, parent))
+        tracker.start("starting", {}, parent)
+        raise KeyboardInterrupt
+    runs = _statuses(uri)
+    assert {k: v[0] for k, v in runs.items()} == {
+        "evaluate": "KILLED",
+        "done": "FINISHED",
+        "starting": "KILLED",
+    }
+    assert runs["starting"][1] == trk.INTERRUPTED
+    client = MlflowClient(uri)
+    report = bk.runs_report(client, client.search_experiments(), False, bk.STALE_AFTER_S)
+    assert report[-1].startswith("0 run(s) RUNNING")
+
+    code = (
+        "import sys; from skidbench.benchmark.tracking import store as trk; "
+        f"t = trk.open_tracker({uri!r}, 'skidbench-x'); t.start('left open', {{}}); sys.exit(130)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    assert _statuses(uri)["left open"] == ("KILLED", bk.EXITED)

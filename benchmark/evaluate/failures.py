@@ -5,16 +5,13 @@ and a second Ctrl-C ignored while the runs of the first are being closed (they e
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-import signal
-import threading
 import traceback
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from skidbench.benchmark.tracking.bookkeeping import no_interrupt
 from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.io import write_text_atomic
 
@@ -74,20 +71,6 @@ def _to_log_files(text: str) -> list[str]:
             handler.handle(record)
             paths.append(handler.baseFilename)
     return paths
-
-
-@contextlib.contextmanager
-def no_interrupt() -> Iterator[None]:
-    """A second Ctrl-C while the runs are being closed is ignored (in the main thread; elsewhere a no-op)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        with contextlib.suppress(Exception):
-            yield
-    finally:
-        signal.signal(signal.SIGINT, old)
 
 
 def failure_summary(result: Any) -> str:

@@ -8,18 +8,27 @@ models stays PENDING, even when the process dies or the tracking server goes awa
   does this when it opens the store); from any machine (``skidbench runs --reap``) when its last sign of
   life (heartbeat, else its start time) is older than a bound. A live process of this machine is never
   judged by its age. A reaped run's PENDING logged models are marked FAILED.
+- **Interrupts and exits** (:func:`kill_open`, :func:`end_at_exit`): Ctrl-C in a tracker's run ends KILLED
+  every run the tracker has open, a child interrupted while it was being started too, before the
+  process exits; a run still open when the process exits (any other way Python exits) ends KILLED then.
 - **Retried sweep jobs** (:func:`claim_key`): a job's attempts share a key; before a run starts, a
   FINISHED run of the key means nothing is left to log, and runs a dead attempt left open are KILLED.
 
-Functions take an ``MlflowClient``; the :class:`~skidbench.benchmark.tracking.store.Tracker` calls them.
+Functions take an ``MlflowClient`` (those of interrupts and exits, a Tracker); the
+:class:`~skidbench.benchmark.tracking.store.Tracker` calls them.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import functools
 import logging
+import signal
 import threading
 import time
-from collections.abc import Sequence
+import weakref
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -94,6 +103,60 @@ class Heartbeat:
                     self.client.set_tag(run_id, TAG_HEARTBEAT, utc_now())
                 except Exception as exc:  # noqa: BLE001 - the main thread reports a store that is gone
                     log.debug("heartbeat of %s failed: %s", run_id, exc)
+
+
+@contextlib.contextmanager
+def no_interrupt() -> Iterator[None]:
+    """A second Ctrl-C while the runs are being closed is ignored (in the main thread; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with contextlib.suppress(Exception):
+            yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def kill_open(tracker: Any, reason: str | None = None) -> list[str]:
+    """End ``KILLED`` every run ``tracker`` (a :class:`~skidbench.benchmark.tracking.store.Tracker`)
+    started and has not ended, children before their parent, with ``reason`` (None: the tracker's for an
+    interrupt); a second Ctrl-C meanwhile is ignored, and a run the store does not take is left to
+    :func:`reap`. Returns the runs ended."""
+    ended = []
+    with no_interrupt():
+        for run_id in reversed(list(tracker._open)):
+            try:
+                tracker.kill(run_id, *([reason] if reason else []))
+                ended.append(run_id)
+            except Exception as exc:  # noqa: BLE001 - the others are still ended
+                log.warning("MLflow run %s not marked KILLED (%s)", run_id, one_line(str(exc))[:200])
+    return ended
+
+
+#: why a run still open when its process exits is KILLED (Ctrl-C outside a tracker's run, a stage's exit)
+EXITED = "the process exited before the run ended (interrupted or stopped)"
+_AT_EXIT: weakref.WeakSet = weakref.WeakSet()
+
+
+def end_at_exit(tracker: Any) -> None:
+    """When this process exits, :func:`kill_open` ``tracker``'s runs (the hook is installed with the first
+    tracker, after MLflow's own: it runs before them), so that `skidbench runs` never shows a run
+    RUNNING whose process has ended, without waiting for a later command to reap it."""
+    _exit_hook()
+    _AT_EXIT.add(tracker)
+
+
+@functools.cache
+def _exit_hook() -> None:
+    atexit.register(_kill_left_open)
+
+
+def _kill_left_open() -> None:
+    for tracker in list(_AT_EXIT):
+        if tracker._open and not tracker._down:  # a server gone: its runs are left to the reaping
+            kill_open(tracker, EXITED)
 
 
 def end_runs(

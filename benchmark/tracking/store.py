@@ -276,6 +276,7 @@ class Tracker:
         self._experiment_id: str | None = None
         self._open: dict[str, None] = {}  # runs started here and not ended, in start order
         self._heartbeat = bk.Heartbeat(self._raw) if is_server(uri) else None
+        bk.end_at_exit(self)  # a run still open when the process exits ends KILLED
         self._down: str | None = None  # the one line of StoreUnreachable, once the server stopped answering
         self._existing_experiment()  # a deleted experiment or an unusable store: one line, now
 
@@ -443,13 +444,12 @@ class Tracker:
     @contextlib.contextmanager
     def run(self, run_name: str, tags: Mapping[str, str], parent_id: str | None = None) -> Iterator[str]:
         """A run that ends FINISHED, FAILED with the reason when the body raises (the error propagates),
-        or KILLED when it is interrupted (Ctrl-C)."""
+        or KILLED when it is interrupted (Ctrl-C), with every run started in it and still open."""
         run_id = self.start(run_name, tags, parent_id)
         try:
             yield run_id
         except KeyboardInterrupt:
-            with contextlib.suppress(Exception):
-                self.kill(run_id)
+            bk.kill_open(self)
             raise
         except BaseException as exc:
             with contextlib.suppress(Exception):
