@@ -12,9 +12,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.benchmark.board import compare
 from skidbench.benchmark.board.boards import Board
 from skidbench.benchmark.release import publish
+from skidbench.benchmark.report import markdown
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
@@ -96,7 +96,7 @@ def test_a_pathological_metric_keeps_a_model_from_leading():
         assert r["lo"] <= r["estimate"] <= r["hi"] and r["resolved"] == (r["lo"] > 0 or r["hi"] < 0)
     pair = ("edd", "roc") if ("edd", "roc") in d.index else ("roc", "edd")
     assert not d.loc[pair, "resolved"] and d.filter(like="friction", axis=0)["resolved"].all()
-    report = "\n".join(compare.differences_lines(s))
+    report = "\n".join(markdown.differences_lines(s))
     assert "minus" in report and "| friction | " in report and "| yes |" in report and "| no |" in report
     # ranked by one metric instead (rank_by=ld_trans), friction leads
     assert (

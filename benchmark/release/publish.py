@@ -35,6 +35,8 @@ import pandas as pd
 
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import compare as cmp
+from skidbench.benchmark.board import tables
+from skidbench.benchmark.report import compare_figures, markdown
 from skidbench.benchmark.report import figures as figs
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
@@ -178,7 +180,7 @@ def interval_columns(rows: pd.DataFrame, horizon: float) -> dict[str, tuple[str,
 
     out = {}
     for m in mt.METRICS:
-        for split in cmp.SPLITS:
+        for split in tables.SPLITS:
             c = m.metric_key(split, horizon)
             lo, hi = f"{c}_ci_lo", f"{c}_ci_hi"
             if lo in rows and hi in rows and pd.to_numeric(rows[lo], errors="coerce").notna().any():
@@ -191,7 +193,7 @@ def _rows_table(board: brd.Board, standings: st.Standings | None = None) -> str:
     standing and floor), the intervals when logged (``a to b``, in place of the bounds' own columns),
     external marks."""
     rows = board.rows
-    detail = cmp.detail_table(rows, board.horizon, standings)
+    detail = tables.detail_table(rows, board.horizon, standings)
     detail = detail.drop(columns=["inputs", "run", "reason"], errors="ignore")
     for lo, hi, label in interval_columns(rows, board.horizon).values():
         los, his = pd.to_numeric(rows[lo], errors="coerce"), pd.to_numeric(rows[hi], errors="coerce")
@@ -251,7 +253,9 @@ def _protocol_figures(board: brd.Board, tmp: Path, dpi: int, standings: st.Stand
     ok = board.rows
     for m in (m for m in mt.METRICS if m.figure is not None):  # Figs. 3, 4 and every metric with a figure
         path = tmp / f"{Path(m.figure.file).stem}_{board.protocol}.png"
-        figs.metric_bars(ok, m, board.horizon, cmp.SPLITS, path, dpi, cmp.floor_of(standings, m))
+        figs.metric_bars(
+            ok, m, board.horizon, tables.SPLITS, path, dpi, compare_figures.floor_of(standings, m)
+        )
         out.append(_figure(path, f"{m.figure.caption} (inputs={board.protocol})"))
     return out
 
@@ -270,19 +274,20 @@ def leaderboard_html(board: brd.Board, standings: st.Standings | None) -> str:
     not ranked, with the reason), the floor's row, who leads and the paper's claim per terrain and overall;
     without, the means listed by LD translational RMSRE and said not to be a ranking."""
     if standings is None:
-        summary = cmp.summary_table(board.rows, board.horizon, "ld_trans").drop(columns="rank")
+        summary = tables.summary_table(board.rows, board.horizon, "ld_trans").drop(columns="rank")
         return (
             "<h3>Leaderboard (mean over terrains)</h3><p class='note'>The runs' per-window tables are not "
             "here, so no paired comparison: listed by LD translational RMSRE, not ranked; read the rows' "
             "intervals below.</p>" + html_table(summary)
         )
-    summary = cmp.summary_table(board.rows, board.horizon, standings.ranked_by, standings)
+    summary = tables.summary_table(board.rows, board.horizon, standings.ranked_by, standings)
     claim = "".join(
         f"<li>{esc(scope)}: {esc(verdict)}</li>" for scope, (verdict, _) in standings.claim.items()
     )
+    ranked = markdown.ranked_by_line(standings.ranked_by, board.horizon, standings)
     return (
         "<h3>Leaderboard (mean over terrains; estimate [95 % interval])</h3>"
-        f"<p class='note'>{_inline(cmp.ranked_by_line(standings.ranked_by, board.horizon, standings)[2:])}. "
+        f"<p class='note'>{_inline(ranked[2:])}. "
         "The floor is not a model: the ground truth's own velocities through the same windows.</p>"
         + html_table(summary)
         + f"<p><strong>{esc(standings.verdicts.get('overall', ''))}</strong></p>"
