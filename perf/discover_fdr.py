@@ -1,4 +1,4 @@
-"""How often discovery names something that is not there (docs/discovery.md, "False discoveries").
+"""How often discovery names something that is not there (docs/discovery.md, "How well it works").
 
     python -m perf.discover_fdr                      # every set, the seeds below (from the repository root)
     python -m perf.discover_fdr --sets clean --seeds 20 --jobs 1 --out outputs/discover_fdr
@@ -19,7 +19,25 @@ is exact:
 * ``single``: each catalogue effect alone at its default size; exact = that effect named first and
   nothing after it;
 * ``outside``: each effect outside the catalogue alone; exact = no catalogue name and a matching term
-  (the test's families), nothing after it.
+  (the test's families), nothing after it;
+
+and the worlds that are not the generator's one world (issue 47), ``seeds / 4`` datasets each:
+
+* ``scale``: the robot drives at 0.96 of the commanded speed (an effective radius 0.96x the spec's) and
+  hardly ever straight (the ``curvy`` drive style: few settled straight rows); exact = ``calibrate``'s
+  radius within 1 % of the world's and nothing named;
+* ``scale_uncal``: the same with no calibration (the spec sheet's radius, as on data ``calibrate`` cannot
+  measure); exact = discovery's calibration finding within 1 % and nothing else;
+* ``yaw_asym``: a yaw rate proportional to forward speed, the yaw channel only; exact = ``side_asymmetry``
+  alone;
+* ``clock``: 45 Hz commands, 30 Hz VO-like poses stamped 30 ms late, ``linear_acceleration_slip`` hidden;
+  exact = the slip and ``actuator_lag`` (the delay the data hold: without encoders a dead time and a
+  clock offset look the same), nothing else;
+* ``slow_slip``: a zero-mean gain on both channels with 20 s of memory (s.d. 3 %), nothing else; exact =
+  nothing named; ``slow_slip_blocks``: the same on one Train sequence of 90 s, held out by time blocks
+  (where the buffer around held-out blocks matters);
+* ``heading``: the ground truth's heading 3 deg off its track, drifting 1.5 deg/min; exact = nothing named
+  and the ground-truth finding reported.
 
 Writes ``<out>/cases.jsonl`` (one line per dataset: what was named, each name's held-out gain and
 ``p_search``) as it goes (a re-run skips the cases already there) and ``<out>/summary.md``.
@@ -30,6 +48,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import subprocess
 import sys
 import time
 from collections.abc import Iterable
@@ -50,6 +70,17 @@ OUTSIDE_MATCH = {
     "load_wheel_limit": ("wload", "rim", "wheels"),
 }
 NOISE = {"low": 0.5, "default": 1.0, "high": 2.0}
+#: the worlds of issue 47: set -> (the hidden effect or world property, the generator's sequence options)
+WORLDS = {
+    "scale": ("speed_scale", {"style": "curvy"}),
+    "scale_uncal": ("speed_scale", {"style": "curvy"}),
+    "yaw_asym": ("side_asymmetry_yaw", {}),
+    "clock": ("linear_acceleration_slip", {"pose_hz": 30.0, "clock_offset": 0.03}),
+    "slow_slip": ("slow_slip", {}),
+    "slow_slip_blocks": ("slow_slip", {"n_train": 1, "duration": 90.0}),
+    "heading": (None, {"heading": (3.0, 1.5)}),
+}
+SETS = "clean,clean_sim,clean_blocks,single,outside," + ",".join(WORLDS)
 
 
 def _dd():
@@ -89,12 +120,18 @@ def cases(sets: Iterable[str], seeds: int) -> list[dict[str, Any]]:
             k = max(seeds // 6, 1)
             out += [{**base, "set": s, "effect": e, "seed": 4000 + 10 * j + i}
                     for j, e in enumerate(dd.DEFAULT_SIZES) for i in range(k)]  # fmt: skip
+        elif s in WORLDS:
+            effect, kw = WORLDS[s]
+            first = 6000 + 100 * list(WORLDS).index(s)
+            style = {k: kw[k] for k in ("style", "n_train", "duration") if k in kw}
+            out += [{**base, "set": s, "world": s, "effect": effect, "seed": first + i, **style}
+                    for i in range(max(seeds // 4, 1))]  # fmt: skip
         elif s == "outside":
             k = max(seeds // 10, 1)
             out += [{**base, "set": s, "effect": e, "seed": 5000 + 10 * j + i}
                     for j, e in enumerate(dd.OUTSIDE) for i in range(k)]  # fmt: skip
         else:
-            raise SystemExit(f"unknown set {s!r} (clean, clean_sim, clean_blocks, single, outside)")
+            raise SystemExit(f"unknown set {s!r} ({SETS})")
     return out
 
 
@@ -149,8 +186,12 @@ def tables(c: dict[str, Any]) -> list[tuple[Any, dict]]:
             return orig(rng, t, pose, rate_hz, drift * k, jitter_m * k, jitter_rad * k)
 
         dd.vo_poses = vo
+        kw = {k: v for k, v in WORLDS.get(c["world"], (None, {}))[1].items()
+              if k not in ("style", "n_train", "duration")}  # fmt: skip
         try:
-            raw = [dd.sequence(rng, effects, c["duration"], style=c["style"]) for _ in range(c["n_train"])]
+            raw = [
+                dd.sequence(rng, effects, c["duration"], style=c["style"], **kw) for _ in range(c["n_train"])
+            ]
         finally:
             dd.vo_poses = orig
     out = []
@@ -191,15 +232,37 @@ def _names_the_slip_side_asymmetry(c: dict[str, Any], step: dict[str, Any]) -> b
     return turns_its_way and f"slip.{side}.wheels" in step["equivalent_terms"]
 
 
-def exact(c: dict[str, Any], effects: list[str], terms: list[str], steps: list[dict[str, Any]]) -> bool:
-    """Whether the answer is the truth (module docstring)."""
-    if c["set"].startswith("clean"):
+WORLD_TRUTH = {"yaw_asym": ["side_asymmetry"], "clock": ["actuator_lag", "linear_acceleration_slip"]}
+
+
+def _radius_right(r: dict[str, Any]) -> bool:
+    """The world's effective radius found to 1 %: by ``calibrate`` (``scale``) or by discovery's
+    calibration finding (``scale_uncal``), and not the other way round."""
+    want = _dd().WORLD["speed_scale"] * _dd().R_WHEEL
+    if r["set"] == "scale_uncal":
+        return r.get("calibration") is not None and abs(r["calibration"] / want - 1) <= 0.01
+    return r.get("calibration") is None and abs(r["radius"] / want - 1) <= 0.01
+
+
+def exact(r: dict[str, Any]) -> bool:
+    """Whether the answer is the truth (module docstring); ``r``: the case's row (what was named, the
+    radius the base model was given, the calibration and ground-truth findings)."""
+    effects, terms, steps = r["effects"], r["terms"], [st for st in r["steps"] if st["kind"] != "calibration"]
+    if r["set"] in WORLDS:
+        if r["set"].startswith("scale") and not _radius_right(r):
+            return False
+        if r["set"] == "heading" and not r.get("ground_truth"):
+            return False
+        if r["set"] != "scale_uncal" and r.get("calibration") is not None:
+            return False
+        return sorted(effects) == WORLD_TRUTH.get(r["set"], []) and not terms
+    if r["set"].startswith("clean"):
         return not effects and not terms
-    if c["set"] == "single":
-        return effects == [c["effect"]] and not terms
-    if len(steps) == 1 and _names_the_slip_side_asymmetry(c, steps[0]):
+    if r["set"] == "single":
+        return effects == [r["effect"]] and not terms
+    if len(steps) == 1 and _names_the_slip_side_asymmetry(r, steps[0]):
         return True
-    fam, sig, ch = OUTSIDE_MATCH[c["effect"]]
+    fam, sig, ch = OUTSIDE_MATCH[r["effect"]]
     if effects or len(terms) != 1:
         return False
     f, s_, chan = terms[0].split("@")[0].split(".")
@@ -209,11 +272,14 @@ def exact(c: dict[str, Any], effects: list[str], terms: list[str], steps: list[d
 def false_catalogue_names(c: dict[str, Any], steps: list[dict[str, Any]]) -> list[str]:
     """The catalogue effects named that are not in the data (for an effect outside the catalogue: every
     catalogue name, but ``side_asymmetry`` naming one side's slip, its reparametrisation)."""
-    truth = {c["effect"]} if c["set"] == "single" else set()
+    truth = {c["effect"]} if c["set"] == "single" else set(WORLD_TRUTH.get(c["set"], []))
     return [
         st["name"]
         for st in steps
-        if st["kind"] == "catalogue" and st["name"] not in truth and not _names_the_slip_side_asymmetry(c, st)
+        if st["kind"] == "catalogue"
+        and not st.get("dropped")
+        and st["name"] not in truth
+        and not _names_the_slip_side_asymmetry(c, st)
     ]
 
 
@@ -230,7 +296,8 @@ def run_case(c: dict[str, Any]) -> dict[str, Any]:
     s = DiscoverSettings()
     try:
         train = tables(c)
-        robot = calibrated(jackal, train)  # as discovery on a dataset's own splits takes its base's radius
+        # as discovery on a dataset's own splits takes its base's radius; scale_uncal: none could be measured
+        robot = jackal if c["set"] == "scale_uncal" else calibrated(jackal, train)
         pool = prepare_pool(build_pool(train, s), "commanded", jackal)
         res = discover_terrain(pool, lambda: edd(robot), robot, s, "tile", "edd", progress=lambda m: None)
     except DiscoverError as exc:
@@ -241,23 +308,27 @@ def run_case(c: dict[str, Any]) -> dict[str, Any]:
             "kind": st["kind"],
             "heldout_gain": st["evidence"]["heldout_gain"],
             "p_search": st["evidence"].get("p_search"),
-            "equivalent_terms": [q["term"] for q in st["naming"].get("equivalent_terms", [])],
+            "equivalent_terms": [q["term"] for q in st.get("naming", {}).get("equivalent_terms", [])],
             "params": st["params"],
+            **({"dropped": st["dropped"]} if st.get("dropped") else {}),
         }
         for st in res.steps
     ]
-    best = (res.rejected or {}).get("best_candidate")
-    return {
+    row = {
         **c,
         "id": case_id(c),
         "effects": res.effects,
         "terms": res.terms,
         "steps": steps,
-        "exact": exact(c, res.effects, res.terms, steps),
+        "radius": robot.wheel_radius,
+        "calibration": res.calibration["value"] if res.calibration else None,
+        "ground_truth": [q["text"] for q in res.base.get("ground_truth", [])],
+        "too_small": [q["name"] for q in res.base.get("too_small", [])],
         "false_catalogue": false_catalogue_names(c, steps),
-        "rejected_best": best,
+        "rejected_best": (res.rejected or {}).get("best_candidate"),
         "cpu_s": round(time.process_time() - started, 1),
     }
+    return {**row, "exact": exact(row)}
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -317,11 +388,12 @@ def summary(rows: list[dict[str, Any]], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m perf.discover_fdr", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sets", default="clean,clean_sim,clean_blocks,single,outside")
+    ap.add_argument("--sets", default=SETS)
     ap.add_argument("--seeds", type=int, default=20, help="clean datasets (the other sets scale from it)")
     ap.add_argument("--jobs", type=int, default=1, help="processes (the machine's cores are shared)")
     ap.add_argument("--out", default="outputs/discover_fdr")
     ap.add_argument("--effects", default="", help="only the cases of these hidden effects (comma-separated)")
+    ap.add_argument("--publish", action="store_true", help="also write perf/results/discover_fdr.md")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -353,6 +425,15 @@ def main(argv: list[str] | None = None) -> None:
     command = "python -m perf.discover_fdr " + " ".join(sys.argv[1:] if argv is None else argv)
     text = summary(rows, command.strip())
     (out / "summary.md").write_text(text)
+    if a.publish:  # the generated results page docs/discovery.md points to
+        from skidbench.pipeline.core.io import write_text_atomic
+
+        commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True).stdout.strip()  # fmt: skip
+        head = (
+            f"Generated by `{command.strip()}` at commit {commit or 'unknown'} ({os.cpu_count()} CPUs).\n\n"
+        )
+        write_text_atomic(REPO / "perf" / "results" / "discover_fdr.md", head + text)
     print(text)
 
 

@@ -15,6 +15,7 @@ Two outputs: split tables (made by the split stage's own code) and the AMRL text
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,13 @@ OUTSIDE = {
     ),  # (rad/s, rad/s per rad/s): wheel-rate limit L0 - k |w_cmd| (turning load)
 }
 
+# properties of worlds that are not robot effects of the catalogue (issue 47's worlds)
+WORLD = {
+    "speed_scale": 0.96,  # effective wheel radius / the spec's: both wheels' rims (a calibration finding)
+    "side_asymmetry_yaw": 0.03,  # rad/m: a yaw rate proportional to forward speed, the yaw channel only
+    "slow_slip": (20.0, 0.03),  # (memory s, s.d.): a zero-mean gain on both channels, Ornstein-Uhlenbeck
+}
+
 
 def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "train", style: str = "mixed"):
     """Commands (t, v, w) on a fine clock: targets held for a while, reached under varying limits.
@@ -73,12 +81,14 @@ def joystick(rng: np.random.Generator, duration: float, dt: float, kind: str = "
                 u = rng.uniform()
                 tv = rng.uniform(0.2, 1.6) if u < 0.85 else rng.uniform(-0.6, 0.0)
                 mode = rng.uniform()
-                if mode < 0.2:
+                if mode < 0.2 and style != "curvy":  # curvy: always turning (few straight rows)
                     tw = 0.0
                 elif mode < 0.35:
                     tv, tw = rng.uniform(-0.15, 0.15), rng.choice([-1, 1]) * rng.uniform(1.0, 2.8)
                 else:
                     tw = rng.choice([-1, 1]) * rng.uniform(0.2, 2.4)
+                if style == "curvy" and mode >= 0.35:  # |w| / v from 0.6 to 2 rad/m: hardly a straight row
+                    tw = np.sign(tw) * (abs(tv) * rng.uniform(0.6, 2.0) + 0.1)
                 hold = rng.uniform(0.7, 3.5)
             av = rng.uniform(0.5, 4.0)
             aw = rng.uniform(1.0, 9.0)
@@ -111,9 +121,11 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
             motor_lag(wr, float(effects["actuator_lag"]), dt),
         )
     rl = rr = R_WHEEL
+    if "speed_scale" in effects:  # an effective radius that is not the spec sheet's
+        rl = rr = R_WHEEL * float(effects["speed_scale"])
     if "side_asymmetry" in effects:
         e = float(effects["side_asymmetry"])
-        rl, rr = R_WHEEL * (1 - e), R_WHEEL * (1 + e)
+        rl, rr = rl * (1 - e), rr * (1 + e)
     if "one_side_slip" in effects:  # eq. (8): one side's rim speed times (1 - s)
         side, s_ratio = effects["one_side_slip"]
         if side == "l":
@@ -132,6 +144,13 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
                 R = np.where(np.abs(wz) > 1e-6, np.abs(vx) / np.abs(wz), 1e6)
             chi = 1.0 + b1 / (1.0 + b2 * np.sqrt(R))
     wz = turn / chi
+    if "side_asymmetry_yaw" in effects:  # e.g. a caster or a toe-in: a yaw rate per metre driven
+        wz = wz + float(effects["side_asymmetry_yaw"]) * vx
+    if "slow_slip" in effects:  # a gain that wanders with tens of seconds of memory, mean 1
+        memory, sd = effects["slow_slip"]
+        rng = np.random.default_rng(zlib.crc32(np.asarray(v, float).tobytes()))  # one draw per sequence
+        g = 1.0 + ou_process(rng, t, float(memory), float(sd))
+        vx, wz = vx * g, wz * g
     if "payload_change" in effects:  # more normal load, more scrub: the yaw rate drops from t_c on
         t_c, p = effects["payload_change"]
         wz = np.where(t - t[0] >= float(t_c), wz * (1.0 - float(p)), wz)
@@ -150,6 +169,18 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
     if "lateral_drift" in effects:
         vy = vy + float(effects["lateral_drift"])
     return vx, vy, wz
+
+
+def ou_process(rng: np.random.Generator, t: np.ndarray, memory: float, sd: float) -> np.ndarray:
+    """A stationary Ornstein-Uhlenbeck process on the times ``t``: mean 0, standard deviation ``sd``, the
+    correlation exp(-dt / ``memory``)."""
+    x = np.empty(len(t))
+    x[0] = rng.normal(0.0, sd)
+    a = np.exp(-np.diff(t) / memory)
+    e = rng.normal(0.0, 1.0, len(t) - 1) * sd * np.sqrt(1.0 - a * a)
+    for i in range(1, len(t)):
+        x[i] = a[i - 1] * x[i - 1] + e[i - 1]
+    return x
 
 
 def motor_lag(x: np.ndarray, tau: float, dt: np.ndarray) -> np.ndarray:
@@ -203,15 +234,22 @@ def vo_poses(rng, t_true, pose, rate_hz=20.0, drift=0.004, jitter_m=0.003, jitte
     return t, est
 
 
-def sequence(rng, effects, duration=45.0, kind="train", cmd_hz=45.0, style="mixed"):
-    """One sequence: commands at ``cmd_hz`` and VO poses at 20 Hz (both with times in s)."""
+def sequence(
+    rng, effects, duration=45.0, kind="train", cmd_hz=45.0, style="mixed", pose_hz=20.0, clock_offset=0.0,
+    heading=(0.0, 0.0),
+):  # fmt: skip
+    """One sequence: commands at ``cmd_hz`` and VO poses at ``pose_hz`` (both with times in s); the poses
+    stamped ``clock_offset`` s late, their heading off by ``heading`` = (deg at the start, deg/min of drift)
+    against the track (a ground-truth problem, no effect in the robot)."""
     dt = 1.0 / 180.0
     t, v, w = joystick(rng, duration, dt, kind, style)
     step = int(round(1.0 / (cmd_hz * dt)))
     hold = (np.arange(len(t)) // step) * step  # the robot executes each command message until the next
     vx, vy, wz = true_velocity(t, v[hold], w[hold], effects, accel=(np.gradient(v, t), np.gradient(w, t)))
     pose = integrate(t, vx, vy, wz)
-    tl, loc = vo_poses(rng, t, pose)
+    tl, loc = vo_poses(rng, t, pose, rate_hz=pose_hz)
+    loc[:, 2] += np.radians(heading[0] + heading[1] * (tl - tl[0]) / 60.0)
+    tl = tl + clock_offset
     cmd = pd.DataFrame({"t": t[::step], "v": v[::step], "w": w[::step]})
     return cmd, pd.DataFrame({"t": tl, "x": loc[:, 0], "y": loc[:, 1], "yaw": loc[:, 2]})
 
@@ -249,7 +287,7 @@ def dataset(effects: dict[str, object], seed: int, n_train: int = 10, duration: 
 
 
 def hidden(names: list[str] | tuple[str, ...]) -> dict[str, object]:
-    return {n: (DEFAULT_SIZES[n] if n in DEFAULT_SIZES else OUTSIDE[n]) for n in names}
+    return {n: DEFAULT_SIZES.get(n, OUTSIDE.get(n, WORLD.get(n))) for n in names}
 
 
 def split_tables(raw) -> list[tuple[pd.DataFrame, dict]]:

@@ -26,10 +26,11 @@ from skidbench.benchmark.discovery.discover import (
     discover_terrain,
     refused_terrain,
 )
-from skidbench.benchmark.discovery.pool import load_pool, prepare_pool, too_small
+from skidbench.benchmark.discovery.pool import load_pool, placebo_pool, prepare_pool, too_small
 from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS
 from skidbench.models.augmented.fit import DiscoverError, DiscoverSettings
 from skidbench.pipeline.cli.main import stage
+from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.manifest import Manifest
@@ -51,6 +52,8 @@ def settings_from_cfg(cfg: DictConfig) -> DiscoverSettings:
         min_gain=float(d.min_gain),
         max_effects=int(d.max_effects),
         channel_tolerance=float(d.get("channel_tolerance", 0.01)),
+        min_share=float(d.get("min_share", 0.10)),
+        min_points=float(d.get("min_points", 0.001)),
         open_ended=bool(d.get("open_ended", True)),
         max_terms=int(d.get("max_terms", 4)),
         splits=tuple(d.use),
@@ -138,6 +141,44 @@ def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool
     return resp
 
 
+def placebo(pool, factory, robot, settings: DiscoverSettings, terrain: str, base_name: str, cands,
+            shift_s: float) -> dict[str, Any]:  # fmt: skip
+    """The placebo check (issue 47): the same search on the pool with its commands moved ``shift_s`` in
+    time (:func:`placebo_pool`), one step after the speed scale; nothing may be named. Command-free
+    candidates (``lateral_drift``, constant and time forms of the library) are left out: they do not read
+    the commands, so the placebo leaves them what they are."""
+    import dataclasses
+
+    from skidbench.models.augmented import terms as termlib
+
+    try:
+        res = discover_terrain(
+            placebo_pool(pool, shift_s), factory, robot, dataclasses.replace(settings, max_effects=1),
+            terrain, base_name, candidates=tuple(c for c in cands if c != "lateral_drift"),
+            progress=lambda m: None, exclude_forms=tuple(termlib.command_free_forms()),
+        )  # fmt: skip
+    except SkidbenchError as exc:  # the base model cannot be fitted to commands that did not drive it
+        return {"shift_s": shift_s, "named": [], "passed": True,
+                "text": f"placebo (commands moved {shift_s:g} s): nothing named (the base model cannot be "
+                f"fitted to them: {exc})"}  # fmt: skip
+    named = res.effects + res.terms
+    return {
+        "shift_s": shift_s,
+        "named": named,
+        "passed": not named,
+        "text": f"placebo (commands moved {shift_s:g} s): "
+        + ("nothing named" if not named else f"NAMED {', '.join(named)}: what this data names is suspect"),
+    }
+
+
+def _placebo_on(cfg: DictConfig) -> bool:
+    """``discover.placebo``: auto runs it on recorded data (any source but the simulator)."""
+    p = cfg.discover.get("placebo", "auto")
+    if p == "auto":
+        return str(OmegaConf.select(cfg, "source.name", default="sim")) != "sim"
+    return bool(p)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Run discovery for the configured source; returns what was written to discovery.json."""
     from skidbench.models.fitting.fit import ModelConfigs, build_model
@@ -179,16 +220,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         robot_t = robot_for_model(Calibrations.from_cfg(cfg), constants, terrain)[0] if own_splits else robot
         response = _response(cfg, terrain, pool, inputs, own_splits)
         pool = prepare_pool(pool, inputs, robot, response)
-        res = discover_terrain(
-            pool,
-            lambda r=robot_t: build_model(configs, base_name, r),
-            robot_t,
-            settings,
-            terrain,
-            base_name,
-            candidates=cands,
-            progress=lambda m: print(m, flush=True),
-        )
+        factory = lambda r=robot_t: build_model(configs, base_name, r)  # noqa: E731
+        res = discover_terrain(pool, factory, robot_t, settings, terrain, base_name, candidates=cands,
+                               progress=lambda m: print(m, flush=True))  # fmt: skip
+        if _placebo_on(cfg):
+            shift = float(cfg.discover.get("placebo_shift_s", 30.0))
+            res.placebo = placebo(pool, factory, robot_t, settings, terrain, base_name, cands, shift)
+            print(f"[{terrain}] {res.placebo['text']}", flush=True)
         results.append(res)
     if all(r.refused for r in results):
         raise DiscoverError(f"{root}: every terrain refused; {results[0].terrain}: {results[0].refused}")
@@ -212,7 +250,13 @@ def to_document(
         terrains[r.terrain] = {
             "base_model": base_name,
             "effects": r.effects,
+            "model_effects": r.final.get("model_effects", r.effects),  # the members as fitted
             "terms": r.terms,
+            "calibration": r.calibration,
+            "placebo": r.placebo,
+            "ground_truth": r.base.get("ground_truth", []),
+            "too_small": r.base.get("too_small", []),
+            "dropped": r.base.get("dropped", []),
             "message": r.message,
             "unexplained": r.unexplained,
             "steps": r.steps,
@@ -229,10 +273,8 @@ def to_document(
     else:
         effects, steps = [], []
         for r in results:
-            for st in r.steps:
-                steps.append({"terrain": r.terrain, **st})
-                if st.get("kind", "catalogue") == "catalogue" and st["effect"] not in effects:
-                    effects.append(st["effect"])
+            steps += [{"terrain": r.terrain, **st} for st in r.steps]
+            effects += [e for e in r.effects if e not in effects]
         message = "; ".join(f"{r.terrain}: {r.message}" for r in results)
     for st in steps:
         st.setdefault("terrain", results[0].terrain if len(results) == 1 else st.get("terrain"))
@@ -279,7 +321,15 @@ def summary_text(doc: dict[str, Any]) -> str:
             eq = [q["term"] for q in (st.get("naming") or {}).get("equivalent_terms") or []]
             if eq:
                 lines.append(f"      equivalent terms (the same residual in other forms): {', '.join(eq)}")
+        for q in r.get("too_small") or []:
+            lines.append(f"[{terrain}] {q['text']}")
+        for q in r.get("dropped") or []:
+            lines.append(f"[{terrain}] {q['name']} dropped after step {q['after_step']}: {q['why']}")
         lines.append(f"[{terrain}] {r['message']}")
+        for q in r.get("ground_truth") or []:
+            lines.append(f"[{terrain}] {q['text']}")
+        if r.get("placebo"):
+            lines.append(f"[{terrain}] {r['placebo']['text']}")
         if r.get("unexplained"):
             lines.append(f"[{terrain}] {r['unexplained']['text']}")
     return "\n".join(lines)

@@ -39,24 +39,26 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
+from scipy.stats import t as student_t
 
-from skidbench.benchmark.discovery.naming import best_catalogue, choose, naming_record
+from skidbench.benchmark.discovery.naming import best_catalogue, choose, keep_best_members, naming_record
 from skidbench.benchmark.discovery.panels import residual_panel, term_panel, unexplained_panels
-from skidbench.benchmark.discovery.pool import selected_on
+from skidbench.benchmark.discovery.pool import heading_finding, selected_on
 from skidbench.benchmark.discovery.search import (
     Scored,
     ScoredTerms,
     Search,
     evidence_row,
     fit_base,
+    practical_check,
     score_catalogue,
     score_rival,
     score_terms,
     show,
 )
-from skidbench.benchmark.discovery.stats import HeldOut, cross_validate, search_test
+from skidbench.benchmark.discovery.stats import HeldOut, compare, cross_validate, search_test
 from skidbench.models.augmented import terms as termlib
-from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS
+from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS, SPEED_SCALE, family_of, members
 from skidbench.models.augmented.fit import (
     CHANNELS,
     Augmenter,
@@ -99,6 +101,8 @@ class TerrainDiscovery:
     unexplained: dict[str, Any] | None = None  # what is left when nothing more passes
     selected_on: dict[str, Any] = field(default_factory=dict)  # the splits, sequences and units searched
     refused: str | None = None  # why no search was run (a pool too small for the test)
+    calibration: dict[str, Any] | None = None  # the speed scale found (the effective wheel radius)
+    placebo: dict[str, Any] | None = None  # the placebo check's outcome (discover_app.placebo)
 
 
 def refused_terrain(pool: Pool, settings: DiscoverSettings, terrain: str, base_name: str, reason: str):
@@ -127,7 +131,7 @@ def refine_knots(
     bounded scalar search; two together by a bounded Nelder-Mead search in knot / screened knot. Two
     knots trade off (a load limit ``k0 - k1 |w|`` is pinned where its rows are, at |w| near 2 rad/s), and a
     scalar search per knot in turn stopped on that valley short of its floor: 12.6 and 1.8 rad/s for the
-    injected 13 and 2, at a loss the joint optimum (13.0 and 1.97) beat (docs/discovery.md)."""
+    injected 13 and 2, at a loss the joint optimum (13.0 and 1.97) beat (CHANGELOG.md, "Discovery")."""
     if not term.knots:
         return term
     k0 = np.asarray(term.knots, float)
@@ -224,9 +228,10 @@ def _add_effect(
     e = CATALOGUE[name]
     run.steps.append(
         {
-            "effect": name,
+            "effect": family_of(name),
+            "member": name,
             "kind": "catalogue",
-            "explanation": e.explanation,
+            "explanation": e.explanation + _delay_note(name, run.state),
             "formula": e.formula,
             "evidence": {**ev, **evidence},
             "naming": naming_record("catalogue", ev, scored_t, scored, e.n_params, equivalents),
@@ -241,6 +246,20 @@ def _add_effect(
     return ho
 
 
+def _delay_note(name: str, state: FitState) -> str:
+    """What a lag found from commands and poses alone may also be: its time constant is the delay of the
+    response, and without wheel encoders a motor lag, a dead time in the drive and an offset between the
+    commands' and the poses' clocks move the poses alike (a 30 ms clock offset was named as a 20 ms lag)."""
+    if name != "actuator_lag":
+        return ""
+    tau = float(state.params["actuator_lag"][0])
+    return (
+        f" Found from commands and poses: a delay of about {1000 * tau:.0f} ms, which may be a dead time or "
+        "a clock offset between the commands and the poses as well as a lag (without wheel encoders "
+        "these look the same: check the clocks)."
+    )
+
+
 def _add_term(
     run: Search, name: str, scored: Scored, scored_t: ScoredTerms, evidence: dict[str, Any]
 ) -> tuple[HeldOut, termlib.Term]:
@@ -250,8 +269,9 @@ def _add_term(
     evaluation of the model as added (the knots fixed) and the term."""
     ev, ho, template, fold_terms = scored_t[name]
     term = template
-    if fold_terms and fold_terms[0].knots:
-        term = template.with_knots(np.median([t.knots for t in fold_terms], axis=0))
+    chosen = [t for t in fold_terms if t is not None]
+    if chosen and chosen[0].knots:
+        term = template.with_knots(np.median([t.knots for t in chosen], axis=0))
         term = refine_knots(run.aug, run.effects, run.warm, run.terms, term, run.all_units)
         ho = cross_validate(run.aug, run.effects, run.warm, run.terms + [term])
     prev_state = run.state
@@ -318,17 +338,23 @@ def _reweight(run: Search, kind: str, term: termlib.Term | None) -> None:
 def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
     """The search's outcome: the message naming what was found (or that nothing was), the final model
     with its held-out errors, and everything recorded on the way (``t_start``: perf_counter at the start)."""
-    found = run.effects + [t.key for t in run.terms]
+    effects = [family_of(e) for e in run.effects if e != SPEED_SCALE]
+    found = effects + [t.key for t in run.terms]
     named = [
-        st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]") for st in run.steps
+        st["effect"] + ("" if st["kind"] == "catalogue" else f" [{st['explanation']}]")
+        for st in run.steps
+        if st["kind"] != "calibration"
     ]
     message = NO_EFFECT_MESSAGE if not found else "missing effect(s) found: " + ", ".join(named)
     if found and len(found) < run.settings.max_effects:
         message += "; no further effect earns its place"
+    if run.calibration:
+        message = f"calibration: {run.calibration['text']}; " + message
     run.say(f"[{run.terrain}] {message}")
     state, cur = run.state, run.cur
     final = {
-        "effects": list(run.effects),
+        "effects": effects,
+        "model_effects": list(run.effects),  # the members as fitted (the discovered model's spec)
         "terms": [t.key for t in run.terms],
         "params": jsonable_params(state.params),
         "term_params": {t.key: _term_step_params(state, t) for t in run.terms},
@@ -339,7 +365,7 @@ def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
     return TerrainDiscovery(
         run.terrain,
         base_name,
-        run.effects,
+        effects,
         run.steps,
         run.base_info,
         final,
@@ -350,7 +376,66 @@ def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
         [t.key for t in run.terms],
         run.unexplained,
         selected_on(run.pool, run.settings),
+        calibration=run.calibration,
     )
+
+
+def speed_scale_interval(ho: HeldOut, k: float, level: float = 0.95) -> tuple[float, float]:
+    """The interval of the speed scale ``k`` from its folds' fits: the delete-a-group jackknife's variance
+    (K - 1) / K sum (k_j - mean k)^2 over the K folds, Student's t with K - 1 degrees of freedom."""
+    ks = np.array([fp[SPEED_SCALE][0] for fp in ho.fold_params], float)
+    n = len(ks)
+    se = float(np.sqrt((n - 1) / n * np.sum((ks - ks.mean()) ** 2))) if n > 1 else float("nan")
+    q = float(student_t.ppf(0.5 + level / 2, max(n - 1, 1)))
+    return k - q * se, k + q * se
+
+
+def ask_speed_scale(run: Search) -> None:
+    """Discovery's first question: is the robot's speed a constant fraction of what the base model
+    predicts (an effective wheel radius that is not the configuration's)? One parameter, under the same
+    rule as every name; when it passes it enters the model as a calibration finding (the value to put in
+    the robot's config, with its interval), never as terms (``terms.SCALE_FORMS`` are not searched)."""
+    ho = cross_validate(run.aug, [SPEED_SCALE], run.warm, [])
+    ev = compare(run.cur, ho, 1, run.settings)
+    search_test({SPEED_SCALE: ev}, run.settings)
+    practical_check(run, ev)
+    show(run, SPEED_SCALE, ev)
+    if not ev["passes"]:
+        run.base_info["speed_scale_check"] = evidence_row(ev)
+        return
+    prev = run.state
+    run.state = run.aug.fit([SPEED_SCALE], run.all_units, run.warm, terms=run.terms)
+    run.warm = dict(run.state.params)
+    run.effects.append(SPEED_SCALE)
+    run.steps.append(
+        {
+            "effect": SPEED_SCALE,
+            "kind": "calibration",
+            "formula": CATALOGUE[SPEED_SCALE].formula,
+            "evidence": ev,
+            "heldout_rmsre_before": run.cur.rmsre,
+            "heldout_rmsre_after": ho.rmsre,
+        }
+    )
+    run.figure_data.append(residual_panel(run.pool, prev, SPEED_SCALE, run.cur, run.state))
+    run.cur = ho
+    _reweight(run, "catalogue", None)
+    k = float(run.state.params[SPEED_SCALE][0])
+    r = run.robot.wheel_radius
+    lo, hi = speed_scale_interval(ho, k)
+    run.calibration = {
+        "parameter": "wheel_radius",
+        "value": r * (1 + k),
+        "ci": [r * (1 + lo), r * (1 + hi)],
+        "configured": r,
+        "speed_scale": 1 + k,
+        "text": f"the effective wheel radius is {r * (1 + k):.4f} m (95 % interval {r * (1 + lo):.4f}-"
+        f"{r * (1 + hi):.4f}), not the configured {r:.4f} m: a speed scale of {1 + k:.3f}; put "
+        f"wheel_radius: {r * (1 + k):.4f} in the robot's config (a calibration finding, not a physical "
+        "effect)",
+    }
+    run.steps[-1]["explanation"] = run.calibration["text"]
+    run.say(f"[{run.terrain}] calibration: {run.calibration['text']}")
 
 
 def discover_terrain(
@@ -362,41 +447,121 @@ def discover_terrain(
     base_name: str,
     candidates: tuple[str, ...] = EFFECT_IDS,
     progress: Callable[[str], None] | None = None,
+    exclude_forms: tuple[str, ...] = (),
 ) -> TerrainDiscovery:
     """Catalogue effects and open-ended terms (:mod:`skidbench.models.augmented.terms`) scored side by side on
     the same held-out units by the same rule; the best passing one is added, except that a catalogue
     effect is named only when no open-ended term of no more parameters explains more of the held-out
     gap (then the term is added under its own formula). When nothing passes, the residual is reported
     as unexplained with its size and its strongest correlates. ``factory()``: a fresh base model;
-    ``progress``: where the progress lines go (default: the ``skidbench.discover`` logger)."""
+    ``progress``: where the progress lines go (default: the ``skidbench.discover`` logger);
+    ``exclude_forms``: library forms not searched (the placebo's command-free forms)."""
     t_start = time.perf_counter()
     say = progress or (lambda msg: log.info(msg))
+    pool, gt_finding = heading_finding(pool)
+    if gt_finding:
+        say(f"[{terrain}] {gt_finding['text']}")
     run = fit_base(pool, factory, robot, settings, terrain, base_name, say)
-    while len(run.effects) + len(run.terms) < settings.max_effects:
-        scored = score_catalogue(run, candidates)
-        scored_t, screen_info, fs = score_terms(run)
-        best_c = best_catalogue(scored)
-        if best_c is not None and fs is not None:
-            score_rival(run, best_c, scored_t, fs)
-        # the search-wide test: every candidate of the step against the best a clean dataset would give
-        every = {**{e: v[0] for e, v in scored.items()}, **{k: v[0] for k, v in scored_t.items()}}
-        search_test(every, settings)
-        for name, v in [*scored.items(), *scored_t.items()]:
-            show(run, name, v[0])
-        evidence = {
-            "candidates": {e: evidence_row(v[0]) for e, v in scored.items()},
-            "terms": {k: evidence_row(v[0]) for k, v in scored_t.items()},
-            "screen": screen_info,
-        }
-        choice = choose(run, scored, scored_t)
-        if choice is None:
-            _report_unexplained(run, scored, scored_t, evidence)
+    run.base_info["ground_truth"] = [gt_finding] if gt_finding else []
+    run.excluded = tuple(exclude_forms)
+    ask_speed_scale(run)
+    while len(run.effects) + len(run.terms) < settings.max_effects + (SPEED_SCALE in run.effects):
+        if not _step(run, members(candidates)):
             break
-        kind, name, equivalents = choice
-        if kind == "catalogue":
-            ho, term = _add_effect(run, name, scored, scored_t, evidence, equivalents), None
-        else:
-            ho, term = _add_term(run, name, scored, scored_t, evidence)
-        _accept(run, name if kind == "catalogue" else term.key, kind, ho)
-        _reweight(run, kind, term)
+        _retest(run)
+    run.base_info["too_small"] = list(run.too_small.values())
+    run.base_info["dropped"] = run.dropped
     return _result(run, base_name, t_start)
+
+
+def _step(run: Search, candidates: tuple[str, ...]) -> bool:
+    """One step of the search: every candidate scored, tested and checked; the one chosen added (True),
+    or, when none passes, the residual reported unexplained (False)."""
+    scored = score_catalogue(run, candidates)
+    scored_t, screen_info, fs = score_terms(run)
+    best_c = best_catalogue(scored)
+    if best_c is not None and fs is not None:
+        score_rival(run, best_c, scored_t, fs)
+    # the search-wide test: every candidate of the step against the best a clean dataset would give
+    every = {**{e: v[0] for e, v in scored.items()}, **{k: v[0] for k, v in scored_t.items()}}
+    search_test(every, run.settings)
+    for name, ev in every.items():
+        practical_check(run, ev)
+        show(run, name, ev)
+        if ev.get("too_small"):
+            run.too_small[family_of(name)] = _too_small_row(family_of(name), ev)
+    evidence = {
+        "candidates": {e: evidence_row(v[0]) for e, v in scored.items()},
+        "terms": {k: evidence_row(v[0]) for k, v in scored_t.items()},
+        "screen": screen_info,
+    }
+    family_rivals = keep_best_members(scored)
+    choice = choose(run, scored, scored_t, family_rivals)
+    if choice is None:
+        _report_unexplained(run, scored, scored_t, evidence)
+        return False
+    kind, name, equivalents = choice
+    if kind == "catalogue":
+        ho, term = _add_effect(run, name, scored, scored_t, evidence, equivalents), None
+    else:
+        ho, term = _add_term(run, name, scored, scored_t, evidence)
+    run.too_small.pop(family_of(name) if kind == "catalogue" else term.form, None)
+    _accept(run, name if kind == "catalogue" else term.key, kind, ho)
+    _reweight(run, kind, term)
+    return True
+
+
+def _too_small_row(name: str, ev: dict[str, Any]) -> dict[str, Any]:
+    pr = ev["practical"]
+    return {
+        "name": name,
+        "heldout_gain": ev["heldout_gain"],
+        "p_search": ev.get("p_search"),
+        "points": {m: pr[m]["points"] for m in ("translational", "rotational")},
+        "share": {m: pr[m]["share"] for m in ("translational", "rotational")},
+        "text": f"{name}: detected, too small to act on (held-out 6 s RMSRE "
+        + ", ".join(f"{m} -{pr[m]['points']:.3f} points ({100 * pr[m]['share']:.1f} %)"
+                    for m in ("translational", "rotational")) + ")",
+    }  # fmt: skip
+
+
+def _retest(run: Search) -> None:
+    """After an addition, every name taken before it is tested again in the refitted model: held out
+    without it against the model as it is (its own sign-flip test, the rule's checks and the practical
+    minimum); one that no longer earns its place (a parameter refitted to its no-effect value, or a model
+    as good without it) is dropped and the model refitted. The calibration finding stays."""
+    s = run.settings
+    last = run.steps[-1].get("member", run.steps[-1]["effect"])
+    names = [e for e in run.effects if e not in (SPEED_SCALE, last)] + [
+        t.key for t in run.terms if t.key != last
+    ]
+    for name in names:
+        term = next((t for t in run.terms if t.key == name), None)
+        effects = [e for e in run.effects if e != name]
+        terms = [t for t in run.terms if t is not term]
+        p = run.state.params.get(name)
+        at_zero = term is None and name != "actuator_lag" and p is not None and bool(np.all(np.abs(p) < 1e-9))
+        if not at_zero:
+            ho = cross_validate(run.aug, effects, run.warm, terms)
+            touched = term.touched if term else tuple(CATALOGUE[name].channels)
+            n = term.n_params_with_knots if term else CATALOGUE[name].n_params
+            ev = compare(ho, run.cur, n, s, touched, name)
+            ev["passes"] = bool(ev["rule_ok"] and ev["paired_p_value"] <= s.alpha)
+            practical_check(run, ev)
+            if ev["passes"]:
+                continue
+        why = (
+            "its parameter refitted to 0" if at_zero else "the model is as good without it on held-out units"
+        )
+        run.say(f"[{run.terrain}]   {name} re-tested after {run.steps[-1]['effect']}: dropped ({why})")
+        run.dropped.append(
+            {"name": family_of(name), "member": name, "after_step": len(run.steps), "why": why}
+        )
+        for st in run.steps:
+            if st.get("member", st["effect"]) == name:
+                st["dropped"] = why
+        run.effects, run.terms = effects, terms
+        run.warm.pop(name, None)
+        run.state = run.aug.fit(run.effects, run.all_units, run.warm, terms=run.terms)
+        run.warm = dict(run.state.params)
+        run.cur = cross_validate(run.aug, run.effects, run.warm, run.terms)

@@ -14,7 +14,32 @@ import numpy as np
 from skidbench.benchmark.discovery.search import Scored, ScoredTerms, Search
 from skidbench.benchmark.discovery.stats import HeldOut, channels_of, explains_better, sign_flip_pvalue
 from skidbench.models.augmented import terms as termlib
+from skidbench.models.augmented.effects import FAMILIES, family_of
 from skidbench.models.augmented.fit import CHANNELS
+
+
+def keep_best_members(scored: Scored) -> Scored:
+    """A catalogue effect is a family of forms (``effects.FAMILIES``): its best-fitting member (largest
+    penalised gain among those that pass, else among all) stays in ``scored`` and carries the catalogue's
+    name; the others are removed from it and returned (a term must beat every member to be named instead).
+    Each kept member's evidence lists its family's members and their gains (``family``)."""
+    rivals: Scored = {}
+    for ms in FAMILIES.values():
+        present = [m for m in ms if m in scored]
+        if len(present) < 2:
+            continue
+        ok = [m for m in present if scored[m][0]["passes"]] or present
+        best = max(ok, key=lambda m: scored[m][0]["penalised_gain"])
+        scored[best][0]["family"] = {m: scored[m][0]["penalised_gain"] for m in present}
+        for m in present:
+            if m != best:
+                rivals[m] = scored.pop(m)
+    return rivals
+
+
+def member_of(scored: Scored, eid: str) -> str | None:
+    """The member of catalogue effect ``eid``'s family that ``scored`` holds (None: none)."""
+    return next((m for m in scored if family_of(m) == eid), None)
 
 
 def best_catalogue(scored: Scored, key: str = "rule_ok") -> str | None:
@@ -59,7 +84,7 @@ def restates_named(run: Search, form: str, ev: dict[str, Any]) -> bool:
     form, not another effect, and it is not named. It is listed on the step that named the effect
     (``naming.form_residual_terms``, with the step at which it passed, its held-out gain and ``p_search``)."""
     eid = termlib.catalogue_equivalent(form)
-    if eid is None or eid not in run.effects or not same_channels(form, eid):
+    if eid is None or eid not in {family_of(e) for e in run.effects} or not same_channels(form, eid):
         return False
     step = next(st for st in run.steps if st["effect"] == eid)
     step["naming"].setdefault("form_residual_terms", []).append(
@@ -70,7 +95,9 @@ def restates_named(run: Search, form: str, ev: dict[str, Any]) -> bool:
     return True
 
 
-def choose(run: Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, str, list[dict]] | None:
+def choose(
+    run: Search, scored: Scored, scored_t: ScoredTerms, rivals: Scored | None = None
+) -> tuple[str, str, list[dict]] | None:
     """The candidate to add, as (kind, id, equivalent terms) with kind "catalogue" or "term"; None when
     none passes. The interpretable name wins a tie: the passing catalogue effect of largest penalised gain
     is named unless a passing term is significantly better (:func:`significantly_better`); a term
@@ -89,17 +116,17 @@ def choose(run: Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, str
         ev_c, ho_c = scored[eid]
         out = []
         for k, (ev, ho, _, _) in scored_t.items():
-            same = termlib.catalogue_equivalent(k) == eid
+            same = termlib.catalogue_equivalent(k) == family_of(eid)
             if same or (ev["passes"] and not significantly_better(ev, ho, ev_c, ho_c, run.settings)):
                 out.append({"term": k, "heldout_gain": ev["heldout_gain"], "p_search": ev.get("p_search"),
                             "reparametrisation": same})  # fmt: skip
         return out
 
-    better = [
-        k
-        for k in passing_t
-        if best_c is None or significantly_better(*scored_t[k][:2], *scored[best_c], run.settings)
-    ]
+    def beats(k: str, eid: str) -> bool:  # better than the effect and every other member of its family
+        fam = [scored[eid], *(v for m, v in (rivals or {}).items() if family_of(m) == family_of(eid))]
+        return all(significantly_better(*scored_t[k][:2], *v, run.settings) for v in fam)
+
+    better = [k for k in passing_t if best_c is None or beats(k, best_c)]
     if not better:
         if scored[best_c][0].get("named_on_tie"):
             run.say(f"[{run.terrain}]   {best_c} ties the passing terms (none significantly better): named")
@@ -107,14 +134,9 @@ def choose(run: Search, scored: Scored, scored_t: ScoredTerms) -> tuple[str, str
     if best_c is not None:
         scored[best_c][0].pop("named_on_tie", None)
     name = max(better, key=lambda k: scored_t[k][0]["penalised_gain"])
-    eid = termlib.catalogue_equivalent(name)
-    if (
-        eid is not None
-        and same_channels(name, eid)
-        and eid in scored
-        and scored[eid][0]["passes"]
-        and not significantly_better(*scored_t[name][:2], *scored[eid], run.settings)
-    ):
+    fam = termlib.catalogue_equivalent(name)
+    eid = member_of(scored, fam) if fam is not None else None
+    if eid is not None and same_channels(name, fam) and scored[eid][0]["passes"] and not beats(name, eid):
         # the same statement about the same channels, as well explained by the catalogue's own form: the
         # catalogue's name. Significantly better than that form, it is not the effect as the catalogue
         # states it (a wheel dead zone cuts spins' yaw rate, a function of curvature that chi(R) takes

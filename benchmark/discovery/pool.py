@@ -127,3 +127,83 @@ def selected_on(pool: Pool, settings: DiscoverSettings) -> dict[str, Any]:
         "units": "time blocks" if pool.blocks else "sequences",
         "text": f"{'/'.join(settings.splits)} only: {pool.describe()}",
     }
+
+
+#: the command columns a placebo moves (everything a model or a candidate reads of the commands)
+PLACEBO_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
+
+
+def placebo_pool(pool: Pool, shift_s: float) -> Pool:
+    """The pool with every sequence's commands moved ``shift_s`` later in time, circularly (half the
+    sequence when it is shorter than twice the shift), the motion and the held-out units kept: commands
+    that did not drive this motion. What the search names on it comes from how the data and the search
+    are made, not from the robot (the placebo check of issue 47)."""
+    table = pool.table.copy()
+    for g in range(len(pool.sequences)):
+        rows = np.flatnonzero(pool.groups == g)
+        if len(rows) < 2:
+            continue
+        dt = float(np.median(np.diff(pool.t[rows])))
+        n = int(round(shift_s / max(dt, 1e-9)))
+        n = n if 2 * n <= len(rows) else len(rows) // 2
+        for c in PLACEBO_COLUMNS:
+            if c in table.columns:
+                table.loc[rows, c] = np.roll(table[c].to_numpy(float)[rows], n)
+    return dataclasses.replace(pool, table=table, note=pool.note + f"; placebo: commands moved {shift_s:g} s")
+
+
+def heading_finding(pool: Pool, min_deg: float = 1.0, max_turn: float = 0.2) -> tuple[Pool, dict | None]:
+    """The ground truth's own consistency: does its heading point where it travels? A ground-truth heading
+    off by d turns the measured body velocity by -d, vy = -tan(d) vx; a robot does not crab sideways in
+    proportion to its speed on a straight line. Per sequence, on its moving low-turn rows (|wz| <=
+    ``max_turn`` |vx| + 0.05, |vx| >= 0.2 m/s), least squares of the measured vy on (1, vx, vx t): a
+    constant lateral velocity (a side slope, ``lateral_drift``) in the first, the heading offset and its
+    drift in the others.
+    When the RMS offset over the pool's rows is at least ``min_deg``, it is a ground-truth finding (its size
+    and drift, never a robot effect): the targets and the pose headings are corrected by it before the
+    search, and the finding is returned with the corrected pool; otherwise the pool as it is and None."""
+    tgt = pool.target
+    moving = (
+        pool.valid & (np.abs(tgt[:, 0]) >= 0.2) & (np.abs(tgt[:, 2]) <= max_turn * np.abs(tgt[:, 0]) + 0.05)
+    )
+    d = np.zeros(len(tgt))
+    per_seq = []
+    for g in range(len(pool.sequences)):
+        rows = pool.groups == g
+        m = rows & moving
+        if m.sum() < 60:
+            continue
+        t0 = pool.t[rows][0]
+        tt = pool.t - t0
+        X = np.column_stack([np.ones(m.sum()), tgt[m, 0], tgt[m, 0] * tt[m]])
+        a, b, c = np.linalg.lstsq(X, tgt[m, 1], rcond=None)[0]
+        d[rows] = -np.arctan(b + c * tt[rows])  # the heading's offset at each row of the sequence
+        per_seq.append((pool.sequences[g], float(np.degrees(-np.arctan(b))), float(np.degrees(-c) * 60.0)))
+    if not per_seq:
+        return pool, None
+    rms = float(np.degrees(np.sqrt(np.mean(d[pool.valid] ** 2))))
+    if rms < min_deg:
+        return pool, None
+    c, s = np.cos(d), np.sin(d)  # the true body velocity is the measured one turned by +d
+    target = pool.target.copy()
+    target[:, 0], target[:, 1] = c * tgt[:, 0] - s * tgt[:, 1], s * tgt[:, 0] + c * tgt[:, 1]
+    pose = pool.pose.copy()
+    pose[:, 2] = pose[:, 2] - d
+    table = pool.table.copy()
+    table["vx"], table["vy"] = target[:, 0], target[:, 1]
+    mean_start = float(np.mean([p[1] for p in per_seq]))
+    mean_rate = float(np.mean([p[2] for p in per_seq]))
+    finding = {
+        "kind": "ground_truth",
+        "what": "heading disagrees with the direction of travel",
+        "rms_deg": rms,
+        "mean_offset_deg": mean_start,
+        "mean_drift_deg_per_min": mean_rate,
+        "per_sequence": [{"sequence": n, "offset_deg": o, "drift_deg_per_min": r} for n, o, r in per_seq],
+        "text": f"ground truth: its heading disagrees with its direction of travel by {rms:.1f} deg (RMS; "
+        f"{mean_start:+.1f} deg at the start, drifting {mean_rate:+.2f} deg/min on average): check the "
+        "ground truth (a heading bias or a misaligned frame); corrected before the search, not a robot "
+        "effect",
+    }
+    out = dataclasses.replace(pool, table=table, target=target, pose=pose)
+    return out, finding

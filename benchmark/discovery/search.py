@@ -11,10 +11,17 @@ from typing import Any
 
 import numpy as np
 
-from skidbench.benchmark.discovery.stats import HeldOut, channels_of, compare, cross_validate, folds_of
+from skidbench.benchmark.discovery.stats import (
+    HeldOut,
+    channels_of,
+    compare,
+    cross_validate,
+    folds_of,
+    training_rows,
+)
 from skidbench.benchmark.discovery.term_screen import FoldScreens, screen
 from skidbench.models.augmented import terms as termlib
-from skidbench.models.augmented.effects import CATALOGUE
+from skidbench.models.augmented.effects import CATALOGUE, family_of
 from skidbench.models.augmented.fit import (
     CHANNELS,
     Augmenter,
@@ -55,6 +62,10 @@ class Search:
     figure_data: list[dict[str, Any]] = field(default_factory=list)
     rejected: dict[str, Any] | None = None
     unexplained: dict[str, Any] | None = None
+    calibration: dict[str, Any] | None = None  # the speed scale found first (discover.ask_speed_scale)
+    too_small: dict[str, dict[str, Any]] = field(default_factory=dict)  # detected, too small to act on
+    dropped: list[dict[str, Any]] = field(default_factory=list)  # names re-tested out of the model
+    excluded: tuple[str, ...] = ()  # library forms not searched (a placebo's command-free forms)
 
 
 def show(run: Search, name: str, ev: dict[str, Any]) -> None:
@@ -66,6 +77,23 @@ def show(run: Search, name: str, ev: dict[str, Any]) -> None:
         f"velocity gain {ev['velocity_gain']:+.4f}{'' if ev['stable_across_folds'] else ' unstable'}"
         f"{'  PASS' if ev['passes'] else ''}"
     )
+
+
+def practical_check(run: Search, ev: dict[str, Any]) -> None:
+    """A name must matter to a lab (``discover.min_share``, ``discover.min_points``): in one of the two
+    6 s metrics it cuts the held-out error that remains by at least ``min_share`` of it and by at least
+    ``min_points`` (fractions of RMSRE). A candidate that passes the statistical rule but not this is
+    "detected, too small to act on" (``run.too_small``), not added; ``passes`` is updated in place."""
+    s = run.settings
+    b, a = ev["heldout_rmsre_before"], ev["heldout_rmsre_after"]
+    drops = {m: (b[m] - a[m], (b[m] - a[m]) / max(b[m], 1e-12)) for m in ("translational", "rotational")}
+    ok = any(d >= s.min_points and r >= s.min_share for d, r in drops.values())
+    ev["practical"] = {m: {"points": 100 * d, "share": r} for m, (d, r) in drops.items()} | {"ok": ok}
+    ev["detected"] = bool(ev["passes"])
+    if ev["passes"] and not ok:
+        ev["passes"] = False
+        ev["too_small"] = True
+    return None
 
 
 def evidence_row(ev: dict[str, Any]) -> dict[str, Any]:
@@ -129,10 +157,11 @@ def excluded_forms(run: Search) -> tuple[str, ...]:
     """Library forms not searched: the terms already added, the equivalents of the catalogue effects
     already added (the same residual under another name) and, when the held-out units are time blocks
     of a few sequences, the forms that are functions of sequence time (:func:`terms.time_forms`: blocks
-    of one sequence share its ground truth's slow drift, so they cannot test a change over time)."""
-    eq = [f for e in run.effects for f in termlib.equivalent_forms(e)]
+    of one sequence share its ground truth's slow drift, so they cannot test a change over time), and
+    the forms of a speed scale (``terms.SCALE_FORMS``: the calibration's question, asked first)."""
+    eq = [f for e in run.effects for f in termlib.equivalent_forms(family_of(e))]
     timed = termlib.time_forms() if run.pool.blocks else []
-    return tuple(t.form for t in run.terms) + tuple(eq) + tuple(timed)
+    return tuple(t.form for t in run.terms) + tuple(eq) + tuple(timed) + termlib.SCALE_FORMS + run.excluded
 
 
 def fold_screens(run: Search) -> FoldScreens:
@@ -144,8 +173,8 @@ def fold_screens(run: Search) -> FoldScreens:
     screens = []
     for held in folds_of(pool, run.settings.folds):
         train = np.setdiff1d(np.arange(pool.n_units), held)
-        st = aug.fit(run.effects, train, run.warm, fixed_tau=True, terms=run.terms)
-        rows = np.isin(pool.units, train) & pool.valid
+        rows = training_rows(pool, held, run.settings.horizon_s)
+        st = aug.fit(run.effects, train, run.warm, fixed_tau=True, terms=run.terms, rows=rows)
         sig = aug.signals(st.feats, st.base_pred)
         screens.append(
             screen(
@@ -163,13 +192,17 @@ def fold_screens(run: Search) -> FoldScreens:
 
 
 def score_form(run: Search, fs: FoldScreens, template: termlib.Term, scored_t: ScoredTerms) -> None:
-    """One library form added to the current model, each fold with its own screen's knots, scored held
-    out against the current model (into ``scored_t``)."""
-    fold_terms = fs.fold_terms(template)
+    """One library form added to the current model in the folds whose own screen chose it (with that
+    screen's knots; a fold that did not choose it predicts its held-out units with the current model: the
+    candidate set is chosen within each fold from its training units only), scored held out against the
+    current model (into ``scored_t``)."""
+    fold_terms = fs.fold_selected(template)
+    if not any(fold_terms):  # a rival no fold chose: scored with every fold's knots
+        fold_terms = fs.fold_terms(template)
     ho = cross_validate(run.aug, run.effects, run.warm, run.terms, fold_terms=fold_terms)
     ev = compare(run.cur, ho, template.n_params_with_knots, run.settings, template.touched, "candidate_term")
     ev["fold_votes"] = fs.votes(template.form)
-    ev["fold_knots"] = [list(t.knots) for t in fold_terms]
+    ev["fold_knots"] = [None if t is None else list(t.knots) for t in fold_terms]
     scored_t[template.form] = (ev, ho, template, fold_terms)
 
 

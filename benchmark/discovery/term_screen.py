@@ -242,6 +242,11 @@ class FoldScreens:
         )
         return [t if t is not None else fill for t in found]
 
+    def fold_selected(self, template: Term) -> list[Term | None]:
+        """The form as each fold's own screen chose it: its term with that fold's knots where the form is
+        among the fold's candidates, None where it is not (that fold's model does not take it)."""
+        return [next((t for t in scr.candidates if t.form == template.form), None) for scr in self.screens]
+
     def best_rival(
         self, channels: tuple[int, ...], max_params: int, skip: tuple[str, ...] = ()
     ) -> Term | None:

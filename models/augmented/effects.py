@@ -123,6 +123,33 @@ CATALOGUE: dict[str, Effect] = {
             (0,),
         ),
         Effect(
+            "side_asymmetry_yaw",
+            "One side of the robot pulls the other round (a toe-in, a dragging caster, one side's tyres "
+            "scrubbing more), so the robot yaws in proportion to its forward speed while the forward speed "
+            "itself is unchanged.",
+            "wz += k * v_cmd  (the yaw channel only)",
+            ("k",),
+            2,
+            "add",
+            (0.0,),
+            "commanded linear velocity (m/s)",
+            ((-INF, INF),),
+        ),
+        Effect(
+            "speed_scale",
+            "The wheels' effective radius is not the one in the robot's configuration (tyre wear, "
+            "pressure, load, the terrain's rolling radius), so the robot drives a constant fraction "
+            "faster or slower than commanded.",
+            "(vx, wz) += k * (vx_pred, wz_pred)  (effective wheel radius r (1 + k))",
+            ("k",),
+            0,
+            "add",
+            (0.0,),
+            "base model's forward speed (m/s)",
+            ((-0.5, 0.5),),
+            (2,),
+        ),
+        Effect(
             "curvature_dependent_icr",
             "Tight turns need more lateral scrubbing than wide ones, so the ICR coefficient chi grows "
             "as the turning radius shrinks, chi = 1 + b1 / (1 + b2 sqrt|R|) (Wang et al., eq. 3).",
@@ -161,7 +188,35 @@ CATALOGUE: dict[str, Effect] = {
     ]
 }
 
-EFFECT_IDS: tuple[str, ...] = tuple(CATALOGUE)
+#: the catalogue's public ids (SPEC.md); the other entries are further members of their families and the
+#: speed scale (a calibration finding, not a physical effect)
+EFFECT_IDS: tuple[str, ...] = (
+    "angular_acceleration_slip",
+    "linear_acceleration_slip",
+    "actuator_lag",
+    "centripetal_side_slip",
+    "side_asymmetry",
+    "curvature_dependent_icr",
+    "lateral_drift",
+    "speed_dependent_turn_slip",
+)
+#: a catalogue effect's members: the forms it may take (the first is its default form). The member that
+#: fits best carries the catalogue's name (docs/discovery.md, "The catalogue, as families")
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "side_asymmetry": ("side_asymmetry", "side_asymmetry_yaw"),
+}
+#: what discovery asks first when the robot's radius was not calibrated: a calibration finding
+SPEED_SCALE = "speed_scale"
+
+
+def family_of(member: str) -> str:
+    """The catalogue id a member belongs to (itself for a catalogue id, and for the speed scale)."""
+    return next((f for f, ms in FAMILIES.items() if member in ms), member)
+
+
+def members(effect_ids) -> tuple[str, ...]:
+    """Every member of the given catalogue ids, in order."""
+    return tuple(m for e in effect_ids for m in FAMILIES.get(e, (e,)))
 
 
 # -- inputs -------------------------------------------------------------------------------------
@@ -222,6 +277,8 @@ def corrections(eid: str, p: np.ndarray, f: dict[str, np.ndarray], pred: np.ndar
     if eid == "side_asymmetry":
         k = float(p[0])
         return {2: k * f["v"], 0: k * _chi_of(pred, f) * f["w_b2"]}
+    if eid == SPEED_SCALE:  # the base's prediction at the radius r (1 + k) (a model linear in r)
+        return {0: float(p[0]) * pred[:, 0], 2: float(p[0]) * pred[:, 2]}
     return {CATALOGUE[eid].channel: additive(eid, p, f, pred)}
 
 
@@ -235,8 +292,10 @@ def additive(eid: str, p: np.ndarray, f: dict[str, np.ndarray], pred: np.ndarray
         return -k * f["dv"]
     if eid == "centripetal_side_slip":  # outward: to the right (-y) in a left turn
         return -k * pred[:, 0] * pred[:, 2]
-    if eid == "side_asymmetry":
+    if eid in ("side_asymmetry", "side_asymmetry_yaw"):
         return k * f["v"]
+    if eid == SPEED_SCALE:
+        return k * pred[:, 0]
     if eid == "lateral_drift":
         return np.full(len(pred), k)
     raise KeyError(eid)
@@ -289,8 +348,10 @@ def revealing_feature(eid: str, feats: dict[str, np.ndarray], pred: np.ndarray) 
         return feats["dv"]
     if eid == "centripetal_side_slip":
         return pred[:, 0] * pred[:, 2]
-    if eid == "side_asymmetry":
+    if eid in ("side_asymmetry", "side_asymmetry_yaw"):
         return feats["v"]
+    if eid == SPEED_SCALE:
+        return pred[:, 0]
     if eid == "curvature_dependent_icr":
         return np.minimum(feats["R"], 10.0)
     if eid == "lateral_drift":

@@ -23,7 +23,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from skidbench.models.augmented import terms as termlib
 from skidbench.models.augmented.effects import (
     CATALOGUE,
-    EFFECT_IDS,
+    SPEED_SCALE,
     apply_effects,
     base_targets,
     command_features,
@@ -59,6 +59,8 @@ class DiscoverSettings:
     max_terms: int = 4  # open-ended candidates validated per step (the sparse regression's best)
     open_ended: bool = True  # search the term library (models/augmented/terms.py) next to the catalogue
     channel_tolerance: float = 0.01  # held-out log-MSE loss allowed on a velocity channel the effect changes
+    min_share: float = 0.10  # a name cuts the 6 s error that remains by this share of it (one metric) ...
+    min_points: float = 0.001  # ... and by this much (RMSRE as a fraction: 0.1 percentage point)
     alternations: int = 6  # base/effect refit alternations
     tau_bounds: tuple[float, float] = (0.02, 1.5)
     splits: tuple[str, ...] = ("train",)
@@ -240,8 +242,12 @@ class Augmenter:
         warm: dict[str, np.ndarray] | None = None,
         fixed_tau: bool = False,
         terms: tuple[termlib.Term, ...] | list[termlib.Term] = (),
+        rows: np.ndarray | None = None,
     ) -> FitState:
-        rows = np.isin(self.pool.units, train_units) & self.pool.valid
+        """The model fitted on the valid rows of ``train_units`` (or on ``rows``, a (T,) mask: a held-out
+        fold's training rows less the buffer around its blocks) and predicted on every row."""
+        if rows is None:
+            rows = np.isin(self.pool.units, train_units) & self.pool.valid
         terms = list(terms)
         if "actuator_lag" in effects:
             if fixed_tau and warm and "actuator_lag" in warm:  # scoring another candidate: keep tau
@@ -379,7 +385,8 @@ class Augmenter:
         sizes = [CATALOGUE[e].n_params for e in corr]
         x0 = np.concatenate([params[e] for e in corr]).astype(float)
         bp = base_pred[rows]
-        gain = base_gain and any(CATALOGUE[e].kind == "mult" for e in corr)
+        # (the speed scale's yaw part, too, trades off with the base model's own yaw-rate gain)
+        gain = base_gain and any(CATALOGUE[e].kind == "mult" or e == SPEED_SCALE for e in corr)
         fr = {k: v[rows] for k, v in feats.items()}
         fr["sqrt_R"] = sqrt_radius(fr["R"])  # computed once, not at every residual evaluation
         chans = sorted({c for e in corr for c in CATALOGUE[e].channels})  # what the parameters change
@@ -464,7 +471,7 @@ def fit_effects(
     (``skidbench.models.augmented.model``) calls on Train."""
     unknown = [e for e in effects if e not in CATALOGUE]
     if unknown:
-        raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})")
+        raise DiscoverError(f"unknown effect(s) {unknown} (catalogue: {list(CATALOGUE)})")
     s = settings or DiscoverSettings()
     if "sequence" in table.columns:
         tables = [

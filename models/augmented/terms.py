@@ -66,6 +66,17 @@ CATALOGUE_FORMS = {
 #: radius ratio 1 - s (``side_asymmetry``'s yaw rate proportional to speed), plus a common radius change
 #: the base model's calibrated radius already holds; a yaw rate proportional to one side's rim speed
 #: r w_l = v - w B/2 is the same yaw rate proportional to speed plus a change of chi.
+#: forms that state a speed scale (forward speed a fraction of the commanded or predicted one, or of its
+#: magnitude in the direction of travel): the calibration's question (the effective radius), asked first
+#: by discovery with one parameter, never a term
+SCALE_FORMS = (
+    "lin.v.vx",
+    "lin.vx_pred.vx",
+    "lin.|v|.vx",
+    "lin.|v|*sgn_v.vx",
+    "lin.v*sgn_v.vx",
+    "lin.sgn_v.vx",
+)
 CATALOGUE_EQUIVALENTS = {
     "slip.l.wheels": "side_asymmetry",
     "slip.r.wheels": "side_asymmetry",
@@ -120,6 +131,12 @@ def time_forms() -> list[str]:
     heading) is such a function too, so they are searched only when the held-out units are whole,
     independent sequences."""
     return [t.form for t in library_groups() if t.family == "after" or "t" in t.signal.split("*")]
+
+
+def command_free_forms() -> list[str]:
+    """The library forms that read no command and no prediction (a constant, time): a placebo, whose
+    commands did not drive the motion, leaves them what they are."""
+    return [t.form for t in library_groups() if set(t.signal.split("*")) <= {"one", "t"}]
 
 
 def equivalent_forms(effect: str) -> list[str]:

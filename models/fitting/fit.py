@@ -259,7 +259,8 @@ def resolve_model_spec(
     try:
         doc = json.loads(path.read_text())
         entry = doc["terrains"][terrain]
-        base, effects = str(entry["base_model"]), [str(e) for e in entry["effects"]]
+        base = str(entry["base_model"])  # model_effects: the members as fitted (the speed scale too)
+        effects = [str(e) for e in entry.get("model_effects", entry["effects"])]
         effects += [str(k) for k in entry.get("terms", [])]  # open-ended terms, after the catalogue's
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ModelError(

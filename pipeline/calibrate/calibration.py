@@ -7,7 +7,11 @@ Identification, per terrain, on the Train split's valid, *settled* rows (the whe
 
 * **radius** (straight rows: ``|wr - wl| <= straight_ratio * |wl + wr| / 2``, mean wheel rate above
   ``min_wheel_rate``): the regression through the origin of the ground-truth ``vx`` on ``(wl + wr) / 2``;
-  its slope is ``r_eff``;
+  its slope is ``r_eff``. With fewer than ``min_rows`` settled straight rows, the same regression on the
+  *low-turn* rows, settled or not (``|wr - wl| <= low_turn_ratio * |wl + wr| / 2``: turning radius at
+  least ``B / low_turn_ratio``), with the commanded mean wheel acceleration as a second regressor (it takes
+  what a lag or an acceleration slip moves between the command and the speed while the wheels change
+  speed); the slope on ``(wl + wr) / 2`` is ``r_eff`` (``method`` says which rows gave it);
 * **track width** (turning rows: ``|wr - wl| >= min_turn_rate``): the regression through the origin of
   the ground-truth ``wz`` on ``r_eff (wr - wl)``; its slope is ``1 / B_eff``. ``B_eff`` is the effective
   track of the skid-steer literature (Mandow et al. 2007: the ICR spread), larger than the physical track
@@ -65,6 +69,7 @@ class CalibrationError(SkidbenchError):
 class CalibrationSettings:
     min_wheel_rate: float = 0.5  # rad/s: slower rows say nothing about the radius
     straight_ratio: float = 0.2  # |wr - wl| <= this * |mean wheel rate|: near-straight (R >= 5 B)
+    low_turn_ratio: float = 0.5  # the radius's fallback rows: |wr - wl| <= this * |mean| (R >= 2 B)
     min_turn_rate: float = 1.0  # rad/s: |wr - wl| at least this: a turning row
     settle_s: float = 0.5  # s since the wheel commands last changed
     command_change: float = 2.0  # rad/s^2: |cmd_dwl| or |cmd_dwr| above this is a command step
@@ -152,6 +157,8 @@ class _Rows:
     blocks: np.ndarray
     straight: np.ndarray
     turning: np.ndarray
+    low_turn: np.ndarray  # low-turn rows, settled or not (the radius's fallback)
+    mean_accel: np.ndarray  # commanded mean wheel acceleration (rad/s^2)
 
 
 def _rows(table: pd.DataFrame, s: CalibrationSettings) -> _Rows:
@@ -170,29 +177,27 @@ def _rows(table: pd.DataFrame, s: CalibrationSettings) -> _Rows:
     target = table[["vx", "wz"]].to_numpy(float)
     changing = np.any(np.abs(table[["cmd_dwl", "cmd_dwr"]].to_numpy(float)) > s.command_change, axis=1)
     ok = valid & np.all(np.isfinite(wheels), axis=1) & np.all(np.isfinite(target), axis=1)
-    ok &= _settled(t, seq, changing, s.settle_s)
+    settled = ok & _settled(t, seq, changing, s.settle_s)
     wl, wr = wheels[:, 0], wheels[:, 1]
     mean_rate = (wl + wr) / 2.0
     diff = wr - wl
-    straight = (
-        ok & (np.abs(mean_rate) >= s.min_wheel_rate) & (np.abs(diff) <= s.straight_ratio * np.abs(mean_rate))
-    )
-    turning = ok & (np.abs(diff) >= s.min_turn_rate)
+    moving = np.abs(mean_rate) >= s.min_wheel_rate
+    straight = settled & moving & (np.abs(diff) <= s.straight_ratio * np.abs(mean_rate))
+    turning = settled & (np.abs(diff) >= s.min_turn_rate)
+    low_turn = ok & moving & (np.abs(diff) <= s.low_turn_ratio * np.abs(mean_rate))
+    mean_accel = table[["cmd_dwl", "cmd_dwr"]].to_numpy(float).mean(axis=1)
     source = "encoders" if has_enc else "commands"
-    return _Rows(source, valid, mean_rate, diff, target, _blocks(t, seq, s.block_s), straight, turning)
+    blocks = _blocks(t, seq, s.block_s)
+    return _Rows(source, valid, mean_rate, diff, target, blocks, straight, turning, low_turn, mean_accel)
 
 
 def _wheel_radius(rows: _Rows, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
-    """The effective wheel radius: vx = r (wl + wr) / 2 on the settled straight rows (the spec sheet's
-    with too few)."""
+    """The effective wheel radius: vx = r (wl + wr) / 2 on the settled straight rows; with too few, on
+    the low-turn rows with the commanded acceleration as a nuisance regressor (:func:`_low_turn_radius`);
+    the spec sheet's when neither has ``min_rows``."""
     straight = rows.straight
     if straight.sum() < s.min_rows:
-        return {
-            "value": spec.wheel_radius,
-            "identified": False,
-            "n_rows": int(straight.sum()),
-            "reason": f"{int(straight.sum())} settled straight rows (< min_rows {s.min_rows}); spec kept",
-        }
+        return _low_turn_radius(rows, spec, s)
     fit = _slope_with_ci(rows.mean_rate[straight], rows.target[straight, 0], rows.blocks[straight], s)
     r_eff = fit["slope"]
     out = {
@@ -203,11 +208,77 @@ def _wheel_radius(rows: _Rows, spec: Robot, s: CalibrationSettings) -> dict[str,
         "method": f"straight settled rows: vx = r (wl + wr) / 2 through the origin; wheels: {rows.source}",
     }
     if rows.source == "commands":
-        out["note"] = (
-            "from commanded wheel rates (no encoders): includes the velocity controller's steady-state "
-            "tracking error and the longitudinal slip of straight driving"
-        )
+        out["note"] = _COMMANDS_NOTE
     return out
+
+
+_COMMANDS_NOTE = (
+    "from commanded wheel rates (no encoders): includes the velocity controller's steady-state "
+    "tracking error and the longitudinal slip of straight driving"
+)
+
+
+def _low_turn_radius(rows: _Rows, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:
+    """The radius from the low-turn rows, settled or not: vx = r (wl + wr) / 2 + b d/dt (wl + wr) / 2 (the
+    commanded mean wheel acceleration takes what a lag or an acceleration slip moves while the wheels
+    change speed), least squares through the origin, r with a block-bootstrap interval."""
+    low, n_straight = rows.low_turn, int(rows.straight.sum())
+    if low.sum() < s.min_rows:
+        return {
+            "value": spec.wheel_radius,
+            "identified": False,
+            "n_rows": n_straight,
+            "reason": f"{n_straight} settled straight rows and {int(low.sum())} low-turn rows "
+            f"(< min_rows {s.min_rows}); spec kept",
+        }
+    X = np.column_stack([rows.mean_rate[low], rows.mean_accel[low]])
+    fit = _regression_with_ci(X, rows.target[low, 0], rows.blocks[low], s)
+    r_eff = fit["coef"][0]
+    out = {
+        "value": r_eff,
+        "identified": True,
+        **{k: v for k, v in fit.items() if k != "coef"},
+        "accel_coef_s": fit["coef"][1] / max(r_eff, 1e-12),
+        "ratio_to_spec": r_eff / spec.wheel_radius,
+        "method": f"{n_straight} settled straight rows (< min_rows {s.min_rows}); low-turn rows "
+        f"(|wr - wl| <= {s.low_turn_ratio:g} |wl + wr| / 2): vx = r (wl + wr) / 2 + b d/dt (wl + wr) / 2 "
+        f"through the origin; wheels: {rows.source}",
+    }
+    if rows.source == "commands":
+        out["note"] = _COMMANDS_NOTE
+    return out
+
+
+def _regression_with_ci(
+    X: np.ndarray, y: np.ndarray, blocks: np.ndarray, s: CalibrationSettings
+) -> dict[str, Any]:
+    """Least squares y = X b through the origin, with a block-bootstrap percentile interval and s.e. of
+    the first coefficient (the blocks' normal equations summed per draw)."""
+    coef = np.linalg.lstsq(X, y, rcond=None)[0]
+    ub, inv = np.unique(blocks, return_inverse=True)
+    p = X.shape[1]
+    xtx = np.zeros((len(ub), p, p))
+    xty = np.zeros((len(ub), p))
+    np.add.at(xtx, inv, X[:, :, None] * X[:, None, :])
+    np.add.at(xty, inv, X * y[:, None])
+    if len(ub) >= 2:
+        draws = np.random.default_rng(s.seed).integers(0, len(ub), size=(s.bootstrap, len(ub)))
+        A = xtx[draws].sum(axis=1) + 1e-12 * np.eye(p)
+        bs = np.linalg.solve(A, xty[draws].sum(axis=1)[:, :, None])[:, 0, 0]
+        a = (1.0 - s.ci) / 2.0
+        lo, hi = np.quantile(bs, [a, 1.0 - a])
+        se = float(np.std(bs, ddof=1))
+    else:
+        lo = hi = se = float("nan")
+    resid = y - X @ coef
+    return {
+        "coef": [float(c) for c in coef],
+        "ci": [float(lo), float(hi)],
+        "se": se,
+        "n_rows": len(y),
+        "n_blocks": len(ub),
+        "residual_rms": float(np.sqrt(np.mean(resid**2))),
+    }
 
 
 def _track_width(rows: _Rows, r_eff: float, spec: Robot, s: CalibrationSettings) -> dict[str, Any]:

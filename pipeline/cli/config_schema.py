@@ -355,6 +355,10 @@ SCHEMA: dict[str, Spec] = {
     "discover.figure": BOOL,
     "discover.open_ended": BOOL,
     "discover.max_terms": integer(0),
+    "discover.min_share": number(0, 1),
+    "discover.min_points": NONNEG,
+    "discover.placebo": choice("auto", True, False),
+    "discover.placebo_shift_s": number(gt=0, what="s"),
 }
 # fmt: on
 
