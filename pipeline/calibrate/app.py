@@ -34,7 +34,7 @@ from skidbench.pipeline.core.io import fingerprint_obj
 from skidbench.pipeline.core.layout import layout_from_cfg
 from skidbench.pipeline.core.robot import robot_from_hydra
 from skidbench.pipeline.core.schema import read_split
-from skidbench.pipeline.runner.forked import map_forked
+from skidbench.pipeline.runner.tasks import map_items
 
 log = logging.getLogger("skidbench.calibrate")
 
@@ -126,9 +126,11 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
 
 def _calibrate_all(layout, terrains: list[str], spec, s, dataset: str, usage) -> list[tuple[dict, bool]]:
     """:func:`calibrate_terrain` of every terrain, in order. The terrains are independent (each its own
-    Train files, document and stamp): in forked worker processes, one per core (:mod:`.forked`), the same
-    documents as one after the other in about two thirds of the time on two cores."""
-    return map_forked(calibrate_terrain, [(layout, t, spec, s, dataset, usage) for t in terrains])
+    Train files, document and stamp): tasks (:mod:`.tasks`: forked worker processes, one per core, or Ray
+    tasks on a cluster), the same documents as one after the other in about two thirds of the time on two
+    cores."""
+    calls = [(layout, t, spec, s, dataset, usage) for t in terrains]
+    return map_items(calibrate_terrain, calls, terrains, what="calibrate", unit="terrain")
 
 
 def log_run(cfg: DictConfig, layout, docs: dict[str, dict[str, Any]], robot: str) -> str:

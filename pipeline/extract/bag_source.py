@@ -15,7 +15,7 @@ from typing import Any
 
 from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.manifest import Manifest
-from skidbench.pipeline.runner.forked import map_forked
+from skidbench.pipeline.runner.tasks import map_items
 from skidbench.pipeline.sources.contract import Source, SourceContext
 
 log = logging.getLogger("skidbench.extract")
@@ -48,8 +48,6 @@ class BagSource(Source):
         every source."""
         # deferred: the bag readers (rosbags) take seconds to import, and every stage loads this class
         # to check its settings (pipeline/datasets/identity.py)
-        from tqdm import tqdm
-
         from skidbench.pipeline.extract.reader import bag_format, discover_sequences, topic_specs
 
         layout, opts = ctx.layout, ctx.options
@@ -77,17 +75,18 @@ class BagSource(Source):
             meta = {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category}
             bag = manifest.resolve(seq)
             calls.append((bag, layout.extracted / seq.name, specs, auto, bag_opts, meta))
-        bar = tqdm(total=len(seqs), desc="extract", unit="bag", disable=not opts.progress or len(seqs) < 2)
 
         def done(i: int, info: dict[str, Any]) -> None:
             verb = "up to date" if info.get("skipped") else "extracted"
             counts = ", ".join(f"{k} {v['count']}" for k, v in info["topics"].items())
             log.info("%s %s: %s", verb, seqs[i].name, counts)
-            bar.update()
 
-        # the bags are independent (each its own tables and stamp): in forked workers, one per core
-        with bar:
-            records = map_forked(_extract_one, calls, done)
+        # the bags are independent (each its own tables and stamp): tasks (pipeline/tasks.py), forked
+        # workers one per core, or Ray tasks on a cluster; each streams its bag to its tables
+        names = [seq.name for seq in seqs]
+        records = map_items(
+            _extract_one, calls, names, what="extract", unit="bag", done=done, progress=opts.progress
+        )
         n_skipped = sum(bool(r.get("skipped")) for r in records)
         if records and n_skipped == len(records):
             log.info("extract: %d sequences up to date, skipped", len(records))

@@ -32,7 +32,7 @@ from skidbench.pipeline.groundtruth.pose_topic import read_pose_table
 from skidbench.pipeline.groundtruth.tf import is_tf_table, read_tf_trajectory
 from skidbench.pipeline.groundtruth.trajectory import Trajectory, read_tum, write_tum
 from skidbench.pipeline.runner.cpu import code_paths
-from skidbench.pipeline.runner.forked import map_forked
+from skidbench.pipeline.runner.tasks import map_items
 
 log = logging.getLogger("skidbench.groundtruth")
 
@@ -53,17 +53,39 @@ def _extracted_bytes(layout: Layout, seq: Sequence) -> int:
     return sum(p.stat().st_size for p in folder.glob("*") if p.is_file()) if folder.is_dir() else 0
 
 
-def _sequence_worker(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None):
-    """:func:`sequence_groundtruth` in a worker process: ``(name, Trajectory, report)``. ``threads``
-    limits OpenCV's thread pool (one per worker when the workers already fill the cores: its idle threads
-    otherwise spin and take CPU time from the other worker; :func:`~..forked.map_forked` limits BLAS's)."""
+def _sequence_task(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None):
+    """Bring one sequence's ground truth up to date, in whatever process runs it (a forked worker, a Ray
+    task): skipped when its stamp is fresh, else computed (:func:`sequence_groundtruth`), written and
+    stamped here. Returns only its summary: ``(name, skipped, truth error or None, loop error or None)``
+    (the loop error of a ``loop`` sequence, for the loop-closure check). ``threads`` limits OpenCV's
+    thread pool (one per worker when the workers already fill the cores: its idle threads otherwise spin
+    and take CPU time from the other worker; the workers' BLAS is limited by their runner)."""
+    gt_cfg, out = cfg.groundtruth, layout.groundtruth
+    tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
+    stamp = Stamp(stamp_file(layout.root, "groundtruth", f"{seq.name}.json"), "groundtruth")
+    key = stamp.key(sequence_inputs(cfg, layout, manifest, seq), stage_config(cfg))
+    if stamp.is_fresh(key):
+        report = json.loads(rep.read_text())
+        loop = _loop_error(read_tum(tum), seq) if seq.category == "loop" else None
+        return seq.name, True, report.get("truth_error") or None, loop
     if threads is not None:
         import cv2
 
         cv2.setNumThreads(threads)
     traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
     report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/runner/cpu.py)
-    return seq.name, traj, report
+    score = _write_sequence(gt_cfg, layout, seq, traj, report)
+    stamp.record(key, [tum, rep])
+    return seq.name, False, score, _loop_error(traj, seq) if seq.category == "loop" else None
+
+
+def _loop_error(traj: Trajectory, seq: Sequence):
+    """The loop-closure error of one loop trial (:func:`.loop.loop_error`), None without the loop module."""
+    try:
+        loop = importlib.import_module("skidbench.pipeline.groundtruth.loop")
+    except ImportError:
+        return None
+    return loop.loop_error(traj, seq.name)
 
 
 def _bag_span(ext: Path) -> tuple[int, int] | None:
@@ -223,21 +245,21 @@ def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[st
         return None
 
 
-def loop_closure(cfg: DictConfig, trajs: dict[str, Trajectory]) -> dict[str, Any]:
-    """The loop-closure check (the paper's localization accuracy) with :mod:`.loop`'s formulas."""
+def loop_closure(cfg: DictConfig, errors: dict[str, Any]) -> dict[str, Any]:
+    """The loop-closure check (the paper's localization accuracy) with :mod:`.loop`'s formulas, from each
+    loop trial's :class:`.loop.LoopError` (None where the loop module is not available)."""
     bounds = {k: float(v) for k, v in cfg.groundtruth.loop_bound.items()}
-    if not trajs:
+    if not errors:
         return {"trials": 0, "flagged": False, "bounds": bounds, "note": "no loop sequences in the manifest"}
     try:
         loop = importlib.import_module("skidbench.pipeline.groundtruth.loop")
     except ImportError as exc:
         log.warning("loop-closure module unavailable (%s): check skipped", exc)
-        return {"trials": len(trajs), "flagged": False, "bounds": bounds, "note": f"check skipped: {exc}"}
-    errors = [loop.loop_error(t, name) for name, t in trajs.items()]
-    stats = loop.summarize_loops(errors, bounds["translational"], bounds["rotational"])
+        return {"trials": len(errors), "flagged": False, "bounds": bounds, "note": f"check skipped: {exc}"}
+    stats = loop.summarize_loops(list(errors.values()), bounds["translational"], bounds["rotational"])
     return {
-        "trials": len(trajs),
-        "sequences": list(trajs),
+        "trials": len(errors),
+        "sequences": list(errors),
         "translational_mean": stats["trans_err_mean"],
         "translational_std": stats["trans_err_std"],
         "rotational_mean": stats["rot_err_mean"],
@@ -249,31 +271,6 @@ def loop_closure(cfg: DictConfig, trajs: dict[str, Trajectory]) -> dict[str, Any
         "bounds": bounds,
         "flagged": stats["flagged"],
     }  # fmt: skip
-
-
-def _up_to_date(cfg: DictConfig, layout, manifest: Manifest) -> tuple[list, dict, dict, int]:
-    """(the sequences to compute, each with its stamp and key; the loops and truth scores of those up to
-    date, read back; how many are up to date)."""
-    out = layout.groundtruth
-    conf = stage_config(cfg)
-    loops: dict[str, Trajectory] = {}
-    truth_scores = {}
-    skipped = 0
-    stale: list[tuple[Sequence, Stamp, str]] = []
-    for seq in manifest.sequences:
-        tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
-        stamp = Stamp(stamp_file(layout.root, "groundtruth", f"{seq.name}.json"), "groundtruth")
-        key = stamp.key(sequence_inputs(cfg, layout, manifest, seq), conf)
-        if stamp.is_fresh(key):
-            skipped += 1
-            report = json.loads(rep.read_text())
-            if report.get("truth_error"):
-                truth_scores[seq.name] = report["truth_error"]
-            if seq.category == "loop":
-                loops[seq.name] = read_tum(tum)
-        else:
-            stale.append((seq, stamp, key))
-    return stale, loops, truth_scores, skipped
 
 
 def _write_sequence(gt_cfg, layout, seq: Sequence, traj: Trajectory, report: dict) -> dict | None:
@@ -322,36 +319,29 @@ def _loop_report(cfg: DictConfig, manifest: Manifest, loops: dict, truth_scores:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Compute every sequence's ground truth and the loop-closure report; returns the report."""
+    """Bring every sequence's ground truth up to date and write the loop-closure report; returns it."""
     layout = layout_from_cfg(cfg)
     manifest = Manifest.read(layout.manifest)
     gt_cfg = cfg.groundtruth
-    stale, loops, truth_scores, skipped = _up_to_date(cfg, layout, manifest)
-    # Sequences are independent: stereo VO (CPU-bound) computes them in parallel processes, longest
-    # first (by extracted bytes) so that no worker is left alone with a long one at the end; each result
-    # is written from this process as soon as it arrives (a stopped run keeps the finished sequences).
-    # Reading a pose table or an ORB-SLAM file takes less than starting a worker process: in this one.
-    jobs = int(gt_cfg.get("jobs", 1)) if len(stale) > 1 and str(gt_cfg.method) == "vo" else 1
-    by_name = {seq.name: (seq, stamp, key) for seq, stamp, key in stale}
-    order = sorted(stale, key=lambda item: -_extracted_bytes(layout, item[0]))
-
-    def write(_: int, computed: tuple[str, Trajectory, dict]) -> None:
-        name, traj, report = computed
-        seq, stamp, key = by_name[name]
-        score = _write_sequence(gt_cfg, layout, seq, traj, report)
-        if score:
-            truth_scores[seq.name] = score
-        stamp.record(key, [layout.groundtruth / f"{seq.name}.tum", layout.groundtruth / f"{seq.name}.json"])
-        if seq.category == "loop":
-            loops[seq.name] = traj
-
-    # forked workers (pipeline/runner/forked.py): they share this process's imports instead of loading them
-    # again
+    seqs = manifest.sequences
+    # Sequences are independent: each is a task (pipeline/tasks.py: forked workers here, or Ray tasks on
+    # a cluster) that checks its stamp, computes, writes and stamps its ground truth and returns its
+    # scores, longest first (by extracted bytes) so that no worker is left alone with a long one at the
+    # end; a stopped run keeps the finished sequences. Stereo VO is CPU-bound and gets a worker per core;
+    # reading a pose table or an ORB-SLAM file takes less than starting a worker process: in this one.
+    vo = str(gt_cfg.method) == "vo"
+    jobs = int(gt_cfg.get("jobs", 1)) if len(seqs) > 1 and vo else 1
+    order = sorted(seqs, key=lambda seq: -_extracted_bytes(layout, seq))
     threads = 1 if jobs > 1 else None
-    map_forked(_sequence_worker, [(cfg, layout, manifest, seq, threads) for seq, _, _ in order], write, jobs)
+    calls = [(cfg, layout, manifest, seq, threads) for seq in order]
+    names = [seq.name for seq in order]
+    results = map_items(_sequence_task, calls, names, what="groundtruth", unit="seq", jobs=jobs)
+    skipped = sum(r[1] for r in results)
+    truth_scores = {name: score for name, _, score, _ in results if score}
+    loops = {name: err for name, _, _, err in results if err is not None}
     result = _loop_report(cfg, manifest, loops, truth_scores)
     _write_if_changed(layout.groundtruth / LOOP_REPORT, result)
-    n = len(manifest.sequences)
+    n = len(seqs)
     if skipped == n:
         log.info("groundtruth: %d sequences up to date, skipped", n)
     elif skipped:

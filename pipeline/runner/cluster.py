@@ -1,4 +1,5 @@
-"""Ray: a Hydra sweep's jobs as Ray tasks on a Ray cluster (the one home for Ray in skidbench).
+"""Ray: a Hydra sweep's jobs, and a data stage's items, as Ray tasks on a Ray cluster (the one home for
+Ray in skidbench).
 
 ``skidbench <stage> -m <sweep> hydra/launcher=ray`` (``conf/hydra/launcher/ray.yaml``; the launcher class
 is the thin plugin ``hydra_plugins/skidbench_ray_launcher``) runs every job of the sweep as one Ray task:
@@ -19,12 +20,17 @@ is the thin plugin ``hydra_plugins/skidbench_ray_launcher``) runs every job of t
   a job runs in the driver's working directory when that exists on its node; on a cluster of several
   machines ``out_root`` must be a folder every node sees (the splits are read from it, fits written to it).
 
-Ray is optional (``pip install 'skidbench[cluster]'``); it is imported only when a sweep uses it.
+A data stage run with ``hydra/launcher=ray`` (no ``-m``) maps its items (a bag, a sequence, a terrain) to
+Ray tasks through :func:`map_items` (``pipeline/runner/tasks.py`` chooses it over the forked workers):
+the same address and environment, one retry of a failed item, each task writing its own outputs.
+
+Ray is optional (``pip install 'skidbench[cluster]'``); it is imported only when a run uses it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -246,16 +252,153 @@ def _gather(ray: Any, refs: list[Any], names: list[str]) -> list[Any]:
     return [out[r] for r in refs]
 
 
+# -- a stage's items as Ray tasks (the data stages: one task per sequence or terrain) ---------------
+def run_item(fn: Any, args: tuple, env: Mapping[str, str], cwd: str) -> Any:
+    """One item of a stage on a Ray worker: ``fn(*args)`` with the driver's forwarded environment and
+    working directory, both restored afterwards (a worker runs the next task in the state it found)."""
+    saved_env, saved_cwd = dict(os.environ), os.getcwd()
+    os.environ.update(env)
+    if cwd and Path(cwd).is_dir():
+        os.chdir(cwd)
+    try:
+        return fn(*args)
+    finally:
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+
+
+def map_items(
+    settings: RaySettings,
+    fn: Any,
+    calls: Sequence[tuple],
+    names: Sequence[str],
+    done: Any = None,
+    what: str = "task",
+) -> list[Any]:
+    """``[fn(*args) for args in calls]`` as Ray tasks, one per call, spread over the cluster's nodes, each
+    holding ``num_cpus_per_job`` CPUs; ``done(i, result)`` runs here as each finishes. A task that fails
+    (its exception, or its worker process or node lost) is run once more; a second failure cancels the
+    tasks not finished and raises: the task's own :class:`SkidbenchError` as it was (its message names
+    the file), anything else as a :class:`ClusterError` naming ``names[i]``. The tasks write their outputs
+    themselves (under an ``out_root`` every node sees) and return what the driver needs to know of them."""
+    from ray.exceptions import RayError, RayTaskError
+
+    from skidbench.pipeline.core.errors import SkidbenchError
+
+    ray, started_local = connect(settings)
+    refs: list[Any] = []
+    try:
+        remote = ray.remote(run_item)
+        options = {"num_cpus": settings.num_cpus_per_job, "max_retries": 1, "retry_exceptions": True,
+                   "scheduling_strategy": "SPREAD"}  # fmt: skip
+        env, cwd = forwarded_env(settings.forward_env), os.getcwd()
+        fn_ref = ray.put(fn)
+        for args, name in zip(calls, names, strict=True):
+            task = remote.options(name=f"skidbench {what} {name}", **options)
+            refs.append(task.remote(fn_ref, args, env, cwd))
+        index = {ref: i for i, ref in enumerate(refs)}
+        results: list[Any] = [None] * len(refs)
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            i = index[ready[0]]
+            try:
+                results[i] = ray.get(ready[0])
+            except RayTaskError as exc:
+                cause = exc.cause if isinstance(getattr(exc, "cause", None), BaseException) else None
+                if isinstance(cause, SkidbenchError):
+                    raise cause from None
+                why = one_line(str(cause if cause else exc))[:300]
+                why = f"{type(cause).__name__}: {why}" if cause else why
+                raise ClusterError(f"{what} {names[i]} failed twice on the Ray cluster ({why})") from None
+            except RayError as exc:  # its worker process or node lost twice, or cancelled
+                raise ClusterError(
+                    f"{what} {names[i]} failed twice on the Ray cluster ({type(exc).__name__}: "
+                    f"{one_line(str(exc))[:300]})"
+                ) from None
+            if done is not None:
+                done(i, results[i])
+        return results
+    except BaseException:
+        for ref in refs:
+            with contextlib.suppress(Exception):
+                ray.cancel(ref, force=True)
+        raise
+    finally:
+        if started_local:
+            ray.shutdown()
+
+
 # -- a throwaway local cluster ---------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass
 class LocalCluster:
     address: str  # 127.0.0.1:<port>, for hydra.launcher.address
-    pgid: int  # the process group of every process of the cluster
+    pgid: int  # the process group of the head node's processes (``ray start --head``)
+    env: Mapping[str, str] | None = None  # the environment the nodes start in
+    tmp: Path | None = None  # the cluster's temporary folder (logs, sockets)
+    nodes: list[subprocess.Popen] = field(default_factory=list)  # the worker nodes added, still running
 
     def cpu_ticks(self) -> dict[tuple[int, int], int]:
-        """(pid, start time) -> utime + stime in clock ticks of every live process of the cluster:
-        ``ray start``'s whole process tree (workers run in process groups of their own; Linux)."""
-        return {(pid, int(f[19])): int(f[11]) + int(f[12]) for pid, f in _tree_stats(self.pgid)}
+        """(pid, start time) -> utime + stime in clock ticks of every live process of the cluster: the
+        whole process tree of each node's ``ray start`` (workers run in process groups of their own;
+        Linux)."""
+        roots = [self.pgid, *(p.pid for p in self.nodes)]
+        return {(pid, int(f[19])): int(f[11]) + int(f[12]) for r in roots for pid, f in _tree_stats(r)}
+
+    def add_node(self, num_cpus: int = 1, object_store_mb: int = 100, env: Mapping[str, str] | None = None,
+                 timeout_s: float = 180.0) -> subprocess.Popen:  # fmt: skip
+        """Start a worker node (``ray start --address``, a raylet of its own on 127.0.0.1 with ``num_cpus``
+        CPUs) in the cluster's environment updated by ``env``; returns its ``ray start`` process."""
+        cmd = [
+            str(Path(sys.executable).with_name("ray")), "start", f"--address={self.address}", "--block",
+            "--node-ip-address=127.0.0.1", f"--num-cpus={num_cpus}",
+            f"--object-store-memory={object_store_mb * 1_000_000}", "--disable-usage-stats",
+            f"--dashboard-agent-listen-port={_free_port()}", f"--metrics-export-port={_free_port()}",
+        ]  # fmt: skip
+        environ = {**(os.environ if self.env is None else self.env), **(env or {})}
+        proc = _start_node(cmd, environ, self.tmp or Path(tempfile.gettempdir()), timeout_s)
+        self.nodes.append(proc)
+        return proc
+
+    def kill_node(self, node: subprocess.Popen) -> None:
+        """SIGKILL every process of a worker node at once (its raylet, agents and workers, stopped ones
+        too): a machine of the cluster lost."""
+        for pid, _ in list(_tree_stats(node.pid)):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        node.wait(timeout=30)
+        self.nodes.remove(node)
+
+
+def _start_node(cmd: list[str], environ: Mapping[str, str], tmp: Path, timeout_s: float) -> subprocess.Popen:
+    """``cmd`` (a blocking ``ray start``) in a session of its own, once it says the node started."""
+    log_path = Path(tempfile.mkstemp(prefix="ray-start-", suffix=".log", dir=tmp)[1])
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(environ), start_new_session=True, cwd=tmp
+        )
+    deadline = time.monotonic() + timeout_s
+    while b"Ray runtime started" not in log_path.read_bytes():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            _stop_group(proc)
+            tail = one_line(log_path.read_text()[-500:])
+            raise ClusterError(f"{' '.join(cmd[1:3])} did not start a Ray node: {tail}")
+        time.sleep(0.5)
+    return proc
+
+
+def _stop_group(proc: subprocess.Popen) -> None:
+    """Terminate the process group of ``proc`` (a node's ``ray start``: its GCS, raylet, agents), then
+    kill what is left of it after a grace period."""
+    for sig, grace_s in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 10.0)):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        deadline = time.monotonic() + grace_s
+        while time.monotonic() < deadline and _group_alive(proc.pid):
+            proc.poll()  # reap `ray start` itself
+            time.sleep(0.2)
+    proc.wait(timeout=10)
 
 
 @contextlib.contextmanager
@@ -264,11 +407,13 @@ def local_cluster(
     object_store_mb: int = 100,
     env: Mapping[str, str] | None = None,
     timeout_s: float = 180.0,
+    system_config: Mapping[str, Any] | None = None,
 ) -> Iterator[LocalCluster]:
-    """A throwaway one-node Ray cluster on 127.0.0.1 (tests, ``make bench``): ``ray start --head`` with
+    """A throwaway Ray cluster on 127.0.0.1 (tests, ``make bench``): ``ray start --head`` with
     ``num_cpus`` CPUs, an ``object_store_mb`` object store, no dashboard, in a temporary folder and the
-    environment ``env``; yields it (its address) and stops every process it started (never ``ray stop``,
-    which stops every Ray process of the user)."""
+    environment ``env`` (``system_config``: Ray's internal settings, e.g. how fast a lost node is
+    noticed); yields it (its address; :meth:`LocalCluster.add_node` adds worker nodes) and stops every
+    process it started (never ``ray stop``, which stops every Ray process of the user)."""
     # Ray's Unix sockets live under the temp dir: keep its path short (pytest's tmp_path is too long)
     tmp = Path(tempfile.mkdtemp(prefix="skbray-"))
     port = _free_port()
@@ -280,31 +425,18 @@ def local_cluster(
         f"--ray-client-server-port={_free_port()}", f"--dashboard-agent-listen-port={_free_port()}",
         f"--temp-dir={tmp}",
     ]  # fmt: skip
-    log_path = tmp / "ray-start.log"
-    with open(log_path, "wb") as log:
-        environ = dict(os.environ if env is None else env)
-        proc = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=environ, start_new_session=True, cwd=tmp
-        )
+    if system_config:
+        cmd.append(f"--system-config={json.dumps(dict(system_config))}")
+    environ = dict(os.environ if env is None else env)
+    head = _start_node(cmd, environ, tmp, timeout_s)
+    cluster = LocalCluster(f"127.0.0.1:{port}", head.pid, environ, tmp)
     try:
-        deadline = time.monotonic() + timeout_s
-        while b"Ray runtime started" not in log_path.read_bytes():
-            if proc.poll() is not None or time.monotonic() > deadline:
-                tail = one_line(log_path.read_text()[-500:])
-                raise ClusterError(f"ray start --head did not start a cluster: {tail}")
-            time.sleep(0.5)
-        yield LocalCluster(f"127.0.0.1:{port}", proc.pid)
+        yield cluster
     finally:
-        # every process of the cluster (GCS, raylet, agents, workers) is in the process group of
-        # `ray start`: terminate the group, then kill what is left of it after a grace period
-        for sig, grace_s in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 10.0)):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, sig)
-            deadline = time.monotonic() + grace_s
-            while time.monotonic() < deadline and _group_alive(proc.pid):
-                proc.poll()  # reap `ray start` itself
-                time.sleep(0.2)
-        proc.wait(timeout=10)
+        # every process of a node (GCS, raylet, agents; workers exit with their raylet) is in the process
+        # group of its `ray start`: the worker nodes first, then the head
+        for node in [*cluster.nodes, head]:
+            _stop_group(node)
         shutil.rmtree(tmp, ignore_errors=True)
 
 

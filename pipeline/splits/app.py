@@ -32,6 +32,7 @@ from skidbench.pipeline.core.robot import Robot, robot_from_hydra
 from skidbench.pipeline.core.schema import write_split
 from skidbench.pipeline.groundtruth.consistency import GateConfig, consistency, describe
 from skidbench.pipeline.groundtruth.trajectory import read_tum
+from skidbench.pipeline.runner.tasks import map_items
 from skidbench.pipeline.splits.build import build_split_table
 from skidbench.pipeline.splits.card import dataset_card
 
@@ -206,20 +207,12 @@ def run(cfg: DictConfig) -> list[Path]:
         "robot": OmegaConf.to_container(cfg.robot, resolve=True),
         "metadata": ["cmd_association"],  # what a split file records beyond its table: older ones re-split
     }
-    written, skipped, refused = [], 0, []
-    for s in seqs:
-        path = layout.split_file(s.terrain, s.category, s.name)
-        stamp = Stamp(stamp_file(layout.root, "split", f"{s.name}.json"), "split")
-        key = stamp.key(split_inputs(layout, s), {**conf, "terrain": s.terrain, "category": s.category})
-        if stamp.is_fresh(key):
-            skipped += 1
-        else:
-            path, gate = split_sequence(cfg, layout, robot, s)
-            if path is None:
-                refused.append(describe(s.name, gate))
-                continue
-            stamp.record(key, [path])
-        written.append(path)
+    # the sequences are independent: tasks (pipeline/tasks.py: forked workers, or Ray tasks on a cluster)
+    calls = [(cfg, layout, robot, s, conf) for s in seqs]
+    results = map_items(_split_task, calls, [s.name for s in seqs], what="split", unit="seq")
+    written = [path for path, _, _ in results if path is not None]
+    skipped = sum(fresh for _, _, fresh in results)
+    refused = [describe(s.name, gate) for s, (p, gate, _) in zip(seqs, results, strict=True) if p is None]
     if refused:
         raise SplitError(
             f"{layout.splits}: {len(refused)} of {len(seqs)} sequence(s) flagged by the ground-truth "
@@ -239,6 +232,21 @@ def run(cfg: DictConfig) -> list[Path]:
     elif skipped:
         log.info("split: %d sequences split, %d up to date", len(seqs) - skipped, skipped)
     return written
+
+
+def _split_task(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence, conf: dict):
+    """Bring one sequence's split file up to date, in whatever process runs it: skipped when its stamp is
+    fresh, else split (:func:`split_sequence`) and stamped. Returns ``(path or None when the gate refused
+    it, the gate's numbers when computed, whether it was up to date)``."""
+    path = layout.split_file(seq.terrain, seq.category, seq.name)
+    stamp = Stamp(stamp_file(layout.root, "split", f"{seq.name}.json"), "split")
+    key = stamp.key(split_inputs(layout, seq), {**conf, "terrain": seq.terrain, "category": seq.category})
+    if stamp.is_fresh(key):
+        return path, None, True
+    path, gate = split_sequence(cfg, layout, robot, seq)
+    if path is not None:
+        stamp.record(key, [path])
+    return path, gate, False
 
 
 SPLIT_INPUTS = ("cmd_vel", "cmd_wheels", "joint_states", "enc_wheels")
