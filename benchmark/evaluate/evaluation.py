@@ -13,6 +13,7 @@ predict gets its child run marked FAILED with the reason, and the others carry o
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -124,6 +125,7 @@ def run_benchmark(
 
     # 1. the data, checked before anything is logged
     data = load_evaluation_data(layout, es.fit.calibrations, terrains, splits, horizons, protocol)
+    data.inputs_of = {t: dataclasses.replace(i, state=es.state) for t, i in data.inputs_of.items()}
     tests, files_of = data.tests, data.files_of
     skipped, terrains = data.skipped, data.terrains
     for line in skipped:
@@ -223,7 +225,7 @@ def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -
     ctx.tracker.artifact(ctx.parent_id, steps, "report_data")
     stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
     return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
-                     ctx.intervals, protocol)  # fmt: skip
+                     ctx.intervals, protocol, td.inputs)  # fmt: skip
 
 
 def _log_board(

@@ -14,10 +14,11 @@ import pandas as pd
 import pyarrow as pa
 
 from skidbench.benchmark.scoring import metrics as mt
-from skidbench.benchmark.scoring.floor import FLOOR, floor_windows
+from skidbench.benchmark.scoring.floor import FLOOR, floor_velocities, floor_windows
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.intervals import IntervalConfig
 from skidbench.benchmark.scoring.predictions import Inputs, TestSequence, predict_and_score, summarise
+from skidbench.benchmark.scoring.rollout import state_windows
 from skidbench.pipeline.core.io import write_parquet_atomic
 
 
@@ -31,14 +32,23 @@ def log_floor(
     hcfg: HorizonConfig,
     intervals: IntervalConfig,
     protocol: str,
+    inputs: Inputs | None = None,
 ) -> dict[str, float]:
     """The floor of one terrain, scored as a model is (every metric and its interval): its windows written
     next to the models' (``<stem>.windows.parquet``, ``<ds>/eval/floor/<terrain>[.<inputs>]``: what
     compare reads) and its metrics logged on the parent run as ``floor.<terrain>.<metric>``. Not a child
-    run: it is never ranked. Returns the metrics."""
+    run: it is never ranked. Under ``state`` (``inputs``' settings) its windows are the state windows, each
+    rolled out with the ground truth's own velocities. Returns the metrics."""
     frames, metrics = [], {}
     for split, seqs in tests.items():
-        w = floor_windows([(s.name, s.table) for s in seqs], horizons, hcfg)
+        if protocol == "state":
+            inputs = inputs or Inputs("state")
+            vel = [floor_velocities(s.table) for s in seqs]
+            w = state_windows([s.name for s in seqs], [s.table for s in seqs],
+                              lambda b, v=vel: v[b.seq][b.ahead], horizons, hcfg, inputs.state,
+                              inputs.robot)  # fmt: skip
+        else:
+            w = floor_windows([(s.name, s.table) for s in seqs], horizons, hcfg)
         if len(w):
             w.insert(0, "split", split)
             frames.append(w)

@@ -19,6 +19,7 @@ from skidbench.benchmark.report.data import ReportDataSettings
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
+from skidbench.benchmark.scoring.rollout import StateSettings
 from skidbench.benchmark.tracking import store as trk
 from skidbench.models.fitting.fit import FitSettings
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
@@ -86,6 +87,7 @@ class EvaluateSettings:
     report_data: ReportDataSettings
     store: StoreSettings
     conf: dict[str, Any]  # the config as plain data (resolved): the parent run's params
+    state: StateSettings = StateSettings()  # noqa: RUF009 (frozen) the ``state`` protocol's windows (``state.*``)
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> EvaluateSettings:
@@ -103,7 +105,7 @@ class EvaluateSettings:
             protocol, str(cfg.get("inputs", "commanded")), bool(cfg.get("log_figures", True)),
             int(cfg.get("seeds") or 1),
             fit, transfer, ReportDataSettings.from_cfg(cfg), StoreSettings.from_cfg(cfg, layout),
-            _container_from_cfg(cfg),
+            _container_from_cfg(cfg), StateSettings.from_cfg(cfg),
         )  # fmt: skip
 
 

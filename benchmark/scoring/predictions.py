@@ -18,6 +18,7 @@ from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.scoring.horizon import HorizonConfig, window_errors
 from skidbench.benchmark.scoring.intervals import IntervalConfig, Sample, cell, estimate, stratum_key
 from skidbench.benchmark.scoring.metrics import METRICS
+from skidbench.benchmark.scoring.rollout import StateSettings, model_rollout, state_windows
 from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 from skidbench.pipeline.core.protocol import model_inputs
 from skidbench.pipeline.core.robot import Robot
@@ -44,11 +45,13 @@ class TestSequence:
 @dataclass(frozen=True)
 class Inputs:
     """What drives every model of a run on one terrain: the input protocol (pipeline/core/protocol.py), the
-    robot its wheel rates are converted to ``cmd_v``/``cmd_w`` with, and the terrain's wheel response."""
+    robot its wheel rates are converted to ``cmd_v``/``cmd_w`` with, the terrain's wheel response and the
+    ``state`` protocol's windows (benchmark/scoring/rollout.py)."""
 
     protocol: str = "commanded"
     robot: Robot | None = None
     response: WheelResponse | None = None
+    state: StateSettings = StateSettings()  # noqa: RUF009 (frozen: shared safely)
 
 
 def predict_split(
@@ -195,6 +198,8 @@ def predict_and_score(
     ``on_step`` is told the step it is at ("predict", "score <split>") before each; ``intervals``: the
     confidence intervals' settings (:func:`summarise`)."""
     step = on_step or (lambda _name: None)
+    if inputs is not None and inputs.protocol == "state":
+        return _state_predict_and_score(model, tests, horizons, hcfg, inputs, step, intervals)
     metrics: dict[str, float] = {}
     frames = []
     predict_time = 0.0
@@ -212,5 +217,37 @@ def predict_and_score(
         metrics.update(summarise(w, split, horizons, intervals))
         step("predict")
     metrics["predict_time_s"] = predict_time
+    windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    return metrics, windows, velocities
+
+
+def _state_predict_and_score(
+    model: Any,
+    tests: dict[str, Sequence[TestSequence]],
+    horizons: Sequence[float],
+    hcfg: HorizonConfig,
+    inputs: Inputs,
+    step: Callable[[str], None],
+    intervals: IntervalConfig | None,
+) -> tuple[dict[str, float], pd.DataFrame, dict[str, list[np.ndarray]]]:
+    """:func:`predict_and_score` under ``state``: every window rolled out from its start
+    (:func:`~skidbench.benchmark.rollout.state_windows`); a model without ``rollout`` is driven by its
+    ``predict`` of the commanded inputs. The velocities returned (compare's figures) are that ``predict``."""
+    metrics: dict[str, float] = {}
+    frames, velocities, spent = [], {}, 0.0
+    commanded = Inputs("commanded", inputs.robot, None)
+    for split, seqs in tests.items():
+        vel, dt = predict_split(model, seqs, commanded)
+        velocities[split] = vel
+        step(f"rollout {split}")
+        t0 = time.perf_counter()
+        w = state_windows([s.name for s in seqs], [s.table for s in seqs], model_rollout(model, vel),
+                          horizons, hcfg, inputs.state, inputs.robot)  # fmt: skip
+        spent += dt + time.perf_counter() - t0
+        if len(w):
+            w.insert(0, "split", split)
+            frames.append(w)
+        metrics.update(summarise(w, split, horizons, intervals))
+    metrics["predict_time_s"] = spent
     windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     return metrics, windows, velocities

@@ -139,7 +139,7 @@ SCHEMA: dict[str, Spec] = {
     "out_root": STR,
     "dataset": STR,
     "seed": integer(0),
-    "inputs": choice("commanded", "response", "measured", what="the model input protocol"),
+    "inputs": choice("commanded", "response", "measured", "state", what="the model input protocol"),
     "train_dataset": Spec("str", nullable=True, what="a dataset under out_root to fit on"),
     "train_terrain": Spec("str", nullable=True, what="the terrain of train_dataset to fit on"),
     "calibrate.use": BOOL,
@@ -309,6 +309,9 @@ SCHEMA: dict[str, Spec] = {
     "report_data.fig6_accels": listof(number(), 1, what="rad/s^2"),
     "report_data.fig6_grid": integer(2),
     "report_data.fig7_windows": integer(0),
+    "state.history_s": number(gt=0, what="s"),
+    "state.stride_s": number(0, what="s"),
+    "state.max_batch_samples": integer(1000),
     # -- compare.yaml -----------------------------------------------------------------------------------
     "parent_run_id": OPT_STR,
     "filter": OPT_STR,

@@ -15,6 +15,12 @@ every model alike, built-in or plugin (SPEC.md "Evaluation").
   central differences (``np.gradient``, as the split stage differentiates the commands). Isolated missing
   encoder readings inside a sequence are interpolated linearly in time (held at its ends); a split with a
   sequence without any encoder reading has no ``measured`` inputs (:class:`ProtocolError`).
+* ``state``: for dynamics models (issue 49). Each window starts from the robot's state: at its start t0 a
+  model gets the history up to t0 (the body velocity estimated from the ground truth over the last
+  ``state.history_s``, the past commands and, when the split has them, the past encoders) and the window's
+  commanded inputs, nothing after t0 (models/rollout.py); every window is its own rollout
+  (benchmark/scoring/rollout.py). A model without a ``rollout`` method is driven by the commanded inputs
+  as under ``commanded``, and it is fitted as under ``commanded`` (:func:`fit_protocol`: the same fit).
 
 Whatever the protocol, the model sees it in the columns it already reads: :func:`model_inputs` returns ONLY
 ``INPUT_COLUMNS``, with the protocol's wheel rates in ``cmd_wl``/``cmd_wr``/``cmd_dwl``/``cmd_dwr`` and
@@ -34,7 +40,7 @@ from scipy.signal import savgol_filter
 from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.robot import Robot
 
-PROTOCOLS = ("commanded", "response", "measured")
+PROTOCOLS = ("commanded", "response", "measured", "state")
 #: the version of this contract (the protocols, ``INPUT_COLUMNS``, how each protocol's columns are made); a
 #: released bundle records it (benchmark/release/bundle.py). Bump it when a protocol's inputs change.
 PROTOCOL_VERSION = 1
@@ -64,6 +70,13 @@ def protocol_from_cfg(cfg: Any) -> str:
     door from the config to the protocol a library function takes."""
     value = cfg.get("inputs", "commanded") if hasattr(cfg, "get") else "commanded"
     return check_protocol(value if value is not None else "commanded")
+
+
+def fit_protocol(protocol: str) -> str:
+    """The protocol whose inputs a model is fitted on under ``protocol``: ``commanded`` for ``state``
+    (its windows' inputs are the commands; a dynamics model builds its training histories from the Train
+    table's poses), else ``protocol`` itself."""
+    return "commanded" if protocol == "state" else protocol
 
 
 def _groups(table: pd.DataFrame) -> np.ndarray:
@@ -132,7 +145,7 @@ def measured_wheels(table: pd.DataFrame) -> np.ndarray:
 def protocol_wheels(table: pd.DataFrame, protocol: str, response: Any = None) -> np.ndarray | None:
     """(T, 4) the protocol's (wl, wr, dwl, dwr), or None for ``commanded`` (the table's own commands)."""
     protocol = check_protocol(protocol)
-    if protocol == "commanded":
+    if protocol in ("commanded", "state"):
         return None
     if protocol == "measured":
         return measured_wheels(table)
@@ -151,9 +164,9 @@ def model_inputs(table: pd.DataFrame, protocol: str, robot: Robot, response: Any
     """The table a model's ``predict`` gets: ONLY ``INPUT_COLUMNS`` (T rows, same order), a fresh frame,
     with the protocol's wheel rates (rad/s) and derivatives (rad/s^2) in ``cmd_wl``, ``cmd_wr``,
     ``cmd_dwl``, ``cmd_dwr`` and ``cmd_v`` (m/s), ``cmd_w`` (rad/s) from them through ``robot``'s ideal
-    kinematics (``commanded``: the table's own commands as they are). ``response`` is the terrain's
-    :class:`~skidbench.pipeline.calibrate.wheel_response.WheelResponse` (``response`` protocol only). A table
-    without a ``sequence`` column is one sequence (``sequence`` "0")."""
+    kinematics (``commanded``, ``state``: the table's own commands as they are). ``response`` is the
+    terrain's :class:`~skidbench.pipeline.calibrate.wheel_response.WheelResponse` (``response`` protocol
+    only). A table without a ``sequence`` column is one sequence (``sequence`` "0")."""
     protocol = check_protocol(protocol)
     missing = [c for c in INPUT_COLUMNS if c != "sequence" and c not in table.columns]
     if missing:

@@ -1,0 +1,2 @@
+"""Dynamics models: each window starts from the robot's state (the ``state`` input protocol,
+models/rollout.py)."""
