@@ -24,10 +24,11 @@ MISSPELT = [
     ("split", ["split.alow_flagged=true"],
      "unknown config key 'split.alow_flagged'; did you mean 'split.allow_flagged'?"),
     ("fit", ["model=edf"], "unknown option 'model=edf'; did you mean 'model=edd'? "
-     "(options of 'model': drive_blr, edd, enhanced, friction, full_linear, gp_residual, ideal, roc)"),
+     "(options of 'model': drive_blr, edd, enhanced, friction, full_linear, gp_residual, ideal, relax, roc, "
+     "state_ridge)"),
     ("fit", ["-m", "model=edd,fricton", "terrain=tile,grass"], "unknown option 'model=fricton'; did you mean "
      "'model=friction'? (options of 'model': drive_blr, edd, enhanced, friction, full_linear, gp_residual, "
-     "ideal, roc)"),
+     "ideal, relax, roc, state_ridge)"),
     ("fit", ["hydra/launcher=joblib", "hydra.launcher.n_jbs=4"],
      "unknown config key 'hydra.launcher.n_jbs'; did you mean 'hydra.launcher.n_jobs'?"),
     ("fit", ["-m", "model=edd,ideal", "terain=tile,grass"],

@@ -13,6 +13,7 @@ from skidbench.models.base import ModelError
 from skidbench.models.registry import plugins as registry
 
 BUILTINS = {"ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual"}
+BUILTINS |= {"relax", "state_ridge"}  # the dynamics models (inputs=state)
 
 
 class NotAModel:

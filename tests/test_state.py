@@ -1,6 +1,7 @@
 """The ``state`` input protocol (models/rollout.py, benchmark/scoring/rollout.py) and the first-order
 relaxation model (models/dynamics/relaxation.py): nothing after t0 reaches a model, a first-order fit
-recovers its time constants, the true dynamics from the true state score at the floor, the aggressiveness strata."""
+recovers its time constants, the true dynamics from the true state score at the floor, the
+aggressiveness strata."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from skidbench.benchmark.scoring.rollout import StateSettings, model_rollout, st
 from skidbench.models import rollout as st
 from skidbench.models.base import KinematicModel
 from skidbench.models.dynamics.relaxation import FirstOrderRelaxation, relax
+from skidbench.models.dynamics.state_ridge import StateRidge
 from skidbench.models.kinematic.ideal import IdealDifferentialDrive
 from skidbench.models.registry import plugins as registry
 from skidbench.pipeline.core.geometry import integrate_body_velocity, step_velocities
@@ -35,8 +37,8 @@ def first_order_table(
 ) -> pd.DataFrame:
     """A split-like table whose body velocity follows the ideal kinematics of its commands through the
     first-order law of models/dynamics/relaxation.py with time constants ``tau`` (vx, vy, wz); poses
-    integrated from it with the horizon's own steps. Commands: ``steps`` every 1.5 s (speed and turn rate at random), else
-    smooth (two sines each, random phases)."""
+    integrated from it with the horizon's own steps. Commands: ``steps`` every 1.5 s (speed and turn rate
+    at random), else smooth (two sines each, random phases)."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration_s, 1.0 / rate_hz)
     k = (t // 1.5).astype(int)
@@ -191,3 +193,23 @@ def test_aggressiveness_strata_come_out_as_constructed():
     got = ag.strata(a, edges)
     expect = np.where(t[starts] < 30, "low", np.where(t[starts] < 60, "mid", "high"))
     assert (got == expect).all()
+
+
+def test_learned_dynamics_beats_its_base_from_the_state_and_its_seeds_differ():
+    train = pd.concat(
+        [first_order_table(seed=s).assign(sequence=str(s)) for s in range(2)], ignore_index=True
+    )
+    test = first_order_table(seed=7)
+    hcfg, settings = HorizonConfig(2.0), StateSettings()
+    scores, coefs = {}, []
+    for seed in (0, 1):
+        model = StateRidge(JACKAL, base="ideal", fit_horizon_s=2.0, seed=seed).fit(train)
+        w = state_windows(
+            ["s"], [test], model_rollout(model, [model.predict(test)]), [2.0], hcfg, settings, JACKAL
+        )
+        scores[seed] = rmsre(w["rel_trans"])
+        coefs.append(model.arrays["coef"])
+    base = IdealDifferentialDrive(JACKAL).fit(train)
+    w = state_windows(["s"], [test], model_rollout(base, [base.predict(test)]), [2.0], hcfg, settings, JACKAL)
+    assert max(scores.values()) < 0.5 * rmsre(w["rel_trans"])
+    assert not np.allclose(coefs[0], coefs[1])  # another seed draws other Train windows

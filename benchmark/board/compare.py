@@ -36,6 +36,7 @@ import pandas as pd
 
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import selection as sel
+from skidbench.benchmark.board.horizons import horizon_report
 from skidbench.benchmark.board.selection import board_from_runs
 from skidbench.benchmark.board.tables import (
     SPLITS,
@@ -231,6 +232,7 @@ class CompareSettings:
     figures: FigureSettings
     ui_url: str | None
     log_to_mlflow: bool
+    half_track: float = 0.0  # m: the robot's, for the windows' aggressiveness (benchmark/board/horizons.py)
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> CompareSettings:
@@ -249,6 +251,7 @@ class CompareSettings:
             figures=FigureSettings.from_cfg(cfg),
             ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
             log_to_mlflow=bool(cfg.get("log_to_mlflow", True)),
+            half_track=float(cfg.robot.track_width) / 2.0 if cfg.get("robot") else 0.0,
         )
 
 
@@ -295,6 +298,9 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
 
     boards = _BoardsShown(target, tracker.experiment_name, parent, horizon, settings.rank_by, shown_boards)
     files, written, lb_md = _write_boards(boards, out, protocol, summary, standings_for)
+    dpi = cs.figures.dpi if cs.figures.enabled else None  # error against horizon, by aggressiveness
+    files += horizon_report(layout, {p: b for p, (b, _r, _lo) in shown_boards.items()}, cs.intervals,
+                            settings.rank_by, cs.half_track, out, dpi)  # fmt: skip
     boards_of = (  # the protocols side by side: the dataset's board of each
         {p: b for p, (b, _r, _lo) in shown_boards.items()}
         if parent is None

@@ -44,13 +44,7 @@ from skidbench.pipeline.core.cache import Stamp, stamp_file
 from skidbench.pipeline.core.io import write_json_atomic
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.manifest import Manifest
-from skidbench.pipeline.core.protocol import (
-    INPUT_COLUMNS,
-    ProtocolError,
-    fit_protocol,
-    fit_table,
-    protocol_from_cfg,
-)
+from skidbench.pipeline.core.protocol import INPUT_COLUMNS, ProtocolError, fit_protocol_from_cfg, fit_table
 from skidbench.pipeline.core.robot import Robot, robot_from_hydra
 from skidbench.pipeline.core.schema import concat_sequences, read_split
 from skidbench.pipeline.runner.environment import CodeIdentity, code_identity
@@ -102,8 +96,8 @@ class ModelConfigs:
 @dataclass(frozen=True)
 class FitSettings:
     """What fitting reads of a run's config: the dataset's layout, the spec sheet's robot, the input
-    protocol a model is fitted under (``inputs``; ``commanded`` for ``state``: :func:`~skidbench.pipeline.
-    protocol.fit_protocol`), the calibrations (``calibrate.use``) and the models' configs. The apps make it
+    protocol a model is fitted under (:func:`~skidbench.pipeline.core.protocol.fit_protocol_from_cfg`), the
+    calibrations (``calibrate.use``) and the models' configs. The apps make it
     (:meth:`from_cfg`)."""
 
     layout: Layout
@@ -117,7 +111,7 @@ class FitSettings:
         return cls(
             layout_from_cfg(cfg),
             robot_from_hydra(cfg.robot),
-            fit_protocol(protocol_from_cfg(cfg)),
+            fit_protocol_from_cfg(cfg),
             Calibrations.from_cfg(cfg),
             ModelConfigs.from_cfg(cfg),
         )
