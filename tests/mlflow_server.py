@@ -5,7 +5,7 @@ PostgreSQL (a lab's set-up, docs/scaling.md): Debian's ``postgresql`` package (`
 where missing when run as root); :func:`postgres_missing` says why it cannot run here (the tests skip with
 that line). :func:`running_postgres` runs ``initdb`` into a fresh folder and ``pg_ctl start`` on a free
 loopback port, as the ``postgres`` user when the tests run as root (PostgreSQL refuses root), creates the
-database ``mlflow`` and yields the SQLAlchemy URI ``mlflow server --backend-store-uri`` takes."""
+database ``mlflow`` and yields the SQLAlchemy URI ``mlflow server --backend-store-uri`` takes and its log."""
 
 from __future__ import annotations
 
@@ -60,6 +60,7 @@ class MlflowServer:
         self.uri = f"http://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen | None = None
         self.log_path = self.root / "server.log"
+        self.db_log: Path | None = None  # the database server's log, when there is one
 
     def start(self, timeout_s: float = 120.0) -> str:
         cmd = [
@@ -135,7 +136,7 @@ def postgres_missing() -> str | None:
     try:
         import psycopg  # noqa: F401
     except ImportError:
-        return "the PostgreSQL driver is not installed: pip install 'skidbench[server]' (make test does)"
+        return "the PostgreSQL driver is not installed: pip install -e '.[server]' (make test does)"
     if os.geteuid() == 0:
         try:
             pwd.getpwnam("postgres")
@@ -151,11 +152,11 @@ def _as_postgres_user(cmd: list[str]) -> list[str]:
 
 
 @contextlib.contextmanager
-def running_postgres(timeout_s: float = 120.0) -> Iterator[str]:
+def running_postgres(timeout_s: float = 120.0) -> Iterator[tuple[str, Path]]:
     """A PostgreSQL cluster of its own (initdb into a fresh folder under /tmp, which the postgres user can
     reach; fsync off: test data) on 127.0.0.1:<free port>, with a database ``mlflow``. Yields
-    ``postgresql+psycopg://postgres@127.0.0.1:<port>/mlflow``; stops the postmaster by its PID (SIGINT:
-    PostgreSQL's fast shutdown) and removes the folder."""
+    ``(postgresql+psycopg://postgres@127.0.0.1:<port>/mlflow, its server log)``; stops the postmaster by its
+    PID (SIGINT: PostgreSQL's fast shutdown) and removes the folder."""
     import psycopg
 
     folder = Path(tempfile.mkdtemp(prefix="skidbench-pg-"))
@@ -188,7 +189,7 @@ def running_postgres(timeout_s: float = 120.0) -> Iterator[str]:
             f"host=127.0.0.1 port={port} user=postgres dbname=postgres", autocommit=True
         ) as c:
             c.execute("CREATE DATABASE mlflow")
-        yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/mlflow"
+        yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/mlflow", Path(log)
     finally:
         if pid is not None:
             with contextlib.suppress(ProcessLookupError):
@@ -206,8 +207,9 @@ def lab_mlflow_server(root: Path) -> Iterator[MlflowServer]:
     of its own (:func:`running_postgres`) where PostgreSQL can run here, else on a SQLite file under
     ``root``; started, yielded (restartable: a test may kill it) and stopped by PID."""
     with contextlib.ExitStack() as stack:
-        db = None if postgres_missing() else stack.enter_context(running_postgres())
+        db, db_log = (None, None) if postgres_missing() else stack.enter_context(running_postgres())
         server = MlflowServer(root, backend_uri=db)
+        server.db_log = db_log  # PostgreSQL's log (what it refused: errors, duplicate keys)
         stack.callback(server.stop)
         server.start()
         yield server

@@ -6,8 +6,11 @@ the server killed mid-evaluate. Skipped, with the one-line reason, where Postgre
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import json
 import os
+import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -17,7 +20,7 @@ from pathlib import Path
 
 import pytest
 from _bench_data import compose, write_splits
-from mlflow_server import postgres_missing, wait_until_gone
+from mlflow_server import free_port, postgres_missing, wait_until_gone
 
 from skidbench.benchmark.board.app import run as run_compare
 
@@ -149,19 +152,29 @@ def test_two_people_evaluate_one_dataset_at_once_and_each_compare_reports_their_
         said = [n for n in res.notes if n.startswith(f"{other} evaluated this dataset after you")]
         assert len(said) == (newest[other] > newest[user])  # they evaluated after this board's newest run
         assert "report/report.md" in [a.path for a in client.list_artifacts(res.parents[0], "report")]
+    # no metric logged twice: PostgreSQL refused no duplicate row of the two evaluates (MLflow's Model.log
+    # copies the run's metrics so far onto the logged model; the fit's metrics are logged after it)
+    assert "metric_pk" not in server.db_log.read_text()  # the metrics' (and latest metrics') unique keys
 
 
-def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_open(server, tmp_path):
-    """The server dies while evaluate is between two logging calls (the process is held at its first write
-    of the model's outputs, eval/edd/..., inside the model's run; the floor's tables come before, under the
-    parent alone): evaluate gives up in one line naming the server, exit status 2; once the server is back,
-    `skidbench runs --reap` (this machine: the process is gone) ends every run it left."""
+def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_the_board_stays_one_complete_evaluate(
+    server, tmp_path, monkeypatch
+):
+    """After a complete evaluate, a second one (force=true) loses the server while it is between two logging
+    calls (the process is held at its first write of edd's outputs, eval/edd/..., its ideal run finished):
+    evaluate gives up in one line naming the server, exit status 2; once the server is back, `skidbench
+    runs --reap` (this machine: the process is gone) ends every run it left, KILLED with the reason it noted
+    (the server stopped answering); a re-run has nothing missing; compare's board is the complete evaluate's
+    alone, the killed one's finished run named and left out."""
     from mlflow import MlflowClient
 
     write_splits(tmp_path / DS, terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
-    fault = {"SKIDBENCH_FAULT": "stop@1:/eval/edd/", "PYTHONPATH": str(FAULTS)}
     # an experiment of its own on the session's server: the other tests' runs are not its business
-    proc = evaluate(tmp_path, server.uri, "carol", "models=[edd]", f"mlflow.experiment={OUTAGE}", env=fault)
+    args = ("models=[ideal,edd]", f"mlflow.experiment={OUTAGE}")
+    rc, _, err = finish(evaluate(tmp_path, server.uri, "carol", *args))
+    assert rc == 0, err[-3000:]
+    fault = {"SKIDBENCH_FAULT": "stop@1:/eval/edd/", "PYTHONPATH": str(FAULTS)}
+    proc = evaluate(tmp_path, server.uri, "carol", *args, "force=true", env=fault)
     deadline = time.monotonic() + 600
     while _state(proc.pid) != "T":  # held at the fault
         assert proc.poll() is None, proc.communicate()[1][-3000:]
@@ -184,22 +197,35 @@ def test_a_server_killed_mid_evaluate_fails_fast_in_one_line_and_nothing_stays_o
     server.start()
     client = MlflowClient(server.uri)
     exp = client.get_experiment_by_name(OUTAGE)
-    left = client.search_runs([exp.experiment_id], "tags.`mlflow.user` = 'carol'")
-    assert {r.info.status for r in left} == {"RUNNING"}
-    assert sorted(r.data.tags["skidbench.role"] for r in left) == [
-        "child",
-        "parent",
-    ]  # the one it was logging
+    parents = sorted(client.search_runs([exp.experiment_id], "tags.`skidbench.role` = 'parent'"),
+                     key=lambda r: r.info.start_time)  # fmt: skip
+    complete, killed = parents
+    mine = client.search_runs([exp.experiment_id], f"tags.`mlflow.parentRunId` = '{killed.info.run_id}'")
+    left = [killed, *(r for r in mine if r.info.status == "RUNNING")]
+    assert {r.info.status for r in left} == {"RUNNING"} and len(left) == 2  # the parent and edd's run
     env = {**os.environ, "SKIDBENCH_OUT": str(tmp_path), "MLFLOW_TRACKING_URI": server.uri}
     reap = subprocess.run([sys.executable, "-m", "skidbench.pipeline.cli.main", "runs", "--reap"], env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert reap.returncode == 0, reap.stderr[-3000:]
     assert f"{len(left)} of them marked KILLED" in reap.stdout
-    after = client.search_runs([exp.experiment_id], "tags.`mlflow.user` = 'carol'")
-    assert {r.info.status for r in after} == {"KILLED"}
-    assert all("ended without closing the run" in r.data.tags["skidbench.failure_reason"] for r in after)
+    for r in left:
+        after = client.get_run(r.info.run_id)
+        assert after.info.status == "KILLED"
+        assert (
+            "ended with the run open: the MLflow tracking server stopped answering (connection refused)"
+            in (after.data.tags["skidbench.failure_reason"])
+        )
     models = client.search_logged_models([exp.experiment_id], max_results=1000)
     assert not [m for m in models if str(m.status) == "PENDING"]
+
+    rc, out, err = finish(evaluate(tmp_path, server.uri, "carol", *args))  # nothing changed: nothing missing
+    assert rc == 0 and "skipped" in out, err[-3000:]
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", server.uri)
+    monkeypatch.setenv("SKIDBENCH_USER", "carol")
+    res = run_compare(compose("compare", tmp_path, ["figures.enabled=false", f"mlflow.experiment={OUTAGE}"]))
+    assert res.parents == [complete.info.run_id]  # one complete evaluate: not the killed one's ideal run
+    (gone,) = [x for x in res.left_out if x.startswith("ideal/tile: ")]
+    assert f"its evaluate {killed.info.run_name} ({killed.info.run_id[:8]}) ended KILLED" in gone
 
 
 def _state(pid: int) -> str:
@@ -207,3 +233,73 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "?"
+
+
+def _walkthrough() -> tuple[list[str], dict[str, str], str, str]:
+    """docs/scaling.md's lab-server walkthrough as written: its two psql lines, the service unit's
+    ``Environment`` and ``ExecStart``, and the health check."""
+    from doc_blocks import REPO, parse_blocks
+
+    blocks = parse_blocks(REPO / "docs" / "scaling.md")
+    (setup,) = [b for b in blocks if any("CREATE ROLE" in ln for ln in b.text)]
+    (unit,) = [b for b in blocks if any(ln.startswith("ExecStart=") for ln in b.text)]
+    (health,) = [b for b in blocks if any(ln.startswith("curl ") for ln in b.text)]
+    psql = [ln for ln in setup.text if ln.startswith("runuser -u postgres -- psql ")]
+    env = dict(
+        ln.removeprefix("Environment=").split("=", 1) for ln in unit.text if ln.startswith("Environment=")
+    )
+    (start,) = [ln.removeprefix("ExecStart=") for ln in unit.text if ln.startswith("ExecStart=")]
+    (curl,) = [ln.split("#")[0].strip() for ln in health.text if ln.startswith("curl ")]
+    return psql, env, start, curl
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0, reason="the walkthrough's commands run as root (runuser, as documented)"
+)
+def test_the_lab_server_walkthrough_of_the_docs_runs_as_written(server, tmp_path):
+    """docs/scaling.md's walkthrough on the session's PostgreSQL (libpq's PGHOST/PGPORT point its psql at
+    it): the role and database created by its two psql lines, the service's ExecStart started with its
+    Environment (a free loopback port, a temporary artifacts folder, this venv's mlflow), its health check
+    answering OK, and a run logged through it landing in the role's own database."""
+    import psycopg
+    from mlflow import MlflowClient
+
+    psql, env, start, curl = _walkthrough()
+    assert len(psql) == 2 and env == {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    assert "--workers 1" in start and "postgresql+psycopg://skidbench:<password>@localhost/skidbench" in start
+    db_port = re.search(r"@127\.0\.0\.1:(\d+)/", server.backend_uri).group(1)
+    password, port = "lab-secret", free_port()
+    libpq = {**os.environ, "PGHOST": "127.0.0.1", "PGPORT": db_port}
+    for line in psql:
+        done = subprocess.run(line.replace("<password>", password), shell=True, env=libpq,
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert done.returncode == 0, f"{line}: {done.stderr}"
+    for a, b in ((" --port 5000", f" --port {port}"), (" --host 0.0.0.0", " --host 127.0.0.1"),
+                 ("/opt/skidbench/.venv/bin/", f"{Path(sys.executable).parent}/"), ("<password>", password),
+                 ("/srv/mlflow/artifacts", str(tmp_path / "artifacts"))):  # fmt: skip
+        assert a in start
+        start = start.replace(a, b)
+    with open(tmp_path / "server.log", "wb") as log:
+        proc = subprocess.Popen(shlex.split(start), env={**libpq, **env}, stdout=log,
+                                stderr=subprocess.STDOUT, start_new_session=True, cwd=tmp_path)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300  # a hang guard: the first start creates the tables
+        while True:
+            health = subprocess.run(curl.replace(":5000/", f":{port}/"), shell=True, capture_output=True,
+                                    text=True, timeout=30)  # fmt: skip
+            if health.returncode == 0 or proc.poll() is not None or time.monotonic() > deadline:
+                break
+            time.sleep(1)
+        assert health.returncode == 0 and health.stdout.strip() == "OK", (tmp_path / "server.log").read_text()
+        client = MlflowClient(f"http://127.0.0.1:{port}")
+        run = client.create_run(client.create_experiment("lab-walkthrough"))
+        client.log_metric(run.info.run_id, "ld_6s_trans_rmsre_pct", 2.5)
+        client.set_terminated(run.info.run_id)
+        dsn = f"host=127.0.0.1 port={db_port} user=skidbench password={password} dbname=skidbench"
+        with psycopg.connect(dsn) as conn:  # the role's own database holds it
+            got = conn.execute("SELECT value FROM metrics WHERE run_uuid = %s", (run.info.run_id,)).fetchall()
+        assert got == [(2.5,)]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=60)

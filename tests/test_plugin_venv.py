@@ -187,3 +187,92 @@ def test_example_source_installs_into_a_fresh_venv_and_extracts_like_a_builtin(t
     line = p.stderr.strip().splitlines()[-1]
     assert "source.kind='rostopic_cvs': no such source installed" in line
     assert "(installed: amrl_txt, bag, drive_df, rostopic_csv)" in line
+
+
+def _tame_package(folder: Path) -> Path:
+    """A model plugin package (distribution skidbench-tame, model ``tame``: the ideal model under another
+    name), as a lab member would write it from docs/plugins.md."""
+    pkg = folder / "skidbench-tame"
+    (pkg / "skidbench_tame").mkdir(parents=True)
+    (pkg / "skidbench_tame" / "__init__.py").write_text(
+        "from skidbench.models.kinematic.ideal import IdealDifferentialDrive\n\n\n"
+        "class Tame(IdealDifferentialDrive):\n"
+        "    name = 'tame'\n"
+        "    version = '0.1'\n"
+    )
+    (pkg / "pyproject.toml").write_text(
+        '[build-system]\nrequires = ["setuptools>=61"]\nbuild-backend = "setuptools.build_meta"\n\n'
+        '[project]\nname = "skidbench-tame"\nversion = "0.1"\n\n'
+        '[project.entry-points."skidbench.models"]\ntame = "skidbench_tame:Tame"\n\n'
+        '[tool.setuptools]\npackages = ["skidbench_tame"]\n'
+    )
+    return pkg
+
+
+def test_an_edited_plugin_is_refitted_and_rescored_alone_and_an_uninstalled_one_is_shown_not_ranked(
+    tmp_path, venv_python
+):
+    """A plugin installed (not editable) in a fresh venv, evaluated beside a built-in; one line of its
+    installed code edited, version not bumped: the next evaluate says so in one line, fits and scores that
+    model alone and takes the built-in's run unchanged; after `pip uninstall`, compare exits 0, keeps its
+    row visible as "code not installed here" and does not rank it."""
+    import pandas as pd
+    from _bench_data import write_splits
+    from mlflow import MlflowClient
+
+    py = venv_python
+    isolation = ["--no-build-isolation"] if importlib.util.find_spec("wheel") else []
+    pip = [str(py), "-m", "pip", "-q", "--disable-pip-version-check"]
+    run([*pip, "install", "--no-deps", *isolation, str(_tame_package(tmp_path))])
+    out = tmp_path / "out"
+    write_splits(out / "sim-mini", terrains=("tile",), counts={"train": 1, "cv": 1, "ld": 1}, duration_s=16.0)
+    env = {**os.environ, "SKIDBENCH_OUT": str(out)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    cli = [str(py), "-m", "skidbench.pipeline.cli.main"]
+    evaluate = [*cli, "evaluate", "models=[ideal,tame]", "calibrate.use=false", "log_figures=false"]
+    run(evaluate, env=env, cwd=tmp_path)
+    fits = out / "sim-mini" / "fits"
+    ideal_fit = (fits / "ideal" / "tile.json").stat().st_mtime_ns
+
+    installed = run([str(py), "-c", "import skidbench_tame; print(skidbench_tame.__file__)"]).stdout.strip()
+    assert "site-packages" in installed  # the installed copy, not the source folder
+    with open(installed, "a") as f:
+        f.write("# an edit, version not bumped\n")
+    again = run(evaluate, env=env, cwd=tmp_path).stdout
+    (line,) = [x for x in again.splitlines() if x.startswith("evaluate: tame: ")]
+    assert "its code changed (digest " in line and "run again on 1 terrain(s)" in line
+    assert "taken as they are: ideal/tile" in again and "evaluate: ideal:" not in again
+    assert (fits / "ideal" / "tile.json").stat().st_mtime_ns == ideal_fit  # not refitted
+    client = MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
+    (exp,) = [e for e in client.search_experiments() if e.name != "Default"]
+    runs = sorted(client.search_runs([exp.experiment_id]), key=lambda r: r.info.start_time)
+    parents = [r for r in runs if r.data.tags["skidbench.role"] == "parent"]
+    first, second = (
+        {
+            r.data.tags["skidbench.model"]: r
+            for r in runs
+            if r.data.tags.get("mlflow.parentRunId") == p.info.run_id
+        }
+        for p in parents
+    )
+    assert sorted(second) == ["tame"]  # the model whose code changed, alone
+    assert (
+        second["tame"].data.tags["skidbench.code.digest"] != first["tame"].data.tags["skidbench.code.digest"]
+    )
+    assert parents[1].data.tags["skidbench.reused_runs"] == first["ideal"].info.run_id
+    assert [m.value for m in client.get_metric_history(second["tame"].info.run_id, "fit_loss")] == [
+        second["tame"].data.metrics["fit_loss"]
+    ]  # logged once
+
+    run([*pip, "uninstall", "-y", "skidbench-tame"])
+    compare = [*cli, "compare", "figures.enabled=false"]
+    res = subprocess.run(compare, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "tame/tile: code not installed here (model tame is not installed)" in res.stdout
+    board = pd.read_csv(out / "sim-mini" / "reports" / "leaderboard-commanded.csv", dtype=str)
+    tame = board[board["model"].str.startswith("tame")]
+    assert len(tame) == 1 and tame["status"].iloc[0] == "FINISHED"  # kept, with its numbers
+    (line,) = [x for x in res.stdout.splitlines() if "| tame (code not installed here) |" in x]
+    assert "not ranked: code not installed here (model tame is not installed)" in line
+    ideal = next(x for x in res.stdout.splitlines() if "| ideal |" in x)  # the ranked board comes first
+    assert "code not installed" not in ideal

@@ -173,8 +173,8 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
         f"1 evaluate run(s): `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
     )
 
-    # a newer evaluate killed after a finished one: compare marks its runs KILLED, reads the finished ones
-    # and names the killed run it left out
+    # a newer evaluate killed after a finished one: compare marks its runs KILLED, reads the finished evaluate
+    # and names the killed runs it left out
     killed = skidbench(
         "evaluate", root, "force=true", env={"SKIDBENCH_FAULT": "kill@1:.params.json"}, check=False
     )
@@ -184,8 +184,9 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
     assert sorted(statuses.values()) == ["KILLED", "KILLED"]  # the parent and its first child
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
     assert set(board["parent_run_id"]) == {parent.info.run_id} and (board["status"] == "FINISHED").all()
-    (left,) = [line for line in proc.stdout.splitlines() if " left out: KILLED" in line]
+    (left,) = [line for line in proc.stdout.splitlines() if " left out: its evaluate " in line]
     assert left.strip().startswith("ideal/tile: run ") and any(f"run {k[:8]}" in left for k in statuses)
+    assert "ended KILLED" in left and "never on a board" in left
 
 
 def _raising_plugin(folder):
@@ -250,8 +251,8 @@ def test_ctrl_c_during_evaluate_is_one_line_its_runs_killed_and_compare_keeps_th
     micro_root, tmp_path
 ):
     """Ctrl-C (SIGINT) in the middle of an evaluate that follows a complete one: one line, no traceback,
-    exit status 130, its runs marked KILLED; compare then ranks the complete runs and names the killed one
-    it left out (it refuses nothing)."""
+    exit status 130, its runs marked KILLED; compare then ranks the complete evaluate's runs, not even the
+    interrupted one's run that finished (one evaluate per board), and names the runs it left out."""
     from mlflow import MlflowClient
 
     root = tmp_path / "out"
@@ -276,6 +277,10 @@ def test_ctrl_c_during_evaluate_is_one_line_its_runs_killed_and_compare_keeps_th
     proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv").set_index("model")
     assert (board["status"] == "FINISHED").all() and board.loc["edd", "run_id"] == runs[2].info.run_id
-    assert board.loc["ideal", "run_id"] == runs[4].info.run_id  # the newer complete one
-    (left,) = [line for line in proc.stdout.splitlines() if " left out: KILLED" in line]
-    assert left.strip().startswith(f"edd/tile: run {runs[5].info.run_id[:8]}")
+    assert board.loc["ideal", "run_id"] == runs[1].info.run_id  # not the interrupted evaluate's, finished
+    left = [line.strip() for line in proc.stdout.splitlines() if " left out: its evaluate " in line]
+    assert {x.split(" (")[0] for x in left} == {
+        f"ideal/tile: run {runs[4].info.run_id[:8]}",
+        f"edd/tile: run {runs[5].info.run_id[:8]}",
+    }
+    assert all("ended KILLED (interrupted (Ctrl-C)" in x for x in left)

@@ -35,7 +35,8 @@ import pandas as pd
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
-from skidbench.pipeline.core.io import write_json_atomic, write_text_atomic
+from skidbench.pipeline.core.errors import SkidbenchError
+from skidbench.pipeline.core.io import read_parquet_metadata, write_json_atomic, write_text_atomic
 from skidbench.pipeline.core.layout import Layout
 from skidbench.pipeline.core.protocol import PROTOCOLS
 
@@ -298,20 +299,29 @@ def read_windows(
     layout: Layout, rows: pd.DataFrame, protocol: str, horizon_s: float
 ) -> tuple[dict[tuple[str, str], pd.DataFrame], list[str]]:
     """The windows at ``horizon_s`` of every FINISHED (model, terrain) of a board (``rows``: model, terrain,
-    status) and of the floor of each of its terrains: ``{(model, terrain): windows}``, and a note per table
-    that could not be read (a run whose files are elsewhere: its cells keep their logged intervals)."""
+    status; ``run_id``) and of the floor of each of its terrains: ``{(model, terrain): windows}``, and a note
+    per table that could not be read (a run whose files are elsewhere) or was written by another run than the
+    row's (a later evaluate's, killed, say): those cells keep their logged intervals."""
     out, notes = {}, []
     ok = rows[rows["status"] == "FINISHED"]
     wanted = [(str(m), str(t)) for m, t in zip(ok["model"], ok["terrain"], strict=True)]
     wanted += [(FLOOR, str(t)) for t in sorted(ok["terrain"].unique())]
+    runs = ok["run_id"] if "run_id" in ok else [""] * len(ok)
+    run_of = {(str(m), str(t)): r for m, t, r in zip(ok["model"], ok["terrain"], runs, strict=True)}
     for model, terrain in wanted:
         stem = layout.eval_stem(model, terrain, protocol)
         path = stem.with_name(stem.name + ".windows.parquet")
         try:
             w = pd.read_parquet(path)
-        except (OSError, ValueError) as exc:
+            made_by = str(read_parquet_metadata(path).get("run_id") or "")
+        except (OSError, ValueError, SkidbenchError) as exc:
             if model != FLOOR:  # an evaluate from before the floor existed: no floor row, silently
                 notes.append(f"{model}/{terrain}: no per-window table ({path.name}: {type(exc).__name__})")
+            continue
+        board_run = str(run_of.get((model, terrain)) or "")
+        if made_by and board_run and made_by != board_run:  # a later evaluate (killed, say) rewrote it
+            notes.append(f"{model}/{terrain}: {path.name} is of run {made_by[:8]}, not of the board's run "
+                         f"{board_run[:8]}: its cells keep their logged intervals")  # fmt: skip
             continue
         if len(w) and "horizon_s" in w:
             w = w[np.isclose(w["horizon_s"].to_numpy(float), horizon_s)]

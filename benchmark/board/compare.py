@@ -37,6 +37,7 @@ import pandas as pd
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import selection as sel
 from skidbench.benchmark.board.horizons import horizon_report
+from skidbench.benchmark.board.installed import code_not_here
 from skidbench.benchmark.board.selection import board_from_runs
 from skidbench.benchmark.board.tables import (
     SPLITS,
@@ -49,12 +50,7 @@ from skidbench.benchmark.board.tables import (
     summary_table,
 )
 from skidbench.benchmark.report.compare_figures import FigureSettings, draw_figures, figure_jobs
-from skidbench.benchmark.report.markdown import (
-    ReportContent,
-    ReportSettings,
-    report_md,
-    sort_key,
-)
+from skidbench.benchmark.report.markdown import ReportContent, ReportSettings, report_md, sort_key
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
@@ -162,6 +158,9 @@ class CompareResult:
     dataset: str = ""
     parents: list[str] = field(default_factory=list)  # the evaluate runs the board's rows hang from
     claim: str = ""  # the paper's claim: overall verdict, then per terrain
+    other_boards: dict[str, str] = field(
+        default_factory=dict
+    )  # every other protocol's ranked board, Markdown
 
 
 def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
@@ -200,14 +199,22 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
 
 
 def protocol_selections(
-    tracker: trk.Tracker, horizon_s: float, filter_string: str | None, user: str | None = None
+    tracker: trk.Tracker,
+    horizon_s: float,
+    filter_string: str | None,
+    user: str | None = None,
+    without: dict[str, str] | None = None,
 ) -> dict[str, sel.Selection]:
     """``{protocol: selection}`` of every input protocol the dataset has runs under (the newest complete
-    run of each (model, terrain): :func:`selection.latest_complete`), in the order of ``PROTOCOLS``."""
+    run of each (model, terrain): :func:`selection.latest_complete`), in the order of ``PROTOCOLS``;
+    ``without``: filled with why a protocol whose runs are all of evaluates that did not finish has none."""
     out = {}
     for p in PROTOCOLS:
         try:
             out[p] = sel.latest_complete(tracker, p, horizon_s, filter_string, user)
+        except sel.NoCompleteEvaluate as exc:
+            if without is not None:
+                without[p] = str(exc)
         except sel.NoRuns:
             continue
     return out
@@ -265,13 +272,16 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     # latest: the newest complete run of each (model, terrain) under cs.asked, across evaluates; a run
     # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
     # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
+    unfinished: dict[str, str] = {}
     try:
-        selections = protocol_selections(tracker, horizon, cs.filter, user)
+        selections = protocol_selections(tracker, horizon, cs.filter, user, unfinished)
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
+    if cs.asked in unfinished and cs.asked not in selections:
+        raise CompareError(unfinished[cs.asked])
     # cs.asked None: the runs of parent_arg
     runs, parent, left_out = _chosen_runs(target, tracker, selections, cs.asked, parent_arg, cs.filter, user)
-    board = board_from_runs(runs, horizon)
+    board = with_code_here(board_from_runs(runs, horizon))
     protocol = check_one_protocol(board)
     # the protocol of the runs shown (the files evaluate wrote for them)
     inputs = protocol if protocol in PROTOCOLS else cs.inputs
@@ -289,7 +299,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     if parent is None:  # every protocol's board of the dataset, from the same selection
         for p, s in selections.items():
             if p != protocol:
-                shown_boards[p] = (board_from_runs(s.runs, horizon), s.runs, s.left_out)
+                shown_boards[p] = (with_code_here(board_from_runs(s.runs, horizon)), s.runs, s.left_out)
 
     def standings_for(p: str, b: pd.DataFrame) -> st.Standings | None:  # another protocol's: its own windows
         if p == protocol:
@@ -297,7 +307,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
         return standings_of(cs.rank_by, cs.intervals, layout, b, p, horizon, [])
 
     boards = _BoardsShown(target, tracker.experiment_name, parent, horizon, settings.rank_by, shown_boards)
-    files, written, lb_md = _write_boards(boards, out, protocol, summary, standings_for)
+    files, written, lb_md, other_mds = _write_boards(boards, out, protocol, summary, standings_for)
     dpi = cs.figures.dpi if cs.figures.enabled else None  # error against horizon, by aggressiveness
     files += horizon_report(layout, {p: b for p, (b, _r, _lo) in shown_boards.items()}, cs.intervals,
                             settings.rank_by, cs.half_track, out, dpi)  # fmt: skip
@@ -307,7 +317,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
         else {p: board_from_runs(s.runs, horizon) for p, s in selections.items()}
     )
     decomp, shown, decomp_md = _decomposition(boards_of, horizon)
-    notes: list[str] = _fit_findings(layout, board, inputs) + interval_notes
+    notes: list[str] = _fit_findings(layout, board, inputs) + interval_notes + _code_notes(board)
     newer = sel.newer_elsewhere(tracker, runs, protocol, cs.filter, user) if parent_arg == "latest" else None
     notes += [n for n in (newer, sel.same_data_elsewhere(tracker)) if n]
     log_mlflow = cs.log_to_mlflow
@@ -330,7 +340,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     if standings is not None:
         claim = "; ".join(f"{scope}: {v}" for scope, (v, _) in standings.claim.items())
     return CompareResult(report, lb_md, parent, files, notes, protocol, decomp_md, links, left_out, written,
-                         target.name, parents, claim)  # fmt: skip
+                         target.name, parents, claim, other_mds)  # fmt: skip
 
 
 def _chosen_runs(
@@ -395,13 +405,14 @@ def _write_boards(
     protocol: str,
     summary: pd.DataFrame,
     standings_of: Callable[[str, pd.DataFrame], st.Standings | None],
-) -> tuple[list[Path], list[str], str]:
+) -> tuple[list[Path], list[str], str, dict[str, str]]:
     """Write each protocol's leaderboard (:func:`boards.write_leaderboard`): ``(files, one line per
-    protocol, the ranked table's Markdown of the protocol shown)``."""
+    protocol, the ranked table's Markdown of the protocol shown, {other protocol: its ranked table})``."""
     files: list[Path] = []
     written: list[str] = []
     when = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
     lb_md = markdown_table(summary)
+    others: dict[str, str] = {}
     rank_by, horizon, target = shown.rank_by, shown.horizon, shown.target
     for p, (b, r, lo) in shown.boards.items():
         rank_key = st.AGGREGATE if rank_by == st.AGGREGATE else mt.rank_key(rank_by, horizon)
@@ -413,7 +424,9 @@ def _write_boards(
         written.append(f"leaderboard inputs={p}: {line}")
         if p == protocol:
             lb_md = md_ranked
-    return files, written, lb_md
+        else:
+            others[p] = md_ranked
+    return files, written, lb_md, others
 
 
 def _decomposition(boards_of: dict[str, pd.DataFrame], horizon: float) -> tuple[pd.DataFrame, list[str], str]:
@@ -453,6 +466,19 @@ def _log_report(
         tracker.artifact(run_id, f, "report")
 
 
+def with_code_here(board: pd.DataFrame) -> pd.DataFrame:
+    """``board`` with the column ``code_here``: why a row's model code is not installed here ("" when it
+    is; benchmark/board/installed.py). Such rows stay on the board, not ranked."""
+    return board.assign(code_here=code_not_here(board))
+
+
+def _code_notes(board: pd.DataFrame) -> list[str]:
+    """One line per row whose model code is not installed here."""
+    bad = board[board["code_here"].astype(bool)] if "code_here" in board else board.iloc[:0]
+    return [f"{m}/{t}: {why}; its numbers are shown, not ranked (install that code to rank it)"
+            for m, t, why in zip(bad["model"], bad["terrain"], bad["code_here"], strict=True)]  # fmt: skip
+
+
 def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]:
     """The findings of the board's fits (a parameter at its bound: ``roc degenerates to edd on this data:
     b2 at its bound``), for the console notes and the report's Notes (models/fitting/fit.py formats them)."""
@@ -474,7 +500,9 @@ def standings_of(
     (:mod:`skidbench.benchmark.scoring.standings`), or None (with a note) when there are none to read."""
     if rank_by != st.AGGREGATE:
         mt.rank_key(rank_by, horizon)  # a bad rank_by: one line
-    windows, missing = brd.read_windows(layout, board, protocol, horizon)
+    gone = set(board.loc[board["code_here"].astype(bool), "model"]) if "code_here" in board else set()
+    rankable = board[~board["model"].isin(gone)]  # a model with a row whose code is not here: not ranked
+    windows, missing = brd.read_windows(layout, rankable, protocol, horizon)
     notes += [f"paired intervals: {m}" for m in missing]
     if not any(m != FLOOR for m, _ in windows):
         notes.append(
@@ -512,4 +540,5 @@ def ui_links(
     mu.save_view(tracker.client, exp, key, title, mu.view_state(search, cols, order, mu.chart_title(horizon)))
     links["runs table (saved view)"] = mu.view_url(uri, exp, key, ui_url)
     links["charts of its model runs"] = mu.view_url(uri, exp, key, ui_url, charts=True)
+    links["experiment (its model-training runs)"] = mu.experiment_url(uri, exp, ui_url)
     return links

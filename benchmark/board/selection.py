@@ -1,15 +1,16 @@
 """Which runs a board is made of, and which dataset compare reads.
 
 **One board per dataset and input protocol** (:func:`latest_complete`): of every child run of the dataset
-(its identity, tag ``skidbench.dataset_id``) under the protocol, across evaluates, the newest *complete*
-run of each (model, terrain): FINISHED, with the metrics of the horizon shown, scored on the terrain's
-current split files (the split fingerprint of the terrain's newest complete run) with the same scoring
-settings (``min_distance_m``, ``min_rotation_deg`` of the newest complete run). So ``evaluate
-models=[mine]`` after a full evaluate puts ``mine`` on the full board beside the built-ins, and an evaluate
-that failed, was interrupted or is still running leaves the older complete runs on the board. Every run
-newer than the one a row uses is *left out*, with why, in one line each (compare prints them). A (model,
-terrain) without any complete run shows its newest run (FAILED, KILLED, ...) so that failures stay on the
-board.
+(its identity, tag ``skidbench.dataset_id``) under the protocol, across *complete* evaluates (their parent
+run FINISHED: it ran to its end), the newest complete run of each (model, terrain): FINISHED, with the
+metrics of the horizon shown, scored on the terrain's current split files (the split fingerprint of the
+terrain's newest complete run) with the same scoring settings (``min_distance_m``, ``min_rotation_deg`` of
+the newest complete run). So ``evaluate models=[mine]`` after a full evaluate puts ``mine`` on the full
+board beside the built-ins, and the runs of an evaluate that was killed, failed or is still running are
+never on a board, not even those of its runs that finished: the board never mixes an evaluate that did not
+finish with another. Every run newer than the one a row uses is *left out*, with why, in one line each
+(compare prints them). A (model, terrain) whose newest run of a complete evaluate FAILED shows that run so
+that failures stay on the board; one without any run of a complete evaluate is not on the board (named).
 
 **The dataset** (:func:`target_from_cfg`): ``dataset=<name>`` names a folder of the output root, and its
 ``dataset.json`` gives the identity the runs carry, whatever ``source`` is configured (so ``compare
@@ -45,6 +46,38 @@ class SelectionError(EvaluationError):
 
 class NoRuns(SelectionError):
     """The dataset has no run under the protocol (and filter)."""
+
+
+class NoCompleteEvaluate(NoRuns):
+    """The dataset has runs under the protocol, but no evaluate of them ran to its end."""
+
+
+def evaluate_statuses(tracker: trk.Tracker, parent_ids: list[str]) -> dict[str, tuple[str, str, str]]:
+    """``{parent run id: (status, run name, reason)}`` of the evaluates (or scores) ``parent_ids``; one
+    that is gone from the store is absent. An evaluate is complete when FINISHED: its parent run ends so
+    only when every model run was made (a killed or crashed one is RUNNING until reaped, then KILLED)."""
+    out: dict[str, tuple[str, str, str]] = {}
+    ids = sorted(set(parent_ids))
+    for k in range(0, len(ids), 100):
+        quoted = ", ".join(f"'{i}'" for i in ids[k : k + 100])
+        for r in tracker.client.search_runs(tracker.search_ids(), f"attributes.run_id IN ({quoted})",
+                                            max_results=1000):  # fmt: skip
+            reason = one_line(r.data.tags.get(run_tags.TAG_REASON, ""))[:160]
+            out[r.info.run_id] = (r.info.status, r.info.run_name or "", reason)
+    return out
+
+
+def _evaluate_gone(parent: str, statuses: dict[str, tuple[str, str, str]]) -> str | None:
+    """Why a run of the evaluate ``parent`` is never on a board (None: the evaluate is complete)."""
+    if not parent:
+        return None  # a run logged without an evaluate (a library call): judged by itself
+    if parent not in statuses:
+        return f"its evaluate {parent[:8]} is gone from the store"
+    status, name, reason = statuses[parent]
+    if status == "FINISHED":
+        return None
+    return (f"its evaluate {name} ({parent[:8]}) ended {status}" + (f" ({reason})" if reason else "")
+            + ": the runs of an evaluate that did not finish are never on a board")  # fmt: skip
 
 
 def _col(runs: pd.DataFrame, name: str) -> pd.Series:
@@ -146,7 +179,12 @@ def latest_complete(
     model = _col(runs, f"tags.{run_tags.TAG_MODEL}").astype(str)
     terrain = _col(runs, f"tags.{run_tags.TAG_TERRAIN}").astype(str)
     fingerprint = _col(runs, f"tags.{run_tags.TAG_FINGERPRINT}").fillna("")
-    complete = (runs["status"] == "FINISHED") & _has_metrics(runs, horizon_s)
+    parent = [p if isinstance(p, str) else "" for p in _col(runs, f"tags.{run_tags.TAG_PARENT}")]
+    statuses = evaluate_statuses(tracker, [p for p in parent if p])
+    gone = [_evaluate_gone(p, statuses) for p in parent]
+    complete = (
+        (runs["status"] == "FINISHED") & _has_metrics(runs, horizon_s) & pd.Series([g is None for g in gone])
+    )
     # the data and the scoring settings of the board: those of the newest complete runs
     ref_fp: dict[str, str] = {}
     for t, f, c in zip(terrain, fingerprint, complete, strict=True):
@@ -160,6 +198,8 @@ def latest_complete(
             ref_set[name] = float(done.iloc[0])
 
     def why_not(i: int) -> str | None:
+        if gone[i] is not None:
+            return gone[i]
         status = str(runs.at[i, "status"])
         if status != "FINISHED":
             reason = str(_col(runs, f"tags.{run_tags.TAG_REASON}").iat[i] or "")
@@ -180,30 +220,41 @@ def latest_complete(
     left_out: list[str] = []
     for (m, t), idx in runs.groupby([model, terrain], sort=False).groups.items():
         order = list(idx)  # newest first (runs is sorted)
-        reasons = [why_not(i) for i in order]
-        use = next((k for k, r in enumerate(reasons) if r is None), None)
-        if use is None:  # no complete run: its newest run stays on the board when it failed
-            if str(runs.at[order[0], "status"]) != "FINISHED":
-                keep.append(order[0])
-                newer = order[1:1]
-            else:
-                newer = order[:1]
-        else:
-            keep.append(order[use])
-            newer = order[:use]
-        for i in newer:
-            uses = (
-                f"the board has its run {runs.at[order[use], 'run_id'][:8]} of "
-                f"{_when(runs.at[order[use], 'start_time'])}"
-                if use is not None
-                else "no complete run of it is on the board"
-            )
-            left_out.append(
-                f"{m}/{t}: run {runs.at[i, 'run_id'][:8]} ({_when(runs.at[i, 'start_time'])}) left out: "
-                f"{reasons[order.index(i)]}; {uses}"
-            )
+        kept, lines = _pick(runs, order, [why_not(i) for i in order], gone)
+        keep += kept
+        left_out += [f"{m}/{t}: {line}" for line in lines]
+    why = next((g for g in gone if g), None)  # the newest run's evaluate that did not finish
+    if not keep and why:
+        raise NoCompleteEvaluate(
+            f"no complete evaluate under inputs={inputs} in experiment {tracker.experiment_name!r} at "
+            f"{tracker.uri}: {why.removeprefix('its ')}; run `skidbench evaluate` again (it runs what is "
+            "missing)"
+        )
     chosen = runs.loc[sorted(keep)].reset_index(drop=True)
     return Selection(inputs, float(horizon_s), chosen, left_out)
+
+
+def _pick(
+    runs: pd.DataFrame, order: list[int], reasons: list[str | None], gone: list[str | None]
+) -> tuple[list[int], list[str]]:
+    """Of one (model, terrain)'s runs (``order``: their rows, newest first; ``reasons``: why each is not
+    complete, None when it is; ``gone``: why its evaluate is not complete), the row on the board (none or
+    one) and a line for each newer run left out."""
+    use = next((k for k, r in enumerate(reasons) if r is None), None)
+    keep, newer = ([order[use]], order[:use]) if use is not None else ([], order[:1])
+    if use is None:  # no complete run: its newest run of a complete evaluate stays when it failed
+        failed = [k for k, i in enumerate(order) if gone[i] is None and runs.at[i, "status"] != "FINISHED"]
+        keep, newer = ([order[failed[0]]], order[: failed[0]]) if failed else ([], order[:1])
+    uses = "no complete run of it is on the board"
+    if use is not None:
+        i = order[use]
+        uses = f"the board has its run {runs.at[i, 'run_id'][:8]} of {_when(runs.at[i, 'start_time'])}"
+    lines = [
+        f"run {runs.at[i, 'run_id'][:8]} ({_when(runs.at[i, 'start_time'])}) left out: "
+        f"{reasons[order.index(i)]}; {uses}"
+        for i in newer
+    ]
+    return keep, lines
 
 
 def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
@@ -220,6 +271,10 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
             "reason": _col(runs, f"tags.{run_tags.TAG_REASON}").fillna(""),
             "version": _col(runs, f"tags.{run_tags.TAG_MODEL_VERSION}").fillna(""),
             "package": _col(runs, f"tags.{run_tags.TAG_PLUGIN}").fillna(""),
+            "code_digest": _col(runs, "tags.skidbench.code.digest").fillna(
+                ""
+            ),  # pipeline/runner/environment.py
+            "code_distribution": _col(runs, "tags.skidbench.code.distribution").fillna(""),
             # a row scored from a predictions file (`skidbench score`, benchmark/release/score.py)
             "external": _col(runs, f"tags.{run_tags.TAG_EXTERNAL}").fillna("false").eq("true"),
             "run_id": runs["run_id"],
@@ -426,19 +481,22 @@ def not_yours(tracker: trk.Tracker, inputs: str, filter_string: str | None, user
 def newer_elsewhere(
     tracker: trk.Tracker, runs: pd.DataFrame, inputs: str, filter_string: str | None, user: str | None
 ) -> str | None:
-    """One line when someone other than ``user`` evaluated this dataset (same protocol) after the newest of
-    the board's ``runs``."""
+    """One line when someone other than ``user`` completed an evaluate of this dataset (same protocol) after
+    the newest of the board's ``runs`` (an evaluate of theirs that did not finish is not counted)."""
     if not user or runs.empty:
         return None
     others = others_runs(tracker, inputs, filter_string, user)
+    if others.empty:
+        return None
+    parents = _col(others, f"tags.{run_tags.TAG_PARENT}").fillna("").astype(str)
+    statuses = evaluate_statuses(tracker, [p for p in parents if p])
+    done = [(p in statuses and statuses[p][0] == "FINISHED") for p in parents]
+    others = others[pd.Series(done, index=others.index) & (others["status"] == "FINISHED")]
     if others.empty or others["start_time"].iloc[0] <= runs["start_time"].max():
         return None
     who = str(_col(others, f"tags.{run_tags.TAG_USER}").fillna("?").iloc[0])
-    parent = _col(others, f"tags.{run_tags.TAG_PARENT}").iloc[0]
-    what = f"run {others['run_id'].iloc[0][:8]}"
-    if isinstance(parent, str) and parent:
-        run = tracker.client.get_run(parent)
-        what = f"{run.info.run_name}, run {parent[:8]}, {run.info.status}"
+    parent = str(_col(others, f"tags.{run_tags.TAG_PARENT}").iloc[0])
+    what = f"{statuses[parent][1]}, run {parent[:8]}, complete"
     return (
         f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "
         f"user={who}` shows theirs"

@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board.installed import NOT_INSTALLED
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
@@ -96,9 +97,13 @@ def summary_table(
         ranked = [ok[k].to_numpy(float) for k in rank_keys if len(ok) and k in ok]
         means = [np.nanmean(v) if np.isfinite(v).any() else np.nan for v in ranked]
         row["_key"] = float(np.mean(means)) if means and np.isfinite(means).all() else np.nan
+        row["_unranked"] = bool(unranked_why(g))  # shown, never ranked
+        row["_key"] = np.inf if row["_unranked"] else row["_key"]
         rows.append(row)
     out = pd.DataFrame(rows).sort_values("_key", na_position="last", kind="stable")
-    out.insert(0, "rank", np.arange(1, len(out) + 1))
+    out.insert(0, "rank", [str(k) for k in range(1, len(out) + 1)])
+    out.loc[out["_unranked"].to_numpy(bool), "rank"] = ""
+    out = out.drop(columns="_unranked")
     for metric in (m for m in mt.METRICS if m.optional):
         for split in SPLITS:
             lab = metric.column_label(split)
@@ -129,7 +134,8 @@ def standings_table(board: pd.DataFrame, horizon_s: float, standings: st.Standin
     for model in [*ov.index, *missing]:
         g = board[board["model"] == model]
         ok = g[g["status"] == "FINISHED"]
-        r = ov.loc[model] if model in ov.index else _no_standing(ov.columns, "no finished run to score")
+        why = unranked_why(g) or "no finished run to score"
+        r = ov.loc[model] if model in ov.index else _no_standing(ov.columns, why)
         row: dict[str, Any] = {"rank": r["rank"], "model": marked(model, g) if len(g) else model}
         row[agg_label] = ci_text(float(r["estimate"]), float(r["lo"]), float(r["hi"]))
         for metric in mt.HEADLINE:
@@ -182,8 +188,18 @@ def _rank_number(rank: Any) -> int:
 
 
 def marked(model: str, rows: pd.DataFrame) -> str:
-    """A model's name on the leaderboard: ``<name> (external)`` for a row scored from a predictions file."""
+    """A model's name on the leaderboard: ``<name> (external)`` for a row scored from a predictions file,
+    ``<name> (code not installed here)`` for rows whose code is not installed here (board/installed.py)."""
+    if "code_here" in rows and rows["code_here"].astype(bool).any():
+        return f"{model} ({NOT_INSTALLED})"
     return f"{model} (external)" if "external" in rows and rows["external"].any() else str(model)
+
+
+def unranked_why(rows: pd.DataFrame) -> str:
+    """Why a model's rows are not ranked though they finished ("" when nothing stops them): their code is
+    not installed here (board/installed.py)."""
+    why = [str(x) for x in rows["code_here"] if x] if "code_here" in rows else []
+    return why[0] if why else ""
 
 
 def detail_table(

@@ -60,8 +60,8 @@ def run(cfg: DictConfig):
         if cached is not None:
             print(format_result(cached, _findings(layout, cached)), flush=True)
             print(
-                f"evaluate: inputs unchanged (split files, fits, config) and parent run "
-                f"{cached.parent_run_id} exists; skipped (force=true re-runs)",
+                f"evaluate: inputs unchanged (split files, fits, config, models' and scoring code) and "
+                f"parent run {cached.parent_run_id} finished; skipped (force=true re-runs)",
                 flush=True,
             )
             return cached, True
@@ -102,8 +102,9 @@ def _findings(layout, result) -> list[str]:
 def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
     each model's version and config."""
+    from skidbench.benchmark.evaluate.reuse import scoring_digest
+    from skidbench.benchmark.evaluate.settings import models_from_cfg
     from skidbench.models.fitting.fit import ModelConfigs, model_config
-    from skidbench.models.registry.plugins import discover
     from skidbench.models.registry.saved import arrays_file
     from skidbench.pipeline.core.layout import split_terrains
     from skidbench.pipeline.core.manifest import Manifest
@@ -115,25 +116,44 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     from skidbench.pipeline.core.protocol import protocol_from_cfg
 
     inputs = protocol_from_cfg(cfg)
-    files += [layout.fit_file(str(m), t, inputs) for m in cfg.models for t in terrains]
-    files += [arrays_file(layout.fit_file(str(m), t, inputs)) for m in cfg.models for t in terrains]
+    models = models_from_cfg(cfg)
+    files += [layout.fit_file(m, t, inputs) for m in models for t in terrains]
+    files += [arrays_file(layout.fit_file(m, t, inputs)) for m in models for t in terrains]
     files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
-    if "discovered" in [str(m) for m in cfg.models]:
+    if "discovered" in models:
         files.append(layout.discovery / "discovery.json")
     files = [p for p in files if p.is_file()]
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
-    # a model whose version changed must be refitted and re-scored, even if its old fit file is intact
-    plugins = discover()
-    conf["model_versions"] = {
-        str(m): [getattr(info, "version", None), getattr(info, "package_version", None)]
-        for m in cfg.models
-        for info in [plugins.get(str(m).split("+")[0])]
-    }
+    # a model whose code changed (its version, or the digest of its package's files: an edit without a
+    # version bump) must be refitted and re-scored, even if its old fit file is intact; so must every model
+    # when the scoring code changed (benchmark/evaluate/evaluation/reuse.py)
+    conf["model_code"] = {m: _code_key(m) for m in models}
+    conf["scoring_code"] = scoring_digest()
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
     configs = ModelConfigs.from_cfg(cfg)
-    conf["model_configs"] = {str(m): model_config(configs, str(m)) for m in cfg.models}
+    conf["model_configs"] = {m: model_config(configs, m) for m in models}
     return stamp.key(files, conf)
+
+
+def _code_key(model: str) -> dict | str:
+    """The code of a model as a fit's fingerprint holds it (``CodeIdentity.key`` of
+    pipeline/runner/environment.py: distribution, version, digest of its package's files), or why there is
+    none (not installed: the evaluate says so when it runs)."""
+    from skidbench.models.base import ModelError
+    from skidbench.models.registry.plugins import DISCOVERED, discover
+    from skidbench.models.registry.specs import get_model_class
+    from skidbench.pipeline.runner.environment import code_identity
+
+    if model == DISCOVERED:  # resolved per terrain from discovery.json (a file of the key): its base's code
+        return "discovered"
+    try:
+        cls = get_model_class(model)
+    except ModelError as exc:
+        return str(exc)
+    info = discover().get(model.split("+")[0])
+    code = code_identity(cls, *((info.package, info.package_version) if info else ())).key()
+    return {**code, "class_version": str(getattr(cls, "version", "?"))}
 
 
 def _cached_result(cfg: DictConfig, layout, stamp):
@@ -152,6 +172,8 @@ def _cached_result(cfg: DictConfig, layout, stamp):
             return None
         run = tracker.client.get_run(last["parent_run_id"])
         if run.info.lifecycle_stage != "active" or run.info.experiment_id != tracker.experiment_id:
+            return None
+        if run.info.status != "FINISHED":  # killed or failed since (reaped): run again, never shown as done
             return None
         if tracker.dataset_id and run.data.tags.get(run_tags.TAG_DATASET_ID) != tracker.dataset_id:
             return None  # a run of another dataset at this name (source.replace=true), or an older one

@@ -25,6 +25,7 @@ import pandas as pd
 import pyarrow as pa
 
 from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.evaluate import reuse
 from skidbench.benchmark.evaluate.failures import fail_run, kill_run
 from skidbench.benchmark.evaluate.fit_record import (
     default_fit_fn,
@@ -82,6 +83,7 @@ class ChildResult:
     reason: str = ""
     inputs: str = "commanded"
     traceback: str = ""  # where a FAILED run's traceback is (MLflow artifact, file, stage log)
+    reused: bool = False  # the run of an earlier complete evaluate, unchanged (evaluate/reuse.py)
 
 
 @dataclass
@@ -118,6 +120,7 @@ def run_benchmark(
     layout, models, terrains, splits, horizons = es.layout, es.models, es.terrains, es.splits, es.horizons
     protocol = es.protocol
     log_figures = es.log_figures if log_figures is None else log_figures
+    keyed = fit_fn is None and not es.transfer.on  # results keyed by what made them (evaluate/reuse.py)
     fit_fn = fit_fn or _checked_default_fit_fn(models)
     # transfer (train_dataset / train_terrain): fit elsewhere, own experiment and tags
     # (benchmark/evaluate/transfer.py)
@@ -154,6 +157,7 @@ def run_benchmark(
                                                        _logged_children(tracker, done), protocol,
                                                        skipped))  # fmt: skip
         about = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
+        plan = reuse.plan_reuse(es, tracker, files_of, terrains) if keyed else reuse.ReusePlan()
         parent_tags = {
             **common_tags,
             **({run_tags.TAG_RUN_KEY: job_key} if job_key else {}),
@@ -163,6 +167,7 @@ def run_benchmark(
             "skidbench.models": ",".join(models),
             "skidbench.terrains": ",".join(terrains),
             run_tags.TAG_NOTE: about,
+            **plan.tags(),
         }
         name = tracker.unique_run_name(run_tags.parent_run_name("evaluate", es.dataset, protocol))
         with tracker.run(name, parent_tags) as parent_id:
@@ -173,10 +178,10 @@ def run_benchmark(
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             ctx = ChildContext(es.inputs_text, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
                                fit_fn, es.fit, es.conf, common_tags, log_figures, es.intervals,
-                               es.seeds)  # fmt: skip
+                               es.seeds, plan)  # fmt: skip
             floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
             _log_board(ctx, children, splits, protocol, about)
-            save_views(tracker, parent_id, splits, horizons, protocol)
+            save_views(tracker, parent_id, splits, horizons, protocol, children)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(
@@ -196,7 +201,9 @@ def _run_terrains(
         td = TerrainData(terrain, data.tests[terrain], data.inputs_of[terrain], datasets_of[terrain],
                          split_fingerprint(data.files_of[terrain], ctx.layout.splits))  # fmt: skip
         floor[terrain] = _log_terrain_references(ctx, td, protocol)
-        children += [_run_child(ctx, model_name, td) for model_name in models]
+        for m in models:  # a run of an earlier complete evaluate taken as it is (evaluate/reuse.py), or made
+            taken = ctx.plan.taken.get((m, terrain))
+            children.append(_child_of(taken, reused=True) if taken is not None else _run_child(ctx, m, td))
     return floor
 
 
@@ -235,9 +242,11 @@ def _log_board(
     n_failed = sum(c.status != "FINISHED" for c in children)
     rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
     board, board_metrics = mu.evaluate_leaderboard(rows, splits, ctx.horizons[0], protocol)
+    n_reused = sum(c.reused for c in children)  # runs of earlier complete evaluates taken as they are
+    counts = {"n_children": len(children) - n_reused, "n_reused": n_reused, "n_failed": n_failed}
     ctx.tracker.log(
         ctx.parent_id,
-        metrics={"n_children": len(children), "n_failed": n_failed, **board_metrics},
+        metrics={**counts, **board_metrics},
         tags={
             run_tags.TAG_STATUS: "FINISHED" if not n_failed else f"{n_failed} model run(s) FAILED",
             run_tags.TAG_NOTE: board + about,
@@ -275,18 +284,15 @@ def _logged_children(tracker, parent_id: str) -> list[ChildResult]:
         filter_string=f"tags.`{run_tags.TAG_PARENT}` = '{parent_id}'",
         max_results=10000,
     )
-    return [
-        ChildResult(
-            r.data.tags.get(run_tags.TAG_MODEL, "?"),
-            r.data.tags.get(run_tags.TAG_TERRAIN, "?"),
-            r.info.run_id,
-            r.info.status,
-            dict(r.data.metrics),
-            r.data.tags.get(run_tags.TAG_REASON, ""),
-            r.data.tags.get(run_tags.TAG_INPUTS, "commanded"),
-        )
-        for r in sorted(runs, key=lambda r: r.info.start_time)
-    ]
+    return [_child_of(r) for r in sorted(runs, key=lambda r: r.info.start_time)]
+
+
+def _child_of(run: Any, reused: bool = False) -> ChildResult:
+    """A logged child run as a result."""
+    t = run.data.tags
+    return ChildResult(t.get(run_tags.TAG_MODEL, "?"), t.get(run_tags.TAG_TERRAIN, "?"), run.info.run_id,
+                       run.info.status, dict(run.data.metrics), t.get(run_tags.TAG_REASON, ""),
+                       t.get(run_tags.TAG_INPUTS, "commanded"), reused=reused)  # fmt: skip
 
 
 # -- one child run: a model on a terrain ------------------------------------------------------------
@@ -310,6 +316,7 @@ class ChildContext:
     log_figures: bool
     intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
     seeds: int = 1  # fits of a model with random parts (evaluate's ``seeds``)
+    plan: reuse.ReusePlan = field(default_factory=reuse.ReusePlan)  # runs taken, result keys of the others
 
 
 @dataclass(frozen=True)
@@ -345,11 +352,13 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
     stage = _Stage("fit")
     stem = ctx.layout.eval_stem(model_name, td.terrain, protocol)
     try:
-        fit = _fit_and_log(ctx, run_id, model_name, td, stem)
+        fit, fit_metrics = _fit_and_log(ctx, run_id, model_name, td, stem)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
         log_model(ctx.inputs_text, ctx.tracker, run_id, fit, model_name, td.terrain,
                   record_path, next(iter(td.tests.values()))[0])  # fmt: skip
+        # after the model: Model.log logs the run's metrics so far again, for the model (duplicate keys)
+        ctx.tracker.log(run_id, metrics=fit_metrics)
         stage("predict")
         metrics, windows, velocities = predict_and_score(
             fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
@@ -364,10 +373,14 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
             )
             metrics.update(spread)
         stage("logging")
-        _log_windows(ctx, run_id, model_name, td, stem, windows)
+        outputs = [_log_windows(ctx, run_id, model_name, td, stem, windows)]
         stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
-        _log_report_data(ctx, run_id, model_name, td, stem, fit.model, windows, velocities)
+        outputs += _log_report_data(ctx, run_id, model_name, td, stem, fit.model, windows, velocities)
         _finish_child(ctx.tracker, run_id, metrics)
+        rk = ctx.plan.keys.get((model_name, td.terrain))
+        if rk is not None:  # the next evaluate takes this run while what made it is unchanged
+            outputs += [stem.with_name(stem.name + s) for s in (".params.json", ".arrays.npz")]
+            reuse.record(rk, outputs, run_id, ctx.parent_id, ctx.tracker)
         log.info("%s/%s: %s", model_name, td.terrain, _brief(metrics))
         return ChildResult(model_name, td.terrain, run_id, "FINISHED", metrics, inputs=protocol)
     except KeyboardInterrupt:
@@ -387,6 +400,8 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
     protocol = td.inputs.protocol
     model_conf = model_config(ctx.fit.models, model_name)
+    rk = ctx.plan.keys.get((model_name, td.terrain))
+    keyed = {reuse.TAG_RESULT_KEY: rk.key, reuse.TAG_SCORING: rk.made_of["scoring"]} if rk else {}
     run_id = ctx.tracker.start(
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {
@@ -396,6 +411,7 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
             run_tags.TAG_MODEL: model_name,
             run_tags.TAG_TERRAIN: td.terrain,
             run_tags.TAG_INPUTS: protocol,
+            **keyed,
             **options_tags(ctx.conf, model_conf, protocol),
             run_tags.TAG_NOTE: _describe(
                 ctx.layout, ctx.inputs_text, [model_name], [td.terrain], list(td.tests), ctx.horizons
@@ -409,29 +425,30 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
     return run_id
 
 
-def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path) -> Any:
-    """Fits the model (``ctx.fit_fn``) and logs what the fit is: its loss, time and size, the model's
-    version and package, its fit diagnostics, the parameters of :func:`fit_description`, and the fitted
-    model's files (``<stem>.params.json``, a learned model's ``<stem>.arrays.npz``). Returns the fit."""
+def _fit_and_log(
+    ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path
+) -> tuple[Any, dict[str, float | None]]:
+    """Fits the model (``ctx.fit_fn``) and logs what the fit is: the model's version, package and code,
+    the parameters of :func:`fit_description`, and the fitted model's files (``<stem>.params.json``, a
+    learned model's ``<stem>.arrays.npz``). Returns the fit and its metrics (loss, time, size, fit
+    diagnostics), which the caller logs after the logged model."""
     tracker = ctx.tracker
     fit = ctx.fit_fn(ctx.fit, model_name, td.terrain)
     model = fit.model
+    metrics = {
+        "fit_loss": num(getattr(fit, "fit_loss", None)),
+        "fit_time_s": num(getattr(fit, "fit_time_s", None)),
+        "n_train": num(getattr(fit, "n_train", None)),
+        **fit_quality_metrics(fit),
+    }
     tracker.log(
         run_id,
-        metrics={
-            "fit_loss": num(getattr(fit, "fit_loss", None)),
-            "fit_time_s": num(getattr(fit, "fit_time_s", None)),
-            "n_train": num(getattr(fit, "n_train", None)),
-        },
         tags={
             run_tags.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
             run_tags.TAG_PLUGIN: plugin_package(model_name, model),
             **environment.code_tags(model_code(model_name, model)),
         },
     )
-    bound_metrics = fit_quality_metrics(fit)
-    if bound_metrics:
-        tracker.log(run_id, metrics=bound_metrics)
     described = fit_description(fit, td.inputs.response)
     if described:
         tracker.log(run_id, params=described)
@@ -445,13 +462,13 @@ def _fit_and_log(ctx: ChildContext, run_id: str, model_name: str, td: TerrainDat
         arrays_npz = stem.with_name(stem.name + ".arrays.npz")
         save_arrays(arrays_npz, arrays)
         tracker.artifact(run_id, arrays_npz, "fit")
-    return fit
+    return fit, metrics
 
 
 def _log_windows(
     ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path, windows: pd.DataFrame
-) -> None:
-    """Writes the per-window table ``<stem>.windows.parquet`` (what compare reads) and logs it."""
+) -> Path:
+    """Writes the per-window table ``<stem>.windows.parquet`` (what compare reads), logs it, returns it."""
     win_path = stem.with_name(stem.name + ".windows.parquet")
     write_parquet_atomic(
         pa.Table.from_pandas(windows, preserve_index=False),
@@ -465,6 +482,7 @@ def _log_windows(
         },  # fmt: skip
     )
     ctx.tracker.artifact(run_id, win_path, "windows")
+    return win_path
 
 
 def _log_report_data(
@@ -476,12 +494,13 @@ def _log_report_data(
     model: Any,
     windows: pd.DataFrame,
     velocities: dict[str, list[np.ndarray]],
-) -> None:
+) -> list[Path]:
     """Writes and logs what compare draws from this model beyond the metrics (report_data.py), and the
-    window-error figure when figures are logged and there is a window."""
+    window-error figure when figures are logged and there is a window; returns the report data files."""
     settings = ctx.report_data
-    for p in write_report_data(settings, ctx.layout, stem, model, td.terrain, td.tests, velocities,
-                               ctx.horizons[0]):  # fmt: skip
+    written = write_report_data(settings, ctx.layout, stem, model, td.terrain, td.tests, velocities,
+                                ctx.horizons[0])  # fmt: skip
+    for p in written:
         ctx.tracker.artifact(run_id, p, "report_data")
     if ctx.log_figures and len(windows):
         from skidbench.benchmark.report.figures import (
@@ -491,6 +510,7 @@ def _log_report_data(
         fig_path = stem.with_name(stem.name + ".errors.png")
         window_error_figure(windows, f"{model_name} on {td.terrain} (inputs={td.inputs.protocol})", fig_path)
         ctx.tracker.artifact(run_id, fig_path, "figures")
+    return list(written)
 
 
 def _finish_child(tracker, run_id: str, metrics: dict[str, float]) -> None:
@@ -558,13 +578,16 @@ def _split_inputs(layout: Layout, terrain, files, tests) -> list[trk.SplitData]:
     return out
 
 
-def save_views(tracker, parent_id: str, splits, horizons, protocol: str) -> list[str]:
-    """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs with the
-    columns of :func:`mlflow_ui.board_columns`, best LD translational first. Returns their keys."""
+def save_views(
+    tracker, parent_id: str, splits, horizons, protocol: str, children: Sequence[ChildResult] = ()
+) -> list[str]:
+    """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs and the
+    runs of its ``children`` it took from earlier evaluates, with the columns of
+    :func:`mlflow_ui.board_columns`, best LD translational first. Returns their keys."""
     cols, _ = mu.board_columns(splits, horizons[0])
     name = tracker.client.get_run(parent_id).info.run_name
     return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol,
-                                  horizons[0])  # fmt: skip
+                                  horizons[0], [c.run_id for c in children if c.reused])  # fmt: skip
 
 
 def _brief(metrics: dict[str, float]) -> str:

@@ -21,7 +21,7 @@ from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.rollout import StateSettings
 from skidbench.benchmark.tracking import store as trk
-from skidbench.models.fitting.fit import FitSettings
+from skidbench.models.fitting.fit import FitSettings, ModelConfigs
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.protocol import ProtocolError, check_protocol
 
@@ -88,6 +88,7 @@ class EvaluateSettings:
     store: StoreSettings
     conf: dict[str, Any]  # the config as plain data (resolved): the parent run's params
     state: StateSettings = StateSettings()  # noqa: RUF009 (frozen) the ``state`` protocol's windows (``state.*``)
+    force: bool = False  # run every model again, even one whose earlier run is unchanged (evaluate/reuse.py)
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> EvaluateSettings:
@@ -105,12 +106,19 @@ class EvaluateSettings:
             protocol, str(cfg.get("inputs", "commanded")), bool(cfg.get("log_figures", True)),
             int(cfg.get("seeds") or 1),
             fit, transfer, ReportDataSettings.from_cfg(cfg), StoreSettings.from_cfg(cfg, layout),
-            _container_from_cfg(cfg), StateSettings.from_cfg(cfg),
+            _container_from_cfg(cfg), StateSettings.from_cfg(cfg), bool(cfg.get("force", False)),
         )  # fmt: skip
 
 
+def models_from_cfg(cfg: Any) -> list[str]:
+    """The models an evaluate evaluates (models/fitting/fit.py ``ModelConfigs``): ``models``, then each of
+    ``extra_models`` not among them (``extra_models=[myplugin]``: the default list and a plugin, without
+    retyping the list)."""
+    return list(ModelConfigs.from_cfg(cfg).models or ())
+
+
 def _lists_from_cfg(cfg: Any) -> tuple[list[str], list[str] | None, list[str], list[float], HorizonConfig]:
-    models = [str(m) for m in (cfg.models or [])]
+    models = models_from_cfg(cfg)
     if not models:
         raise EvaluationError("no models to evaluate; set models=[ideal,friction,...]")
     terrains = [str(t) for t in cfg.terrains] if cfg.get("terrains") else None

@@ -281,6 +281,8 @@ def format_console(result: Any) -> str:
     """The console summary of a compare (a :class:`compare.CompareResult`)."""
     lines = [f"Leaderboard, inputs={result.inputs} (RMSRE %, mean over terrains; estimate [95 % interval]):",
              result.leaderboard_md, ""]  # fmt: skip
+    for protocol, md in result.other_boards.items():  # each protocol's own board, never mixed
+        lines += [f"Leaderboard, inputs={protocol} (its own runs, ranked on their own):", md, ""]
     if result.claim:
         lines += [f"The paper's claim (friction best on LD, comparable on CV): {result.claim}", ""]
     if result.decomposition_md:

@@ -7,7 +7,9 @@ models stays PENDING, even when the process dies or the tracking server goes awa
   gone: on this machine (same host name and boot id) as soon as its pid no longer exists (every stage
   does this when it opens the store); from any machine (``skidbench runs --reap``) when its last sign of
   life (heartbeat, else its start time) is older than a bound. A live process of this machine is never
-  judged by its age. A reaped run's PENDING logged models are marked FAILED.
+  judged by its age. A reaped run's PENDING logged models are marked FAILED. Its reason says why the process
+  left it open when the process could say so but not tell the server (:func:`note_left_open`: the server
+  had stopped answering), else that it was killed or crashed.
 - **Interrupts and exits** (:func:`kill_open`, :func:`end_at_exit`): Ctrl-C in a tracker's run ends KILLED
   every run the tracker has open, a child interrupted while it was being started too, before the
   process exits; a run still open when the process exits (any other way Python exits) ends KILLED then.
@@ -23,6 +25,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import functools
+import json
 import logging
 import signal
 import threading
@@ -30,12 +33,14 @@ import time
 import weakref
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from skidbench.benchmark.tracking.tags import (
     TAG_BOOT,
     TAG_HEARTBEAT,
     TAG_HOST,
+    TAG_OUT_ROOT,
     TAG_PARENT,
     TAG_PID,
     TAG_REASON,
@@ -47,7 +52,7 @@ from skidbench.benchmark.tracking.tags import (
     utc_now,
 )
 from skidbench.pipeline.core.errors import one_line
-from skidbench.pipeline.core.io import process_alive
+from skidbench.pipeline.core.io import process_alive, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +61,37 @@ HEARTBEAT_S = 30.0
 #: ``skidbench runs --reap``: a run of another machine whose last heartbeat is older than this is gone
 #: (20 heartbeats missed; `runs.stale_after_s`)
 STALE_AFTER_S = 600.0
+
+
+#: ``<out_root>/.mlflow-left-open/<run id>.json``: why a process left a run open (the server did not answer)
+LEFT_OPEN = ".mlflow-left-open"
+
+
+def note_left_open(out_root: str | Path | None, run_ids: Sequence[str], reason: str) -> None:
+    """Record, under the output root the runs' files go to, why this process leaves ``run_ids`` open (the
+    server does not answer): the reaping of those runs gives this reason. Best effort: a disk that
+    refuses leaves the reaping's own reason."""
+    if not out_root:
+        return
+    for run_id in run_ids:
+        try:
+            write_json_atomic(
+                Path(out_root, LEFT_OPEN, f"{run_id}.json"), {"reason": reason, "time": utc_now()}
+            )
+        except OSError as exc:
+            log.debug("could not note why run %s is left open: %s", run_id, exc)
+
+
+def left_open_reason(run: Any) -> str | None:
+    """Why the process of ``run`` left it open, as it noted (:func:`note_left_open`), or None."""
+    root = run.data.tags.get(TAG_OUT_ROOT)
+    try:
+        doc = json.loads(Path(str(root), LEFT_OPEN, f"{run.info.run_id}.json").read_text()) if root else None
+    except (OSError, ValueError):
+        return None
+    return (
+        f"{doc.get('reason')} (at {doc.get('time')})" if isinstance(doc, dict) and doc.get("reason") else None
+    )
 
 
 class Heartbeat:
@@ -160,16 +196,22 @@ def _kill_left_open() -> None:
 
 
 def end_runs(
-    client: Any, run_ids: Sequence[str], status: str, reason: str, experiment_ids: Sequence[str]
-) -> None:
+    client: Any, run_ids: Sequence[str], status: str, reason: str, experiment_ids: Sequence[str],
+    out_root: str | Path | None = None,
+) -> None:  # fmt: skip
     """End each run ``status`` (FAILED | KILLED) with ``reason`` (``skidbench.failure_reason``) and mark its
-    PENDING logged models FAILED. A store error propagates (the caller knows whether to go on)."""
+    PENDING logged models FAILED. A store error propagates (the caller knows whether to go on), after noting
+    ``reason`` for the runs not ended under ``out_root`` (:func:`note_left_open`): their reaping says it."""
     from mlflow.entities import RunTag
 
-    for run_id in run_ids:
-        client.log_batch(run_id, tags=[RunTag(TAG_STATUS, status), RunTag(TAG_REASON, one_line(reason))])
-        fail_pending_models(client, experiment_ids, run_id, reason)
-        client.set_terminated(run_id, status=status)
+    for k, run_id in enumerate(run_ids):
+        try:
+            client.log_batch(run_id, tags=[RunTag(TAG_STATUS, status), RunTag(TAG_REASON, one_line(reason))])
+            fail_pending_models(client, experiment_ids, run_id, reason)
+            client.set_terminated(run_id, status=status)
+        except Exception:
+            note_left_open(out_root, run_ids[k:], reason)
+            raise
 
 
 def fail_pending_models(client: Any, experiment_ids: Sequence[str], run_id: str, reason: str) -> list[str]:
@@ -209,9 +251,11 @@ def why_gone(
     me = me or process_tags()
     tags = run.data.tags
     host, pid = tags.get(TAG_HOST, "?"), tags.get(TAG_PID, "")
+    noted = left_open_reason(run)
     if me[TAG_BOOT] and host == me[TAG_HOST] and tags.get(TAG_BOOT) == me[TAG_BOOT]:
         if pid.isdigit() and not process_alive(int(pid)):
-            return f"process {pid} on {host} ended without closing the run (killed or crashed)"
+            why = f"with the run open: {noted}" if noted else "without closing the run (killed or crashed)"
+            return f"process {pid} on {host} ended {why}"
         return None
     if stale_after_s is None:
         return None
@@ -223,7 +267,7 @@ def why_gone(
     what = "heartbeat" if beat is not None else "heartbeat (none; its start)"
     return (
         f"no sign of life for {age:.0f} s (last {what}; > {stale_after_s:g} s): process {pid or '?'} on "
-        f"{host} is gone or cut off from the server"
+        f"{host} is gone or cut off from the server" + (f"; it noted: {noted}" if noted else "")
     )
 
 
@@ -255,6 +299,10 @@ def reap(client: Any, experiment_ids: Sequence[str], stale_after_s: float | None
         if reason is None:
             continue
         end_runs(client, [run.info.run_id], "KILLED", reason, [run.info.experiment_id])
+        with contextlib.suppress(OSError, TypeError):  # its note (if any) is in the run's reason now
+            Path(run.data.tags.get(TAG_OUT_ROOT), LEFT_OPEN, f"{run.info.run_id}.json").unlink(
+                missing_ok=True
+            )
         reaped.append(Reaped(run.info.run_id, run.info.experiment_id, run.info.run_name or "",
                              run.data.tags.get(TAG_USER, "?"), reason))  # fmt: skip
     if reaped:

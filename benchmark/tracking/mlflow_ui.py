@@ -47,6 +47,12 @@ def run_url(uri: str, experiment_id: str, run_id: str, ui: str | None = None) ->
     return f"{ui_url(uri, ui)}/#/experiments/{experiment_id}/runs/{run_id}?{q}"
 
 
+def experiment_url(uri: str, experiment_id: str, ui: str | None = None) -> str:
+    """An experiment's runs page in the UI's model-training mode (the bare experiment link opens its GenAI
+    overview)."""
+    return f"{ui_url(uri, ui)}/#/experiments/{experiment_id}/runs?{urllib.parse.urlencode(ML_MODE)}"
+
+
 def view_url(uri: str, experiment_id: str, key: str, ui: str | None = None, charts: bool = False) -> str:
     """The runs page of the saved view ``key``: its table, or (``charts``) its charts."""
     q = {"viewStateShareKey": key, **ML_MODE, **({"compareRunsMode": "CHART"} if charts else {})}
@@ -136,11 +142,17 @@ def chart_title(horizon_s: float) -> str:
 
 def save_evaluate_views(
     client: Any, experiment_id: str, parent_id: str, title: str, columns: Sequence[str], protocol: str,
-    horizon_s: float,
+    horizon_s: float, taken: Sequence[str] = (),
 ) -> list[str]:  # fmt: skip
     """The saved views of an evaluate: ``evaluate-<id[:8]>`` and this user's ``latest-<protocol>-<user>``,
-    its child runs with the RMSRE ``columns`` (the first one sorts). Returns their keys."""
-    state = view_state(children_of(parent_id), columns, columns[0], chart_title(horizon_s))
+    its child runs and the runs it ``taken`` unchanged from earlier evaluates, with the RMSRE ``columns``
+    (the first one sorts). Returns their keys."""
+    search = children_of(parent_id)
+    if taken:  # its own runs and the ones it took: one list of run ids (a search has no OR)
+        own = client.search_runs([experiment_id], search, max_results=10000)
+        ids = ", ".join(f"'{r}'" for r in [*(r.info.run_id for r in own), *taken])
+        search = f"attributes.run_id IN ({ids})"
+    state = view_state(search, columns, columns[0], chart_title(horizon_s))
     keys = [f"evaluate-{parent_id[:8]}", latest_key(protocol)]
     save_view(client, experiment_id, keys[0], title, state)
     save_view(client, experiment_id, keys[1], f"latest {protocol} ({current_user()}): {title}", state)
@@ -165,8 +177,7 @@ def print_ui_links(uri: str, ui: str = DEFAULT_UI_URL) -> None:
         for key in mine:
             print(f"{exp.name} ({key}): {view_url(uri, exp.experiment_id, key, ui)}")
         if not mine:
-            q = urllib.parse.urlencode(ML_MODE)
-            print(f"{exp.name}: {ui_url(uri, ui)}/#/experiments/{exp.experiment_id}/runs?{q}")
+            print(f"{exp.name}: {experiment_url(uri, exp.experiment_id, ui)}")
 
 
 # -- the parent run's page: the leaderboard -------------------------------------------------------------

@@ -310,10 +310,10 @@ class Tracker:
         why = f"the MLflow tracking server stopped answering ({reason})"
         try:
             with _env(MLFLOW_HTTP_REQUEST_MAX_RETRIES="0", MLFLOW_HTTP_REQUEST_TIMEOUT="5"):
-                bk.end_runs(self._raw, runs, "FAILED", why, [self._experiment_id or "0"])
+                bk.end_runs(self._raw, runs, "FAILED", why, [self._experiment_id or "0"], self.out_root)
             self._open.clear()
             left = "the runs this command opened were ended FAILED"
-        except Exception:  # noqa: BLE001 - still down: the runs are left to the reaping
+        except Exception:  # noqa: BLE001 - still down: the runs are left to the reaping, with this reason
             left = (
                 f"the {len(runs)} run(s) this command opened stay RUNNING until the next skidbench command "
                 "that reaches the server from this machine, or `skidbench runs --reap` from any machine, "

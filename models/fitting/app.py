@@ -58,6 +58,8 @@ def main(cfg: DictConfig) -> None:
     )
     if res.reused:
         print(f"fit: {name}/{terrain} up to date, skipped ({res.path})", flush=True)
+    elif res.refit_reason:
+        print(f"fit: {name}/{terrain}: {res.refit_reason} since its last fit; refitted", flush=True)
 
 
 def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
@@ -106,11 +108,12 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         metrics = {"fit_time_s": res.fit_time_s, "n_train": res.n_train}
         if res.fit_loss is not None:
             metrics["fit_loss"] = res.fit_loss
-        tracker.log(run_id, params=params, metrics=metrics)
+        tracker.log(run_id, params=params)
         tracker.artifact(run_id, res.path, "fit")
         if arrays_file(res.path).is_file():  # a learned model's fitted arrays
             tracker.artifact(run_id, arrays_file(res.path), "fit")
         _log_model(cfg, tracker, run_id, name, terrain, res, layout)
+        tracker.log(run_id, metrics=metrics)  # after the model: Model.log re-logs the metrics before it
     return run_id
 
 

@@ -47,7 +47,7 @@ from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.core.protocol import INPUT_COLUMNS, ProtocolError, fit_protocol_from_cfg, fit_table
 from skidbench.pipeline.core.robot import Robot, robot_from_hydra
 from skidbench.pipeline.core.schema import concat_sequences, read_split
-from skidbench.pipeline.runner.environment import CodeIdentity, code_identity
+from skidbench.pipeline.runner.environment import CodeIdentity, code_change, code_identity
 
 log = logging.getLogger(__name__)
 
@@ -62,16 +62,16 @@ class FitResult:
     fit_time_s: float
     n_train: int  # training rows used (valid)
     reused: bool = False
-    code: CodeIdentity | None = (
-        None  # the model's code (pipeline/runner/environment.py), in the fit's fingerprint
-    )
+    code: CodeIdentity | None = None  # the model's code (pipeline/runner/environment.py), in its fingerprint
+    refit_reason: str | None = None  # why an earlier fit was not reused: its code changed (digest a -> b)
 
 
 @dataclass(frozen=True)
 class ModelConfigs:
     """What a run's config says of its models: ``node``, its ``model`` entry (resolved; None without one),
     which is the model config group of a one-model stage (``fit``), or, on a stage that evaluates a list
-    of models (``models``, not None), the ``+model.params/options.*`` overrides of its command line."""
+    of models (``models``, not None: the config's ``models`` then each of ``extra_models`` not among them),
+    the ``+model.params/options.*`` overrides of its command line."""
 
     node: Any = None
     models: tuple[str, ...] | None = None
@@ -84,7 +84,8 @@ class ModelConfigs:
         models = cfg.get("models") if hasattr(cfg, "get") else None
         if OmegaConf.is_config(node):
             node = OmegaConf.to_container(node, resolve=True)
-        return cls(node, None if models is None else tuple(str(m) for m in models))
+        extra = [*(models or []), *(cfg.get("extra_models") or [])] if models is not None else []
+        return cls(node, None if models is None else tuple(dict.fromkeys(str(m) for m in extra)))
 
     @property
     def overrides_only(self) -> bool:
@@ -411,13 +412,16 @@ def fit_model(
         saved = _saved_fit(plan)
         if saved is not None:
             return saved
+    if why := code_change(plan.stamp.changed(plan.key)):
+        log.info("%s on %s: %s; refitting", model_name, terrain, why)
     model, n_train, fit_time = _fit_on_train(settings.models, plan, model_name, terrain)
     arrays = _model_arrays(model, model_name)
     data = _fit_doc(model, plan, model_name, terrain, split, settings.layout.dataset, n_train, fit_time)
     apath = _write_fit(plan.path, data, arrays, model_name)
     for line in fit_findings(data):  # a fit at a bound is a finding (compare notes it too)
         log.warning("%s on %s: %s", model_name, terrain, line)
-    result = FitResult(model, plan.path, data.get("fit_loss"), fit_time, n_train, code=plan.code)
+    result = FitResult(model, plan.path, data.get("fit_loss"), fit_time, n_train, code=plan.code,
+                       refit_reason=why)  # fmt: skip
     for hook in hooks:
         hook(result, model_name, terrain)
     # recorded last: a fit whose hooks (the fit stage's MLflow run) did not finish is not up to date

@@ -299,6 +299,7 @@ SCHEMA: dict[str, Spec] = {
     "intervals.seed": integer(0),
     # -- evaluate.yaml ----------------------------------------------------------------------------------
     "models": listof(STR, 1),
+    "extra_models": listof(STR),
     "terrains": listof(STR, 1, null=True),
     "splits": listof(choice(*SPLITS), 1),
     "horizons": listof(number(gt=0), 1, what="s"),

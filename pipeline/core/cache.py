@@ -121,7 +121,24 @@ class Stamp:
         self._made_of[key] = {"inputs": ins, "config": config}
         return key
 
-    def _outputs_reason(self) -> str | None:
+    def made_of(self, key: str) -> dict[str, Any]:
+        """What ``key`` (a key of :meth:`key`) was made of: ``{"inputs": {path: fingerprint}, "config"}``."""
+        return dict(self._made_of.get(key) or {})
+
+    def changed(self, key: str) -> dict[str, tuple[Any, Any]]:
+        """The entries of the config ``key`` was made of (a key of :meth:`key`) that differ from the config
+        this stamp recorded: ``{entry: (recorded, now)}``; empty when the stamp records no config (none yet,
+        or of an older schema) or none differs. What a stage says when it re-runs a unit."""
+        then, now = self.data.get("config"), (self._made_of.get(key) or {}).get("config")
+        if not isinstance(then, dict) or not isinstance(now, dict):
+            return {}
+        return {
+            k: (then.get(k), now.get(k))
+            for k in sorted(set(then) | set(now))
+            if fingerprint_obj(then.get(k)) != fingerprint_obj(now.get(k))
+        }
+
+    def outputs_reason(self) -> str | None:
         """Why the recorded outputs cannot be used (None: every one has its recorded fingerprint)."""
         outputs = self.data.get("outputs") or {}
         if not outputs:
@@ -141,7 +158,7 @@ class Stamp:
         schema = self.data.get("schema")
         if schema not in (STAMP_SCHEMA, *UPGRADABLE_SCHEMAS) or self.data.get("key") != key:
             return False
-        why = self._outputs_reason()
+        why = self.outputs_reason()
         if why is not None:
             if "missing" in why or "no outputs" in why:
                 log.info("%s: %s; rebuilding", self.stage, why)
@@ -167,7 +184,7 @@ class Stamp:
             return f"no {self.stage} stamp {self.path}"
         if self.data.get("schema") != STAMP_SCHEMA:
             return f"its stamp has schema {self.data.get('schema')!r}, not {STAMP_SCHEMA} (an older version)"
-        why = self._outputs_reason()
+        why = self.outputs_reason()
         if why is not None:
             return why
         then = self.data.get("inputs")

@@ -216,6 +216,18 @@ def code_identity(cls: type, distribution: str | None = None, version: str | Non
     )
 
 
+def code_change(changed: dict[str, tuple[Any, Any]]) -> str | None:
+    """``its code changed (digest <old> -> <new>)`` when the ``code`` entry of a fit's fingerprint changed
+    (``Stamp.changed`` of pipeline/core/cache.py; :meth:`CodeIdentity.key`): an edited plugin, a release
+    whose model code changed without a version bump; else None."""
+    if "code" not in changed:
+        return None
+    then, now = ((c or {}) if isinstance(c, dict) else {} for c in changed["code"])
+    if then.get("version") != now.get("version"):
+        return f"its version changed ({then.get('version')} -> {now.get('version')})"
+    return f"its code changed (digest {str(then.get('digest'))[:12]} -> {str(now.get('digest'))[:12]})"
+
+
 def requirements_of(identity: CodeIdentity | None = None) -> list[str]:
     """pip requirements that load a logged model: skidbench and its requirements, MLflow, and the model's
     distribution and its requirements, each at its installed version (``name`` alone when unknown)."""
