@@ -55,8 +55,9 @@ def write_splits(
     counts=None,
     duration_s: float = 30.0,
 ) -> None:
-    """<ds_root>/splits/<terrain>/<split>/<seq>.parquet with a few synthetic sequences, and the manifest
-    that lists them (<ds_root>/raw/manifest.json: stages take their sequences from it)."""
+    """<ds_root>/splits/<terrain>/<split>/<seq>.parquet with a few synthetic sequences, the simulator's
+    truth of each (``<ds_root>/extracted/<seq>/true_pose.parquet``: the floor's velocities) and the
+    manifest that lists them (<ds_root>/raw/manifest.json: stages take their sequences from it)."""
     from skidbench.pipeline.core.manifest import Manifest, Sequence
 
     counts = counts or {"train": 2, "cv": 1, "ld": 1}
@@ -77,6 +78,11 @@ def write_splits(
                     "rate_hz": 30.0,
                 }
                 write_split(df, ds_root / "splits" / terrain / split / f"{name}.parquet", meta)
+                truth = ds_root / "extracted" / name  # the simulator's truth, as extract writes it
+                truth.mkdir(parents=True, exist_ok=True)
+                df[["stamp_ns", "vx", "vy", "wz"]].rename(columns={"stamp_ns": "bag_time_ns"}).to_parquet(
+                    truth / "true_pose.parquet"
+                )
                 seqs.append(Sequence(name, terrain, split, f"bags/{name}.bag"))
     Manifest(seqs, base=ds_root / "raw").write(ds_root / "raw" / "manifest.json")
 

@@ -15,8 +15,8 @@ import pytest
 from skidbench.benchmark.board.boards import Board
 from skidbench.benchmark.release import publish
 from skidbench.benchmark.report import markdown
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.predictions import summarise
@@ -63,11 +63,11 @@ def test_cells_equal_what_evaluate_logs_and_the_floor_is_a_reference_row():
     assert (cell["lo"], cell["hi"]) == pytest.approx(
         (logged["ld_6s_trans_rmsre_pct_ci_lo"], logged["ld_6s_trans_rmsre_pct_ci_hi"]), abs=1e-4
     )
-    assert cell["n_blocks"] == logged["ld_6s_trans_blocks"] == 10  # 120 s in blocks of 12 s
-    assert ov_blocks(s, "friction") == 40  # two terrains, CV and LD
+    assert cell["n_blocks"] == logged["ld_6s_trans_blocks"] > 10  # errors with a 0.2 s memory: short blocks
+    assert ov_blocks(s, "friction") > 40  # two terrains, CV and LD
     ov = s.overall.set_index("model")
     assert ov.loc[FLOOR, "rank"] == "" and ov.loc[FLOOR, "standing"].startswith("reference")
-    assert ov.loc["friction", "standing"] == iv.BEST and ov.loc["edd", "rank"] == "2"
+    assert ov.loc["friction", "standing"] == rk.BEST and ov.loc["edd", "rank"] == "2"
     # the aggregate is the mean of the four RMSREs over the terrains
     four = [s.cell("friction", t, sp, m)["estimate"] for t in ("grass", "tile") for sp in ("cv", "ld")
             for m in ("translational", "rotational")]  # fmt: skip
@@ -87,7 +87,7 @@ def test_a_pathological_metric_keeps_a_model_from_leading():
     ov = s.overall.set_index("model")
     assert s.cell("friction", "grass", "ld", "translational")["estimate"] < 5
     assert ov.loc["friction", "rank"] == "3" and ov.loc["friction", "standing"] == ""
-    assert ov.loc["edd", "standing"] == ov.loc["roc", "standing"] == iv.TIED  # 0.3 % apart: not resolved
+    assert ov.loc["edd", "standing"] == ov.loc["roc", "standing"] == rk.TIED  # 0.3 % apart: not resolved
     assert s.verdicts["overall"].startswith("tied for best: edd, roc")
     # the paired differences behind it: a - b of the aggregates, resolved only where the interval excludes 0
     d = s.differences.set_index(["a", "b"])
@@ -100,7 +100,7 @@ def test_a_pathological_metric_keeps_a_model_from_leading():
     assert "minus" in report and "| friction | " in report and "| yes |" in report and "| no |" in report
     # ranked by one metric instead (rank_by=ld_trans), friction leads
     assert (
-        st.build(w, H, rank_by="ld_trans").overall.set_index("model").loc["friction", "standing"] == iv.BEST
+        st.build(w, H, rank_by="ld_trans").overall.set_index("model").loc["friction", "standing"] == rk.BEST
     )
 
 
@@ -123,8 +123,10 @@ def test_a_board_of_one_window_splits_ranks_nothing_and_says_why():
     s = st.build(w, H)
     ov = s.overall.set_index("model")
     assert (ov["rank"] == "").all()
-    assert ov.loc["friction", "standing"].startswith("not ranked: 2 independent blocks (ranking needs 8)")
-    assert s.verdicts["overall"] == "no entry ranked: 2 independent blocks (ranking needs 8)"  # not the floor
+    assert ov.loc["friction", "standing"].startswith("not ranked: 1 independent block in cv@6s:grass_cv_00")
+    assert s.verdicts["overall"] == (  # one window per split: each stratum needs 2 blocks (not the floor)
+        "no entry ranked: 1 independent block in cv@6s:grass_cv_00 (each stratum needs 2)"
+    )
     assert s.claim["overall"][0] == st.UNRESOLVED
 
 

@@ -260,7 +260,7 @@ def test_predict_and_score_the_ideal_model_without_slip_has_zero_error_on_every_
 
 def test_every_metric_is_logged_with_its_interval_and_blocks_and_the_floor_on_the_parent(bench):
     """docs/intervals.md: each child logs <metric>_ci_lo/_ci_hi and the blocks behind it; the parent logs the
-    floor of each terrain (the ground truth's own velocities through the same windows) and its
+    floor of each terrain (a perfect model: the simulator's exact velocities through the same windows) and its
     windows go where compare reads them; evaluate's summary prints the intervals and the floor."""
     from skidbench.benchmark.evaluate.console import format_result
 

@@ -10,6 +10,7 @@ from skidbench.benchmark.scoring.horizon import (
     HorizonConfig,
     naive_window_errors,
     rmsre,
+    smoothed_yaw,
     window_errors,
     window_trajectory,
 )
@@ -104,3 +105,19 @@ def test_constant_acceleration_is_integrated_exactly_by_the_trapezoidal_step():
     gt[:, 0] = 0.25 * t**2
     w = window_errors(t, gt, vel, 6.0)
     assert len(w) == 301 - 180 and np.max(w["trans_err"]) < 1e-12
+
+
+def test_the_rotation_a_window_counts_is_the_smoothed_yaws_not_the_jitter():
+    # a straight drive at 30 Hz with 0.1 deg of independent heading jitter per frame: the raw sum of
+    # |d yaw| over a 6 s window is over the 10 deg inclusion threshold (every straight window would be
+    # scored on a denominator of jitter); through the split's filter it stays well under it
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 20.0, 1.0 / 30.0)
+    yaw = np.deg2rad(0.1) * rng.standard_normal(len(t))
+    pose = np.column_stack([t, np.zeros_like(t), yaw])
+    vel = np.column_stack([np.ones_like(t), np.zeros_like(t), np.zeros_like(t)])
+    w = window_errors(t, pose, vel, 6.0)
+    raw = np.rad2deg(np.sum(np.abs(np.diff(yaw[:181]))))
+    assert raw > 15.0 and np.rad2deg(w["rotation"].max()) < 7.0, (raw, np.rad2deg(w["rotation"].max()))
+    assert w["rel_rot"].isna().all()  # no straight window in the rotational metric
+    assert np.allclose(smoothed_yaw(0.3 * t + 0.01 * t**3), 0.3 * t + 0.01 * t**3)  # order <= 3: unchanged

@@ -18,7 +18,6 @@ from _bench_data import JACKAL, compose, write_splits
 from skidbench.benchmark.evaluate import evaluation as ev
 from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
 from skidbench.benchmark.scoring import aggressiveness as ag
-from skidbench.benchmark.scoring.floor import floor_velocities
 from skidbench.benchmark.scoring.horizon import HorizonConfig, rmsre
 from skidbench.benchmark.scoring.rollout import StateSettings, model_rollout, state_windows
 from skidbench.models import rollout as st
@@ -157,7 +156,7 @@ def test_first_order_fit_recovers_its_time_constants():
 
 def test_true_dynamics_from_the_true_state_score_at_the_floor():
     table = first_order_table(seed=3, steps=False)
-    fv = floor_velocities(table)
+    fv = table[["vx", "vy", "wz"]].to_numpy(float)  # the table's exact velocities (generated)
     base = IdealDifferentialDrive(JACKAL).fit(table)
     true = FirstOrderRelaxation(
         JACKAL, {"base_model": base.to_json(), "tau": {"vx": 0.3, "vy": 0.05, "wz": 0.6}}

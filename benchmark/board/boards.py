@@ -323,6 +323,10 @@ def read_windows(
             notes.append(f"{model}/{terrain}: {path.name} is of run {made_by[:8]}, not of the board's run "
                          f"{board_run[:8]}: its cells keep their logged intervals")  # fmt: skip
             continue
+        if model == FLOOR and not len(w):  # a floor that cannot be measured says why (evaluate's note)
+            unknown = read_parquet_metadata(path).get("floor_unknown")
+            if unknown:
+                notes.append(f"{terrain}: {unknown}")
         if len(w) and "horizon_s" in w:
             w = w[np.isclose(w["horizon_s"].to_numpy(float), horizon_s)]
         if len(w):

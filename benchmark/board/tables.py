@@ -16,8 +16,8 @@ import pandas as pd
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board.installed import NOT_INSTALLED
 from skidbench.benchmark.errors import EvaluationError
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.pipeline.core.protocol import PROTOCOLS
@@ -176,7 +176,7 @@ def standings_table(board: pd.DataFrame, horizon_s: float, standings: st.Standin
 def _no_standing(columns: pd.Index, why: str) -> pd.Series:
     """A standings row for a model with nothing to score: no value, not ranked, why."""
     r = pd.Series(np.nan, index=columns, dtype=object)
-    r["rank"], r["standing"], r["n_blocks"] = "", f"{iv.NOT_RANKED}: {why}", 0
+    r["rank"], r["standing"], r["n_blocks"] = "", f"{rk.NOT_RANKED}: {why}", 0
     return r
 
 

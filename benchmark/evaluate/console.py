@@ -48,8 +48,9 @@ def format_result(result: Any, findings: Sequence[str] = ()) -> str:
         f"inputs={result.inputs}: every model driven by {PROTOCOL_TEXT.get(result.inputs, result.inputs)}",
         *result.skipped,
         show.to_string(index=False),
-        "(value [95 % interval], ±s: the spread over seeds of a model with random parts; the floor is the "
-        "ground truth's own velocities, never ranked; `skidbench compare` ranks with paired intervals)",
+        "(value [95 % interval], ±s: the spread over seeds of a model with random parts; the floor is a "
+        "perfect model against this ground truth, never ranked; `skidbench compare` ranks with paired "
+        "intervals)",
         *(f"note: {f}" for f in findings),
     ]
     for c in result.failed:

@@ -227,12 +227,12 @@ def _checked_default_fit_fn(models: list[str]) -> Callable[[Any, str, str], Any]
 
 def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -> dict[str, float]:
     """What the parent run holds of a terrain beside its models' runs: the wheel response's steps (report
-    data) and the floor (the ground truth's own velocities); returns the floor's metrics."""
+    data) and the floor (a perfect model: the simulator's exact velocities); returns the floor's metrics."""
     steps = write_wheel_response_steps(ctx.fit.calibrations, ctx.layout, td.terrain)
     ctx.tracker.artifact(ctx.parent_id, steps, "report_data")
     stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
     return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
-                     ctx.intervals, protocol, td.inputs)  # fmt: skip
+                     ctx.intervals, protocol, td.inputs, ctx.layout.extracted)  # fmt: skip
 
 
 def _log_board(

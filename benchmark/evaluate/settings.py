@@ -138,8 +138,8 @@ def _checked_protocol(inputs: str | None, models: list[str]) -> str:
     """The run's input protocol (``inputs``; ``commanded`` when unset); EvaluationError (one line) for a bad
     one, or the floor named a model."""
     if FLOOR in models:
-        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (the ground truth's own "
-                              "velocities, on every board), not a model name")  # fmt: skip
+        raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (a perfect model against "
+                              "the ground truth, on every board), not a model name")  # fmt: skip
     try:
         return check_protocol(inputs if inputs is not None else "commanded")
     except ProtocolError as exc:

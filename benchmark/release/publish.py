@@ -288,7 +288,7 @@ def leaderboard_html(board: brd.Board, standings: st.Standings | None) -> str:
     return (
         "<h3>Leaderboard (mean over terrains; estimate [95 % interval])</h3>"
         f"<p class='note'>{_inline(ranked[2:])}. "
-        "The floor is not a model: the ground truth's own velocities through the same windows.</p>"
+        "The floor is not a model: the simulator's exact velocities against this ground truth.</p>"
         + html_table(summary)
         + f"<p><strong>{esc(standings.verdicts.get('overall', ''))}</strong></p>"
         + (f"<p>The paper's claim (friction-based best on LD, comparable on CV):</p><ul>{claim}</ul>"

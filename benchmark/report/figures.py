@@ -66,8 +66,8 @@ def metric_bars(
 ) -> Path:
     """Bar chart of a metric (Fig. 3: translational RMSRE, Fig. 4: rotational; ``metric.figure``) per model
     (bars) and terrain (groups), one panel per test split, each bar with its 95 % interval as an error bar
-    when the board has it (:meth:`Metric.interval_keys`), and the floor (``floor[(terrain, split)]``: the
-    ground truth's own velocities, docs/intervals.md) as a black line across each terrain's group.
+    when the board has it (:meth:`Metric.interval_keys`), and the floor (``floor[(terrain, split)]``: a
+    perfect model against the ground truth, docs/intervals.md) as a black line across each terrain's group.
 
     ``board``: one row per (model, terrain) with columns ``model``, ``terrain``, ``status`` and the
     metric's columns named by :meth:`Metric.metric_key`. FAILED runs are marked, not dropped."""
@@ -144,7 +144,7 @@ def _error_bars(ax, xs: np.ndarray, ys: np.ndarray, lo: np.ndarray, hi: np.ndarr
 
 
 def _floor_lines(ax, terrains: Sequence[str], split: str, floor: Mapping[tuple[str, str], float]) -> None:
-    """The floor (the ground truth's own velocities) as a black line across each terrain's group."""
+    """The floor (a perfect model against the ground truth) as a black line across each terrain's group."""
     for j, ter in enumerate(terrains):
         fv = floor.get((ter, split))
         if fv is not None and np.isfinite(fv):

@@ -158,8 +158,9 @@ def _board_lines(c: ReportContent) -> list[str]:
         markdown_table(c.summary),
         "",
         *([f"**{standings.verdicts['overall']}.** Each value: estimate [95 % interval] (block bootstrap, "
-           "docs/intervals.md); the floor is the ground truth's own velocities through the same windows, "
-           "what no model can be expected to beat.", ""] if standings is not None else []),
+           "docs/intervals.md); the floor is a perfect model (the simulator's exact velocities) "
+           "against this ground truth, what no model can be expected to beat.", ""]
+          if standings is not None else []),
         *differences_lines(standings),
         "## Per model and terrain",
         "",

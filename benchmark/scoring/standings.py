@@ -22,6 +22,7 @@ import pandas as pd
 
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
+from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring.floor import FLOOR
 
 SPLITS = ("cv", "ld")
@@ -145,10 +146,11 @@ def build(
         [_rank_rows(sample, models, has_floor, [t], agg_stat, t)[0].assign(terrain=t) for t in terrains],
         ignore_index=True,
     ) if terrains else pd.DataFrame()  # fmt: skip
-    verdicts = {"overall": iv.board_verdict(overall.set_index("model")["standing"])}
+    margin = sample.cfg.margin
+    verdicts = {"overall": rk.board_verdict(overall.set_index("model")["standing"], margin)}
     for t in terrains:
         pt = per_terrain[per_terrain["terrain"] == t]
-        verdicts[t] = iv.board_verdict(pt.set_index("model")["standing"])
+        verdicts[t] = rk.board_verdict(pt.set_index("model")["standing"], margin)
     claim = {"overall": _claim(sample, cell_stats, models, terrains)}
     for t in terrains:
         claim[t] = _claim(sample, cell_stats, models, [t])
@@ -197,7 +199,7 @@ def _rank_rows(
     sample, models, has_floor, terrains, agg_stat, scope: str
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """One row per model (and the floor, last): the ranking statistic over ``terrains`` with its interval,
-    rank and standing by :func:`intervals.rank_board` on the paired differences; and those differences
+    rank and standing by :func:`ranks.rank_board` on the paired differences; and those differences
     (a, b, estimate, lo, hi, ..., resolved)."""
     stats, why = {}, {}
     for model in models + ([FLOOR] if has_floor else []):
@@ -228,27 +230,31 @@ def _rank_rows(
     d = iv.estimate(sample, diffs) if diffs else pd.DataFrame(columns=iv.RESULT_COLUMNS)
     d.index = pd.MultiIndex.from_tuples(pairs) if pairs else pd.MultiIndex.from_tuples([], names=["a", "b"])
     scores = rows.loc[models].assign(rankable=lambda x: x["rankable"].astype(bool))
-    ranks = iv.rank_board(scores, d) if models else pd.DataFrame(columns=["rank", "standing"])
+    ranks = (
+        rk.rank_board(scores, d, sample.cfg.margin) if models else pd.DataFrame(columns=["rank", "standing"])
+    )
     rows["rank"] = ""
     rows["standing"] = ""
     for m in models:
         rows.loc[m, "rank"] = ranks.loc[m, "rank"]
         rows.loc[m, "standing"] = ranks.loc[m, "standing"]
     if has_floor:
-        rows.loc[FLOOR, "standing"] = "reference (the ground truth's own velocities; never ranked)"
+        rows.loc[FLOOR, "standing"] = "reference (a perfect model against this ground truth; never ranked)"
     out = rows.reset_index(names="model").drop(columns=["stat"])
     d = d.drop(columns=["stat"], errors="ignore").reset_index(names=["a", "b"])
-    d["resolved"] = [bool(r and iv.resolved(lo, hi)) for r, lo, hi in zip(d["rankable"], d["lo"], d["hi"],
+    d["resolved"] = [bool(r and rk.resolved(lo, hi)) for r, lo, hi in zip(d["rankable"], d["lo"], d["hi"],
                                                                            strict=True)]  # fmt: skip
     return out, d
 
 
 def _claim(sample, cell_stats, models, terrains) -> tuple[str, list[str]]:
     """The paper's claim ("friction-based best on LD, comparable on CV") on ``terrains`` (their mean), among
-    the paper's models that have every cell there: on each LD metric friction's paired difference from every
-    other model must be resolved below 0; on each CV metric its difference from the others' mean must not be
-    resolved above 0. ``holds`` when both are so, ``does not hold`` when another model is resolved better on
-    LD or friction resolved worse than the others' mean on CV, else ``not resolved by these data``."""
+    the paper's models that have every cell there (docs/intervals.md, "The paper's claim"). ``holds``: on
+    each LD metric friction's paired difference from every other model is resolved below 0, and on each CV
+    metric it is shown equivalent to every other within the margin (two one-sided tests, each at 5 %);
+    ``does not hold``: Holm's correction over the tests against it (another model better on an LD metric,
+    friction outside the margin of another on a CV metric) rejects one at a family-wise 5 %; else ``not
+    resolved by these data``."""
     paper = [m.name for m in mt.PAPER]
     where = "mean over terrains" if len(terrains) > 1 else terrains[0]
 
@@ -262,20 +268,14 @@ def _claim(sample, cell_stats, models, terrains) -> tuple[str, list[str]]:
     others = [m for m in scored if m in PAPER_MODELS and m != CLAIM_MODEL]
     if not others:
         return UNRESOLVED, [f"- {where}: no other model of the paper was scored here"]
-    diffs, names = [], []
-    for m in paper:
-        fr = stat(CLAIM_MODEL, "ld", m)
-        for o in others:
-            diffs.append(iv.difference(f"ld|{m}|{o}", fr, stat(o, "ld", m)))
-            names.append(("ld", m, o))
-        fr = stat(CLAIM_MODEL, "cv", m)
-        mean_others = iv.mean_of(f"cv|{m}|others", [stat(o, "cv", m) for o in others])
-        diffs.append(iv.difference(f"cv|{m}|others", fr, mean_others))
-        names.append(("cv", m, "the others' mean"))
+    names = [(split, m, o) for m in paper for split in ("ld", "cv") for o in others]
+    diffs = [iv.difference(f"{sp}|{m}|{o}", stat(CLAIM_MODEL, sp, m), stat(o, sp, m)) for sp, m, o in names]
     res = iv.estimate(sample, diffs)
-    lines, ld_ok, ld_bad, cv_ok, cv_bad, unrankable = [], True, False, True, False, []
+    margin, alpha = sample.cfg.margin, 1.0 - sample.cfg.level
+    holds, against, lines, unrankable = True, [], [], []
     for (split, m, other), r in zip(names, res.itertuples(index=False), strict=True):
-        if not r.rankable:
+        ok = bool(r.rankable)
+        if not ok:
             unrankable.append(f"{split.upper()} {m} vs {other}: {r.reason}")
         rng = (
             f"{r.estimate:+.2f} [{r.lo:+.2f}, {r.hi:+.2f}]"
@@ -283,25 +283,28 @@ def _claim(sample, cell_stats, models, terrains) -> tuple[str, list[str]]:
             else f"{r.estimate:+.2f} [n/a]"
         )
         if split == "ld":
-            better = r.rankable and r.hi < 0
-            worse = r.rankable and r.lo > 0
-            ld_ok &= bool(better)
-            ld_bad |= bool(worse)
+            good = ok and r.hi < 0
+            against.append(rk.p_greater(r.estimate, r.se, r.df) if ok else 1.0)  # another model better
+            state = "resolved" if ok and rk.resolved(r.lo, r.hi) else "not resolved"
         else:
-            worse = r.rankable and r.lo > 0
-            cv_ok &= bool(r.rankable and not worse)
-            cv_bad |= bool(worse)
-        state = "resolved" if (r.rankable and iv.resolved(r.lo, r.hi)) else "not resolved"
+            p_tost = max(
+                rk.p_greater(r.estimate, r.se, r.df, -margin), rk.p_greater(-r.estimate, r.se, r.df, -margin)
+            )
+            good = ok and p_tost < alpha
+            p_out = min(1.0, 2.0 * rk.p_greater(abs(r.estimate), r.se, r.df, margin))  # outside the margin
+            against.append(p_out if ok else 1.0)
+            state = f"equivalent within +-{margin:g}" if good else f"not shown equivalent within +-{margin:g}"
+        holds &= bool(good)
         lines.append(f"  - {split.upper()} {m}: friction - {other} = {rng} points ({state})")
-    if ld_bad or cv_bad:
-        verdict = FAILS
-    elif ld_ok and cv_ok:
-        verdict = HOLDS
-    else:
-        verdict = UNRESOLVED
+    rejected = rk.holm(against, alpha)
+    verdict = FAILS if any(rejected) else HOLDS if holds else UNRESOLVED
+    for i, bad in enumerate(rejected):
+        if bad:
+            lines[i] += " (against the claim, Holm-corrected)"
     head = (
         f"- {where}: **{verdict}** (among {', '.join([CLAIM_MODEL, *others])}; LD: friction resolved better "
-        f"than every other on both metrics; CV: not resolved worse than the others' mean)"
+        f"than every other on both metrics; CV: equivalent to every other within +-{margin:g} point; "
+        f"against it: Holm over {len(against)} tests at {alpha:.0%})"
     )
     if unrankable and verdict == UNRESOLVED:
         head += f"; too few blocks: {unrankable[0]}"

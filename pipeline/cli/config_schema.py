@@ -296,6 +296,8 @@ SCHEMA: dict[str, Spec] = {
     "intervals.resamples": integer(100, 100000),
     "intervals.block_s": number(gt=0, null=True, what="s"),
     "intervals.min_blocks": integer(2),
+    "intervals.min_sequences": integer(2),
+    "intervals.margin": number(gt=0, what="points"),
     "intervals.seed": integer(0),
     # -- evaluate.yaml ----------------------------------------------------------------------------------
     "models": listof(STR, 1),
