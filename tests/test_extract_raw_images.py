@@ -170,6 +170,8 @@ def stereo_bag(tmp_path_factory, camera_cfg) -> Path:
 
         for k in range(N_FRAMES):
             t = T0_NS + int(round(k / FPS * 1e9))
+            twist = f("geometry_msgs/msg/Twist", linear=f.vec(0.3, 0.0, 0.0), angular=f.vec(0.0, 0.0, 0.0))
+            write("/cmd_vel", "geometry_msgs/msg/Twist", t, twist)  # a dataset needs its commands
             images = dict(zip(("left", "right"), renderer.render(*_pose(k)), strict=True))
             for side, grey in images.items():
                 header = f.header(t, f"{side}_optical", k)
@@ -254,7 +256,7 @@ def test_raw_image_topics_extract_to_a_table_and_lossless_files(tmp_path, stereo
         cfg = compose("extract", overrides=[
             f"out_root={tmp_path}", "source=bag", f"source.root={stereo_bag}", "source.terrain=lab",
             "source.category=train", "dataset=raw", "extract.progress=false", "extract.images=files",
-            "source.topics.cmd_vel.required=false", "source.topics.joint_states.required=false",
+            "source.topics.joint_states.required=false",
             "source.topics.odom.required=false", "source.topics.imu.required=false",
             "source.topics.left_image.topic=/left/mono8",
             "source.topics.left_image.type=sensor_msgs/msg/Image",

@@ -30,6 +30,7 @@ from skidbench.pipeline.groundtruth.tf import compose_tf, interpolate_edge
 from skidbench.pipeline.groundtruth.trajectory import read_tum
 
 TF = "tf2_msgs/msg/TFMessage"
+TWIST = "geometry_msgs/msg/Twist"
 MS = 1_000_000
 DURATION_MS = 8000
 
@@ -101,6 +102,10 @@ def write_tf_bag(path: Path, fmt: str) -> Path:
     with writer:
         tf = writer.add_connection("/tf", TF, typestore=ts)
         tf_static = writer.add_connection("/tf_static", TF, typestore=ts)
+        cmd = writer.add_connection("/cmd_vel", TWIST, typestore=ts)  # a dataset needs its commands
+        for k in range(10):
+            twist = f(TWIST, linear=f.vec(0.5, 0.0, 0.0), angular=f.vec(0.0, 0.0, 0.1))
+            writer.write(cmd, T0_NS + k * 100 * MS + 1, serialize(twist, TWIST))
         statics = [transform(0, p, c, *v) for (p, c), v in STATIC.items()]  # zero stamp, as often
         writer.write(tf_static, T0_NS - 1, serialize(f(TF, transforms=statics), TF))
         for t in sorted(events):
@@ -141,7 +146,6 @@ def cfg(stage: str, out_root: Path, bag: Path, *overrides: str):
                 "source.terrain=lab",
                 "source.category=train",
                 "dataset=tf",
-                "source.topics.cmd_vel.required=false",
                 "source.topics.joint_states.required=false",
                 "source.topics.odom.required=false",
                 "source.topics.imu.required=false",
@@ -217,6 +221,7 @@ def test_compose_is_exact_before_any_file_rounding(extracted):
 def test_an_unknown_frame_is_one_line_listing_the_frames(extracted):
     out, bag = extracted
     over = ["groundtruth.method=pose_topic", "groundtruth.pose_topic.key=tf", "groundtruth.jobs=1"]
+    over += ["groundtruth.allow_wheel_odometry=true"]  # parent=odom: the frames are under test here
     tum = out / "tf" / "groundtruth" / "seq.tum"
     before = tum.read_bytes() if tum.exists() else None
     with pytest.raises(GroundTruthError) as info:
@@ -280,3 +285,21 @@ def test_slerp_matches_scipy_and_keeps_tiny_rotations_exact():
     tiny = np.array([[0.0, 0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, np.sin(0.5e-9), np.cos(0.5e-9)]])
     mid = quaternion_slerp(*tiny, np.array([0.5]))[0]
     assert 2 * np.arctan2(mid[2], mid[3]) == pytest.approx(0.5e-9, rel=1e-9)
+
+
+def test_tf_from_the_odometry_frame_is_refused_as_ground_truth_until_allowed(extracted):
+    """odom -> base_link is the drive controller's wheel odometry (REP 105): not ground truth unless
+    groundtruth.allow_wheel_odometry=true, which the one-line refusal names."""
+    out, bag = extracted
+    over = ["groundtruth.method=pose_topic", "groundtruth.pose_topic.key=tf", "groundtruth.jobs=1",
+            "groundtruth.pose_topic.parent=odom", "groundtruth.pose_topic.child=base_link"]  # fmt: skip
+    tum = out / "tf" / "groundtruth" / "seq.tum"
+    before = tum.read_bytes() if tum.exists() else None
+    with pytest.raises(GroundTruthError) as info:
+        groundtruth(cfg("groundtruth", out, bag, *over))
+    msg = str(info.value)
+    assert "\n" not in msg and "the TF chain from frame 'odom'" in msg and "is wheel odometry" in msg
+    assert msg.endswith("or set groundtruth.allow_wheel_odometry=true to use it anyway")
+    assert (tum.read_bytes() if tum.exists() else None) == before
+    groundtruth(cfg("groundtruth", out, bag, *over, "groundtruth.allow_wheel_odometry=true"))
+    assert len(read_tum(tum)) == len(BASE_MS)

@@ -230,6 +230,7 @@ SCHEMA: dict[str, Spec] = {
     "groundtruth.method": choice("vo", "orbslam", "pose_topic"),
     "groundtruth.jobs": COUNT,
     "groundtruth.max_gap": number(gt=0, what="s"),
+    "groundtruth.allow_wheel_odometry": BOOL,
     "groundtruth.pose_topic.key": STR,
     "groundtruth.pose_topic.stamp": choice("bag_time_ns", "stamp_ns"),
     "groundtruth.pose_topic.parent": OPT_STR,

@@ -77,7 +77,7 @@ def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
     while True:
         try:
             cfg = _compose(stage, kept)
-            _check_source_keys(cfg, foreign)
+            _check_group_keys(cfg, foreign)
             return foreign, cfg
         except (HydraException, OmegaConfBaseException) as exc:
             key = _refused_key(exc)
@@ -88,37 +88,41 @@ def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
             kept.remove(line)
 
 
-def _check_source_keys(cfg: Any, foreign: list[str]) -> None:
-    """ConfigError for a ``source.*`` override the chosen source does not have: every stage reads the one
-    source a command names, so another source's setting (``source.topics`` with ``source=drive_df``) is
-    never another stage's, and ignoring it would hide a wrong setting."""
-    source = cfg.get("source") if hasattr(cfg, "get") else None
-    if source is None:
-        return
+def _check_group_keys(cfg: Any, foreign: list[str]) -> None:
+    """ConfigError for an override of a ``source.*`` or ``robot.*`` setting the chosen option does not
+    have: every stage reads the one source and the one robot a command names, so such a setting is never
+    another stage's, and ignoring it would hide it. Another source's setting (``source.topics`` with
+    ``source=drive_df``) is to be dropped; a robot setting the robot's config lacks (``robot.camera.xyz``
+    with ``robot=husky``) is to be added with ``+``."""
     for line in foreign:
         key = _override_key(line)
-        if not key.startswith("source."):
+        group = key.split(".", 1)[0]
+        node = cfg.get(group) if group in ("source", "robot") and hasattr(cfg, "get") else None
+        if node is None:
             continue
-        owners = _source_options_with(key.removeprefix("source."))
-        name = source.get("name", "?")
-        whose = f" (a setting of {', '.join(f'source={o}' for o in owners)})" if owners else ""
-        raise ConfigError(f"{line}: source={name} has no setting {key}{whose}; drop it")
+        owners = _group_options_with(group, key.removeprefix(f"{group}."))
+        name = node.get("name", "?")
+        whose = f" (a setting of {', '.join(f'{group}={o}' for o in owners)})" if owners else ""
+        fix = "drop it" if group == "source" else f"add it with '+': +{line.lstrip('+')}"
+        raise ConfigError(f"{line}: {group}={name} has no setting {key}{whose}; {fix}")
 
 
 @functools.cache
-def _source_options_with(key: str) -> tuple[str, ...]:
-    """The ``source`` options whose config (with its defaults) has ``key`` (dotted, below ``source``)."""
+def _group_options_with(group: str, key: str) -> tuple[str, ...]:
+    """The options of config group ``group`` whose config (with its defaults) has ``key`` (dotted, below
+    the group)."""
     from hydra import compose, initialize_config_module
     from omegaconf import OmegaConf
 
     owners = []
-    for entry in sorted(resources.files(CONFIG_MODULE).joinpath("source").iterdir(), key=lambda e: e.name):
+    for entry in sorted(resources.files(CONFIG_MODULE).joinpath(group).iterdir(), key=lambda e: e.name):
         if not entry.name.endswith(".yaml"):
             continue
         option = entry.name[:-5]
         with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
-            cfg = compose("extract", overrides=[f"source={option}"])
-        if OmegaConf.select(cfg.source, key, default=None, throw_on_resolution_failure=False) is not None:
+            cfg = compose("extract", overrides=[f"{group}={option}"])
+        node = cfg.get(group)
+        if OmegaConf.select(node, key, default=None, throw_on_resolution_failure=False) is not None:
             owners.append(option)
     return tuple(owners)
 

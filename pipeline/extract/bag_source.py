@@ -20,6 +20,7 @@ from skidbench.pipeline.sources.contract import Source, SourceContext
 
 log = logging.getLogger("skidbench.extract")
 AUTO = "auto"  # source.topics=auto: each bag's topics chosen by `skidbench inspect`'s proposal
+COMMANDS = "cmd_vel"  # the topic key of the commands: what drives every model, so every bag needs it
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,8 @@ class BagSource(Source):
         specs = None if auto else topic_specs(topics)
         if not auto and not specs:
             raise ConfigError("source.topics is empty: nothing to extract")
+        if not auto:
+            check_commands(specs)
         manifest, found = discover_sequences(dataclasses.asdict(settings))
         if not found:  # paths made absolute: the manifest is written away from the bags
             seqs = [dataclasses.replace(s, path=str(manifest.resolve(s))) for s in manifest.sequences]
@@ -91,6 +94,24 @@ class BagSource(Source):
         if records and n_skipped == len(records):
             log.info("extract: %d sequences up to date, skipped", len(records))
         return records
+
+
+def check_commands(specs) -> None:
+    """ConfigError unless the topics name the commands (``source.topics.cmd_vel``), required: without them
+    nothing drives the models, and the dataset could not be split or scored (refused here, before a file
+    is written, not at split)."""
+    spec = next((s for s in specs if s.key == COMMANDS), None)
+    if spec is None:
+        raise ConfigError(
+            f"source.topics.{COMMANDS} is not set: a dataset without commands cannot be split or scored (the "
+            f"commands drive every model); set source.topics.{COMMANDS}.topic=<the Twist topic the robot "
+            f"obeyed> and source.topics.{COMMANDS}.type (`skidbench inspect <bag>` lists a bag's topics)"
+        )
+    if not spec.required:
+        raise ConfigError(
+            f"source.topics.{COMMANDS}.required=false: a bag without its commands could not be split or "
+            f"scored; drop the setting (commands are required) and leave such bags out of source.root"
+        )
 
 
 def _extract_one(bag: Path, out: Path, specs, auto: bool, opts, meta: dict[str, Any]) -> dict[str, Any]:

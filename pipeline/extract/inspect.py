@@ -138,6 +138,11 @@ def _tier(role: Role, topic: str) -> int | None:
     return None
 
 
+def fits_role(key: str, topic: str) -> bool:
+    """Does the name ``topic`` fit the role ``key`` (one of its name tiers, none of its exclusions)?"""
+    return _tier(next(r for r in ROLES if r.key == key), topic) is not None
+
+
 def propose(topics: Mapping[str, str], counts: Mapping[str, int] | None = None) -> Proposal:
     """The ``source.topics`` mapping for a bag's ``{topic: msgtype}``: per role, the topics of an accepted
     (and extractable) type whose name fits best; mux inputs (teleop, markers) rank below the command the
@@ -209,11 +214,14 @@ def _camera_info_of(image: str, infos: Iterable[str]) -> str | None:
 
 def overrides(proposal: Proposal, configured: Iterable[str] = ()) -> list[str]:
     """The ``source.topics.*`` overrides that select the proposal; a configured key the bag lacks
-    (``configured``: the keys of the current ``source.topics``) is set to null."""
+    (``configured``: the keys of the current ``source.topics``) is set to null, except a required role
+    (the commands): a dataset without them would fail later, so extract is left to refuse it."""
     lines = []
     for key, (topic, msgtype) in proposal.chosen.items():
         lines += [f"source.topics.{key}.topic={topic}", f"source.topics.{key}.type={msgtype}"]
-    lines += [f"source.topics.{k}=null" for k in configured if k not in proposal.chosen]
+    lines += [
+        f"source.topics.{k}=null" for k in configured if k not in proposal.chosen and k not in REQUIRED_ROLES
+    ]
     return lines
 
 
@@ -333,8 +341,15 @@ def report(path: Path, stats: list[TopicStats], configured: Iterable[str] = ()) 
     pasted = overrides(proposal, configured)
     chunks = [" ".join(pasted[i : i + 2]) for i in range(0, len(pasted), 2)]
     lines.append("  " + " \\\n  ".join(chunks))
-    if required:
-        lines.append(f"  (source.topics=auto would refuse: {', '.join(required)} not found or ambiguous)")
+    for key in required:  # what the overrides above cannot give: extract refuses the bag until it is set
+        tied = proposal.ambiguous.get(key)
+        lines.append(
+            f"  {key}: choose one of {', '.join(tied)}: source.topics.{key}.topic=<it> .type=<its type>"
+            if tied
+            else f"  no {key} topic ({' or '.join(t.rsplit('/', 1)[-1] for t in (TWIST, TWIST_STAMPED))}): "
+            f"without commands nothing drives the models, so extract refuses this bag until "
+            f"source.topics.{key}.topic and .type name the topic the robot obeyed"
+        )
     return "\n".join(lines)
 
 

@@ -195,9 +195,10 @@ def select_connections(reader: AnyReader, specs: list[TopicSpec], path: Path) ->
         conns = by_topic.get(spec.topic)
         if not conns:
             if spec.required:
+                optional = f" (or source.topics.{spec.key}.required=false)" if spec.key != "cmd_vel" else ""
                 raise ExtractError(
                     f"{path}: topic {spec.topic} not found (topics: {available}); "
-                    f"set source.topics.{spec.key}.topic (or source.topics.{spec.key}.required=false)"
+                    f"set source.topics.{spec.key}.topic{optional}"
                 )
             continue
         types = sorted({normalize_msgtype(c.msgtype) for c in conns})

@@ -40,11 +40,18 @@ LOOP_REPORT = "loop_closure.json"
 
 
 def camera_extrinsic(cfg: DictConfig) -> np.ndarray:
-    """``T_b_c`` from ``robot.camera`` (xyz + rpy)."""
-    cam = cfg.robot.get("camera")
-    if cam is None:
-        raise ConfigError(f"robot {cfg.robot.name}: no camera extrinsic (robot.camera.xyz/rpy)")
-    return se3_from_xyz_rpy(np.array(cam.xyz, dtype=float), np.array(cam.rpy, dtype=float))
+    """``T_b_c`` from ``robot.camera`` (xyz + rpy); ConfigError naming the settings to add when the robot's
+    config has no camera (or only part of its pose): ``+robot.camera...`` adds what a robot config lacks."""
+    cam = cfg.robot.get("camera") or {}
+    missing = [k for k in ("xyz", "rpy") if cam.get(k) is None]
+    if missing:
+        add = " ".join(f"+robot.camera.{k}=[{'x,y,z' if k == 'xyz' else 'roll,pitch,yaw'}]" for k in missing)
+        absent = " and ".join(f"robot.camera.{k}" for k in missing)
+        raise ConfigError(
+            f"robot={cfg.robot.name}: no camera extrinsic ({absent} absent); add it: {add} (the camera in "
+            "the base frame, m and rad; '+' adds a setting the robot's config does not have)"
+        )
+    return se3_from_xyz_rpy(np.array(cam["xyz"], dtype=float), np.array(cam["rpy"], dtype=float))
 
 
 def _extracted_bytes(layout: Layout, seq: Sequence) -> int:
@@ -128,6 +135,8 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         if not path.is_file():
             raise GroundTruthError(_no_pose_table(path, ext, seq.name))
         pt = gt.pose_topic
+        if not gt.get("allow_wheel_odometry", False):
+            check_independent(path, ext, pt)
         if is_tf_table(path):  # /tf (+ /tf_static): compose parent -> child through the tree
             static = ext / f"{pt.static_key}.parquet" if pt.get("static_key") else None
             paths = [path] + ([static] if static not in (None, path) and static.is_file() else [])
@@ -142,9 +151,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         o = gt.orbslam
         path = Path(str(o.dir)) / str(o.pattern).format(seq=seq.name)
         if not path.is_file():
-            raise GroundTruthError(
-                f"{path}: no ORB-SLAM file for sequence {seq.name}; set groundtruth.orbslam.dir"
-            )
+            raise GroundTruthError(_no_orbslam_file(path, o, seq.name))
         times = Path(str(o.dir)) / str(o.times_pattern).format(seq=seq.name)
         ref_stamp = ref_bag = None
         if o.associate_to:
@@ -216,6 +223,39 @@ def _write_if_changed(path: Path, obj: Any) -> None:
         write_text_atomic(path, text)
 
 
+def check_independent(path: Path, ext: Path, pt: DictConfig) -> None:
+    """GroundTruthError when the pose table is wheel odometry (:func:`wheel_odometry`): a pose computed
+    from the wheel encoders, the same wheels whose commands and rates drive the models, would score them
+    against their own inputs. ``groundtruth.allow_wheel_odometry=true`` takes it anyway."""
+    info = json.loads((ext / "_extract.json").read_text()) if (ext / "_extract.json").is_file() else {}
+    topic = (info.get("topics") or {}).get(str(pt.key), {})
+    why = wheel_odometry(str(pt.key), topic.get("topic"), pt.get("parent") if is_tf_table(path) else None)
+    if why:
+        raise GroundTruthError(
+            f"{path}: {why}, not ground truth: the wheel encoders it is computed from are the models' own "
+            "inputs, so every model would be scored against them; give an independent pose "
+            "(groundtruth.pose_topic.key=<a lidar, motion-capture or GNSS pose table>, or "
+            "groundtruth.method=orbslam), or set groundtruth.allow_wheel_odometry=true to use it anyway"
+        )
+
+
+def wheel_odometry(key: str, topic: str | None, tf_parent: str | None) -> str | None:
+    """Why a pose source is wheel odometry, or None: a TF chain from the ``odom`` frame (REP 105's
+    odometry frame, which a skid-steer's drive controller publishes from its encoders), or a topic (else
+    the table's key) that `skidbench inspect` takes for wheel odometry (the ``odom`` role: the drive
+    controller's odom, ``/odom``, ``wheel_odom`` ...; never a name of lidar, visual, GNSS or mocap
+    odometry or a filter's output)."""
+    from skidbench.pipeline.extract.inspect import fits_role
+
+    if tf_parent is not None:
+        odom = str(tf_parent).strip("/").rsplit("/", 1)[-1] == "odom"
+        return (
+            f"the TF chain from frame {tf_parent!r} (the odometry frame) is wheel odometry" if odom else None
+        )
+    name = topic or key
+    return f"{name} is wheel odometry" if fits_role("odom", name) else None
+
+
 def _no_pose_table(path: Path, ext: Path, seq: str) -> str:
     """Why a sequence has no pose table, in one line: the recording's own reason when extract recorded one
     (``_extract.json`` notes, e.g. DRIVE's ``no ground truth: the ICP pose never changes ...``: led by the
@@ -232,6 +272,26 @@ def _no_pose_table(path: Path, ext: Path, seq: str) -> str:
         )
     why = f" ({'; '.join(notes)})" if notes else ""
     return f"{path}: pose table not found{why}; set groundtruth.pose_topic.key or run `skidbench extract`"
+
+
+def _no_orbslam_file(path: Path, o: DictConfig, seq: str) -> str:
+    """Why ``path`` is not there, naming the setting that fixes it: ``groundtruth.orbslam.dir`` when the
+    folder does not exist or holds no trajectory file, else ``groundtruth.orbslam.pattern`` (with the
+    pattern that names the file there, when one file or one naming with the sequence's name fits)."""
+    folder = Path(str(o.dir))
+    if not folder.is_dir():
+        return f"{folder}: no such folder; set groundtruth.orbslam.dir=<the folder of the ORB-SLAM files>"
+    there = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix in (".txt", ".tum", ".csv"))
+    if not there:
+        return f"{folder}: holds no ORB-SLAM file (.txt, .tum, .csv); set groundtruth.orbslam.dir"
+    named = [n.replace(seq, "{seq}") for n in there if seq in n and "times" not in n]
+    fits = named if len(named) == 1 else [n for n in there if "times" not in n]
+    hint = f"groundtruth.orbslam.pattern='{fits[0]}'" if len(fits) == 1 else "groundtruth.orbslam.pattern"
+    shown = ", ".join(there[:6]) + (" ..." if len(there) > 6 else "")
+    return (
+        f"{path}: no ORB-SLAM file for sequence {seq} (groundtruth.orbslam.pattern={o.pattern!r} in "
+        f"{folder}, which holds {shown}); set {hint} ({{seq}} stands for the sequence's name)"
+    )
 
 
 def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[str, float] | None:
