@@ -285,3 +285,53 @@ def test_every_metric_is_logged_with_its_interval_and_blocks_and_the_floor_on_th
         assert (out / DS / "eval" / "floor" / f"{terrain}.windows.parquet").is_file()
     text = format_result(res)
     assert "floor (reference)" in text and "[" in text
+
+
+def _cut(ds: Path, split: str, keep) -> None:
+    """Every ``split`` file of ``ds`` with only the rows ``keep(t)`` valid (the rest cut, as manual-driving
+    phases are) and, where ``keep`` is None, driving straight (yaw 0)."""
+    from skidbench.pipeline.core.schema import read_split, write_split
+
+    for p in (ds / "splits" / "tile" / split).glob("*.parquet"):
+        df, meta = read_split(p)
+        if keep is None:
+            df["yaw"] = 0.0
+            df["y"] = 0.0
+        else:
+            df["valid"] = keep(df["t"].to_numpy())
+        write_split(df, p, meta)
+
+
+def test_a_recording_too_short_to_score_is_refused_with_seconds_kept_and_needed(tmp_path, monkeypatch_module):
+    """A CV split whose valid stretches are 4 s long (8 s kept) cannot hold a 6 s window: refused before
+    anything is logged, with the seconds; lowering the horizon as it says scores it."""
+    write_splits(tmp_path / DS, terrains=("tile",))
+    _cut(tmp_path / DS, "cv", lambda t: ((t >= 2) & (t < 6)) | ((t >= 20) & (t < 24)))
+    with pytest.raises(EvaluationError) as e:
+        run_benchmark(_cfg(tmp_path, "models=[chi]", "horizons=[6.0]"), fit_fn=fit_fn)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith("splits/tile/cv: too short to score at the 6 s horizon: ")
+    assert (
+        "8.0 s of valid recording kept in 1 sequence(s), the longest stretch 4.0 s, and a window needs 6 s"
+        in msg
+    )
+    assert "lower horizons=[...]" in msg
+    assert not (tmp_path / "mlflow.db").exists()  # nothing ranked
+    res = run_benchmark(_cfg(tmp_path, "models=[chi]", "horizons=[3.0]"), fit_fn=fit_fn)
+    assert [c.status for c in res.children] == ["FINISHED"]
+
+
+def test_a_split_that_never_turns_is_refused_for_the_rotational_score(tmp_path, monkeypatch_module):
+    from skidbench.benchmark.evaluate.testsets import check_scores, load_test_split
+    from skidbench.benchmark.scoring.horizon import HorizonConfig
+
+    write_splits(tmp_path / DS, terrains=("tile",))
+    _cut(tmp_path / DS, "ld", None)
+    with pytest.raises(EvaluationError) as e:
+        run_benchmark(_cfg(tmp_path, "models=[chi]", "horizons=[6.0]"), fit_fn=fit_fn)
+    msg = str(e.value)
+    assert msg.startswith("splits/tile/ld: no 6 s window turns min_rotation_deg=10 deg (")
+    assert "the most 0.0 deg): the rotational score has nothing to rank" in msg
+    assert not (tmp_path / "mlflow.db").exists()
+    seqs = load_test_split(Layout(tmp_path, DS), "tile", "cv")  # a split that turns passes
+    check_scores("splits/tile/cv", seqs, 6.0, HorizonConfig(6.0, 0.5, math.radians(10.0)))

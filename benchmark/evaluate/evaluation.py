@@ -127,7 +127,7 @@ def run_benchmark(
     fit_fn, transfer_tags = training_layout(es.transfer, es.fit, fit_fn)
 
     # 1. the data, checked before anything is logged
-    data = load_evaluation_data(layout, es.fit.calibrations, terrains, splits, horizons, protocol)
+    data = load_evaluation_data(layout, es.fit.calibrations, terrains, splits, horizons, protocol, es.hcfg)
     data.inputs_of = {t: dataclasses.replace(i, state=es.state) for t, i in data.inputs_of.items()}
     tests, files_of = data.tests, data.files_of
     skipped, terrains = data.skipped, data.terrains

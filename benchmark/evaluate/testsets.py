@@ -1,16 +1,21 @@
 """The test data of an evaluate: the dataset's terrains and split files (from its manifest), the test
 splits' sequences and the checks that make a benchmark meaningful (a split with rows, a horizon shorter than
-some sequence), each failure one :class:`EvaluationError` line, raised before any run is created."""
+some sequence, a window for every score: a recording too short to score is refused with the seconds it
+kept and the seconds a window needs), each failure one :class:`EvaluationError` line, raised before any
+run is created: nothing is ranked."""
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from skidbench.benchmark.errors import EvaluationError
-from skidbench.benchmark.scoring.horizon import count_windows, horizon_steps
+from skidbench.benchmark.scoring.horizon import HorizonConfig, count_windows, horizon_steps, window_errors
 from skidbench.benchmark.scoring.predictions import Inputs, TestSequence
 from skidbench.pipeline.calibrate.calibration import Calibrations, response_for
 from skidbench.pipeline.core.cache import Fingerprints
@@ -77,8 +82,12 @@ def load_test_split(layout: Layout, terrain: str, split: str) -> list[TestSequen
     return seqs
 
 
-def check_horizons(terrain: str, split: str, seqs: Sequence[TestSequence], horizons: Sequence[float]) -> None:
-    """EvaluationError when a horizon is longer than every sequence of a split (no window at all)."""
+def check_horizons(
+    terrain: str, split: str, seqs: Sequence[TestSequence], horizons: Sequence[float],
+    hcfg: HorizonConfig | None = None,
+) -> None:  # fmt: skip
+    """EvaluationError when a horizon is longer than every sequence of a split (no window at all), and with
+    ``hcfg`` when a score of the split would have no window (:func:`check_scores`)."""
     for h in horizons:
         if not h > 0:
             raise EvaluationError(f"horizon {h} s is not positive; set horizons=[6.0]")
@@ -88,6 +97,57 @@ def check_horizons(terrain: str, split: str, seqs: Sequence[TestSequence], horiz
                 f"splits/{terrain}/{split}: horizon {h:g} s is longer than every sequence "
                 f"(longest {longest:.1f} s); lower horizons=[...]"
             )
+        if hcfg is not None:
+            check_scores(f"splits/{terrain}/{split}", seqs, h, hcfg)
+
+
+def check_scores(where: str, seqs: Sequence[TestSequence], horizon_s: float, hcfg: HorizonConfig) -> None:
+    """EvaluationError (the numbers, the setting to change) when a score of the split has no window at
+    ``horizon_s``: no stretch of valid samples as long as the horizon (too short to score: the seconds
+    kept against the seconds a window needs), or no window that travels ``min_distance_m`` (the
+    translational score) or turns ``min_rotation_deg`` (the rotational one). Ranking a split on a score
+    with no window would rank on nothing."""
+    kept = longest = 0.0
+    n = trans = rot = 0
+    farthest = most_turn = 0.0
+    for s in seqs:
+        df = s.table
+        if len(df) < 2:
+            continue
+        t, valid = df["t"].to_numpy(float), df["valid"].to_numpy(bool)
+        dt = float(np.median(np.diff(t)))
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], valid.astype(np.int8), [0]])))
+        lengths = (edges[1::2] - edges[::2]) * dt
+        kept, longest = kept + float(lengths.sum()), max(longest, float(lengths.max(initial=0.0)))
+        pose = df[["x", "y", "yaw"]].to_numpy(float)
+        w = window_errors(t, pose, np.zeros_like(pose), horizon_s, valid, hcfg)  # only the windows' extent
+        n, trans, rot = (
+            n + len(w),
+            trans + int(w["rel_trans"].notna().sum()),
+            rot + int(w["rel_rot"].notna().sum()),
+        )
+        farthest = max(farthest, float(w["distance"].max()) if len(w) else 0.0)
+        most_turn = max(most_turn, float(w["rotation"].max()) if len(w) else 0.0)
+    h = f"{horizon_s:g} s"
+    if n == 0:
+        raise EvaluationError(
+            f"{where}: too short to score at the {h} horizon: {kept:.1f} s of valid recording kept in "
+            f"{len(seqs)} sequence(s), the longest stretch {longest:.1f} s, and a window needs {h} of "
+            "valid samples; record longer (or keep more of it), or lower horizons=[...]"
+        )
+    deg = math.degrees(hcfg.min_rotation_rad)
+    if trans == 0:
+        raise EvaluationError(
+            f"{where}: no {h} window travels min_distance_m={hcfg.min_distance_m:g} m ({n} window(s), "
+            f"the farthest {farthest:.2f} m): the translational score has nothing to rank; record the robot "
+            "driving, or lower min_distance_m"
+        )
+    if rot == 0:
+        raise EvaluationError(
+            f"{where}: no {h} window turns min_rotation_deg={deg:g} deg ({n} window(s), the most "
+            f"{math.degrees(most_turn):.1f} deg): the rotational score has nothing to rank; record turns, "
+            "or lower min_rotation_deg"
+        )
 
 
 def split_fingerprint(files: Sequence[Path], root: Path) -> str:
@@ -150,11 +210,11 @@ class EvaluationData:
 
 def load_evaluation_data(
     layout: Layout, cal: Calibrations, terrains: list[str] | None, splits: Sequence[str],
-    horizons: Sequence[float], protocol: str,
+    horizons: Sequence[float], protocol: str, hcfg: HorizonConfig | None = None,
 ) -> EvaluationData:  # fmt: skip
     """The test splits of ``terrains`` (None: every terrain of the dataset) under ``protocol``, each checked
-    against the horizons (and its windows per horizon logged); EvaluationError (one line) for a terrain
-    the dataset lacks or an empty Train split."""
+    against the horizons and, with ``hcfg``, for a window of every score (and its windows per horizon
+    logged); EvaluationError (one line) for a terrain the dataset lacks or an empty Train split."""
     found = find_terrains(layout)
     if terrains is None:
         terrains = found
@@ -171,7 +231,7 @@ def load_evaluation_data(
         data.tests[terrain] = {}
         for split in splits:
             seqs = load_test_split(layout, terrain, split)
-            check_horizons(terrain, split, seqs, horizons)
+            check_horizons(terrain, split, seqs, horizons, hcfg)
             for h in horizons:  # short sequences: say how many windows each horizon has (compare shows n)
                 n_win, n_seq, short = count_windows([s.table for s in seqs], h)
                 log.info("%s/%s: %g s horizon: %d windows from %d sequence(s), %d shorter than it",

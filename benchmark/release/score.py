@@ -290,7 +290,7 @@ def score_predictions(
         files: list[Path] = []
         for split in splits:
             seqs = load_test_split(layout, terrain, split)
-            check_horizons(terrain, split, seqs, horizons)
+            check_horizons(terrain, split, seqs, horizons, hcfg)
             tests[terrain][split] = [
                 s for s in seqs if len(s.table)
             ]  # an empty sequence has no rows to predict
