@@ -87,7 +87,11 @@ def read_commands(ext: Path) -> tuple[Path, str, np.ndarray, np.ndarray]:
     elif (ext / "cmd_wheels.parquet").is_file():
         cmd_path, kind, cols = ext / "cmd_wheels.parquet", "wheels", ["wl", "wr"]
     else:
-        raise SplitError(f"{ext}: no cmd_vel or cmd_wheels table; run `skidbench extract`")
+        raise SplitError(
+            f"{ext}: no commands (neither cmd_vel nor cmd_wheels was extracted; an extraction made before "
+            "extract refused a dataset without them); run `skidbench extract` with source.topics.cmd_vel "
+            "naming the topic the robot obeyed"
+        )
     c = pd.read_parquet(cmd_path, columns=["bag_time_ns", *cols])
     cmd = c[cols].to_numpy(float)
     if len(c) == 0:
