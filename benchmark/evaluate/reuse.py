@@ -9,7 +9,8 @@ A model run's *result key* (tag ``skidbench.result_key``) is the fingerprint of 
 - ``code``: the model's code (in the fit's key too; apart, to say what changed);
 - ``scoring``: the digest of the scoring code (:data:`SCORING_CODE`; tag ``skidbench.scoring_digest``);
 - ``data``: the fingerprint of the terrain's split files;
-- ``settings``: the evaluate's config but its model and terrain lists, the store and ``force``.
+- ``settings``: the evaluate's config but its model and terrain lists, the store, ``force`` and a model's
+  command-line options (in that model's fit key).
 
 When the run finishes it is stamped (``<ds>/.stamps/evaluate/<protocol>/<model>/<terrain>.json``,
 pipeline/core/cache.py) with its outputs (the per-window table, the fitted parameters and the report data
@@ -45,8 +46,9 @@ SCORING_CODE = (
     "skidbench.benchmark.evaluate.testsets",
     "skidbench.pipeline.core.protocol",
 )
-#: config entries that say how to run or which units, not what a unit's numbers are made of
-NOT_SETTINGS = ("models", "terrains", "force", "mlflow", "hydra")
+#: config entries that say how to run or which units, not what a unit's numbers are made of (``model``: the
+#: ``+model.*`` overrides of one model, which its fit's key holds)
+NOT_SETTINGS = ("models", "extra_models", "terrains", "force", "mlflow", "hydra", "model")
 
 
 def scoring_digest() -> str:
