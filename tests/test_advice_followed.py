@@ -128,3 +128,17 @@ def test_a_bag_without_commands_is_refused_at_extract_whatever_inspect_said(tmp_
     assert code == 2 and "topic /drive_cmd not found (topics: " in err
     extracted = tmp_path / "out" / "advice" / "extracted"
     assert not extracted.exists() or not any(extracted.rglob("*.parquet"))
+
+
+WHEEL = ["/odom", "/jackal_velocity_controller/odom", "/a200/platform/odom", "/wheel_odom", "/odometry/wheel"]
+NOT_WHEEL = ["/icp_odom", "/dlio/odom_node/odom", "/Odometry", "/lio_sam/mapping/odometry",
+             "/kiss/odometry", "/rtabmap/odom", "/vins_estimator/odometry", "/ground_truth/odom",
+             "/mocap/odom", "/gt_pose"]  # fmt: skip
+
+
+@pytest.mark.parametrize("topic", WHEEL + NOT_WHEEL)
+def test_wheel_odometry_is_told_by_the_drive_controllers_names_not_by_odom_alone(topic):
+    from skidbench.pipeline.groundtruth.app import wheel_odometry
+
+    assert bool(wheel_odometry("odom", topic, None)) == (topic in WHEEL)
+    assert bool(wheel_odometry("tf", None, topic.strip("/").rsplit("/", 1)[-1])) == topic.endswith("/odom")

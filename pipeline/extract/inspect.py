@@ -138,9 +138,11 @@ def _tier(role: Role, topic: str) -> int | None:
     return None
 
 
-def fits_role(key: str, topic: str) -> bool:
-    """Does the name ``topic`` fit the role ``key`` (one of its name tiers, none of its exclusions)?"""
-    return _tier(next(r for r in ROLES if r.key == key), topic) is not None
+def fits_role(key: str, topic: str, tiers: int | None = None) -> bool:
+    """Does the name ``topic`` fit the role ``key``: one of its name tiers (of its first ``tiers`` only,
+    when given: the specific names, not a catch-all), none of its exclusions?"""
+    tier = _tier(next(r for r in ROLES if r.key == key), topic)
+    return tier is not None and (tiers is None or tier < tiers)
 
 
 def propose(topics: Mapping[str, str], counts: Mapping[str, int] | None = None) -> Proposal:

@@ -239,12 +239,21 @@ def check_independent(path: Path, ext: Path, pt: DictConfig) -> None:
         )
 
 
+#: odometry topics of lidar, visual and inertial estimators whose names end like a drive controller's
+#: (``/dlio/odom_node/odom``, ``/rtabmap/odom``, ``/camera/odom/sample``): not wheel odometry
+ESTIMATOR_ODOMETRY = (
+    r"lio|loam|kiss|rtabmap|vins|mapping|mapped|laser|scan|camera|zed|t265|realsense|odom_node"
+)
+
+
 def wheel_odometry(key: str, topic: str | None, tf_parent: str | None) -> str | None:
     """Why a pose source is wheel odometry, or None: a TF chain from the ``odom`` frame (REP 105's
     odometry frame, which a skid-steer's drive controller publishes from its encoders), or a topic (else
-    the table's key) that `skidbench inspect` takes for wheel odometry (the ``odom`` role: the drive
-    controller's odom, ``/odom``, ``wheel_odom`` ...; never a name of lidar, visual, GNSS or mocap
-    odometry or a filter's output)."""
+    the table's key) with one of the names `skidbench inspect` proposes for wheel odometry first (the
+    drive controller's odom, ``/odom``, ``wheel_odom``, ``odometry/wheel`` ...; never a name of lidar,
+    visual, GNSS or mocap odometry (:data:`ESTIMATOR_ODOMETRY`) or of a filter's output)."""
+    import re
+
     from skidbench.pipeline.extract.inspect import fits_role
 
     if tf_parent is not None:
@@ -253,7 +262,8 @@ def wheel_odometry(key: str, topic: str | None, tf_parent: str | None) -> str | 
             f"the TF chain from frame {tf_parent!r} (the odometry frame) is wheel odometry" if odom else None
         )
     name = topic or key
-    return f"{name} is wheel odometry" if fits_role("odom", name) else None
+    wheel = fits_role("odom", name, tiers=2) and not re.search(ESTIMATOR_ODOMETRY, name.lower())
+    return f"{name} is wheel odometry" if wheel else None
 
 
 def _no_pose_table(path: Path, ext: Path, seq: str) -> str:
