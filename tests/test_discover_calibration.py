@@ -155,3 +155,28 @@ def test_a_fold_trains_on_other_blocks_less_one_horizon_around_its_held_out_bloc
     whole = build_pool(seqs, s)
     held = folds_of(whole, s.folds)[0]
     assert np.array_equal(training_rows(whole, held, s.horizon_s), ~np.isin(whole.units, held) & whole.valid)
+
+
+def test_the_dead_time_member_of_actuator_lag_recovers_a_delay(jackal):
+    """Commands read d s earlier (linear between samples, held before the start) move the robot exactly
+    as the extended differential drive on them; the dead-time member fitted with the base recovers d."""
+    import pandas as pd
+
+    from skidbench.models.augmented.effects import delayed_commands
+    from skidbench.models.augmented.fit import fit_effects
+    from skidbench.models.registry.specs import get_model_class
+
+    t = np.arange(0, 40.0, 1 / 30.0)
+    v = 0.8 + 0.5 * np.sin(0.9 * t)
+    w = 1.2 * np.sin(0.6 * t + 0.3 * np.sin(2.1 * t))
+    r, B, chi, d = jackal.wheel_radius, jackal.track_width, 1.3, 0.06
+    wl, wr = (v - w * B / 2) / r, (v + w * B / 2) / r
+    table = pd.DataFrame({"t": t, "cmd_v": v, "cmd_w": w, "cmd_wl": wl, "cmd_wr": wr,
+                          "cmd_dwl": np.gradient(wl, t), "cmd_dwr": np.gradient(wr, t)})  # fmt: skip
+    late = delayed_commands(table, d, np.zeros(len(t), int))
+    assert np.allclose(late["cmd_v"].to_numpy()[5:], np.interp(t[5:] - d, t, v))
+    assert late["cmd_v"].iloc[0] == v[0]  # held before the start
+    table = table.assign(vx=late["cmd_v"], vy=0.0, wz=late["cmd_w"] / chi, valid=True, x=0.0, y=0.0, yaw=0.0)
+    edd = get_model_class("edd")
+    state = fit_effects(table, lambda: edd(jackal), jackal, ["actuator_dead_time"])
+    assert state.params["actuator_dead_time"][0] == pytest.approx(d, rel=0.02)

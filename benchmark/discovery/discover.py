@@ -58,7 +58,14 @@ from skidbench.benchmark.discovery.search import (
 )
 from skidbench.benchmark.discovery.stats import HeldOut, compare, cross_validate, search_test
 from skidbench.models.augmented import terms as termlib
-from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS, SPEED_SCALE, family_of, members
+from skidbench.models.augmented.effects import (
+    CATALOGUE,
+    EFFECT_IDS,
+    INPUT_BOUNDS,
+    SPEED_SCALE,
+    family_of,
+    members,
+)
 from skidbench.models.augmented.fit import (
     CHANNELS,
     Augmenter,
@@ -250,9 +257,9 @@ def _delay_note(name: str, state: FitState) -> str:
     """What a lag found from commands and poses alone may also be: its time constant is the delay of the
     response, and without wheel encoders a motor lag, a dead time in the drive and an offset between the
     commands' and the poses' clocks move the poses alike (a 30 ms clock offset was named as a 20 ms lag)."""
-    if name != "actuator_lag":
+    if name not in INPUT_BOUNDS:
         return ""
-    tau = float(state.params["actuator_lag"][0])
+    tau = float(state.params[name][0])
     return (
         f" Found from commands and poses: a delay of about {1000 * tau:.0f} ms, which may be a dead time or "
         "a clock offset between the commands and the poses as well as a lag (without wheel encoders "
@@ -540,7 +547,9 @@ def _retest(run: Search) -> None:
         effects = [e for e in run.effects if e != name]
         terms = [t for t in run.terms if t is not term]
         p = run.state.params.get(name)
-        at_zero = term is None and name != "actuator_lag" and p is not None and bool(np.all(np.abs(p) < 1e-9))
+        at_zero = (
+            term is None and name not in INPUT_BOUNDS and p is not None and bool(np.all(np.abs(p) < 1e-9))
+        )
         if not at_zero:
             ho = cross_validate(run.aug, effects, run.warm, terms)
             touched = term.touched if term else tuple(CATALOGUE[name].channels)

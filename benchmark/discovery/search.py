@@ -21,7 +21,7 @@ from skidbench.benchmark.discovery.stats import (
 )
 from skidbench.benchmark.discovery.term_screen import FoldScreens, screen
 from skidbench.models.augmented import terms as termlib
-from skidbench.models.augmented.effects import CATALOGUE, family_of
+from skidbench.models.augmented.effects import CATALOGUE, INPUT_BOUNDS, family_of
 from skidbench.models.augmented.fit import (
     CHANNELS,
     Augmenter,
@@ -146,8 +146,13 @@ def score_catalogue(run: Search, candidates: tuple[str, ...]) -> Scored:
     scored held out against the current model."""
     scored: Scored = {}
     for eid in candidates:
-        if eid in run.effects:
-            continue
+        if eid in run.effects or (eid in INPUT_BOUNDS and any(e in INPUT_BOUNDS for e in run.effects)):
+            continue  # one input transform at most
+        if (
+            eid == "actuator_dead_time"
+            and not scored.get("actuator_lag", ({"rule_ok": False},))[0]["rule_ok"]
+        ):
+            continue  # the dead time is scored against the lag only when the lag earns its place
         ho = cross_validate(run.aug, run.effects + [eid], run.warm, run.terms)
         scored[eid] = (compare(run.cur, ho, CATALOGUE[eid].n_params, run.settings), ho)
     return scored

@@ -37,7 +37,7 @@ import pandas as pd
 
 from skidbench.benchmark.scoring.horizon import rmsre, window_errors
 from skidbench.models.augmented import terms as termlib
-from skidbench.models.augmented.effects import CATALOGUE
+from skidbench.models.augmented.effects import CATALOGUE, INPUT_BOUNDS
 from skidbench.models.augmented.fit import CHANNELS, Augmenter, DiscoverSettings, Pool
 
 
@@ -259,7 +259,7 @@ def fold_signs(ho: HeldOut, name: str) -> np.ndarray:
         v = fp.get("candidate_term") if "candidate_term" in fp else fp.get(name)
         if not v:
             return np.zeros(0)
-        x = float(v[0]) if name != "actuator_lag" else 1.0  # a time constant is a magnitude
+        x = float(v[0]) if name not in INPUT_BOUNDS else 1.0  # a time constant or a delay is a magnitude
         vals.append(np.sign(x) if abs(x) > 1e-12 else 0.0)
     return np.asarray(vals)
 

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.models.augmented import terms as termlib
-from skidbench.pipeline.calibrate.wheel_response import lag_response
+from skidbench.pipeline.calibrate.wheel_response import CMD_COLUMNS, lag_response
 
 INF = float("inf")
 
@@ -93,6 +93,19 @@ CATALOGUE: dict[str, Effect] = {
             -1,
             "input",
             (0.1,),
+            "commanded acceleration (m/s^2, rad/s^2 scaled)",
+            ((0.0, INF),),
+        ),
+        Effect(
+            "actuator_dead_time",
+            "The robot follows its commands after a pure delay (a dead time in the drive's loop), or its "
+            "poses are stamped late against its commands; without wheel encoders the two cannot be told "
+            "apart.",
+            "u_delayed(t) = u_cmd(t - d)  (both channels, per sequence)",
+            ("d",),
+            -1,
+            "input",
+            (0.03,),
             "commanded acceleration (m/s^2, rad/s^2 scaled)",
             ((0.0, INF),),
         ),
@@ -204,7 +217,47 @@ EFFECT_IDS: tuple[str, ...] = (
 #: fits best carries the catalogue's name (docs/discovery.md, "The catalogue, as families")
 FAMILIES: dict[str, tuple[str, ...]] = {
     "side_asymmetry": ("side_asymmetry", "side_asymmetry_yaw"),
+    "actuator_lag": ("actuator_lag", "actuator_dead_time"),
 }
+#: the input transforms and the range their constant is searched in (None: ``DiscoverSettings.tau_bounds``)
+INPUT_BOUNDS: dict[str, tuple[float, float] | None] = {
+    "actuator_lag": None,
+    "actuator_dead_time": (0.005, 0.3),
+}
+
+
+def input_effect(effects) -> str | None:
+    """The input transform among ``effects`` (at most one: the members of ``actuator_lag``), else None."""
+    return next((e for e in effects if e in INPUT_BOUNDS), None)
+
+
+def delayed_commands(table: pd.DataFrame, d: float, groups: np.ndarray) -> pd.DataFrame:
+    """The commands (and their derivatives) read ``d`` s earlier, per group (sequence), linear between
+    samples and held at the group's first value before it starts: a pure dead time."""
+    out = table.copy()
+    t = table["t"].to_numpy(float)
+    cols = [*CMD_COLUMNS, "cmd_dwl", "cmd_dwr"]
+    u = table[cols].to_numpy(float)
+    y = np.empty_like(u)
+    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
+    ends = np.r_[starts[1:], len(t)]
+    for a, b in zip(starts, ends, strict=True):
+        for j in range(len(cols)):
+            y[a:b, j] = np.interp(t[a:b] - d, t[a:b], u[a:b, j])
+    for j, c in enumerate(cols):
+        out[c] = y[:, j]
+    return out
+
+
+def input_response(eid: str, table: pd.DataFrame, value: float, groups: np.ndarray) -> pd.DataFrame:
+    """The commands through the input transform ``eid`` with its constant ``value``."""
+    if eid == "actuator_lag":
+        return lag_response(table, value, groups)
+    if eid == "actuator_dead_time":
+        return delayed_commands(table, value, groups)
+    raise KeyError(eid)
+
+
 #: what discovery asks first when the robot's radius was not calibrated: a calibration finding
 SPEED_SCALE = "speed_scale"
 
@@ -344,7 +397,7 @@ def revealing_feature(eid: str, feats: dict[str, np.ndarray], pred: np.ndarray) 
     """What the residual of the effect's channel is plotted against (the evidence in the figure)."""
     if eid == "angular_acceleration_slip":
         return feats["dw"]
-    if eid in ("linear_acceleration_slip", "actuator_lag"):
+    if eid in ("linear_acceleration_slip", "actuator_lag", "actuator_dead_time"):
         return feats["dv"]
     if eid == "centripetal_side_slip":
         return pred[:, 0] * pred[:, 2]
@@ -377,8 +430,9 @@ def augmented_prediction(
         pd.factorize(table["sequence"])[0] if "sequence" in table.columns else np.zeros(len(table), np.int64)
     )
     inputs = table
-    if "actuator_lag" in params:
-        inputs = lag_response(table, float(np.asarray(params["actuator_lag"])[0]), groups)
+    inp = input_effect(params)
+    if inp is not None:
+        inputs = input_response(inp, table, float(np.asarray(params[inp])[0]), groups)
     base_pred = np.asarray(base_model.predict(inputs), dtype=float)
     corr = {e: np.asarray(p, dtype=float) for e, p in params.items() if CATALOGUE[e].kind != "input"}
     feats = command_features(inputs, wheel_radius, track_width)

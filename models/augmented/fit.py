@@ -23,14 +23,16 @@ from scipy.optimize import least_squares, minimize_scalar
 from skidbench.models.augmented import terms as termlib
 from skidbench.models.augmented.effects import (
     CATALOGUE,
+    INPUT_BOUNDS,
     SPEED_SCALE,
     apply_effects,
     base_targets,
     command_features,
+    input_effect,
+    input_response,
     sqrt_radius,
 )
 from skidbench.models.base import KinematicModel
-from skidbench.pipeline.calibrate.wheel_response import lag_response
 from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.protocol import INPUT_COLUMNS
 from skidbench.pipeline.core.robot import Robot
@@ -202,14 +204,17 @@ class Augmenter:
         self._feats0 = command_features(pool.table, robot.wheel_radius, robot.track_width)
         self.weights = np.ones(3)
 
-    def inputs(self, tau: float | None) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+    def inputs(
+        self, tau: float | None, eid: str = "actuator_lag"
+    ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+        """The pool's inputs through the input transform ``eid`` at ``tau`` (cached), with their features."""
         if tau is None:
             return self.pool.table, self._feats0
-        key = round(float(tau), 6)
+        key = (eid, round(float(tau), 6))
         if key not in self._lag_cache:
             if len(self._lag_cache) > 64:
                 self._lag_cache.clear()
-            tab = lag_response(self.pool.table, key, self.pool.groups)
+            tab = input_response(eid, self.pool.table, key[1], self.pool.groups)
             self._lag_cache[key] = (
                 tab,
                 command_features(tab, self.robot.wheel_radius, self.robot.track_width),
@@ -249,16 +254,15 @@ class Augmenter:
         if rows is None:
             rows = np.isin(self.pool.units, train_units) & self.pool.valid
         terms = list(terms)
-        if "actuator_lag" in effects:
-            if fixed_tau and warm and "actuator_lag" in warm:  # scoring another candidate: keep tau
-                return self._fit_at(
-                    effects, rows, float(warm["actuator_lag"][0]), warm, quick=False, terms=terms
-                )
+        inp = input_effect(effects)
+        if inp is not None:
+            if fixed_tau and warm and inp in warm:  # scoring another candidate: keep tau
+                return self._fit_at(effects, rows, float(warm[inp][0]), warm, quick=False, terms=terms)
             # a fixed log grid (lag-filtered inputs are cached and shared by folds and candidates), then
             # Brent's bounded search between the best grid point's neighbours (in log tau): the loss is far
             # from a parabola over the grid's spacing (x1.6), and a parabola through three grid points put
             # an 80 ms lag at 74 ms, a misfit a second effect then took (an acceleration slip after the lag)
-            lo, hi = self.s.tau_bounds
+            lo, hi = INPUT_BOUNDS[inp] or self.s.tau_bounds
             grid = np.exp(np.linspace(math.log(lo), math.log(hi), 10))
             losses = np.array(
                 [self._fit_at(effects, rows, g, warm, quick=True, terms=terms).loss for g in grid]
@@ -284,8 +288,9 @@ class Augmenter:
         terms: list[termlib.Term] | None = None,
     ) -> FitState:
         terms = list(terms or [])
-        table, feats = self.inputs(tau)
-        key = (None if tau is None else round(float(tau), 6), rows.tobytes().__hash__())
+        inp = input_effect(effects)
+        table, feats = self.inputs(tau, inp or "actuator_lag")
+        key = (inp, None if tau is None else round(float(tau), 6), rows.tobytes().__hash__())
         corr = [e for e in effects if CATALOGUE[e].kind != "input"]
         base = self._fit_base(table, rows, None, key)
         base_pred = base.predict(table[list(INPUT_COLUMNS)])  # a model sees only its inputs
@@ -329,7 +334,7 @@ class Augmenter:
         pred = apply_effects(base_pred, feats, params) + self._term_sum(terms, theta, feats, base_pred)
         all_params = dict(params)
         if tau is not None:
-            all_params = {"actuator_lag": np.array([tau]), **all_params}
+            all_params = {inp or "actuator_lag": np.array([tau]), **all_params}
         gains = self._gains(feats, base_pred)
         tp = {
             t.key: {"theta": float(th), "c_v": gains[0], "c_w": gains[1]}
