@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce readme-numbers test test-fast lint clean bench discover mlflow-ui lock system-packages
+.PHONY: setup reproduce reproduce-state readme-numbers test test-fast lint clean bench discover mlflow-ui lock system-packages
 
 setup: $(STAMP)
 
@@ -74,6 +74,18 @@ endif
 	$(SKB) calibrate $(SRC_ARGS)
 	$(BIN)/python -m skidbench.pipeline.runner.side_by_side \
 		$(SKB) evaluate $(SRC_ARGS) :: $(SKB) evaluate $(SRC_ARGS) inputs=response
+	$(SKB) compare $(SRC_ARGS)
+
+# `make reproduce-state` after `make reproduce` (the same SCALE/SOURCE/DATA/ARGS): the state protocol's
+# evaluate (each window from the robot's state, docs/plugins.md section 9) of every model and the two
+# dynamics models at the horizons of the error-against-horizon curve (the 6 s board first), then compare
+# (reports/horizons.md: error against horizon by aggressiveness). The other models' fits are the commanded
+# evaluate's (the same fit files).
+STATE_ARGS ?= 'models=[ideal,edd,full_linear,roc,enhanced,friction,drive_blr,gp_residual,relax,state_ridge]' \
+	'horizons=[6.0,0.5,1.0,2.0,4.0]'
+
+reproduce-state: setup
+	$(SKB) evaluate $(SRC_ARGS) inputs=state $(STATE_ARGS)
 	$(SKB) compare $(SRC_ARGS)
 
 # `make readme-numbers OUT=<dir>` after `make reproduce OUT=<dir>` (a fresh root, the default mini scale):
