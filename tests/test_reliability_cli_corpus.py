@@ -21,7 +21,7 @@ import pandas as pd
 import pytest
 from reliability_data import snapshot
 
-from skidbench.pipeline.cli import main
+from skidbench.pipeline.cli.main import main
 
 sys.path.insert(0, str(Path(__file__).parent / "bad_inputs"))
 from make_corpus import make  # noqa: E402
