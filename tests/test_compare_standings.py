@@ -7,6 +7,8 @@ one-window splits ranks nothing and says why."""
 from __future__ import annotations
 
 import re
+import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -191,3 +193,45 @@ def test_figs_3_4_draw_each_cells_interval_and_the_floor(tmp_path, monkeypatch):
         v, lo, hi = rows.loc[0, [key, f"{key}_ci_lo", f"{key}_ci_hi"]]
         assert y[0] == v and yerr[:, 0] == pytest.approx([v - lo, hi - v])
     assert floors == [0.05]  # the floor's line on the LD panel only (no CV floor given)
+
+
+class _Tracker:
+    """What log_floor asks of a tracker: artifacts and metrics/tags, remembered."""
+
+    def __init__(self):
+        self.logged: list[dict] = []
+
+    def artifact(self, run_id, path, where):
+        pass
+
+    def log(self, run_id, params=None, metrics=None, tags=None):
+        self.logged.append({"metrics": metrics or {}, "tags": tags or {}})
+
+
+def test_a_recording_without_an_independent_truth_has_an_unknown_floor_and_the_board_says_why(tmp_path):
+    # a real recording: no simulator truth table next to its extracted tables; the floor is not
+    # estimated from the ground truth's own velocities, it is declared unknown with the reason
+    from skidbench.benchmark.board.boards import read_windows
+    from skidbench.benchmark.evaluate.references import log_floor
+    from skidbench.benchmark.scoring.horizon import HorizonConfig
+    from skidbench.benchmark.scoring.intervals import IntervalConfig
+    from skidbench.benchmark.scoring.predictions import TestSequence
+    from skidbench.pipeline.core.layout import Layout
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _bench_data import sequence_table
+
+    layout = Layout(tmp_path, "drive")
+    seq = TestSequence("husky_ld_00", tmp_path / "husky_ld_00.parquet", sequence_table(0, 20.0), {})
+    tracker = _Tracker()
+    stem, settings = layout.eval_stem(FLOOR, "grass"), IntervalConfig(resamples=200)
+    got = log_floor(tracker, "p", stem, "grass", {"ld": [seq]}, [H], HorizonConfig(H), settings, "commanded",
+                    None, layout.extracted)  # fmt: skip
+    assert got == {} and not any(entry["metrics"] for entry in tracker.logged)
+    reason = tracker.logged[0]["tags"]["floor.grass.unknown"]
+    assert reason.startswith("floor unknown: no independent truth") and "husky_ld_00" in reason
+    rows = pd.DataFrame(
+        {"model": ["friction"], "terrain": ["grass"], "status": ["FINISHED"], "run_id": ["r"]}
+    )
+    windows, notes = read_windows(layout, rows, "commanded", H)
+    assert (FLOOR, "grass") not in windows and notes[-1] == f"grass: {reason}"
