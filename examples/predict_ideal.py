@@ -3,12 +3,12 @@ skidbench (numpy and pandas only), as another lab would run its own model (C++, 
 
     python examples/predict_ideal.py <bundle> <predictions.parquet|.csv> [protocol]
 
-Reads the bundle (``skidbench export``): ``bundle.json`` (the robot), ``calibration/<terrain>.json`` (its
-identified wheel radius and track width) and the model-input tables ``inputs/<protocol>/<terrain>/<cv|ld>/
-*.parquet`` (columns ``t sequence cmd_v cmd_w cmd_wl cmd_wr cmd_dwl cmd_dwr``), predicts the body
-velocities ``vx = r (wl + wr) / 2``, ``vy = 0``, ``wz = r (wr - wl) / B`` (the paper's eq. 1 with chi = 1)
-and writes one row per input row: ``sequence, t, vx, vy, wz``. Then
-``skidbench score <dataset> --predictions <file> inputs=<protocol>``.
+Reads the public half of a bundle (``skidbench export``'s ``<dir>/public``): ``bundle.json`` (the robot),
+``calibration/<terrain>.json`` (its identified wheel radius and track width) and the model-input tables
+``inputs/<protocol>/<terrain>/<cv|ld>/*.parquet`` (columns ``t sequence cmd_v cmd_w cmd_wl cmd_wr cmd_dwl
+cmd_dwr``), predicts the body velocities ``vx = r (wl + wr) / 2``, ``vy = 0``, ``wz = r (wr - wl) / B`` (the
+paper's eq. 1 with chi = 1) and writes one row per input row: ``sequence, t, vx, vy, wz``. Then ``skidbench
+score <dataset> --predictions <file> inputs=<protocol> score.check=true`` checks it.
 """
 
 from __future__ import annotations

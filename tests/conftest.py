@@ -156,20 +156,28 @@ def readme_reproduce(tmp_path_factory) -> dict:
 
 @pytest.fixture(scope="session")
 def publishing_walkthrough(readme_reproduce, tmp_path_factory) -> dict:
-    """docs/publishing.md's walkthrough (its ``run`` block's lines: the quick start's dataset exported to
-    ``release/``, imported into ``lab-b``, the ideal model's predictions written by examples/predict_ideal.py
-    and scored there, compare, publish) executed once per session on the quick start's root (read only), in
-    a folder of its own (``$TMP``, the block's cwd):
-    ``{"tmp": <folder>, "results": [one dict per command, as readme_reproduce's]}``.
-    tests/test_docs_commands.py asserts that it succeeds, tests/test_release.py what it wrote."""
+    """docs/publishing.md's walkthroughs (its ``run`` blocks in order: the quick start's dataset exported to
+    ``release/public`` and ``release/private``; the public half imported into ``lab-b``, the ideal model's
+    predictions written by examples/predict_ideal.py and checked there; both halves imported into
+    ``board``, the predictions scored, compared and published there) executed once per session on the
+    quick start's root (read only), in one folder of their own (``$TMP``, the blocks' cwd): ``{"tmp":
+    <folder>, "results": [one dict per command, as readme_reproduce's, with its block's id]}``, up to the
+    first that fails. tests/test_docs_commands.py asserts that they succeed, tests/test_release.py what they
+    wrote."""
     from doc_blocks import doc_env, publishing, run_block
 
     quick = Path(readme_reproduce["root"])
-    tmp, results = once_per_session(
-        tmp_path_factory,
-        "publishing_walkthrough",
-        lambda tmp: run_block(publishing(), {**doc_env(quick), "TMP": str(tmp)}),
-    )
+
+    def run(tmp: Path) -> list[dict]:
+        results: list[dict] = []
+        for block in publishing():
+            got = [{**r, "block": block.id} for r in run_block(block, {**doc_env(quick), "TMP": str(tmp)})]
+            results += got
+            if any(r["returncode"] for r in got):
+                break
+        return results
+
+    tmp, results = once_per_session(tmp_path_factory, "publishing_walkthrough", run)
     return {"tmp": tmp, "results": results}
 
 

@@ -114,11 +114,11 @@ def quickstart() -> Block:
     return block
 
 
-def publishing() -> Block:
-    """docs/publishing.md's walkthrough: its ``run`` block on the quick start's root (export, import,
-    evaluate, predict, score, compare, publish)."""
-    (block,) = [b for b in BLOCKS if b.doc.name == "publishing.md" and b.mode == "run"]
-    return block
+def publishing() -> list[Block]:
+    """docs/publishing.md's walkthroughs, its ``run`` blocks in order, on the quick start's root and one
+    folder: the maintainer releases (export), a lab submits (import the public half, predict, check), the
+    maintainer scores and publishes (import with the answers, score, compare, publish)."""
+    return [b for b in BLOCKS if b.doc.name == "publishing.md" and b.mode == "run"]
 
 
 def doc_env(out: Path) -> dict[str, str]:

@@ -140,8 +140,9 @@ def test_documented_blocks_run_as_written(block, request):
         pytest.skip("../shared/data/real is absent")
     if block.id == quickstart().id:  # executed once per session (run_block), its results read here
         results = request.getfixturevalue("readme_reproduce")["results"]
-    elif block.id == publishing().id:  # once per session too: tests/test_release.py reads what it wrote
-        results = request.getfixturevalue("publishing_walkthrough")["results"]
+    elif block.id in {b.id for b in publishing()}:  # once per session too: tests/test_release.py reads them
+        walked = request.getfixturevalue("publishing_walkthrough")["results"]
+        results = [r for r in walked if r["block"] == block.id]
     elif block.opts["root"] == "quickstart":  # on the quick start's evaluated root, writing under $TMP only
         tmp = request.getfixturevalue("tmp_path")
         env = {**doc_env(Path(request.getfixturevalue("readme_reproduce")["root"])), "TMP": str(tmp)}

@@ -176,6 +176,16 @@ def test_holm_rejects_step_down():
     assert rk.p_greater(1.0, 0.0, 5.0) == 0.0 and rk.p_greater(np.nan, 1.0, 5.0) == 1.0
 
 
+def test_a_board_of_one_entry_ranks_nothing_and_says_so():
+    alone = pd.DataFrame({"estimate": [1.0], "rankable": True, "reason": ""}, index=["A"])
+    ranks = rk.rank_board(alone, pd.DataFrame({"lo": [], "hi": []}))
+    assert ranks.loc["A", "rank"] == "" and ranks.loc["A", "standing"] == f"{rk.NOT_RANKED}: {rk.ALONE}"
+    assert rk.board_verdict(ranks["standing"]) == f"no entry ranked: {rk.ALONE}"
+    two = pd.DataFrame({"estimate": [1.0, 2.0], "rankable": True, "reason": ""}, index=["A", "B"])
+    diffs = pd.DataFrame({"lo": [-1.5], "hi": [-0.5]}, index=pd.MultiIndex.from_tuples([("A", "B")]))
+    assert rk.rank_board(two, diffs).loc["A", "standing"] == rk.BEST  # one more entry: ranked
+
+
 def test_a_split_with_one_window_is_shown_but_not_ranked():
     s = iv.Sample()
     s.add("grass/cv", ["raw_00"], [0.0], {"A": [3.79], "B": [73.78]}, H)

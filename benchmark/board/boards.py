@@ -55,8 +55,14 @@ PROVENANCE_COLUMNS = (
     "splits_fingerprint",
     "external",
     "predictions_sha256",
+    "link",
+    "submitter",
+    "submitted",
+    "description",
     "reproduce",
 )
+#: a submission's identity (``skidbench score``: benchmark/release/submission.py), "" for an evaluated model
+SUBMISSION_COLUMNS = ("link", "submitter", "submitted", "description")
 TAG_OPTIONS = "skidbench.options_digest"  # the options a child run was made with (evaluate's _start_child)
 TAG_SKIDBENCH_VERSION = "skidbench.version"
 TAG_CODE = "skidbench.code."  # + version, digest, ...: the model's code (its distribution and files)
@@ -132,6 +138,8 @@ def provenance(runs: pd.DataFrame) -> pd.DataFrame:
             "splits_fingerprint": tag(run_tags.TAG_FINGERPRINT),
             "external": _col(runs, f"tags.{run_tags.TAG_EXTERNAL}").fillna("false").eq("true"),
             "predictions_sha256": tag(run_tags.TAG_PREDICTIONS_SHA256),
+            # a submission's identity (benchmark/release/submission.py); "" for an evaluated model
+            **{k: tag(run_tags.TAG_SUBMISSION + k) for k in SUBMISSION_COLUMNS},
             "reproduce": _col(runs, f"tags.{run_tags.TAG_NOTE}").map(_reproduce),
         }
     )

@@ -1,31 +1,32 @@
-"""A released benchmark: ``skidbench export <dataset> <dir>`` writes a dataset and its board as a bundle
-(a folder of plain files), ``skidbench import <dir>`` verifies one and makes a dataset of it.
+"""A released benchmark: ``skidbench export <dataset> <dir>`` writes a dataset and its board as bundles
+(folders of plain files), ``skidbench import <dir>`` (benchmark/release/importer.py) verifies one and
+makes a dataset of it.
 
 A bundle (format ``skidbench-bundle`` version :data:`BUNDLE_VERSION`)::
 
-    bundle.json                    what it is: the dataset (name, source, identity), the robot (name and
-                                   constants), every sequence (terrain, split, file, rows, seconds), the
-                                   protocol and metric versions and the settings the board was scored with,
-                                   the calibration settings, the licence and provenance of the source data,
-                                   the skidbench version and commit that wrote it
+    bundle.json                    what it is: the release (``withheld``: the public half of
+                                   benchmark/release/halves.py; ``open``), the dataset (name, source,
+                                   identity), the robot (name and constants), every sequence (terrain,
+                                   split, rows, seconds, its split file when the bundle holds it), the
+                                   protocols whose inputs it holds, the protocol and metric versions and
+                                   the settings the board was scored with, the calibration settings, the
+                                   licence and provenance of the source data, the skidbench version and
+                                   commit that wrote it
     SHA256SUMS                     the sha256 of every other file (``sha256sum -c SHA256SUMS`` checks it)
-    README.md                      what is in it and how to use it (import, score, the inputs contract)
-    card.md                        the dataset card (the paper's Table I for these splits)
-    splits/<terrain>/<train|cv|ld>/<seq>.parquet     the split files, byte for byte (pipeline/core/schema.py)
+    README.md                      what is in it and how to use it
+    card.md                        the dataset card (benchmark/release/halves.py ``public_card``)
+    splits/<terrain>/<split>/<seq>.parquet   the split files it holds, byte for byte (pipeline/core/schema.py)
     calibration/<terrain>.json     the effective wheel radius and track width and the wheel response
     board/<protocol>.csv|json      the board of each protocol evaluated, every row with its provenance
                                    (benchmark/board/boards.py)
-    inputs/<protocol>/<terrain>/<split>/<seq>.parquet   the exact table a model is run on under the chosen
-                                   protocol (``inputs=``): pipeline/core/protocol.py ``model_inputs``, the
-                                   columns ``INPUT_COLUMNS`` only, never the targets, the pose or the
+    inputs/<protocol>/<terrain>/<split>/<seq>.parquet   the exact table a model is run on under each
+                                   protocol the data allow: pipeline/core/protocol.py ``model_inputs``,
+                                   the columns ``INPUT_COLUMNS`` only, never the targets, the pose or the
                                    encoders
+    windows.parquet                the windows the board scores
 
-Import checks every file against ``SHA256SUMS`` before anything is written (a missing, changed or unlisted
-file is one line naming it) and builds ``<out_root>/<name>/`` (pipeline/datasets/imported.py) in a temporary
-folder
-renamed into place: nothing is half-written. Evaluate on it (``source=bundle dataset=<name>``) refits the
-same built-in models on the same bytes and scores them the same way, so its board equals the exported one
-cell for cell.
+Export builds every bundle in a temporary sibling folder renamed into place when complete: nothing is
+half-written.
 """
 
 from __future__ import annotations
@@ -37,28 +38,27 @@ import json
 import os
 import re
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pyarrow as pa
-
 from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.tracking import store as trk
 from skidbench.pipeline.core.errors import SkidbenchError, one_line
-from skidbench.pipeline.core.io import sha256_file, write_json_atomic, write_parquet_atomic, write_text_atomic
-from skidbench.pipeline.core.layout import Layout, fingerprint_of, remove_atomic, split_terrains
-from skidbench.pipeline.core.manifest import SPLITS, Manifest
-from skidbench.pipeline.core.manifest import Sequence as ManifestSequence
-from skidbench.pipeline.core.protocol import INPUT_COLUMNS, PROTOCOL_VERSION, model_inputs
+from skidbench.pipeline.core.io import sha256_file, write_json_atomic, write_text_atomic
+from skidbench.pipeline.core.layout import Layout, split_terrains
+from skidbench.pipeline.core.manifest import Manifest
+from skidbench.pipeline.core.protocol import INPUT_COLUMNS, PROTOCOL_VERSION
 from skidbench.pipeline.core.schema import read_split
-from skidbench.pipeline.datasets.identity import DatasetIdentity, read_record, record
-from skidbench.pipeline.datasets.imported import RECORD_DIR, SOURCE
+from skidbench.pipeline.datasets.identity import read_record
+from skidbench.pipeline.datasets.imported import RECORD_DIR
 from skidbench.pipeline.runner import environment
 
 BUNDLE_FORMAT = "skidbench-bundle"
-BUNDLE_VERSION = 1
+#: 2: the release (withheld test truth: public and private halves), every protocol's inputs, the windows
+BUNDLE_VERSION = 2
 SUMS = "SHA256SUMS"
 #: the metric every board of a bundle is scored with (benchmark/scoring/horizon.py), and its version
 METRIC = {
@@ -107,16 +107,17 @@ def read_sums(folder: Path) -> dict[str, str]:
     return out
 
 
-def verify(folder: Path) -> dict[str, str]:
-    """Checks every file of a bundle against ``SHA256SUMS``: BundleError (one line naming the file) for a
-    listed file that is missing or whose sha256 differs, and for a file the list does not hold. Returns
-    the list."""
+def verify(folder: Path, doc: str = "bundle.json") -> dict[str, str]:
+    """Checks every file of a bundle (or of a private half: ``doc`` its ``answers.json``) against
+    ``SHA256SUMS``: BundleError (one line naming the file) for a listed file that is missing or whose
+    sha256 differs, and for a file the list does not hold. Returns the list."""
     folder = Path(folder)
     if not folder.is_dir():
         raise BundleError(f"{folder}: no such folder")
     sums = read_sums(folder)
-    if "bundle.json" not in sums:
-        raise BundleError(f"{folder / SUMS}: does not list bundle.json; not a skidbench bundle")
+    if doc not in sums:
+        what = "bundle" if doc == "bundle.json" else "bundle's private half"
+        raise BundleError(f"{folder / SUMS}: does not list {doc}; not a skidbench {what}")
     for rel, want in sums.items():
         path = folder / rel
         if not path.is_file():
@@ -135,20 +136,50 @@ def verify(folder: Path) -> dict[str, str]:
     return sums
 
 
-def content_id(folder: Path) -> str:
-    """The identity of a bundle's content: the fingerprint of its ``SHA256SUMS`` (12 hex digits)."""
-    return fingerprint_of({"source": SOURCE, "sha256": sha256_file(Path(folder) / SUMS)})
+def release_of(doc: dict[str, Any]) -> str:
+    """A bundle's release: ``withheld`` (a public half) or ``open`` (a bundle of version 1: open)."""
+    return str(doc.get("release") or hv.OPEN)
+
+
+def read_doc(folder: Path) -> dict[str, Any]:
+    """``<folder>/bundle.json``; BundleError (one line) when it is missing, unreadable or newer."""
+    path = folder / "bundle.json"
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise BundleError(f"{path}: missing; {folder} is not a skidbench bundle") from None
+    except (OSError, ValueError) as exc:
+        raise BundleError(f"{path}: not readable JSON ({one_line(str(exc))})") from None
+    if not isinstance(doc, dict) or doc.get("format") != BUNDLE_FORMAT:
+        raise BundleError(
+            f"{path}: not a skidbench bundle (format {doc.get('format') if isinstance(doc, dict) else '?'!r})"
+        )
+    if int(doc.get("version", 0)) > BUNDLE_VERSION:
+        raise BundleError(
+            f"{path}: bundle version {doc.get('version')} is newer than this skidbench reads "
+            f"({BUNDLE_VERSION}); upgrade skidbench"
+        )
+    return doc
+
+
+def read_bundle_doc(folder: Path) -> dict[str, Any] | None:
+    """``<folder>/bundle.json`` (a bundle, or an imported dataset's ``bundle/`` record), else None."""
+    with contextlib.suppress(OSError, ValueError):
+        doc = json.loads((Path(folder) / "bundle.json").read_text())
+        return doc if isinstance(doc, dict) and doc.get("format") == BUNDLE_FORMAT else None
+    return None
 
 
 # -- export ------------------------------------------------------------------------------------------
 @dataclass
 class ExportResult:
     folder: Path
+    release: str
     files: int
     bytes: int
     boards: list[str]
-    inputs: str
-    sequences: int
+    inputs: dict[str, list[str]]
+    windows: int
 
 
 def _version() -> str:
@@ -169,12 +200,12 @@ def _calibration_settings(layout: Layout, terrain: str) -> dict[str, Any] | None
 @dataclass(frozen=True)
 class ExportSettings:
     """What ``export`` reads of its config: the robot (``robot``) and calibrations the inputs are made
-    with, the input protocol written (``inputs``), the source data's ``bundle.licence`` and
+    with, the release (``bundle.release``: withheld or open), the source data's ``bundle.licence`` and
     ``bundle.provenance`` (None: unset)."""
 
-    robot: Any  # pipeline.robot.Robot
-    calibrations: Any  # pipeline.calibration.Calibrations
-    inputs: str
+    robot: Any  # pipeline.core.robot.Robot
+    calibrations: Any  # pipeline.calibrate.calibration.Calibrations
+    release: str
     licence: str | None
     provenance: str | None
 
@@ -185,9 +216,12 @@ class ExportSettings:
 
         b = cfg.bundle
         return cls(
-            robot_from_hydra(cfg.robot), Calibrations.from_cfg(cfg), str(cfg.get("inputs") or "commanded"),
-            str(b.get("licence")) if b.get("licence") else None, b.get("provenance") or None,
-        )  # fmt: skip
+            robot_from_hydra(cfg.robot),
+            Calibrations.from_cfg(cfg),
+            str(b.get("release") or hv.WITHHELD),
+            str(b.get("licence")) if b.get("licence") else None,
+            b.get("provenance") or None,
+        )
 
 
 def licence_of(licence: str | None, source: str) -> str:
@@ -204,10 +238,12 @@ def licence_of(licence: str | None, source: str) -> str:
     )
 
 
-def _sequences(layout: Layout, manifest: Manifest) -> list[dict[str, Any]]:
+def _sequences(layout: Layout, manifest: Manifest, held: set[Path]) -> list[dict[str, Any]]:
+    """Every train/cv/ld sequence: its rows and seconds, and its split file when ``held`` has it (None:
+    withheld)."""
     out = []
     for seq in manifest.sequences:
-        if seq.category not in SPLITS:
+        if seq.category not in ("train", *hv.TEST_SPLITS):
             continue
         path = layout.split_file(seq.terrain, seq.category, seq.name)
         df, meta = read_split(path)
@@ -217,148 +253,145 @@ def _sequences(layout: Layout, manifest: Manifest) -> list[dict[str, Any]]:
                 "name": seq.name,
                 "terrain": seq.terrain,
                 "split": seq.category,
-                "file": path.relative_to(layout.root).as_posix(),
+                "file": path.relative_to(layout.root).as_posix() if path in held else None,
                 "rows": int(len(df)),
                 "duration_s": float(t[-1] - t[0]) if len(t) > 1 else 0.0,
                 "rate_hz": meta.get("rate_hz"),
-                "sources": meta.get("sources"),
             }
         )
     return out
 
 
-def _write_inputs(s: ExportSettings, layout: Layout, manifest: Manifest, dest: Path) -> int:
-    """``inputs/<protocol>/<terrain>/<split>/<seq>.parquet``: :func:`model_inputs` of every split file
-    (Train too: a model fitted under the protocol is fitted on its inputs and the Train targets)."""
-    from skidbench.pipeline.calibrate.calibration import response_for
-
-    robot, protocol = s.robot, s.inputs
-    n = 0
-    for terrain in split_terrains(manifest):
-        response = response_for(s.calibrations, terrain) if protocol == "response" else None
-        if protocol == "response" and response is None:
-            raise BundleError(
-                f"inputs=response: {layout.calibration_file(terrain)}: no wheel response identified for "
-                f"terrain {terrain}; export inputs=commanded (or measured)"
-            )
-        for path in layout.require_split_files(manifest, terrain, None, BundleError):
-            df, meta = read_split(path)
-            seq = str(meta.get("sequence") or path.stem)
-            table = model_inputs(df.assign(sequence=seq), protocol, robot, response)
-            out = dest / "inputs" / protocol / path.relative_to(layout.splits)
-            write_parquet_atomic(
-                pa.Table.from_pandas(table[list(INPUT_COLUMNS)], preserve_index=False),
-                out,
-                {
-                    "sequence": seq,
-                    "terrain": terrain,
-                    "split": path.parent.name,
-                    "inputs": protocol,
-                    "protocol_version": PROTOCOL_VERSION,
-                    "robot": robot.name,
-                },  # fmt: skip
-            )
-            n += 1
-    return n
-
-
-def export_bundle(s: ExportSettings, layout: Layout, dest: Path, tracker: trk.Tracker | None) -> ExportResult:
-    """Writes the bundle of ``layout``'s dataset to ``dest`` (a new or empty folder), atomically: built in
-    a temporary sibling folder, renamed into place when complete."""
-    dest = Path(dest).expanduser().absolute()
+def _check_exportable(layout: Layout, dest: Path) -> tuple[Manifest, list[str]]:
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise BundleError(f"{dest}: exists and is not an empty folder; export to a new folder")
     if not layout.manifest.is_file():
         raise BundleError(
             f"{layout.root}: no dataset here (no {layout.manifest}); `skidbench datasets` lists them"
         )
-    rec = read_record(layout) or {}
-    lic = licence_of(s.licence, str(rec.get("source", "?")))
     manifest = Manifest.read(layout.manifest)
     terrains = split_terrains(manifest)
     if not terrains:
         raise BundleError(f"{layout.manifest}: no train/cv/ld sequences; nothing to export")
-    files = layout.require_split_files(manifest, None, None, BundleError)
+    layout.require_split_files(manifest, None, None, BundleError)
     for t in terrains:
         if not layout.calibration_file(t).is_file():
             raise BundleError(
                 f"{layout.calibration_file(t)}: missing; run `skidbench calibrate` (a bundle ships the "
                 "calibration every fit is built with)"
             )
+    return manifest, terrains
+
+
+def export_bundle(s: ExportSettings, layout: Layout, dest: Path, tracker: trk.Tracker | None) -> ExportResult:
+    """Writes ``layout``'s dataset to ``dest`` (a new or empty folder): its public and private halves
+    (``<dest>/public``, ``<dest>/private``: benchmark/release/halves.py), or with ``release=open`` one
+    bundle with every split file; built in a temporary sibling folder renamed into place when complete."""
+    dest = Path(dest).expanduser().absolute()
+    manifest, terrains = _check_exportable(layout, dest)
+    rec = read_record(layout) or {}
+    lic = licence_of(s.licence, str(rec.get("source", "?")))
     boards = brd.all_boards(tracker) if tracker is not None else {}
     if not boards:
         raise BundleError(
             f"{layout.root}: no `skidbench evaluate` run of dataset {layout.dataset} in the MLflow store; "
             "run it first (a bundle ships the board)"
         )
-    protocol = s.inputs
-
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".tmp-export-{dest.name}.{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     try:
-        for p in files:
-            out = tmp / p.relative_to(layout.root)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(p, out)
-        card = layout.splits / "card.md"
-        if card.is_file():
-            shutil.copyfile(card, tmp / "card.md")
-        calib_settings = {}
-        for t in terrains:
-            (tmp / "calibration").mkdir(exist_ok=True)
-            shutil.copyfile(layout.calibration_file(t), tmp / "calibration" / f"{t}.json")
-            calib_settings[t] = _calibration_settings(layout, t)
-        for b in boards.values():
-            brd.write_board(
-                b, tmp / "board", {"dataset": layout.dataset, "dataset_id": rec.get("fingerprint")}
-            )
-        n_inputs = _write_inputs(s, layout, manifest, tmp)
-        doc = _bundle_doc(s, layout, rec, manifest, boards, lic, calib_settings)
-        write_json_atomic(tmp / "bundle.json", doc)
-        write_text_atomic(tmp / "README.md", _readme(doc))
-        write_sums(tmp)
+        public = tmp if s.release == hv.OPEN else tmp / hv.PUBLIC
+        doc, n_windows = _write_public(s, layout, manifest, terrains, rec, boards, lic, public)
+        if s.release == hv.WITHHELD:
+            _write_private(layout, manifest, tmp / hv.PRIVATE, public, doc["written_by"])
         if dest.exists():
             dest.rmdir()  # empty (checked above)
         os.replace(tmp, dest)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    n_files = len(bundle_files(dest)) + 1
+    write_json_atomic(layout.root / hv.RELEASE_RECORD, {"release": s.release, **doc["written_by"]})
+    n_files = sum(1 for p in dest.rglob("*") if p.is_file())
     size = sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
-    return ExportResult(dest, n_files, size, list(boards), protocol, n_inputs)
+    return ExportResult(dest, s.release, n_files, size, list(boards), doc["protocol"]["inputs"], n_windows)
 
 
-def _bundle_doc(s: ExportSettings, layout, rec, manifest, boards, lic, calib_settings) -> dict[str, Any]:
-    robot, protocol = s.robot, s.inputs
+def _write_public(s, layout, manifest, terrains, rec, boards, lic, out: Path) -> tuple[dict[str, Any], int]:
+    """The bundle a lab downloads (all of it for an open release); its bundle.json and window count."""
+    out.mkdir(parents=True)
+    held = hv.public_files(layout, manifest, s.release)
+    for p in held:
+        target = out / p.relative_to(layout.root)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(p, target)
+    write_text_atomic(out / "card.md", hv.public_card(layout, manifest, s.robot, s.release, lic))
+    calib_settings = {}
+    for t in terrains:
+        (out / "calibration").mkdir(exist_ok=True)
+        shutil.copyfile(layout.calibration_file(t), out / "calibration" / f"{t}.json")
+        calib_settings[t] = _calibration_settings(layout, t)
+    for b in boards.values():
+        brd.write_board(b, out / "board", {"dataset": layout.dataset, "dataset_id": rec.get("fingerprint")})
+    inputs = hv.write_inputs(s.robot, s.calibrations, layout, manifest, out, BundleError)
+    first = next(iter(boards.values()))
+    horizons = [float(h) for h in (first.settings.get("horizons") or [first.horizon])]
+    n_windows = hv.write_windows(layout, manifest, horizons, out)
+    doc = _bundle_doc(s, layout, rec, manifest, boards, lic, calib_settings, set(held), inputs)
+    write_json_atomic(out / "bundle.json", doc)
+    write_text_atomic(out / "README.md", _readme(doc))
+    write_sums(out)
+    return doc, n_windows
+
+
+def _write_private(layout: Layout, manifest: Manifest, out: Path, public: Path, written_by) -> None:
+    """The answers the maintainer keeps: the CV/LD split files and ``answers.json`` naming ``public``."""
+    out.mkdir(parents=True)
+    seqs = []
+    for p in hv.private_files(layout, manifest):
+        rel = p.relative_to(layout.root)
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(p, out / rel)
+        seqs.append(
+            {"name": p.stem, "terrain": p.parent.parent.name, "split": p.parent.name, "file": rel.as_posix()}
+        )
+    hv.write_answers(out, hv.answers_doc(layout.dataset, sha256_file(public / SUMS), seqs, written_by))
+    hv.write_private_readme(out, layout.dataset)
+    write_sums(out)
+
+
+def _bundle_doc(
+    s: ExportSettings, layout, rec, manifest, boards, lic, calib_settings, held, inputs
+) -> dict[str, Any]:
+    robot = s.robot
     first = next(iter(boards.values()))
     return {
         "format": BUNDLE_FORMAT,
         "version": BUNDLE_VERSION,
+        "release": s.release,
         "dataset": {
             "name": layout.dataset,
             "source": rec.get("source"),
-            "root": rec.get("root"),
             "fingerprint": rec.get("fingerprint"),
             "terrains": split_terrains(manifest),
             "robot": manifest.robot,
         },
         "robot": {"name": robot.name, "spec": json.loads(json.dumps(robot.to_dict(), default=str))},
-        "sequences": _sequences(layout, manifest),
+        "sequences": _sequences(layout, manifest, held),
         "protocol": {
             "version": PROTOCOL_VERSION,
             "input_columns": list(INPUT_COLUMNS),
-            "inputs_written": protocol,
+            "inputs": inputs,
             "boards": list(boards),
         },
+        "windows": hv.WINDOWS,
         "metric": {
             **METRIC,
             **{
                 k: first.settings.get(k) for k in ("horizons", "splits", "min_distance_m", "min_rotation_deg")
             },
-            # every metric the boards hold (benchmark/scoring/metrics.py): its MLflow name, unit and
-            # definition
+            # every metric the boards hold (benchmark/scoring/metrics.py): its MLflow name, unit, definition
             "metrics": [
                 {
                     "name": m.name,
@@ -369,7 +402,7 @@ def _bundle_doc(s: ExportSettings, layout, rec, manifest, boards, lic, calib_set
                 }
                 for m in mt.METRICS
             ],
-        },  # fmt: skip
+        },
         "calibration_settings": calib_settings,
         "licence": lic,
         "provenance": {
@@ -377,13 +410,12 @@ def _bundle_doc(s: ExportSettings, layout, rec, manifest, boards, lic, calib_set
             or (
                 f"simulated by skidbench {_version()} (`skidbench simulate`), dataset {layout.dataset}"
                 if rec.get("source") == "sim"
-                else f"{rec.get('source')} data from {rec.get('root')}"
+                else f"{rec.get('source')} data, dataset {layout.dataset}"
             ),
             "source": rec.get("source"),
-            "root": rec.get("root"),
             "fingerprint": rec.get("fingerprint"),
             "imported_from": (read_bundle_doc(layout.root / RECORD_DIR) or {}).get("dataset"),
-        },  # fmt: skip
+        },
         "written_by": {
             "skidbench": _version(),
             "git_commit": environment.git_commit(),
@@ -393,192 +425,63 @@ def _bundle_doc(s: ExportSettings, layout, rec, manifest, boards, lic, calib_set
 
 
 def _readme(doc: dict[str, Any]) -> str:
-    ds = doc["dataset"]
+    ds, name = doc["dataset"], doc["dataset"]["name"]
     seqs = doc["sequences"]
-    boards = doc["protocol"]["boards"]
-    proto = doc["protocol"]["inputs_written"]
-    return "\n".join([
-        f"# skidbench bundle: {ds['name']}",
-        "",
-        f"Robot `{doc['robot']['name']}`, terrains {', '.join(ds['terrains'])}; {len(seqs)} sequences "
-        f"({sum(s['rows'] for s in seqs)} rows). Licence of the data: {doc['licence']}.",
-        f"Provenance: {doc['provenance']['statement']}.",
-        "",
-        "Check it: `sha256sum -c SHA256SUMS`. Use it: `skidbench import <this folder>`, then "
-        f"`{next_commands(doc, ds['name'])[0]}` re-scores the built-in models (the boards of "
-        f"{', '.join(boards)} in `board/` are what they scored at export).",
-        "",
-        f"A model from anywhere: run it on `inputs/{proto}/<terrain>/<cv|ld>/<seq>.parquet` (columns "
-        f"{', '.join(doc['protocol']['input_columns'])}; fit on `splits/<terrain>/train/`, which has the "
-        "targets), write one Parquet or CSV with columns `sequence, t, vx, vy, wz` (body velocities, m/s "
-        "and rad/s, one row per input row), then "
-        f"`skidbench score {ds['name']} --predictions <file> inputs={proto}`.",
-        "",
-        f"Metric: {doc['metric']['definition']} (version {doc['metric']['version']}; horizons "
-        f"{doc['metric'].get('horizons')} s, min distance {doc['metric'].get('min_distance_m')} m, min "
-        f"rotation {doc['metric'].get('min_rotation_deg')} deg).",
-        "",
-    ])  # fmt: skip
-
-
-def read_bundle_doc(folder: Path) -> dict[str, Any] | None:
-    """``<folder>/bundle.json`` (a bundle, or an imported dataset's ``bundle/`` record), else None."""
-    with contextlib.suppress(OSError, ValueError):
-        doc = json.loads((Path(folder) / "bundle.json").read_text())
-        return doc if isinstance(doc, dict) and doc.get("format") == BUNDLE_FORMAT else None
-    return None
-
-
-# -- import ------------------------------------------------------------------------------------------
-@dataclass
-class ImportResult:
-    layout: Layout
-    doc: dict[str, Any]
-    imported: bool  # False: the same bundle was already imported there
-    commands: list[str] = field(default_factory=list)
-
-
-def _read_doc(folder: Path) -> dict[str, Any]:
-    path = folder / "bundle.json"
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise BundleError(f"{path}: missing; {folder} is not a skidbench bundle") from None
-    except (OSError, ValueError) as exc:
-        raise BundleError(f"{path}: not readable JSON ({one_line(str(exc))})") from None
-    if not isinstance(doc, dict) or doc.get("format") != BUNDLE_FORMAT:
-        raise BundleError(
-            f"{path}: not a skidbench bundle (format {doc.get('format') if isinstance(doc, dict) else '?'!r})"
-        )
-    if int(doc.get("version", 0)) > BUNDLE_VERSION:
-        raise BundleError(
-            f"{path}: bundle version {doc.get('version')} is newer than this skidbench reads "
-            f"({BUNDLE_VERSION}); upgrade skidbench"
-        )
-    return doc
-
-
-def _safe_rel(folder: Path, rel: str) -> Path:
-    """``folder / rel`` for a relative path that stays inside ``folder`` (BundleError otherwise)."""
-    path = (folder / rel).resolve()
-    if not str(path).startswith(str(folder.resolve()) + os.sep):
-        raise BundleError(f"{folder / 'bundle.json'}: file {rel!r} points outside the bundle")
-    return path
-
-
-def import_bundle(
-    folder: Path, out_root: Path, name: str | None = None, replace: bool = False
-) -> ImportResult:
-    """Verifies the bundle at ``folder`` (every checksum) and makes the dataset ``<out_root>/<name>``
-    (default name: the exported dataset's). Importing the same bundle again changes nothing; a folder
-    holding another dataset is refused unless ``replace``."""
-    folder = Path(folder).expanduser().resolve()
-    sums = verify(folder)
-    doc = _read_doc(folder)
-    name = str(name or doc["dataset"]["name"])
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
-        raise BundleError(f"dataset name {name!r}: use letters, digits, '_', '.', '-' (set bundle.name=...)")
-    ident = DatasetIdentity(name, SOURCE, str(folder), content_id(folder))
-    layout = Layout(Path(out_root), name)
-    commands = next_commands(doc, name)
-    have = read_record(layout)
-    if have is not None and have.get("fingerprint") == ident.fingerprint:
-        _stamp_calibrations(layout, doc)  # what an interrupted import may not have finished
-        return ImportResult(layout, doc, False, commands)
-    if layout.root.exists() and any(layout.root.iterdir()):
-        if not replace:
-            what = f"{have.get('source')} {have.get('root')}" if have else "other files"
-            raise BundleError(
-                f"{layout.root}: dataset {name!r} already holds {what}; import under another name "
-                "(bundle.name=<name>) or set source.replace=true to replace it"
-            )
-    tmp = Layout(layout.out_root, f".tmp-import-{name}.{os.getpid()}")
-    shutil.rmtree(tmp.root, ignore_errors=True)
-    tmp.root.mkdir(parents=True)
-    try:
-        seqs = []
-        for s in doc["sequences"]:
-            if s["file"] not in sums:
-                raise BundleError(
-                    f"{folder / 'bundle.json'}: sequence {s['name']}'s file {s['file']} is not in {SUMS}"
-                )
-            src = _safe_rel(folder, s["file"])
-            out = tmp.split_file(s["terrain"], s["split"], s["name"])
-            out.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(src, out)
-            final = layout.split_file(s["terrain"], s["split"], s["name"])
-            rel = os.path.relpath(final, layout.raw)  # the manifest's paths are relative to its folder
-            seqs.append(ManifestSequence(s["name"], s["terrain"], s["split"], rel))
-        if (folder / "card.md").is_file():
-            shutil.copyfile(folder / "card.md", tmp.splits / "card.md")
-        for t in doc["dataset"]["terrains"]:
-            src = folder / "calibration" / f"{t}.json"
-            if src.is_file():
-                tmp.calibration.mkdir(exist_ok=True)
-                shutil.copyfile(src, tmp.calibration_file(t))
-        Manifest(seqs, str(doc["dataset"].get("robot") or doc["robot"]["name"]), "bundle").write(tmp.manifest)
-        keep = tmp.root / RECORD_DIR
-        keep.mkdir()
-        for rel in ("bundle.json", SUMS, "README.md"):
-            if (folder / rel).is_file():
-                shutil.copyfile(folder / rel, keep / rel)
-        if (folder / "board").is_dir():
-            shutil.copytree(folder / "board", keep / "board")
-        record(tmp, ident)
-        if layout.root.exists():
-            remove_atomic(layout.root)  # replace (checked above) or an empty folder
-        os.replace(tmp.root, layout.root)
-    except BaseException:
-        shutil.rmtree(tmp.root, ignore_errors=True)
-        raise
-    _stamp_calibrations(layout, doc)
-    return ImportResult(layout, doc, True, commands)
-
-
-def _stamp_calibrations(layout: Layout, doc: dict[str, Any]) -> None:
-    """The stamps ``calibrate`` would have written for the bundle's calibrations (made from the Train
-    split files, the bundle's robot and calibration settings), so that a fit takes them as current and
-    ``calibrate`` with the same settings finds them up to date."""
-    from skidbench.pipeline.calibrate.calibration import CALIBRATION_SCHEMA, calibration_stamp, train_files
-
-    for t in doc["dataset"]["terrains"]:
-        path = layout.calibration_file(t)
-        settings = (doc.get("calibration_settings") or {}).get(t)
-        if not path.is_file():
-            continue
-        stamp = calibration_stamp(layout, t)
-        made_of = {"robot": doc["robot"]["spec"], "settings": settings, "schema": CALIBRATION_SCHEMA}
-        key = stamp.key(train_files(layout, t), made_of)
-        if not stamp.is_fresh(key):
-            stamp.record(key, [path], {"imported_from": str(doc["dataset"].get("name"))})
-
-
-def next_commands(doc: dict[str, Any], name: str) -> list[str]:
-    """What to run on an imported dataset: evaluate (the built-in models), compare, score."""
-    robot = doc["robot"]["name"]
-    ds = f"source=bundle dataset={name}" + (f" robot={robot}" if robot != "jackal" else "")
-    proto = doc["protocol"]["inputs_written"]
-    return [
-        f"skidbench evaluate {ds}" + ("" if proto == "commanded" else f" inputs={proto}"),
-        f"skidbench compare {ds}",
-        f"skidbench score {name} --predictions <file> inputs={proto}",
-    ]
-
-
-def describe_export(res: ExportResult) -> str:
-    return (
-        f"export: {res.folder}: {res.files} files, {res.bytes / 1e6:.1f} MB; boards {', '.join(res.boards)}; "
-        f"model inputs under inputs={res.inputs} ({res.sequences} tables); check with "
-        f"`sha256sum -c SHA256SUMS` in it, import with `skidbench import {res.folder}`"
+    withheld = release_of(doc) == hv.WITHHELD
+    held = [x for x in seqs if x.get("file")]
+    what = (
+        "The public half of the benchmark: Train with its ground truth, CV and LD as model inputs only (the "
+        "test answers are withheld; the maintainer scores submissions)."
+        if withheld
+        else "An open release: every split file, test ground truth included (entries scored from it are "
+        "self-reported)."
+    )
+    protos = ", ".join(doc["protocol"]["inputs"])
+    return "\n".join(
+        [
+            f"# skidbench bundle: {name}",
+            "",
+            what,
+            "",
+            f"Robot `{doc['robot']['name']}`, terrains {', '.join(ds['terrains'])}; {len(seqs)} sequences, "
+            f"{len(held)} split files here. Licence of the data: {doc['licence']}.",
+            f"Provenance: {doc['provenance']['statement']}.",
+            "",
+            "Check it: `sha256sum -c SHA256SUMS`. Make a dataset of it: `skidbench import <this folder>`.",
+            "",
+            f"A model from anywhere: fit it on `splits/<terrain>/train/` (which has the targets), run it on "
+            f"`inputs/<protocol>/<terrain>/<cv|ld>/<seq>.parquet` (protocols {protos}; columns "
+            f"{', '.join(doc['protocol']['input_columns'])}) and write one Parquet or CSV file with columns "
+            "`sequence, t, vx, vy, wz` (body velocities, m/s and rad/s, one row per input row). "
+            f"`skidbench score {name} --predictions <file> score.check=true` checks its shape; "
+            + (
+                "send it to the maintainer with the method's name, a link to its paper or code, who "
+                "submits it and a one-line description."
+                if withheld
+                else f"`skidbench score {name} --predictions <file> score.link=<url> "
+                "score.submitter=<who>` scores it."
+            ),
+            "",
+            f"Metric: {doc['metric']['definition']} (version {doc['metric']['version']}; horizons "
+            f"{doc['metric'].get('horizons')} s, min distance {doc['metric'].get('min_distance_m')} m, min "
+            f"rotation {doc['metric'].get('min_rotation_deg')} deg). The windows scored: `windows.parquet`.",
+            "",
+        ]
     )
 
 
-def describe_import(res: ImportResult, bundle: Path) -> str:
-    what = "imported" if res.imported else "already imported (same content); nothing changed"
-    lines = [
-        f"import: {bundle}: every checksum verified; {what} as dataset {res.layout.dataset} -> "
-        f"{res.layout.root}",
-        "next:",
-        *[f"  {c}" for c in res.commands],
-    ]
-    return "\n".join(lines)
+def describe_export(res: ExportResult) -> str:
+    inputs = ", ".join(f"{p} ({len(t)} terrains)" for p, t in res.inputs.items())
+    if res.release == hv.OPEN:
+        halves = f"an open release (test truth included); import with `skidbench import {res.folder}`"
+    else:
+        halves = (
+            f"publish {res.folder / hv.PUBLIC} (no test truth), keep {res.folder / hv.PRIVATE} (the CV/LD "
+            f"answers); import with `skidbench import {res.folder / hv.PUBLIC}` (+ "
+            f"bundle.answers={res.folder / hv.PRIVATE} to score)"
+        )
+    return (
+        f"export: {res.folder}: {res.files} files, {res.bytes / 1e6:.1f} MB; boards {', '.join(res.boards)}; "
+        f"model inputs of {inputs}; {res.windows} windows listed; {halves}; check each with "
+        "`sha256sum -c SHA256SUMS` in it"
+    )

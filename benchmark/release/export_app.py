@@ -1,6 +1,5 @@
-"""``skidbench export <dataset> <dir>`` and ``skidbench import <dir>`` (benchmark/release/bundle.py) as Hydra
-apps
-(``conf/export.yaml``, ``conf/import.yaml``)."""
+"""``skidbench export <dataset> <dir>`` (benchmark/release/bundle.py) and ``skidbench import <dir>``
+(benchmark/release/importer.py) as Hydra apps (``conf/export.yaml``, ``conf/import.yaml``)."""
 
 from __future__ import annotations
 
@@ -34,11 +33,16 @@ export_main.positional = (("dataset", "bundle.dir"), {})
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="import")
 @stage("import", home=False)
 def import_main(cfg: DictConfig) -> None:
-    from skidbench.benchmark.release.bundle import describe_import, import_bundle
+    from skidbench.benchmark.release.importer import describe_import, import_bundle
 
     folder = Path(str(cfg.bundle.dir))
+    answers = cfg.bundle.get("answers")
     res = import_bundle(
-        folder, Path(str(cfg.out_root)), cfg.bundle.get("name"), bool(cfg.source.get("replace"))
+        folder,
+        Path(str(cfg.out_root)),
+        cfg.bundle.get("name"),
+        bool(cfg.source.get("replace")),
+        Path(str(answers)) if answers else None,
     )
     print(describe_import(res, folder), flush=True)
 

@@ -14,17 +14,27 @@ the file and the sequence: a test sequence without rows, a sequence the splits d
 column, a NaN or infinite value, a row count or times that differ from the split's (a shifted clock is
 named as such). Rows may come in any order (they are sorted by time within a sequence).
 
-Then every window is scored by the same machinery as ``evaluate`` (benchmark/evaluate/evaluation.py
+A submission has an identity and must be plausible (benchmark/release/submission.py: a link, a
+submitter, a date; one entry per predictions digest; speeds the commands could produce). Then every window
+is scored by the same machinery as ``evaluate`` (benchmark/scoring/predictions.py
 ``score_split``/``summarise``: the same horizons, minimum distance and rotation, read from the latest
 evaluate of the protocol, else from the imported bundle, else evaluate's defaults) and logged to MLflow as
 one child run per terrain of that evaluate (``skidbench.external=true``, the file's sha256 in
-``skidbench.predictions_sha256``, model version ``external``), so ``compare`` ranks it on the same board.
+``skidbench.predictions_sha256``, model version ``external``, the identity in ``skidbench.submission.*``),
+so ``compare`` ranks it on the same board.
+
+Scoring needs the CV/LD ground truth: a dataset imported from the public half of a bundle has none
+(pipeline/datasets/imported.py refuses ``score`` there). ``score.check=true`` (:func:`check_predictions`)
+checks a file's shape and plausibility against the test sequences' clocks and commands, read from the
+split files or, without them, from the public half's model-input tables: what a lab runs before it
+submits.
 """
 
 from __future__ import annotations
 
 import logging
 import re
+import shlex
 from dataclasses import dataclass, field
 from importlib.resources import files
 from pathlib import Path
@@ -44,6 +54,7 @@ from skidbench.benchmark.evaluate.testsets import (
     split_files,
     split_fingerprint,
 )
+from skidbench.benchmark.release import submission as sb
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.predictions import TestSequence, score_split, summarise
@@ -240,6 +251,8 @@ class ScoreResult:
     rows: list[dict[str, Any]] = field(default_factory=list)  # per terrain: run_id and metrics
     settings_from: str = ""
     horizon: float = 6.0  # the first horizon scored (the board's)
+    submission: sb.Submission | None = None
+    already: bool = False  # the same predictions were this entry already: nothing logged
 
 
 def default_name(path: Path) -> str:
@@ -263,46 +276,67 @@ def check_name(name: str) -> str:
     return name
 
 
+def _tests(
+    layout: Layout, splits: list[str], horizons: list[float] | None, hcfg: HorizonConfig | None = None
+) -> tuple[dict, dict]:
+    """Per terrain and test split the test sequences (their split files: the truth), and per terrain the
+    files evaluate fingerprints (its child runs' tag: compare matches the rows by it)."""
+    tests: dict[str, dict[str, list[TestSequence]]] = {}
+    files_of: dict[str, list[Path]] = {}
+    for terrain in find_terrains(layout):
+        tests[terrain] = {}
+        files: list[Path] = []
+        for split in splits:
+            seqs = load_test_split(layout, terrain, split)
+            if horizons is not None:
+                check_horizons(terrain, split, seqs, horizons, hcfg)
+            tests[terrain][split] = [s for s in seqs if len(s.table)]  # an empty sequence: no row to predict
+            files.extend(s.path for s in seqs)
+        files_of[terrain] = split_files(layout, terrain, TRAIN) + files
+    return tests, files_of
+
+
+def entries(tracker: trk.Tracker, protocol: str) -> pd.DataFrame:
+    """The protocol's external entries on the board: ``model``, ``predictions_sha256``, ``submitter``,
+    ``submitted`` (one row per run; empty without a board)."""
+    cols = ["model", "predictions_sha256", "submitter", "submitted"]
+    board = brd.protocol_board(tracker, protocol)
+    if board is None or "external" not in board.rows:
+        return pd.DataFrame(columns=cols)
+    rows = board.rows[board.rows["external"].astype(bool)]
+    return pd.DataFrame({c: rows[c] if c in rows else "" for c in cols})
+
+
 def score_predictions(
     layout: Layout,
     tracker: trk.Tracker,
     path: Path,
-    name: str | None = None,
+    entry: sb.Submission,
     protocol: str = "commanded",
 ) -> ScoreResult:
-    """Checks the predictions file against the splits, scores every window and logs one external child
-    run per terrain (module docstring). Nothing is logged when the file fails a check."""
+    """Checks the predictions file against the splits and the board, scores every window and logs one
+    external child run per terrain with the entry's identity (module docstring). Nothing is logged when
+    the file fails a check or is already this entry."""
     path = Path(path).expanduser().absolute()
     protocol = check_protocol(protocol)
-    name = check_name(name or default_name(path))
+    check_name(entry.name)
     settings, parent, source = board_settings(tracker, protocol, layout.root)
     splits = [str(s) for s in settings["splits"]]
     horizons = [float(h) for h in settings["horizons"]]
     hcfg = HorizonConfig(
         horizons[0], float(settings["min_distance_m"]), float(np.deg2rad(float(settings["min_rotation_deg"])))
     )
-    # 1. the splits and the file, checked before anything is logged
-    terrains = find_terrains(layout)
-    tests: dict[str, dict[str, list[TestSequence]]] = {}
-    files_of: dict[str, list[Path]] = {}
-    for terrain in terrains:
-        tests[terrain] = {}
-        files: list[Path] = []
-        for split in splits:
-            seqs = load_test_split(layout, terrain, split)
-            check_horizons(terrain, split, seqs, horizons, hcfg)
-            tests[terrain][split] = [
-                s for s in seqs if len(s.table)
-            ]  # an empty sequence has no rows to predict
-            files.extend(s.path for s in seqs)
-        # the files evaluate fingerprints for a terrain (its child runs' tag): compare matches the rows by it
-        files_of[terrain] = split_files(layout, terrain, TRAIN) + files
+    # 1. the splits, the file and the board, checked before anything is logged
+    tests, files_of = _tests(layout, splits, horizons, hcfg)
     preds = read_predictions(path)
     aligned = align(path, preds, tests)
+    plausible(layout, path, aligned, tests)
     digest = sha256_file(path)
+    if sb.check_entry(entry, digest, entries(tracker, protocol), protocol):
+        return ScoreResult(entry.name, protocol, digest, parent or "", [], source, horizons[0], entry, True)
     # 2. every window scored (the same functions as evaluate), then logged
     scored = {}
-    for terrain in terrains:
+    for terrain in tests:
         metrics: dict[str, float] = {}
         frames = []
         for split in splits:
@@ -313,15 +347,117 @@ def score_predictions(
                 frames.append(w)
             metrics.update(summarise(w, split, horizons))
         scored[terrain] = (metrics, pd.concat(frames, ignore_index=True) if frames else pd.DataFrame())
-    return _log(layout, tracker, path, name, protocol, digest, settings, parent, source, scored, files_of)
+    res = _log(layout, tracker, path, entry, protocol, digest, settings, parent, source, scored, files_of)
+    res.submission = entry
+    return res
+
+
+def plausible(layout: Layout, path: Path, aligned: dict, tests: dict) -> float:
+    """The file's speed factor (benchmark/release/submission.py ``check_plausible``) over every test
+    sequence, against what Train's ground truth shows; SubmissionError beyond the limit."""
+    from skidbench.pipeline.core.schema import read_split
+
+    vels, cmds = [], []
+    for terrain, sp in tests.items():
+        for split, seqs in sp.items():
+            vels += list(aligned[terrain][split][0])
+            cmds += [s.table[["cmd_v", "cmd_w"]] for s in seqs]
+    train = [read_split(p)[0] for t in tests for p in split_files(layout, t, TRAIN)]
+    return sb.check_plausible(str(path), vels, cmds, sb.train_scales(train))
+
+
+@dataclass
+class CheckResult:
+    path: Path
+    protocol: str
+    sequences: int
+    rows: int
+    factor: float
+    against: str  # what the file was checked against
+
+
+def public_tests(
+    layout: Layout, splits: list[str], protocol: str
+) -> dict[str, dict[str, list[TestSequence]]]:
+    """The test sequences of a dataset imported from a public half: its CV/LD model-input tables (the
+    clock, the commands; no truth), per terrain and split."""
+    from skidbench.pipeline.datasets.imported import RECORD_DIR
+
+    base = layout.root / RECORD_DIR / "inputs" / protocol
+    if not base.is_dir():
+        have = sorted(p.name for p in base.parent.iterdir()) if base.parent.is_dir() else []
+        raise PredictionsError(f"{base}: no model inputs of inputs={protocol} in this public half (it has: "
+                               f"{', '.join(have) or 'none'})")  # fmt: skip
+    tests: dict[str, dict[str, list[TestSequence]]] = {}
+    for terrain_dir in sorted(p for p in base.iterdir() if p.is_dir()):
+        for split in splits:
+            for f in sorted((terrain_dir / split).glob("*.parquet")):
+                table = pd.read_parquet(f)
+                seq = str(table["sequence"].iloc[0]) if len(table) else f.stem
+                tests.setdefault(terrain_dir.name, {}).setdefault(split, []).append(
+                    TestSequence(seq, f, table, {})
+                )
+    return tests
+
+
+def check_predictions(layout: Layout, path: Path, protocol: str = "commanded") -> CheckResult:
+    """``score.check=true``: the file checked as score checks it (sequences, rows, times, values,
+    plausible speeds) against the test sequences, scoring nothing: from the split files, or for a dataset
+    imported from a public half, from its model-input tables."""
+    from skidbench.benchmark.release.bundle import read_bundle_doc
+    from skidbench.pipeline.datasets.imported import truth_withheld
+
+    path = Path(path).expanduser().absolute()
+    protocol = check_protocol(protocol)
+    doc = read_bundle_doc(layout.root / "bundle") or {}
+    splits = [str(s) for s in (doc.get("metric") or {}).get("splits") or evaluate_defaults()["splits"]]
+    if truth_withheld(layout.root):
+        tests, against = public_tests(layout, splits, protocol), "the public half's model inputs"
+    else:
+        tests, against = _tests(layout, splits, None)[0], "the split files"
+    preds = read_predictions(path)
+    aligned = align(path, preds, tests)
+    factor = plausible(layout, path, aligned, tests)
+    n = sum(len(s) for sp in tests.values() for s in sp.values())
+    return CheckResult(path, protocol, n, len(preds), factor, against)
+
+
+def format_check(res: CheckResult) -> str:
+    return (
+        f"score: {res.path.name}: a valid predictions file under inputs={res.protocol} ({res.sequences} test "
+        f"sequences, {res.rows} rows, every clock as in {res.against}; speeds {res.factor:.2f} times the "
+        "commanded at most); nothing scored (score.check=true)"
+    )
+
+
+def reproduce_command(dataset: str, path: Path, protocol: str, entry: sb.Submission) -> str:
+    """The command that scores the entry again (the predictions file by its name: a reader's own copy)."""
+    return (f"skidbench score {dataset} --predictions {Path(path).name} inputs={protocol} "
+            f"score.name={entry.name} score.link={shlex.quote(entry.link)} "
+            f"score.submitter={shlex.quote(entry.submitter)} score.date={entry.date}")  # fmt: skip
+
+
+def _child_tags(entry: sb.Submission, terrain: str, digest: str) -> dict[str, str]:
+    """The tags of an external child run: what it is, the predictions' digest and the entry's identity."""
+    return {
+        run_tags.TAG_ROLE: "child",
+        run_tags.TAG_MODEL: entry.name,
+        run_tags.TAG_TERRAIN: terrain,
+        run_tags.TAG_MODEL_VERSION: EXTERNAL_VERSION,
+        run_tags.TAG_PLUGIN: f"external predictions sha256:{digest[:12]}",
+        run_tags.TAG_EXTERNAL: "true",
+        run_tags.TAG_PREDICTIONS_SHA256: digest,
+        **entry.tags(),
+    }
 
 
 def _log(
-    layout, tracker, path, name, protocol, digest, settings, parent, source, scored, files_of
+    layout, tracker, path, entry, protocol, digest, settings, parent, source, scored, files_of
 ) -> ScoreResult:
     from mlflow.exceptions import MlflowException
 
-    cmd = f"skidbench score {layout.dataset} --predictions {path} inputs={protocol} score.name={name}"
+    name = entry.name
+    cmd = reproduce_command(layout.dataset, path, protocol, entry)
     common = {
         run_tags.TAG_DATASET: layout.dataset,
         **environment.run_tags(),
@@ -333,7 +469,7 @@ def _log(
         "horizons": str([float(h) for h in settings["horizons"]]),
         "min_distance_m": str(settings["min_distance_m"]),
         "min_rotation_deg": str(settings["min_rotation_deg"]),
-        "predictions": str(path),
+        "predictions": Path(path).name,
         "predictions_sha256": digest,
         "inputs": protocol,
         "model": name,
@@ -359,45 +495,27 @@ def _log(
             tracker.log(parent, params={k: v for k, v in params.items() if k in brd.SETTING_KEYS})
         for terrain, (metrics, windows) in scored.items():
             facts = {
-                "predictions": f"`{path}` (sha256 `{digest}`)",
+                "predictions": f"`{Path(path).name}` (sha256 `{digest}`)",
+                "submitted": f"by {entry.submitter} on {entry.date}: {entry.link}",
                 "input protocol": f"`{protocol}`",
                 "terrain": terrain,
                 "settings from": source,
                 "metrics": mt.describe() + " (what evaluate logs)",
             }
+            tags = {**common, **_child_tags(entry, terrain, digest), run_tags.TAG_NOTE: run_tags.describe(
+                f"External predictions **{name}** on **{terrain}**", facts, cmd),
+                run_tags.TAG_FINGERPRINT: split_fingerprint(files_of[terrain], layout.splits)}  # fmt: skip
             run_id = tracker.start(
                 f"{name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]") + " (external)",
-                {
-                    **common,
-                    run_tags.TAG_ROLE: "child",
-                    run_tags.TAG_MODEL: name,
-                    run_tags.TAG_TERRAIN: terrain,
-                    run_tags.TAG_MODEL_VERSION: EXTERNAL_VERSION,
-                    run_tags.TAG_PLUGIN: f"external predictions sha256:{digest[:12]}",
-                    run_tags.TAG_FINGERPRINT: split_fingerprint(files_of[terrain], layout.splits),
-                    run_tags.TAG_EXTERNAL: "true",
-                    run_tags.TAG_PREDICTIONS_SHA256: digest,
-                    run_tags.TAG_NOTE: run_tags.describe(
-                        f"External predictions **{name}** on **{terrain}**", facts, cmd
-                    ),
-                },
+                tags,
                 parent,
             )
             tracker.log(run_id, params={**params, "terrain": terrain})
             stem = layout.eval_stem(name, terrain, protocol)
             win = stem.with_name(stem.name + ".windows.parquet")
-            write_parquet_atomic(
-                pa.Table.from_pandas(windows, preserve_index=False),
-                win,
-                {
-                    "model": name,
-                    "terrain": terrain,
-                    "run_id": run_id,
-                    "inputs": protocol,
-                    "external": True,
-                    "predictions_sha256": digest,
-                },
-            )
+            write_parquet_atomic(pa.Table.from_pandas(windows, preserve_index=False), win,
+                                 {"model": name, "terrain": terrain, "run_id": run_id, "inputs": protocol,
+                                  "external": True, "predictions_sha256": digest})  # fmt: skip
             tracker.artifact(run_id, win, "windows")
             tracker.log(run_id, metrics=metrics, tags={run_tags.TAG_STATUS: "FINISHED"})
             tracker.end(run_id, "FINISHED")
@@ -416,10 +534,18 @@ def _log(
 
 def format_score(res: ScoreResult) -> str:
     horizon = res.horizon
+    if res.already:
+        return (f"score: {res.name}: these predictions (sha256 {res.sha256[:16]}...) are already this entry "
+                f"of the inputs={res.protocol} board; nothing logged")  # fmt: skip
     lines = [
         f"score: {res.name} (external, sha256 {res.sha256[:16]}...) under inputs={res.protocol}; settings "
         "from "
         f"{res.settings_from}; parent run {res.parent_run_id}",
+        *(
+            [f"submitted by {res.submission.submitter} on {res.submission.date}: {res.submission.link}"]
+            if res.submission
+            else []
+        ),
     ]
     cols = [(m.metric_key(s, horizon), f"{s}_{horizon:g}s_{m.short} {m.label_unit}".rstrip())
             for s in ("cv", "ld") for m in mt.HEADLINE]  # fmt: skip

@@ -29,6 +29,8 @@ NOT_RANKED = "not ranked"
 BEST = "best"
 TIED = "tied for best"
 LEADS = "leads, not resolved"
+#: the standing's reason of the one entry of a board: there is nothing to rank it against
+ALONE = "the only entry; a board of one ranks nothing"
 #: points: estimates closer than this are equal (the boards show two decimals)
 TOLERANCE = 0.005
 #: points: the equivalence margin (two entries within it of each other are "comparable")
@@ -76,8 +78,12 @@ def rank_board(
     ``scores``: one row per entry (index: its name), columns ``estimate``, ``rankable``, ``reason``;
     ``differences``: index ``(a, b)`` with ``lo``, ``hi`` of ``a - b`` (either order given suffices).
     Returns, per entry, ``rank`` ("" when not rankable) and ``standing`` (:data:`BEST`, :data:`TIED`,
-    :data:`LEADS`, "" or ``not ranked: <reason>``). A board with no rankable entry ranks nothing."""
+    :data:`LEADS`, "" or ``not ranked: <reason>``). A board with no rankable entry ranks nothing, nor a
+    board of one entry (``not ranked:`` :data:`ALONE`, whatever its interval)."""
     out = pd.DataFrame(index=scores.index, data={"rank": "", "standing": ""})
+    if len(scores.index) == 1:
+        out["standing"] = f"{NOT_RANKED}: {ALONE}"
+        return out
     est = {i: float(scores.loc[i, "estimate"]) for i in scores.index}
     ok = sorted((i for i in scores.index if bool(scores.loc[i, "rankable"]) and np.isfinite(est[i])),
                 key=lambda i: est[i])  # fmt: skip

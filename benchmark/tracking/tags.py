@@ -52,6 +52,7 @@ __all__ = [
     "TAG_INPUTS",
     "TAG_EXTERNAL",
     "TAG_PREDICTIONS_SHA256",
+    "TAG_SUBMISSION",
     "TAG_NOTE",
     "TAG_EXPERIMENT_KIND",
     "EXPERIMENT_KIND",
@@ -101,6 +102,8 @@ TAG_RUN_KEY = "skidbench.run_key"
 TAG_INPUTS = "skidbench.inputs"  # the input protocol (commanded | response | measured)
 TAG_EXTERNAL = "skidbench.external"  # "true" on a run of `skidbench score` (benchmark/release/score.py)
 TAG_PREDICTIONS_SHA256 = "skidbench.predictions_sha256"  # the sha256 of the predictions file it scored
+#: + link, submitter, submitted (its date), description: a submission's identity (benchmark/release/)
+TAG_SUBMISSION = "skidbench.submission."
 TAG_NOTE = "mlflow.note.content"  # a run's (or an experiment's) description, Markdown, shown by the UI
 TAG_EXPERIMENT_KIND = "mlflow.experimentKind"  # which default page the MLflow 3 UI opens an experiment on
 EXPERIMENT_KIND = "custom_model_development"  # its runs table (unset: the GenAI overview of traces)

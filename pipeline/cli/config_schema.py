@@ -331,18 +331,25 @@ SCHEMA: dict[str, Spec] = {
     # -- runs.yaml --------------------------------------------------------------------------------------
     "reap": BOOL,
     "stale_after_s": number(gt=0, what="s"),
-    # -- export.yaml / import.yaml (benchmark/release/bundle.py)
-    # -------------------------------------------------
+    # -- export.yaml / import.yaml (benchmark/release/bundle.py, importer.py) ---------------------------
     "bundle.dir": STR,
+    "bundle.release": choice("withheld", "open"),
+    "bundle.answers": OPT_STR,
     "bundle.licence": OPT_STR,
     "bundle.provenance": OPT_STR,
     "bundle.name": OPT_STR,
-    # -- score.yaml (benchmark/release/score.py) -------------------------------------------------------------
+    # -- score.yaml (benchmark/release/score.py, submission.py) -------------------------------------------
     "score.predictions": STR,
     "score.name": OPT_STR,
-    # -- publish.yaml (benchmark/release/publish.py)
-    # ------------------------------------------------------------
+    "score.link": OPT_STR,
+    "score.submitter": OPT_STR,
+    "score.date": OPT_STR,
+    "score.description": OPT_STR,
+    "score.check": BOOL,
+    # -- publish.yaml (benchmark/release/publish.py) ----------------------------------------------------
     "publish.dir": STR,
+    "publish.title": OPT_STR,
+    "publish.download": OPT_STR,
     "publish.figures": BOOL,
     "publish.dpi": integer(20, 600),
     # -- discover.yaml ----------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from importlib.resources import files
 from pathlib import Path
 
-from skidbench.pipeline.cli.config_schema import check_value
+from skidbench.pipeline.cli.config_schema import check_value, spec_for
 from skidbench.pipeline.cli.overrides import validate
 from skidbench.pipeline.core.errors import (
     EXIT_INTERRUPTED,
@@ -230,7 +230,8 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     register_resolvers()  # before the override check and Hydra compose (and resolve) the stage's config
     args = [FLAGS.get(name, {}).get(a, a) for a in argv[1:]]  # `--reap` -> reap=true
-    args = _preflight(name, positional_overrides(name, fn, args))
+    multirun = any(a in ("-m", "--multirun") for a in args)
+    args = _preflight(name, [as_string(a, multirun) for a in positional_overrides(name, fn, args)])
     sys.argv = [f"skidbench {name}", *args]
     register_launchers()
     fn()
@@ -309,6 +310,24 @@ def _quoted(value: str) -> str:
     if re.fullmatch(r"[A-Za-z0-9_./:+@~-]+", value):
         return value
     return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def as_string(arg: str, multirun: bool = False) -> str:
+    """An override of a key the schema declares a string (:mod:`.config_schema`) whose value Hydra would
+    read as a number or a boolean (``score.name=nan``, ``score.date=2026``, ``bundle.name=1e3``), or outside
+    a multirun as a sweep (``score.description=fast, small``), quoted: the text as given. Any other override
+    passes through as it is."""
+    key, eq, value = arg.partition("=")
+    spec = spec_for(key.lstrip("+")) if eq and not key.startswith(("~", "-")) else None
+    if spec is None or spec.kind != "str" or value[:1] in ("'", '"'):
+        return arg
+    if not (_NOT_TEXT.fullmatch(value.strip()) or ("," in value and not multirun)):
+        return arg
+    return f"{key}='" + value.replace("'", "\\'") + "'"
+
+
+#: what Hydra's override grammar reads as a number or a boolean, not as text
+_NOT_TEXT = re.compile(r"[+-]?(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)([eE][+-]?\d+)?|[+-]?inf|nan|true|false", re.I)
 
 
 def _dataset_robot(overrides: list[str], dataset: str) -> str | None:

@@ -8,10 +8,12 @@ sha256 of the bundle's checksum manifest, so its identity is its content), ``raw
 bundle's sequences, each ``path`` pointing at its split file), ``splits/`` (the bundle's Parquet files as
 they are), ``calibration/`` (the bundle's calibration and wheel response per terrain, with the stamps
 ``calibrate`` would have written) and ``bundle/`` (the bundle's own record: ``bundle.json``, its checksum
-manifest and the exported board). Its splits are frozen: the stages upstream of them (``simulate``,
-``extract``, ``groundtruth``, ``split``) refuse to run on it, in one line; ``calibrate``, ``fit``,
-``evaluate``, ``compare``, ``score``, ``export`` and ``publish`` treat it like any other dataset, with
-``source=bundle dataset=<name>``.
+manifest and the exported board; from a public half also its CV/LD model inputs and window list, and the
+private half's ``answers.json`` when imported with it). Its splits are frozen: the stages upstream of them
+(``simulate``, ``extract``, ``groundtruth``, ``split``) refuse to run on it, in one line; ``calibrate``,
+``fit``, ``evaluate``, ``compare``, ``score``, ``export`` and ``publish`` treat it like any other dataset,
+with ``source=bundle dataset=<name>``, except that without its test answers (a public half imported alone)
+``evaluate`` and ``score`` refuse it in one line (``score.check=true`` checks a predictions file there).
 
 The bundle records the robot its calibration was made with; a stage run with another robot config is
 refused in one line naming the one to set (``robot=<name>``), instead of a stale calibration later.
@@ -34,6 +36,8 @@ SOURCE = "bundle"  # dataset.json's ``source`` of an imported dataset
 RECORD_DIR = "bundle"  # <ds>/bundle/: the bundle's record (bundle.json, SHA256SUMS, board/)
 #: the stages whose outputs a bundle replaces: they never run on an imported dataset
 FROZEN_STAGES = ("simulate", "extract", "groundtruth", "split")
+#: the stages that score against the CV/LD ground truth: not on the public half of a bundle alone
+TRUTH_STAGES = ("evaluate", "score")
 
 
 class ImportedDatasetError(StaleInputError):
@@ -49,6 +53,14 @@ def bundle_record(root: str | Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return doc if isinstance(doc, dict) else None
+
+
+def truth_withheld(root: str | Path) -> bool:
+    """True for a dataset imported from the public half of a bundle without its private half (the CV/LD
+    answers: ``<root>/bundle/answers.json``)."""
+    rec = bundle_record(root)
+    answers = Path(root) / RECORD_DIR / "answers.json"
+    return bool(rec) and rec.get("release") == "withheld" and not answers.is_file()
 
 
 def is_imported(root: str | Path) -> bool:
@@ -73,6 +85,13 @@ def check_stage(robot_conf: Mapping[str, Any] | None, stage: str, root: str | Pa
             f"{root}: dataset {name!r} was imported from a bundle: its splits are frozen and `{stage}` does "
             f"not run on it; run calibrate, evaluate, compare, score or publish with source=bundle "
             f"dataset={name}"
+        )
+    if stage in TRUTH_STAGES and truth_withheld(root):
+        raise ImportedDatasetError(
+            f"{root}: dataset {name!r} was imported from the public half of a bundle: its CV/LD ground truth "
+            f"is withheld (the maintainer keeps it), so `{stage}` cannot score here; check a predictions "
+            f"file with `skidbench score {name} --predictions <file> score.check=true`, or import with the "
+            "private half (bundle.answers=<dir>)"
         )
     rec = bundle_record(root) or {}
     robot = rec.get("robot") or {}
