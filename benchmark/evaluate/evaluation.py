@@ -14,9 +14,10 @@ predict gets its child run marked FAILED with the reason, and the others carry o
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.evaluate import reuse
 from skidbench.benchmark.evaluate.failures import fail_run, kill_run
@@ -35,6 +37,7 @@ from skidbench.benchmark.evaluate.fit_record import (
     log_model,
     model_code,
     num,
+    options_digest,
     options_tags,
     plugin_package,
 )
@@ -156,7 +159,7 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped))  # fmt: skip
-        about = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
+        about, _ = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
         plan = reuse.plan_reuse(es, tracker, files_of, terrains) if keyed else reuse.ReusePlan()
         parent_tags = {
             **common_tags,
@@ -178,16 +181,16 @@ def run_benchmark(
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             ctx = ChildContext(es.inputs_text, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
                                fit_fn, es.fit, es.conf, common_tags, log_figures, es.intervals,
-                               es.seeds, plan)  # fmt: skip
-            floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
-            _log_board(ctx, children, splits, protocol, about)
-            save_views(tracker, parent_id, splits, horizons, protocol, children)
+                               es.seeds, plan, rt.Writer(layout, parent_id),
+                               es.row_facts(parent_id, tracker, env_tags, commit))  # fmt: skip
+            with ctx.results.until_done(lambda path: tracker.artifact(parent_id, path, "results")):
+                floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
+                _log_board(ctx, children, splits, protocol, about)
+                save_views(tracker, parent_id, splits, horizons, protocol, children)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
-    return _write_last(
-        layout,
-        BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children, protocol, skipped, floor),
-    )
+    return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children,
+                                               protocol, skipped, floor))  # fmt: skip
 
 
 def _run_terrains(
@@ -317,6 +320,8 @@ class ChildContext:
     intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
     seeds: int = 1  # fits of a model with random parts (evaluate's ``seeds``)
     plan: reuse.ReusePlan = field(default_factory=reuse.ReusePlan)  # runs taken, result keys of the others
+    results: rt.Writer | None = None  # the evaluate's results file (benchmark/board/results.py)
+    base: rt.RunFacts | None = None  # what every row of the evaluate carries
 
 
 @dataclass(frozen=True)
@@ -342,17 +347,17 @@ class _Stage:
 
 
 def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResult:
-    """Fit ``model_name`` on ``td.terrain``'s Train split, score it on every test split and log it all to
-    one child run; an exception of the model (fit, predict, scoring, its outputs) ends that run FAILED with
-    the reason and its traceback (benchmark/evaluate/failures.py) and the benchmark carries on (an MLflow
-    store
-    error does not; an interrupt ends the run KILLED and stops the benchmark)."""
+    """Fit ``model_name`` on ``td.terrain``'s Train split, score it on every test split, write its rows to
+    the results table and log it all to one child run (its metrics from the rows); an exception of the
+    model (fit, predict, scoring, its outputs) ends that run FAILED with the reason and its traceback
+    (benchmark/evaluate/failures.py) and the benchmark carries on (an MLflow store error does not; an
+    interrupt ends the run KILLED and stops the benchmark)."""
     protocol = td.inputs.protocol
-    run_id = _start_child(ctx, model_name, td)
+    run_id, facts = _start_child(ctx, model_name, td)
     stage = _Stage("fit")
     stem = ctx.layout.eval_stem(model_name, td.terrain, protocol)
     try:
-        fit, fit_metrics = _fit_and_log(ctx, run_id, model_name, td, stem)
+        fit, fit_metrics = _fit_and_log(ctx, run_id, model_name, td, stem, facts)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
         log_model(ctx.inputs_text, ctx.tracker, run_id, fit, model_name, td.terrain,
@@ -360,30 +365,34 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         # after the model: Model.log logs the run's metrics so far again, for the model (duplicate keys)
         ctx.tracker.log(run_id, metrics=fit_metrics)
         stage("predict")
-        metrics, windows, velocities = predict_and_score(
+        scores, windows, velocities, facts.predict_time_s = predict_and_score(
             fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, on_step=stage, intervals=ctx.intervals
         )
+        spread = None
         if ctx.seeds > 1 and "seed" in (getattr(fit.model, "options", None) or {}):  # random parts
             stage("other seeds")
             from skidbench.models.fitting.fit import refit_of
 
             refit = refit_of(ctx.fit, model_name, td.terrain)
             spread = seed_spread(
-                refit, fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, ctx.seeds, metrics
+                refit, fit.model, td.tests, ctx.horizons, ctx.hcfg, td.inputs, ctx.seeds, scores
             )
-            metrics.update(spread)
         stage("logging")
         outputs = [_log_windows(ctx, run_id, model_name, td, stem, windows)]
         stage("report data")  # what compare draws beyond the metrics (Figs. 5-7), from this model
         outputs += _log_report_data(ctx, run_id, model_name, td, stem, fit.model, windows, velocities)
-        _finish_child(ctx.tracker, run_id, metrics)
+        rows = pd.DataFrame(rt.rows(facts, scores, spread, ctx.seeds))
+        ctx.results.add(rows.to_dict("records"))
+        metrics = rt.mlflow_metrics(rows)
+        _finish_child(ctx.tracker, run_id, metrics, rt.nan_cells(rows))
         rk = ctx.plan.keys.get((model_name, td.terrain))
         if rk is not None:  # the next evaluate takes this run while what made it is unchanged
             outputs += [stem.with_name(stem.name + s) for s in (".params.json", ".arrays.npz")]
             reuse.record(rk, outputs, run_id, ctx.parent_id, ctx.tracker)
-        log.info("%s/%s: %s", model_name, td.terrain, _brief(metrics))
+        log.info("%s/%s: %s", model_name, td.terrain, rt.headline(rows))
         return ChildResult(model_name, td.terrain, run_id, "FINISHED", metrics, inputs=protocol)
     except KeyboardInterrupt:
+        ctx.results.add(rt.unscored(facts, list(td.tests), ctx.horizons, "KILLED", trk.INTERRUPTED))
         kill_run(ctx.tracker, run_id)
         raise
     except Exception as exc:
@@ -392,16 +401,22 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         if isinstance(exc, MlflowException):
             raise
         reason, where = fail_run(ctx.tracker, run_id, stem, f"{model_name}/{td.terrain}", stage.name, exc)
+        ctx.results.add(rt.unscored(facts, list(td.tests), ctx.horizons, "FAILED", reason))
         return ChildResult(model_name, td.terrain, run_id, "FAILED", reason=reason, inputs=protocol,
                            traceback=where)  # fmt: skip
 
 
-def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
-    """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs)."""
+def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> tuple[str, rt.RunFacts]:
+    """Starts the child run of ``model_name`` on the terrain (tags, config params, dataset inputs);
+    returns its id and the facts its rows will carry."""
     protocol = td.inputs.protocol
     model_conf = model_config(ctx.fit.models, model_name)
     rk = ctx.plan.keys.get((model_name, td.terrain))
     keyed = {reuse.TAG_RESULT_KEY: rk.key, reuse.TAG_SCORING: rk.made_of["scoring"]} if rk else {}
+    note, cmd = _describe(
+        ctx.layout, ctx.inputs_text, [model_name], [td.terrain], list(td.tests), ctx.horizons
+    )
+    start = dt.datetime.now(dt.UTC)
     run_id = ctx.tracker.start(
         f"{model_name}/{td.terrain}" + ("" if protocol == "commanded" else f" [{protocol}]"),
         {
@@ -413,42 +428,41 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> str:
             run_tags.TAG_INPUTS: protocol,
             **keyed,
             **options_tags(ctx.conf, model_conf, protocol),
-            run_tags.TAG_NOTE: _describe(
-                ctx.layout, ctx.inputs_text, [model_name], [td.terrain], list(td.tests), ctx.horizons
-            ),
+            run_tags.TAG_NOTE: note,
         },
         ctx.parent_id,
     )
     params = run_tags.config_params(ctx.conf, model_conf)  # this model's config only
     ctx.tracker.log(run_id, params={**params, "model": model_name, "terrain": td.terrain, "inputs": protocol})
     ctx.tracker.log_datasets(run_id, td.datasets)
-    return run_id
+    facts = replace(ctx.base, run_id=run_id, model=model_name, terrain=td.terrain, inputs=protocol,
+                    start_time=start, splits_fingerprint=td.fingerprint, reproduce=cmd,
+                    options_digest=options_digest(ctx.conf, model_conf, protocol))  # fmt: skip
+    ctx.results.add(rt.unscored(facts, list(td.tests), ctx.horizons, "RUNNING", ""))
+    return run_id, facts
 
 
 def _fit_and_log(
-    ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path
+    ctx: ChildContext, run_id: str, model_name: str, td: TerrainData, stem: Path, facts: rt.RunFacts
 ) -> tuple[Any, dict[str, float | None]]:
     """Fits the model (``ctx.fit_fn``) and logs what the fit is: the model's version, package and code,
     the parameters of :func:`fit_description`, and the fitted model's files (``<stem>.params.json``, a
-    learned model's ``<stem>.arrays.npz``). Returns the fit and its metrics (loss, time, size, fit
+    learned model's ``<stem>.arrays.npz``); the run's ``facts`` (its rows of the results table) get the
+    fit's numbers and the model's code. Returns the fit and its metrics (loss, time, size, fit
     diagnostics), which the caller logs after the logged model."""
     tracker = ctx.tracker
     fit = ctx.fit_fn(ctx.fit, model_name, td.terrain)
     model = fit.model
+    code = model_code(model_name, model)
     metrics = {
         "fit_loss": num(getattr(fit, "fit_loss", None)),
         "fit_time_s": num(getattr(fit, "fit_time_s", None)),
         "n_train": num(getattr(fit, "n_train", None)),
         **fit_quality_metrics(fit),
     }
-    tracker.log(
-        run_id,
-        tags={
-            run_tags.TAG_MODEL_VERSION: getattr(model, "version", "unknown"),
-            run_tags.TAG_PLUGIN: plugin_package(model_name, model),
-            **environment.code_tags(model_code(model_name, model)),
-        },
-    )
+    facts.fitted(metrics, getattr(model, "version", "unknown"), plugin_package(model_name, model), code)
+    tags = {run_tags.TAG_MODEL_VERSION: facts.model_version, run_tags.TAG_PLUGIN: facts.package}
+    tracker.log(run_id, tags={**tags, **environment.code_tags(code)})
     described = fit_description(fit, td.inputs.response)
     if described:
         tracker.log(run_id, params=described)
@@ -513,34 +527,19 @@ def _log_report_data(
     return list(written)
 
 
-def _finish_child(tracker, run_id: str, metrics: dict[str, float]) -> None:
-    """Logs the metrics, the status tag (and a warning when a split/horizon had no window) and ends the
-    run FINISHED."""
-    nan_metrics = [k for k, v in metrics.items() if not np.isfinite(v) and _over_some_windows(k)]
-    tracker.log(
-        run_id,
-        metrics=metrics,
-        tags={
-            run_tags.TAG_STATUS: "FINISHED",
-            **(
-                {"skidbench.warning": f"no window over the minimum distance/rotation for {nan_metrics}"}
-                if nan_metrics
-                else {}
-            ),
-        },
-    )
+def _finish_child(tracker, run_id: str, metrics: dict[str, float], nan_metrics: list[str]) -> None:
+    """Logs the metrics, the status tag (and a warning when a split/horizon had no window over the minimum
+    distance or rotation: ``nan_metrics``) and ends the run FINISHED."""
+    warn = f"no window over the minimum distance/rotation for {nan_metrics}"
+    tags = {run_tags.TAG_STATUS: "FINISHED", **({"skidbench.warning": warn} if nan_metrics else {})}
+    tracker.log(run_id, metrics=metrics, tags=tags)
     tracker.end(run_id, "FINISHED")
 
 
-def _over_some_windows(key: str) -> bool:
-    """Is ``key`` a metric over only some windows (over the minimum distance or rotation)?"""
-    parsed = mt.parse_key(key)
-    return parsed is not None and parsed[0].windows != mt.ALL_WINDOWS
-
-
 # -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
-def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -> str:
-    """The description of an evaluate run (parent: every model and terrain; child: one of each)."""
+def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -> tuple[str, str]:
+    """The description of an evaluate run (parent: every model and terrain; child: one of each) and the
+    command(s) that reproduce it."""
     one = len(models) == 1 and len(terrains) == 1
     cmd = run_tags.reproduce_command(
         "evaluate", [f"models=[{','.join(models)}]", f"terrains=[{','.join(terrains)}]"] if one else [],
@@ -559,7 +558,7 @@ def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -
         "terrains": None if one else ", ".join(terrains),
         "metrics": mt.describe() + "; lower is better",
     }
-    return run_tags.describe(title, facts, cmd)
+    return run_tags.describe(title, facts, cmd), cmd
 
 
 def _split_inputs(layout: Layout, terrain, files, tests) -> list[trk.SplitData]:
@@ -588,12 +587,3 @@ def save_views(
     name = tracker.client.get_run(parent_id).info.run_name
     return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol,
                                   horizons[0], [c.run_id for c in children if c.reused])  # fmt: skip
-
-
-def _brief(metrics: dict[str, float]) -> str:
-    return ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if _headline(k))
-
-
-def _headline(key: str) -> bool:
-    parsed = mt.parse_key(key)
-    return parsed is not None and parsed[0].headline

@@ -23,7 +23,13 @@ from skidbench.benchmark.scoring.floor import (
 )
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.intervals import IntervalConfig
-from skidbench.benchmark.scoring.predictions import Inputs, TestSequence, predict_and_score, summarise
+from skidbench.benchmark.scoring.predictions import (
+    Inputs,
+    Score,
+    TestSequence,
+    predict_and_score,
+    summarise,
+)
 from skidbench.benchmark.scoring.rollout import state_windows
 from skidbench.pipeline.core.io import write_parquet_atomic
 
@@ -111,25 +117,25 @@ def seed_spread(
     hcfg: HorizonConfig,
     inputs: Inputs,
     seeds: int,
-    metrics: Mapping[str, float],
-) -> dict[str, float]:
+    scores: Sequence[Score],
+) -> dict[tuple[str, str, float], tuple[float, float, float]]:
     """A model with random parts (a ``seed`` option) fitted with ``seeds - 1`` more seeds (its seed + 1,
-    + 2, ...; ``refit.fit(seed)``: models/fitting/fit.py ``Refit``) and scored on the same windows: per metric
-    with an interval, ``<key>_seed_sd`` (the standard deviation over the seeds, the configured one's
-    included), ``<key>_seed_min``, ``<key>_seed_max``, and ``n_seeds``. The other seeds' fits are not
-    saved: they cost a fit each, every evaluate (docs/intervals.md, "Seeds")."""
-    keys = [m.metric_key(sp, h) for h in horizons for sp in tests for m in mt.METRICS
-            if m.bootstrap is not None and m.metric_key(sp, h) in metrics]  # fmt: skip
-    values = {k: [metrics[k]] for k in keys}
+    + 2, ...; ``refit.fit(seed)``: models/fitting ``Refit``) and scored on the same windows: per cell
+    ``(metric, split, horizon_s)`` of a metric with an interval, ``(sd, min, max)`` over the seeds (the
+    configured one's included; the standard deviation rounded as an interval is), when at least two seeds
+    gave a value. The other seeds' fits are not saved: they cost a fit each, every evaluate
+    (docs/intervals.md, "Seeds")."""
+    cell = lambda s: (s.metric, s.split, s.horizon_s)  # noqa: E731
+    values = {cell(s): [s.estimate] for s in scores if mt.get(s.metric).bootstrap is not None}
     base = int(model.options["seed"])
     for k in range(1, seeds):
-        got, _, _ = predict_and_score(refit.fit(base + k), tests, horizons, hcfg, inputs, intervals=None)
-        for key in keys:
-            values[key].append(got.get(key, np.nan))
-    out: dict[str, float] = {"n_seeds": float(seeds)}
+        got, _, _, _ = predict_and_score(refit.fit(base + k), tests, horizons, hcfg, inputs, intervals=None)
+        by_cell = {cell(s): s.estimate for s in got}
+        for key in values:
+            values[key].append(by_cell.get(key, np.nan))
+    out: dict[tuple[str, str, float], tuple[float, float, float]] = {}
     for key, v in values.items():
         arr = np.asarray(v, dtype=float)
         if np.isfinite(arr).sum() >= 2:
-            out[f"{key}_seed_sd"] = round(float(np.nanstd(arr, ddof=1)), 4)
-            out[f"{key}_seed_min"], out[f"{key}_seed_max"] = float(np.nanmin(arr)), float(np.nanmax(arr))
+            out[key] = (round(float(np.nanstd(arr, ddof=1)), 4), float(np.nanmin(arr)), float(np.nanmax(arr)))
     return out

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from skidbench.benchmark.board.results import RunFacts
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.evaluate.transfer import TransferSettings, scored_from_cfg
 from skidbench.benchmark.report.data import ReportDataSettings
@@ -21,6 +22,7 @@ from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.rollout import StateSettings
 from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.models.fitting.fit import FitSettings, ModelConfigs
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.protocol import ProtocolError, check_protocol
@@ -107,6 +109,24 @@ class EvaluateSettings:
             int(cfg.get("seeds") or 1),
             fit, transfer, ReportDataSettings.from_cfg(cfg), StoreSettings.from_cfg(cfg, layout),
             _container_from_cfg(cfg), StateSettings.from_cfg(cfg), bool(cfg.get("force", False)),
+        )  # fmt: skip
+
+    def row_facts(
+        self, evaluate_id: str, tracker: trk.Tracker, env_tags: dict[str, str], commit: str
+    ) -> RunFacts:
+        """What every row of an evaluate's results table carries (benchmark/board/results.py): the
+        settings it scores with, the dataset and the environment (``env_tags``: the run tags of
+        :func:`skidbench.pipeline.runner.environment.run_tags`)."""
+        env = "skidbench.env."
+        return RunFacts(
+            evaluate_id=evaluate_id, run_id="", model="", inputs=self.protocol, terrain="",
+            min_distance_m=float(self.hcfg.min_distance_m),
+            min_rotation_deg=float(self.conf["min_rotation_deg"]), horizons=list(self.horizons),
+            splits=list(self.splits), models=list(self.models), dataset=self.dataset,
+            dataset_id=tracker.dataset_id or "", experiment=tracker.experiment_name,
+            skidbench_version=env_tags.get("skidbench.version", ""), git_commit=commit,
+            versions={k[len(env):]: str(v) for k, v in env_tags.items() if k.startswith(env)},
+            user=run_tags.current_user(),
         )  # fmt: skip
 
 

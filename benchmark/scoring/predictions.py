@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -17,7 +17,7 @@ import pandas as pd
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.scoring.horizon import HorizonConfig, window_errors
 from skidbench.benchmark.scoring.intervals import IntervalConfig, Sample, cell, estimate, stratum_key
-from skidbench.benchmark.scoring.metrics import METRICS
+from skidbench.benchmark.scoring.metrics import BY_NAME, METRICS
 from skidbench.benchmark.scoring.rollout import StateSettings, model_rollout, state_windows
 from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 from skidbench.pipeline.core.protocol import model_inputs
@@ -131,54 +131,95 @@ def score_split(
     return pd.concat(frames, ignore_index=True)
 
 
+class Score(NamedTuple):
+    """One cell of a test split at a horizon: a metric's value (:attr:`Metric.aggregate` of its windows),
+    the windows behind it and, when its interval was computed, the interval and the independent blocks
+    behind it (``n_blocks`` None: no interval computed; NaN bounds and 0 blocks: no window)."""
+
+    metric: str  # Metric.name
+    split: str
+    horizon_s: float
+    estimate: float
+    n_windows: int
+    lo: float = float("nan")
+    hi: float = float("nan")
+    n_blocks: int | None = None
+
+
+def score_cells(
+    windows: pd.DataFrame,
+    split: str,
+    horizons: Sequence[float],
+    intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
+) -> list[Score]:
+    """Every metric of :data:`~skidbench.benchmark.scoring.metrics.METRICS` on the windows of one split, per
+    horizon (an optional metric only when the windows have its column: models with a predictive
+    covariance). With ``intervals`` (the default), a metric with a
+    :class:`~skidbench.benchmark.scoring.metrics.Bootstrap` also gets its confidence interval and the
+    independent blocks behind it (:func:`interval_cells`)."""
+    out: list[Score] = []
+    for h in horizons:
+        w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
+        bounds = interval_cells(w, split, h, intervals) if intervals is not None else {}
+        for metric in METRICS:
+            has = bool(len(w)) and metric.column in w
+            if metric.optional and not has:
+                continue
+            vals = w[metric.column].to_numpy(float) if has else np.array([])
+            lo, hi, blocks = bounds.get(metric.name, (float("nan"), float("nan"), None))
+            n = int(np.isfinite(vals).sum())
+            out.append(Score(metric.name, split, float(h), metric.aggregate(vals), n, lo, hi, blocks))
+    return out
+
+
+def keyed(scores: Sequence[Score]) -> dict[str, float]:
+    """The cells by their MLflow names (``ld_6s_trans_rmsre_pct``: :func:`Metric.metric_key`), per split
+    and horizon each metric's value and window count, then each interval's bounds and blocks (``<key>_ci_lo``,
+    ``<key>_ci_hi``, ``<split>_<h>s_<short>_blocks``): the metrics evaluate logs to MLflow."""
+    out: dict[str, float] = {}
+    groups: dict[tuple[str, float], list[Score]] = {}
+    for s in scores:
+        groups.setdefault((s.split, s.horizon_s), []).append(s)
+    for (split, h), cells in groups.items():
+        for s in cells:
+            m = BY_NAME[s.metric]
+            out[m.metric_key(split, h)] = s.estimate
+            if m.count_key is not None:
+                out[m.windows_key(split, h)] = float(s.n_windows)
+        for s in cells:
+            if s.n_blocks is not None:
+                lo, hi, blocks = BY_NAME[s.metric].interval_keys(split, h)
+                out.update({lo: s.lo, hi: s.hi, blocks: float(s.n_blocks)})
+    return out
+
+
 def summarise(
     windows: pd.DataFrame,
     split: str,
     horizons: Sequence[float],
     intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
 ) -> dict[str, float]:
-    """Every metric of :data:`~skidbench.benchmark.scoring.metrics.METRICS` (and its window count) on the
-    windows
-    of one split, per horizon, by its MLflow name (``ld_6s_trans_rmsre_pct``: :func:`Metric.metric_key`);
-    an optional metric only when the windows have its column (models with a predictive covariance). With
-    ``intervals`` (the default), a metric with a :class:`~skidbench.benchmark.scoring.metrics.Bootstrap` also
-    gets
-    its confidence interval and the independent blocks behind it (:func:`metric_intervals`)."""
-    out: dict[str, float] = {}
-    for h in horizons:
-        w = windows[windows["horizon_s"] == float(h)] if len(windows) else windows
-        for metric in METRICS:
-            out.update(metric.summarise(w, split, h))
-        if intervals is not None:
-            out.update(metric_intervals(w, split, h, intervals))
-    return out
+    """:func:`score_cells` by their MLflow names (:func:`keyed`)."""
+    return keyed(score_cells(windows, split, horizons, intervals))
 
 
-def metric_intervals(
+def interval_cells(
     windows: pd.DataFrame, split: str, horizon_s: float, settings: IntervalConfig
-) -> dict[str, float]:
-    """``<key>_ci_lo``, ``<key>_ci_hi`` (rounded as the value is) and the blocks behind each metric with a
-    bootstrap, on the windows of one split at one horizon (:mod:`skidbench.benchmark.scoring.intervals`; a
-    metric whose windows lack its column gets none; with no window, NaN and 0 blocks)."""
+) -> dict[str, tuple[float, float, int]]:
+    """Per metric name with a bootstrap: ``(lo, hi, blocks)`` of its interval (rounded as the value is),
+    on the windows of one split at one horizon (:mod:`skidbench.benchmark.scoring.intervals`; a metric whose
+    windows lack its column gets none; with no window, NaN and 0 blocks)."""
     metrics = [m for m in METRICS if m.bootstrap is not None and (not m.optional or m.column in windows)]
-    out: dict[str, float] = {}
     if not len(windows):
-        for m in metrics:
-            if not m.optional:
-                lo, hi, blocks = m.interval_keys(split, horizon_s)
-                out.update({lo: float("nan"), hi: float("nan"), blocks: 0.0})
-        return out
+        return {m.name: (float("nan"), float("nan"), 0) for m in metrics if not m.optional}
     key = stratum_key(split, horizon_s, windows["sequence"])
     sample = Sample(settings)
     sample.add(key, windows["sequence"], windows["t0"].to_numpy(float),
                {m.name: m.bootstrap.scale * m.window_values(windows) for m in metrics}, horizon_s,
                {m.name: m.bootstrap.aggregation for m in metrics})  # fmt: skip
     res = estimate(sample, [cell(m.name, key, m.name) for m in metrics])
-    for m, row in zip(metrics, res.itertuples(index=False), strict=True):
-        lo, hi, blocks = m.interval_keys(split, horizon_s)
-        out[lo], out[hi] = round(float(row.lo), 4), round(float(row.hi), 4)
-        out[blocks] = float(row.n_blocks)
-    return out
+    return {m.name: (round(float(row.lo), 4), round(float(row.hi), 4), int(row.n_blocks))
+            for m, row in zip(metrics, res.itertuples(index=False), strict=True)}  # fmt: skip
 
 
 def predict_and_score(
@@ -189,18 +230,18 @@ def predict_and_score(
     inputs: Inputs | None = None,
     on_step: Callable[[str], None] | None = None,
     intervals: IntervalConfig | None = IntervalConfig(),  # noqa: B008 (frozen: shared safely)
-) -> tuple[dict[str, float], pd.DataFrame, dict[str, list[np.ndarray]]]:
+) -> tuple[list[Score], pd.DataFrame, dict[str, list[np.ndarray]], float]:
     """Predicts every test split with ``model`` (:func:`predict_split`, with its covariances when it has
-    ``predict_cov``) and scores every window of every horizon (:func:`score_split`). Returns the metrics
-    (:func:`summarise` of each split, plus ``predict_time_s``: the seconds spent in predict), the windows
-    of every split in one frame (first column ``split``; empty when no split has a window) and the
-    predicted body velocities per split (per sequence (T, 3): vx, vy in m/s, wz in rad/s). Logs nothing;
-    ``on_step`` is told the step it is at ("predict", "score <split>") before each; ``intervals``: the
-    confidence intervals' settings (:func:`summarise`)."""
+    ``predict_cov``) and scores every window of every horizon (:func:`score_split`). Returns the cells
+    (:func:`score_cells` of each split), the windows of every split in one frame (first column ``split``;
+    empty when no split has a window), the predicted body velocities per split (per sequence (T, 3): vx,
+    vy in m/s, wz in rad/s) and the seconds spent in predict. Logs nothing; ``on_step`` is told the step
+    it is at ("predict", "score <split>") before each; ``intervals``: the confidence intervals' settings
+    (:func:`score_cells`)."""
     step = on_step or (lambda _name: None)
     if inputs is not None and inputs.protocol == "state":
         return _state_predict_and_score(model, tests, horizons, hcfg, inputs, step, intervals)
-    metrics: dict[str, float] = {}
+    scores: list[Score] = []
     frames = []
     predict_time = 0.0
     autocorr = getattr(model, "error_autocorrelation_", None)
@@ -214,11 +255,10 @@ def predict_and_score(
         if len(w):
             w.insert(0, "split", split)
             frames.append(w)
-        metrics.update(summarise(w, split, horizons, intervals))
+        scores += score_cells(w, split, horizons, intervals)
         step("predict")
-    metrics["predict_time_s"] = predict_time
     windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    return metrics, windows, velocities
+    return scores, windows, velocities, predict_time
 
 
 def _state_predict_and_score(
@@ -229,11 +269,11 @@ def _state_predict_and_score(
     inputs: Inputs,
     step: Callable[[str], None],
     intervals: IntervalConfig | None,
-) -> tuple[dict[str, float], pd.DataFrame, dict[str, list[np.ndarray]]]:
+) -> tuple[list[Score], pd.DataFrame, dict[str, list[np.ndarray]], float]:
     """:func:`predict_and_score` under ``state``: every window rolled out from its start
     (:func:`~skidbench.benchmark.rollout.state_windows`); a model without ``rollout`` is driven by its
     ``predict`` of the commanded inputs. The velocities returned (compare's figures) are that ``predict``."""
-    metrics: dict[str, float] = {}
+    scores: list[Score] = []
     frames, velocities, spent = [], {}, 0.0
     commanded = Inputs("commanded", inputs.robot, None)
     for split, seqs in tests.items():
@@ -247,7 +287,6 @@ def _state_predict_and_score(
         if len(w):
             w.insert(0, "split", split)
             frames.append(w)
-        metrics.update(summarise(w, split, horizons, intervals))
-    metrics["predict_time_s"] = spent
+        scores += score_cells(w, split, horizons, intervals)
     windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    return metrics, windows, velocities
+    return scores, windows, velocities, spent
