@@ -190,7 +190,7 @@ def _rank_number(rank: Any) -> int:
 def marked(model: str, rows: pd.DataFrame) -> str:
     """A model's name on the leaderboard: ``<name> (external)`` for a row scored from a predictions file,
     ``<name> (code not installed here)`` for rows whose code is not installed here (board/installed.py)."""
-    if "code_here" in rows and rows["code_here"].astype(bool).any():
+    if _code_not_here(rows):
         return f"{model} ({NOT_INSTALLED})"
     return f"{model} (external)" if "external" in rows and rows["external"].any() else str(model)
 
@@ -198,8 +198,16 @@ def marked(model: str, rows: pd.DataFrame) -> str:
 def unranked_why(rows: pd.DataFrame) -> str:
     """Why a model's rows are not ranked though they finished ("" when nothing stops them): their code is
     not installed here (board/installed.py)."""
-    why = [str(x) for x in rows["code_here"] if x] if "code_here" in rows else []
+    why = _code_not_here(rows)
     return why[0] if why else ""
+
+
+def _code_not_here(rows: pd.DataFrame) -> list[str]:
+    """The "code not installed here" notes of ``rows`` (empty, missing or NaN: none; the floor's rows and
+    rows added after the check carry NaN)."""
+    if "code_here" not in rows:
+        return []
+    return [str(x) for x in rows["code_here"] if isinstance(x, str) and x]
 
 
 def detail_table(
