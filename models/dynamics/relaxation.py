@@ -83,7 +83,26 @@ def training_windows(table: pd.DataFrame, horizon_s: float, stride_s: float, his
         yield history, commands, true
 
 
-class FirstOrderRelaxation(KinematicModel):
+class OnKinematicBase(KinematicModel):
+    """A dynamics model built on a fitted kinematic model: ``params["base_model"]`` holds the base's fit
+    (its JSON), loaded once by :meth:`base`."""
+
+    def __init__(self, robot, params=None, **options):
+        super().__init__(robot, params, **options)
+        self._base: KinematicModel | None = None
+
+    def base(self) -> KinematicModel:
+        if self._base is None:
+            from skidbench.models.registry.specs import get_model_class
+
+            data = self.params.get("base_model")
+            if not data:
+                raise ModelError(f"model {self.name}: not fitted (no base model)")
+            self._base = get_model_class(data["model"]).from_json(self.robot, data)
+        return self._base
+
+
+class FirstOrderRelaxation(OnKinematicBase):
     name = "relax"
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
@@ -95,21 +114,6 @@ class FirstOrderRelaxation(KinematicModel):
         "history_s": st.HISTORY_S,  # s behind a Train window's initial velocity (as the protocol's)
         "tau_bounds": [0.005, 10.0],  # s
     }
-
-    def __init__(self, robot, params=None, **options):
-        super().__init__(robot, params, **options)
-        self._base: KinematicModel | None = None
-
-    # -- the base kinematic model ---------------------------------------------------------------
-    def base(self) -> KinematicModel:
-        if self._base is None:
-            from skidbench.models.registry.specs import get_model_class
-
-            data = self.params.get("base_model")
-            if not data:
-                raise ModelError(f"model {self.name}: not fitted (no base model)")
-            self._base = get_model_class(data["model"]).from_json(self.robot, data)
-        return self._base
 
     def tau(self) -> np.ndarray:
         return np.array([float(self.params["tau"][a]) for a in AXES])

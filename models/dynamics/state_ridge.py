@@ -31,9 +31,9 @@ import numpy as np
 import pandas as pd
 
 from skidbench.models import rollout as st
-from skidbench.models.base import KinematicModel, ModelError
+from skidbench.models.base import ModelError
 from skidbench.models.columns import mse
-from skidbench.models.dynamics.relaxation import training_windows, window_table
+from skidbench.models.dynamics.relaxation import OnKinematicBase, training_windows, window_table
 
 N_Z = 10
 N_X = 6
@@ -59,7 +59,7 @@ def window_features(history: st.History, commands: st.Commands, u: np.ndarray, d
     return np.concatenate([zz, x], axis=-1)
 
 
-class StateRidge(KinematicModel):
+class StateRidge(OnKinematicBase):
     name = "state_ridge"
     version = "1.0"
     required_columns = ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
@@ -75,20 +75,6 @@ class StateRidge(KinematicModel):
         "subsample": 0.8,  # the fraction of Train windows drawn (with seed) for the fit
         "seed": 0,
     }
-
-    def __init__(self, robot, params=None, **options):
-        super().__init__(robot, params, **options)
-        self._base: KinematicModel | None = None
-
-    def base(self) -> KinematicModel:
-        if self._base is None:
-            from skidbench.models.registry.specs import get_model_class
-
-            data = self.params.get("base_model")
-            if not data:
-                raise ModelError(f"model {self.name}: not fitted (no base model)")
-            self._base = get_model_class(data["model"]).from_json(self.robot, data)
-        return self._base
 
     def _base_windows(self, commands: st.Commands) -> np.ndarray:
         W, n1 = commands.t.shape
