@@ -225,3 +225,17 @@ def test_every_folder_of_the_package_is_a_concern_of_at_most_eleven_modules():
             if init.parent != REPO / pkg and n > 11:
                 tall[str(init.parent.relative_to(REPO))] = n
     assert not tall, tall
+
+
+def test_every_sub_package_is_installed():
+    """A folder that is a package but missing from pyproject.toml's ``packages`` works in a checkout (an
+    editable install maps the top folders) and is absent from an installed copy."""
+    import tomllib
+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    on_disk = {
+        "skidbench." + ".".join(init.parent.relative_to(REPO).parts)
+        for pkg in PACKAGES
+        for init in (REPO / pkg).rglob("__init__.py")
+    }
+    assert not on_disk - listed, sorted(on_disk - listed)
