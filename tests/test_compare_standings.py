@@ -162,7 +162,7 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
     assert "tied for best: " in page and 'title="best"' not in page  # 0.3 % apart on the same windows
     edd = s.overall.set_index("model").loc["edd"]
     ci = f'<span class="ci">[{edd["lo"]:.2f}, {edd["hi"]:.2f}]</span>'
-    assert f'{edd["estimate"]:.2f}{ci}' in page  # the aggregate with its interval
+    assert f"{edd['estimate']:.2f}{ci}" in page  # the aggregate with its interval
     assert '<span class="floor">floor</span>' in page  # the floor's row, never ranked
     assert "not resolved by these data" in page  # the paper's claim: friction was not evaluated here
     lo, hi = board.rows.loc[0, ["ld_6s_trans_rmsre_pct_ci_lo", "ld_6s_trans_rmsre_pct_ci_hi"]]

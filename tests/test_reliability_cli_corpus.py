@@ -101,7 +101,7 @@ CASES = [
     ("KITTI without its times file", [*GT_ORB, "groundtruth.orbslam.dir={c}/orb_kitti"],
      ["/orb_kitti/", "groundtruth.orbslam.times_pattern"]),
     ("ORB-SLAM folder without the files", [*GT_ORB, "groundtruth.orbslam.dir={c}/empty"],
-     ["/empty/", "no ORB-SLAM file", "groundtruth.orbslam.dir"]),
+     ["/empty:", "no ORB-SLAM file", "groundtruth.orbslam.dir"]),
     ("DRIVE windows without calib_step", ["extract", "source=drive_df", "source.root={c}/drive_nostep",
                                           "robot=husky", NEW], ["husky_windows.parquet", "calib_step"]),
     ("DRIVE file of another robot", ["extract", "source=drive_df", "source.root={c}/drive_ok",
