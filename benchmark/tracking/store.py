@@ -32,7 +32,7 @@ from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.tracking import bookkeeping as bk
 
 # what a run is and who made it (every name of provenance.__all__): callers use them as ``tracking.<name>``
-from skidbench.benchmark.tracking.tags import (  # noqa: F403
+from skidbench.benchmark.tracking.tags import (
     EXPERIMENT_KIND,
     MAX_PARAM_LEN,
     MAX_TAG_LEN,
