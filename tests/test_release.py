@@ -479,7 +479,7 @@ def test_the_walkthroughs_page_shows_the_submission_with_its_identity(walkthroug
     row = m.group(1)
     assert 'href="https://example.org/ideal-dd"' in row and "Lab B" in row
     assert dt.datetime.now(dt.UTC).date().isoformat() in row
-    assert "the ideal differential drive, no slip" in text  # its description, in its details
+    assert "the ideal differential drive: no slip" in text  # its description, in its details
     assert 'href="https://example.org/public-half.tar"' in text  # where to get the public half
     assert "withheld" in text_of(text)
     _no_local_path(site, walkthrough)
