@@ -80,13 +80,16 @@ def test_a_package_has_one_digest_wherever_it_is_installed_and_an_edit_changes_i
     assert environment.tree_digest(a)[0] != environment.tree_digest(b)[0]
 
 
-def test_a_builtin_models_code_is_skidbench_models_files_and_enters_its_requirements():
+def test_a_builtin_models_code_is_the_files_it_imports_and_enters_its_requirements():
     from skidbench.models.kinematic.linear import ExtendedDifferentialDrive
+    from skidbench.pipeline.runner import code_closure
 
     ident = environment.code_identity(ExtendedDifferentialDrive, "skidbench")
     assert ident.distribution == "skidbench" and ident.version == environment.version_of("skidbench")
-    digest, n = environment.tree_digest(REPO / "models")
-    assert (ident.digest, ident.files) == (digest, n)
+    files = code_closure.closure([ExtendedDifferentialDrive.__module__], environment._file_hash)
+    assert ident.files == len(files) and REPO / "models" / "base.py" in files.values()
+    assert REPO / "models" / "__init__.py" in files.values()  # the packages above it run on import
+    assert not any("friction" in str(f) or "ideal" in str(f) for f in files.values())
     assert ident.requires["numpy"] == environment.version_of("numpy")  # skidbench's own requirements
     reqs = environment.requirements_of(ident)
     assert reqs[:2] == [f"skidbench=={ident.version}", f"mlflow=={environment.version_of('mlflow')}"]

@@ -1,5 +1,5 @@
 """Rows whose model code is not here: a board row was made by a model's code as its run recorded it (tags
-``skidbench.code.*``: distribution, version, the digest of its package's files;
+``skidbench.code.*``: distribution, version, the digest of the files it runs;
 pipeline/runner/environment.py). When that model is not installed where compare runs, or is installed at
 another digest (edited, upgraded, or another checkout), the row's numbers are not those of any code here:
 compare marks it "code not installed here", keeps it visible with its numbers and does not rank it. Exempt:

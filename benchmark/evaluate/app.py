@@ -125,7 +125,7 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
     files = [p for p in files if p.is_file()]
     conf = OmegaConf.to_container(cfg, resolve=True)
     conf.pop("force", None)  # how to run, not what
-    # a model whose code changed (its version, or the digest of its package's files: an edit without a
+    # a model whose code changed (its version, or the digest of the files it runs: an edit without a
     # version bump) must be refitted and re-scored, even if its old fit file is intact; so must every model
     # when the scoring code changed (benchmark/evaluate/evaluation/reuse.py)
     conf["model_code"] = {m: _code_key(m) for m in models}
@@ -138,7 +138,7 @@ def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
 
 def _code_key(model: str) -> dict | str:
     """The code of a model as a fit's fingerprint holds it (``CodeIdentity.key`` of
-    pipeline/runner/environment.py: distribution, version, digest of its package's files), or why there is
+    pipeline/runner/environment.py: distribution, version, digest of the files it runs), or why there is
     none (not installed: the evaluate says so when it runs)."""
     from skidbench.models.base import ModelError
     from skidbench.models.registry.plugins import DISCOVERED, discover

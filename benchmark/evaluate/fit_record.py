@@ -51,7 +51,7 @@ def plugin_package(model_name: str, model: Any = None) -> str:
 def model_code(model_name: str, model: Any) -> environment.CodeIdentity:
     """The code of a fitted model (pipeline/runner/environment.py): its entry point's distribution, version
     and
-    the digest of its package's files."""
+    the digest of the files it runs."""
     ep = installed_models().get(model_name)
     dist = ep.dist if ep is not None else None
     return environment.code_identity(type(model), *((dist.name, dist.version) if dist else ()))

@@ -4,7 +4,7 @@ complete evaluate instead of running them again, and why it runs the others agai
 A model run's *result key* (tag ``skidbench.result_key``) is the fingerprint of what its numbers are made of:
 
 - ``fit``: the key of its fit (``fit_stamp`` of models/fitting/fit.py: the Train files, the model's config,
-  its code (distribution, version and the digest of its package's files: an edit without a version bump
+  its code (distribution, version and the digest of the files it runs: an edit without a version bump
   counts), the robot, the calibration, the input protocol);
 - ``code``: the model's code (in the fit's key too; apart, to say what changed);
 - ``scoring``: the digest of the scoring code (:data:`SCORING_CODE`; tag ``skidbench.scoring_digest``);

@@ -331,7 +331,7 @@ class _FitPlan:
     response: WheelResponse | None
     robot: Robot  # the robot the model is built with (the calibrated constants it takes)
     constants: dict[str, Any]  # where each constant came from (robot_for_model)
-    code: CodeIdentity  # the model's code: distribution, version, digest of its package's files
+    code: CodeIdentity  # the model's code: distribution, version, digest of the files it runs
     path: Path  # the fit JSON
     stamp: Stamp
     key: str
@@ -357,7 +357,7 @@ def _plan(settings: FitSettings, model_name: str, terrain: str, split: str) -> _
         {
             "model": model_config(settings.models, spec),
             "version": getattr(cls, "version", "?"),
-            # the code itself (distribution, version and a digest of its package's files): a plugin
+            # the code itself (distribution, version and a digest of the files it runs): a plugin
             # edited in place, or a release that forgets to bump a version, still invalidates old fits
             "code": code.key(),
             "robot": robot.to_dict(),  # as built, with the calibrated constants the model takes
@@ -380,7 +380,7 @@ def fit_stamp(
 ) -> tuple[Stamp, str]:
     """The stamp of the fit of ``model_name`` on ``terrain``'s ``split`` (``<ds>/.stamps/fit/<model>/
     <terrain>[.<inputs>].json``) and the key of its current inputs: the split files (content), the model's
-    config, class version, its code (distribution, version and the digest of its package's files:
+    config, class version, its code (distribution, version and the digest of the files it runs:
     ``pipeline/runner/environment.py``), the robot it is built with (calibrated constants
     included) and the spec sheet's, terrain, split, input protocol, wheel response, the calibration's
     constants and ``FIT_SCHEMA``. ``stamp.is_fresh(key)``: the saved fit is up to date."""

@@ -21,6 +21,10 @@ from importlib.metadata import EntryPoint
 from skidbench.models.base import KinematicModel, ModelError
 
 GROUP = "skidbench.models"
+#: the model classes of GROUP are loaded here by name: a model that loads another through the registry (a
+#: dynamics model's kinematic base) runs that model's code, so its code digest covers the modules of the
+#: group's built-in entry points (pipeline/runner/code_closure.py)
+LOADS_ENTRY_POINTS = GROUP
 
 #: group -> (the state of sys.path it was read under, its entry points): ``importlib.metadata``'s
 #: ``entry_points`` reads the entry-point file of every installed distribution on each call (~10 ms on a

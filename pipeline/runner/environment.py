@@ -1,11 +1,12 @@
 """What made a result: the code and the environment, for every MLflow run and every fit's fingerprint.
 
 - :func:`code_identity`: a model class's code, as its distribution (name, version), a digest of the source
-  files of the package it lives in, and the installed versions of the distribution's declared
+  files it runs (:func:`code_digest`), and the installed versions of the distribution's declared
   requirements. The digest is what an editable install changes without a version bump: it is part of
   every fit's fingerprint (``models/fitting/fit.py`` ``fit_stamp``), so an edited model is refitted, and of
-  its
-  run's tags. Built-in models: the files of ``skidbench.models``.
+  its run's tags. A built-in model: its module and the skidbench modules it imports, transitively
+  (pipeline/runner/code_closure.py), so an edit of one model refits that model and those built on it; a
+  plugin: the files of its package and the skidbench modules they import.
 - :func:`environment`: skidbench's version and git commit (``+dirty`` with local changes), the versions of
   Python and of the libraries the numbers depend on, the lock file (``requirements.lock``: its digest and
   whether the installed versions match it), the platform, the processor and the code paths the
@@ -32,6 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from skidbench.pipeline.runner import code_closure
 from skidbench.pipeline.runner.cpu import code_paths, cpu_flags, cpu_model
 
 #: the libraries whose versions a number depends on (their versions are recorded on every run)
@@ -44,7 +46,7 @@ CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", 
 #: thread settings read by NumPy's OpenBLAS, OpenMP, Numba and the stages
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 LOCK_FILE = "requirements.lock"
-REPO = Path(__file__).resolve().parents[1]  # the source tree of an editable install
+REPO = Path(__file__).resolve().parents[2]  # the source tree of an editable install
 
 
 def version_of(dist: str) -> str | None:
@@ -142,6 +144,33 @@ def package_root(module_name: str) -> Path | None:
     return None
 
 
+def code_digest(module: str) -> tuple[str, int]:
+    """(digest, number of files) of the code a model of ``module`` runs. A skidbench module: its file and
+    those of the skidbench modules it imports, transitively (:func:`code_closure.closure`: the module's
+    name and content of each, so the same code installed elsewhere has the same digest). Another module (a
+    plugin, a test's class): the files of its top-level package (:func:`tree_digest`: any file of it may be
+    what it runs) and the skidbench modules its Python files import. ``("?", 0)``: no files found."""
+    if module.startswith(code_closure.PREFIX):
+        own, n = "", 0
+        files = code_closure.closure([module], _file_hash)
+    else:
+        root = package_root(module)
+        if root is None:
+            return "?", 0
+        own, n = tree_digest(root)
+        imported: set[str] = set()  # its relative imports are its own modules: only absolute ones matter
+        for f in source_files(root):
+            if f.suffix == ".py":
+                imported |= code_closure.source_imports(f.read_text(errors="replace"), "")[0]
+        files = code_closure.closure(imported, _file_hash)
+    if not files:
+        return (own, n) if own else ("?", 0)
+    h = hashlib.blake2b(own.encode(), digest_size=16)
+    for name in sorted(files):
+        h.update(f"{name}\0{_file_hash(files[name])}\n".encode())
+    return h.hexdigest(), n + len(files)
+
+
 @functools.cache
 def _top_level_distributions() -> dict[str, list[str]]:
     return md.packages_distributions()
@@ -179,8 +208,8 @@ def requirement_versions(dist: str) -> dict[str, str]:
 
 @dataclass(frozen=True)
 class CodeIdentity:
-    """A model's code: the distribution that installs it, its version, the digest of its package's files
-    (:func:`tree_digest`) and the installed versions of the distribution's requirements."""
+    """A model's code: the distribution that installs it, its version, the digest of the files it runs
+    (:func:`code_digest`) and the installed versions of the distribution's requirements."""
 
     module: str
     distribution: str  # "?" when the class comes from no installed distribution
@@ -204,8 +233,7 @@ def code_identity(cls: type, distribution: str | None = None, version: str | Non
     dist = distribution if distribution not in (None, "", "?") else distribution_of(module)
     if version in (None, "", "?"):
         version = version_of(dist) if dist else None
-    root = package_root(module)
-    digest, n = tree_digest(root) if root is not None else ("?", 0)
+    digest, n = code_digest(module)
     return CodeIdentity(
         module=module,
         distribution=dist or "?",
