@@ -49,7 +49,7 @@ class Comparison:
 
 
 COMPARISONS: dict[str, Comparison] = {}
-_NOT_COMPARISONS = {"harness", "__main__", "discover_fdr"}
+_NOT_COMPARISONS = {"harness", "__main__", "discover_fdr", "pages", "snapshot", "threshold_sensitivity"}
 
 
 def register(name: str, description: str, targets: dict[str, tuple[str, float]] | None = None):

@@ -110,8 +110,8 @@ def test_gp_residual_carries_a_correction_to_the_mirrored_turns_train_lacks(jack
     """A symmetric robot's residual is odd in the turn (wz = 0.2 sin w) and Train only turns right going
     forward and left in reverse: trained on each row and its mirror image (``mirror_outputs``, by default
     all three), the GP corrects the other turns too (without the mirror images it extrapolates Train's v-w
-    coupling there: the DRIVE Warthog's LD regression in docs/models.md), and predicts no wz correction
-    driving straight (without them: up to 9e-4 rad/s here)."""
+    coupling there: the DRIVE Warthog's LD regression, CHANGELOG.md gp_residual 2.1), and predicts no wz
+    correction driving straight (without them: up to 9e-4 rad/s here)."""
     rng = np.random.default_rng(4)
 
     def labelled(tab):
