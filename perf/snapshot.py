@@ -20,7 +20,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from .pages import dataset_identity, publish
+from .pages import RESULTS, dataset_identity, publish
 
 #: report.md's sections that are figures or how to rerun it: not copied
 SKIP = ("## Figures", "## Reproduce")
@@ -75,6 +75,7 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("dataset")
     ap.add_argument("name", help="the page: perf/results/board_<name>.md")
     ap.add_argument("--made-by", default="", help="the command(s) that made the output root")
+    ap.add_argument("--results", type=Path, default=RESULTS, help="the folder of the page (perf/results)")
     a = ap.parse_args(argv)
     root = a.out_root / a.dataset
     reports = root / "reports"
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> Path:
     made = f" The output root was made by `{a.made_by}`." if a.made_by else ""
     about = f"Dataset {dataset_identity(root)}.{made} {_runs(reports)}"
     command = "python -m perf.snapshot " + shlex.join(sys.argv[1:] if argv is None else argv)
-    path = publish(f"board_{a.name}", command, about, body)
+    path = publish(f"board_{a.name}", command, about, body, a.results)
     print(path)
     return path
 

@@ -99,3 +99,35 @@ def test_startup_times_a_command_with_its_cpu_and_names_a_failing_one():
     failing = [sys.executable, "-c", "import sys; sys.stderr.write('boom'); sys.exit(3)"]
     with pytest.raises(RuntimeError, match=r"failed \(3\): boom"):
         startup.timed(failing, dict(os.environ))
+
+
+def test_snapshot_copies_the_boards_with_their_provenance_and_without_the_figures(tmp_path):
+    """``python -m perf.snapshot``: report.md's boards without figures, the other protocol's board from its
+    leaderboard, the dataset's fingerprint and the runs' commit in the header."""
+    from perf import snapshot
+
+    ds = tmp_path / "out" / "sim-x"
+    rep = ds / "reports"
+    rep.mkdir(parents=True)
+    (ds / "dataset.json").write_text('{"name": "sim-x", "fingerprint": "abc123"}')
+    (rep / "report.md").write_text(
+        "# skidbench report: sim-x\n\nintro\n\n## Leaderboard, inputs=commanded (mean over terrains)\n\n"
+        "| rank | model |\n|---|---|\n| 1 | friction |\n\n## Figures\n\n![fig](f.png)\n\n"
+        "## Notes\n\n- a note\n\n## Reproduce\n\nmake reproduce\n"
+    )
+    (rep / "leaderboard-response.md").write_text(
+        "# Leaderboard\n\nWritten by ...\n\n| rank | model |\n|---|---|\n| 1 | edd |\n\nbest: edd\n\n"
+        "| model | inputs | terrain |\n|---|---|---|\n| edd | response | tile |\n"
+    )
+    (rep / "leaderboard-response-20261128T000000Z.md").write_text("| old |\n")
+    (rep / "leaderboard-commanded.csv").write_text(
+        "model,git_commit,start_time_utc\nfriction,c0ffee,2026-11-28 10:00\n"
+    )
+    page = snapshot.main([str(tmp_path / "out"), "sim-x", "t", "--results", str(tmp_path / "res")])
+    text = page.read_text()
+    assert page.name == "board_t.md"
+    assert "fingerprint abc123" in text and "commit c0ffee" in text and "2026-11-28 10:00" in text
+    assert "| 1 | friction |" in text and "- a note" in text
+    assert "## Leaderboard, inputs=response (mean over terrains)" in text and "best: edd" in text
+    assert "f.png" not in text and "make reproduce" not in text.split("\n", 1)[1]
+    assert "| edd | response | tile |" not in text and "| old |" not in text
