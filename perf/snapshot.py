@@ -5,16 +5,19 @@ It copies what ``skidbench compare`` wrote into ``<out_root>/<dataset>/reports/`
 boards (the leaderboard with its intervals, ranks, standing and floor, the paired differences the ranking
 rule decided on, every model and terrain, the paper's claim, the protocols side by side) and its notes,
 without the figures; the mean-over-terrains board of every other protocol (``leaderboard-<inputs>.md``);
-and ``horizons.md`` (error against horizon, ``inputs=state``) when compare wrote one. The header names the
-output root's dataset identity and the commits and start times of the runs behind the boards (the
-leaderboard CSVs), so the page says what made its numbers; ``--made-by`` adds the command that made the
-output root (``make reproduce``, ...). The docs link these pages instead of quoting their numbers.
+the ground truth's loop closure (``groundtruth/loop_closure.json``); what ``calibrate`` identified per
+terrain (``calibration/<terrain>.json``); and ``horizons.md`` (error
+against horizon, ``inputs=state``) when compare wrote one. The header names the output root's dataset
+identity and the commits and start times of the runs behind the boards (the leaderboard CSVs), so the
+page says what made its numbers; ``--made-by`` adds the command that made the output root (``make
+reproduce``, ...). The docs link these pages instead of quoting their numbers.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import re
 import shlex
 import sys
@@ -54,6 +57,76 @@ def _other_boards(reports: Path, report: str) -> str:
     return "\n".join(out).rstrip()
 
 
+def _constant(c: dict, spec: float | None) -> str:
+    if not c or not c.get("identified"):
+        return f"{spec} (spec sheet; not identified)"
+    lo, hi = c.get("ci", [float("nan")] * 2)
+    return (
+        f"{spec} -> {c['value']:.4g} [{lo:.4g}, {hi:.4g}] ({c.get('ratio_to_spec', float('nan')):.3f}, "
+        f"{c.get('n_rows', '?')} rows)"
+    )
+
+
+def _calibrations(root: Path) -> str:
+    """What ``calibrate`` identified per terrain (``calibration/<terrain>.json``): the effective wheel radius
+    and track width against the spec sheet with their 95 % intervals, and the wheel response chosen."""
+    rows = []
+    for path in sorted((root / "calibration").glob("*.json")):
+        try:
+            cal = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if "wheel_radius" not in cal:
+            continue
+        spec, wr = cal.get("spec", {}), cal.get("wheel_response") or {}
+        resp = "not identified"
+        if wr.get("identified"):
+            resp = (
+                f"{wr.get('structure')}: {wr.get('rmse_command', float('nan')):.3f} -> "
+                f"{wr.get('rmse_response', float('nan')):.3f} ({wr.get('heldout_rmse', float('nan')):.3f})"
+            )
+        radius = _constant(cal["wheel_radius"], spec.get("wheel_radius"))
+        track = _constant(cal.get("track_width", {}), spec.get("track_width"))
+        rows.append(f"| {cal.get('terrain', path.stem)} | {radius} | {track} | {resp} |")
+    if not rows:
+        return ""
+    head = [
+        "## Calibration (`skidbench calibrate`, each terrain's Train)",
+        "",
+        "| terrain | wheel radius (m): spec -> calibrated [95 % interval] (ratio, rows) | track width (m): "
+        "the same | wheel response: structure: encoder RMSE (rad/s) commands -> response (held out) |",
+        "|---|---|---|---|",
+    ]
+    return "\n".join(head + rows)
+
+
+def _ground_truth(root: Path) -> str:
+    """The ground truth's loop closure over the loop trials and, on simulated data, its error against the
+    simulator's truth (``groundtruth/loop_closure.json``)."""
+    try:
+        lc = json.loads((root / "groundtruth" / "loop_closure.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return ""
+    if not lc.get("trials"):
+        return ""
+    pct = lambda k: 100 * float(lc.get(k, float("nan")))  # noqa: E731
+    lines = [
+        "## Ground truth (`groundtruth/loop_closure.json`)",
+        "",
+        f"Method `{lc.get('method')}`, {lc['trials']} loop trials: loop-closure error translational "
+        f"{pct('translational_mean'):.2f} % +- {pct('translational_std'):.2f} %, rotational "
+        f"{pct('rotational_mean'):.2f} % +- {pct('rotational_std'):.2f} % (flagged: {lc.get('flagged')}).",
+    ]
+    te = lc.get("truth_error") or {}
+    if te:
+        ate, rpe = 100 * te.get("ate_rms_m", float("nan")), 100 * te.get("rpe_trans_rel_rms", float("nan"))
+        lines.append(
+            f"Against the simulator's truth: absolute error {ate:.1f} cm RMS, "
+            f"6 s relative translational error {rpe:.2f} % RMS."
+        )
+    return "\n".join(lines)
+
+
 def _runs(reports: Path) -> str:
     """The commits and the start times of the runs on the leaderboards (their CSVs)."""
     commits, times = set(), []
@@ -83,7 +156,11 @@ def main(argv: list[str] | None = None) -> Path:
     if not report.is_file():
         raise SystemExit(f"{report}: no report (run skidbench compare on this output root first)")
     text = report.read_text()
-    body = "\n\n".join(filter(None, [_sections(text), _other_boards(reports, text)]))
+    body = "\n\n".join(
+        filter(
+            None, [_sections(text), _other_boards(reports, text), _ground_truth(root), _calibrations(root)]
+        )
+    )
     if (reports / "horizons.md").is_file():
         body += "\n\n" + (reports / "horizons.md").read_text()
     made = f" The output root was made by `{a.made_by}`." if a.made_by else ""

@@ -51,6 +51,8 @@ def format_result(result: Any, findings: Sequence[str] = ()) -> str:
         "(value [95 % interval], ±s: the spread over seeds of a model with random parts; the floor is a "
         "perfect model against this ground truth, never ranked; `skidbench compare` ranks with paired "
         "intervals)",
+        "(a split of one drive gives intervals within this drive: they cover other stretches of that drive, "
+        'not how another drive would differ; docs/intervals.md, "What an interval covers")',
         *(f"note: {f}" for f in findings),
     ]
     for c in result.failed:
