@@ -67,6 +67,39 @@ def test_discovery_asks_the_speed_scale_first_and_reports_one_calibration_findin
     assert res.final["model_effects"] == ["speed_scale"]  # the discovered model carries it
 
 
+def test_a_speed_deficit_is_a_scale_only_when_slow_and_fast_commands_lose_the_same_fraction():
+    """A 0.96 speed scale loses 4 % at every speed: one scale. A 2 rad/s wheel dead zone (0.196 m/s of rim
+    speed off every command) loses 0.196 / v: about twice the fraction on the slow half of the rows as on
+    the fast half, as much as the deficit itself, so it is not a radius (the dead zone's 0.0787 m for a
+    0.098 m wheel); a wheel-rate limit loses nothing on the slow half. Noise alone is a scale."""
+    from types import SimpleNamespace
+
+    from skidbench.benchmark.discovery.scale import scale_by_speed
+
+    rng = np.random.default_rng(0)
+    n_units, n = 8, 900
+    v = rng.uniform(0.1, 1.6, n_units * n) * rng.choice([-1, 1], n_units * n, p=[0.1, 0.9])
+    pred = np.column_stack([v, 0 * v, 0 * v])
+    s = DiscoverSettings()
+
+    def check(vx):
+        y = np.column_stack([vx + rng.normal(0, 0.02, len(v)), 0 * v, 0 * v])
+        pool = SimpleNamespace(valid=np.ones(len(v), bool), target=y, n_units=n_units,
+                               units=np.repeat(np.arange(n_units), n))  # fmt: skip
+        return scale_by_speed(pool, pred, s)
+
+    scale = check(0.96 * v)
+    assert scale["proportional"] and scale["k"] == pytest.approx(-0.04, abs=0.003)
+    assert [scale["scale_slow"], scale["scale_fast"]] == pytest.approx([0.96, 0.96], abs=0.01)
+    d = 2.0 * dd.R_WHEEL
+    dead = check(np.sign(v) * np.maximum(np.abs(v) - d, 0.0))
+    assert not dead["proportional"] and dead["scale_slow"] < dead["scale_fast"] - 0.1
+    assert "not a wheel radius" in dead["text"]
+    limit = check(np.clip(v, -1.1, 1.1))
+    assert not limit["proportional"] and limit["scale_slow"] == pytest.approx(1.0, abs=0.01)
+    assert check(v)["proportional"]
+
+
 def test_the_yaw_only_member_of_side_asymmetry_fits_a_yaw_only_asymmetry(jackal):
     """The family's yaw-only member recovers a yaw rate proportional to speed exactly, where the
     two-channel member (a radius difference) also changes vx and fits it worse."""

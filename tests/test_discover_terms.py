@@ -260,17 +260,8 @@ OUTSIDE_CASES = {
 }
 
 
-#: known regression of the calibration-first rule (issue 47, open): a 2 rad/s command dead zone is taken for a
-#: speed scale (radius 0.0787 m against 0.098) before the search, so no dead-zone term is named
-KNOWN_MISSES = {"dead_zone": "a command dead zone is taken for a speed scale by the calibration finding"}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "case",
-    [pytest.param(c, marks=pytest.mark.xfail(reason=KNOWN_MISSES[c], strict=False)) if c in KNOWN_MISSES
-     else c for c in OUTSIDE_CASES],
-)  # fmt: skip
+@pytest.mark.parametrize("case", list(OUTSIDE_CASES))
 def test_effect_outside_the_catalogue_is_named_by_its_term_with_the_injected_constant(case, jackal):
     effects, (fam, signal, channel), constants = OUTSIDE_CASES[case]
     res = _discover(effects, seed=300 + list(OUTSIDE_CASES).index(case), jackal=jackal)

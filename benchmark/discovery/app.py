@@ -54,6 +54,7 @@ def settings_from_cfg(cfg: DictConfig) -> DiscoverSettings:
         channel_tolerance=float(d.get("channel_tolerance", 0.01)),
         min_share=float(d.get("min_share", 0.10)),
         min_points=float(d.get("min_points", 0.001)),
+        scale_spread=float(d.get("scale_spread", 0.5)),
         open_ended=bool(d.get("open_ended", True)),
         max_terms=int(d.get("max_terms", 4)),
         splits=tuple(d.use),

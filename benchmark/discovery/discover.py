@@ -39,11 +39,11 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
-from scipy.stats import t as student_t
 
 from skidbench.benchmark.discovery.naming import best_catalogue, choose, keep_best_members, naming_record
 from skidbench.benchmark.discovery.panels import residual_panel, term_panel, unexplained_panels
 from skidbench.benchmark.discovery.pool import heading_finding, selected_on
+from skidbench.benchmark.discovery.scale import ask_speed_scale
 from skidbench.benchmark.discovery.search import (
     Scored,
     ScoredTerms,
@@ -51,10 +51,12 @@ from skidbench.benchmark.discovery.search import (
     evidence_row,
     fit_base,
     practical_check,
+    reweight,
     score_catalogue,
     score_rival,
     score_terms,
     show,
+    term_step_params,
 )
 from skidbench.benchmark.discovery.stats import HeldOut, compare, cross_validate, search_test
 from skidbench.models.augmented import terms as termlib
@@ -73,7 +75,6 @@ from skidbench.models.augmented.fit import (
     FitState,
     ModelFactory,
     Pool,
-    channel_weights,
     jsonable_params,
 )
 from skidbench.pipeline.core.robot import Robot
@@ -166,13 +167,6 @@ def refine_knots(
     if fun < start:
         return term.with_knots([float(v) for v in k0 * x])
     return term
-
-
-def _term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
-    p = dict(state.term_params[term.key])
-    for i, k in enumerate(term.knots):
-        p[f"knot{i}"] = float(k)
-    return p
 
 
 def unexplained_report(pool: Pool, aug: Augmenter, state: FitState, ho: HeldOut) -> dict[str, Any]:
@@ -296,7 +290,7 @@ def _add_term(
             + f"g = {term.key}",
             "evidence": {**ev, **evidence},
             "naming": naming_record("term", ev, scored_t, scored, term.n_params, []),
-            "params": {term.key: _term_step_params(run.state, term)},
+            "params": {term.key: term_step_params(run.state, term)},
             "heldout_rmsre_before": run.cur.rmsre,
             "heldout_rmsre_after": ho.rmsre,
         }
@@ -317,31 +311,6 @@ def _accept(run: Search, name: str, kind: str, ho: HeldOut) -> None:
     run.cur = ho
 
 
-def _reweight(run: Search, kind: str, term: termlib.Term | None) -> None:
-    """Re-estimate the channel weights after a step and record them with it.
-
-    The channel weights are the inverse residual variances of the model as it now is (the base model's
-    overstated the channels the added correction fixed): re-estimated, with the model refitted and held
-    out under them, so the next candidates are fitted and compared as a Gaussian likelihood with
-    per-channel noise would weigh them (with the base model's weights, a wheel-level term's constant
-    absorbs the base model's own vx misfit and leaves the yaw rate a residual a catalogue effect names).
-    """
-    weights = channel_weights(run.pool, run.state)
-    if not np.allclose(weights, run.aug.weights, rtol=0.05):
-        run.aug.weights = weights
-        run.state = run.aug.fit(run.effects, run.all_units, run.warm, terms=run.terms)
-        run.warm = {k: v for k, v in run.state.params.items()}
-        run.cur = cross_validate(run.aug, run.effects, run.warm, run.terms)
-        # the step reports the constants of the model as refitted under the new weights
-        if kind == "catalogue":
-            run.steps[-1]["params"] = jsonable_params(run.state.params)
-        else:
-            theta = run.state.term_params[term.key]["theta"]
-            run.steps[-1]["params"] = {term.key: _term_step_params(run.state, term)}
-            run.steps[-1]["explanation"] = term.describe(theta, run.robot.wheel_radius)
-    run.steps[-1]["channel_weights_after"] = dict(zip(CHANNELS, map(float, run.aug.weights), strict=True))
-
-
 def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
     """The search's outcome: the message naming what was found (or that nothing was), the final model
     with its held-out errors, and everything recorded on the way (``t_start``: perf_counter at the start)."""
@@ -357,6 +326,9 @@ def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
         message += "; no further effect earns its place"
     if run.calibration:
         message = f"calibration: {run.calibration['text']}; " + message
+    by_speed = run.base_info.get("speed_scale_check", {}).get("by_speed", {})
+    if not by_speed.get("proportional", True):
+        message = f"speed deficit: {by_speed['text']}; " + message
     run.say(f"[{run.terrain}] {message}")
     state, cur = run.state, run.cur
     final = {
@@ -364,7 +336,7 @@ def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
         "model_effects": list(run.effects),  # the members as fitted (the discovered model's spec)
         "terms": [t.key for t in run.terms],
         "params": jsonable_params(state.params),
-        "term_params": {t.key: _term_step_params(state, t) for t in run.terms},
+        "term_params": {t.key: term_step_params(state, t) for t in run.terms},
         "base_params": state.base.get_params(),
         "heldout_rmsre": cur.rmsre,
         "heldout_mse": dict(zip(CHANNELS, map(float, cur.mse), strict=True)),
@@ -385,64 +357,6 @@ def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
         selected_on(run.pool, run.settings),
         calibration=run.calibration,
     )
-
-
-def speed_scale_interval(ho: HeldOut, k: float, level: float = 0.95) -> tuple[float, float]:
-    """The interval of the speed scale ``k`` from its folds' fits: the delete-a-group jackknife's variance
-    (K - 1) / K sum (k_j - mean k)^2 over the K folds, Student's t with K - 1 degrees of freedom."""
-    ks = np.array([fp[SPEED_SCALE][0] for fp in ho.fold_params], float)
-    n = len(ks)
-    se = float(np.sqrt((n - 1) / n * np.sum((ks - ks.mean()) ** 2))) if n > 1 else float("nan")
-    q = float(student_t.ppf(0.5 + level / 2, max(n - 1, 1)))
-    return k - q * se, k + q * se
-
-
-def ask_speed_scale(run: Search) -> None:
-    """Discovery's first question: is the robot's speed a constant fraction of what the base model
-    predicts (an effective wheel radius that is not the configuration's)? One parameter, under the same
-    rule as every name; when it passes it enters the model as a calibration finding (the value to put in
-    the robot's config, with its interval), never as terms (``terms.SCALE_FORMS`` are not searched)."""
-    ho = cross_validate(run.aug, [SPEED_SCALE], run.warm, [])
-    ev = compare(run.cur, ho, 1, run.settings)
-    search_test({SPEED_SCALE: ev}, run.settings)
-    practical_check(run, ev)
-    show(run, SPEED_SCALE, ev)
-    if not ev["passes"]:
-        run.base_info["speed_scale_check"] = evidence_row(ev)
-        return
-    prev = run.state
-    run.state = run.aug.fit([SPEED_SCALE], run.all_units, run.warm, terms=run.terms)
-    run.warm = dict(run.state.params)
-    run.effects.append(SPEED_SCALE)
-    run.steps.append(
-        {
-            "effect": SPEED_SCALE,
-            "kind": "calibration",
-            "formula": CATALOGUE[SPEED_SCALE].formula,
-            "evidence": ev,
-            "heldout_rmsre_before": run.cur.rmsre,
-            "heldout_rmsre_after": ho.rmsre,
-        }
-    )
-    run.figure_data.append(residual_panel(run.pool, prev, SPEED_SCALE, run.cur, run.state))
-    run.cur = ho
-    _reweight(run, "catalogue", None)
-    k = float(run.state.params[SPEED_SCALE][0])
-    r = run.robot.wheel_radius
-    lo, hi = speed_scale_interval(ho, k)
-    run.calibration = {
-        "parameter": "wheel_radius",
-        "value": r * (1 + k),
-        "ci": [r * (1 + lo), r * (1 + hi)],
-        "configured": r,
-        "speed_scale": 1 + k,
-        "text": f"the effective wheel radius is {r * (1 + k):.4f} m (95 % interval {r * (1 + lo):.4f}-"
-        f"{r * (1 + hi):.4f}), not the configured {r:.4f} m: a speed scale of {1 + k:.3f}; put "
-        f"wheel_radius: {r * (1 + k):.4f} in the robot's config (a calibration finding, not a physical "
-        "effect)",
-    }
-    run.steps[-1]["explanation"] = run.calibration["text"]
-    run.say(f"[{run.terrain}] calibration: {run.calibration['text']}")
 
 
 def discover_terrain(
@@ -514,7 +428,7 @@ def _step(run: Search, candidates: tuple[str, ...]) -> bool:
         ho, term = _add_term(run, name, scored, scored_t, evidence)
     run.too_small.pop(family_of(name) if kind == "catalogue" else term.form, None)
     _accept(run, name if kind == "catalogue" else term.key, kind, ho)
-    _reweight(run, kind, term)
+    reweight(run, kind, term)
     return True
 
 

@@ -30,6 +30,7 @@ from skidbench.models.augmented.fit import (
     ModelFactory,
     Pool,
     channel_weights,
+    jsonable_params,
 )
 from skidbench.pipeline.core.robot import Robot
 
@@ -237,3 +238,36 @@ def score_rival(run: Search, best_c: str, scored_t: ScoredTerms, fs: FoldScreens
     rival = fs.best_rival(chans, CATALOGUE[best_c].n_params, tuple(scored_t) + excluded_forms(run))
     if rival is not None:
         score_form(run, fs, rival, scored_t)
+
+
+def term_step_params(state: FitState, term: termlib.Term) -> dict[str, float]:
+    """A term's fitted constants as its step records them: theta and its knots (``knot0``, ...)."""
+    p = dict(state.term_params[term.key])
+    for i, k in enumerate(term.knots):
+        p[f"knot{i}"] = float(k)
+    return p
+
+
+def reweight(run: Search, kind: str, term: termlib.Term | None) -> None:
+    """Re-estimate the channel weights after a step and record them with it.
+
+    The channel weights are the inverse residual variances of the model as it now is (the base model's
+    overstated the channels the added correction fixed): re-estimated, with the model refitted and held
+    out under them, so the next candidates are fitted and compared as a Gaussian likelihood with
+    per-channel noise would weigh them (with the base model's weights, a wheel-level term's constant
+    absorbs the base model's own vx misfit and leaves the yaw rate a residual a catalogue effect names).
+    """
+    weights = channel_weights(run.pool, run.state)
+    if not np.allclose(weights, run.aug.weights, rtol=0.05):
+        run.aug.weights = weights
+        run.state = run.aug.fit(run.effects, run.all_units, run.warm, terms=run.terms)
+        run.warm = {k: v for k, v in run.state.params.items()}
+        run.cur = cross_validate(run.aug, run.effects, run.warm, run.terms)
+        # the step reports the constants of the model as refitted under the new weights
+        if kind == "catalogue":
+            run.steps[-1]["params"] = jsonable_params(run.state.params)
+        else:
+            theta = run.state.term_params[term.key]["theta"]
+            run.steps[-1]["params"] = {term.key: term_step_params(run.state, term)}
+            run.steps[-1]["explanation"] = term.describe(theta, run.robot.wheel_radius)
+    run.steps[-1]["channel_weights_after"] = dict(zip(CHANNELS, map(float, run.aug.weights), strict=True))

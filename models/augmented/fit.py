@@ -63,6 +63,7 @@ class DiscoverSettings:
     channel_tolerance: float = 0.01  # held-out log-MSE loss allowed on a velocity channel the effect changes
     min_share: float = 0.10  # a name cuts the 6 s error that remains by this share of it (one metric) ...
     min_points: float = 0.001  # ... and by this much (RMSRE as a fraction: 0.1 percentage point)
+    scale_spread: float = 0.5  # a speed scale's slow and fast halves differ by less than this share of it
     alternations: int = 6  # base/effect refit alternations
     tau_bounds: tuple[float, float] = (0.02, 1.5)
     splits: tuple[str, ...] = ("train",)

@@ -371,6 +371,7 @@ SCHEMA: dict[str, Spec] = {
     "discover.max_terms": integer(0),
     "discover.min_share": number(0, 1),
     "discover.min_points": NONNEG,
+    "discover.scale_spread": NONNEG,
     "discover.placebo": choice("auto", True, False),
     "discover.placebo_shift_s": number(gt=0, what="s"),
 }
