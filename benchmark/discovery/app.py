@@ -147,14 +147,19 @@ def placebo(pool, factory, robot, settings: DiscoverSettings, terrain: str, base
     """The placebo check (issue 47): the same search on the pool with its commands moved ``shift_s`` in
     time (:func:`placebo_pool`), one step after the speed scale; nothing may be named. Command-free
     candidates (``lateral_drift``, constant and time forms of the library) are left out: they do not read
-    the commands, so the placebo leaves them what they are."""
+    the commands, so the placebo leaves them what they are. The speed scale is taken when it passes the
+    rule, whatever its spread over speeds (``scale_spread`` off): moved commands relate to the motion by
+    their overall level only (slow ones predict about the mean speed, fast ones much less), which is
+    neither a radius nor a drive's effect, so the check that tells those apart has nothing to tell here;
+    the placebo asks what the effect search names after that relation is taken out."""
     import dataclasses
 
     from skidbench.models.augmented import terms as termlib
 
     try:
         res = discover_terrain(
-            placebo_pool(pool, shift_s), factory, robot, dataclasses.replace(settings, max_effects=1),
+            placebo_pool(pool, shift_s), factory, robot,
+            dataclasses.replace(settings, max_effects=1, scale_spread=float("inf")),
             terrain, base_name, candidates=tuple(c for c in cands if c != "lateral_drift"),
             progress=lambda m: None, exclude_forms=tuple(termlib.command_free_forms()),
         )  # fmt: skip
