@@ -119,6 +119,27 @@ def test_sensitivity_of_steps_without_a_root_is_the_least_squares_one(jackal):
     assert free_mask(wl, wr).all()
 
 
+def test_the_cost_a_solve_reports_is_the_balance_at_the_slips_it_returns(jackal, offset_geometry):
+    """The LM evaluates F at each step's start itself (no separate residual pass): every step's reported
+    cost, warm-started or not, restarted or not, standing still or not, is 0.5 |F|^2 of ``residual`` at the
+    returned theta, to the bit where the LM produced it."""
+    geo = offset_geometry
+    wl, wr, dwl, dwr = (np.concatenate([a, b]) for a, b in zip(
+        random_steps(jackal, 60, seed=7),
+        (np.array([6.0, -4.0, 0.0]), np.array([6.0, 8.0, 0.0]), np.array([300.0, -300.0, 0.0]),
+         np.array([300.0, 300.0, 0.0])),
+        strict=True,
+    ))
+    for theta0 in (None, np.full((wl.size, 3), 0.01)):
+        sol = solve(wl, wr, dwl, dwr, PARAMS, geo, theta0=theta0)
+        F = residual(sol.theta, wl, wr, dwl, dwr, PARAMS, geo)
+        np.testing.assert_allclose(sol.cost, 0.5 * np.sum(F * F, axis=1), rtol=1e-14, atol=0)
+        assert sol.info["restarted"] >= 2 and np.all(sol.status[-3:] > 0) and sol.cost[-1] == 0.0
+        first = solve(wl, wr, dwl, dwr, PARAMS, geo, theta0=theta0, restarts=False)
+        F = residual(first.theta, wl, wr, dwl, dwr, PARAMS, geo)
+        np.testing.assert_array_equal(first.cost, 0.5 * np.sum(F * F, axis=1))
+
+
 def test_a_world_of_other_gravity_is_the_same_model_with_its_force_coefficients_scaled(jackal):
     """The models' g is standard gravity; a world of another g (the simulator's 9.81) costs nothing: every
     ground force of eqs. (5)-(7) is a coefficient times N, N proportional to g, so the balance under g' with

@@ -205,7 +205,7 @@ def step_balance(th, rw, sg, dvx_c, dw_c, free, p, gv, F, J, P, want_j, want_p):
 
 
 @njit(cache=True)
-def _balance_all(theta, rw, sg, dvx_c, dw_c, free, p, gv, want_j, want_p):
+def balance_all(theta, rw, sg, dvx_c, dw_c, free, p, gv, want_j, want_p):
     """``step_balance`` for every step: theta (T, 3), rw/sg/free (T, 2)/(T, 2)/(T, 3) -> F (T, 3),
     J (T, 3, 3), P (T, 3, 5) (zeros where not asked for)."""
     T = theta.shape[0]
@@ -281,7 +281,7 @@ def residual(
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
     th = np.ascontiguousarray(np.asarray(theta, dtype=float).reshape(-1, 3))
     args = step_inputs(wl, wr, dwl, dwr, geo)
-    return _balance_all(th, *args, param_vector(params), geo_vector(geo), False, False)[0]
+    return balance_all(th, *args, param_vector(params), geo_vector(geo), False, False)[0]
 
 
 def balance_jacobians(
@@ -298,7 +298,7 @@ def balance_jacobians(
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
     th = np.ascontiguousarray(np.asarray(theta, dtype=float).reshape(-1, 3))
     args = step_inputs(wl, wr, dwl, dwr, geo)
-    return _balance_all(th, *args, param_vector(params), geo_vector(geo), True, True)
+    return balance_all(th, *args, param_vector(params), geo_vector(geo), True, True)
 
 
 def velocity_sensitivity(
@@ -330,7 +330,7 @@ def velocity_sensitivity(
     dth, regular = _root_sensitivity(np.ascontiguousarray(theta), status, *args, p, geo_vector(geo))
     rest = ~regular & mask.any(axis=1)
     if rest.any():
-        _, J, P = _balance_all(
+        _, J, P = balance_all(
             np.ascontiguousarray(theta[rest]), *(a[rest] for a in args), p, geo_vector(geo), True, True
         )
         dth[rest] = -np.linalg.pinv(J, rcond=1e-12) @ P

@@ -18,6 +18,7 @@ from scipy.optimize import least_squares
 
 from skidbench.models.friction.balance import (
     FrictionGeometry,
+    balance_all,
     body_velocity,
     free_mask,
     geo_vector,
@@ -59,9 +60,10 @@ def _solve_spd3(A, b, x):
 def _lm_steps(
     theta, F, cost, idx, rw, sg, dvx_c, dw_c, free, p, gv, ftol, gtol, max_iter, stall_rtol, stall_iter
 ):
-    """Levenberg-Marquardt, one step at a time, on the steps ``idx`` (in place on theta/F/cost rows):
-    (status (n,), iterations of the longest) with status 1 root, 2 stationary point of F^T F, 0 not
-    converged. Steps are independent problems; each iterates exactly as the batched form would."""
+    """Levenberg-Marquardt, one step at a time, on the steps ``idx`` (in place on theta/F/cost rows; F and
+    cost are computed here from theta, their rows need no values on entry): (status (n,), iterations of
+    the longest) with status 1 root, 2 stationary point of F^T F, 0 not converged. Steps are independent
+    problems; each iterates exactly as the batched form would."""
     n = idx.size
     status = np.zeros(n, dtype=np.int8)
     hist = np.empty(stall_iter)
@@ -78,13 +80,15 @@ def _lm_steps(
     for q in range(n):
         t = idx[q]
         th, f = theta[t], F[t]
+        # F and J at the start in one balance evaluation (the cost summed in numpy's order)
+        step_balance(th, rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, f, J, dummy, True, False)
+        c = 0.5 * (f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        cost[t] = c
         if max(abs(f[0]), abs(f[1]), abs(f[2])) < ftol:
             status[q] = 1
             continue
-        c = cost[t]
         mu = 1e-3
         hist[:] = c
-        step_balance(th, rw[t], sg[t], dvx_c[t], dw_c[t], free[t], p, gv, Fn, J, dummy, True, False)
         it = 0
         st = 0
         while it < max_iter:
@@ -274,11 +278,14 @@ def solve(
     theta = np.where(mask, theta, 0.0)
     theta[~np.isfinite(theta)] = 0.0
     status = np.zeros(T, dtype=np.int8)
-    F = residual(theta, *inp, p, geo)
-    cost = 0.5 * np.sum(F * F, axis=1)
     # standstill (both sides zero): eq. (8) gives zero velocity whatever theta; nothing to solve
     still = ~mask.any(axis=1)
     status[still] = 1
+    # F and cost of the other steps are the LM's first evaluation
+    F, cost = np.zeros((T, 3)), np.zeros(T)
+    if still.any():
+        F[still] = residual(theta[still], *(a[still] for a in inp), p, geo)
+        cost[still] = 0.5 * np.sum(F[still] * F[still], axis=1)
     opts = dict(ftol=ftol, gtol=gtol, stall_rtol=stall_rtol, stall_iter=stall_iter)
     idx = np.flatnonzero(~still)
     status[idx], n_iter = _lm(theta, F, cost, idx, inp, p, geo, mask, max_iter=max_iter, **opts)
@@ -325,16 +332,14 @@ def _restart(
     st_inp = tuple(np.concatenate([a] * k + [b]) for a, b in zip(sub, (sub[0], sub[1], z, z), strict=True))
     st_mask = np.concatenate([m_sub] * (k + 1))
     th_s = np.where(st_mask, np.concatenate(starts + [np.zeros((nt, 3))]), 0.0)
-    F_s = residual(th_s, *st_inp, p, geo)
-    c_s = 0.5 * np.sum(F_s * F_s, axis=1)
+    F_s, c_s = np.zeros_like(th_s), np.zeros(th_s.shape[0])
     st_s, it_s = _lm(
         th_s, F_s, c_s, np.arange(th_s.shape[0]), st_inp, p, geo, st_mask, max_iter=max_iter, **opts
     )
     n_iter = it_s
     # continuation over the acceleration: the zero-acceleration solution as the start
     th_c = th_s[k * nt :].copy()
-    F_c = residual(th_c, *sub, p, geo)
-    c_c = 0.5 * np.sum(F_c * F_c, axis=1)
+    F_c, c_c = np.zeros_like(th_c), np.zeros(nt)
     st_c, it_c = _lm(th_c, F_c, c_c, np.arange(nt), sub, p, geo, m_sub, max_iter=max_iter, **opts)
     n_iter += it_c
     cands = [
@@ -359,14 +364,18 @@ def _restart(
 
 
 def _fallback_trf(theta, F, cost, status, idx, inp, p, geo, mask, ftol, max_nfev: int = 200) -> None:
+    """``solve``'s last resort for the few steps ``idx`` still descending: scipy's trf per step from its best
+    point (in place on the theta/F/cost/status rows). The balance of the step is evaluated by the compiled
+    kernel directly, its inputs prepared once per step (what ``residual`` would redo at every evaluation)."""
+    pv, gv = param_vector(p), geo_vector(geo)
     for t in idx:
         free = np.flatnonzero(mask[t])
-        one = tuple(a[t : t + 1] for a in inp)
+        args = step_inputs(*(a[t : t + 1] for a in inp), geo)
 
-        def fun(x, free=free, one=one):
+        def fun(x, free=free, args=args):
             th = np.zeros((1, 3))
             th[0, free] = x
-            return residual(th, *one, p, geo)[0]
+            return balance_all(th, *args, pv, gv, False, False)[0][0]
 
         res = least_squares(
             fun, theta[t, free], method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_nfev
