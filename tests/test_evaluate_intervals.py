@@ -72,6 +72,24 @@ def test_blocks_follow_the_errors_memory_and_one_drive_is_labelled_as_such():
     assert row["scope"] == iv.OVER_DRIVES and row["n_blocks"] == 6 and row["df"] == 5.0
 
 
+def test_a_board_says_what_its_intervals_cover():
+    """compare's board and report say, under the verdict, whether their intervals are within a drive (they
+    cannot speak for another drive) or over drives (docs/intervals.md, "What an interval covers")."""
+    from types import SimpleNamespace
+
+    from skidbench.benchmark.board.tables import scope_line
+
+    def board(means, cells):
+        return SimpleNamespace(overall=pd.DataFrame({"scope": means}), cells=pd.DataFrame({"scope": cells}))
+
+    line = scope_line(board([iv.WITHIN_DRIVES] * 2, [iv.WITHIN_DRIVE] * 4))
+    assert "the means over terrains within these drives" in line and "cells within this drive" in line
+    assert "not how another drive would differ" in line
+    over = scope_line(board([iv.OVER_DRIVES], [iv.OVER_DRIVES]))
+    assert "other drives like the recorded ones" in over and "another drive would differ" not in over
+    assert scope_line(board([], [])) == ""
+
+
 def _two_models(rng, n_seq, blocks_per_seq, ratio, rho=0.8):
     """Windows of two models whose relative errors are correlated (they err on the same windows) and
     whose true RMSREs differ by the factor ``ratio``."""

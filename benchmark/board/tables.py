@@ -16,6 +16,7 @@ import pandas as pd
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board.installed import NOT_INSTALLED
 from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring import standings as st
@@ -118,6 +119,26 @@ def ci_text(v: float, lo: float, hi: float, digits: int = 2) -> str:
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return f"{v:.{digits}f} [n/a]"
     return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def scope_line(standings: st.Standings) -> str:
+    """What the board's intervals cover (their ``scope``, docs/intervals.md "What an interval covers"): the
+    means over terrains' and each terrain's cells', in one line; "" when no interval was computed."""
+
+    def kinds(frame: pd.DataFrame) -> list[str]:
+        got = set(frame["scope"].dropna().astype(str)) if "scope" in frame else set()
+        return [k for k in iv.SCOPES if k in got]
+
+    means, cells = kinds(standings.overall), kinds(standings.cells)
+    if not means and not cells:
+        return ""
+    parts = [f"the means over terrains {' / '.join(means)}"] if means else []
+    parts += [f"each terrain's cells {' / '.join(cells)}"] if cells else []
+    if any(k != iv.OVER_DRIVES for k in means + cells):
+        covers = "they cover other stretches of the recorded drives, not how another drive would differ"
+    else:
+        covers = "they cover other drives like the recorded ones"
+    return f'Intervals: {"; ".join(parts)}: {covers} (docs/intervals.md, "What an interval covers").'
 
 
 def standings_table(board: pd.DataFrame, horizon_s: float, standings: st.Standings) -> pd.DataFrame:
@@ -388,5 +409,7 @@ def leaderboard_texts(
     lb_md = markdown_table(summary)
     if standings is not None:
         lb_md += "\n\n" + standings.verdicts["overall"]
+        if scope_line(standings):
+            lb_md += "\n\n" + scope_line(standings)
     md = "\n".join([*header, "", lb_md, "", markdown_table(display_detail(shown)), ""])
     return rows.to_csv(index=False), md, lb_md

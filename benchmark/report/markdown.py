@@ -12,7 +12,7 @@ from typing import Any
 
 import pandas as pd
 
-from skidbench.benchmark.board.tables import SPLITS, ci_text, display_detail, markdown_table
+from skidbench.benchmark.board.tables import SPLITS, ci_text, display_detail, markdown_table, scope_line
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
@@ -161,6 +161,7 @@ def _board_lines(c: ReportContent) -> list[str]:
            "docs/intervals.md); the floor is a perfect model (the simulator's exact velocities) "
            "against this ground truth, what no model can be expected to beat.", ""]
           if standings is not None else []),
+        *([scope_line(standings), ""] if standings is not None and scope_line(standings) else []),
         *differences_lines(standings),
         "## Per model and terrain",
         "",
