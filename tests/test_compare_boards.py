@@ -20,12 +20,15 @@ import pytest
 from _bench_data import compose, fit_fn, write_splits
 
 from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.board.app import run as run_compare
 from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
 from skidbench.benchmark.evaluate.console import format_result
 from skidbench.benchmark.evaluate.failures import TRACEBACK_ARTIFACT, failure_summary
+from skidbench.benchmark.scoring.predictions import Score
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.pipeline.core.layout import Layout
 
 DS = "sim-mini"
 OTHER = "drive-other-abc123"  # a second dataset of the root, of another source
@@ -65,7 +68,7 @@ def _record(cfg, ds_root):
 
 def _other_dataset(out):
     """A second dataset (another source's identity) with one evaluate of two models, logged as evaluate
-    logs them (tags, metrics), in its own experiment."""
+    logs them (tags, metrics), in its own experiment, and written to its results table."""
     ds = out / OTHER
     (ds / "raw").mkdir(parents=True)
     (ds / "raw" / "manifest.json").write_text(json.dumps({"schema": 1, "robot": "warthog", "sequences": []}))
@@ -77,15 +80,23 @@ def _other_dataset(out):
     tracker = trk.Tracker(f"sqlite:///{out / 'mlflow.db'}", f"skidbench-{OTHER}", dataset_id=OTHER_ID)
     tags = {run_tags.TAG_DATASET: OTHER, run_tags.TAG_INPUTS: "commanded"}
     parent = tracker.start("evaluate other", {**tags, run_tags.TAG_ROLE: "parent"})
+    results = rt.Writer(Layout(out, OTHER), parent)
     for model, err in (("alpha", 10.0), ("beta", 20.0)):
         child = tracker.start(
             f"{model}/grass",
             {**tags, run_tags.TAG_ROLE: "child", run_tags.TAG_MODEL: model, run_tags.TAG_TERRAIN: "grass"},
             parent,
         )
-        metrics = {f"{s}_6s_{k}_rmsre_pct": err for s in ("cv", "ld") for k in ("trans", "rot")}
-        tracker.log(child, metrics=metrics, params={"min_distance_m": "0.5", "min_rotation_deg": "10.0"})
+        scores = [Score(k, s, 6.0, err, 40) for s in ("cv", "ld") for k in ("translational", "rotational")]
+        facts = rt.RunFacts(parent, child, model, "commanded", "grass", dataset=OTHER, dataset_id=OTHER_ID,
+                            experiment=f"skidbench-{OTHER}", min_distance_m=0.5, min_rotation_deg=10.0,
+                            horizons=[6.0], splits=["cv", "ld"], models=["alpha", "beta"],
+                            user=run_tags.current_user())  # fmt: skip
+        rows = rt.rows(facts, scores)
+        results.add(rows)
+        tracker.log(child, metrics=rt.mlflow_metrics(pd.DataFrame(rows)))
         tracker.end(child)
+    results.finish("FINISHED")
     tracker.end(parent)
     return parent
 
@@ -171,6 +182,13 @@ def test_newer_runs_that_are_not_complete_are_left_out_and_named(root):
     }
     killed = tracker.start("chi/tile", tags)
     tracker.kill(killed)
+    # its rows, as evaluate writes those of the run it was at when interrupted (its cells, KILLED); a run
+    # logged without an evaluate (a library call) is judged by itself
+    results = rt.Writer(Layout(out, DS), "", name="interrupted")
+    facts = rt.RunFacts("", killed, "chi", "commanded", "tile", dataset_id=_dataset_id(out),
+                        experiment=f"skidbench-{DS}", user=run_tags.current_user())  # fmt: skip
+    results.add(rt.unscored(facts, ["cv", "ld"], [6.0], "KILLED", trk.INTERRUPTED))
+    results.finish("KILLED")
     res = run_compare(compose("compare", out, NO_FIGS))
     chi_run = next(c.run_id for c in runs[1].children if c.model == "chi")
     assert _board(out).set_index("model").loc["chi", "run_id"] == chi_run
@@ -218,7 +236,7 @@ def test_compare_names_any_dataset_of_the_root(root):
 
     from skidbench.benchmark.board.selection import dataset_boards
 
-    boards = dataset_boards(f"sqlite:///{out / 'mlflow.db'}", {DS: _dataset_id(out), OTHER: OTHER_ID})
+    boards = dataset_boards(out, {DS: _dataset_id(out), OTHER: OTHER_ID})
     assert boards[OTHER] == [
         "inputs=commanded: 2 model(s) x 1 terrain(s) complete, from 1 evaluate(s), newest run "
         + boards[OTHER][0].split("newest run ")[1]

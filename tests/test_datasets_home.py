@@ -100,6 +100,7 @@ def assert_both_intact(out: Path, a: tuple, b: tuple, results: dict) -> None:
     """Each dataset's folder, manifest terrains, split files, MLflow experiment, compare and discovery
     hold its own terrain only."""
     from skidbench.benchmark.board.compare import select_runs
+    from skidbench.benchmark.board.selection import results_of
     from skidbench.benchmark.tracking import store as trk
 
     for (source, terrain), other in ((a, b[1]), (b, a[1])):
@@ -115,8 +116,9 @@ def assert_both_intact(out: Path, a: tuple, b: tuple, results: dict) -> None:
         assert set(runs["tags.skidbench.terrain"]) == {terrain}
         assert set(runs["tags.skidbench.dataset_id"]) == {ident.fingerprint}
         assert len(runs) == 2 * len(results[ident.name])  # ideal, edd per evaluate run
-        shown, _ = select_runs(trk.tracker_from_cfg(c, layout), "latest", None)
-        assert set(shown["tags.skidbench.terrain"]) == {terrain}
+        table = results_of(layout, ident.fingerprint)
+        shown, _ = select_runs(trk.tracker_from_cfg(c, layout), table, "latest", None)
+        assert set(shown["terrain"]) == {terrain}
         board = pd.read_csv(layout.reports / "leaderboard-commanded.csv")  # (its CPU flags may hold "tile")
         assert set(board["terrain"].dropna()) == {terrain} and other not in set(board["terrain"])
         doc = json.loads((layout.discovery / "discovery.json").read_text())

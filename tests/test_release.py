@@ -121,13 +121,13 @@ def board(walkthrough) -> Path:
 
 def _rows(out: Path, protocol: str = "commanded") -> pd.DataFrame:
     from skidbench.benchmark.board import boards as brd
-    from skidbench.benchmark.tracking.store import Tracker
+    from skidbench.benchmark.board.selection import results_of
     from skidbench.pipeline.core.layout import Layout
     from skidbench.pipeline.datasets.identity import read_record
 
     layout = Layout(out, DS)
-    tracker = Tracker(layout.mlflow_uri, f"skidbench-{DS}", dataset_id=read_record(layout)["fingerprint"])
-    return brd.protocol_board(tracker, protocol).rows
+    table = results_of(layout, read_record(layout)["fingerprint"], f"skidbench-{DS}")
+    return brd.protocol_board(table, protocol).rows
 
 
 def _sequences(doc: dict, splits: tuple[str, ...]) -> list[dict]:

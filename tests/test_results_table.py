@@ -15,6 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from skidbench.benchmark.board import results as rt
+from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.predictions import Score, keyed
 from skidbench.pipeline.core.layout import Layout
 
@@ -93,34 +94,86 @@ def test_a_column_added_by_a_newer_minor_version_is_read(tmp_path):
     assert len(rt.read(layout)) == 3
 
 
+def test_the_board_is_the_newest_run_of_a_complete_evaluate_with_its_settings_from_the_table(tmp_path):
+    """Two evaluates, the newer one killed: its run that finished is left out and named, the board keeps
+    the complete evaluate's, and the settings and the latest evaluate are read from the rows (no MLflow)."""
+    import datetime as dt
+
+    from skidbench.benchmark.board import boards as brd
+    from skidbench.benchmark.board import selection as sel
+
+    layout = Layout(tmp_path, "ds")
+    t0 = dt.datetime(2026, 11, 28, 12, tzinfo=dt.UTC)
+    for k, (ev, status, models) in enumerate(
+        (("e1", "FINISHED", ("chi", "ideal")), ("e2", "KILLED", ("chi",)))
+    ):
+        w = rt.Writer(layout, ev)
+        for j, m in enumerate(models):
+            when = t0 + dt.timedelta(hours=k, minutes=j)
+            facts = rt.RunFacts(ev, f"{ev}-{m}", m, "commanded", "tile", horizons=[6.0], splits=["cv", "ld"],
+                                models=list(models), min_distance_m=0.5 + k, min_rotation_deg=10.0,
+                                start_time=when, reproduce=f"cmd {ev}")  # fmt: skip
+            w.add(rt.rows(facts, [Score("translational", sp, 6.0, 5.0 + k + j, 40) for sp in ("cv", "ld")]))
+        w.finish(status)
+    table = rt.read(layout)
+    assert rt.latest_evaluate(table, "commanded") == "e1" and rt.latest_evaluate(table, "response") is None
+    assert rt.settings_of(table, "e2") == {"horizons": [6.0], "splits": ["cv", "ld"], "min_distance_m": 1.5,
+                                           "min_rotation_deg": 10.0, "models": ["chi"]}  # fmt: skip
+    s = sel.latest_complete(table, "commanded", 6.0)
+    assert dict(zip(s.runs["model"], s.runs["run_id"], strict=True)) == {"chi": "e1-chi", "ideal": "e1-ideal"}
+    (line,) = s.left_out
+    assert line.startswith("chi/tile: run e2-chi") and "its evaluate e2 ended KILLED" in line
+    assert "the board has its run e1-chi" in line
+    board = brd.protocol_board(table, "commanded")
+    assert board.parent_run_id == "e1" and board.settings["min_distance_m"] == 0.5
+    rows = board.rows.set_index("model")
+    assert rows.loc["ideal", "ld_6s_trans_rmsre_pct"] == 6.0 and rows.loc["chi", "reproduce"] == "cmd e1"
+    only = sel.latest_complete(table, "commanded", 6.0, allowed={"e1-ideal"})  # compare's filter
+    assert list(only.runs["run_id"]) == ["e1-ideal"] and not only.left_out
+    with pytest.raises(sel.NoRuns, match="no model runs of user bob under inputs=commanded"):
+        sel.latest_complete(table, "commanded", 6.0, user="bob")
+
+
 @pytest.mark.slow  # the README's quick start (a session fixture shared with test_e2e)
 def test_the_board_from_the_results_table_alone_is_what_mlflow_and_the_leaderboard_hold(readme_reproduce):
-    """The quick start's boards (both protocols) built from the results files alone (no MLflow): every cell
-    is the metric MLflow holds for that run under its UI name, and the rows are the leaderboard compare
-    wrote (the same runs, the same values)."""
+    """The quick start's boards (both protocols) built from the results files alone (no MLflow), as compare
+    selects them: every cell (value, interval, windows, blocks) is the metric MLflow holds for that run
+    under its UI name and the cell of the leaderboard compare wrote (the same runs); every row's
+    provenance is its run's tags, and the board's settings its evaluate's params."""
+    import ast
+
     from mlflow import MlflowClient
 
-    from skidbench.benchmark.scoring import metrics as mt
+    from skidbench.benchmark.board import boards as brd
+    from skidbench.benchmark.board.selection import board_of, latest_complete
 
     root = readme_reproduce["root"]
     layout = Layout(root, "sim-tiny")
     table = rt.read(layout)
     client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
     for protocol in ("commanded", "response"):
-        runs = rt.runs(table)
-        runs = runs[runs["inputs"] == protocol].drop_duplicates(["model", "terrain"])  # newest first
-        board = rt.board(table, runs, 6.0)
+        board = board_of(latest_complete(table, protocol, 6.0))
         assert len(board) == 8 * 3 and (board["status"] == "FINISHED").all()
         keys = [c for c in board.columns if c.startswith(("cv_", "ld_"))]
         assert "ld_6s_trans_rmsre_pct" in keys and "ld_6s_trans_rmsre_pct_ci_hi" in keys
-        for row in board.itertuples(index=False):
-            logged = client.get_run(row.run_id).data.metrics
-            for k in keys:
-                v, got = getattr(row, k), logged.get(k, np.nan)
-                assert got == v or (np.isnan(v) and np.isnan(got)), (row.model, k)
         lb = pd.read_csv(root / "sim-tiny" / "reports" / f"leaderboard-{protocol}.csv").set_index("run_id")
         assert set(lb.index) == set(board["run_id"])
-        for m in mt.PAPER:
+        for row in board.itertuples(index=False):
+            run = client.get_run(row.run_id)
+            for k in keys:
+                v, got = getattr(row, k), run.data.metrics.get(k, np.nan)
+                assert got == v or (np.isnan(v) and np.isnan(got)), (row.model, k)
+            assert lb.loc[row.run_id, "options_digest"] == run.data.tags["skidbench.options_digest"]
+            assert lb.loc[row.run_id, "code_digest"] == run.data.tags["skidbench.code.digest"]
+        for m in (m for m in mt.METRICS if not m.optional):  # an optional one: shown as text, scaled
             for split in ("cv", "ld"):
-                shown = lb.loc[board["run_id"], m.column_label(split)].to_numpy(float)
-                assert np.allclose(shown, board[m.metric_key(split, 6.0)].to_numpy(float), equal_nan=True)
+                label, key = m.column_label(split), m.metric_key(split, 6.0)
+                shown = lb.loc[board["run_id"], label].to_numpy(float)
+                assert np.allclose(shown, board[key].to_numpy(float), equal_nan=True), label
+                if m.bootstrap is not None:
+                    lo, hi, _ = m.interval_keys(split, 6.0)
+                    shown = lb.loc[board["run_id"], f"{label} lo"].to_numpy(float)
+                    assert np.allclose(shown, board[lo].to_numpy(float), equal_nan=True), label
+        b = brd.protocol_board(table, protocol)
+        params = client.get_run(b.parent_run_id).data.params
+        assert b.settings == {k: ast.literal_eval(params[k]) for k in rt.SETTING_KEYS}

@@ -10,9 +10,10 @@ comes from: its run and parent run, the digest of the options it was made with (
 protocol, the scoring and calibration settings: tag ``skidbench.options_digest``), the model's version
 and code, skidbench's version and commit, the libraries' versions, the dataset's identity and the
 fingerprint of the split files it was scored on, whether it is an external row (and its predictions
-file's sha256), its start time and the command that reproduces it (from the run's description). The
-settings every row was scored with (horizons, test splits, the metric's minimum distance and rotation) are
-those of the newest evaluate the rows come from.
+file's sha256), its start time and the command that reproduces it: the columns of its rows in the
+dataset's results table (benchmark/board/results.py), read as they were written, never parsed back from
+MLflow's strings. The settings every row was scored with (horizons, test splits, the metric's minimum
+distance and rotation) are those of the newest evaluate the rows come from.
 
 Leaderboard files are never overwritten silently: each compare writes ``leaderboard-<protocol>-<UTC
 stamp>.csv|.md`` (unless the rows are those of the latest file: then it says so) and a ``latest`` copy,
@@ -21,10 +22,8 @@ stamp>.csv|.md`` (unless the rows are those of the latest file: then it says so)
 
 from __future__ import annotations
 
-import ast
 import datetime as dt
 import json
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,9 +31,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.scoring.floor import FLOOR
-from skidbench.benchmark.tracking import store as trk
-from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.io import read_parquet_metadata, write_json_atomic, write_text_atomic
 from skidbench.pipeline.core.layout import Layout
@@ -64,13 +62,8 @@ PROVENANCE_COLUMNS = (
 #: a submission's identity (``skidbench score``: benchmark/release/submission.py), "" for an evaluated model
 SUBMISSION_COLUMNS = ("link", "submitter", "submitted", "description")
 TAG_OPTIONS = "skidbench.options_digest"  # the options a child run was made with (evaluate's _start_child)
-TAG_SKIDBENCH_VERSION = "skidbench.version"
-TAG_CODE = "skidbench.code."  # + version, digest, ...: the model's code (its distribution and files)
-TAG_ENV = "skidbench.env."  # + library: the versions and platform a run was made with
 #: the versions a leaderboard row always has a column for (empty when its run did not record them)
 ENV_COLUMNS = ("python", "numpy", "scipy", "numba", "pandas", "pyarrow", "mlflow")
-#: the parent evaluate's parameters every row of its board was scored with (and their defaults)
-SETTING_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "models")
 
 
 @dataclass
@@ -85,66 +78,30 @@ class Board:
     rows: pd.DataFrame = field(default_factory=pd.DataFrame)
 
 
-def _literal(text: Any) -> Any:
-    """An MLflow param (a string) back to its value: ``"[6.0]"`` -> [6.0], ``"0.5"`` -> 0.5."""
-    if text is None:
-        return None
-    try:
-        return ast.literal_eval(str(text))
-    except (ValueError, SyntaxError):
-        return str(text)
-
-
-def parent_settings(tracker: trk.Tracker, parent_id: str) -> dict[str, Any]:
-    """The settings of an evaluate (or score) parent run, from its params (``SETTING_KEYS``)."""
-    params = tracker.client.get_run(parent_id).data.params
-    return {k: _literal(params[k]) for k in SETTING_KEYS if k in params}
-
-
-def _reproduce(note: Any) -> str:
-    """The command(s) of a run's description (the fenced block after "Reproduce:"), one per line."""
-    m = re.search(r"Reproduce:\s*```\n(.*?)\n```", str(note or ""), flags=re.S)
-    return m.group(1).strip() if m else ""
-
-
-def _col(runs: pd.DataFrame, name: str) -> pd.Series:
-    return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
-
-
-def _tags(runs: pd.DataFrame, prefix: str) -> list[str]:
-    """The names after ``prefix`` of the tags some run has (``tags.<prefix><name>`` columns)."""
-    head = f"tags.{prefix}"
-    return [c[len(head) :] for c in runs.columns if c.startswith(head)]
-
-
 def provenance(runs: pd.DataFrame) -> pd.DataFrame:
     """Per run (``run_id``, :data:`PROVENANCE_COLUMNS`, then ``env.<name>`` for :data:`ENV_COLUMNS` and
-    every other environment tag a run has) from the runs' tags (a search_runs frame)."""
+    every other library version a run recorded) from the runs' rows of the results table
+    (:func:`results.runs`)."""
     start = pd.to_datetime(runs["start_time"], utc=True, errors="coerce")
-    tag = lambda name: _col(runs, f"tags.{name}").fillna("").astype(str)  # noqa: E731
+    text = lambda name: runs[name].fillna("").astype(str)  # noqa: E731
     out = pd.DataFrame(
         {
             "run_id": runs["run_id"],
-            "parent_run_id": tag(run_tags.TAG_PARENT),
+            "parent_run_id": text("evaluate_id"),
             "start_time_utc": start.dt.strftime("%Y-%m-%d %H:%M:%S").fillna(""),
-            "options_digest": tag(TAG_OPTIONS),
-            "model_version": tag(run_tags.TAG_MODEL_VERSION),
-            "package": tag(run_tags.TAG_PLUGIN),
-            "code_version": tag(TAG_CODE + "version"),
-            "code_digest": tag(TAG_CODE + "digest"),
-            "skidbench_version": tag(TAG_SKIDBENCH_VERSION),
-            "git_commit": tag(run_tags.TAG_GIT),
-            "dataset_id": tag(run_tags.TAG_DATASET_ID),
-            "splits_fingerprint": tag(run_tags.TAG_FINGERPRINT),
-            "external": _col(runs, f"tags.{run_tags.TAG_EXTERNAL}").fillna("false").eq("true"),
-            "predictions_sha256": tag(run_tags.TAG_PREDICTIONS_SHA256),
+            **{c: text(c) for c in ("options_digest", "model_version", "package", "code_version",
+                                    "code_digest", "skidbench_version", "git_commit", "dataset_id",
+                                    "splits_fingerprint")},
+            "external": runs["external"].fillna(False).astype(bool),
+            "predictions_sha256": text("predictions_sha256"),
             # a submission's identity (benchmark/release/submission.py); "" for an evaluated model
-            **{k: tag(run_tags.TAG_SUBMISSION + k) for k in SUBMISSION_COLUMNS},
-            "reproduce": _col(runs, f"tags.{run_tags.TAG_NOTE}").map(_reproduce),
+            **{k: text(k) for k in SUBMISSION_COLUMNS},
+            "reproduce": text("reproduce"),
         }
-    )
-    for name in dict.fromkeys([*ENV_COLUMNS, *sorted(_tags(runs, TAG_ENV))]):  # one order, whatever the runs
-        out[f"env.{name}"] = tag(TAG_ENV + name)
+    )  # fmt: skip
+    names = sorted({k for v in runs["versions"] for k in (v or {})})
+    for name in dict.fromkeys([*ENV_COLUMNS, *names]):  # one order, whatever the runs
+        out[f"env.{name}"] = [str((v or {}).get(name, "")) for v in runs["versions"]]
     return out
 
 
@@ -157,33 +114,33 @@ def with_provenance(board: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     return rows.reset_index(drop=True)
 
 
-def protocol_board(tracker: trk.Tracker, protocol: str, filter_string: str | None = None) -> Board | None:
-    """The board of ``protocol`` (None when it has no evaluate), with provenance: the newest complete
-    run of each (model, terrain) at the first horizon of the protocol's latest evaluate."""
-    from skidbench.benchmark.board.selection import NoRuns, board_from_runs, latest_complete
+def protocol_board(table: pd.DataFrame, protocol: str) -> Board | None:
+    """The board of ``protocol`` from the dataset's results ``table`` (None when it has no evaluate), with
+    provenance: the newest complete run of each (model, terrain) at the first horizon of the protocol's
+    latest evaluate."""
+    from skidbench.benchmark.board.selection import NoRuns, board_of, latest_complete
 
-    parent = tracker.latest_parent(protocol)
+    parent = rt.latest_evaluate(table, protocol)
     if parent is None:
         return None
-    settings = parent_settings(tracker, parent)
-    horizons = settings.get("horizons") or [6.0]
-    horizon = float(horizons[0] if isinstance(horizons, list | tuple) else horizons)
+    settings = rt.settings_of(table, parent)
+    horizon = float((settings.get("horizons") or [6.0])[0])
     try:
-        sel = latest_complete(tracker, protocol, horizon, filter_string)
+        sel = latest_complete(table, protocol, horizon)
     except NoRuns:
         return None
-    board = board_from_runs(sel.runs, horizon)
     newest = sel.parents[0] if sel.parents else parent
     if newest != parent:
-        settings = parent_settings(tracker, newest)
-    return Board(protocol, newest, horizon, settings, with_provenance(board, sel.runs))
+        settings = rt.settings_of(table, newest)
+    return Board(protocol, newest, horizon, settings, with_provenance(board_of(sel), sel.runs))
 
 
-def all_boards(tracker: trk.Tracker, filter_string: str | None = None) -> dict[str, Board]:
-    """``{protocol: board}`` of every protocol with an evaluate, in the order of ``PROTOCOLS``."""
+def all_boards(table: pd.DataFrame) -> dict[str, Board]:
+    """``{protocol: board}`` of every protocol with an evaluate in the results ``table``, in the order of
+    ``PROTOCOLS``."""
     out = {}
     for p in PROTOCOLS:
-        b = protocol_board(tracker, p, filter_string)
+        b = protocol_board(table, p)
         if b is not None:
             out[p] = b
     return out

@@ -1,4 +1,4 @@
-"""`skidbench compare`: the leaderboard from ``mlflow.search_runs`` and the paper's Figs. 3-7, written to
+"""`skidbench compare`: the leaderboard from the dataset's results table and the paper's Figs. 3-7, written to
 ``<out_root>/<dataset>/reports/`` (report.md, leaderboard-<protocol>.md/.csv and their time-stamped copies,
 fig*.png) and logged to MLflow.
 
@@ -16,6 +16,10 @@ never ranked together: compare writes one leaderboard per protocol (benchmark/bo
 its run id, options digest and versions) and the report sets the protocols side by side per model: what
 the wheel response explains (commanded -> response) and what remains when the wheels are known (response
 -> measured).
+The board's cells, their intervals, settings and provenance are the rows of the dataset's results table
+(benchmark/board/results.py, written once by evaluate and score); MLflow is asked only what it alone knows
+(the runs a ``filter`` matches, the end of a run a dead process left open, other users' runs on a shared
+server). The ranking's paired intervals are computed from the per-window tables (scoring/standings.py).
 Figs. 3/4 come from the runs' metrics alone; Figs. 5-7 and the wheel response from what evaluate wrote
 next to each run's per-window table (benchmark/report/data.py): compare reads no split, loads no fit and
 predicts nothing. A figure whose data is absent is skipped, with a note in the report.
@@ -32,15 +36,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.board import selection as sel
 from skidbench.benchmark.board.horizons import horizon_report
 from skidbench.benchmark.board.installed import code_not_here
 from skidbench.benchmark.board.selection import board_from_runs
 from skidbench.benchmark.board.tables import (
-    SPLITS,
     CompareError,
     check_one_protocol,
     decomposition_table,
@@ -59,7 +64,6 @@ from skidbench.benchmark.tracking import mlflow_ui as mu
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.models.registry.saved import board_findings
-from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.io import write_text_atomic
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.protocol import PROTOCOLS, protocol_from_cfg
@@ -69,39 +73,30 @@ log = logging.getLogger(__name__)
 
 # -- selecting runs ---------------------------------------------------------------------------------
 def select_runs(
-    tracker: trk.Tracker, parent_run_id: str | None, filter_string: str | None, inputs: str | None = None
+    tracker: trk.Tracker,
+    table: pd.DataFrame,
+    parent_run_id: str | None,
+    allowed: set[str] | None,
+    inputs: str | None = None,
+    filter_string: str | None = None,
 ) -> tuple[pd.DataFrame, str | None]:
-    """The child runs (a DataFrame from ``mlflow.search_runs``) and the parent id used (or None);
-    ``inputs``: only runs of that input protocol."""
-    import mlflow
-
+    """The model runs (:func:`results.runs` rows of the results ``table``) of the evaluate
+    ``parent_run_id`` (``latest``: the newest complete one; None: every run) among ``allowed`` (the runs
+    of compare's ``filter``, ``filter_string``), and the parent id used (or None); ``inputs``: only runs of
+    that protocol."""
     parent = parent_run_id
     if parent == "latest":
-        parent = tracker.latest_parent(inputs)
+        parent = rt.latest_evaluate(table, inputs)
         if parent is None:
             raise CompareError(
                 f"no `skidbench evaluate` run{f' under inputs={inputs}' if inputs else ''} in experiment "
                 f"{tracker.experiment_name!r} at {tracker.uri}; run it first (or set mlflow.experiment)"
             )
-    clauses = [f"tags.`{run_tags.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
-    if inputs:
-        clauses.append(f"tags.`{run_tags.TAG_INPUTS}` = '{inputs}'")
+    runs = sel.children(table, inputs, allowed)
     if parent:
-        clauses.append(f"tags.`{run_tags.TAG_PARENT}` = '{parent}'")
-    if filter_string:
-        clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
-    mlflow.set_tracking_uri(tracker.uri)
-    try:
-        runs = mlflow.search_runs(
-            experiment_ids=tracker.search_ids() or [tracker.experiment_id],
-            filter_string=" AND ".join(clauses),
-            order_by=["attributes.start_time DESC"],
-            output_format="pandas",
-        )
-    except mlflow.exceptions.MlflowException as exc:
-        raise CompareError(f"MLflow search_runs: {one_line(exc.message)[:300]} (check filter=...)") from None
-    if parent and not runs.empty:  # the external rows of `skidbench score` join every evaluate's board
-        runs = with_external_runs(tracker, runs, parent, inputs, filter_string)
+        own = runs[runs["evaluate_id"] == parent].reset_index(drop=True)
+        # the external rows of `skidbench score` join every evaluate's board
+        runs = with_external_runs(table, own, inputs, allowed) if len(own) else own
     if runs.empty:
         what = f"parent run {parent}" if parent else f"experiment {tracker.experiment_name!r}"
         raise CompareError(f"no model runs match in {what} (filter: {filter_string or 'none'})")
@@ -109,37 +104,20 @@ def select_runs(
 
 
 def with_external_runs(
-    tracker: trk.Tracker, runs: pd.DataFrame, parent: str, inputs: str | None, filter_string: str | None
+    table: pd.DataFrame, runs: pd.DataFrame, inputs: str | None, allowed: set[str] | None
 ) -> pd.DataFrame:
-    """``runs`` (an evaluate's child runs) and the external runs (``skidbench score``,
-    benchmark/release/score.py:
-    tag ``skidbench.external``) of the same dataset and protocol scored on the same split files (per terrain,
-    the split fingerprint of the runs)."""
-    import mlflow
-
-    if inputs is None:
-        inputs = tracker.client.get_run(parent).data.tags.get(run_tags.TAG_INPUTS)
-    clauses = [f"tags.`{run_tags.TAG_ROLE}` = 'child'", f"tags.`{run_tags.TAG_EXTERNAL}` = 'true'"]
-    clauses += tracker.dataset_filter()
-    if inputs:
-        clauses.append(f"tags.`{run_tags.TAG_INPUTS}` = '{inputs}'")
-    if filter_string:
-        clauses.append(f"({filter_string})" if " or " in filter_string.lower() else str(filter_string))
-    ext = mlflow.search_runs(experiment_ids=tracker.search_ids(), filter_string=" AND ".join(clauses),
-                             order_by=["attributes.start_time DESC"], output_format="pandas")  # fmt: skip
-    if ext.empty:
+    """``runs`` (an evaluate's model runs) and the external runs (``skidbench score``,
+    benchmark/release/score.py) of the same protocol scored on the same split files (per terrain, the split
+    fingerprint of the runs), newest first."""
+    protocol = inputs or str(runs["inputs"].iloc[0])
+    ext = sel.children(table, protocol, allowed)
+    ext = ext[ext["external"].fillna(False).astype(bool) & ~ext["run_id"].isin(runs["run_id"])]
+    fp = dict(zip(runs["terrain"], runs["splits_fingerprint"], strict=True))
+    same = [fp.get(t) == f for t, f in zip(ext["terrain"], ext["splits_fingerprint"], strict=True)]
+    if not any(same):
         return runs
-    terrain, fingerprint = f"tags.{run_tags.TAG_TERRAIN}", f"tags.{run_tags.TAG_FINGERPRINT}"
-    fp = dict(zip(_col(runs, terrain), _col(runs, fingerprint), strict=True))
-    same = [
-        fp.get(t) == f and r not in set(runs["run_id"])
-        for t, f, r in zip(_col(ext, terrain), _col(ext, fingerprint), ext["run_id"], strict=True)
-    ]  # fmt: skip
-    return pd.concat([runs, ext[same]], ignore_index=True) if any(same) else runs
-
-
-def _col(runs: pd.DataFrame, name: str) -> pd.Series:
-    return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
+    both = pd.concat([runs, ext[same]], ignore_index=True)
+    return both.sort_values("start_time", ascending=False, kind="stable").reset_index(drop=True)
 
 
 # -- the stage ---------------------------------------------------------------------------------------
@@ -199,19 +177,21 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
 
 
 def protocol_selections(
+    table: pd.DataFrame,
     tracker: trk.Tracker,
     horizon_s: float,
-    filter_string: str | None,
+    allowed: set[str] | None,
     user: str | None = None,
     without: dict[str, str] | None = None,
 ) -> dict[str, sel.Selection]:
-    """``{protocol: selection}`` of every input protocol the dataset has runs under (the newest complete
-    run of each (model, terrain): :func:`selection.latest_complete`), in the order of ``PROTOCOLS``;
-    ``without``: filled with why a protocol whose runs are all of evaluates that did not finish has none."""
+    """``{protocol: selection}`` of every input protocol the results ``table`` has runs under (the newest
+    complete run of each (model, terrain): :func:`selection.latest_complete`), in the order of
+    ``PROTOCOLS``; ``without``: filled with why a protocol whose runs are all of evaluates that did not
+    finish has none."""
     out = {}
     for p in PROTOCOLS:
         try:
-            out[p] = sel.latest_complete(tracker, p, horizon_s, filter_string, user)
+            out[p] = sel.latest_complete(table, p, horizon_s, allowed, user, tracker)
         except sel.NoCompleteEvaluate as exc:
             if without is not None:
                 without[p] = str(exc)
@@ -269,23 +249,12 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     horizon = cs.horizon
     parent_arg = cs.parent_run_id
     user = cs.user
-    # latest: the newest complete run of each (model, terrain) under cs.asked, across evaluates; a run
-    # id: that evaluate's runs; null: the newest run of each (model, terrain) of every child run, which
-    # must then be of one protocol (a filter on tags.`skidbench.inputs` narrows them)
-    unfinished: dict[str, str] = {}
-    try:
-        selections = protocol_selections(tracker, horizon, cs.filter, user, unfinished)
-    except sel.SelectionError as exc:
-        raise CompareError(str(exc)) from None
-    if cs.asked in unfinished and cs.asked not in selections:
-        raise CompareError(unfinished[cs.asked])
-    # cs.asked None: the runs of parent_arg
-    runs, parent, left_out = _chosen_runs(target, tracker, selections, cs.asked, parent_arg, cs.filter, user)
-    board = with_code_here(board_from_runs(runs, horizon))
+    table, selections, (runs, parent, left_out) = _selected(cs, target, tracker)
+    board = with_code_here(board_from_runs(table, runs, horizon))
     protocol = check_one_protocol(board)
     # the protocol of the runs shown (the files evaluate wrote for them)
     inputs = protocol if protocol in PROTOCOLS else cs.inputs
-    _check_horizon(runs, horizon)
+    _check_horizon(table, runs, horizon)
     settings = cs.report
     interval_notes: list[str] = []
     standings = standings_of(cs.rank_by, cs.intervals, layout, board, protocol, horizon, interval_notes)
@@ -299,7 +268,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     if parent is None:  # every protocol's board of the dataset, from the same selection
         for p, s in selections.items():
             if p != protocol:
-                shown_boards[p] = (with_code_here(board_from_runs(s.runs, horizon)), s.runs, s.left_out)
+                shown_boards[p] = (with_code_here(sel.board_of(s)), s.runs, s.left_out)
 
     def standings_for(p: str, b: pd.DataFrame) -> st.Standings | None:  # another protocol's: its own windows
         if p == protocol:
@@ -314,7 +283,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     boards_of = (  # the protocols side by side: the dataset's board of each
         {p: b for p, (b, _r, _lo) in shown_boards.items()}
         if parent is None
-        else {p: board_from_runs(s.runs, horizon) for p, s in selections.items()}
+        else {p: sel.board_of(s) for p, s in selections.items()}
     )
     decomp, shown, decomp_md = _decomposition(boards_of, horizon)
     notes: list[str] = _fit_findings(layout, board, inputs) + interval_notes + _code_notes(board)
@@ -343,44 +312,63 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
                          target.name, parents, claim, other_mds)  # fmt: skip
 
 
+def _selected(
+    cs: CompareSettings, target: sel.Target, tracker: trk.Tracker
+) -> tuple[pd.DataFrame, dict[str, sel.Selection], tuple[pd.DataFrame, str | None, list[str]]]:
+    """The dataset's results table (its identity's and experiment's rows), every protocol's selection
+    (:func:`protocol_selections`) and the board's runs (:func:`_chosen_runs`). latest: the newest complete
+    run of each (model, terrain) under ``cs.asked``, across evaluates; a run id: that evaluate's runs;
+    null: the newest run of each (model, terrain) of every model run, which must then be of one protocol (a
+    filter on tags.`skidbench.inputs` narrows them)."""
+    table = sel.results_of(target.layout, target.dataset_id, tracker.experiment_name)
+    unfinished: dict[str, str] = {}
+    try:
+        allowed = sel.filtered_ids(tracker, cs.filter)
+        selections = protocol_selections(table, tracker, cs.horizon, allowed, cs.user, unfinished)
+    except sel.SelectionError as exc:
+        raise CompareError(str(exc)) from None
+    if cs.asked in unfinished and cs.asked not in selections:
+        raise CompareError(unfinished[cs.asked])
+    chosen = _chosen_runs(target, tracker, table, selections, cs, allowed)
+    return table, selections, chosen
+
+
 def _chosen_runs(
     target: sel.Target,
     tracker: trk.Tracker,
+    table: pd.DataFrame,
     selections: dict[str, sel.Selection],
-    asked: str | None,
-    parent_arg: str | None,
-    filter_string: str | None,
-    user: str | None,
+    cs: CompareSettings,
+    allowed: set[str] | None,
 ) -> tuple[pd.DataFrame, str | None, list[str]]:
     """The runs of the board, the parent run they were selected by and the newer runs left out: with
-    ``asked`` (a protocol), the newest complete run of each (model, terrain) under it across evaluates
-    (parent None); else the runs of ``parent_arg`` (:func:`select_runs`). CompareError (one line) when the
-    protocol asked for has no complete run."""
-    if asked is None:
-        runs, parent = select_runs(tracker, parent_arg, filter_string, None)
+    ``cs.asked`` (a protocol), the newest complete run of each (model, terrain) under it across evaluates
+    (parent None); else the runs of ``cs.parent_run_id`` (:func:`select_runs`). CompareError (one line)
+    when the protocol asked for has no complete run."""
+    filter_string, user = cs.filter, cs.user
+    if cs.asked is None:
+        runs, parent = select_runs(tracker, table, cs.parent_run_id, allowed, None, filter_string)
         return runs, parent, []
-    protocol = asked
-    if protocol not in selections and user and sel.not_yours(tracker, protocol, filter_string, user):
-        raise CompareError(sel.not_yours(tracker, protocol, filter_string, user))
+    protocol = cs.asked
+    where = f"experiment {tracker.experiment_name!r} at {tracker.uri}"
+    mine = sel.not_yours(table, protocol, allowed, user, where) if user else None
+    if protocol not in selections and mine:
+        raise CompareError(mine)
     if protocol not in selections:
         others = f" (runs exist under inputs={', '.join(selections)})" if selections else ""
         if filter_string:
             others = f" matching filter {filter_string}" + others
         raise CompareError(
-            f"no complete model run under inputs={protocol} of dataset {target.name} in experiment "
-            f"{tracker.experiment_name!r} at {tracker.uri}{others}; run `skidbench evaluate"
-            f"{'' if protocol == 'commanded' else f' inputs={protocol}'}` first"
+            f"no complete model run under inputs={protocol} of dataset {target.name} in {where}{others}; run "
+            f"`skidbench evaluate{'' if protocol == 'commanded' else f' inputs={protocol}'}` first"
         )
     return selections[protocol].runs, None, selections[protocol].left_out
 
 
-def _check_horizon(runs: pd.DataFrame, horizon: float) -> None:
-    """CompareError when the runs logged no paper RMSRE at ``horizon``."""
-    if not any(
-        m.metric_key(s, horizon) in runs.columns.str.removeprefix("metrics.")
-        for m in mt.PAPER
-        for s in SPLITS
-    ):
+def _check_horizon(table: pd.DataFrame, runs: pd.DataFrame, horizon: float) -> None:
+    """CompareError when the runs have no paper RMSRE at ``horizon`` in the results table."""
+    at = table[table["run_id"].isin(runs["run_id"]) & table["metric"].isin([m.name for m in mt.PAPER])]
+    if not np.isclose(at["horizon_s"].to_numpy(float), horizon).any():
         raise CompareError(
             f"the selected runs have no RMSRE at horizon {horizon:g} s; set horizon=<one evaluated>"
         )

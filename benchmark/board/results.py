@@ -336,7 +336,8 @@ def runs(table: pd.DataFrame) -> pd.DataFrame:
 
 def board(table: pd.DataFrame, chosen: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     """compare's board of the runs ``chosen`` (:func:`runs` rows): one row per run, in their order, with
-    model, inputs, terrain, status, reason, version, package, external, run_id, start_time, every metric
+    model, inputs, terrain, status, reason, version, package, code digest and distribution, external, run_id,
+    start_time, every metric
     of :data:`~skidbench.benchmark.scoring.metrics.METRICS` on CV and LD at ``horizon_s`` by its MLflow name
     (with its window count, interval and blocks, and its spread over seeds when there is one), and the fit and
     predict numbers."""
@@ -346,6 +347,8 @@ def board(table: pd.DataFrame, chosen: pd.DataFrame, horizon_s: float) -> pd.Dat
         "reason": chosen["reason"].fillna("").to_numpy(object),
         "version": chosen["model_version"].fillna("").to_numpy(object),
         "package": chosen["package"].fillna("").to_numpy(object),
+        "code_digest": chosen["code_digest"].fillna("").to_numpy(object),
+        "code_distribution": chosen["code_distribution"].fillna("").to_numpy(object),
         "external": chosen["external"].fillna(False).astype(bool).to_numpy(),
         "run_id": chosen["run_id"].to_numpy(object), "start_time": chosen["start_time"].to_numpy(),
     })  # fmt: skip
@@ -369,3 +372,44 @@ def board(table: pd.DataFrame, chosen: pd.DataFrame, horizon_s: float) -> pd.Dat
         df[col] = chosen[col].to_numpy(float)
     df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
     return df
+
+
+def _evaluates(table: pd.DataFrame, inputs: str | None = None) -> pd.DataFrame:
+    """One row per evaluate (or score) parent run of the model rows (under ``inputs``): ``evaluate_id``,
+    ``evaluate_status`` (its own rows': a score's rows hanging from an evaluate have a file of their own)
+    and ``start_time`` (its first run's), newest first."""
+    t = table[(table["role"] == MODEL) & (table["evaluate_id"].fillna("") != "")]
+    if inputs:
+        t = t[t["inputs"] == inputs]
+    t = t.assign(_ext=t["external"].fillna(False).astype(bool)).sort_values("_ext", kind="stable")
+    out = t.groupby("evaluate_id", sort=False).agg(
+        evaluate_status=("evaluate_status", "first"), start_time=("start_time", "min")
+    )
+    return out.reset_index().sort_values("start_time", ascending=False, kind="stable").reset_index(drop=True)
+
+
+def latest_evaluate(table: pd.DataFrame, inputs: str | None = None) -> str | None:
+    """The newest evaluate (or score) run of the table's model rows under ``inputs`` that FINISHED, else
+    the newest of any status, else None."""
+    ev = _evaluates(table, inputs)
+    if not len(ev):
+        return None
+    done = ev[ev["evaluate_status"] == "FINISHED"]
+    return str((done if len(done) else ev)["evaluate_id"].iloc[0])
+
+
+#: an evaluate's settings every row of its board was scored with (the keys of :func:`settings_of`)
+SETTING_KEYS = ("horizons", "splits", "min_distance_m", "min_rotation_deg", "models")
+
+
+def settings_of(table: pd.DataFrame, evaluate_id: str) -> dict:
+    """The settings an evaluate (or score) run scored with (:data:`SETTING_KEYS`), as its rows hold them
+    (its own rows before those of a score hanging from it); {} when it has no row."""
+    rows = table[table["evaluate_id"] == evaluate_id]
+    if not len(rows):
+        return {}
+    own = rows[~rows["external"].fillna(False).astype(bool)]
+    r = (own if len(own) else rows).iloc[0]
+    return {"horizons": [float(h) for h in r["horizons"]], "splits": [str(s) for s in r["splits"]],
+            "min_distance_m": float(r["min_distance_m"]), "min_rotation_deg": float(r["min_rotation_deg"]),
+            "models": [str(m) for m in r["models"]]}  # fmt: skip

@@ -1,16 +1,23 @@
 """Which runs a board is made of, and which dataset compare reads.
 
-**One board per dataset and input protocol** (:func:`latest_complete`): of every child run of the dataset
-(its identity, tag ``skidbench.dataset_id``) under the protocol, across *complete* evaluates (their parent
-run FINISHED: it ran to its end), the newest complete run of each (model, terrain): FINISHED, with the
-metrics of the horizon shown, scored on the terrain's current split files (the split fingerprint of the
-terrain's newest complete run) with the same scoring settings (``min_distance_m``, ``min_rotation_deg`` of
-the newest complete run). So ``evaluate models=[mine]`` after a full evaluate puts ``mine`` on the full
-board beside the built-ins, and the runs of an evaluate that was killed, failed or is still running are
-never on a board, not even those of its runs that finished: the board never mixes an evaluate that did not
-finish with another. Every run newer than the one a row uses is *left out*, with why, in one line each
-(compare prints them). A (model, terrain) whose newest run of a complete evaluate FAILED shows that run so
-that failures stay on the board; one without any run of a complete evaluate is not on the board (named).
+**One board per dataset and input protocol** (:func:`latest_complete`): of every model run in the dataset's
+results table (benchmark/board/results.py: the rows of its identity, ``dataset_id``, and experiment) under
+the protocol, across *complete* evaluates (their ``evaluate_status`` FINISHED: the evaluate ran to its
+end), the newest complete run of each (model, terrain): FINISHED, with the metrics of the horizon shown,
+scored on the terrain's current split files (the split fingerprint of the terrain's newest complete run)
+with the same scoring settings (``min_distance_m``, ``min_rotation_deg`` of the newest complete run). So
+``evaluate models=[mine]`` after a full evaluate puts ``mine`` on the full board beside the built-ins, and
+the runs of an evaluate that was killed, failed or is still running are never on a board, not even those
+of its runs that finished: the board never mixes an evaluate that did not finish with another. Every run
+newer than the one a row uses is *left out*, with why, in one line each (compare prints them). A (model,
+terrain) whose newest run of a complete evaluate FAILED shows that run so that failures stay on the board;
+one without any run of a complete evaluate is not on the board (named).
+
+The numbers, settings and run columns come from the table; the MLflow store is asked only what it alone
+knows: the run ids an MLflow ``filter`` string matches (:func:`filtered_ids`), the end a dead process could
+not write (a run or evaluate the store's bookkeeping reaped KILLED since, with its reason and run name:
+:func:`store_statuses`), and the runs of other output roots on a shared server (:func:`newer_elsewhere`,
+:func:`same_data_elsewhere`).
 
 **The dataset** (:func:`target_from_cfg`): ``dataset=<name>`` names a folder of the output root, and its
 ``dataset.json`` gives the identity the runs carry, whatever ``source`` is configured (so ``compare
@@ -27,15 +34,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.errors import EvaluationError
-from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.standings import order_models
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.layout import Layout
 
-#: the parameters of an evaluate that decide which windows a score is over (equal on one board)
+#: the settings of an evaluate that decide which windows a score is over (equal on one board)
 SCORING_PARAMS = ("min_distance_m", "min_rotation_deg")
 SPLITS = ("cv", "ld")
 
@@ -52,12 +59,13 @@ class NoCompleteEvaluate(NoRuns):
     """The dataset has runs under the protocol, but no evaluate of them ran to its end."""
 
 
-def evaluate_statuses(tracker: trk.Tracker, parent_ids: list[str]) -> dict[str, tuple[str, str, str]]:
-    """``{parent run id: (status, run name, reason)}`` of the evaluates (or scores) ``parent_ids``; one
-    that is gone from the store is absent. An evaluate is complete when FINISHED: its parent run ends so
-    only when every model run was made (a killed or crashed one is RUNNING until reaped, then KILLED)."""
+def store_statuses(tracker: trk.Tracker | None, run_ids: list[str]) -> dict[str, tuple[str, str, str]]:
+    """``{run id: (status, run name, reason)}`` of the runs ``run_ids`` in the MLflow store (None: no
+    store); a run gone from the store is absent."""
     out: dict[str, tuple[str, str, str]] = {}
-    ids = sorted(set(parent_ids))
+    ids = sorted(set(run_ids))
+    if tracker is None or not ids or not tracker.search_ids():
+        return out
     for k in range(0, len(ids), 100):
         quoted = ", ".join(f"'{i}'" for i in ids[k : k + 100])
         for r in tracker.client.search_runs(tracker.search_ids(), f"attributes.run_id IN ({quoted})",
@@ -67,21 +75,12 @@ def evaluate_statuses(tracker: trk.Tracker, parent_ids: list[str]) -> dict[str, 
     return out
 
 
-def _evaluate_gone(parent: str, statuses: dict[str, tuple[str, str, str]]) -> str | None:
-    """Why a run of the evaluate ``parent`` is never on a board (None: the evaluate is complete)."""
-    if not parent:
-        return None  # a run logged without an evaluate (a library call): judged by itself
-    if parent not in statuses:
-        return f"its evaluate {parent[:8]} is gone from the store"
-    status, name, reason = statuses[parent]
-    if status == "FINISHED":
-        return None
-    return (f"its evaluate {name} ({parent[:8]}) ended {status}" + (f" ({reason})" if reason else "")
-            + ": the runs of an evaluate that did not finish are never on a board")  # fmt: skip
-
-
-def _col(runs: pd.DataFrame, name: str) -> pd.Series:
-    return runs[name] if name in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
+def _ended(status: str, stored: tuple[str, str, str] | None) -> tuple[str, str, str]:
+    """A run's ``(status, run name, reason)``: the table's, unless the table still says RUNNING (a dead
+    process could not write its end) and the store has ended it since."""
+    if stored is not None and status == "RUNNING" and stored[0] != "RUNNING":
+        return stored
+    return status, (stored[1] if stored else ""), (stored[2] if stored else "")
 
 
 def _when(ts: Any) -> str:
@@ -95,26 +94,41 @@ def _when(ts: Any) -> str:
 
 @dataclass
 class Selection:
-    """The runs of one board: ``runs`` (a ``search_runs`` frame, one run per (model, terrain)), the lines
-    naming each newer run left out and why (``left_out``), the protocol and the horizon."""
+    """The runs of one board: ``runs`` (:func:`results.runs` rows, one run per (model, terrain)), the
+    lines naming each newer run left out and why (``left_out``), the protocol, the horizon and the
+    dataset's results table the runs' cells are read from (:func:`board_of`)."""
 
     protocol: str
     horizon_s: float
     runs: pd.DataFrame
     left_out: list[str] = field(default_factory=list)
+    table: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     @property
     def parents(self) -> list[str]:
         """The evaluate (or score) runs the rows hang from, newest first."""
-        p = _col(self.runs.sort_values("start_time", ascending=False), f"tags.{run_tags.TAG_PARENT}")
+        p = self.runs.sort_values("start_time", ascending=False)["evaluate_id"]
         return list(dict.fromkeys(str(x) for x in p if isinstance(x, str) and x))
+
+
+def results_of(layout: Layout, dataset_id: str | None, experiment: str | None = None) -> pd.DataFrame:
+    """The dataset's results table (:func:`results.read`): only the rows of ``dataset_id`` (its identity:
+    the rows of another content under the same folder name never join its board) and of the MLflow
+    ``experiment`` (a transfer evaluate has its own), each when given."""
+    table = rt.read(layout)
+    keep = pd.Series(True, index=table.index)
+    if dataset_id:
+        keep &= table["dataset_id"] == dataset_id
+    if experiment:
+        keep &= table["experiment"] == experiment
+    return table[keep].reset_index(drop=True)
 
 
 def search_children(
     tracker: trk.Tracker, inputs: str | None, filter_string: str | None = None, user: str | None = None
 ) -> pd.DataFrame:
-    """Every child run of the tracker's dataset (under ``inputs``; of ``user``; narrowed by an MLflow
-    ``filter_string``), newest first, as a ``search_runs`` frame."""
+    """Every child run of the tracker's dataset in the MLflow store (under ``inputs``; of ``user``;
+    narrowed by an MLflow ``filter_string``), newest first, as a ``search_runs`` frame."""
     import mlflow
 
     clauses = [f"tags.`{run_tags.TAG_ROLE}` = 'child'", *tracker.dataset_filter()]
@@ -141,56 +155,104 @@ def search_children(
         ) from None
 
 
-def _has_metrics(runs: pd.DataFrame, horizon_s: float) -> pd.Series:
-    """Per run: does it have a paper metric (RMSRE) at ``horizon_s``?"""
-    have = pd.Series(False, index=runs.index)
-    for m in mt.PAPER:
-        for split in SPLITS:
-            col = f"metrics.{m.metric_key(split, horizon_s)}"
-            if col in runs:
-                have |= pd.to_numeric(runs[col], errors="coerce").notna()
-    return have
+def filtered_ids(tracker: trk.Tracker, filter_string: str | None) -> set[str] | None:
+    """The ids of the dataset's child runs an MLflow filter string (compare's ``filter``) matches; None
+    without a filter (every run). SelectionError (one line) when MLflow refuses the filter."""
+    if not filter_string:
+        return None
+    runs = search_children(tracker, None, filter_string)
+    return set(runs["run_id"]) if len(runs) else set()
 
 
-def _setting(runs: pd.DataFrame, name: str) -> pd.Series:
-    """A scoring parameter of each run as a number (NaN when the run did not log it)."""
-    return pd.to_numeric(_col(runs, f"params.{name}"), errors="coerce")
+def children(
+    table: pd.DataFrame, inputs: str | None, allowed: set[str] | None = None, user: str | None = None
+) -> pd.DataFrame:
+    """The model runs of the results ``table`` (:func:`results.runs`, newest first) under ``inputs``,
+    among ``allowed`` (the run ids of a filter; None: every run) and of ``user`` (None: anyone's)."""
+    runs = rt.runs(table)
+    keep = pd.Series(True, index=runs.index)
+    if inputs:
+        keep &= runs["inputs"] == inputs
+    if allowed is not None:
+        keep &= runs["run_id"].isin(allowed)
+    if user:
+        keep &= runs["user"] == user
+    return runs[keep].reset_index(drop=True)
+
+
+def _evaluate_gone(parent: str, status: str, stored: dict[str, tuple[str, str, str]]) -> str | None:
+    """Why a run of the evaluate ``parent`` (its ``evaluate_status`` in the table) is never on a board
+    (None: the evaluate is complete)."""
+    if not parent:
+        return None  # a run logged without an evaluate (a library call): judged by itself
+    status, name, reason = _ended(status, stored.get(parent))
+    if status == "FINISHED":
+        return None
+    return (f"its evaluate {f'{name} ({parent[:8]})' if name else parent[:8]} ended {status}"
+            + (f" ({reason})" if reason else "")
+            + ": the runs of an evaluate that did not finish are never on a board")  # fmt: skip
 
 
 def latest_complete(
-    tracker: trk.Tracker,
+    table: pd.DataFrame,
     inputs: str,
     horizon_s: float,
-    filter_string: str | None = None,
+    allowed: set[str] | None = None,
     user: str | None = None,
+    tracker: trk.Tracker | None = None,
 ) -> Selection:
-    """The board's runs under ``inputs`` (see the module docstring): the newest complete run of each
-    (model, terrain), and a line for each newer run left out. SelectionError when the dataset has no run
-    under the protocol."""
-    runs = search_children(tracker, inputs, filter_string, user)
+    """The board's runs under ``inputs`` (see the module docstring) from the dataset's results ``table``:
+    the newest complete run of each (model, terrain), and a line for each newer run left out
+    (``allowed``: the run ids of compare's ``filter``, :func:`filtered_ids`; ``tracker``: the store asked
+    for the end of runs the table still has RUNNING, and the names of unfinished evaluates). NoRuns when
+    there is no run under the protocol."""
+    where = f"experiment {tracker.experiment_name!r} at {tracker.uri}" if tracker else "the results table"
+    runs = children(table, inputs, allowed, user)
     if runs.empty:
         who = f" of user {user}" if user else ""
         raise NoRuns(
-            f"no model runs{who} under inputs={inputs} in experiment {tracker.experiment_name!r} at "
-            f"{tracker.uri}{f' (filter: {filter_string})' if filter_string else ''}; run `skidbench "
-            "evaluate` first"
+            f"no model runs{who} under inputs={inputs} in {where}"
+            f"{' (among the runs of the filter)' if allowed is not None else ''}; run `skidbench evaluate` "
+            "first"
         )
-    runs = runs.sort_values("start_time", ascending=False, kind="stable").reset_index(drop=True)
-    model = _col(runs, f"tags.{run_tags.TAG_MODEL}").astype(str)
-    terrain = _col(runs, f"tags.{run_tags.TAG_TERRAIN}").astype(str)
-    fingerprint = _col(runs, f"tags.{run_tags.TAG_FINGERPRINT}").fillna("")
-    parent = [p if isinstance(p, str) else "" for p in _col(runs, f"tags.{run_tags.TAG_PARENT}")]
-    statuses = evaluate_statuses(tracker, [p for p in parent if p])
-    gone = [_evaluate_gone(p, statuses) for p in parent]
-    complete = (
-        (runs["status"] == "FINISHED") & _has_metrics(runs, horizon_s) & pd.Series([g is None for g in gone])
-    )
-    # the data and the scoring settings of the board: those of the newest complete runs
+    parent = runs["evaluate_id"].fillna("").astype(str).tolist()
+    open_ = [p for p, s in zip(parent, runs["evaluate_status"], strict=True) if p and s != "FINISHED"]
+    stored = store_statuses(tracker, open_ + runs.loc[runs["status"] == "RUNNING", "run_id"].tolist())
+    ended = [_ended(s, stored.get(r)) for s, r in zip(runs["status"], runs["run_id"], strict=True)]
+    was = runs["status"].tolist()  # a run the store ended since: its end and reason are the store's
+    runs["reason"] = [e[2] if e[0] != w else r for e, w, r in zip(ended, was, runs["reason"].fillna(""),
+                                                                  strict=True)]  # fmt: skip
+    runs["status"] = [e[0] for e in ended]
+    gone = [_evaluate_gone(p, s, stored) for p, s in zip(parent, runs["evaluate_status"], strict=True)]
+    has = runs["horizons_scored"].map(lambda hs: any(np.isclose(h, horizon_s) for h in hs))
+    complete = (runs["status"] == "FINISHED") & has & pd.Series([g is None for g in gone])
+    why_not = _objections(runs, complete, gone, horizon_s)
+    keep: list[int] = []
+    left_out: list[str] = []
+    for (m, t), idx in runs.groupby([runs["model"], runs["terrain"]], sort=False).groups.items():
+        order = list(idx)  # newest first (runs is sorted)
+        kept, lines = _pick(runs, order, [why_not(i) for i in order], gone)
+        keep += kept
+        left_out += [f"{m}/{t}: {line}" for line in lines]
+    why = next((g for g in gone if g), None)  # the newest run's evaluate that did not finish
+    if not keep and why:
+        raise NoCompleteEvaluate(
+            f"no complete evaluate under inputs={inputs} in {where}: {why.removeprefix('its ')}; run "
+            "`skidbench evaluate` again (it runs what is missing)"
+        )
+    chosen = runs.loc[sorted(keep)].reset_index(drop=True)
+    return Selection(inputs, float(horizon_s), chosen, left_out, table)
+
+
+def _objections(runs: pd.DataFrame, complete: pd.Series, gone: list[str | None], horizon_s: float):
+    """``why_not(i)``: why run ``i`` is not the complete run of its (model, terrain) (None: it is), against
+    the board's data and scoring settings: those of the newest complete runs."""
+    terrain, fingerprint = runs["terrain"].astype(str), runs["splits_fingerprint"].fillna("")
     ref_fp: dict[str, str] = {}
     for t, f, c in zip(terrain, fingerprint, complete, strict=True):
         if c and f and t not in ref_fp:  # newest first
             ref_fp[t] = f
-    settings = {name: _setting(runs, name) for name in SCORING_PARAMS}
+    settings = {name: pd.to_numeric(runs[name], errors="coerce") for name in SCORING_PARAMS}
     ref_set = {}
     for name, values in settings.items():
         done = values[complete & values.notna()]
@@ -202,8 +264,7 @@ def latest_complete(
             return gone[i]
         status = str(runs.at[i, "status"])
         if status != "FINISHED":
-            reason = str(_col(runs, f"tags.{run_tags.TAG_REASON}").iat[i] or "")
-            reason = "" if reason in ("nan", "None") else reason
+            reason = str(runs.at[i, "reason"] or "")
             return status + (f": {one_line(reason)[:160]}" if reason else "")
         if not complete.iat[i]:
             return f"no {horizon_s:g} s metrics (evaluated at other horizons)"
@@ -216,22 +277,7 @@ def latest_complete(
                 return f"scored with {name}={have:g} (the board's: {want:g})"
         return None
 
-    keep: list[int] = []
-    left_out: list[str] = []
-    for (m, t), idx in runs.groupby([model, terrain], sort=False).groups.items():
-        order = list(idx)  # newest first (runs is sorted)
-        kept, lines = _pick(runs, order, [why_not(i) for i in order], gone)
-        keep += kept
-        left_out += [f"{m}/{t}: {line}" for line in lines]
-    why = next((g for g in gone if g), None)  # the newest run's evaluate that did not finish
-    if not keep and why:
-        raise NoCompleteEvaluate(
-            f"no complete evaluate under inputs={inputs} in experiment {tracker.experiment_name!r} at "
-            f"{tracker.uri}: {why.removeprefix('its ')}; run `skidbench evaluate` again (it runs what is "
-            "missing)"
-        )
-    chosen = runs.loc[sorted(keep)].reset_index(drop=True)
-    return Selection(inputs, float(horizon_s), chosen, left_out)
+    return why_not
 
 
 def _pick(
@@ -257,43 +303,12 @@ def _pick(
     return keep, lines
 
 
-def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
-    """One row per (model, terrain), the latest run of each: model, terrain, status, reason, every metric
-    of :data:`~skidbench.benchmark.scoring.metrics.METRICS` at ``horizon_s`` (and its window count),
-    fit/predict
-    numbers, run_id."""
-    df = pd.DataFrame(
-        {
-            "model": _col(runs, f"tags.{run_tags.TAG_MODEL}"),
-            "inputs": _col(runs, f"tags.{run_tags.TAG_INPUTS}").fillna("unknown"),
-            "terrain": _col(runs, f"tags.{run_tags.TAG_TERRAIN}"),
-            "status": runs["status"],
-            "reason": _col(runs, f"tags.{run_tags.TAG_REASON}").fillna(""),
-            "version": _col(runs, f"tags.{run_tags.TAG_MODEL_VERSION}").fillna(""),
-            "package": _col(runs, f"tags.{run_tags.TAG_PLUGIN}").fillna(""),
-            "code_digest": _col(runs, "tags.skidbench.code.digest").fillna(
-                ""
-            ),  # pipeline/runner/environment.py
-            "code_distribution": _col(runs, "tags.skidbench.code.distribution").fillna(""),
-            # a row scored from a predictions file (`skidbench score`, benchmark/release/score.py)
-            "external": _col(runs, f"tags.{run_tags.TAG_EXTERNAL}").fillna("false").eq("true"),
-            "run_id": runs["run_id"],
-            "start_time": runs["start_time"],
-        }
-    )
-    for metric in mt.METRICS:  # an optional one (models with a predictive covariance): NaN for the others
-        for split in SPLITS:
-            keys = [metric.metric_key(split, horizon_s), metric.windows_key(split, horizon_s)]
-            if metric.bootstrap is not None:  # its 95 % interval and the independent blocks behind it
-                keys += list(metric.interval_keys(split, horizon_s))
-                seed_sd = f"{metric.metric_key(split, horizon_s)}_seed_sd"  # evaluate seeds=N > 1
-                keys += [seed_sd] if f"metrics.{seed_sd}" in runs else []
-            for key in keys:
-                if key is not None:  # the value, and the windows behind it
-                    df[key] = pd.to_numeric(_col(runs, f"metrics.{key}"), errors="coerce")
-    for m in ("fit_loss", "fit_time_s", "predict_time_s"):
-        df[m] = pd.to_numeric(_col(runs, f"metrics.{m}"), errors="coerce")
-    df.loc[df["status"] == "RUNNING", "reason"] = "still running (or killed)"
+def board_from_runs(table: pd.DataFrame, runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
+    """One row per (model, terrain), the latest run of each (``runs``: :func:`results.runs` rows), its
+    cells read from the results ``table`` (:func:`results.board`): model, terrain, status, reason, every
+    metric of :data:`~skidbench.benchmark.scoring.metrics.METRICS` at ``horizon_s`` (and its window count,
+    interval and blocks, as evaluate computed them), fit/predict numbers, run_id; in the board's order."""
+    df = rt.board(table, runs, horizon_s)
     df = df.sort_values("start_time", ascending=False)
     df = df.drop_duplicates(["model", "inputs", "terrain"], keep="first")
     order = {m: i for i, m in enumerate(order_models(df["model"].dropna().unique().tolist()))}
@@ -301,12 +316,9 @@ def board_from_runs(runs: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
     return df.reset_index(drop=True)
 
 
-def parent_runs(
-    tracker: trk.Tracker, parent: str, inputs: str | None, filter_string: str | None
-) -> pd.DataFrame:
-    """The child runs of one evaluate (``parent_run_id=<run id>``), newest first."""
-    extra = f"tags.`{run_tags.TAG_PARENT}` = '{parent}'"
-    return search_children(tracker, inputs, f"{extra} AND ({filter_string})" if filter_string else extra)
+def board_of(selection: Selection) -> pd.DataFrame:
+    """The board of a selection (:func:`board_from_runs` of its runs, at its horizon)."""
+    return board_from_runs(selection.table, selection.runs, selection.horizon_s)
 
 
 # -- the dataset compare reads ---------------------------------------------------------------------
@@ -395,22 +407,21 @@ def target_from_cfg(cfg: Any, client: Any | None) -> Target:
 
 
 # -- `skidbench datasets`: each dataset's boards ---------------------------------------------------------
-def board_lines(tracker: trk.Tracker, horizon_s: float = 6.0) -> list[str]:
-    """One line per input protocol the tracker's dataset has runs under: the board's latest runs (the
-    newest complete run of each (model, terrain): :func:`latest_complete`), how many evaluates they come
-    from, the newest, and how many newer runs are left out."""
+def board_lines(table: pd.DataFrame, horizon_s: float = 6.0) -> list[str]:
+    """One line per input protocol the dataset's results ``table`` has runs under: the board's latest runs
+    (the newest complete run of each (model, terrain): :func:`latest_complete`), how many evaluates they
+    come from, the newest, and how many newer runs are left out."""
     from skidbench.pipeline.core.protocol import PROTOCOLS
 
     lines = []
     for p in PROTOCOLS:
         try:
-            s = latest_complete(tracker, p, horizon_s)
+            s = latest_complete(table, p, horizon_s)
         except NoRuns:
             continue
         runs = s.runs
         ok = runs[runs["status"] == "FINISHED"]
-        models = _col(ok, f"tags.{run_tags.TAG_MODEL}").nunique()
-        terrains = _col(ok, f"tags.{run_tags.TAG_TERRAIN}").nunique()
+        models, terrains = ok["model"].nunique(), ok["terrain"].nunique()
         bad = len(runs) - len(ok)
         newest = ok.sort_values("start_time", ascending=False).head(1)
         when = _when(newest["start_time"].iat[0]) if len(newest) else "-"
@@ -427,18 +438,17 @@ def board_lines(tracker: trk.Tracker, horizon_s: float = 6.0) -> list[str]:
     return lines
 
 
-def dataset_boards(uri: str, names_ids: dict[str, str], horizon_s: float = 6.0) -> dict[str, list[str]]:
-    """``{dataset: board_lines}`` of each dataset (name -> identity) in the store ``uri`` (its experiment
-    ``skidbench-<name>``); a dataset without runs gets no entry, a store that cannot be read one line."""
-    if not trk.has_store(uri):
-        return {}
+def dataset_boards(out_root: Path, names_ids: dict[str, str], horizon_s: float = 6.0) -> dict[str, list[str]]:
+    """``{dataset: board_lines}`` of each dataset (name -> identity) of the output root, from its results
+    table (the rows of its experiment ``skidbench-<name>``); a dataset without runs gets no entry, a table
+    that cannot be read one line."""
     out: dict[str, list[str]] = {}
     for name, ident in names_ids.items():
         try:
-            tracker = trk.Tracker(uri, f"skidbench-{name}", dataset_id=ident or None)
-            lines = board_lines(tracker, horizon_s)
+            table = results_of(Layout(Path(out_root), name), ident or None, f"skidbench-{name}")
+            lines = board_lines(table, horizon_s)
         except EvaluationError as exc:
-            lines = [f"MLflow: {one_line(str(exc))[:200]}"]
+            lines = [f"results: {one_line(str(exc))[:200]}"]
         if lines:
             out[name] = lines
     return out
@@ -456,26 +466,35 @@ def whose(user: str | None) -> str | None:
     return None if str(user) == ALL_USERS else str(user)
 
 
+def not_yours(
+    table: pd.DataFrame, inputs: str, allowed: set[str] | None, user: str, where: str
+) -> str | None:
+    """When ``user`` has no run under ``inputs`` in the results ``table`` but others have: the line that
+    says whose and what to type (``where``: the experiment and store); else None."""
+    runs = children(table, inputs, allowed)
+    who = runs["user"].fillna("").replace("", "?")
+    others = runs[who != user]
+    if others.empty:
+        return None
+    names = list(dict.fromkeys(who[who != user]))
+    return (
+        f"no model run of user {user} under inputs={inputs} in {where}; runs of {', '.join(names)} exist: "
+        f"`skidbench compare user={names[0]}` (or user=all), or run `skidbench evaluate` first"
+    )
+
+
 def others_runs(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> pd.DataFrame:
-    """The dataset's child runs under ``inputs`` made by anyone but ``user``, newest first."""
+    """The dataset's child runs in the MLflow store under ``inputs`` made by anyone but ``user``, newest
+    first (of any output root: a lab's shared server holds the runs of every machine)."""
     runs = search_children(tracker, inputs, filter_string)
     if runs.empty:
         return runs
-    return runs[_col(runs, f"tags.{run_tags.TAG_USER}").fillna("?") != user]
+    return runs[_tag(runs, run_tags.TAG_USER).fillna("?") != user]
 
 
-def not_yours(tracker: trk.Tracker, inputs: str, filter_string: str | None, user: str) -> str | None:
-    """When ``user`` has no run under ``inputs`` but others have: the line that says whose and what to
-    type; else None."""
-    others = others_runs(tracker, inputs, filter_string, user)
-    if others.empty:
-        return None
-    names = list(dict.fromkeys(_col(others, f"tags.{run_tags.TAG_USER}").fillna("?")))
-    return (
-        f"no model run of user {user} under inputs={inputs} in experiment {tracker.experiment_name!r} at "
-        f"{tracker.uri}; runs of {', '.join(names)} exist: `skidbench compare user={names[0]}` (or "
-        "user=all), or run `skidbench evaluate` first"
-    )
+def _tag(runs: pd.DataFrame, name: str) -> pd.Series:
+    col = f"tags.{name}"
+    return runs[col] if col in runs else pd.Series([None] * len(runs), index=runs.index, dtype=object)
 
 
 def newer_elsewhere(
@@ -488,14 +507,14 @@ def newer_elsewhere(
     others = others_runs(tracker, inputs, filter_string, user)
     if others.empty:
         return None
-    parents = _col(others, f"tags.{run_tags.TAG_PARENT}").fillna("").astype(str)
-    statuses = evaluate_statuses(tracker, [p for p in parents if p])
+    parents = _tag(others, run_tags.TAG_PARENT).fillna("").astype(str)
+    statuses = store_statuses(tracker, [p for p in parents if p])
     done = [(p in statuses and statuses[p][0] == "FINISHED") for p in parents]
     others = others[pd.Series(done, index=others.index) & (others["status"] == "FINISHED")]
     if others.empty or others["start_time"].iloc[0] <= runs["start_time"].max():
         return None
-    who = str(_col(others, f"tags.{run_tags.TAG_USER}").fillna("?").iloc[0])
-    parent = str(_col(others, f"tags.{run_tags.TAG_PARENT}").iloc[0])
+    who = str(_tag(others, run_tags.TAG_USER).fillna("?").iloc[0])
+    parent = str(_tag(others, run_tags.TAG_PARENT).iloc[0])
     what = f"{statuses[parent][1]}, run {parent[:8]}, complete"
     return (
         f"{who} evaluated this dataset after you ({what}); this report is yours, `skidbench compare "

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board.selection import results_of
 from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.tracking import store as trk
@@ -291,11 +292,13 @@ def export_bundle(s: ExportSettings, layout: Layout, dest: Path, tracker: trk.Tr
     manifest, terrains = _check_exportable(layout, dest)
     rec = read_record(layout) or {}
     lic = licence_of(s.licence, str(rec.get("source", "?")))
-    boards = brd.all_boards(tracker) if tracker is not None else {}
+    ident = (tracker.dataset_id if tracker is not None else None) or rec.get("fingerprint")
+    experiment = tracker.experiment_name if tracker is not None else None
+    boards = brd.all_boards(results_of(layout, str(ident or "") or None, experiment))
     if not boards:
         raise BundleError(
-            f"{layout.root}: no `skidbench evaluate` run of dataset {layout.dataset} in the MLflow store; "
-            "run it first (a bundle ships the board)"
+            f"{layout.root}: no `skidbench evaluate` run of dataset {layout.dataset} in its results table "
+            f"({layout.root / 'results'}); run it first (a bundle ships the board)"
         )
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".tmp-export-{dest.name}.{os.getpid()}")

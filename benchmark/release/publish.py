@@ -32,6 +32,7 @@ from typing import Any
 
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import compare as cmp
+from skidbench.benchmark.board.selection import results_of
 from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.release import page as pg
 from skidbench.benchmark.report import compare_figures as cfigs
@@ -385,7 +386,8 @@ def publish(
 ) -> PublishResult:
     """Writes ``<site>/<dataset>/index.html`` (and the board CSVs, ``site.json``) and
     ``<site>/index.html``."""
-    boards = brd.all_boards(tracker)
+    ident = tracker.dataset_id or rec.get("fingerprint")
+    boards = brd.all_boards(results_of(layout, str(ident or "") or None, tracker.experiment_name))
     if not boards:
         raise PublishError(
             f"{layout.root}: no `skidbench evaluate` run of dataset {layout.dataset} in {tracker.uri}; "

@@ -9,17 +9,18 @@ input row of every CV and LD sequence:
     [cov_vx_vx, cov_vx_vy, cov_vx_wz, cov_vy_vy, cov_vy_wz, cov_wz_wz]   optional: the predictive
                                         covariance of (vx, vy, wz), all six or none
 
-The file is checked against the dataset's splits before anything is logged, each problem one line naming
-the file and the sequence: a test sequence without rows, a sequence the splits do not have, a missing
-column, a NaN or infinite value, a row count or times that differ from the split's (a shifted clock is
-named as such). Rows may come in any order (they are sorted by time within a sequence).
+The file is checked against the dataset's splits before anything is logged (benchmark/release/
+predictions_file.py), each problem one line naming the file and the sequence. Rows may come in any order
+(they are sorted by time within a sequence).
 
 A submission has an identity and must be plausible (benchmark/release/submission.py: a link, a
 submitter, a date; one entry per predictions digest; speeds the commands could produce). Then every window
 is scored by the same machinery as ``evaluate`` (benchmark/scoring/predictions.py
-``score_split``/``summarise``: the same horizons, minimum distance and rotation, read from the latest
-evaluate of the protocol, else from the imported bundle, else evaluate's defaults) and logged to MLflow as
-one child run per terrain of that evaluate (``skidbench.external=true``, the file's sha256 in
+``score_split``/``score_cells``: the same horizons, minimum distance and rotation, read from the latest
+evaluate of the protocol in the results table, else from the imported bundle, else evaluate's defaults),
+written to the dataset's results table (``<ds>/results/score-<sha256[:12]>-<UTC stamp>.parquet``, one row
+per cell, ``external`` true: benchmark/board/results.py) and logged to MLflow from those rows as one child
+run per terrain of that evaluate (``skidbench.external=true``, the file's sha256 in
 ``skidbench.predictions_sha256``, model version ``external``, the identity in ``skidbench.submission.*``),
 so ``compare`` ranks it on the same board.
 
@@ -32,10 +33,11 @@ submits.
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import re
 import shlex
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.resources import files
 from pathlib import Path
 from typing import Any
@@ -45,6 +47,8 @@ import pandas as pd
 import pyarrow as pa
 
 from skidbench.benchmark.board import boards as brd
+from skidbench.benchmark.board import results as rt
+from skidbench.benchmark.board.selection import results_of
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.evaluate.testsets import (
     TRAIN,
@@ -55,12 +59,13 @@ from skidbench.benchmark.evaluate.testsets import (
     split_fingerprint,
 )
 from skidbench.benchmark.release import submission as sb
+from skidbench.benchmark.release.predictions_file import PredictionsError, align, read_predictions
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.horizon import HorizonConfig
-from skidbench.benchmark.scoring.predictions import TestSequence, score_split, summarise
+from skidbench.benchmark.scoring.predictions import Score, TestSequence, score_cells, score_split
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
-from skidbench.pipeline.core.errors import SkidbenchError, one_line
+from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.io import sha256_file, write_parquet_atomic
 from skidbench.pipeline.core.layout import Layout
 from skidbench.pipeline.core.protocol import check_protocol
@@ -68,147 +73,7 @@ from skidbench.pipeline.runner import environment
 
 log = logging.getLogger(__name__)
 
-PRED_COLUMNS = ("sequence", "t", "vx", "vy", "wz")
-COV_COLUMNS = ("cov_vx_vx", "cov_vx_vy", "cov_vx_wz", "cov_vy_vy", "cov_vy_wz", "cov_wz_wz")
-#: |t - t_split| allowed (s): a clock written with 6 decimals still matches; a one-sample shift does not
-T_TOL = 1e-6
 EXTERNAL_VERSION = "external"
-
-
-class PredictionsError(SkidbenchError):
-    """A predictions file that cannot be scored (format, columns, rows, values, times)."""
-
-
-# -- reading and checking the file --------------------------------------------------------------------
-def read_predictions(path: Path) -> pd.DataFrame:
-    """The predictions table of a ``.parquet`` or ``.csv`` (``.csv.gz``) file, columns checked."""
-    path = Path(path)
-    if not path.is_file():
-        raise PredictionsError(f"{path}: no such file")
-    name = path.name.lower()
-    try:
-        if name.endswith((".parquet", ".pq")):
-            df = pd.read_parquet(path)
-        elif name.endswith((".csv", ".csv.gz")):
-            df = pd.read_csv(path)
-        else:
-            raise PredictionsError(f"{path}: not a .parquet or .csv file")
-    except PredictionsError:
-        raise
-    except Exception as exc:  # pyarrow / the CSV parser: the file is not what it says
-        raise PredictionsError(
-            f"{path}: unreadable ({type(exc).__name__}: {one_line(str(exc))[:200]})"
-        ) from None
-    missing = [c for c in PRED_COLUMNS if c not in df.columns]
-    if missing:
-        raise PredictionsError(
-            f"{path}: missing column(s) {missing}; a predictions file has {', '.join(PRED_COLUMNS)} "
-            f"(and optionally {', '.join(COV_COLUMNS)})"
-        )
-    cov = [c for c in COV_COLUMNS if c in df.columns]
-    if cov and len(cov) != len(COV_COLUMNS):
-        raise PredictionsError(
-            f"{path}: covariance column(s) {sorted(set(COV_COLUMNS) - set(cov))} missing; give all six "
-            f"({', '.join(COV_COLUMNS)}) or none"
-        )
-    for c in ("t", "vx", "vy", "wz", *cov):
-        if not pd.api.types.is_numeric_dtype(df[c]):
-            raise PredictionsError(f"{path}: column {c} is not numeric (first value {df[c].iloc[0]!r})")
-    df = df.assign(sequence=df["sequence"].astype(str))
-    return df
-
-
-def _clock(t: np.ndarray) -> str:
-    if len(t) < 2:
-        return f"t {t[0]:.4g} s" if len(t) else "no rows"
-    return f"t from {t[0]:.4g} to {t[-1]:.4g} s every {np.median(np.diff(t)):.4g} s"
-
-
-def check_sequence(path: Path, seq: TestSequence, rows: pd.DataFrame) -> tuple[np.ndarray, np.ndarray | None]:
-    """(T, 3) velocities (and (T, 3, 3) covariances or None) of one test sequence's rows, aligned with its
-    split; PredictionsError (one line) for a row count, a clock or a value that is not the split's."""
-    rows = rows.sort_values("t", kind="stable")
-    t = rows["t"].to_numpy(float)
-    want = seq.table["t"].to_numpy(float)
-    where = f"{path}: sequence {seq.name}"
-    if len(t) != len(want):
-        raise PredictionsError(
-            f"{where}: {len(t)} rows, its split has {len(want)} ({_clock(want)}); one prediction per input "
-            "row"
-        )
-    if not np.all(np.isfinite(t)):
-        raise PredictionsError(f"{where}: {int(np.sum(~np.isfinite(t)))} non-finite value(s) in t")
-    diff = t - want
-    if np.any(np.abs(diff) > T_TOL):
-        k = int(np.argmax(np.abs(diff) > T_TOL))
-        shift = float(np.median(diff))
-        if np.allclose(diff, shift, atol=T_TOL):
-            raise PredictionsError(
-                f"{where}: times shifted by {shift:+.6g} s against its split (first row t={t[0]:.6g} s, the "
-                f"split's {want[0]:.6g} s); predict at the input table's own times"
-            )
-        raise PredictionsError(
-            f"{where}: row {k} has t={t[k]:.6g} s, its split {want[k]:.6g} s ({_clock(want)}); predict at "
-            "the input table's own times"
-        )
-    vel = rows[["vx", "vy", "wz"]].to_numpy(float)
-    cov = None
-    cols = ["vx", "vy", "wz"]
-    if COV_COLUMNS[0] in rows:
-        cols += list(COV_COLUMNS)
-    values = rows[cols].to_numpy(float)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        j = int(np.argmax(bad.any(axis=0)))
-        i = int(np.argmax(bad[:, j]))
-        raise PredictionsError(
-            f"{where}: {int(bad[:, j].sum())} NaN or infinite value(s) in {cols[j]} (first at t={t[i]:.6g} s)"
-        )
-    if COV_COLUMNS[0] in rows:
-        c = rows[list(COV_COLUMNS)].to_numpy(float)
-        cov = np.empty((len(c), 3, 3))
-        idx = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-        for j, (a, b) in enumerate(idx):
-            cov[:, a, b] = cov[:, b, a] = c[:, j]
-        neg = np.flatnonzero((c[:, [0, 3, 5]] < 0).any(axis=1))
-        if len(neg):
-            raise PredictionsError(f"{where}: a negative variance at t={t[neg[0]]:.6g} s")
-    return vel, cov
-
-
-def align(
-    path: Path, preds: pd.DataFrame, tests: dict[str, dict[str, list[TestSequence]]]
-) -> dict[str, dict[str, tuple[list[np.ndarray], list[np.ndarray] | None]]]:
-    """Per terrain and test split: the per-sequence velocities (and covariances) of the file, in the
-    splits' order; PredictionsError for a missing or an unknown sequence or a bad sequence's rows."""
-    groups = {str(k): g for k, g in preds.groupby("sequence", sort=False)}
-    wanted = {
-        s.name: (terrain, split) for terrain, sp in tests.items() for split, seqs in sp.items() for s in seqs
-    }
-    unknown = [s for s in groups if s not in wanted]
-    if unknown:
-        raise PredictionsError(
-            f"{path}: sequence {unknown[0]!r} is not a test sequence of this dataset"
-            f"{f' (and {len(unknown) - 1} more)' if len(unknown) > 1 else ''}; its test sequences: "
-            f"{', '.join(sorted(wanted)[:8])}{' ...' if len(wanted) > 8 else ''}"
-        )
-    out: dict[str, dict[str, tuple[list[np.ndarray], list[np.ndarray] | None]]] = {}
-    for terrain, sp in tests.items():
-        for split, seqs in sp.items():
-            vels, covs = [], []
-            for s in seqs:
-                if s.name not in groups:
-                    raise PredictionsError(
-                        f"{path}: no rows for sequence {s.name} ({terrain} {split.upper()}); every "
-                        f"{split.upper()} "
-                        f"sequence of the protocol needs its predictions"
-                    )
-                v, c = check_sequence(path, s, groups[s.name])
-                vels.append(v)
-                covs.append(c)
-            has_cov = all(c is not None for c in covs)
-            out.setdefault(terrain, {})[split] = (vels, covs if has_cov else None)
-    return out
 
 
 # -- the settings every row of the board is scored with -----------------------------------------------
@@ -221,14 +86,14 @@ def evaluate_defaults() -> dict[str, Any]:
             for k in ("splits", "horizons", "min_distance_m", "min_rotation_deg")}  # fmt: skip
 
 
-def board_settings(tracker: trk.Tracker, protocol: str, root: Path) -> tuple[dict[str, Any], str | None, str]:
+def board_settings(table: pd.DataFrame, protocol: str, root: Path) -> tuple[dict[str, Any], str | None, str]:
     """The settings to score with, the parent run to hang the rows from (None: start one) and where
-    the settings come from: the latest evaluate of ``protocol``, else the imported bundle's board, else
-    evaluate's defaults."""
+    the settings come from: the latest evaluate of ``protocol`` in the dataset's results ``table``, else
+    the imported bundle's board, else evaluate's defaults."""
     settings = evaluate_defaults()
-    parent = tracker.latest_parent(protocol)
+    parent = rt.latest_evaluate(table, protocol)
     if parent is not None:
-        got = brd.parent_settings(tracker, parent)
+        got = rt.settings_of(table, parent)
         settings.update({k: v for k, v in got.items() if k in settings})
         return settings, parent, f"the latest evaluate under inputs={protocol} (run {parent})"
     from skidbench.benchmark.release.bundle import read_bundle_doc
@@ -296,11 +161,11 @@ def _tests(
     return tests, files_of
 
 
-def entries(tracker: trk.Tracker, protocol: str) -> pd.DataFrame:
-    """The protocol's external entries on the board: ``model``, ``predictions_sha256``, ``submitter``,
-    ``submitted`` (one row per run; empty without a board)."""
+def entries(table: pd.DataFrame, protocol: str) -> pd.DataFrame:
+    """The protocol's external entries on the board of the results ``table``: ``model``,
+    ``predictions_sha256``, ``submitter``, ``submitted`` (one row per run; empty without a board)."""
     cols = ["model", "predictions_sha256", "submitter", "submitted"]
-    board = brd.protocol_board(tracker, protocol)
+    board = brd.protocol_board(table, protocol)
     if board is None or "external" not in board.rows:
         return pd.DataFrame(columns=cols)
     rows = board.rows[board.rows["external"].astype(bool)]
@@ -320,7 +185,8 @@ def score_predictions(
     path = Path(path).expanduser().absolute()
     protocol = check_protocol(protocol)
     check_name(entry.name)
-    settings, parent, source = board_settings(tracker, protocol, layout.root)
+    table = results_of(layout, tracker.dataset_id, tracker.experiment_name)
+    settings, parent, source = board_settings(table, protocol, layout.root)
     splits = [str(s) for s in settings["splits"]]
     horizons = [float(h) for h in settings["horizons"]]
     hcfg = HorizonConfig(
@@ -332,12 +198,12 @@ def score_predictions(
     aligned = align(path, preds, tests)
     plausible(layout, path, aligned, tests)
     digest = sha256_file(path)
-    if sb.check_entry(entry, digest, entries(tracker, protocol), protocol):
+    if sb.check_entry(entry, digest, entries(table, protocol), protocol):
         return ScoreResult(entry.name, protocol, digest, parent or "", [], source, horizons[0], entry, True)
     # 2. every window scored (the same functions as evaluate), then logged
     scored = {}
     for terrain in tests:
-        metrics: dict[str, float] = {}
+        scores: list[Score] = []
         frames = []
         for split in splits:
             vels, covs = aligned[terrain][split]
@@ -345,8 +211,8 @@ def score_predictions(
             if len(w):
                 w.insert(0, "split", split)
                 frames.append(w)
-            metrics.update(summarise(w, split, horizons))
-        scored[terrain] = (metrics, pd.concat(frames, ignore_index=True) if frames else pd.DataFrame())
+            scores += score_cells(w, split, horizons)
+        scored[terrain] = (scores, pd.concat(frames, ignore_index=True) if frames else pd.DataFrame())
     res = _log(layout, tracker, path, entry, protocol, digest, settings, parent, source, scored, files_of)
     res.submission = entry
     return res
@@ -492,34 +358,12 @@ def _log(
                     ),
                 },
             )
-            tracker.log(parent, params={k: v for k, v in params.items() if k in brd.SETTING_KEYS})
-        for terrain, (metrics, windows) in scored.items():
-            facts = {
-                "predictions": f"`{Path(path).name}` (sha256 `{digest}`)",
-                "submitted": f"by {entry.submitter} on {entry.date}: {entry.link}",
-                "input protocol": f"`{protocol}`",
-                "terrain": terrain,
-                "settings from": source,
-                "metrics": mt.describe() + " (what evaluate logs)",
-            }
-            tags = {**common, **_child_tags(entry, terrain, digest), run_tags.TAG_NOTE: run_tags.describe(
-                f"External predictions **{name}** on **{terrain}**", facts, cmd),
-                run_tags.TAG_FINGERPRINT: split_fingerprint(files_of[terrain], layout.splits)}  # fmt: skip
-            run_id = tracker.start(
-                f"{name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]") + " (external)",
-                tags,
-                parent,
-            )
-            tracker.log(run_id, params={**params, "terrain": terrain})
-            stem = layout.eval_stem(name, terrain, protocol)
-            win = stem.with_name(stem.name + ".windows.parquet")
-            write_parquet_atomic(pa.Table.from_pandas(windows, preserve_index=False), win,
-                                 {"model": name, "terrain": terrain, "run_id": run_id, "inputs": protocol,
-                                  "external": True, "predictions_sha256": digest})  # fmt: skip
-            tracker.artifact(run_id, win, "windows")
-            tracker.log(run_id, metrics=metrics, tags={run_tags.TAG_STATUS: "FINISHED"})
-            tracker.end(run_id, "FINISHED")
-            rows.append({"terrain": terrain, "run_id": run_id, **metrics})
+            tracker.log(parent, params={k: v for k, v in params.items() if k in rt.SETTING_KEYS})
+        base = _facts(layout, tracker, parent, entry, protocol, digest, settings, cmd, common)
+        results = rt.Writer(layout, parent, f"score-{digest[:12]}-{brd.utc_stamp()}")
+        with results.until_done():
+            rows = _log_children(layout, tracker, path, entry, protocol, digest, source, cmd, common, params,
+                                 parent, scored, files_of, base, results)  # fmt: skip
         if own_parent:
             tracker.log(
                 parent,
@@ -527,9 +371,81 @@ def _log(
                 tags={run_tags.TAG_STATUS: "FINISHED"},
             )
             tracker.end(parent, "FINISHED")
+        tracker.artifact(parent, results.path, "results")
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return ScoreResult(name, protocol, digest, parent, rows, source, float(settings["horizons"][0]))
+
+
+def _log_children(
+    layout, tracker, path, entry, protocol, digest, source, cmd, common, params, parent, scored, files_of,
+    base: rt.RunFacts, results: rt.Writer,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """One external child run per terrain of ``parent`` (tags, params, its windows, its rows of the results
+    table and the MLflow metrics logged from them); returns per terrain its run id and metrics."""
+    name, rows = entry.name, []
+    for terrain, (scores, windows) in scored.items():
+        facts = {
+            "predictions": f"`{Path(path).name}` (sha256 `{digest}`)",
+            "submitted": f"by {entry.submitter} on {entry.date}: {entry.link}",
+            "input protocol": f"`{protocol}`",
+            "terrain": terrain,
+            "settings from": source,
+            "metrics": mt.describe() + " (what evaluate logs)",
+        }
+        tags = {**common, **_child_tags(entry, terrain, digest), run_tags.TAG_NOTE: run_tags.describe(
+            f"External predictions **{name}** on **{terrain}**", facts, cmd),
+            run_tags.TAG_FINGERPRINT: split_fingerprint(files_of[terrain], layout.splits)}  # fmt: skip
+        run_id = tracker.start(
+            f"{name}/{terrain}" + ("" if protocol == "commanded" else f" [{protocol}]") + " (external)",
+            tags,
+            parent,
+        )
+        tracker.log(run_id, params={**params, "terrain": terrain})
+        run = replace(base, run_id=run_id, terrain=terrain, start_time=dt.datetime.now(dt.UTC),
+                      splits_fingerprint=tags[run_tags.TAG_FINGERPRINT])  # fmt: skip
+        metrics = _write_scores(layout, tracker, results, run, windows, scores)
+        tracker.log(run_id, metrics=metrics, tags={run_tags.TAG_STATUS: "FINISHED"})
+        tracker.end(run_id, "FINISHED")
+        rows.append({"terrain": terrain, "run_id": run_id, **metrics})
+    return rows
+
+
+def _write_scores(
+    layout: Layout, tracker: trk.Tracker, results: rt.Writer, facts: rt.RunFacts, windows: pd.DataFrame,
+    scores: list[Score],
+) -> dict[str, float]:  # fmt: skip
+    """An external run's windows (``<stem>.windows.parquet``, logged to the run) and its rows of the results
+    table; returns its MLflow metrics (logged from the rows, as evaluate's)."""
+    stem = layout.eval_stem(facts.model, facts.terrain, facts.inputs)
+    win = stem.with_name(stem.name + ".windows.parquet")
+    write_parquet_atomic(pa.Table.from_pandas(windows, preserve_index=False), win,
+                         {"model": facts.model, "terrain": facts.terrain, "run_id": facts.run_id,
+                          "inputs": facts.inputs, "external": True,
+                          "predictions_sha256": facts.predictions_sha256})  # fmt: skip
+    tracker.artifact(facts.run_id, win, "windows")
+    new = rt.rows(facts, scores)
+    results.add(new)
+    return rt.mlflow_metrics(pd.DataFrame(new))
+
+
+def _facts(layout, tracker, parent, entry, protocol, digest, settings, cmd, common) -> rt.RunFacts:
+    """What every row of a scored predictions file carries (benchmark/board/results.py): the board's
+    settings, the dataset, the environment and the submission's identity."""
+    env = "skidbench.env."
+    return rt.RunFacts(
+        evaluate_id=parent, run_id="", model=entry.name, inputs=protocol, terrain="", external=True,
+        min_distance_m=float(settings["min_distance_m"]),
+        min_rotation_deg=float(settings["min_rotation_deg"]),
+        horizons=[float(h) for h in settings["horizons"]], splits=[str(x) for x in settings["splits"]],
+        models=[entry.name], dataset=layout.dataset, dataset_id=tracker.dataset_id or "",
+        experiment=tracker.experiment_name, model_version=EXTERNAL_VERSION,
+        package=f"external predictions sha256:{digest[:12]}",
+        skidbench_version=common.get("skidbench.version", ""), git_commit=common.get(run_tags.TAG_GIT, ""),
+        versions={k[len(env):]: str(v) for k, v in common.items() if k.startswith(env)},
+        user=run_tags.current_user(), reproduce=cmd, predictions_sha256=digest, link=entry.link,
+        submitter=entry.submitter, submitted=entry.date, description=entry.description,
+    )  # fmt: skip
 
 
 def format_score(res: ScoreResult) -> str:

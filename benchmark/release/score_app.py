@@ -14,13 +14,13 @@ from skidbench.pipeline.cli.main import stage
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="score")
 @stage("score", home=False)
 def main(cfg: DictConfig) -> None:
+    from skidbench.benchmark.release.predictions_file import read_predictions
     from skidbench.benchmark.release.score import (
         check_name,
         check_predictions,
         default_name,
         format_check,
         format_score,
-        read_predictions,
         score_predictions,
     )
     from skidbench.benchmark.release.submission import submission
