@@ -165,7 +165,11 @@ def main(argv: list[str] | None = None) -> Path:
         body += "\n\n" + (reports / "horizons.md").read_text()
     made = f" The output root was made by `{a.made_by}`." if a.made_by else ""
     about = f"Dataset {dataset_identity(root)}.{made} {_runs(reports)}"
-    command = "python -m perf.snapshot " + shlex.join(sys.argv[1:] if argv is None else argv)
+    args = sys.argv[1:] if argv is None else list(argv)
+    # the page is committed: the output root is `<out>`, never this machine's path
+    command = "python -m perf.snapshot " + shlex.join(args)
+    command, about = (t.replace(str(a.out_root.resolve()), "<out>").replace(str(a.out_root), "<out>")
+                      for t in (command, about))  # fmt: skip
     path = publish(f"board_{a.name}", command, about, body, a.results)
     print(path)
     return path

@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> None:
     text = table(windows)
     if a.publish:
         command = "python -m perf.threshold_sensitivity " + shlex.join(sys.argv[1:] if argv is None else argv)
+        command = command.replace(str(a.out_root), "<out>")  # the page is committed: no machine's path
         models = sorted({m for m, _ in windows})
         about = (
             f"Dataset {dataset_identity(root)}, `commanded`, {H:g} s; the windows of {len(models)} models "

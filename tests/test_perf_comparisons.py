@@ -131,3 +131,4 @@ def test_snapshot_copies_the_boards_with_their_provenance_and_without_the_figure
     assert "## Leaderboard, inputs=response (mean over terrains)" in text and "best: edd" in text
     assert "f.png" not in text and "make reproduce" not in text.split("\n", 1)[1]
     assert "| edd | response | tile |" not in text and "| old |" not in text
+    assert str(tmp_path / "out") not in text and "python -m perf.snapshot <out> sim-x t" in text  # no path
