@@ -88,6 +88,15 @@ def test_a_board_says_what_its_intervals_cover():
     over = scope_line(board([iv.OVER_DRIVES], [iv.OVER_DRIVES]))
     assert "other drives like the recorded ones" in over and "another drive would differ" not in over
     assert scope_line(board([], [])) == ""
+    # the error-against-horizon report says it under each stratum's claim
+    from skidbench.benchmark.board.horizons import report_markdown
+
+    s = board([iv.WITHIN_DRIVES], [iv.WITHIN_DRIVE])
+    s.overall = s.overall.assign(model=["friction"], estimate=[6.0], lo=[5.0], hi=[7.5], rank=["1"])
+    s.claim = {"overall": ("not resolved by these data", None)}
+    md = report_markdown({"state": {1.0: {"all": s}, 6.0: {"all": s}}})
+    assert "| friction | 6.00 [5.00, 7.50] #1 | 6.00 [5.00, 7.50] #1 |" in md
+    assert md.count("Intervals: the means over terrains within these drives") == 1
 
 
 def _two_models(rng, n_seq, blocks_per_seq, ratio, rho=0.8):

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.benchmark.board.boards import read_windows
+from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.evaluate.testsets import load_test_split
 from skidbench.benchmark.scoring import aggressiveness as ag
 from skidbench.benchmark.scoring import intervals as iv
@@ -139,6 +140,8 @@ def report_markdown(results: Mapping[str, Mapping[float, Mapping[str, st.Standin
                 f"{h:g} s: {by_h[h][stratum].claim['overall'][0]}" for h in horizons if stratum in by_h[h]
             ]
             lines += ["", f"Friction best ({stratum} windows): " + "; ".join(claims) + ".", ""]
+            scope = next((scope_line(by_h[h][stratum]) for h in horizons if stratum in by_h[h]), "")
+            lines += [scope, ""] if scope else []
     return "\n".join(lines) + "\n"
 
 
