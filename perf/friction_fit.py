@@ -98,7 +98,8 @@ def compare(n_seq: int) -> dict[str, Any]:
             out[f"fit_wall_{tag}_s"] = time.perf_counter() - w
             out[f"fit_loss_{tag}"] = model.fit_loss_
             out[f"nfev_{tag}"] = model.fit_info_["nfev"]
-            out[f"params_{tag}"] = " ".join(f"{k}={v:.6g}" for k, v in model.params.items())
+            # every digit: a change to the solve is checked against the fit to the bit (docs/performance.md)
+            out[f"params_{tag}"] = " ".join(f"{k}={v!r}" for k, v in model.params.items())
             fitted[tag] = model
         judge = FrictionBased(robot, params, **options)
         for tag, model in fitted.items():

@@ -124,12 +124,11 @@ def test_the_cost_a_solve_reports_is_the_balance_at_the_slips_it_returns(jackal,
     cost, warm-started or not, restarted or not, standing still or not, is 0.5 |F|^2 of ``residual`` at the
     returned theta, to the bit where the LM produced it."""
     geo = offset_geometry
-    wl, wr, dwl, dwr = (np.concatenate([a, b]) for a, b in zip(
-        random_steps(jackal, 60, seed=7),
-        (np.array([6.0, -4.0, 0.0]), np.array([6.0, 8.0, 0.0]), np.array([300.0, -300.0, 0.0]),
-         np.array([300.0, 300.0, 0.0])),
-        strict=True,
-    ))
+    # random steps, two accelerations friction cannot deliver (restarted) and a standstill
+    extra = ([6.0, -4.0, 0.0], [6.0, 8.0, 0.0], [300.0, -300.0, 0.0], [300.0, 300.0, 0.0])
+    wl, wr, dwl, dwr = (
+        np.concatenate([a, b]) for a, b in zip(random_steps(jackal, 60, 7), extra, strict=True)
+    )
     for theta0 in (None, np.full((wl.size, 3), 0.01)):
         sol = solve(wl, wr, dwl, dwr, PARAMS, geo, theta0=theta0)
         F = residual(sol.theta, wl, wr, dwl, dwr, PARAMS, geo)
