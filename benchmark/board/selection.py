@@ -185,9 +185,12 @@ def _evaluate_gone(parent: str, status: str, stored: dict[str, tuple[str, str, s
     (None: the evaluate is complete)."""
     if not parent:
         return None  # a run logged without an evaluate (a library call): judged by itself
-    status, name, reason = _ended(status, stored.get(parent))
     if status == "FINISHED":
         return None
+    known = stored.get(parent)  # the store's end when it has one (a failed evaluate's runs reaped KILLED)
+    if known is not None and known[0] not in ("RUNNING", "FINISHED"):
+        status = known[0]
+    name, reason = (known[1], known[2]) if known else ("", "")
     return (f"its evaluate {f'{name} ({parent[:8]})' if name else parent[:8]} ended {status}"
             + (f" ({reason})" if reason else "")
             + ": the runs of an evaluate that did not finish are never on a board")  # fmt: skip
