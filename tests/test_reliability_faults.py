@@ -130,8 +130,9 @@ def test_a_changed_input_reruns_exactly_the_units_downstream_of_it(micro_root):
 
 def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_completes(micro_root, tmp_path):
     """SIGKILL during the second (model, terrain) of an evaluate: the next stage that opens the store marks
-    the runs the dead process left RUNNING as KILLED, with the reason; the re-run finishes every run, and
-    compare reads the finished evaluation, not the killed one."""
+    the runs the dead process left RUNNING as KILLED, with the reason; the re-run takes the run that
+    finished as it is and runs the killed one again, and compare reads the finished evaluation, the taken
+    run as its own, never the killed one."""
 
     from mlflow import MlflowClient
 
@@ -154,21 +155,24 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
         "RUNNING",
     ]  # the first child finished; the parent and the second child were left RUNNING
 
-    skidbench("evaluate", root)
+    again = skidbench("evaluate", root).stdout
     after = runs()
     for run_id, run in dead.items():
         if run.info.status == "RUNNING":
             assert after[run_id].info.status == "KILLED"
             assert "ended without closing the run" in after[run_id].data.tags[run_tags.TAG_REASON]
     new = [r for k, r in after.items() if k not in dead]
-    assert sorted(r.info.status for r in new) == ["FINISHED"] * 3
+    assert sorted(r.info.status for r in new) == ["FINISHED"] * 2  # the parent and the killed model's run
+    (finished,) = [k for k, r in dead.items() if r.info.status == "FINISHED"]
+    assert "ended KILLED; taken into this one" in again and "taken as they are: ideal/tile" in again
     assert tmp_files(root) == []
 
     skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
     assert sorted(board["model"]) == ["edd", "ideal"] and (board["status"] == "FINISHED").all()
     (parent,) = [r for r in new if r.data.tags[run_tags.TAG_ROLE] == "parent"]
-    assert set(board["parent_run_id"]) == {parent.info.run_id}
+    assert set(board["parent_run_id"]) == {parent.info.run_id}  # the taken run as the complete one's
+    assert finished in set(board["run_id"]) and parent.data.tags["skidbench.reused_runs"] == finished
     assert (
         f"1 evaluate run(s): `{parent.info.run_id}`" in (root / DATASET / "reports" / "report.md").read_text()
     )

@@ -93,8 +93,13 @@ def select_runs(
                 f"{tracker.experiment_name!r} at {tracker.uri}; run it first (or set mlflow.experiment)"
             )
     runs = sel.children(table, inputs, allowed)
-    if parent:
-        own = runs[runs["evaluate_id"] == parent].reset_index(drop=True)
+    if parent:  # its runs, with those it took unchanged from earlier evaluates (its file has their rows)
+        mine = table[table["evaluate_id"] == parent]
+        status = str(mine["evaluate_status"].iloc[0]) if len(mine) else ""
+        own = runs[runs["run_id"].isin(set(mine["run_id"]))].assign(
+            evaluate_id=parent, evaluate_status=status
+        )
+        own = own.reset_index(drop=True)
         # the external rows of `skidbench score` join every evaluate's board
         runs = with_external_runs(table, own, inputs, allowed) if len(own) else own
     if runs.empty:

@@ -320,8 +320,11 @@ def nan_cells(rows_: pd.DataFrame) -> list[str]:
 def runs(table: pd.DataFrame) -> pd.DataFrame:
     """One row per model run (the floor's rows left out): the key columns that name it and
     :data:`RUN_COLUMNS`, and ``horizons_scored``: the horizons it has a paper metric's value at; newest
-    first."""
+    first. A run an evaluate took from an earlier one (benchmark/evaluate/reuse.py) has rows in the files of
+    both: the row of a FINISHED evaluate is the run's (a run a killed evaluate finished is on a board only
+    as the run of a complete evaluate that took it)."""
     t = table[table["role"] == MODEL]
+    t = t.sort_values("evaluate_status", key=lambda s: s == "FINISHED", kind="stable")  # FINISHED last
     if not len(t):
         return pd.DataFrame(columns=["run_id", "evaluate_id", "model", "inputs", "terrain", *RUN_COLUMNS,
                                      "horizons_scored"])  # fmt: skip

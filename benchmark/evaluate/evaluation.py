@@ -86,7 +86,7 @@ class ChildResult:
     reason: str = ""
     inputs: str = "commanded"
     traceback: str = ""  # where a FAILED run's traceback is (MLflow artifact, file, stage log)
-    reused: bool = False  # the run of an earlier complete evaluate, unchanged (evaluate/reuse.py)
+    reused: bool = False  # the run of an earlier evaluate, unchanged (evaluate/reuse.py)
 
 
 @dataclass
@@ -204,8 +204,10 @@ def _run_terrains(
         td = TerrainData(terrain, data.tests[terrain], data.inputs_of[terrain], datasets_of[terrain],
                          split_fingerprint(data.files_of[terrain], ctx.layout.splits))  # fmt: skip
         floor[terrain] = _log_terrain_references(ctx, td, protocol)
-        for m in models:  # a run of an earlier complete evaluate taken as it is (evaluate/reuse.py), or made
+        for m in models:  # a run of an earlier evaluate taken as it is (evaluate/reuse.py), or made
             taken = ctx.plan.taken.get((m, terrain))
+            if taken is not None:  # its rows join this evaluate's results file: this evaluate's board
+                ctx.results.add(ctx.plan.carried(taken.info.run_id, ctx.parent_id, models))
             children.append(_child_of(taken, reused=True) if taken is not None else _run_child(ctx, m, td))
     return floor
 
@@ -245,7 +247,7 @@ def _log_board(
     n_failed = sum(c.status != "FINISHED" for c in children)
     rows = [(c.model, c.terrain, c.status, c.metrics) for c in children]
     board, board_metrics = mu.evaluate_leaderboard(rows, splits, ctx.horizons[0], protocol)
-    n_reused = sum(c.reused for c in children)  # runs of earlier complete evaluates taken as they are
+    n_reused = sum(c.reused for c in children)  # runs of earlier evaluates taken as they are
     counts = {"n_children": len(children) - n_reused, "n_reused": n_reused, "n_failed": n_failed}
     ctx.tracker.log(
         ctx.parent_id,
