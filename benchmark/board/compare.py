@@ -4,7 +4,7 @@ fig*.png) and logged to MLflow.
 
 The dataset is ``dataset=<name>`` (any dataset of the output root; its ``dataset.json`` gives the identity
 its runs carry, so no source arguments are needed), the dataset of ``parent_run_id=<run id>``, or of the
-runs of ``mlflow.experiment=<name>`` (benchmark/board/selection.py ``resolve_target``). The rows: by default
+runs of ``mlflow.experiment=<name>`` (benchmark/board/selection.py ``target_from_cfg``). The rows: by default
 (``parent_run_id=latest``) the newest complete run of each (model, terrain) under the input protocol
 (``inputs``), across evaluates (``selection.latest_complete``): a model evaluated alone joins the board
 beside the others, and the newer runs that are not complete (failed, killed, running, other split files)
