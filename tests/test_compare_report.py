@@ -262,6 +262,12 @@ def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluat
     # everyone's: the newest complete run of each (model, terrain): bob's chi beside alice's ideal_t
     anyone = run_compare(compose("compare", tmp_path, ["figures.enabled=false", "user=all"]))
     assert set(anyone.parents) == {runs["alice"], runs["bob"]}
+    # its report goes to a compare run of alice's, whose description (shown first in the UI) is the board
+    (exp,) = [e.experiment_id for e in client.search_experiments() if e.name != "Default"]
+    newest = client.search_runs([exp], "tags.`skidbench.role` = 'compare'", order_by=["start_time DESC"])[0]
+    note = newest.data.tags["mlflow.note.content"]
+    assert note.startswith("**Leaderboard**, inputs=commanded, 6 s horizon, as `skidbench compare` ranks it")
+    assert anyone.leaderboard_md in note and all(f"`{r}`" in note for r in runs.values())
     monkeypatch.setenv("SKIDBENCH_USER", "carol")
     with pytest.raises(CompareError, match="no model run of user carol .* user=bob"):
         run_compare(compose("compare", tmp_path, ["figures.enabled=false"]))

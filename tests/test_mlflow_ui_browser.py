@@ -127,3 +127,7 @@ def test_a_parent_runs_page_shows_the_leaderboard_who_made_it_and_its_datasets(u
     assert re.search(r"Child runs .*chi/tile", text)
     assert "Created by" in text and "Source" in text and "Created by -" not in text
     assert "skidbench.out_root" in text and "skidbench.session" in text  # where its files went, which command
+    # the description (mlflow.note.content) is shown first: above the run's details, params and tags
+    assert text.find("Leaderboard") < min(
+        text.find(w) for w in ("Parameters", "Created by", "skidbench.session")
+    )

@@ -309,7 +309,9 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     write_text_atomic(report, report_md(settings, content))
     files.append(report)
     if log_mlflow:
-        _log_report(tracker, log_to, settings.dataset, protocol, files)
+        _log_report(
+            tracker, log_to, settings.dataset, protocol, files, _note(lb_md, protocol, horizon, parents)
+        )
     claim = ""
     if standings is not None:
         claim = "; ".join(f"{scope}: {v}" for scope, (v, _) in standings.claim.items())
@@ -445,15 +447,26 @@ def _log_target(
     return log_to
 
 
+def _note(board_md: str, protocol: str, horizon: float, parents: list[str]) -> str:
+    """A compare run's description (``mlflow.note.content``, shown first on its page): the ranked board."""
+    title = (f"**Leaderboard**, inputs={protocol}, {horizon:g} s horizon, as `skidbench compare` ranks it "
+             "(paired intervals: a gap inside them is a tie), from the runs of "
+             f"{len(parents)} evaluate run(s): " + ", ".join(f"`{p}`" for p in parents))  # fmt: skip
+    return f"{title}\n\n{board_md}\n\nThe full report: artifact `report/report.md`.\n"[: run_tags.MAX_TAG_LEN]
+
+
 def _log_report(
-    tracker: trk.Tracker, run_id: str | None, dataset: str, protocol: str, files: list[Path]
+    tracker: trk.Tracker, run_id: str | None, dataset: str, protocol: str, files: list[Path], note: str = ""
 ) -> None:
-    """Log the report's files to ``run_id``, or to a new compare run of the caller's when None."""
+    """Log the report's files to ``run_id``, or to a new compare run of the caller's when None (its
+    description: ``note``, the board)."""
     if run_id is None:
-        run_id = tracker.start(
-            f"compare {dataset}",
-            {run_tags.TAG_ROLE: "compare", run_tags.TAG_DATASET: str(dataset), run_tags.TAG_INPUTS: protocol},
-        )
+        tags = {
+            run_tags.TAG_ROLE: "compare",
+            run_tags.TAG_DATASET: str(dataset),
+            run_tags.TAG_INPUTS: protocol,
+        }
+        run_id = tracker.start(f"compare {dataset}", {**tags, **({run_tags.TAG_NOTE: note} if note else {})})
         tracker.end(run_id)
     for f in files:
         tracker.artifact(run_id, f, "report")
