@@ -22,11 +22,13 @@ What counts as an import of a module (each one followed, whether it runs or not)
   run on a plugin's model, ``+model.base=<plugin>``, is not refitted by it: ``force=true``).
 
 Only modules under ``skidbench.`` are followed; libraries are recorded by version (``environment``).
-Reading a file's imports is memoised by its content hash: asking again costs a ``stat`` per file."""
+Reading a file's imports is memoised by its content hash and a module's file by its name: asking again
+costs a ``stat`` per file."""
 
 from __future__ import annotations
 
 import ast
+import functools
 import importlib.metadata as md
 import importlib.util
 from collections.abc import Callable, Iterable
@@ -40,9 +42,11 @@ LOADS = "LOADS_ENTRY_POINTS"
 _parsed: dict[str, tuple[str, frozenset[str], frozenset[str]]] = {}
 
 
+@functools.cache
 def module_file(name: str) -> Path | None:
     """The source file of module ``name``, or None when ``name`` is not a module (a class imported from
-    one, a module that is not installed)."""
+    one, a module that is not installed); found once per process (a module's file does not move while it
+    runs; its content is hashed on every digest)."""
     try:
         spec = importlib.util.find_spec(name)
     except Exception:  # noqa: BLE001 - not a module (its parent is a module, not a package) or not importable
@@ -109,8 +113,10 @@ def _imports_of(path: Path, package: str, file_hash: Callable[[Path], str]) -> t
     return hit[1], hit[2]
 
 
+@functools.cache
 def group_modules(group: str) -> list[str]:
-    """The modules of the entry points of ``group`` that skidbench provides (its built-in models)."""
+    """The modules of the entry points of ``group`` that skidbench provides (its built-in models; read once
+    per process: skidbench's own entry points change only with a new install)."""
     return sorted({ep.module for ep in md.entry_points(group=group) if ep.module.startswith(PREFIX)})
 
 
