@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 ON_A_BASE = {"relax", "state_ridge", "gp_residual"}
 
 
-def _edited(monkeypatch, rel: str) -> None:
+def edited(monkeypatch, rel: str) -> None:
     """Every later digest sees ``rel`` (a file of the checkout) with another content."""
     real, target = environment._file_hash, (REPO / rel).resolve()
     monkeypatch.setattr(
@@ -64,7 +64,7 @@ def test_an_edit_refits_the_models_that_run_the_edited_file_and_no_other(
     monkeypatch, fit_settings, rel, rerun
 ):
     before = _fit_keys(fit_settings())
-    _edited(monkeypatch, rel)
+    edited(monkeypatch, rel)
     after = _fit_keys(fit_settings())
     changed = {m for m in before if before[m] != after[m]}
     assert changed == (set(before) if rerun is None else rerun)
@@ -76,11 +76,11 @@ def test_an_edited_models_fit_is_redone_with_the_reason_and_the_others_are_reuse
 
     for m in ("ideal", "edd"):
         assert not fit_model(fit_settings(), m, "tile").reused
-    _edited(monkeypatch, "models/kinematic/linear.py")
+    edited(monkeypatch, "models/kinematic/linear.py")
     assert fit_model(fit_settings(), "ideal", "tile").reused
     edd = fit_model(fit_settings(), "edd", "tile")
     assert not edd.reused and edd.refit_reason.startswith("its code changed (digest ")
-    _edited(monkeypatch, "models/base.py")
+    edited(monkeypatch, "models/base.py")
     assert not any(fit_model(fit_settings(), m, "tile").reused for m in ("ideal", "edd"))
 
 

@@ -2,7 +2,8 @@
 simulated as the store's bookkeeping leaves it (the parent and the run that was running marked KILLED, the
 results file of the evaluate never finished). The next evaluate takes the finished run unchanged, runs the
 killed one again, carries the taken run's rows in its own results file and lists it in its parent's tag;
-the board is that one complete evaluate's, the taken run as its run, never as the killed evaluate's."""
+the board is that one complete evaluate's, the taken run as its run, never as the killed evaluate's. On
+the same state: an edit of one model's module runs that model again and takes the other."""
 
 from __future__ import annotations
 
@@ -96,3 +97,32 @@ def test_the_board_is_the_complete_evaluates_with_the_taken_run_as_its_own(rerun
     picked, _ = select_runs(tracker, table, second.parent_run_id, None, "commanded")
     assert sorted(picked["run_id"]) == sorted(runs.values())
     assert set(picked["evaluate_id"]) == {second.parent_run_id}
+
+
+@pytest.mark.parametrize(
+    "rel, again",
+    [(None, set()), ("models/kinematic/linear.py", {"edd"}), ("models/base.py", {"ideal", "edd"})],
+)
+def test_an_edit_of_one_models_module_runs_that_model_again_and_takes_the_others(
+    rerun, monkeypatch, rel, again
+):
+    """The next evaluate's plan on the same state (benchmark/evaluate/reuse.py ``plan_reuse``; nothing is
+    run or written): with a model's module edited (its content hash changed: the digest's source,
+    tests/test_code_digest.py) that model runs again, saying why, and the other is taken; an edit of
+    models/base.py, which both run, runs both again."""
+    from test_code_digest import edited
+
+    from skidbench.benchmark.evaluate.reuse import plan_reuse
+    from skidbench.benchmark.evaluate.settings import EvaluateSettings
+    from skidbench.benchmark.evaluate.testsets import load_evaluation_data
+
+    out = rerun[0]
+    es = EvaluateSettings.from_cfg(compose("evaluate", out, ARGS))
+    data = load_evaluation_data(es.layout, es.fit.calibrations, ["tile"], es.splits, es.horizons, es.protocol)
+    if rel:
+        edited(monkeypatch, rel)
+    with contextlib.redirect_stdout(io.StringIO()) as console:
+        plan = plan_reuse(es, es.store.open(), data.files_of, ["tile"])
+    assert set(plan.again) == again and {m for m, _ in plan.taken} == {"ideal", "edd"} - again
+    for model in again:
+        assert f"evaluate: {model}: its code changed (digest " in console.getvalue()
