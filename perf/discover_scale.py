@@ -1,5 +1,6 @@
-"""Is a speed deficit a scale? What discovery's check (``benchmark/discovery/scale.py``, ``scale_by_speed``)
-sees on worlds whose truth is known (docs/discovery.md, step 2):
+"""Is a speed deficit a scale, and is the ground truth's distance scale steady? What discovery's two checks
+of speed (``benchmark/discovery/scale.py``, ``scale_by_speed``; ``benchmark/discovery/ground_truth.py``,
+``scale_drift_finding``) see on worlds whose truth is known (docs/discovery.md, steps 1 and 2):
 
     python -m perf.discover_scale [--seeds 2] [--publish]      # from the repository root
 
@@ -7,8 +8,12 @@ Per world (``tests/discover_data.py`` through the split stage's code, as ``perf.
 the base ``edd`` at the spec sheet's radius, as when ``calibrate`` could not measure it): the one scale
 of the forward speed, the scales of the slow and the fast half of the moving rows, their spread as a
 share of the deficit (``discover.scale_spread`` is the threshold), the sign-flip p-value over held-out
-units, and the verdict. Worlds: a 0.96 speed scale alone and with each catalogue effect (the ``curvy``
-drive, few straight rows), a command dead zone, a load-dependent wheel-rate limit, and clean data.
+units, and the verdict; the RMS drift of the distance scale and of the yaw rate against the commands
+(percent about each sequence's mean) and whether it is a ground-truth finding. Worlds: a 0.96 speed scale
+alone and with each catalogue effect (the ``curvy`` drive, few straight rows), a command dead zone, a
+load-dependent wheel-rate limit, clean data (the three noise levels of the odometry-like truth), a slowly
+varying slip, a robot slowing down (``speed_fade``), a payload, and a ground truth whose distance scale
+drifts 15 % per minute.
 ``--publish`` writes ``perf/results/discover_scale.md``.
 """
 
@@ -38,11 +43,18 @@ def worlds(seeds: int) -> list[tuple[str, dict]]:
     for i in range(seeds):
         for e in ("command_dead_zone", "load_wheel_limit"):
             out.append((f"{e} (seed {7200 + i})", {**base, "style": "mixed", "effect": e, "seed": 7200 + i}))
-        out.append((f"clean (seed {7300 + i})", {**base, "style": "mixed", "effect": None, "seed": 7300 + i}))
+        for noise in ("low", "default", "high"):
+            clean = {**base, "style": "mixed", "noise": noise, "effect": None, "seed": 7300 + i}
+            out.append((f"clean, {noise} noise (seed {7300 + i})", clean))
+    for e in ("slow_slip", "speed_fade", "payload_change"):
+        out.append((e, {**base, "style": "mixed", "effect": e, "seed": 7400}))
+    out.append(("ground truth scale drift 15 %/min", {**base, "style": "mixed", "effect": None, "seed": 7500,
+                                                       "world": "gt_scale"}))  # fmt: skip
     return out
 
 
 def measure(case: dict) -> dict:
+    from skidbench.benchmark.discovery.ground_truth import scale_drift_finding
     from skidbench.benchmark.discovery.pool import prepare_pool
     from skidbench.benchmark.discovery.scale import scale_by_speed
     from skidbench.benchmark.discovery.search import fit_base
@@ -62,8 +74,10 @@ def measure(case: dict) -> dict:
     finally:
         dd.hidden = orig
     pool = prepare_pool(build_pool(train, s), "commanded", jackal)
+    _, drift = scale_drift_finding(pool, min_pct=0.0, max_yaw_share=float("inf"))  # the sizes, always
+    found = scale_drift_finding(pool)[1] is not None
     run = fit_base(pool, lambda: edd(jackal), jackal, s, "tile", "edd", lambda m: None)
-    return scale_by_speed(pool, run.state.pred, s)
+    return scale_by_speed(pool, run.state.pred, s) | {"drift": drift, "gt_finding": found}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -75,8 +89,9 @@ def main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     started = time.process_time()
     lines = [
-        "| world | one scale | slow half | fast half | spread / deficit | p (sign flips) | a scale |",
-        "|---|---:|---:|---:|---:|---:|---|",
+        "| world | one scale | slow half | fast half | spread / deficit | p (sign flips) | a scale "
+        "| distance scale drift (RMS %) | yaw rate drift (RMS %) | ground-truth finding |",
+        "|---|---:|---:|---:|---:|---:|---|---:|---:|---|",
     ]
     for name, case in worlds(a.seeds):
         r = measure(case)
@@ -84,7 +99,8 @@ def main(argv: list[str] | None = None) -> None:
         spread = abs(r["scale_slow"] - r["scale_fast"]) / max(abs(k), 1e-12)
         lines.append(
             f"| {name} | {1 + k:.4f} | {r['scale_slow']:.4f} | {r['scale_fast']:.4f} | {spread:.2f} | "
-            f"{r['p_value']:.3g} | {'yes' if r['proportional'] else 'no'} |"
+            f"{r['p_value']:.3g} | {'yes' if r['proportional'] else 'no'} | {r['drift']['rms_pct']:.2f} | "
+            f"{r['drift']['yaw_rate_rms_pct']:.2f} | {'yes' if r['gt_finding'] else 'no'} |"
         )
         print(lines[-1], flush=True)
     command = "python -m perf.discover_scale " + " ".join(sys.argv[1:] if argv is None else argv)
@@ -92,7 +108,9 @@ def main(argv: list[str] | None = None) -> None:
     text = (
         f"speed deficit by speed ({time.strftime('%Y-%m-%d')}): `{command.strip()}`, {cpu:.0f} CPU-s\n\n"
         + "\n".join(lines)
-        + "\n\nThe spread of clean worlds is a share of a deficit near 0 (no scale passes the rule there).\n"
+        + "\n\nThe spread of clean worlds is a share of a deficit near 0 (no scale passes the rule there). "
+        "A ground-truth finding needs a distance-scale drift of at least 1.5 % RMS and a yaw-rate drift of "
+        "at most half of it.\n"
     )
     if a.publish:
         from skidbench.pipeline.core.io import write_text_atomic

@@ -57,6 +57,7 @@ WORLD = {
     "speed_scale": 0.96,  # effective wheel radius / the spec's: both wheels' rims (a calibration finding)
     "side_asymmetry_yaw": 0.03,  # rad/m: a yaw rate proportional to forward speed, the yaw channel only
     "slow_slip": (20.0, 0.03),  # (memory s, s.d.): a zero-mean gain on both channels, Ornstein-Uhlenbeck
+    "speed_fade": 0.10,  # per minute: both wheels slow from the start (a battery running down)
 }
 
 
@@ -111,6 +112,9 @@ def true_velocity(t, v, w, effects: dict[str, object], accel=None):
     if "command_dead_zone" in effects:  # the driver ignores the first d rad/s of every wheel command
         d = float(effects["command_dead_zone"])
         wl, wr = wl - np.clip(wl, -d, d), wr - np.clip(wr, -d, d)
+    if "speed_fade" in effects:  # the motors slow as the battery runs down: both sides, from the start
+        fade = 1.0 - float(effects["speed_fade"]) * (t - t[0]) / 60.0
+        wl, wr = wl * fade, wr * fade
     if "load_wheel_limit" in effects:  # the motors' top speed falls with the torque a skid turn takes
         L0, k = effects["load_wheel_limit"]
         lim = np.maximum(float(L0) - float(k) * np.abs(w), 0.0)
@@ -236,11 +240,12 @@ def vo_poses(rng, t_true, pose, rate_hz=20.0, drift=0.004, jitter_m=0.003, jitte
 
 def sequence(
     rng, effects, duration=45.0, kind="train", cmd_hz=45.0, style="mixed", pose_hz=20.0, clock_offset=0.0,
-    heading=(0.0, 0.0),
+    heading=(0.0, 0.0), gt_scale=0.0,
 ):  # fmt: skip
     """One sequence: commands at ``cmd_hz`` and VO poses at ``pose_hz`` (both with times in s); the poses
     stamped ``clock_offset`` s late, their heading off by ``heading`` = (deg at the start, deg/min of drift)
-    against the track (a ground-truth problem, no effect in the robot)."""
+    against the track, their distances scaled by 1 + ``gt_scale`` per minute from the start (ground-truth
+    problems, no effect in the robot)."""
     dt = 1.0 / 180.0
     t, v, w = joystick(rng, duration, dt, kind, style)
     step = int(round(1.0 / (cmd_hz * dt)))
@@ -249,6 +254,10 @@ def sequence(
     pose = integrate(t, vx, vy, wz)
     tl, loc = vo_poses(rng, t, pose, rate_hz=pose_hz)
     loc[:, 2] += np.radians(heading[0] + heading[1] * (tl - tl[0]) / 60.0)
+    if gt_scale:  # each displacement measured (1 + gt_scale t) times its length, t in minutes
+        f = 1.0 + gt_scale * (tl - tl[0]) / 60.0
+        steps = np.diff(loc[:, :2], axis=0) * (0.5 * (f[1:] + f[:-1]))[:, None]
+        loc[1:, :2] = loc[0, :2] + np.cumsum(steps, axis=0)
     tl = tl + clock_offset
     cmd = pd.DataFrame({"t": t[::step], "v": v[::step], "w": w[::step]})
     return cmd, pd.DataFrame({"t": tl, "x": loc[:, 0], "y": loc[:, 1], "yaw": loc[:, 2]})

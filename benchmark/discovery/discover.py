@@ -40,9 +40,10 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
+from skidbench.benchmark.discovery.ground_truth import ground_truth_findings
 from skidbench.benchmark.discovery.naming import best_catalogue, choose, keep_best_members, naming_record
 from skidbench.benchmark.discovery.panels import residual_panel, term_panel, unexplained_panels
-from skidbench.benchmark.discovery.pool import heading_finding, selected_on
+from skidbench.benchmark.discovery.pool import selected_on
 from skidbench.benchmark.discovery.scale import ask_speed_scale
 from skidbench.benchmark.discovery.search import (
     Scored,
@@ -379,11 +380,11 @@ def discover_terrain(
     ``exclude_forms``: library forms not searched (the placebo's command-free forms)."""
     t_start = time.perf_counter()
     say = progress or (lambda msg: log.info(msg))
-    pool, gt_finding = heading_finding(pool)
-    if gt_finding:
-        say(f"[{terrain}] {gt_finding['text']}")
+    pool, gt_findings = ground_truth_findings(pool)
+    for f in gt_findings:
+        say(f"[{terrain}] {f['text']}")
     run = fit_base(pool, factory, robot, settings, terrain, base_name, say)
-    run.base_info["ground_truth"] = [gt_finding] if gt_finding else []
+    run.base_info["ground_truth"] = gt_findings
     run.excluded = tuple(exclude_forms)
     ask_speed_scale(run)
     while len(run.effects) + len(run.terms) < settings.max_effects + (SPEED_SCALE in run.effects):

@@ -1,0 +1,70 @@
+"""The ground truth's own consistency (benchmark/discovery/ground_truth.py): a heading that disagrees with
+the direction of travel and a distance scale that drifts are ground-truth findings with their size, the
+pool corrected by them, never robot effects; a robot whose own speed or turn changes is not one."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import discover_data as dd  # noqa: E402
+
+from skidbench.benchmark.discovery.ground_truth import ground_truth_findings  # noqa: E402
+from skidbench.benchmark.discovery.pool import prepare_pool  # noqa: E402
+from skidbench.models.augmented.fit import DiscoverSettings, build_pool  # noqa: E402
+
+
+def _pool(effects: list[str], seed: int, jackal, **world):
+    rng = np.random.default_rng(seed)
+    train = []
+    for i in range(6):
+        cmd, loc = dd.sequence(rng, dd.hidden(effects), 30.0, **world)
+        df = dd.to_split(cmd, loc)
+        train.append((df, dd.split_meta(df, f"train_{i:02d}")))
+    return prepare_pool(build_pool(train, DiscoverSettings()), "commanded", jackal)
+
+
+def _drift(pool) -> float:
+    """The relative change per minute of the measured vx against the commanded speed over the pool."""
+    cv = pool.table["cmd_v"].to_numpy(float)
+    m = pool.valid & (np.abs(cv) >= 0.2)
+    tt = np.concatenate([pool.t[pool.groups == g] - pool.t[pool.groups == g][0]
+                         for g in range(len(pool.sequences))]) / 60.0  # fmt: skip
+    a, b = np.linalg.lstsq(np.column_stack([cv[m], cv[m] * tt[m]]), pool.target[m, 0], rcond=None)[0]
+    return float(b / a)
+
+
+def test_a_drifting_distance_scale_is_a_ground_truth_finding_and_is_corrected(jackal):
+    pool = _pool([], 0, jackal, gt_scale=0.2)
+    assert _drift(pool) == pytest.approx(0.2, abs=0.03)
+    fixed, found = ground_truth_findings(pool)
+    # (the odometry-like truth's heading may be found off its track as well: its rotations drift too)
+    scale = [f for f in found if f["what"] == "distance scale drifts against the commanded speeds"]
+    assert len(scale) == 1, found
+    f = scale[0]
+    assert f["mean_drift_pct_per_min"] == pytest.approx(20.0, abs=3.0)
+    assert "check the ground truth" in f["text"] and "not a robot effect" in f["text"]
+    assert abs(_drift(fixed)) < 0.1 * _drift(pool)  # the pool the search runs on: a tenth of it at most
+    # positions re-integrated from the corrected displacements: the path length shrinks by the scale
+    seq = fixed.groups == 0
+    length = [np.sum(np.hypot(*np.diff(p[seq, :2], axis=0).T)) for p in (pool.pose, fixed.pose)]
+    assert length[1] < length[0] and fixed.pose[seq][0, 0] == pool.pose[seq][0, 0]
+
+
+def test_a_robot_slowing_down_or_turning_less_is_not_a_ground_truth_problem(jackal):
+    # a battery running down slows both wheels: vx and the turn rate drift together; a payload loaded at
+    # 18 s cuts the turn rate alone; clean data drift only by the odometry's own 0.4 %
+    for effects in (["speed_fade"], ["payload_change"], []):
+        _, found = ground_truth_findings(_pool(effects, 1, jackal))
+        assert not [f for f in found if "scale" in f["what"]], (effects, found)
+
+
+def test_a_heading_off_its_track_is_a_ground_truth_finding(jackal):
+    _, found = ground_truth_findings(_pool([], 2, jackal, heading=(3.0, 1.5)))
+    assert [f["what"] for f in found] == ["heading disagrees with the direction of travel"]
+    assert found[0]["mean_offset_deg"] == pytest.approx(3.0, abs=0.5)
+    assert found[0]["mean_drift_deg_per_min"] == pytest.approx(1.5, abs=0.5)
