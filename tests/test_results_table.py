@@ -94,6 +94,33 @@ def test_a_column_added_by_a_newer_minor_version_is_read(tmp_path):
     assert len(rt.read(layout)) == 3
 
 
+def test_an_evaluate_that_took_runs_is_the_latest_by_its_own_newest_run(tmp_path):
+    """e2 took e1's first run (chi) unchanged, its rows in e2's file too with their start time
+    (benchmark/evaluate/reuse.py), and made ideal's an hour later: e2 is the latest evaluate (not a tie at
+    e1's first run's start), and the taken run's row is that of a FINISHED evaluate (results.runs)."""
+    import datetime as dt
+
+    layout = Layout(tmp_path, "ds")
+    t0, hour = dt.datetime(2026, 11, 28, 12, tzinfo=dt.UTC), dt.timedelta(hours=1)
+    made = {"e1": [("e1-chi", "chi", t0), ("e1-ideal", "ideal", t0 + hour / 60)],
+            "e2": [("e1-chi", "chi", t0), ("e2-ideal", "ideal", t0 + hour)]}  # fmt: skip
+    for ev, runs in made.items():
+        w = rt.Writer(layout, ev)
+        for run_id, m, when in runs:
+            facts = rt.RunFacts(ev, run_id, m, "commanded", "tile", horizons=[6.0], splits=["cv", "ld"],
+                                models=["chi", "ideal"], start_time=when)  # fmt: skip
+            w.add(rt.rows(facts, [Score("translational", sp, 6.0, 5.0, 40) for sp in ("cv", "ld")]))
+        w.finish("FINISHED")
+    table = rt.read(layout)
+    for status in ("FINISHED", "KILLED"):  # e1 complete, or killed after its runs
+        table.loc[table["evaluate_id"] == "e1", "evaluate_status"] = status
+        assert rt.latest_evaluate(table, "commanded") == "e2"
+        taken = rt.runs(table).set_index("run_id").loc["e1-chi"]
+        assert taken["evaluate_status"] == "FINISHED" and (
+            status == "FINISHED" or taken["evaluate_id"] == "e2"
+        )
+
+
 def test_the_board_is_the_newest_run_of_a_complete_evaluate_with_its_settings_from_the_table(tmp_path):
     """Two evaluates, the newer one killed: its run that finished is left out and named, the board keeps
     the complete evaluate's, and the settings and the latest evaluate are read from the rows (no MLflow)."""

@@ -380,13 +380,16 @@ def board(table: pd.DataFrame, chosen: pd.DataFrame, horizon_s: float) -> pd.Dat
 def _evaluates(table: pd.DataFrame, inputs: str | None = None) -> pd.DataFrame:
     """One row per evaluate (or score) parent run of the model rows (under ``inputs``): ``evaluate_id``,
     ``evaluate_status`` (its own rows': a score's rows hanging from an evaluate have a file of their own)
-    and ``start_time`` (its first run's), newest first."""
+    and ``start_time`` (its newest own run's: an evaluate's file also holds the rows of the runs it took
+    from earlier evaluates, benchmark/evaluate/reuse.py, with their older start times; a score's rows count
+    only for an evaluate that has no other), newest first."""
     t = table[(table["role"] == MODEL) & (table["evaluate_id"].fillna("") != "")]
     if inputs:
         t = t[t["inputs"] == inputs]
     t = t.assign(_ext=t["external"].fillna(False).astype(bool)).sort_values("_ext", kind="stable")
-    out = t.groupby("evaluate_id", sort=False).agg(
-        evaluate_status=("evaluate_status", "first"), start_time=("start_time", "min")
+    own = t[~t["_ext"] | ~t["evaluate_id"].isin(t.loc[~t["_ext"], "evaluate_id"])]
+    out = own.groupby("evaluate_id", sort=False).agg(
+        evaluate_status=("evaluate_status", "first"), start_time=("start_time", "max")
     )
     return out.reset_index().sort_values("start_time", ascending=False, kind="stable").reset_index(drop=True)
 
