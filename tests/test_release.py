@@ -480,6 +480,8 @@ def test_the_walkthroughs_page_shows_the_submission_with_its_identity(walkthroug
     assert 'href="https://example.org/ideal-dd"' in row and "Lab B" in row
     assert dt.datetime.now(dt.UTC).date().isoformat() in row
     assert "the ideal differential drive: no slip" in text  # its description, in its details
+    # what the intervals cover (the quick start's data: one drive per terrain and split)
+    assert re.search(r"class='note scope'>Intervals: [^<]*within this drive[^<]*not how another drive", text)
     assert 'href="https://example.org/public-half.tar"' in text  # where to get the public half
     assert "withheld" in text_of(text)
     _no_local_path(site, walkthrough)

@@ -32,6 +32,7 @@ from typing import Any
 
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import compare as cmp
+from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.board.selection import results_of
 from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.release import page as pg
@@ -164,6 +165,8 @@ def _protocol_section(
     if standings is not None:
         claim = "".join(f"<li>{esc(scope)}: {esc(v)}</li>" for scope, (v, _) in standings.claim.items())
         parts.append(f"<p><strong>{esc(standings.verdicts.get('overall', ''))}</strong></p>")
+        if scope := scope_line(standings):  # what the intervals cover: within this drive, or over drives
+            parts.append(f"<p class='note scope'>{esc(scope)}</p>")
         if claim:
             parts.append(
                 "<details><summary>The paper's claim (friction-based best on LD, comparable on CV)"
