@@ -32,8 +32,8 @@ from typing import Any
 
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import compare as cmp
-from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.board.selection import results_of
+from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.release import page as pg
 from skidbench.benchmark.report import compare_figures as cfigs
