@@ -295,9 +295,7 @@ def _reproduce_section(layout: Layout, rec: dict[str, Any], boards: dict[str, br
     elif rec.get("source") == "sim":
         m = re.fullmatch(r"sim-(\w+?)(?:-seed(\d+))?", ds)
         sel = f"scale={m.group(1)} seed={m.group(2) or 0}" if m else "<the same source settings>"
-        get = [
-            f"make reproduce SCALE={m.group(1) if m else '<scale>'}    # simulate it, run every stage"
-        ]
+        get = [f"make reproduce SCALE={m.group(1) if m else '<scale>'}    # simulate it, run every stage"]
     else:
         sel = "<the same source settings>"
         get = [f"skidbench export {ds} <dir>      # the public and private halves of this dataset"]
