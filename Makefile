@@ -13,7 +13,7 @@ export SKIDBENCH_OUT := $(abspath $(OUT))
 
 SKB := $(BIN)/skidbench
 
-.PHONY: setup reproduce reproduce-state readme-numbers test test-fast lint clean bench discover mlflow-ui lock system-packages
+.PHONY: setup reproduce reproduce-state readme-numbers test test-fast test-profile lint clean bench discover mlflow-ui lock system-packages
 
 setup: $(STAMP)
 
@@ -174,6 +174,10 @@ test: setup $(CLUSTER_STAMP) $(SERVER_STAMP) system-packages
 
 test-fast: setup
 	$(PYTEST) -m "not slow"
+
+# `make test`'s suite with each test's CPU seconds recorded -> perf/results/test_suite.md (perf/test_suite.py)
+test-profile: setup $(CLUSTER_STAMP) $(SERVER_STAMP) system-packages
+	$(BIN)/python -m perf.test_suite perf/results/test_suite.md -q -n 2 --dist loadgroup
 
 # Performance comparisons, one process each -> perf/results/latest.{json,md} (BENCH="a b" for some).
 # perf/ is not installed (it measures the package from outside): run from the repository root.
