@@ -230,11 +230,13 @@ def _names_the_slip_side_asymmetry(c: dict[str, Any], step: dict[str, Any]) -> b
     side's slip term listed as its equivalent: on a base model whose radius ``calibrate`` measured on the
     same data, a slip ratio s on one side is exactly a left/right radius difference e = (s / 2) / (1 - s /
     2) on a radius smaller by s / 2 (tests/test_discover_terms.py checks it), the reparametrisation that
-    the naming rule reports under the catalogue's id (docs/discovery.md)."""
+    the naming rule reports under the catalogue's id (docs/discovery.md); on a base whose radius took the
+    forward part, the family's yaw-only member (a yaw rate proportional to speed) says the same."""
     side = _dd().OUTSIDE["one_side_slip"][0] if c["effect"] == "one_side_slip" else None
     if not side or step["name"] != "side_asymmetry":
         return False
-    k = step.get("params", {}).get("side_asymmetry", {}).get("k", 0.0)
+    params = step.get("params", {})  # either member of the family: the radius difference or the yaw-only one
+    k = params.get("side_asymmetry", params.get("side_asymmetry_yaw", {})).get("k", 0.0)
     turns_its_way = k > 0 if side == "l" else k < 0  # the slower side is the inside of the turn
     return turns_its_way and f"slip.{side}.wheels" in step["equivalent_terms"]
 
