@@ -47,8 +47,8 @@ from skidbench.benchmark.board.selection import results_of
 from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.tracking import store as trk
-from skidbench.pipeline.core.errors import SkidbenchError, one_line
-from skidbench.pipeline.core.io import sha256_file, write_json_atomic, write_text_atomic
+from skidbench.pipeline.core.errors import SkidbenchError
+from skidbench.pipeline.core.io import read_json_object, sha256_file, write_json_atomic, write_text_atomic
 from skidbench.pipeline.core.layout import Layout, split_terrains
 from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.core.protocol import INPUT_COLUMNS, PROTOCOL_VERSION
@@ -145,12 +145,7 @@ def release_of(doc: dict[str, Any]) -> str:
 def read_doc(folder: Path) -> dict[str, Any]:
     """``<folder>/bundle.json``; BundleError (one line) when it is missing, unreadable or newer."""
     path = folder / "bundle.json"
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise BundleError(f"{path}: missing; {folder} is not a skidbench bundle") from None
-    except (OSError, ValueError) as exc:
-        raise BundleError(f"{path}: not readable JSON ({one_line(str(exc))})") from None
+    doc = read_json_object(path, BundleError, f"{folder} is not a skidbench bundle")
     if not isinstance(doc, dict) or doc.get("format") != BUNDLE_FORMAT:
         raise BundleError(
             f"{path}: not a skidbench bundle (format {doc.get('format') if isinstance(doc, dict) else '?'!r})"

@@ -27,7 +27,6 @@ in full, whose board's external entries are then self-reported.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +36,12 @@ import pyarrow as pa
 
 from skidbench.benchmark.scoring.horizon import horizon_steps
 from skidbench.pipeline.core.errors import SkidbenchError
-from skidbench.pipeline.core.io import write_json_atomic, write_parquet_atomic, write_text_atomic
+from skidbench.pipeline.core.io import (
+    read_json_object,
+    write_json_atomic,
+    write_parquet_atomic,
+    write_text_atomic,
+)
 from skidbench.pipeline.core.layout import Layout, split_terrains
 from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.core.protocol import (
@@ -205,12 +209,7 @@ def write_private_readme(folder: Path, dataset: str) -> None:
 def read_answers(folder: Path, error: type[SkidbenchError]) -> dict[str, Any]:
     """``<folder>/answers.json``; ``error`` (one line) when it is missing or not a private half's."""
     path = Path(folder) / ANSWERS
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise error(f"{path}: missing; {folder} is not the private half of a skidbench bundle") from None
-    except (OSError, ValueError) as exc:
-        raise error(f"{path}: not readable JSON ({exc})") from None
+    doc = read_json_object(path, error, f"{folder} is not the private half of a skidbench bundle")
     if not isinstance(doc, dict) or doc.get("format") != ANSWERS_FORMAT:
         raise error(f"{path}: not the answers of a skidbench bundle")
     return doc

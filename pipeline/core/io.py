@@ -19,7 +19,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from skidbench.pipeline.core.errors import OutputError, SkidbenchError
+from skidbench.pipeline.core.errors import OutputError, SkidbenchError, one_line
 
 TMP_PREFIX = ".tmp-"
 _UMASK = os.umask(0)
@@ -143,6 +143,17 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def read_json_object(path: Path, error: type[SkidbenchError], missing: str) -> dict[str, Any]:
+    """The JSON document at ``path``; ``error`` (one line naming the file) when it is missing (``missing``
+    says what its absence means), unreadable or not valid JSON. Its content's checks are the caller's."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise error(f"{path}: missing; {missing}") from None
+    except (OSError, ValueError) as exc:
+        raise error(f"{path}: not readable JSON ({one_line(str(exc))})") from None
 
 
 def write_parquet_atomic(
