@@ -214,11 +214,8 @@ def calibrated(spec, train: list[tuple[Any, dict]]):
     dataset's own splits gives it to the base model."""
     from skidbench.models.base import calibrated_constants
     from skidbench.models.registry.specs import get_model_class
-    from skidbench.pipeline.calibrate.calibration import (
-        CalibrationSettings,
-        calibrate_table,
-        calibrated_robot,
-    )
+    from skidbench.pipeline.calibrate.calibration import calibrate_table, calibrated_robot
+    from skidbench.pipeline.calibrate.settings import CalibrationSettings
     from skidbench.pipeline.core.schema import concat_sequences
 
     doc = calibrate_table(concat_sequences(train), spec, CalibrationSettings())

@@ -181,13 +181,15 @@ def calibrate_splits(cfg) -> list[str]:
     Returns the terrains calibrated."""
     import dataclasses
 
-    from skidbench.pipeline.calibrate.calibration import calibrate_terrain, settings_from_cfg
+    from omegaconf import OmegaConf
+
+    from skidbench.pipeline.calibrate.calibration import calibrate_terrain
     from skidbench.pipeline.core.layout import layout_from_cfg
     from skidbench.pipeline.core.robot import robot_from_hydra
 
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
-    settings = dataclasses.replace(settings_from_cfg(cfg), bootstrap=20)
+    settings = dataclasses.replace(OmegaConf.to_object(cfg.calibrate), bootstrap=20)
     terrains = sorted(p.name for p in layout.splits.iterdir() if (p / "train").is_dir())
     for terrain in terrains:
         calibrate_terrain(layout, terrain, spec, settings, str(cfg.dataset))

@@ -19,7 +19,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.pipeline.calibrate.calibration import CalibrationSettings, calibrate_table  # noqa: E402
+from skidbench.pipeline.calibrate.calibration import calibrate_table  # noqa: E402
+from skidbench.pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
 from skidbench.pipeline.core.schema import concat_sequences, write_split
 
 R_TRUE = dd.R_WHEEL * 1.06  # effective radius, 6 % over the spec sheet (dd.R_WHEEL = the Jackal's)
@@ -166,11 +167,12 @@ def _cfg(root: Path, *over: str):
 
 
 def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(calib_root, jackal):
+    from omegaconf import OmegaConf
+
     from skidbench.models.fitting.fit import FitSettings, fit_model
     from skidbench.pipeline.calibrate.calibration import (
         MissingCalibrationError,
         calibrate_terrain,
-        settings_from_cfg,
     )
     from skidbench.pipeline.core.layout import layout_from_cfg
 
@@ -178,7 +180,7 @@ def test_models_take_the_calibrated_constants_unless_calibrate_use_is_false(cali
     # fit never calibrates: without `skidbench calibrate` it stops and says to run it
     with pytest.raises(MissingCalibrationError, match="skidbench calibrate"):
         fit_model(FitSettings.from_cfg(cfg), "ideal", "tile")
-    calibrate_terrain(layout_from_cfg(cfg), "tile", jackal, settings_from_cfg(cfg), "calib")
+    calibrate_terrain(layout_from_cfg(cfg), "tile", jackal, OmegaConf.to_object(cfg.calibrate), "calib")
     ideal = fit_model(FitSettings.from_cfg(cfg), "ideal", "tile")
     assert ideal.model.robot.wheel_radius == pytest.approx(R_TRUE, rel=0.01)
     assert ideal.model.robot.track_width == pytest.approx(B_TRUE, rel=0.01)
@@ -222,13 +224,14 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
     import dataclasses
     import shutil
 
+    from omegaconf import OmegaConf
+
     from skidbench.models.fitting.fit import FitSettings, fit_model
     from skidbench.pipeline.calibrate.calibration import (
         Calibrations,
         MissingCalibrationError,
         calibrate_terrain,
         calibration_doc,
-        settings_from_cfg,
     )
     from skidbench.pipeline.core.layout import layout_from_cfg
     from skidbench.pipeline.core.schema import read_split
@@ -242,7 +245,7 @@ def test_a_changed_calibration_refits_and_a_stale_one_is_one_line(calib_root, tm
         write_split(df.assign(enc_wl=np.nan, enc_wr=np.nan), f, meta)
     cfg = _cfg(tmp_path)
     layout = layout_from_cfg(cfg)
-    settings = dataclasses.replace(settings_from_cfg(cfg), bootstrap=20)
+    settings = dataclasses.replace(OmegaConf.to_object(cfg.calibrate), bootstrap=20)
     calibrate_terrain(layout, "tile", jackal, settings, "calib")
     assert (
         not fit_model(FitSettings.from_cfg(cfg), "edd", "tile").reused

@@ -1,15 +1,18 @@
-"""The declared schema (pipeline/cli/config_schema.py): every key of every stage's config, under every
-group option, is declared; every shipped default passes; a value out of type or range is one line naming
-the key, the value and what is allowed."""
+"""The declared schema (pipeline/cli/config_schema.py: the settings dataclasses that are configs, and the
+SCHEMA table of the keys not yet in one): every key of every stage's config, under every group option, is
+declared once; every shipped default passes; a value out of type or range is one line naming the key, the
+value and what is allowed."""
 
 from __future__ import annotations
 
+import dataclasses
 from importlib import resources
 
 import pytest
+from omegaconf import OmegaConf
 
-from skidbench.pipeline.cli.config_schema import SCHEMA, check_value, spec_for
-from skidbench.pipeline.cli.overrides import _compose, leaves, validate
+from skidbench.pipeline.cli.config_schema import SCHEMA, STRUCTURED, check_value, spec_for
+from skidbench.pipeline.cli.overrides import _compose, check_overrides, leaves, validate
 from skidbench.pipeline.core.errors import ConfigError
 
 STAGES = sorted(p.name[:-5] for p in resources.files("skidbench.conf").iterdir() if p.name.endswith(".yaml"))
@@ -88,3 +91,41 @@ def test_a_good_value_passes(key, value):
 def test_the_keys_other_issues_add_are_declared():
     for key in ("inputs", "split.allow_flagged", "source.form", "train_dataset"):
         assert key in SCHEMA
+
+
+# -- the settings dataclasses that are configs (STRUCTURED): one declaration per key ---------------------
+def test_a_structured_key_is_declared_by_its_dataclass_only():
+    twice = [k for k in SCHEMA if k.rpartition(".")[0] in STRUCTURED]
+    assert not twice, f"declared by a settings dataclass and again in SCHEMA: {twice}"
+    for package, cls in STRUCTURED.items():
+        for f in dataclasses.fields(cls):
+            assert spec_for(f"{package}.{f.name}") is not None, f"{package}.{f.name}"
+
+
+@pytest.mark.parametrize("package", sorted(STRUCTURED))
+def test_the_composed_section_is_its_dataclass_with_its_defaults(package):
+    cls = STRUCTURED[package]
+    cfg = _compose(_stage_with(package), [])
+    assert OmegaConf.to_object(OmegaConf.select(cfg, package)) == cls()
+
+
+def _stage_with(package: str) -> str:
+    return next(s for s in STAGES if OmegaConf.select(_compose(s, []), package) is not None)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("calibrate.settle_s=abc", "invalid value calibrate.settle_s=abc: allowed a number >= 0 (s since"),
+        ("calibrate.settle_s=-1", "invalid value calibrate.settle_s=-1: allowed a number >= 0"),
+        ("calibrate.use=1", "invalid value calibrate.use=1: allowed true or false"),
+        ("calibrate.min_rows=9.5", "invalid value calibrate.min_rows=9.5: allowed an integer >= 1"),
+        ("calibrate.settle_s=null", "invalid value calibrate.settle_s=null: allowed a number >= 0"),
+        ("calibrate.setle_s=1", "unknown config key 'calibrate.setle_s'; did you mean 'calibrate.settle_s'?"),
+    ],
+)
+def test_a_mistyped_or_misspelt_structured_override_is_one_line_naming_the_key(override, message):
+    with pytest.raises(ConfigError) as exc:
+        foreign, cfg = check_overrides("calibrate", [override])
+        validate(cfg)
+    assert "\n" not in str(exc.value) and str(exc.value).startswith(message), str(exc.value)

@@ -29,7 +29,8 @@ def _train(effects: list[str], seed: int, n: int, duration: float, style: str):
 
 
 def test_calibrate_measures_the_speed_scale_from_low_turn_rows_when_few_rows_are_straight(jackal):
-    from skidbench.pipeline.calibrate.calibration import CalibrationSettings, calibrate_table
+    from skidbench.pipeline.calibrate.calibration import calibrate_table
+    from skidbench.pipeline.calibrate.settings import CalibrationSettings
     from skidbench.pipeline.core.schema import concat_sequences
 
     train = _train(["speed_scale"], 3, 6, 30.0, "curvy")

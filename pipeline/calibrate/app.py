@@ -24,9 +24,7 @@ from skidbench.pipeline.calibrate.calibration import (
     CONSTANTS,
     CalibrationError,
     calibrate_terrain,
-    settings_from_cfg,
     train_files,
-    use_from_cfg,
 )
 from skidbench.pipeline.cli.main import stage
 from skidbench.pipeline.core.cache import Fingerprints, stamp_file
@@ -94,7 +92,7 @@ def format_response(docs: dict[str, dict[str, Any]]) -> str:
 def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
-    s = settings_from_cfg(cfg)
+    s = OmegaConf.to_object(cfg.calibrate)
     terrains = sorted({p.parents[1].name for p in train_files(layout)})
     if not terrains:
         raise CalibrationError(
@@ -114,7 +112,7 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     )
     print(format_table(docs))
     print(format_response(docs))
-    if not use_from_cfg(cfg):
+    if not s.use:
         print("calibrate.use=false: every model is fitted with the spec sheet's constants")
     else:
         print("models take: " + "; ".join(f"{m}: {u}" for m, u in usage.items()))

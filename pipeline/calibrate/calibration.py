@@ -8,8 +8,8 @@ Identification, per terrain, on the Train split's valid, *settled* rows (the whe
 * **radius** (straight rows: ``|wr - wl| <= straight_ratio * |wl + wr| / 2``, mean wheel rate above
   ``min_wheel_rate``): the regression through the origin of the ground-truth ``vx`` on ``(wl + wr) / 2``;
   its slope is ``r_eff``. With fewer than ``min_rows`` settled straight rows, the same regression on the
-  *low-turn* rows, settled or not (``|wr - wl| <= low_turn_ratio * |wl + wr| / 2``: turning radius at
-  least ``B / low_turn_ratio``), with the commanded mean wheel acceleration as a second regressor (it takes
+  *low-turn* rows, settled or not (``|wr - wl| <= LOW_TURN_RATIO * |wl + wr| / 2``: turning radius at
+  least ``B / LOW_TURN_RATIO``), with the commanded mean wheel acceleration as a second regressor (it takes
   what a lag or an acceleration slip moves between the command and the speed while the wheels change
   speed); the slope on ``(wl + wr) / 2`` is ``r_eff`` (``method`` says which rows gave it);
 * **track width** (turning rows: ``|wr - wl| >= min_turn_rate``): the regression through the origin of
@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.calibrate.wheel_response import ResponseFit, WheelResponse, identify_response
 from skidbench.pipeline.core.cache import StaleInputError, Stamp, stamp_file
 from skidbench.pipeline.core.errors import SkidbenchError
@@ -65,25 +66,19 @@ class CalibrationError(SkidbenchError):
     pass
 
 
-@dataclasses.dataclass(frozen=True)
-class CalibrationSettings:
-    min_wheel_rate: float = 0.5  # rad/s: slower rows say nothing about the radius
-    straight_ratio: float = 0.2  # |wr - wl| <= this * |mean wheel rate|: near-straight (R >= 5 B)
-    low_turn_ratio: float = 0.5  # the radius's fallback rows: |wr - wl| <= this * |mean| (R >= 2 B)
-    min_turn_rate: float = 1.0  # rad/s: |wr - wl| at least this: a turning row
-    settle_s: float = 0.5  # s since the wheel commands last changed
-    command_change: float = 2.0  # rad/s^2: |cmd_dwl| or |cmd_dwr| above this is a command step
-    min_rows: int = 60  # fewer rows: not identified
-    block_s: float = 10.0  # s, bootstrap blocks
-    bootstrap: int = 400
-    ci: float = 0.95
-    seed: int = 0
+#: the radius's fallback rows: |wr - wl| <= this * |mean wheel rate| (turn radius >= 2 tracks)
+LOW_TURN_RATIO = 0.5
+SEED = 0  # of the block bootstrap's draws
 
-    @classmethod
-    def from_cfg(cls, node: Any) -> CalibrationSettings:
-        node = dict(node or {})
-        fields = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in node.items() if k in fields})
+
+def identification(s: CalibrationSettings) -> dict[str, Any]:
+    """What identifies a calibration (its document's ``settings``, part of its stamp): the settings but
+    ``use`` (which only says whether fits take the result), and the fixed constants."""
+    d = dataclasses.asdict(s)
+    return {"min_wheel_rate": d["min_wheel_rate"], "straight_ratio": d["straight_ratio"],
+            "low_turn_ratio": LOW_TURN_RATIO, "min_turn_rate": d["min_turn_rate"], "settle_s": d["settle_s"],
+            "command_change": d["command_change"], "min_rows": d["min_rows"], "block_s": d["block_s"],
+            "bootstrap": d["bootstrap"], "ci": d["ci"], "seed": SEED}  # fmt: skip
 
 
 # -- identification -------------------------------------------------------------------------------------
@@ -123,7 +118,7 @@ def _slope_with_ci(
     ub, inv = np.unique(blocks, return_inverse=True)
     sxy = np.bincount(inv, x * y, len(ub))
     sxx = np.bincount(inv, x * x, len(ub))
-    rng = np.random.default_rng(s.seed)
+    rng = np.random.default_rng(SEED)
     if len(ub) >= 2:
         draws = rng.integers(0, len(ub), size=(s.bootstrap, len(ub)))
         ks = sxy[draws].sum(axis=1) / np.maximum(sxx[draws].sum(axis=1), 1e-300)
@@ -184,7 +179,7 @@ def _rows(table: pd.DataFrame, s: CalibrationSettings) -> _Rows:
     moving = np.abs(mean_rate) >= s.min_wheel_rate
     straight = settled & moving & (np.abs(diff) <= s.straight_ratio * np.abs(mean_rate))
     turning = settled & (np.abs(diff) >= s.min_turn_rate)
-    low_turn = ok & moving & (np.abs(diff) <= s.low_turn_ratio * np.abs(mean_rate))
+    low_turn = ok & moving & (np.abs(diff) <= LOW_TURN_RATIO * np.abs(mean_rate))
     mean_accel = table[["cmd_dwl", "cmd_dwr"]].to_numpy(float).mean(axis=1)
     source = "encoders" if has_enc else "commands"
     blocks = _blocks(t, seq, s.block_s)
@@ -241,7 +236,7 @@ def _low_turn_radius(rows: _Rows, spec: Robot, s: CalibrationSettings) -> dict[s
         "accel_coef_s": fit["coef"][1] / max(r_eff, 1e-12),
         "ratio_to_spec": r_eff / spec.wheel_radius,
         "method": f"{n_straight} settled straight rows (< min_rows {s.min_rows}); low-turn rows "
-        f"(|wr - wl| <= {s.low_turn_ratio:g} |wl + wr| / 2): vx = r (wl + wr) / 2 + b d/dt (wl + wr) / 2 "
+        f"(|wr - wl| <= {LOW_TURN_RATIO:g} |wl + wr| / 2): vx = r (wl + wr) / 2 + b d/dt (wl + wr) / 2 "
         f"through the origin; wheels: {rows.source}",
     }
     if rows.source == "commands":
@@ -262,7 +257,7 @@ def _regression_with_ci(
     np.add.at(xtx, inv, X[:, :, None] * X[:, None, :])
     np.add.at(xty, inv, X * y[:, None])
     if len(ub) >= 2:
-        draws = np.random.default_rng(s.seed).integers(0, len(ub), size=(s.bootstrap, len(ub)))
+        draws = np.random.default_rng(SEED).integers(0, len(ub), size=(s.bootstrap, len(ub)))
         A = xtx[draws].sum(axis=1) + 1e-12 * np.eye(p)
         bs = np.linalg.solve(A, xty[draws].sum(axis=1)[:, :, None])[:, 0, 0]
         a = (1.0 - s.ci) / 2.0
@@ -332,7 +327,7 @@ def calibrate_table(table: pd.DataFrame, spec: Robot, s: CalibrationSettings) ->
         "schema": CALIBRATION_SCHEMA,
         "source": rows.source,
         "spec": {"wheel_radius": spec.wheel_radius, "track_width": spec.track_width},
-        "settings": dataclasses.asdict(s),
+        "settings": identification(s),
         "n_rows": int(rows.valid.sum()),
     }
     doc["wheel_radius"] = _wheel_radius(rows, spec, s)
@@ -368,22 +363,6 @@ def wheel_response_of(doc: Mapping[str, Any] | None) -> WheelResponse | None:
 
 
 # -- the stage's files ----------------------------------------------------------------------------------
-def settings_from_cfg(cfg: Any) -> CalibrationSettings:
-    node = cfg.get("calibrate") if hasattr(cfg, "get") else None
-    if node is None:
-        return CalibrationSettings()
-    from omegaconf import OmegaConf
-
-    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
-    return CalibrationSettings.from_cfg(data)
-
-
-def use_from_cfg(cfg: Any) -> bool:
-    """``calibrate.use`` (default true): whether fits take the calibrated constants."""
-    node = cfg.get("calibrate") if hasattr(cfg, "get") else None
-    return bool(node.get("use", True)) if node is not None else True
-
-
 @dataclasses.dataclass(frozen=True)
 class Calibrations:
     """What reading a terrain's calibration needs of the config: the dataset's folders, the robot spec
@@ -396,7 +375,7 @@ class Calibrations:
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> Calibrations:
-        return cls(layout_from_cfg(cfg), robot_from_hydra(cfg.robot), use_from_cfg(cfg))
+        return cls(layout_from_cfg(cfg), robot_from_hydra(cfg.robot), cfg.calibrate.use)
 
 
 def train_files(layout: Layout, terrain: str | None = None) -> list[Path]:
@@ -435,7 +414,7 @@ def calibrate_terrain(
     path = layout.calibration_file(terrain)
     stamp = calibration_stamp(layout, terrain)
     key = stamp.key(
-        files, {"robot": spec.to_dict(), "settings": dataclasses.asdict(s), "schema": CALIBRATION_SCHEMA}
+        files, {"robot": spec.to_dict(), "settings": identification(s), "schema": CALIBRATION_SCHEMA}
     )
     if stamp.is_fresh(key):
         return json.loads(path.read_text()), False

@@ -54,11 +54,11 @@ def prepare_calibration(cfg: DictConfig) -> list[str]:
     skipped
     per terrain while its stamp is current; no MLflow run). For a one-command run from a raw source
     (``skidbench discover source=...``) after :func:`prepare_splits`. Returns the terrains."""
-    from skidbench.pipeline.calibrate.calibration import calibrate_terrain, settings_from_cfg, train_files
+    from skidbench.pipeline.calibrate.calibration import calibrate_terrain, train_files
     from skidbench.pipeline.core.robot import robot_from_hydra
 
     layout = layout_from_cfg(cfg)
-    spec, settings = robot_from_hydra(cfg.robot), settings_from_cfg(cfg)
+    spec, settings = robot_from_hydra(cfg.robot), OmegaConf.to_object(cfg.calibrate)
     terrains = sorted({p.parents[1].name for p in train_files(layout)})
     for terrain in terrains:
         calibrate_terrain(layout, terrain, spec, settings, str(cfg.dataset))

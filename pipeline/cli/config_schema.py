@@ -1,28 +1,41 @@
-"""The declared type and range of every value a user can set: ONE table, :data:`SCHEMA`.
+"""The declared type and range of every value a user can set, each declared once.
 
-Each stage's composed config is checked against it before the stage starts, at the door
-(:func:`skidbench.pipeline.cli.overrides.validate`: ``skidbench.pipeline.cli.main`` checks the composed
-config before
-Hydra runs; :func:`skidbench.pipeline.cli.main.stage` again for a sweep's jobs and in-process calls).
-A value outside its declaration is one line naming the key, the value and what is allowed
-(``ConfigError``, exit status 2)::
+* A config section whose settings are a dataclass (:data:`STRUCTURED`, e.g. ``calibrate`` ->
+  :class:`skidbench.pipeline.calibrate.settings.CalibrationSettings`) is declared by it: each field is a key,
+  its annotation the type (OmegaConf checks it as Hydra composes), its default the default (the YAML sets
+  only what differs), its ``field(metadata=...)`` the range and unit (``lo``, ``hi``, ``gt``, ``choices``,
+  ``what``; a list's ``min_len`` and ``item``), read by :func:`spec_of`. The dataclasses are stored in
+  Hydra's ConfigStore as ``schema/<section>`` (:func:`register_configs`) and a YAML file lists the schema
+  in its defaults list (``- /schema/calibrate``); a stage takes the section whole,
+  ``OmegaConf.to_object(cfg.calibrate)``, the dataclass again.
+* The other keys are declared in the table :data:`SCHEMA`, one line each: ``"<dotted key>": <spec>``. Keys
+  may hold ``*`` for one level (``source.topics.*.topic``); the first matching entry wins.
+
+Each stage's composed config is checked before the stage starts
+(:func:`skidbench.pipeline.cli.overrides.validate`: ``skidbench.pipeline.cli.main`` checks it before Hydra
+runs; :func:`skidbench.pipeline.cli.main.stage` again for a sweep's jobs and in-process calls). A value
+outside its declaration is one line naming the key, the value and what is allowed (``ConfigError``, exit
+status 2)::
 
     invalid value calibrate.settle_s=-1: allowed a number >= 0 (s since the wheel commands last changed)
 
-Adding a config key is one line here: ``"<dotted key>": <spec>``. Keys may hold ``*`` for one level
-(``source.topics.*.topic``); the first matching entry wins, so put specific keys before patterns. A test
-(``tests/test_config_schema.py``) composes every stage with every group option and fails on a key the
-table does not declare, so a new key cannot skip its declaration. A missing value (``???``) is not
-checked here: the stage that needs it says which key to set.
+A test (``tests/test_config_schema.py``) composes every stage with every group option and fails on a key
+nothing declares, or one declared twice. A missing value (``???``) is not checked here: the stage that needs
+it says which key to set.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
+import functools
 import math
+import types
+import typing
 from dataclasses import dataclass
 from typing import Any
 
+from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 
 _INF = math.inf
@@ -123,6 +136,78 @@ def listof(item: Spec | None = None, min_len: int = 0, *, null=False, what="") -
     return Spec("list", item=item, min_len=min_len, nullable=null, what=what)
 
 
+# -- settings dataclasses: each field a config key ------------------------------------------------------
+def _kind(tp: Any) -> tuple[str, bool, Any]:
+    """(kind, nullable, list item type) of a field's annotation."""
+    nullable = False
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        nullable = len(args) < len(typing.get_args(tp))
+        tp = args[0] if len(args) == 1 else Any
+    if typing.get_origin(tp) in (list, tuple):
+        args = typing.get_args(tp)
+        return "list", nullable, (args[0] if args else Any)
+    return {bool: "bool", int: "integer", float: "number", str: "str"}.get(tp, "any"), nullable, None
+
+
+def _spec(kind: str, m: typing.Mapping[str, Any], nullable: bool = False) -> Spec:
+    """A spec of ``kind`` with a field's metadata: ``lo``/``hi`` (``gt``: strictly greater), ``choices``,
+    ``what`` (the unit)."""
+    what = m.get("what", "")
+    if m.get("choices"):
+        return choice(*m["choices"], null=nullable, what=what)
+    if kind in ("number", "integer"):
+        gt = m.get("gt")
+        lo = gt if gt is not None else m.get("lo", -_INF)
+        return Spec(kind, lo=lo, hi=m.get("hi", _INF), lo_open=gt is not None, nullable=nullable, what=what)
+    return Spec(kind, nullable=nullable, what=what)
+
+
+def spec_of(cls: type, name: str) -> Spec | None:
+    """The declaration of field ``name`` of settings dataclass ``cls``: its type from the annotation, its
+    range and unit from ``field(metadata=...)`` (``lo``, ``hi``, ``gt``, ``choices``, ``what``; a list's
+    ``min_len`` and ``item``: the metadata of its items). None if ``cls`` has no such field."""
+    field = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+    if field is None:
+        return None
+    kind, nullable, item_tp = _kind(typing.get_type_hints(cls)[name])
+    m = field.metadata
+    if kind == "list":
+        item = _spec(_kind(item_tp)[0], m.get("item", {})) if item_tp is not None else None
+        return listof(item, m.get("min_len", 0), null=nullable, what=m.get("what", ""))
+    return _spec(kind, m, nullable)
+
+
+def schema_node(cls: type) -> Any:
+    """``cls`` as the OmegaConf node Hydra stores: typed, with its defaults, writable even when the
+    dataclass is frozen (``OmegaConf.to_object`` of the composed node is a frozen ``cls`` again)."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.structured(cls)
+    OmegaConf.set_readonly(node, False)
+    return node
+
+
+#: the settings dataclasses that are the schema of a config section: where they sit in a stage's config
+#: (the package) -> the dataclass. Each is stored in Hydra's ConfigStore as ``schema/<package>``; a YAML
+#: file lists it in its defaults list (``- /schema/calibrate``), and the dataclass gives the keys, their
+#: types, defaults and ranges (:func:`skidbench.pipeline.core.settings.setting`).
+STRUCTURED: dict[str, type] = {
+    "calibrate": CalibrationSettings,
+}
+
+
+@functools.cache
+def register_configs() -> None:
+    """Store every :data:`STRUCTURED` dataclass in Hydra's ConfigStore (once per process), before any
+    composition: ``skidbench.conf`` calls it when imported, as Hydra loads the configs from it."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    for package, cls in STRUCTURED.items():
+        cs.store(group="schema", name=package, node=schema_node(cls), package=package)
+
+
 BOOL = Spec("bool")
 STR = Spec("str")
 OPT_STR = Spec("str", nullable=True)
@@ -142,16 +227,6 @@ SCHEMA: dict[str, Spec] = {
     "inputs": choice("commanded", "response", "measured", "state", what="the model input protocol"),
     "train_dataset": Spec("str", nullable=True, what="a dataset under out_root to fit on"),
     "train_terrain": Spec("str", nullable=True, what="the terrain of train_dataset to fit on"),
-    "calibrate.use": BOOL,
-    "calibrate.min_wheel_rate": number(0, what="rad/s"),
-    "calibrate.straight_ratio": number(0, 1),
-    "calibrate.min_turn_rate": number(0, what="rad/s"),
-    "calibrate.settle_s": number(0, what="s since the wheel commands last changed"),
-    "calibrate.command_change": number(gt=0, what="rad/s^2"),
-    "calibrate.min_rows": integer(1),
-    "calibrate.block_s": number(gt=0, what="s"),
-    "calibrate.bootstrap": integer(0),
-    "calibrate.ci": number(gt=0, hi=1),
     # -- robot/ -----------------------------------------------------------------------------------------
     "robot.name": STR,
     "robot.mass": POS,
@@ -379,7 +454,11 @@ SCHEMA: dict[str, Spec] = {
 
 
 def spec_for(key: str) -> Spec | None:
-    """The declaration of a dotted key (the first matching entry of :data:`SCHEMA`), else None."""
+    """The declaration of a dotted key: a field of a :data:`STRUCTURED` dataclass, else the first matching
+    entry of :data:`SCHEMA`, else None."""
+    package, _, name = key.rpartition(".")
+    if package in STRUCTURED:
+        return spec_of(STRUCTURED[package], name)
     spec = SCHEMA.get(key)
     if spec is not None:
         return spec
@@ -390,7 +469,8 @@ def spec_for(key: str) -> Spec | None:
     return None
 
 
-def _describe(value: Any) -> str:
+def describe(value: Any) -> str:
+    """A value as the command line writes it (``null``, ``true``, ``[a,b]``)."""
     if isinstance(value, str):
         return value if value else "''"
     if value is None:
@@ -398,7 +478,7 @@ def _describe(value: Any) -> str:
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, (list, tuple)):
-        return "[" + ",".join(_describe(v) for v in value) + "]"
+        return "[" + ",".join(describe(v) for v in value) + "]"
     return str(value)
 
 
@@ -408,4 +488,4 @@ def check_value(key: str, value: Any) -> None:
     spec = spec_for(key)
     if spec is None or spec.accepts(value):
         return
-    raise ConfigError(f"invalid value {key}={_describe(value)}: allowed {spec.allowed()}")
+    raise ConfigError(f"invalid value {key}={describe(value)}: allowed {spec.allowed()}")

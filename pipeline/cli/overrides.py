@@ -11,6 +11,7 @@ additions, ``~key`` deletions and ``hydra.*`` settings are checked exactly as Hy
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import functools
 import re
@@ -20,7 +21,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from skidbench.pipeline.cli.config_schema import check_value, spec_for
+from skidbench.pipeline.cli.config_schema import STRUCTURED, check_value, describe, spec_for
 from skidbench.pipeline.core.errors import ConfigError, one_line
 from skidbench.pipeline.core.layout import register_resolvers
 
@@ -74,18 +75,38 @@ def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
 
     foreign: list[str] = []
     kept = list(overrides)
+    for line in kept:  # a typed key's value as given (OmegaConf would take 1 for true, "1" for 1.0)
+        if line[:1] != "~" and _override_key(line).rpartition(".")[0] in STRUCTURED:
+            key, value = parse_value(line)
+            if value is not None:
+                check_value(key, value)
     while True:
         try:
             cfg = _compose(stage, kept)
             _check_group_keys(cfg, foreign)
             return foreign, cfg
         except (HydraException, OmegaConfBaseException) as exc:
+            _check_typed(exc)
             key = _refused_key(exc)
             line = next((o for o in kept if key and _override_key(o) == key and o[:1] not in "+~"), None)
             if line is None or not is_other_stage_key(key):
                 raise ConfigError(_explain(stage, kept, exc)) from None
             foreign.append(line)
             kept.remove(line)
+
+
+def _check_typed(exc: Exception) -> None:
+    """ConfigError (one line: the key, the value, what is allowed) when composing failed because OmegaConf
+    refused a value of a typed key (a field of a settings dataclass, :mod:`.config_schema`)."""
+    from omegaconf.errors import ValidationError
+
+    cause = exc if isinstance(exc, ValidationError) else exc.__cause__
+    if not isinstance(cause, ValidationError) or not cause.full_key:
+        return
+    key = re.sub(r"\[\d+\]$", "", cause.full_key)  # a list's item: the list's key
+    spec = spec_for(key)
+    if spec is not None:
+        raise ConfigError(f"invalid value {key}={describe(cause.value)}: allowed {spec.allowed()}")
 
 
 def _check_group_keys(cfg: Any, foreign: list[str]) -> None:
@@ -173,6 +194,8 @@ def _every_stage_key() -> frozenset[str]:
                     data = OmegaConf.to_container(OmegaConf.create(option.read_text()), resolve=False) or {}
                     data.pop("defaults", None)
                     keys.update(_flatten(data, f"{name}."))
+    for package, cls in STRUCTURED.items():  # the sections whose schema and defaults are a dataclass
+        keys.update([package, *(f"{package}.{f.name}" for f in dataclasses.fields(cls))])
     return frozenset(keys)
 
 
