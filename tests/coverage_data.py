@@ -97,13 +97,14 @@ def coverage(design: str, errors: str, reps: int, seed: int = 0, resamples: int 
     """The fraction of ``reps`` intervals of the design's statistic that hold its true value, how often
     it was rankable, and the median width relative to the estimate."""
     from skidbench.benchmark.scoring import intervals as iv
+    from skidbench.benchmark.scoring.settings import IntervalConfig
 
     rng = np.random.default_rng([seed, len(design), len(errors)])
     hits = ranked = 0
     widths = []
     for r in range(reps):
         strata = [stratum(rng, durations, errors) for durations in DESIGNS[design]]
-        sample = iv.Sample(iv.IntervalConfig(seed=seed * 100_003 + r, resamples=resamples))
+        sample = iv.Sample(IntervalConfig(seed=seed * 100_003 + r, resamples=resamples))
         cells = []
         for i, (seq, t0, e, _) in enumerate(strata):
             sample.add(f"s{i}", seq, t0, {"m": e}, H)

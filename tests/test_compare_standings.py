@@ -212,8 +212,8 @@ def test_a_recording_without_an_independent_truth_has_an_unknown_floor_and_the_b
     from skidbench.benchmark.board.boards import read_windows
     from skidbench.benchmark.evaluate.references import log_floor
     from skidbench.benchmark.scoring.horizon import HorizonConfig
-    from skidbench.benchmark.scoring.intervals import IntervalConfig
     from skidbench.benchmark.scoring.predictions import TestSequence
+    from skidbench.benchmark.scoring.settings import IntervalConfig
     from skidbench.pipeline.core.layout import Layout
 
     sys.path.insert(0, str(Path(__file__).parent))

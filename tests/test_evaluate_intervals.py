@@ -19,6 +19,7 @@ from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring.floor import FLOOR, floor_windows, truth_velocities
 from skidbench.benchmark.scoring.horizon import HorizonConfig, rmsre, window_errors
 from skidbench.benchmark.scoring.predictions import TestSequence, score_split
+from skidbench.benchmark.scoring.settings import IntervalConfig
 
 H = 6.0
 SPACING = 0.2  # s between window starts: a block (two horizons, 12 s) holds 60 windows
@@ -110,7 +111,7 @@ def _two_models(rng, n_seq, blocks_per_seq, ratio, rho=0.8):
 
 
 def _board(seq, t0, ea, eb, cfg=None):
-    sample = iv.Sample(cfg or iv.IntervalConfig(seed=3))
+    sample = iv.Sample(cfg or IntervalConfig(seed=3))
     sample.add("g/ld", seq, t0, {"A": ea, "B": eb}, H)
     A, B = iv.cell("A", "g/ld", "A"), iv.cell("B", "g/ld", "B")
     res = iv.estimate(sample, [A, B, iv.difference("A-B", A, B), iv.difference("A-A", A, A)]).set_index(
@@ -231,9 +232,9 @@ def test_a_cell_is_the_same_alone_or_among_other_models_and_strata():
     # evaluate computes a cell from one model's windows, compare from every model's: same draws per stratum
     rng = np.random.default_rng(8)
     seq, t0, ea, eb, _ = _two_models(rng, 2, 3, 1.2)
-    alone = iv.Sample(iv.IntervalConfig(seed=4))
+    alone = iv.Sample(IntervalConfig(seed=4))
     alone.add("g/ld", seq, t0, {"A": ea}, H)
-    many = iv.Sample(iv.IntervalConfig(seed=4))
+    many = iv.Sample(IntervalConfig(seed=4))
     many.add("t/cv", seq[:300], t0[:300], {"A": eb[:300]}, H)
     many.add("g/ld", seq, t0, {"B": eb, "A": ea}, H)
     one = iv.estimate(alone, [iv.cell("A", "g/ld", "A")]).iloc[0]

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from omegaconf import OmegaConf
 
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import results as rt
@@ -56,10 +57,10 @@ from skidbench.benchmark.board.tables import (
 )
 from skidbench.benchmark.report.compare_figures import FigureSettings, draw_figures, figure_jobs
 from skidbench.benchmark.report.markdown import ReportContent, ReportSettings, report_md, sort_key
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import mlflow_ui as mu
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
@@ -219,7 +220,7 @@ class CompareSettings:
     asked: str | None  # the checked protocol of ``inputs`` with parent_run_id=latest, else None
     inputs: str  # the configured protocol (unchecked), for a board whose protocol is not one of PROTOCOLS
     rank_by: str
-    intervals: iv.IntervalConfig
+    intervals: IntervalConfig
     report: ReportSettings
     figures: FigureSettings
     ui_url: str | None
@@ -238,7 +239,7 @@ class CompareSettings:
             asked=protocol_from_cfg(cfg) if parent_arg == "latest" else None,
             inputs=str(cfg.get("inputs") or "commanded"),
             rank_by=str(cfg.get("rank_by") or st.AGGREGATE),
-            intervals=iv.IntervalConfig.from_cfg(cfg),
+            intervals=OmegaConf.to_object(cfg.intervals),
             report=ReportSettings.from_cfg(cfg),
             figures=FigureSettings.from_cfg(cfg),
             ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
@@ -495,7 +496,7 @@ def _fit_findings(layout: Layout, board: pd.DataFrame, inputs: str) -> list[str]
 
 def standings_of(
     rank_by: str,
-    intervals: iv.IntervalConfig,
+    intervals: IntervalConfig,
     layout: Layout,
     board: pd.DataFrame,
     protocol: str,

@@ -24,10 +24,10 @@ from skidbench.benchmark.board.boards import read_windows
 from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.evaluate.testsets import load_test_split
 from skidbench.benchmark.scoring import aggressiveness as ag
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import horizon_steps
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.pipeline.core.io import atomic_path, write_text_atomic
 from skidbench.pipeline.core.layout import Layout
 
@@ -69,7 +69,7 @@ def _with_aggressiveness(layout: Layout, windows: dict, horizon_s: float, robot_
 
 
 def strata_standings(
-    layout: Layout, board: pd.DataFrame, protocol: str, horizon_s: float, intervals: iv.IntervalConfig,
+    layout: Layout, board: pd.DataFrame, protocol: str, horizon_s: float, intervals: IntervalConfig,
     rank_by: str, half_track: float,
 ) -> dict[str, st.Standings]:  # fmt: skip
     """``{stratum: Standings}`` of one board at one horizon (``all`` and the terciles, module docstring)."""
@@ -188,7 +188,7 @@ def horizon_figure(
 
 
 def horizon_report(
-    layout: Layout, boards: Mapping[str, pd.DataFrame], intervals: iv.IntervalConfig, rank_by: str,
+    layout: Layout, boards: Mapping[str, pd.DataFrame], intervals: IntervalConfig, rank_by: str,
     half_track: float, out: Path, figures_dpi: int | None,
 ) -> list[Path]:  # fmt: skip
     """Writes ``horizons.md`` (and a figure per protocol when ``figures_dpi``) in ``out`` for the boards

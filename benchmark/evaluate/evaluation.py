@@ -51,11 +51,11 @@ from skidbench.benchmark.evaluate.testsets import (
 )
 from skidbench.benchmark.evaluate.transfer import training_layout
 from skidbench.benchmark.report.data import ReportDataSettings, write_report_data, write_wheel_response_steps
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.predictions import Inputs, TestSequence, predict_and_score
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import mlflow_ui as mu
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
@@ -319,7 +319,7 @@ class ChildContext:
     conf: dict[str, Any]
     tags: dict[str, str]
     log_figures: bool
-    intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
+    intervals: IntervalConfig = field(default_factory=IntervalConfig)
     seeds: int = 1  # fits of a model with random parts (evaluate's ``seeds``)
     plan: reuse.ReusePlan = field(default_factory=reuse.ReusePlan)  # runs taken, result keys of the others
     results: rt.Writer | None = None  # the evaluate's results file (benchmark/board/results.py)

@@ -22,7 +22,6 @@ from skidbench.benchmark.scoring.floor import (
     unknown_reason,
 )
 from skidbench.benchmark.scoring.horizon import HorizonConfig
-from skidbench.benchmark.scoring.intervals import IntervalConfig
 from skidbench.benchmark.scoring.predictions import (
     Inputs,
     Score,
@@ -31,6 +30,7 @@ from skidbench.benchmark.scoring.predictions import (
     summarise,
 )
 from skidbench.benchmark.scoring.rollout import state_windows
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.pipeline.core.io import write_parquet_atomic
 
 

@@ -12,15 +12,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from skidbench.benchmark.board.results import RunFacts
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.evaluate.transfer import TransferSettings, scored_from_cfg
 from skidbench.benchmark.report.data import ReportDataSettings
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
+from skidbench.benchmark.scoring.intervals import block_length
 from skidbench.benchmark.scoring.rollout import StateSettings
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.models.fitting.fit import FitSettings, ModelConfigs
@@ -79,7 +81,7 @@ class EvaluateSettings:
     splits: list[str]
     horizons: list[float]
     hcfg: HorizonConfig
-    intervals: iv.IntervalConfig
+    intervals: IntervalConfig
     protocol: str  # the checked input protocol (``inputs``)
     inputs_text: str  # ``inputs`` as the config spells it (``commanded`` when the key is absent)
     log_figures: bool
@@ -95,9 +97,9 @@ class EvaluateSettings:
     @classmethod
     def from_cfg(cls, cfg: Any) -> EvaluateSettings:
         models, terrains, splits, horizons, hcfg = _lists_from_cfg(cfg)
-        intervals = iv.IntervalConfig.from_cfg(cfg)
+        intervals = OmegaConf.to_object(cfg.intervals)
         for h in horizons:  # blocks shorter than a horizon: one line before anything runs
-            intervals.block_length(h)
+            block_length(intervals, h)
         protocol = _checked_protocol(cfg.get("inputs"), models)
         transfer = TransferSettings.from_cfg(cfg)
         fit = FitSettings.from_cfg(cfg)

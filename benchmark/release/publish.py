@@ -30,6 +30,8 @@ from pathlib import Path
 from string import Template
 from typing import Any
 
+from omegaconf import OmegaConf
+
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import compare as cmp
 from skidbench.benchmark.board.selection import results_of
@@ -38,9 +40,9 @@ from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.release import page as pg
 from skidbench.benchmark.report import compare_figures as cfigs
 from skidbench.benchmark.report import figures as figs
-from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import store as trk
 from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.io import write_text_atomic
@@ -95,7 +97,7 @@ class PublishSettings:
     figures: bool
     dpi: int
     rank_by: str = st.AGGREGATE
-    intervals: iv.IntervalConfig = field(default_factory=iv.IntervalConfig)
+    intervals: IntervalConfig = field(default_factory=IntervalConfig)
     title: str | None = None
     download: str | None = None
 
@@ -106,7 +108,7 @@ class PublishSettings:
             bool(p.figures),
             int(p.dpi),
             str(cfg.get("rank_by") or st.AGGREGATE),
-            iv.IntervalConfig.from_cfg(cfg),
+            OmegaConf.to_object(cfg.intervals),
             p.get("title") or None,
             p.get("download") or None,
         )

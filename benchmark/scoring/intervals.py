@@ -40,24 +40,16 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import pandas as pd
 import scipy.stats
 
 from skidbench.benchmark.errors import EvaluationError
+from skidbench.benchmark.scoring.settings import IntervalConfig
 
-LEVEL = 0.95
-#: bootstrap resamples per stratum (quantiles of 2.5 % and 97.5 % from 50 resamples each side)
-RESAMPLES = 2000
-#: fewest effective independent blocks behind a statistic for it to be ranked: its effective degrees of
-#: of freedom + 1 (docs/intervals.md: why 8); and at least 2 blocks in each of its strata
-MIN_BLOCKS = 8
 #: s, the resolution at which window errors are summed before their autocorrelation is measured
 UNIT_S = 1.0
-#: a stratum with at least this many sequences is resampled by whole sequences (its drives), not blocks
-MIN_SEQUENCES = 5
 #: the correlated part of the measured integrated autocorrelation time (``tau - 1``) is multiplied by this
 #: before it is used: measured on one drive of 40-60 s it runs low (a 30 s error component is barely
 #: visible in it); the coverage bench (perf/coverage.py, docs/intervals.md) needs 2 to reach 0.93
@@ -77,50 +69,18 @@ class IntervalError(EvaluationError):
     pass
 
 
-@dataclass(frozen=True)
-class IntervalConfig:
-    """``level`` of the intervals, bootstrap ``resamples``, ``min_blocks`` (effective independent blocks) for
-    a statistic to be ranked, ``block_s`` (s; None: from the autocorrelation of the errors; a number: that
-    fixed length, never shorter than one horizon), ``min_sequences`` (a stratum with this many sequences
-    is resampled by sequences), the ``seed`` of the draws and the equivalence ``margin`` (points: two scores
-    within it are "comparable", :mod:`skidbench.benchmark.scoring.ranks`)."""
-
-    level: float = LEVEL
-    resamples: int = RESAMPLES
-    min_blocks: int = MIN_BLOCKS
-    block_s: float | None = None
-    seed: int = 0
-    min_sequences: int = MIN_SEQUENCES
-    margin: float = 1.0
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> IntervalConfig:
-        """From a stage config's ``intervals`` group (conf/intervals/default.yaml); defaults without one."""
-        got = (cfg.get("intervals") if hasattr(cfg, "get") else None) or {}
-        d = cls()
-        block = got.get("block_s", d.block_s)
-        return cls(
-            level=float(got.get("level", d.level)),
-            resamples=int(got.get("resamples", d.resamples)),
-            min_blocks=int(got.get("min_blocks", d.min_blocks)),
-            block_s=None if block is None else float(block),
-            seed=int(got.get("seed", d.seed)),
-            min_sequences=int(got.get("min_sequences", d.min_sequences)),
-            margin=float(got.get("margin", d.margin)),
+def block_length(cfg: IntervalConfig, horizon_s: float) -> float | None:
+    """The fixed block length (s) of ``cfg`` at a horizon, or None when it comes from the errors'
+    autocorrelation. IntervalError when ``intervals.block_s`` is shorter than the horizon (a block's windows
+    would overlap more than the next block's)."""
+    if cfg.block_s is None:
+        return None
+    if cfg.block_s < horizon_s - 1e-9:
+        raise IntervalError(
+            f"intervals.block_s={cfg.block_s:g} s is shorter than the {horizon_s:g} s horizon: blocks "
+            "must be at least one horizon long (overlapping windows of one drive are not independent)"
         )
-
-    def block_length(self, horizon_s: float) -> float | None:
-        """The fixed block length (s) at a horizon, or None when it comes from the errors' autocorrelation.
-        IntervalError when ``block_s`` is shorter than the horizon (a block's windows would overlap more
-        than the next block's)."""
-        if self.block_s is None:
-            return None
-        if self.block_s < horizon_s - 1e-9:
-            raise IntervalError(
-                f"intervals.block_s={self.block_s:g} s is shorter than the {horizon_s:g} s horizon: blocks "
-                "must be at least one horizon long (overlapping windows of one drive are not independent)"
-            )
-        return float(self.block_s)
+    return float(cfg.block_s)
 
 
 # -- blocks -------------------------------------------------------------------------------------------------
@@ -207,7 +167,7 @@ class Sample:
         (``values[column]``: (W,) per window, NaN where the window is left out of that column). Every
         column of a stratum is on the same windows, so that the columns of two models are paired. Adding to
         a stratum again adds columns, which must come with the same windows."""
-        fixed = self.cfg.block_length(horizon_s)
+        fixed = block_length(self.cfg, horizon_s)
         unit_s = fixed if fixed is not None else min(UNIT_S, float(horizon_s))
         unit, seq_of, pos_of = _units(sequence, t0, unit_s)
         n_units = len(seq_of)
@@ -335,7 +295,7 @@ class _Part:
     u: np.ndarray
     cols: list[tuple[np.ndarray, np.ndarray, str, float]]
     present: int  # units with a window of the statistic
-    min_sequences: int = MIN_SEQUENCES
+    min_sequences: int = IntervalConfig.min_sequences
 
     @property
     def whole_sequences(self) -> bool:

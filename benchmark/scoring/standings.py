@@ -24,6 +24,7 @@ from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring.floor import FLOOR
+from skidbench.benchmark.scoring.settings import IntervalConfig
 
 SPLITS = ("cv", "ld")
 #: the ranking aggregate: the mean of the paper's metrics (translational and rotational RMSRE) on CV and LD
@@ -83,12 +84,12 @@ def _metrics_of(w: pd.DataFrame) -> list[mt.Metric]:
 def build(
     windows: Mapping[tuple[str, str], pd.DataFrame],
     horizon_s: float,
-    settings: iv.IntervalConfig | None = None,
+    settings: IntervalConfig | None = None,
     rank_by: str = AGGREGATE,
 ) -> Standings:
     """Every statistic of a board from its windows (:func:`read_windows`), ranked by ``rank_by``
     (:data:`AGGREGATE`, or ``<split>_<short>`` of a headline metric: its mean over terrains)."""
-    sample = iv.Sample(settings or iv.IntervalConfig())
+    sample = iv.Sample(settings or IntervalConfig())
     terrains = sorted({t for _, t in windows})
     models = _order([m for m, _ in windows if m != FLOOR])
     has_floor = any(m == FLOOR for m, _ in windows)

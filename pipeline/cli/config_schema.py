@@ -35,6 +35,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
+from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 
@@ -194,6 +195,7 @@ def schema_node(cls: type) -> Any:
 #: types, defaults and ranges (:func:`skidbench.pipeline.core.settings.setting`).
 STRUCTURED: dict[str, type] = {
     "calibrate": CalibrationSettings,
+    "intervals": IntervalConfig,
 }
 
 
@@ -366,15 +368,6 @@ SCHEMA: dict[str, Spec] = {
     "mlflow.artifact_root": STR,
     "mlflow.timeout_s": number(gt=0, what="s"),
     "mlflow.ui_url": STR,
-    # -- intervals/ (benchmark/scoring/intervals.py)
-    # -------------------------------------------------------------
-    "intervals.level": number(0.5, 0.999),
-    "intervals.resamples": integer(100, 100000),
-    "intervals.block_s": number(gt=0, null=True, what="s"),
-    "intervals.min_blocks": integer(2),
-    "intervals.min_sequences": integer(2),
-    "intervals.margin": number(gt=0, what="points"),
-    "intervals.seed": integer(0),
     # -- evaluate.yaml ----------------------------------------------------------------------------------
     "models": listof(STR, 1),
     "extra_models": listof(STR),
