@@ -69,18 +69,18 @@ class IntervalError(EvaluationError):
     pass
 
 
-def block_length(cfg: IntervalConfig, horizon_s: float) -> float | None:
-    """The fixed block length (s) of ``cfg`` at a horizon, or None when it comes from the errors'
+def block_length(settings: IntervalConfig, horizon_s: float) -> float | None:
+    """The fixed block length (s) of ``settings`` at a horizon, or None when it comes from the errors'
     autocorrelation. IntervalError when ``intervals.block_s`` is shorter than the horizon (a block's windows
     would overlap more than the next block's)."""
-    if cfg.block_s is None:
+    if settings.block_s is None:
         return None
-    if cfg.block_s < horizon_s - 1e-9:
+    if settings.block_s < horizon_s - 1e-9:
         raise IntervalError(
-            f"intervals.block_s={cfg.block_s:g} s is shorter than the {horizon_s:g} s horizon: blocks "
+            f"intervals.block_s={settings.block_s:g} s is shorter than the {horizon_s:g} s horizon: blocks "
             "must be at least one horizon long (overlapping windows of one drive are not independent)"
         )
-    return float(cfg.block_s)
+    return float(settings.block_s)
 
 
 # -- blocks -------------------------------------------------------------------------------------------------
