@@ -19,7 +19,8 @@ from skidbench.benchmark.evaluate import evaluation as ev
 from skidbench.benchmark.evaluate.app import benchmark as run_benchmark
 from skidbench.benchmark.scoring import aggressiveness as ag
 from skidbench.benchmark.scoring.horizon import HorizonConfig, rmsre
-from skidbench.benchmark.scoring.rollout import StateSettings, model_rollout, state_windows
+from skidbench.benchmark.scoring.rollout import model_rollout, state_windows
+from skidbench.benchmark.scoring.settings import StateSettings
 from skidbench.models import rollout as st
 from skidbench.models.base import KinematicModel
 from skidbench.models.dynamics.relaxation import FirstOrderRelaxation, relax
@@ -212,3 +213,9 @@ def test_learned_dynamics_beats_its_base_from_the_state_and_its_seeds_differ():
     w = state_windows(["s"], [test], model_rollout(base, [base.predict(test)]), [2.0], hcfg, settings, JACKAL)
     assert max(scores.values()) < 0.5 * rmsre(w["rel_trans"])
     assert not np.allclose(coefs[0], coefs[1])  # another seed draws other Train windows
+
+
+def test_the_state_protocol_default_history_is_the_models_default():
+    from skidbench.models.rollout import HISTORY_S
+
+    assert StateSettings().history_s == HISTORY_S

@@ -55,8 +55,9 @@ from skidbench.benchmark.board.tables import (
     report_detail,
     summary_table,
 )
-from skidbench.benchmark.report.compare_figures import FigureSettings, draw_figures, figure_jobs
+from skidbench.benchmark.report.compare_figures import draw_figures, figure_jobs
 from skidbench.benchmark.report.markdown import ReportContent, ReportSettings, report_md, sort_key
+from skidbench.benchmark.report.settings import FigureSettings
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
@@ -241,7 +242,7 @@ class CompareSettings:
             rank_by=str(cfg.get("rank_by") or st.AGGREGATE),
             intervals=OmegaConf.to_object(cfg.intervals),
             report=ReportSettings.from_cfg(cfg),
-            figures=FigureSettings.from_cfg(cfg),
+            figures=OmegaConf.to_object(cfg.figures),
             ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
             log_to_mlflow=bool(cfg.get("log_to_mlflow", True)),
             half_track=float(cfg.robot.track_width) / 2.0 if cfg.get("robot") else 0.0,

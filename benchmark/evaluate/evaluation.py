@@ -50,7 +50,8 @@ from skidbench.benchmark.evaluate.testsets import (
     split_fingerprint,
 )
 from skidbench.benchmark.evaluate.transfer import training_layout
-from skidbench.benchmark.report.data import ReportDataSettings, write_report_data, write_wheel_response_steps
+from skidbench.benchmark.report.data import write_report_data, write_wheel_response_steps
+from skidbench.benchmark.report.settings import ReportDataSettings
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig

@@ -17,12 +17,11 @@ from omegaconf import OmegaConf
 from skidbench.benchmark.board.results import RunFacts
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.evaluate.transfer import TransferSettings, scored_from_cfg
-from skidbench.benchmark.report.data import ReportDataSettings
+from skidbench.benchmark.report.settings import ReportDataSettings
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.intervals import block_length
-from skidbench.benchmark.scoring.rollout import StateSettings
-from skidbench.benchmark.scoring.settings import IntervalConfig
+from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.models.fitting.fit import FitSettings, ModelConfigs
@@ -109,8 +108,8 @@ class EvaluateSettings:
             layout, str(cfg.dataset), models, terrains, splits, horizons, hcfg, intervals,
             protocol, str(cfg.get("inputs", "commanded")), bool(cfg.get("log_figures", True)),
             int(cfg.get("seeds") or 1),
-            fit, transfer, ReportDataSettings.from_cfg(cfg), StoreSettings.from_cfg(cfg, layout),
-            _container_from_cfg(cfg), StateSettings.from_cfg(cfg), bool(cfg.get("force", False)),
+            fit, transfer, OmegaConf.to_object(cfg.report_data), StoreSettings.from_cfg(cfg, layout),
+            _container_from_cfg(cfg), OmegaConf.to_object(cfg.state), bool(cfg.get("force", False)),
         )  # fmt: skip
 
     def row_facts(

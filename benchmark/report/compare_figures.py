@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +17,7 @@ import pandas as pd
 from skidbench.benchmark.board.tables import SPLITS, CompareError
 from skidbench.benchmark.report import data as rd
 from skidbench.benchmark.report import figures as figs
+from skidbench.benchmark.report.settings import FigureSettings
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
@@ -137,24 +137,6 @@ def floor_of(standings: st.Standings | None, metric: mt.Metric) -> dict[tuple[st
     c = standings.cells
     c = c[(c["model"] == FLOOR) & (c["metric"] == metric.name)]
     return {(r.terrain, r.split): float(r.estimate) for r in c.itertuples(index=False)}
-
-
-@dataclass(frozen=True)
-class FigureSettings:
-    """The ``figures`` group of the config: whether to draw, the resolution, the terrain of Figs. 5-7 and
-    the wheel response (None: the first terrain scored) and the models of Figs. 5 and 6."""
-
-    enabled: bool = True
-    dpi: int = 130
-    terrain: str | None = None
-    fig5_model: str = "full_linear"
-    fig6_model: str = "friction"
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> FigureSettings:
-        fc = cfg.figures
-        return cls(bool(fc.enabled), int(fc.dpi), str(fc.terrain) if fc.get("terrain") else None,
-                   str(fc.fig5_model), str(fc.fig6_model))  # fmt: skip
 
 
 #: (file name, caption, draw(path) -> path)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import io
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +26,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.benchmark.report.settings import ReportDataSettings
 from skidbench.benchmark.scoring.horizon import (
     EvaluationError,
     horizon_steps,
@@ -47,23 +47,6 @@ log = logging.getLogger(__name__)
 FIG5_SPLITS = ("ld", "cv")  # Fig. 5 shows the long drives, else the first test split there is
 FIG7_SPLITS = ("cv", "ld")
 FIG7_MIN_DISTANCE_M = 0.5  # Fig. 7 shows windows that go somewhere
-DEFAULTS = {"fig6_accels": [-8.0, 0.0, 8.0], "fig6_grid": 31, "fig7_windows": 3}
-
-
-@dataclass(frozen=True)
-class ReportDataSettings:
-    """What evaluate's report data is made with (``report_data.*``, :data:`DEFAULTS` for what is unset):
-    Fig. 6's commanded angular accelerations (rad/s^2) and grid size, Fig. 7's number of windows."""
-
-    fig6_accels: tuple[float, ...] = tuple(DEFAULTS["fig6_accels"])
-    fig6_grid: int = DEFAULTS["fig6_grid"]
-    fig7_windows: int = DEFAULTS["fig7_windows"]
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> ReportDataSettings:
-        got = cfg.get("report_data") or {}
-        s = {k: got.get(k, v) if got.get(k) is not None else v for k, v in DEFAULTS.items()}
-        return cls(tuple(float(a) for a in s["fig6_accels"]), int(s["fig6_grid"]), int(s["fig7_windows"]))
 
 
 class ReportDataError(EvaluationError):

@@ -18,8 +18,8 @@ from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.scoring.horizon import HorizonConfig, window_errors
 from skidbench.benchmark.scoring.intervals import Sample, cell, estimate, stratum_key
 from skidbench.benchmark.scoring.metrics import BY_NAME, METRICS
-from skidbench.benchmark.scoring.rollout import StateSettings, model_rollout, state_windows
-from skidbench.benchmark.scoring.settings import IntervalConfig
+from skidbench.benchmark.scoring.rollout import model_rollout, state_windows
+from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 from skidbench.pipeline.core.protocol import model_inputs
 from skidbench.pipeline.core.robot import Robot

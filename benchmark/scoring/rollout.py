@@ -27,29 +27,9 @@ import pandas as pd
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.scoring.aggressiveness import sample_acceleration, window_aggressiveness
 from skidbench.benchmark.scoring.horizon import HorizonConfig, horizon_steps
+from skidbench.benchmark.scoring.settings import StateSettings
 from skidbench.models import rollout as st
 from skidbench.pipeline.core.geometry import se2_exp
-
-
-@dataclass(frozen=True)
-class StateSettings:
-    """``state.*`` of the evaluate config: the history behind a window's initial velocity (s), the spacing
-    of window starts (s; 0: every sample) and the largest batch handed to a rollout (window samples)."""
-
-    history_s: float = st.HISTORY_S
-    stride_s: float = 0.0
-    max_batch_samples: int = 400_000
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> StateSettings:
-        node = cfg.get("state") if hasattr(cfg, "get") else None
-        if not node:
-            return cls()
-        s = cls(float(node.get("history_s", st.HISTORY_S)), float(node.get("stride_s", 0.0)),
-                int(node.get("max_batch_samples", 400_000)))  # fmt: skip
-        if not s.history_s > 0:
-            raise EvaluationError(f"state.history_s={s.history_s}: must be positive (s)")
-        return s
 
 
 @dataclass(frozen=True)

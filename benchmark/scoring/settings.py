@@ -1,8 +1,8 @@
-"""The ``intervals:`` section of a stage's config (conf/intervals/default.yaml; the keys
-``intervals.<field>``): how every score's confidence interval is made and how compare ranks with them
-(:mod:`skidbench.benchmark.scoring.intervals`, :mod:`skidbench.benchmark.scoring.ranks`, docs/intervals.md).
-The dataclass is the section's schema and defaults (stored in Hydra's ConfigStore,
-``pipeline/cli/config_schema.py``); a stage reads it whole, ``OmegaConf.to_object(cfg.intervals)``."""
+"""The config sections of the scoring maths: ``intervals:`` (conf/intervals/default.yaml: how every score's
+confidence interval is made and how compare ranks with them, :mod:`skidbench.benchmark.scoring.intervals`,
+:mod:`skidbench.benchmark.scoring.ranks`, docs/intervals.md) and evaluate's ``state:``. Each dataclass is
+its section's schema and defaults (stored in Hydra's ConfigStore, ``pipeline/cli/config_schema.py``); a
+stage reads a section whole, ``OmegaConf.to_object(cfg.intervals)``."""
 
 from __future__ import annotations
 
@@ -31,3 +31,17 @@ class IntervalConfig:
     min_sequences: int = field(default=5, metadata={"lo": 2})
     # two scores shown within it of each other are equivalent ("comparable", "tied")
     margin: float = field(default=1.0, metadata={"gt": 0, "what": "points"})
+
+
+@dataclass(frozen=True)
+class StateSettings:
+    """The ``state:`` section of the evaluate config (``inputs=state``: each window from the robot's state,
+    models/rollout.py, :mod:`skidbench.benchmark.scoring.rollout`)."""
+
+    # ground-truth poses behind a window's initial velocity (and the history a model sees); the models'
+    # own default, models/rollout.py HISTORY_S, is the same (tests/test_state.py)
+    history_s: float = field(default=1.0, metadata={"gt": 0, "what": "s"})
+    # between window starts; 0: every sample, as the other protocols
+    stride_s: float = field(default=0.0, metadata={"lo": 0, "what": "s"})
+    # window samples per rollout call (memory)
+    max_batch_samples: int = field(default=400_000, metadata={"lo": 1000})

@@ -35,7 +35,8 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from skidbench.benchmark.scoring.settings import IntervalConfig
+from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
+from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 
@@ -196,6 +197,9 @@ def schema_node(cls: type) -> Any:
 STRUCTURED: dict[str, type] = {
     "calibrate": CalibrationSettings,
     "intervals": IntervalConfig,
+    "state": StateSettings,
+    "report_data": ReportDataSettings,
+    "figures": FigureSettings,
 }
 
 
@@ -378,23 +382,12 @@ SCHEMA: dict[str, Spec] = {
     "min_rotation_deg": number(0, what="deg"),
     "log_figures": BOOL,
     "seeds": integer(1, 100),
-    "report_data.fig6_accels": listof(number(), 1, what="rad/s^2"),
-    "report_data.fig6_grid": integer(2),
-    "report_data.fig7_windows": integer(0),
-    "state.history_s": number(gt=0, what="s"),
-    "state.stride_s": number(0, what="s"),
-    "state.max_batch_samples": integer(1000),
     # -- compare.yaml -----------------------------------------------------------------------------------
     "parent_run_id": OPT_STR,
     "filter": OPT_STR,
     "user": OPT_STR,
     "horizon": number(gt=0, what="s"),
     "rank_by": STR,
-    "figures.enabled": BOOL,
-    "figures.dpi": integer(20, 1200),
-    "figures.fig5_model": STR,
-    "figures.fig6_model": STR,
-    "figures.terrain": OPT_STR,
     "log_to_mlflow": BOOL,
     # -- runs.yaml --------------------------------------------------------------------------------------
     "reap": BOOL,
