@@ -27,13 +27,18 @@ def _offsets(fits: list[tuple[np.ndarray, np.ndarray]], y: list[np.ndarray]) -> 
                            for b, c in [(pinv @ yy)[:2]]])  # fmt: skip
 
 
+def _sumsq(b: np.ndarray, c: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The sum over the times ``t`` of the squared offset b + c t (small angles), for arrays of (b, c)."""
+    return len(t) * (b * b + 2 * b * c * t.mean() + c * c * np.mean(t * t))
+
+
 def _null_sumsq(fits, ys, flips, ok: list[np.ndarray], draws: int, rng) -> np.ndarray:
     """(draws,) the sum of squared offsets over the valid rows (``ok``, per sequence) when each sequence's
     vy less its mean has its sign flipped at random in its blocks (``flips``: each moving row's block)."""
     out = np.zeros(draws)
     for (pinv, t), y, k, v in zip(fits, ys, flips, ok, strict=True):
         b, c = pinv[:2] @ ((y - y.mean())[:, None] * rng.choice((-1.0, 1.0), (k.max() + 1, draws))[k])
-        out += np.sum(np.arctan(b[:, None] + c[:, None] * t[None, v]) ** 2, axis=1)
+        out += _sumsq(b, c, t[v])
     return out
 
 
@@ -83,7 +88,8 @@ def heading_finding(
         return pool, None
     oks = [pool.valid[w] for w in where]
     null = _null_sumsq(fits, ys, flips, oks, draws, np.random.default_rng(seed))
-    p_noise = float((1 + np.sum(null >= np.sum(obs[ok] ** 2))) / (1 + draws))
+    stat = sum(_sumsq(*(pinv[:2] @ y), t[v]) for (pinv, t), y, v in zip(fits, ys, oks, strict=True))
+    p_noise = float((1 + np.sum(null >= stat)) / (1 + draws))
     if p_noise > p_max:
         return pool, None
     d = np.zeros(len(tgt))
