@@ -32,14 +32,20 @@ def _sumsq(b: np.ndarray, c: np.ndarray, t: np.ndarray) -> np.ndarray:
     return len(t) * (b * b + 2 * b * c * t.mean() + c * c * np.mean(t * t))
 
 
-def _null_sumsq(fits, ys, flips, ok: list[np.ndarray], draws: int, rng) -> np.ndarray:
-    """(draws,) the sum of squared offsets over the valid rows (``ok``, per sequence) when each sequence's
-    vy less its mean has its sign flipped at random in its blocks (``flips``: each moving row's block)."""
-    out = np.zeros(draws)
+def _noise_test(fits, ys, flips, ok: list[np.ndarray], draws: int, rng) -> float:
+    """The share of ``draws`` in which noise alone gives offsets as large as the measured ones: each
+    sequence's vy less its mean (no offset) has its sign flipped at random in its blocks (``flips``: each
+    moving row's block), and the sum of squared offsets over its valid rows (``ok``) is taken relative to
+    its mean over the draws (a sequence whose few or uniform moving rows leave offset and drift poorly
+    determined weighs less); the statistic is the sum over the sequences, the measured one likewise."""
+    stat, null = 0.0, np.zeros(draws)
     for (pinv, t), y, k, v in zip(fits, ys, flips, ok, strict=True):
         b, c = pinv[:2] @ ((y - y.mean())[:, None] * rng.choice((-1.0, 1.0), (k.max() + 1, draws))[k])
-        out += _sumsq(b, c, t[v])
-    return out
+        s = _sumsq(b, c, t[v])
+        scale = max(float(s.mean()), 1e-300)
+        null += s / scale
+        stat += float(_sumsq(*(pinv[:2] @ y), t[v])) / scale
+    return float((1 + np.sum(null >= stat)) / (1 + draws))
 
 
 def heading_finding(
@@ -52,13 +58,14 @@ def heading_finding(
     ``max_turn`` |vx| + 0.05, |vx| >= 0.2 m/s), least squares of the measured vy on (vx, vx t, 1): the
     heading offset and its drift, and a constant lateral velocity (a side slope, ``lateral_drift``).
     A finding is both large and more than noise: the RMS offset over the pool's rows is at least
-    ``min_deg``, and noise alone gives one as large at most ``p_max`` of the time (the measured vy less its
-    sequence mean, its sign flipped at random in blocks of ``block_s`` of each sequence's rows, ``draws``
-    times: velocities differentiated from poses are correlated over a fraction of a second, and a short
-    or gentle sequence whose moving rows barely vary gives offset and drift estimates of several degrees
-    that cancel each other: on clean generated data the RMS reached 2.3 deg). Then the targets and the
-    pose headings are corrected by it before the search, and the finding is returned with the corrected
-    pool (its size and drift, never a robot effect); otherwise the pool as it is and None."""
+    ``min_deg``, and noise alone gives offsets as large at most ``p_max`` of the time (:func:`_noise_test`:
+    the measured vy less its sequence mean, its sign flipped at random in blocks of ``block_s`` of each
+    sequence's rows, ``draws`` times, each sequence weighed by its own noise: velocities differentiated from
+    poses are correlated over a fraction of a second, and a short or gentle sequence whose moving rows
+    barely vary gives offset and drift estimates of several degrees that cancel each other: on clean
+    generated data the RMS reached 2.3 deg). Then the targets and the pose headings are corrected by it
+    before the search, and the finding is returned with the corrected pool (its size and drift, never a
+    robot effect); otherwise the pool as it is and None."""
     tgt = pool.target
     moving = (
         pool.valid & (np.abs(tgt[:, 0]) >= 0.2) & (np.abs(tgt[:, 2]) <= max_turn * np.abs(tgt[:, 0]) + 0.05)
@@ -87,9 +94,7 @@ def heading_finding(
     if rms < min_deg:
         return pool, None
     oks = [pool.valid[w] for w in where]
-    null = _null_sumsq(fits, ys, flips, oks, draws, np.random.default_rng(seed))
-    stat = sum(_sumsq(*(pinv[:2] @ y), t[v]) for (pinv, t), y, v in zip(fits, ys, oks, strict=True))
-    p_noise = float((1 + np.sum(null >= stat)) / (1 + draws))
+    p_noise = _noise_test(fits, ys, flips, oks, draws, np.random.default_rng(seed))
     if p_noise > p_max:
         return pool, None
     d = np.zeros(len(tgt))
