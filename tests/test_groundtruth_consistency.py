@@ -92,7 +92,9 @@ def test_split_refuses_a_flipped_sequence_unless_allowed(jackal, tmp_path):
     with initialize_config_module("skidbench.conf", version_base="1.3"):
         cfg = compose("split", [f"out_root={tmp_path}", "dataset=ds"])
         allowed = compose("split", [f"out_root={tmp_path}", "dataset=ds", "split.allow_flagged=true"])
-    path, gate = split_sequence(cfg, layout, jackal, seq)
+    from omegaconf import OmegaConf
+
+    path, gate = split_sequence(OmegaConf.to_object(cfg.split), layout, jackal, seq)
     assert path is None and gate["flagged"]
     with pytest.raises(SplitError, match=r"1 of 1 sequence.*flip_train_00: sign agreement 0\.0.*allow"):
         split_run(cfg)

@@ -32,6 +32,7 @@ import functools
 import math
 import types
 import typing
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,6 +40,7 @@ from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettin
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.splits.settings import SplitSettings
 
 _INF = math.inf
 
@@ -180,13 +182,56 @@ def spec_of(cls: type, name: str) -> Spec | None:
     return _spec(kind, m, nullable)
 
 
+def _section(cls: type, name: str) -> type | None:
+    """The dataclass of field ``name`` of ``cls`` when that field is a nested section, else None."""
+    tp = typing.get_type_hints(cls).get(name)
+    return tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
+
+
+def structured_spec(key: str) -> Spec | None:
+    """The declaration of a dotted key under a :data:`STRUCTURED` section (``split.consistency.min_rows``:
+    through the nested dataclasses), None when the key is not under one or names no field."""
+    package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
+    if package is None:
+        return None
+    cls: type | None = STRUCTURED[package]
+    *path, name = key[len(package) + 1 :].split(".")
+    for part in path:
+        cls = _section(cls, part)
+        if cls is None:
+            return None
+    return spec_of(cls, name)
+
+
+def structured_keys() -> Iterator[str]:
+    """Every dotted key (nested sections included) the :data:`STRUCTURED` dataclasses declare."""
+
+    def keys(cls: type, prefix: str) -> Iterator[str]:
+        yield prefix
+        for f in dataclasses.fields(cls):
+            sub = _section(cls, f.name)
+            yield from keys(sub, f"{prefix}.{f.name}") if sub else [f"{prefix}.{f.name}"]
+
+    for package, cls in STRUCTURED.items():
+        yield from keys(cls, package)
+
+
 def schema_node(cls: type) -> Any:
     """``cls`` as the OmegaConf node Hydra stores: typed, with its defaults, writable even when the
-    dataclass is frozen (``OmegaConf.to_object`` of the composed node is a frozen ``cls`` again)."""
-    from omegaconf import OmegaConf
+    dataclass (or a nested one) is frozen (``OmegaConf.to_object`` of the composed node is a frozen ``cls``
+    again)."""
+    from omegaconf import DictConfig, OmegaConf
 
     node = OmegaConf.structured(cls)
-    OmegaConf.set_readonly(node, False)
+
+    def writable(n: DictConfig) -> None:
+        OmegaConf.set_readonly(n, False)
+        for key in n:
+            child = n._get_node(key)
+            if isinstance(child, DictConfig):
+                writable(child)
+
+    writable(node)
     return node
 
 
@@ -200,6 +245,7 @@ STRUCTURED: dict[str, type] = {
     "state": StateSettings,
     "report_data": ReportDataSettings,
     "figures": FigureSettings,
+    "split": SplitSettings,
 }
 
 
@@ -331,21 +377,6 @@ SCHEMA: dict[str, Spec] = {
     "groundtruth.relative_horizon": number(gt=0, what="s"),
     "groundtruth.loop_bound.*": number(gt=0),
     # -- split.yaml -------------------------------------------------------------------------------------
-    "split.rate_hz": number(gt=0, hi=1000, what="Hz"),
-    "split.cmd_timeout": number(gt=0, what="s"),
-    "split.allow_flagged": BOOL,
-    "split.drop_flagged": BOOL,
-    "split.consistency.min_speed": number(gt=0, what="m/s"),
-    "split.consistency.moving_wheel": number(gt=0, what="rad/s"),
-    "split.consistency.min_rows": integer(1),
-    "split.consistency.min_sign_agreement": number(0, 1),
-    "split.consistency.max_heading_offset_deg": number(0, 180, what="deg"),
-    "split.consistency.min_corr_v": number(-1, 1),
-    "split.consistency.max_uncommanded_frac": number(0, 1),
-    "split.consistency.settle_s": number(0, what="s"),
-    "split.max_gap": number(gt=0, what="s"),
-    "split.differentiator.window": integer(3),
-    "split.differentiator.order": integer(1),
     # -- card.yaml --------------------------------------------------------------------------------------
     "card.paper": BOOL,
     # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
@@ -442,9 +473,9 @@ SCHEMA: dict[str, Spec] = {
 def spec_for(key: str) -> Spec | None:
     """The declaration of a dotted key: a field of a :data:`STRUCTURED` dataclass, else the first matching
     entry of :data:`SCHEMA`, else None."""
-    package, _, name = key.rpartition(".")
-    if package in STRUCTURED:
-        return spec_of(STRUCTURED[package], name)
+    package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
+    if package is not None:
+        return structured_spec(key)
     spec = SCHEMA.get(key)
     if spec is not None:
         return spec

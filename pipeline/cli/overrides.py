@@ -11,7 +11,6 @@ additions, ``~key`` deletions and ``hydra.*`` settings are checked exactly as Hy
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 import functools
 import re
@@ -21,7 +20,13 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from skidbench.pipeline.cli.config_schema import STRUCTURED, check_value, describe, spec_for
+from skidbench.pipeline.cli.config_schema import (
+    check_value,
+    describe,
+    spec_for,
+    structured_keys,
+    structured_spec,
+)
 from skidbench.pipeline.core.errors import ConfigError, one_line
 from skidbench.pipeline.core.layout import register_resolvers
 
@@ -76,7 +81,7 @@ def _check(stage: str, overrides: list[str]) -> tuple[list[str], Any]:
     foreign: list[str] = []
     kept = list(overrides)
     for line in kept:  # a typed key's value as given (OmegaConf would take 1 for true, "1" for 1.0)
-        if line[:1] != "~" and _override_key(line).rpartition(".")[0] in STRUCTURED:
+        if line[:1] != "~" and structured_spec(_override_key(line)) is not None:
             key, value = parse_value(line)
             if value is not None:
                 check_value(key, value)
@@ -194,8 +199,7 @@ def _every_stage_key() -> frozenset[str]:
                     data = OmegaConf.to_container(OmegaConf.create(option.read_text()), resolve=False) or {}
                     data.pop("defaults", None)
                     keys.update(_flatten(data, f"{name}."))
-    for package, cls in STRUCTURED.items():  # the sections whose schema and defaults are a dataclass
-        keys.update([package, *(f"{package}.{f.name}" for f in dataclasses.fields(cls))])
+    keys.update(structured_keys())  # the sections whose schema and defaults are a dataclass
     return frozenset(keys)
 
 

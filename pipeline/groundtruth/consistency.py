@@ -23,34 +23,17 @@ A sequence is flagged when, over at least ``min_rows`` moving rows, the sign agr
 ``min_sign_agreement``, ``|heading_offset_deg|`` over ``max_heading_offset_deg``, or ``corr_v`` under
 ``min_corr_v``;
 or when ``uncommanded_s`` is over ``max_uncommanded_frac`` of its valid time (and at least 1 s). The
-thresholds live in ``split.consistency`` (conf/split.yaml).
+thresholds are ``split.consistency.*`` (:class:`~skidbench.pipeline.splits.settings.GateConfig`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-
-@dataclass(frozen=True)
-class GateConfig:
-    min_speed: float = 0.1  # m/s: a row moves when |v| or |vx| is above this
-    moving_wheel: float = 0.3  # rad/s: a wheel turning faster is moving
-    min_rows: int = 30  # moving rows needed to judge (1 s at 30 Hz)
-    min_sign_agreement: float = 0.5
-    max_heading_offset_deg: float = 45.0
-    min_corr_v: float = -0.2
-    max_uncommanded_frac: float = 0.1
-    settle_s: float = 1.5  # s after a zero command in which the robot may still be braking
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> GateConfig:
-        if cfg is None:
-            return cls()
-        return cls(**{k: type(getattr(cls(), k))(v) for k, v in dict(cfg).items() if hasattr(cls(), k)})
+from skidbench.pipeline.splits.settings import GateConfig
 
 
 def _corr(a: np.ndarray, b: np.ndarray) -> float:

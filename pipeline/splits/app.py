@@ -12,6 +12,7 @@ velocities against its wheels'); every sequence's gate numbers are in its split 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -30,11 +31,12 @@ from skidbench.pipeline.core.layout import Layout, layout_from_cfg, prune_stale
 from skidbench.pipeline.core.manifest import SPLITS, Manifest, Sequence
 from skidbench.pipeline.core.robot import Robot, robot_from_hydra
 from skidbench.pipeline.core.schema import write_split
-from skidbench.pipeline.groundtruth.consistency import GateConfig, consistency, describe
+from skidbench.pipeline.groundtruth.consistency import consistency, describe
 from skidbench.pipeline.groundtruth.trajectory import read_tum
 from skidbench.pipeline.runner.tasks import map_items
 from skidbench.pipeline.splits.build import build_split_table
 from skidbench.pipeline.splits.card import dataset_card
+from skidbench.pipeline.splits.settings import SplitSettings
 
 log = logging.getLogger("skidbench.split")
 
@@ -118,18 +120,18 @@ def read_encoders(ext: Path, robot: Robot) -> tuple[np.ndarray | None, np.ndarra
     return None, None, None
 
 
-def apply_gate(df: pd.DataFrame, gate: dict, sp: DictConfig, layout: Layout, seq: Sequence) -> bool:
+def apply_gate(df: pd.DataFrame, gate: dict, sp: SplitSettings, layout: Layout, seq: Sequence) -> bool:
     """What the consistency gate's verdict does to a sequence: nothing when not flagged; with
     ``split.drop_flagged`` (and not ``allow_flagged``) every row of ``df`` becomes invalid (in place);
     refused otherwise unless ``allow_flagged`` (returns False, and an earlier run's split file is removed)."""
     if not gate["flagged"]:
         return True
     log.warning("ground truth consistency gate FLAGGED %s", describe(seq.name, gate))
-    if bool(sp.get("drop_flagged", False)) and not bool(sp.allow_flagged):
+    if sp.drop_flagged and not sp.allow_flagged:
         gate["dropped"] = True  # kept in the manifest's layout, but no row of it is scored or fitted
         df["valid"] = False
         log.warning("%s: dropped (split.drop_flagged=true): every row valid=false", seq.name)
-    elif not bool(sp.allow_flagged):
+    elif not sp.allow_flagged:
         stale = layout.split_file(seq.terrain, seq.category, seq.name)
         stale.unlink(missing_ok=True)  # an earlier allowed run's file must not be scored now
         return False
@@ -137,7 +139,7 @@ def apply_gate(df: pd.DataFrame, gate: dict, sp: DictConfig, layout: Layout, seq
 
 
 def split_meta(
-    df: pd.DataFrame, gate: dict, sp: DictConfig, robot: Robot, seq: Sequence, sources: dict
+    df: pd.DataFrame, gate: dict, sp: SplitSettings, robot: Robot, seq: Sequence, sources: dict
 ) -> dict[str, Any]:
     """The metadata a split file records beside its table."""
     return {
@@ -147,12 +149,12 @@ def split_meta(
         "split": seq.category,
         "robot": robot.to_dict(),
         "sources": sources,
-        "rate_hz": float(sp.rate_hz),
-        "cmd_timeout_s": float(sp.cmd_timeout),
+        "rate_hz": sp.rate_hz,
+        "cmd_timeout_s": sp.cmd_timeout,
         "differentiator": {
             "kind": "savitzky_golay",
-            "window": int(sp.differentiator.window),
-            "order": int(sp.differentiator.order),
+            "window": sp.differentiator.window,
+            "order": sp.differentiator.order,
         },
         "max_wheel_rate": robot.max_wheel_rate,
         "clipped_rows": df.attrs.get("clipped_rows", 0),
@@ -160,11 +162,12 @@ def split_meta(
     }
 
 
-def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence) -> tuple[Path | None, dict]:
+def split_sequence(
+    sp: SplitSettings, layout: Layout, robot: Robot, seq: Sequence
+) -> tuple[Path | None, dict]:
     """Build one sequence's split table and gate it (:func:`consistency`); write it unless the gate
     flags it and ``split.allow_flagged`` is false. Returns (its path or None when refused, the gate's
     numbers)."""
-    sp = cfg.split
     ext = layout.extracted / seq.name
     tum = layout.groundtruth / f"{seq.name}.tum"
     if not tum.is_file():
@@ -176,14 +179,14 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
     if enc_path is not None:
         sources["enc"] = _source(enc_path)
     df = build_split_table(
-        robot, gt.stamp_ns, gt.se2, gt.gaps, cmd_t, cmd, kind, enc_t, enc, float(sp.rate_hz),
-        float(sp.cmd_timeout), float(sp.max_gap), int(sp.differentiator.window), int(sp.differentiator.order),
+        robot, gt.stamp_ns, gt.se2, gt.gaps, cmd_t, cmd, kind, enc_t, enc, sp.rate_hz,
+        sp.cmd_timeout, sp.max_gap, sp.differentiator.window, sp.differentiator.order,
     )  # fmt: skip
     if len(df) == 0 or not df["valid"].any():  # (checked before the gate, which may drop every row)
         raise SplitError(
             f"{tum}: empty sequence: no valid ground truth overlapping the commands of {cmd_path}"
         )
-    gate = consistency(df, robot.wheel_radius, robot.track_width, GateConfig.from_cfg(sp.get("consistency")))
+    gate = consistency(df, robot.wheel_radius, robot.track_width, sp.consistency)
     if not apply_gate(df, gate, sp, layout, seq):
         return None, gate
     path = layout.split_file(seq.terrain, seq.category, seq.name)
@@ -200,19 +203,20 @@ def split_sequence(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence)
 
 def run(cfg: DictConfig) -> list[Path]:
     layout = layout_from_cfg(cfg)
-    check_flag(layout, bool(cfg.split.allow_flagged))
+    sp: SplitSettings = OmegaConf.to_object(cfg.split)
+    check_flag(layout, sp.allow_flagged)
     manifest = Manifest.read(layout.manifest)
     robot = robot_from_hydra(cfg.robot)
     seqs = [s for s in manifest.sequences if s.category in SPLITS]
     if not seqs:
         raise SplitError(f"{layout.manifest}: empty split: no train/cv/ld sequences")
     conf = {
-        "split": OmegaConf.to_container(cfg.split, resolve=True),
+        "split": dataclasses.asdict(sp),
         "robot": OmegaConf.to_container(cfg.robot, resolve=True),
         "metadata": ["cmd_association"],  # what a split file records beyond its table: older ones re-split
     }
     # the sequences are independent: tasks (pipeline/tasks.py: forked workers, or Ray tasks on a cluster)
-    calls = [(cfg, layout, robot, s, conf) for s in seqs]
+    calls = [(sp, layout, robot, s, conf) for s in seqs]
     results = map_items(_split_task, calls, [s.name for s in seqs], what="split", unit="seq")
     written = [path for path, _, _ in results if path is not None]
     skipped = sum(fresh for _, _, fresh in results)
@@ -238,7 +242,7 @@ def run(cfg: DictConfig) -> list[Path]:
     return written
 
 
-def _split_task(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence, conf: dict):
+def _split_task(sp: SplitSettings, layout: Layout, robot: Robot, seq: Sequence, conf: dict):
     """Bring one sequence's split file up to date, in whatever process runs it: skipped when its stamp is
     fresh, else split (:func:`split_sequence`) and stamped. Returns ``(path or None when the gate refused
     it, the gate's numbers when computed, whether it was up to date)``."""
@@ -247,7 +251,7 @@ def _split_task(cfg: DictConfig, layout: Layout, robot: Robot, seq: Sequence, co
     key = stamp.key(split_inputs(layout, seq), {**conf, "terrain": seq.terrain, "category": seq.category})
     if stamp.is_fresh(key):
         return path, None, True
-    path, gate = split_sequence(cfg, layout, robot, seq)
+    path, gate = split_sequence(sp, layout, robot, seq)
     if path is not None:
         stamp.record(key, [path])
     return path, gate, False
