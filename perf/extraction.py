@@ -20,8 +20,9 @@ from typing import Any
 
 from skidbench.pipeline.core.layout import default_out_root
 from skidbench.pipeline.core.manifest import Manifest
-from skidbench.pipeline.extract.bag import ExtractOptions, extract_bag
+from skidbench.pipeline.extract.bag import extract_bag
 from skidbench.pipeline.extract.reader import default_typestore, topic_specs
+from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.extract.synthetic import JACKAL_TOPICS, write_bag
 
 from . import child_env, register

@@ -21,7 +21,7 @@ from skidbench.pipeline.core.layout import Layout
 from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.core.robot import load_robot
 from skidbench.pipeline.datasets.identity import check_source_settings
-from skidbench.pipeline.extract.bag import ExtractOptions
+from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.sources import registry
 from skidbench.pipeline.sources.contract import (
     SourceContext,

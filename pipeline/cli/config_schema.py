@@ -40,6 +40,7 @@ from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettin
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.splits.settings import SplitSettings
 
 _INF = math.inf
@@ -196,10 +197,13 @@ def structured_spec(key: str) -> Spec | None:
         return None
     cls: type | None = STRUCTURED[package]
     *path, name = key[len(package) + 1 :].split(".")
-    for part in path:
-        cls = _section(cls, part)
-        if cls is None:
-            return None
+    for i, part in enumerate(path):
+        sub = _section(cls, part)
+        if sub is None:  # a mapping field (extract.typestores): its values' type
+            tp = typing.get_type_hints(cls).get(part)
+            is_map = typing.get_origin(tp) is dict and i == len(path) - 1
+            return Spec(_kind(typing.get_args(tp)[1])[0]) if is_map else None
+        cls = sub
     return spec_of(cls, name)
 
 
@@ -209,8 +213,11 @@ def structured_keys() -> Iterator[str]:
     def keys(cls: type, prefix: str) -> Iterator[str]:
         yield prefix
         for f in dataclasses.fields(cls):
-            sub = _section(cls, f.name)
-            yield from keys(sub, f"{prefix}.{f.name}") if sub else [f"{prefix}.{f.name}"]
+            sub, key = _section(cls, f.name), f"{prefix}.{f.name}"
+            yield from keys(sub, key) if sub else [key]
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+            if isinstance(default, dict):
+                yield from (f"{key}.{k}" for k in default)  # a mapping's default entries
 
     for package, cls in STRUCTURED.items():
         yield from keys(cls, package)
@@ -246,6 +253,7 @@ STRUCTURED: dict[str, type] = {
     "report_data": ReportDataSettings,
     "figures": FigureSettings,
     "split": SplitSettings,
+    "extract": ExtractOptions,
 }
 
 
@@ -347,12 +355,6 @@ SCHEMA: dict[str, Spec] = {
     "rates.*": number(gt=0, what="Hz"),
     "sensors.*": number(0, what="1-sigma noise"),
     # -- extract.yaml -----------------------------------------------------------------------------------
-    "extract.images": choice("ref", "inline", "files"),
-    "extract.batch_rows": COUNT,
-    "extract.batch_bytes": COUNT,
-    "extract.force": BOOL,
-    "extract.progress": BOOL,
-    "extract.typestores.*": STR,
     # -- groundtruth.yaml -------------------------------------------------------------------------------
     "groundtruth.method": choice("vo", "orbslam", "pose_topic"),
     "groundtruth.jobs": COUNT,

@@ -19,23 +19,10 @@ from skidbench.pipeline.core.layout import layout_from_cfg, prune_stale
 from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.core.robot import robot_from_hydra
 from skidbench.pipeline.datasets.identity import identity_from_cfg, record
-from skidbench.pipeline.extract.bag import ExtractOptions
 from skidbench.pipeline.sources import registry
 from skidbench.pipeline.sources.contract import SourceContext
 
 log = logging.getLogger("skidbench.extract")
-
-
-def options_from_cfg(cfg: DictConfig) -> ExtractOptions:
-    ext = OmegaConf.to_container(cfg.extract, resolve=True)
-    return ExtractOptions(
-        images=str(ext["images"]),
-        batch_rows=int(ext["batch_rows"]),
-        batch_bytes=int(ext["batch_bytes"]),
-        force=bool(ext["force"]),
-        progress=bool(ext["progress"]),
-        typestores=dict(ext["typestores"]),
-    )
 
 
 def source_section(cfg: DictConfig) -> dict[str, Any]:
@@ -47,7 +34,8 @@ def run(cfg: DictConfig) -> Any:
     """Extract the configured source into ``<out_root>/<dataset>/extracted``."""
     layout = layout_from_cfg(cfg)
     source, settings = registry.load(source_section(cfg))
-    ctx = SourceContext(robot=robot_from_hydra(cfg.robot), layout=layout, options=options_from_cfg(cfg))
+    options = OmegaConf.to_object(cfg.extract)
+    ctx = SourceContext(robot=robot_from_hydra(cfg.robot), layout=layout, options=options)
     records = source.extract(settings, ctx)
     # the manifest just written is the current one: outputs of sequences it lacks go, and the identity
     # record (pipeline/datasets/identity.py) lists its terrains

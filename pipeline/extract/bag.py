@@ -12,18 +12,16 @@ import itertools
 import json
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
 
 from skidbench.pipeline.core.cache import Stamp
-from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.io import write_json_atomic
 from skidbench.pipeline.extract.convert import (
     CONVERTERS,
-    IMAGE_MODES,
     TF_MESSAGE,
     image_file,
     image_row,
@@ -32,35 +30,17 @@ from skidbench.pipeline.extract.convert import (
     tf_rows,
 )
 from skidbench.pipeline.extract.reader import (
-    DEFAULT_STORES,
     TopicSpec,
     iter_messages,
     open_bag,
     select_connections,
 )
+from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.extract.writer import SequenceWriter, TableSink
 
 EXTRACT_INFO = "_extract.json"
 STAMP = ".stamp.json"  # skidbench.pipeline.core.cache: skip a sequence whose bag and config are unchanged
 EXTRACT_SCHEMA = 1
-
-
-@dataclass(frozen=True)
-class ExtractOptions:
-    """``extract.*`` settings. ``batch_rows``: rows buffered per table before a write; ``batch_bytes``:
-    image bytes buffered per table before a write (bytes); ``typestores``: default typestore per bag
-    format, for bags without message definitions."""
-
-    images: str = "ref"
-    batch_rows: int = 1024
-    batch_bytes: int = 8 << 20
-    force: bool = False
-    progress: bool = True
-    typestores: Mapping[str, str] = field(default_factory=lambda: dict(DEFAULT_STORES))
-
-    def __post_init__(self):
-        if self.images not in IMAGE_MODES:
-            raise ConfigError(f"extract.images={self.images!r}: must be one of {', '.join(IMAGE_MODES)}")
 
 
 def _stamp_config(specs: list[TopicSpec], opts: ExtractOptions) -> dict[str, Any]:

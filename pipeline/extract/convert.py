@@ -22,10 +22,6 @@ LIST_F64 = pa.list_(F64)
 
 TIME_FIELDS = [pa.field("stamp_ns", pa.int64()), pa.field("bag_time_ns", pa.int64())]
 
-# Images: "ref" keeps the bytes in the bag (index, nbytes), "inline" adds a binary column, "files"
-# writes one file per image under <seq>/images/<key>/.
-IMAGE_MODES = ("ref", "inline", "files")
-
 
 def normalize_msgtype(name: str) -> str:
     """``geometry_msgs/Twist`` (ROS1 spelling) -> ``geometry_msgs/msg/Twist`` (rosbags' spelling)."""

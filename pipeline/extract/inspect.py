@@ -27,13 +27,13 @@ from skidbench.pipeline.core.layout import register_resolvers
 from skidbench.pipeline.extract.convert import normalize_msgtype, schema_for
 from skidbench.pipeline.extract.reader import (
     _BAG_ERRORS,
-    DEFAULT_STORES,
     TopicSpec,
     _bag_error,
     bag_format,
     find_bags,
     open_bag,
 )
+from skidbench.pipeline.extract.settings import DEFAULT_STORES
 
 log = logging.getLogger("skidbench.extract")
 

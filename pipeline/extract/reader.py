@@ -20,7 +20,6 @@ import struct
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -32,15 +31,12 @@ from rosbags.typesys import Stores, TypesysError, get_typestore
 from skidbench.pipeline.core.errors import ConfigError, ExtractError
 from skidbench.pipeline.core.manifest import CATEGORIES, Manifest, Sequence
 from skidbench.pipeline.extract.convert import normalize_msgtype
+from skidbench.pipeline.extract.settings import DEFAULT_STORES
 
 ROS1, ROS2 = "ros1", "ros2"
 ROS2_METADATA = "metadata.yaml"
 ROS2_STORAGE_SUFFIXES = (".mcap", ".db3")  # rosbag2's storage files, readable without metadata.yaml
 BAG_KINDS = "a ROS1 .bag file, a ROS2 .mcap or .db3 file, or a ROS2 bag folder with metadata.yaml"
-#: The default typestore per bag format (rosbags' ``Stores`` names, lower case): the types of a bag without
-#: message definitions, and the types the simulator and the synthetic bags write. ``extract.typestores``
-#: in conf/extract.yaml repeats these as the configurable default.
-DEFAULT_STORES: Mapping[str, str] = MappingProxyType({ROS1: "ros1_noetic", ROS2: "ros2_humble"})
 
 try:  # rosbags' SQLite backend (a dependency of rosbags): a damaged .db3 raises its errors
     from apsw import Error as _SqliteError

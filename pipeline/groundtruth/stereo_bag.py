@@ -17,7 +17,8 @@ from skidbench.pipeline.core.errors import GroundTruthError, one_line
 from skidbench.pipeline.core.timesync import nearest
 from skidbench.pipeline.extract.convert import header_stamp_ns
 from skidbench.pipeline.extract.images import ImageDecodeError, gray8
-from skidbench.pipeline.extract.reader import DEFAULT_STORES, open_bag
+from skidbench.pipeline.extract.reader import open_bag
+from skidbench.pipeline.extract.settings import DEFAULT_STORES
 from skidbench.pipeline.groundtruth.stereo_vo import StereoCamera, VOConfig
 
 __all__ = ["open_stereo_bag", "read_stereo_camera", "check_image_topics", "iter_stereo_frames"]
@@ -25,7 +26,7 @@ __all__ = ["open_stereo_bag", "read_stereo_camera", "check_image_topics", "iter_
 
 def open_stereo_bag(bag_path: Path, stores: Mapping[str, str] | None = None):
     """The bag open with rosbags' AnyReader (a context manager); ``stores``: ``extract.typestores``
-    (default :data:`~skidbench.pipeline.extract.reader.DEFAULT_STORES`)."""
+    (default :data:`~skidbench.pipeline.extract.settings.DEFAULT_STORES`)."""
     return open_bag(bag_path, stores or DEFAULT_STORES)
 
 

@@ -44,7 +44,7 @@ from skidbench.pipeline.sources.common import (
 )
 
 if TYPE_CHECKING:
-    from skidbench.pipeline.extract.bag import ExtractOptions
+    from skidbench.pipeline.extract.settings import ExtractOptions
 
 __all__ = [
     "TWIST_COLUMNS", "Source", "SourceContext", "SourceData", "SourceSequence", "TableSource", "Tables",
