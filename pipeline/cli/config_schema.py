@@ -245,7 +245,7 @@ def schema_node(cls: type) -> Any:
 #: the settings dataclasses that are the schema of a config section: where they sit in a stage's config
 #: (the package) -> the dataclass. Each is stored in Hydra's ConfigStore as ``schema/<package>``; a YAML
 #: file lists it in its defaults list (``- /schema/calibrate``), and the dataclass gives the keys, their
-#: types, defaults and ranges (:func:`skidbench.pipeline.core.settings.setting`).
+#: types, defaults and ranges (:func:`spec_of`).
 STRUCTURED: dict[str, type] = {
     "calibrate": CalibrationSettings,
     "intervals": IntervalConfig,
@@ -354,7 +354,6 @@ SCHEMA: dict[str, Spec] = {
     "jobs": COUNT,
     "rates.*": number(gt=0, what="Hz"),
     "sensors.*": number(0, what="1-sigma noise"),
-    # -- extract.yaml -----------------------------------------------------------------------------------
     # -- groundtruth.yaml -------------------------------------------------------------------------------
     "groundtruth.method": choice("vo", "orbslam", "pose_topic"),
     "groundtruth.jobs": COUNT,
@@ -378,7 +377,6 @@ SCHEMA: dict[str, Spec] = {
     "groundtruth.truth_key": STR,
     "groundtruth.relative_horizon": number(gt=0, what="s"),
     "groundtruth.loop_bound.*": number(gt=0),
-    # -- split.yaml -------------------------------------------------------------------------------------
     # -- card.yaml --------------------------------------------------------------------------------------
     "card.paper": BOOL,
     # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
