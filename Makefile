@@ -81,8 +81,7 @@ endif
 # dynamics models at the horizons of the error-against-horizon curve (the 6 s board first), then compare
 # (reports/horizons.md: error against horizon by aggressiveness). The other models' fits are the commanded
 # evaluate's (the same fit files).
-STATE_ARGS ?= 'models=[ideal,edd,full_linear,roc,enhanced,friction,drive_blr,gp_residual,relax,state_ridge]' \
-	'horizons=[6.0,0.5,1.0,2.0,4.0]'
+STATE_ARGS ?= 'models=[ideal,edd,full_linear,roc,enhanced,friction,drive_blr,gp_residual,relax,state_ridge]'
 
 reproduce-state: setup
 	$(SKB) evaluate $(SRC_ARGS) inputs=state $(STATE_ARGS)

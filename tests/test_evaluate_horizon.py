@@ -76,8 +76,26 @@ def test_relative_errors_and_minimum_distance_rotation():
     np.testing.assert_allclose(w["distance"], 2.2, rtol=1e-9)
     np.testing.assert_allclose(w["rel_trans"], 0.2 / 2.2, rtol=1e-9)
     assert w["rel_rot"].isna().all()  # under the minimum rotation: left out
-    w = window_errors(t, gt, vel, 2.0, hcfg=HorizonConfig(2.0, min_distance_m=5.0))
+    # the minimums are stated at 6 s and scale with the horizon: 6.3 m in 6 s is 2.1 m in 2 s (kept),
+    # 6.9 m in 6 s is 2.3 m in 2 s (left out)
+    w = window_errors(t, gt, vel, 2.0, hcfg=HorizonConfig(2.0, min_distance_m=6.3))
+    assert w["rel_trans"].notna().all()
+    w = window_errors(t, gt, vel, 2.0, hcfg=HorizonConfig(2.0, min_distance_m=6.9))
     assert w["rel_trans"].isna().all()
+
+
+def test_the_minimums_are_a_mean_speed_and_turn_rate_at_every_horizon():
+    hcfg = HorizonConfig(6.0, min_distance_m=0.5, min_rotation_rad=np.deg2rad(10.0))
+    assert hcfg.minimums(6.0) == (0.5, np.deg2rad(10.0))  # the paper's horizon: as stated
+    d, r = hcfg.minimums(0.5)
+    assert d == pytest.approx(0.5 / 12) and r == pytest.approx(np.deg2rad(10.0) / 12)
+    # a robot at 0.4 m/s turning at 0.2 rad/s: every 0.5 s window counts (0.2 m, 5.7 deg), as its 6 s ones
+    t = np.arange(601) / 30.0
+    vel = np.tile([0.4, 0.0, 0.2], (601, 1))
+    gt = integrate_body_velocity(np.zeros(3), vel[:-1], np.diff(t))
+    for h in (0.5, 6.0):
+        w = window_errors(t, gt, vel, h, hcfg=hcfg)
+        assert len(w) and w["rel_trans"].notna().all() and w["rel_rot"].notna().all()
 
 
 def test_windows_touching_invalid_samples_are_dropped():

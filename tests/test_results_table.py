@@ -204,3 +204,31 @@ def test_the_board_from_the_results_table_alone_is_what_mlflow_and_the_leaderboa
         b = brd.protocol_board(table, protocol)
         params = client.get_run(b.parent_run_id).data.params
         assert b.settings == {k: ast.literal_eval(params[k]) for k in rt.SETTING_KEYS}
+
+
+@pytest.mark.slow  # the README's quick start (a session fixture shared with test_e2e)
+def test_the_stratum_rows_partition_every_cell_of_every_horizon(readme_reproduce):
+    """evaluate's default horizons (the board's 6 s first) each have the aggressiveness terciles' rows:
+    for every run, split, horizon and metric the terciles' windows add up to the cell's, and an RMS
+    metric's value is the pooled RMS of its terciles' (the same windows, cut in three)."""
+    layout = Layout(readme_reproduce["root"], "sim-tiny")
+    table = rt.read(layout)
+    model = table[(table["role"] == "model") & (table["status"] == "FINISHED")]
+    assert sorted(set(model["horizon_s"])) == [0.5, 1.0, 2.0, 4.0, 6.0]
+    assert set(model["stratum"]) == {"all", "low", "mid", "high"}
+    key = ["evaluate_id", "run_id", "split", "horizon_s", "metric"]
+    parts = model[model["stratum"] != "all"].copy()
+    parts["sq"] = parts["estimate"].fillna(0.0) ** 2 * parts["n_windows"]
+    summed = parts.groupby(key)[["n_windows", "sq"]].sum()
+    whole = model[model["stratum"] == "all"].set_index(key)
+    joined = whole.join(summed, rsuffix="_parts", how="inner")
+    assert len(joined) == len(whole)  # every cell has its terciles
+    assert (joined["n_windows"] == joined["n_windows_parts"]).all()
+    rms = joined[
+        joined.index.get_level_values("metric").isin(
+            [m.name for m in mt.METRICS if m.bootstrap is not None and m.bootstrap.aggregation == "rms"]
+        )
+    ]
+    pooled = np.sqrt(rms["sq"] / rms["n_windows"].clip(lower=1))
+    ok = rms["n_windows"] > 0
+    np.testing.assert_allclose(pooled[ok], rms.loc[ok, "estimate"], rtol=1e-6)

@@ -22,11 +22,10 @@ import pandas as pd
 
 from skidbench.benchmark.board.boards import read_windows
 from skidbench.benchmark.board.tables import scope_line
-from skidbench.benchmark.evaluate.testsets import load_test_split
+from skidbench.benchmark.evaluate.strata import stratum_windows
 from skidbench.benchmark.scoring import aggressiveness as ag
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
-from skidbench.benchmark.scoring.horizon import horizon_steps
 from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.pipeline.core.io import atomic_path, write_text_atomic
 from skidbench.pipeline.core.layout import Layout
@@ -48,26 +47,6 @@ def board_horizons(layout: Layout, board: pd.DataFrame, protocol: str) -> list[f
     return []
 
 
-def _with_aggressiveness(layout: Layout, windows: dict, horizon_s: float, robot_half_track: float) -> None:
-    """Adds ``aggressiveness`` to every window table lacking it, from the test splits' commands."""
-    cache: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-    for (_model, terrain), w in windows.items():
-        if "aggressiveness" in w:
-            continue
-        values = np.full(len(w), np.nan)
-        for split in w["split"].unique():
-            if (terrain, split) not in cache:
-                cache[(terrain, split)] = {s.name: (s.table["t"].to_numpy(float),
-                                                    ag.sample_acceleration(s.table, robot_half_track))
-                                           for s in load_test_split(layout, terrain, str(split))}  # fmt: skip
-            for seq, (t, acc) in cache[(terrain, split)].items():
-                rows = ((w["split"] == split) & (w["sequence"].astype(str) == seq)).to_numpy()
-                if rows.any():
-                    values[rows] = ag.window_aggressiveness(acc, w.loc[rows, "start"].to_numpy(int),
-                                                            horizon_steps(t, horizon_s))  # fmt: skip
-        w["aggressiveness"] = values
-
-
 def strata_standings(
     layout: Layout, board: pd.DataFrame, protocol: str, horizon_s: float, intervals: IntervalConfig,
     rank_by: str, half_track: float,
@@ -76,24 +55,8 @@ def strata_standings(
     windows, _ = read_windows(layout, board, protocol, horizon_s)
     if not any(m != FLOOR for m, _ in windows):
         return {}
-    windows = {k: w.copy() for k, w in windows.items()}
-    _with_aggressiveness(layout, windows, horizon_s, half_track)
-    # the dataset's terciles: each window once (one model's tables per terrain; every model has the same)
-    first = {}
-    for (model, terrain), w in windows.items():
-        if model != FLOOR:
-            first.setdefault(terrain, w)
-    edges = ag.tercile_edges([w["aggressiveness"].to_numpy(float) for w in first.values()])
-    out = {ag.ALL: st.build(windows, horizon_s, intervals, rank_by)}
-    for name in ag.STRATA:
-        part = {}
-        for key, w in windows.items():
-            sel = ag.strata(w["aggressiveness"].to_numpy(float), edges) == name
-            if sel.any():
-                part[key] = w[sel]
-        if any(m != FLOOR for m, _ in part):
-            out[name] = st.build(part, horizon_s, intervals, rank_by)
-    return out
+    return {name: st.build(part, horizon_s, intervals, rank_by)
+            for name, part in stratum_windows(layout, windows, horizon_s, half_track).items()}  # fmt: skip
 
 
 def _cell(row: pd.Series) -> str:

@@ -34,10 +34,10 @@ from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.io import write_parquet_atomic
 from skidbench.pipeline.core.layout import Layout
 
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"  # 1.1: the stratum rows (benchmark/evaluate/strata.py)
 #: the Parquet metadata key of the schema version
 VERSION_KEY = "skidbench.results_schema"
-ALL = "all"  # the stratum of every window (the only one until strata are scored)
+ALL = "all"  # the stratum of every window (the others: benchmark/evaluate/strata.py)
 MODEL, REFERENCE = "model", "floor"  # the rows' roles: a model's run, or the floor of a terrain
 
 _S, _F, _I, _B = pa.string(), pa.float64(), pa.int64(), pa.bool_()
@@ -209,6 +209,14 @@ class Writer:
         self.records = [r for r in self.records if key(r) not in new] + list(records)
         self._write()
 
+    def add_strata(self, records: Sequence[dict]) -> None:
+        """Writes stratum rows (``stratum`` other than :data:`ALL`) of runs already written, in place of
+        their earlier stratum rows."""
+        key = lambda r: (r["run_id"], r["model"], r["terrain"])  # noqa: E731
+        new = {key(r) for r in records}
+        self.records = [r for r in self.records if r["stratum"] == ALL or key(r) not in new] + list(records)
+        self._write()
+
     @contextlib.contextmanager
     def until_done(self, finished: Callable[[Path], None] | None = None) -> Iterator[None]:
         """The block of the evaluate: the file ends with its status (FINISHED, FAILED, or KILLED on an
@@ -358,7 +366,7 @@ def board(table: pd.DataFrame, chosen: pd.DataFrame, horizon_s: float) -> pd.Dat
     at = table[
         np.isclose(table["horizon_s"].to_numpy(float), horizon_s) & table["run_id"].isin(chosen["run_id"])
     ]
-    at = at[at["role"] == MODEL]
+    at = at[(at["role"] == MODEL) & (at["stratum"] == ALL)]
     metrics = {r: mlflow_metrics(g) for r, g in at.groupby("run_id", sort=False)}
     logged = {k for m in metrics.values() for k in m}
     for metric in mt.METRICS:

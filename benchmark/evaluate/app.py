@@ -185,6 +185,7 @@ def _cached_result(cfg: DictConfig, layout, stamp):
         last["tracking_uri"], last["experiment"], last["parent_run_id"], children,
         last.get("inputs", "commanded"), list(last.get("skipped") or []),
         {str(t): dict(m) for t, m in (last.get("floor") or {}).items()},  # every board shows the floor
+        [float(h) for h in last.get("horizons") or []],
     )  # fmt: skip
 
 

@@ -3,6 +3,7 @@ intervals (and a seeded model's spread over seeds), and the floor of each terrai
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -22,7 +23,9 @@ PROTOCOL_TEXT = {
 
 def format_result(result: Any, findings: Sequence[str] = ()) -> str:
     """A short text summary for the console: the headline metrics (RMSRE in %, ...) per (model, terrain)
-    at each horizon, each with its 95 % interval in brackets, the floor of each terrain (never ranked;
+    at the board's horizon (the evaluate's first; every horizon when the result does not say), each with
+    its 95 % interval in brackets, a line naming the other horizons scored (compare's error against
+    horizon), the floor of each terrain (never ranked;
     docs/intervals.md), and ``findings``: what the fits behind the board found (a parameter at its bound:
     ``roc degenerates to edd on this data: b2 at its bound (grass: b2 = 6e-25)``), one ``note:`` line each."""
     rows = [
@@ -32,11 +35,14 @@ def format_result(result: Any, findings: Sequence[str] = ()) -> str:
              for t, m in result.floor.items()]  # fmt: skip
     df = pd.DataFrame(rows)
     show = df[["model", "terrain", "status"]].copy()
+    board_h = result.horizons[0] if result.horizons else None
     for metric in mt.HEADLINE:
         for c in list(df.columns):
             parsed = mt.parse_key(c)
             if parsed is not None and parsed[0] is metric:
                 split, h = parsed[1], float(parsed[2][:-1])
+                if board_h is not None and not math.isclose(h, board_h):
+                    continue
                 lo, hi, _ = metric.interval_keys(split, h)
                 label = f"{metric.short} {split.upper()} {parsed[2]} {metric.label_unit}".rstrip()
                 show[label] = [
@@ -55,6 +61,13 @@ def format_result(result: Any, findings: Sequence[str] = ()) -> str:
         'not how another drive would differ; docs/intervals.md, "What an interval covers")',
         *(f"note: {f}" for f in findings),
     ]
+    if len(result.horizons) > 1:
+        others = ", ".join(f"{h:g}" for h in sorted(result.horizons[1:]))
+        lines.insert(
+            len(lines) - len(findings),
+            f"(also scored at {others} s: `skidbench compare` writes "
+            "the error against horizon, reports/horizons.md)",
+        )
     for c in result.failed:
         lines.append(f"FAILED {c.model}/{c.terrain}: {c.reason}")
         if c.traceback:

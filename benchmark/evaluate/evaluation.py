@@ -43,6 +43,7 @@ from skidbench.benchmark.evaluate.fit_record import (
 )
 from skidbench.benchmark.evaluate.references import log_floor, seed_spread
 from skidbench.benchmark.evaluate.settings import EvaluateSettings
+from skidbench.benchmark.evaluate.strata import strata_records
 from skidbench.benchmark.evaluate.testsets import (
     TRAIN,
     EvaluationData,
@@ -99,6 +100,7 @@ class BenchmarkResult:
     inputs: str = "commanded"
     skipped: list[str] = field(default_factory=list)  # one line per (terrain, split) the protocol skipped
     floor: dict[str, dict[str, float]] = field(default_factory=dict)  # terrain -> the floor's metrics
+    horizons: list[float] = field(default_factory=list)  # s, the board's first (the console shows it)
 
     @property
     def failed(self) -> list[ChildResult]:
@@ -159,7 +161,7 @@ def run_benchmark(
         if done:  # a retried job whose earlier attempt finished: its runs are the result
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
-                                                       skipped))  # fmt: skip
+                                                       skipped, horizons=list(horizons)))  # fmt: skip
         about, _ = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
         plan = reuse.plan_reuse(es, tracker, files_of, terrains) if keyed else reuse.ReusePlan()
         parent_tags = {
@@ -186,12 +188,15 @@ def run_benchmark(
                                es.row_facts(parent_id, tracker, env_tags, commit))  # fmt: skip
             with ctx.results.until_done(lambda path: tracker.artifact(parent_id, path, "results")):
                 floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
+                half_track = float((es.conf.get("robot") or {}).get("track_width") or 0.0) / 2.0
+                ctx.results.add_strata(strata_records(layout, ctx.results.records, protocol, horizons,
+                                                      es.intervals, half_track))  # fmt: skip
                 _log_board(ctx, children, splits, protocol, about)
                 save_views(tracker, parent_id, splits, horizons, protocol, children)
     except MlflowException as exc:
         raise EvaluationError(f"MLflow store {tracker.uri}: {one_line(exc.message)[:300]}") from None
     return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, parent_id, children,
-                                               protocol, skipped, floor))  # fmt: skip
+                                               protocol, skipped, floor, list(horizons)))  # fmt: skip
 
 
 def _run_terrains(
@@ -278,6 +283,7 @@ def _write_last(layout: Layout, result: BenchmarkResult) -> BenchmarkResult:
             "skipped": result.skipped,
             "children": [c.__dict__ for c in result.children],
             "floor": result.floor,
+            "horizons": result.horizons,
         },
     )
     return result

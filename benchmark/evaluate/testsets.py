@@ -15,7 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from skidbench.benchmark.errors import EvaluationError
-from skidbench.benchmark.scoring.horizon import HorizonConfig, count_windows, horizon_steps, window_errors
+from skidbench.benchmark.scoring.horizon import (
+    MINIMUMS_AT_S,
+    HorizonConfig,
+    count_windows,
+    horizon_steps,
+    window_errors,
+)
 from skidbench.benchmark.scoring.predictions import Inputs, TestSequence
 from skidbench.pipeline.calibrate.calibration import Calibrations, response_for
 from skidbench.pipeline.core.cache import Fingerprints
@@ -135,16 +141,19 @@ def check_scores(where: str, seqs: Sequence[TestSequence], horizon_s: float, hcf
             f"{len(seqs)} sequence(s), the longest stretch {longest:.1f} s, and a window needs {h} of "
             "valid samples; record longer (or keep more of it), or lower horizons=[...]"
         )
+    min_distance, min_rotation = hcfg.minimums(horizon_s)
     deg = math.degrees(hcfg.min_rotation_rad)
+    at = "" if horizon_s == MINIMUMS_AT_S else f", {min_distance:.3g} m at {h}"
     if trans == 0:
         raise EvaluationError(
-            f"{where}: no {h} window travels min_distance_m={hcfg.min_distance_m:g} m ({n} window(s), "
+            f"{where}: no {h} window travels min_distance_m={hcfg.min_distance_m:g} m{at} ({n} window(s), "
             f"the farthest {farthest:.2f} m): the translational score has nothing to rank; record the robot "
             "driving, or lower min_distance_m"
         )
+    at = "" if horizon_s == MINIMUMS_AT_S else f", {math.degrees(min_rotation):.3g} deg at {h}"
     if rot == 0:
         raise EvaluationError(
-            f"{where}: no {h} window turns min_rotation_deg={deg:g} deg ({n} window(s), the most "
+            f"{where}: no {h} window turns min_rotation_deg={deg:g} deg{at} ({n} window(s), the most "
             f"{math.degrees(most_turn):.1f} deg): the rotational score has nothing to rank; record turns, "
             "or lower min_rotation_deg"
         )

@@ -31,12 +31,27 @@ from skidbench.pipeline.core.geometry import (
     step_velocities,
 )
 
+#: the horizon (s) the minimum distance and rotation are stated at: the paper's 6 s
+MINIMUMS_AT_S = 6.0
+
 
 @dataclass(frozen=True)
 class HorizonConfig:
+    """The board's horizon and the minimums a window must travel (``min_distance_m``) or turn
+    (``min_rotation_rad``) to count in the translational / rotational metric, stated at the paper's 6 s
+    horizon (:data:`MINIMUMS_AT_S`) and scaled in proportion at another (:meth:`minimums`)."""
+
     horizon_s: float = 6.0
     min_distance_m: float = 0.5  # windows that travel less are left out of the translational metric
     min_rotation_rad: float = np.deg2rad(10.0)  # ... that turn less, out of the rotational metric
+
+    def minimums(self, horizon_s: float) -> tuple[float, float]:
+        """``(distance m, rotation rad)`` a window of ``horizon_s`` must travel / turn: the stated minimums
+        times ``horizon_s / 6 s``, i.e. the same mean speed and turn rate (0.5 m in 6 s is 0.083 m/s; a
+        0.5 s window must travel 0.042 m). A fixed distance would leave out every short window of a robot
+        that drives slower than ``min_distance_m / horizon_s`` and keep only its fastest ones."""
+        k = float(horizon_s) / MINIMUMS_AT_S
+        return self.min_distance_m * k, self.min_rotation_rad * k
 
 
 #: the columns of :func:`window_errors`, in order
@@ -85,7 +100,8 @@ def window_errors(
     details: ``end`` (index), ``pred_x``, ``pred_y``, ``pred_yaw`` (predicted pose at the window's end).
     With ``velocity_cov`` (T, 3, 3), the model's predictive covariance of (vx, vy, wz), and optionally
     its error ``autocorr`` (L, 3), the columns of :data:`UNCERTAINTY_COLUMNS` follow. ``hcfg``: the
-    windows' minimum distance and rotation (default :class:`HorizonConfig`'s).
+    windows' minimum distance and rotation at ``horizon_s`` (:meth:`HorizonConfig.minimums`; default
+    :class:`HorizonConfig`'s).
     """
     hcfg = hcfg or HorizonConfig(horizon_s=horizon_s)
     t = np.asarray(t, dtype=float)
@@ -113,9 +129,10 @@ def window_errors(
     if valid is not None:
         bad = np.concatenate([[0], np.cumsum(~np.asarray(valid, dtype=bool))])
         keep = (bad[ends + 1] - bad[starts]) == 0
+    min_distance, min_rotation = hcfg.minimums(horizon_s)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel_trans = np.where(distance >= hcfg.min_distance_m, pos_err / distance, np.nan)
-        rel_rot = np.where(rotation >= hcfg.min_rotation_rad, np.abs(rot_err) / rotation, np.nan)
+        rel_trans = np.where(distance >= min_distance, pos_err / distance, np.nan)
+        rel_rot = np.where(rotation >= min_rotation, np.abs(rot_err) / rotation, np.nan)
     out = pd.DataFrame(
         {
             "start": starts,

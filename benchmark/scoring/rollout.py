@@ -124,9 +124,10 @@ def _batch_windows(df: pd.DataFrame, b: Batch, vel: np.ndarray, horizons: Sequen
         rot_err = gt[ends, 2] - p[:, 2]
         aggr = window_aggressiveness(acc, b.starts, n)
         distance, rotation = cum_len[ends] - cum_len[b.starts], cum_rot[ends] - cum_rot[b.starts]
+        min_distance, min_rotation = hcfg.minimums(h)
         with np.errstate(divide="ignore", invalid="ignore"):
-            rel_trans = np.where(distance >= hcfg.min_distance_m, pos_err / distance, np.nan)
-            rel_rot = np.where(rotation >= hcfg.min_rotation_rad, np.abs(rot_err) / rotation, np.nan)
+            rel_trans = np.where(distance >= min_distance, pos_err / distance, np.nan)
+            rel_rot = np.where(rotation >= min_rotation, np.abs(rot_err) / rotation, np.nan)
         out.append(pd.DataFrame({
             "horizon_s": float(h), "start": b.starts, "t0": t[b.starts], "distance": distance,
             "rotation": rotation, "trans_err": pos_err, "rot_err": rot_err, "rel_trans": rel_trans,
