@@ -221,7 +221,7 @@ def test_the_stratum_rows_partition_every_cell_of_every_horizon(readme_reproduce
     parts["sq"] = parts["estimate"].fillna(0.0) ** 2 * parts["n_windows"]
     summed = parts.groupby(key)[["n_windows", "sq"]].sum()
     whole = model[model["stratum"] == "all"].set_index(key)
-    joined = whole.join(summed, rsuffix="_parts", how="inner")
+    joined = whole.join(summed.add_suffix("_parts"), how="inner")
     assert len(joined) == len(whole)  # every cell has its terciles
     assert (joined["n_windows"] == joined["n_windows_parts"]).all()
     rms = joined[
@@ -229,6 +229,7 @@ def test_the_stratum_rows_partition_every_cell_of_every_horizon(readme_reproduce
             [m.name for m in mt.METRICS if m.bootstrap is not None and m.bootstrap.aggregation == "rms"]
         )
     ]
-    pooled = np.sqrt(rms["sq"] / rms["n_windows"].clip(lower=1))
+    pooled = np.sqrt(rms["sq_parts"] / rms["n_windows"].clip(lower=1))
     ok = rms["n_windows"] > 0
-    np.testing.assert_allclose(pooled[ok], rms.loc[ok, "estimate"], rtol=1e-6)
+    # each value is logged rounded (5 significant digits): the pooled RMS agrees to that
+    np.testing.assert_allclose(pooled[ok], rms.loc[ok, "estimate"], rtol=1e-3, atol=1e-4)
