@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 from skidbench.benchmark.board.boards import read_windows
+from skidbench.benchmark.board.strata import stratum_windows
 from skidbench.benchmark.board.tables import scope_line
-from skidbench.benchmark.evaluate.strata import stratum_windows
 from skidbench.benchmark.scoring import aggressiveness as ag
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR

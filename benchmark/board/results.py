@@ -34,10 +34,10 @@ from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.io import write_parquet_atomic
 from skidbench.pipeline.core.layout import Layout
 
-SCHEMA_VERSION = "1.1"  # 1.1: the stratum rows (benchmark/evaluate/strata.py)
+SCHEMA_VERSION = "1.1"  # 1.1: the stratum rows (benchmark/board/strata.py)
 #: the Parquet metadata key of the schema version
 VERSION_KEY = "skidbench.results_schema"
-ALL = "all"  # the stratum of every window (the others: benchmark/evaluate/strata.py)
+ALL = "all"  # the stratum of every window (the others: benchmark/board/strata.py)
 MODEL, REFERENCE = "model", "floor"  # the rows' roles: a model's run, or the floor of a terrain
 
 _S, _F, _I, _B = pa.string(), pa.float64(), pa.int64(), pa.bool_()

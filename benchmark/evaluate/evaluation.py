@@ -26,6 +26,7 @@ import pandas as pd
 import pyarrow as pa
 
 from skidbench.benchmark.board import results as rt
+from skidbench.benchmark.board.strata import strata_records
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.evaluate import reuse
 from skidbench.benchmark.evaluate.failures import fail_run, kill_run
@@ -41,11 +42,10 @@ from skidbench.benchmark.evaluate.fit_record import (
     options_tags,
     plugin_package,
 )
+from skidbench.benchmark.evaluate.mlflow_views import describe_run, save_views, split_inputs
 from skidbench.benchmark.evaluate.references import log_floor, seed_spread
 from skidbench.benchmark.evaluate.settings import EvaluateSettings
-from skidbench.benchmark.evaluate.strata import strata_records
 from skidbench.benchmark.evaluate.testsets import (
-    TRAIN,
     EvaluationData,
     load_evaluation_data,
     split_fingerprint,
@@ -53,7 +53,6 @@ from skidbench.benchmark.evaluate.testsets import (
 from skidbench.benchmark.evaluate.transfer import training_layout
 from skidbench.benchmark.report.data import write_report_data, write_wheel_response_steps
 from skidbench.benchmark.report.settings import ReportDataSettings
-from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.benchmark.scoring.horizon import HorizonConfig
 from skidbench.benchmark.scoring.predictions import Inputs, TestSequence, predict_and_score
@@ -65,7 +64,6 @@ from skidbench.models.fitting.fit import FitSettings, model_config
 from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.io import write_json_atomic, write_parquet_atomic
 from skidbench.pipeline.core.layout import Layout
-from skidbench.pipeline.core.schema import concat_sequences, read_split
 from skidbench.pipeline.runner import environment
 
 log = logging.getLogger(__name__)
@@ -162,7 +160,7 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped, horizons=list(horizons)))  # fmt: skip
-        about, _ = _describe(layout, es.inputs_text, models, terrains, splits, horizons)
+        about, _ = describe_run(layout, es.inputs_text, models, terrains, splits, horizons)
         plan = reuse.plan_reuse(es, tracker, files_of, terrains) if keyed else reuse.ReusePlan()
         parent_tags = {
             **common_tags,
@@ -180,7 +178,7 @@ def run_benchmark(
             tracker.log(parent_id, params=params)
             if skipped:
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
-            datasets_of = {t: _split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
+            datasets_of = {t: split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
             ctx = ChildContext(es.inputs_text, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
                                fit_fn, es.fit, es.conf, common_tags, log_figures, es.intervals,
@@ -188,9 +186,6 @@ def run_benchmark(
                                es.row_facts(parent_id, tracker, env_tags, commit))  # fmt: skip
             with ctx.results.until_done(lambda path: tracker.artifact(parent_id, path, "results")):
                 floor = _run_terrains(ctx, models, data, datasets_of, protocol, children)
-                half_track = float((es.conf.get("robot") or {}).get("track_width") or 0.0) / 2.0
-                ctx.results.add_strata(strata_records(layout, ctx.results.records, protocol, horizons,
-                                                      es.intervals, half_track))  # fmt: skip
                 _log_board(ctx, children, splits, protocol, about)
                 save_views(tracker, parent_id, splits, horizons, protocol, children)
     except MlflowException as exc:
@@ -204,7 +199,8 @@ def _run_terrains(
     children: list[ChildResult],
 ) -> dict[str, dict[str, float]]:  # fmt: skip
     """Every terrain's references (wheel-response steps, the floor) and every model's child run on it
-    (appended to ``children``, as they finish); returns the floor's metrics per terrain."""
+    (appended to ``children``, as they finish), then every run's cells per aggressiveness stratum;
+    returns the floor's metrics per terrain."""
     floor: dict[str, dict[str, float]] = {}
     for terrain in data.terrains:
         td = TerrainData(terrain, data.tests[terrain], data.inputs_of[terrain], datasets_of[terrain],
@@ -215,6 +211,7 @@ def _run_terrains(
             if taken is not None:  # its rows join this evaluate's results file: this evaluate's board
                 ctx.results.add(ctx.plan.carried(taken.info.run_id, ctx.parent_id, models))
             children.append(_child_of(taken, reused=True) if taken is not None else _run_child(ctx, m, td))
+    _score_strata(ctx, protocol)
     return floor
 
 
@@ -244,6 +241,16 @@ def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -
     stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
     return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
                      ctx.intervals, protocol, td.inputs, ctx.layout.extracted)  # fmt: skip
+
+
+def _score_strata(ctx: ChildContext, protocol: str) -> None:
+    """Every finished run's cells on each aggressiveness tercile, into the results file (board/strata.py;
+    the windows' accelerations with the robot's spec track width, as compare's)."""
+    half_track = float((ctx.conf.get("robot") or {}).get("track_width") or 0.0) / 2.0
+    records = ctx.results.records
+    ctx.results.add_strata(
+        strata_records(ctx.layout, records, protocol, ctx.horizons, ctx.intervals, half_track)
+    )
 
 
 def _log_board(
@@ -422,7 +429,7 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> tuple[s
     model_conf = model_config(ctx.fit.models, model_name)
     rk = ctx.plan.keys.get((model_name, td.terrain))
     keyed = {reuse.TAG_RESULT_KEY: rk.key, reuse.TAG_SCORING: rk.made_of["scoring"]} if rk else {}
-    note, cmd = _describe(
+    note, cmd = describe_run(
         ctx.layout, ctx.inputs_text, [model_name], [td.terrain], list(td.tests), ctx.horizons
     )
     start = dt.datetime.now(dt.UTC)
@@ -543,56 +550,3 @@ def _finish_child(tracker, run_id: str, metrics: dict[str, float], nan_metrics: 
     tags = {run_tags.TAG_STATUS: "FINISHED", **({"skidbench.warning": warn} if nan_metrics else {})}
     tracker.log(run_id, metrics=metrics, tags=tags)
     tracker.end(run_id, "FINISHED")
-
-
-# -- what MLflow shows of a run (descriptions, inputs, the logged model, the saved view) ----------------
-def _describe(layout: Layout, inputs: str, models, terrains, splits, horizons) -> tuple[str, str]:
-    """The description of an evaluate run (parent: every model and terrain; child: one of each) and the
-    command(s) that reproduce it."""
-    one = len(models) == 1 and len(terrains) == 1
-    cmd = run_tags.reproduce_command(
-        "evaluate", [f"models=[{','.join(models)}]", f"terrains=[{','.join(terrains)}]"] if one else [],
-        drop=("force",),
-    )  # fmt: skip
-    if one:
-        cmd = run_tags.reproduce_command("fit", [f"model={models[0]}", f"terrain={terrains[0]}"],
-                                    drop=("models", "terrains", "force")) + "\n" + cmd  # fmt: skip
-    title = (f"**{models[0]}** on **{terrains[0]}**, fitted on Train, scored on {'/'.join(splits).upper()}"
-             if one else f"Benchmark of {len(models)} models on {len(terrains)} terrains")  # fmt: skip
-    facts = {
-        "dataset": f"`{layout.dataset}` ({layout.root})",
-        "input protocol": f"`{inputs}` (what a model is given at predict time)",
-        "horizon": ", ".join(f"{h:g} s" for h in horizons),
-        "models": None if one else ", ".join(models),
-        "terrains": None if one else ", ".join(terrains),
-        "metrics": mt.describe() + "; lower is better",
-    }
-    return run_tags.describe(title, facts, cmd), cmd
-
-
-def _split_inputs(layout: Layout, terrain, files, tests) -> list[trk.SplitData]:
-    """The Train split and the test splits of one terrain as MLflow dataset inputs."""
-    out = []
-    for split in [TRAIN, *tests]:
-        fs = [p for p in files if p.parent.name == split]
-        tables = (
-            [(s.table, {"sequence": s.name}) for s in tests[split]]
-            if split in tests
-            else [read_split(p) for p in fs]
-        )
-        name = f"{layout.dataset}/{terrain}/{split}"
-        out.append(trk.SplitData(name, split, layout.splits / terrain / split,
-                                 split_fingerprint(fs, layout.splits), concat_sequences(tables)))  # fmt: skip
-    return out
-
-
-def save_views(
-    tracker, parent_id: str, splits, horizons, protocol: str, children: Sequence[ChildResult] = ()
-) -> list[str]:
-    """The UI's saved views of an evaluate (:func:`mlflow_ui.save_evaluate_views`): its child runs and the
-    runs of its ``children`` it took from earlier evaluates, with the columns of
-    :func:`mlflow_ui.board_columns`, best LD translational first. Returns their keys."""
-    cols, _ = mu.board_columns(splits, horizons[0])
-    name = tracker.client.get_run(parent_id).info.run_name
-    return mu.save_evaluate_views(tracker.client, tracker.experiment_id, parent_id, name, cols, protocol,
-                                  horizons[0], [c.run_id for c in children if c.reused])  # fmt: skip
