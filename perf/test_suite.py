@@ -63,7 +63,11 @@ def summary(records: list[dict], total_cpu_s: float | None, when: str, top: int 
         f"Run: {when}",
         "",
         f"Tests: {len(records)}; attributed CPU: {attributed:.0f} s"
-        + (f"; the whole run (user + sys of every process it waited for): {total_cpu_s:.0f} s" if total_cpu_s else ""),
+        + (
+            f"; the whole run (user + sys of every process it waited for): {total_cpu_s:.0f} s"
+            if total_cpu_s
+            else ""
+        ),
         "",
         "| file | tests | CPU s | share of attributed |",
         "|---|---:|---:|---:|",
