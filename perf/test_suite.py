@@ -40,14 +40,19 @@ def pytest_runtest_protocol(item, nextitem):
             "id": item.nodeid,
             "cpu_s": round(_cpu() - cpu0, 3),
             "wall_s": round(time.monotonic() - wall0, 3),
+            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
+            "end": round(time.time(), 3),  # when it ended (epoch s): the workers' timelines
         }
         with open(path, "a") as f:  # one short line per write: the workers' lines do not interleave
             f.write(json.dumps(line) + "\n")
 
 
-def summary(records: list[dict], total_cpu_s: float | None, when: str, top: int = 25) -> str:
-    """The page: CPU seconds per test file, the most expensive tests, the attributed sum; ``when`` says
-    the commit, date and machine of the run."""
+def summary(
+    records: list[dict], total_cpu_s: float | None, when: str, top: int = 25, start: float | None = None
+) -> str:
+    """The page: CPU seconds per test file, the most expensive tests, the attributed sum, and each xdist
+    worker's share and end (``start``: the run's start, epoch s; the records' ``end``); ``when`` says the
+    commit, date and machine of the run."""
     per_file: dict[str, list[dict]] = collections.defaultdict(list)
     for r in records:
         per_file[r["id"].split("::")[0]].append(r)
@@ -75,10 +80,32 @@ def summary(records: list[dict], total_cpu_s: float | None, when: str, top: int 
     for name, rs in files:
         cpu = sum(r["cpu_s"] for r in rs)
         lines.append(f"| {name} | {len(rs)} | {cpu:.1f} | {100 * cpu / max(attributed, 1e-9):.1f} % |")
+    if start is not None and all("end" in r for r in records):
+        lines += ["", *workers(records, start)]
     lines += ["", f"## The {top} most expensive tests", "", "| test | CPU s |", "|---|---:|"]
     for r in sorted(records, key=lambda r: -r["cpu_s"])[:top]:
         lines.append(f"| `{r['id']}` | {r['cpu_s']:.1f} |")
     return "\n".join(lines) + "\n"
+
+
+def workers(records: list[dict], start: float) -> list[str]:
+    """Per xdist worker: its tests, their CPU and wall seconds, when its last test ended (minutes after the
+    run's start) and the file of that test: a worker that ends long before the other idled at the end."""
+    per: dict[str, list[dict]] = collections.defaultdict(list)
+    for r in records:
+        per[r.get("worker", "main")].append(r)
+    lines = [
+        "## The workers",
+        "",
+        "| worker | tests | CPU s | wall s in tests | last test ended (min after start) | its file |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    for name, rs in sorted(per.items()):
+        last = max(rs, key=lambda r: r["end"])
+        cpu, wall = sum(r["cpu_s"] for r in rs), sum(r["wall_s"] for r in rs)
+        ended, file = (last["end"] - start) / 60, last["id"].split("::")[0]
+        lines.append(f"| {name} | {len(rs)} | {cpu:.0f} | {wall:.0f} | {ended:.1f} | {file} |")
+    return lines
 
 
 def run(out: Path, pytest_args: list[str]) -> None:
@@ -90,16 +117,25 @@ def run(out: Path, pytest_args: list[str]) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         records = Path(tmp) / "tests.jsonl"
         cmd = [sys.executable, "-m", "pytest", *pytest_args, "-p", "perf.test_suite"]
+        start = time.time()
         done = subprocess.run(cmd, env={**os.environ, ENV: str(records)})
+        wall = time.time() - start
         kids = resource.getrusage(resource.RUSAGE_CHILDREN)
         lines = records.read_text().splitlines() if records.is_file() else []
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
         ).stdout
         stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-        when = f"commit {commit.strip()}, {stamp}, {os.cpu_count()} CPUs"
+        load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
+        when = (
+            f"commit {commit.strip()}, {stamp}, {os.cpu_count()} CPUs, pytest {wall / 60:.1f} min wall, "
+            f"load average at the end {load} (1/5/15 min)"
+        )
         total = kids.ru_utime + kids.ru_stime
-        out.write_text(summary([json.loads(ln) for ln in lines if ln.strip()], total, when))
+        out.write_text(summary([json.loads(ln) for ln in lines if ln.strip()], total, when, start=start))
+        kept = Path(os.environ.get("SKIDBENCH_OUT", "outputs")) / "test_suite.jsonl"
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        kept.write_text("".join(ln + "\n" for ln in lines))  # the raw records, for a closer look
     print(f"{out}: {len(lines)} tests (pytest exit status {done.returncode})")
     sys.exit(done.returncode)
 

@@ -43,22 +43,93 @@ def skidbench(
     env: dict | None = None,
     check: bool = True,
     base: list[str] | None = None,
+    here: bool = False,
 ):
     """``skidbench <stage>`` on the micro dataset in a subprocess (niced: the tests share 2 cores);
-    ``base`` replaces the stage's default overrides (``STAGE_ARGS``)."""
+    ``base`` replaces the stage's default overrides (``STAGE_ARGS``). ``here``: in this process
+    (:func:`in_process`), for a run whose process is not what is tested (not killed, interrupted or
+    given an environment of its own)."""
     e = {**os.environ, "SKIDBENCH_OUT": str(out_root), "PYTHONHASHSEED": "0", **(env or {})}
     if e.get(FAULT_ENV):  # the fault hook (tests/fault_injection), loaded at start-up by its sitecustomize
         e["PYTHONPATH"] = os.pathsep.join(filter(None, [str(FAULT_INJECTION), e.get("PYTHONPATH")]))
     if "MLFLOW_TRACKING_URI" not in (env or {}):
         e.pop("MLFLOW_TRACKING_URI", None)
     args = STAGE_ARGS.get(stage, SCALE) if base is None else base
-    cmd = [sys.executable, "-m", "skidbench.pipeline.cli.main", stage, *args, *extra]
-    proc = subprocess.run(
-        ["nice", "-n", "5", *cmd], env=e, capture_output=True, text=True, timeout=600, start_new_session=True
-    )
+    if here:
+        assert not env, "a run given an environment of its own needs a process of its own"
+        proc = in_process([stage, *args, *extra], e)
+    else:
+        cmd = [sys.executable, "-m", "skidbench.pipeline.cli.main", stage, *args, *extra]
+        proc = subprocess.run(
+            ["nice", "-n", "5", *cmd],
+            env=e,
+            capture_output=True,
+            text=True,
+            timeout=600,
+            start_new_session=True,
+        )
     if check and proc.returncode != 0:
         raise AssertionError(f"skidbench {stage} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     return proc
+
+
+def in_process(argv: list[str], env: dict[str, str], cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """``skidbench <argv>`` run by the console script's ``main`` in this process, in the environment ``env``
+    and the folder ``cwd``: what a subprocess runs after Python's start-up, without the seconds of imports
+    each command's process pays (MLflow's store alone: 3-6 CPU-s). Returns what :func:`subprocess.run`
+    would: the exit status (``SystemExit``'s; 1 and the traceback on stderr for an uncaught exception),
+    stdout and stderr. They are files (``sys.stdout``/``sys.stderr`` for the call, appended to): what a
+    stage's forked workers print lands there too, as it would in a process of its own. The environment,
+    the folder, ``sys.argv`` and the root logger's handlers are restored afterwards."""
+    import logging
+    import tempfile
+    import traceback
+
+    from skidbench.pipeline.cli.main import main
+
+    saved_env, saved_argv, saved_cwd = dict(os.environ), sys.argv[:], os.getcwd()
+    saved_streams = sys.stdout, sys.stderr
+    root = logging.getLogger()
+    saved_handlers, saved_level = root.handlers[:], root.level
+    code: int = 0
+    with tempfile.TemporaryDirectory(prefix="skidbench-cli-") as tmp:
+        out_path, err_path = Path(tmp) / "stdout", Path(tmp) / "stderr"
+        streams = [open(p, "a", buffering=1) for p in (out_path, err_path)]  # line-buffered, O_APPEND
+        try:
+            os.environ.clear()
+            os.environ.update(env)
+            if cwd is not None:
+                os.chdir(cwd)
+            sys.stdout, sys.stderr = streams
+            try:
+                main(list(argv))
+            except SystemExit as exc:  # as the interpreter turns it into the process's exit status
+                if isinstance(exc.code, int) or exc.code is None:
+                    code = exc.code or 0
+                else:
+                    print(exc.code, file=sys.stderr)
+                    code = 1
+            except Exception:  # noqa: BLE001 - a process prints it and exits 1
+                traceback.print_exc()
+                code = 1
+        finally:
+            sys.stdout, sys.stderr = saved_streams
+            for f in streams:
+                f.close()
+            for h in root.handlers[:]:  # the run's handlers (Hydra's job logging: its console and log file)
+                if h not in saved_handlers:
+                    root.removeHandler(h)
+                    h.close()
+            for h in saved_handlers:
+                if h not in root.handlers:
+                    root.addHandler(h)
+            root.setLevel(saved_level)
+            os.chdir(saved_cwd)
+            os.environ.clear()
+            os.environ.update(saved_env)
+            sys.argv = saved_argv
+        stdout, stderr = out_path.read_text(), err_path.read_text()
+    return subprocess.CompletedProcess(["skidbench", *argv], code, stdout, stderr)
 
 
 def copy_splits(micro_root: Path, root: Path) -> None:
@@ -72,7 +143,7 @@ def copy_splits(micro_root: Path, root: Path) -> None:
 
 def build(out_root: Path, stages=PIPELINE) -> Path:
     for s in stages:
-        skidbench(s, out_root)
+        skidbench(s, out_root, here=True)
     return out_root / DATASET
 
 

@@ -132,3 +132,18 @@ def test_snapshot_copies_the_boards_with_their_provenance_and_without_the_figure
     assert "f.png" not in text and "make reproduce" not in text.split("\n", 1)[1]
     assert "| edd | response | tile |" not in text and "| old |" not in text
     assert str(tmp_path / "out") not in text and "python -m perf.snapshot <out> sim-x t" in text  # no path
+
+
+def test_the_suite_page_says_each_workers_share_and_when_it_ended():
+    from perf import test_suite as ts
+
+    start = 1000.0
+    records = [
+        {"id": "tests/test_a.py::x", "cpu_s": 2.0, "wall_s": 3.0, "worker": "gw0", "end": start + 60.0},
+        {"id": "tests/test_b.py::y", "cpu_s": 5.0, "wall_s": 6.0, "worker": "gw0", "end": start + 180.0},
+        {"id": "tests/test_c.py::z", "cpu_s": 1.5, "wall_s": 2.0, "worker": "gw1", "end": start + 90.0},
+    ]
+    page = ts.summary(records, 10.0, "a run", start=start)
+    assert "| gw0 | 2 | 7 | 9 | 3.0 | tests/test_b.py |" in page  # its last test ended 3 min in
+    assert "| gw1 | 1 | 2 | 2 | 1.5 | tests/test_c.py |" in page
+    assert "## The workers" not in ts.summary(records, 10.0, "a run")  # no start: no timeline

@@ -18,7 +18,6 @@ import re
 import shlex
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ import pyarrow.parquet as pq
 import pytest
 from browser import CHROMIUM, console_messages, page_value, run_chromium, text_of
 from doc_blocks import doc_env
+from reliability_data import in_process
 
 from skidbench.benchmark.release.bundle import BundleError, verify
 from skidbench.benchmark.release.halves import WINDOW_COLUMNS, WITHHELD_COLUMNS
@@ -47,16 +47,15 @@ ROUND_TRIP = ("ideal", "friction", "gp_residual")
 CELLS = [
     k for m in mt.METRICS for s in ("cv", "ld") for k in (m.metric_key(s, 6.0), m.windows_key(s, 6.0)) if k
 ]
-SKB = str(Path(sys.executable).parent / "skidbench")
 ENTRY = "ideal_dd"  # the walkthrough's submission
 IDENTITY = ("score.link=https://example.org/x", "score.submitter=Lab C")
 
 
 def skb(*args: str, out: Path, cwd: Path | None = None, ok: bool = True) -> subprocess.CompletedProcess:
-    """``skidbench <args>`` with ``out`` as the output root (the environment of the docs' run blocks)."""
-    done = subprocess.run(
-        [SKB, *args], env=doc_env(out), cwd=cwd or out, capture_output=True, text=True, timeout=1800
-    )
+    """``skidbench <args>`` with ``out`` as the output root (the environment of the docs' run blocks), run
+    by the console script's ``main`` in this process (tests/reliability_data.py ``in_process``: the
+    walkthrough's own commands run as processes; these runs' process is not what is tested)."""
+    done = in_process(list(args), doc_env(out), cwd=cwd or out)
     if ok:
         assert done.returncode == 0, f"skidbench {' '.join(args)}:\n{done.stderr[-3000:]}"
     return done
@@ -392,9 +391,7 @@ def test_import_prints_next_steps_that_run_as_printed(walkthrough, publishing_wa
             if argv[1] == "evaluate":
                 check_overrides("evaluate", argv[2:])
                 continue
-            done = subprocess.run(
-                argv, env=doc_env(walkthrough), cwd=walkthrough, capture_output=True, text=True, timeout=900
-            )
+            done = in_process(argv[1:], doc_env(walkthrough), cwd=walkthrough)
             assert done.returncode == 0, f"{ln}\n{done.stderr[-2000:]}"
 
 

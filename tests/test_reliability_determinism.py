@@ -56,9 +56,9 @@ def test_evaluate_again_with_nothing_changed_is_skipped_and_reprints(micro_root,
     from reliability_data import skidbench
 
     copy_splits(micro_root, tmp_path)
-    first = skidbench("evaluate", tmp_path)
+    first = skidbench("evaluate", tmp_path, here=True)
     assert "skipped" not in first.stdout
-    again = skidbench("evaluate", tmp_path)
+    again = skidbench("evaluate", tmp_path, here=True)
     assert "inputs unchanged" in again.stdout and "skipped" in again.stdout, again.stdout[-1500:]
     starts = ("ideal", "edd", "floor (reference)")
     rows = lambda out: [ln.split() for ln in out.splitlines() if ln.strip().startswith(starts)]  # noqa: E731

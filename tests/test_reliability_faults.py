@@ -35,7 +35,7 @@ KILLS = {
 def test_a_stage_killed_mid_write_resumes_to_identical_outputs_and_no_partial_file(micro_root, stage):
     ds = micro_root / DATASET
     if stage == "fit" and not (ds / "fits/edd/tile.json").is_file():
-        skidbench("fit", micro_root)
+        skidbench("fit", micro_root, here=True)
     before = snapshot(micro_root)
     pattern, needle, nth = KILLS[stage]
     victims = list(ds.glob(pattern))
@@ -49,7 +49,7 @@ def test_a_stage_killed_mid_write_resumes_to_identical_outputs_and_no_partial_fi
     assert left, "the kill should have interrupted a write (a .tmp- file left behind)"
     assert all(p.name.startswith(".tmp-") for p in left)  # never under a final name
 
-    skidbench(stage, micro_root)
+    skidbench(stage, micro_root, here=True)
     assert tmp_files(micro_root) == []
     assert snapshot(micro_root) == before
 
@@ -60,9 +60,9 @@ def test_a_rerun_with_nothing_changed_skips_every_stage_and_says_so(micro_root):
         ("groundtruth", "3 sequences up to date, skipped"),
         ("split", "3 sequences up to date, skipped"),
     ):
-        proc = skidbench(stage, micro_root)
+        proc = skidbench(stage, micro_root, here=True)
         assert words in proc.stdout + proc.stderr, (stage, proc.stderr[-1500:])
-    proc = skidbench("simulate", micro_root)
+    proc = skidbench("simulate", micro_root, here=True)
     assert "(3 up to date)" in proc.stdout
 
 
@@ -83,7 +83,7 @@ def test_disk_full_or_permission_error_is_one_line_and_keeps_earlier_outputs(mic
     gone = set(before) - set(after)
     assert gone == {victim.relative_to(micro_root).as_posix()}
     assert {k: v for k, v in before.items() if k not in gone} == after  # nothing else touched
-    skidbench("split", micro_root)  # space back: the re-run completes
+    skidbench("split", micro_root, here=True)  # space back: the re-run completes
     assert snapshot(micro_root) == before
 
 
@@ -101,7 +101,7 @@ def test_a_truncated_parquet_intermediate_fails_its_fingerprint_and_is_rebuilt(m
     path.write_bytes(data[: len(data) // 2])
     with pytest.raises(Exception):  # noqa: B017 (really unreadable)
         pq.read_table(path)
-    proc = skidbench(stage, micro_root)
+    proc = skidbench(stage, micro_root, here=True)
     out = proc.stdout + proc.stderr
     assert "fails its fingerprint" in out, out[-2000:]
     assert path.read_bytes() == data
@@ -113,18 +113,18 @@ def test_a_changed_input_reruns_exactly_the_units_downstream_of_it(micro_root):
     tum = micro_root / DATASET / "groundtruth/tile_cv_00.tum"
     original = tum.read_bytes()
     tum.write_bytes(original)  # same content, new mtime: nothing to do
-    proc = skidbench("split", micro_root)
+    proc = skidbench("split", micro_root, here=True)
     assert "3 sequences up to date, skipped" in proc.stdout + proc.stderr
     lines = original.decode().splitlines(keepends=True)
     k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
     t, *rest = lines[k].split()
     lines[k] = " ".join([t, str(float(rest[0]) + 0.001), *rest[1:]]) + "\n"  # the first pose moves 1 mm
     tum.write_text("".join(lines))
-    proc = skidbench("split", micro_root)
+    proc = skidbench("split", micro_root, here=True)
     assert "1 sequences split, 2 up to date" in proc.stdout + proc.stderr, proc.stdout[-1500:]
     assert snapshot(micro_root) != before
     tum.write_bytes(original)
-    skidbench("split", micro_root)
+    skidbench("split", micro_root, here=True)
     assert snapshot(micro_root) == before
 
 
@@ -155,7 +155,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
         "RUNNING",
     ]  # the first child finished; the parent and the second child were left RUNNING
 
-    again = skidbench("evaluate", root).stdout
+    again = skidbench("evaluate", root, here=True).stdout
     after = runs()
     for run_id, run in dead.items():
         if run.info.status == "RUNNING":
@@ -167,7 +167,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
     assert "ended KILLED; taken into this one" in again and "taken as they are: ideal/tile" in again
     assert tmp_files(root) == []
 
-    skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"], here=True)
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
     assert sorted(board["model"]) == ["edd", "ideal"] and (board["status"] == "FINISHED").all()
     (parent,) = [r for r in new if r.data.tags[run_tags.TAG_ROLE] == "parent"]
@@ -183,7 +183,7 @@ def test_an_evaluate_killed_mid_run_leaves_its_runs_marked_killed_and_a_rerun_co
         "evaluate", root, "force=true", env={"SKIDBENCH_FAULT": "kill@1:.params.json"}, check=False
     )
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
-    proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"], here=True)
     statuses = {r.info.run_id: r.info.status for k, r in runs().items() if k not in after}
     assert sorted(statuses.values()) == ["KILLED", "KILLED"]  # the parent and its first child
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv")
@@ -261,7 +261,7 @@ def test_ctrl_c_during_evaluate_is_one_line_its_runs_killed_and_compare_keeps_th
 
     root = tmp_path / "out"
     copy_splits(micro_root, root)
-    skidbench("evaluate", root)
+    skidbench("evaluate", root, here=True)
     proc = skidbench(
         "evaluate", root, "force=true", env={"SKIDBENCH_FAULT": "int@2:.params.json"}, check=False
     )
@@ -278,7 +278,7 @@ def test_ctrl_c_during_evaluate_is_one_line_its_runs_killed_and_compare_keeps_th
         "FINISHED",
         "KILLED",
     ]  # parent, first child, second
-    proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"])
+    proc = skidbench("compare", root, base=[*STAGE_ARGS["split"], "figures.enabled=false"], here=True)
     board = pd.read_csv(root / DATASET / "reports" / "leaderboard-commanded.csv").set_index("model")
     assert (board["status"] == "FINISHED").all() and board.loc["edd", "run_id"] == runs[2].info.run_id
     assert board.loc["ideal", "run_id"] == runs[1].info.run_id  # not the interrupted evaluate's, finished
