@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from _bench_data import calibrate_splits
+from reliability_data import in_process
 
 from skidbench.models.base import ModelError
 from skidbench.models.fitting.synthetic import write_train_splits as make_splits
@@ -56,15 +55,8 @@ def test_fit_on_a_split_without_the_needed_columns_names_the_model(tmp_path, jac
 
 
 def run_cli(args, out_root: Path):
-    env = {**os.environ, "SKIDBENCH_OUT": str(out_root)}
-    return subprocess.run(
-        [sys.executable, "-m", "skidbench.pipeline.cli.main", *args],
-        env=env,
-        cwd=out_root,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    """``skidbench <args>`` in this process (tests/reliability_data.py ``in_process``)."""
+    return in_process(list(args), {**os.environ, "SKIDBENCH_OUT": str(out_root)}, cwd=out_root)
 
 
 def test_cli_sweep_fits_every_model_and_terrain(tmp_path, jackal):
