@@ -117,14 +117,15 @@ def run(out: Path, pytest_args: list[str]) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         records = Path(tmp) / "tests.jsonl"
         cmd = [sys.executable, "-m", "pytest", *pytest_args, "-p", "perf.test_suite"]
+        # the commit the run started at (the checkout may move on while the suite runs)
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+        ).stdout
         start = time.time()
         done = subprocess.run(cmd, env={**os.environ, ENV: str(records)})
         wall = time.time() - start
         kids = resource.getrusage(resource.RUSAGE_CHILDREN)
         lines = records.read_text().splitlines() if records.is_file() else []
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-        ).stdout
         stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
         load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
         when = (
