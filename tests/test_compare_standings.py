@@ -225,7 +225,7 @@ def test_a_recording_without_an_independent_truth_has_an_unknown_floor_and_the_b
     stem, settings = layout.eval_stem(FLOOR, "grass"), IntervalConfig(resamples=200)
     got = log_floor(tracker, "p", stem, "grass", {"ld": [seq]}, [H], HorizonConfig(H), settings, "commanded",
                     None, layout.extracted)  # fmt: skip
-    assert got == {} and not any(entry["metrics"] for entry in tracker.logged)
+    assert got == ({}, []) and not any(entry["metrics"] for entry in tracker.logged)
     reason = tracker.logged[0]["tags"]["floor.grass.unknown"]
     assert reason.startswith("floor unknown: no independent truth") and "husky_ld_00" in reason
     rows = pd.DataFrame(

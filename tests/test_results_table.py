@@ -233,3 +233,23 @@ def test_the_stratum_rows_partition_every_cell_of_every_horizon(readme_reproduce
     ok = rms["n_windows"] > 0
     # each value is logged rounded (5 significant digits): the pooled RMS agrees to that
     np.testing.assert_allclose(pooled[ok], rms.loc[ok, "estimate"], rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.slow  # the README's quick start (a session fixture shared with test_e2e)
+def test_the_floor_rows_are_the_floor_the_parent_run_logs(readme_reproduce):
+    """Each evaluate's floor of each terrain has rows (role floor, the evaluate's run id): every cell's
+    value, interval and windows are the parent run's ``floor.<terrain>.<metric key>`` metrics."""
+    from mlflow import MlflowClient
+
+    root = readme_reproduce["root"]
+    table = rt.read(Layout(root, "sim-tiny"))
+    floor = table[(table["role"] == rt.REFERENCE) & (table["stratum"] == rt.ALL)]
+    assert set(floor["model"]) == {"floor"} and (floor["run_id"] == floor["evaluate_id"]).all()
+    client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
+    for (parent, terrain), rows in floor.groupby(["evaluate_id", "terrain"]):
+        logged = client.get_run(parent).data.metrics
+        cells = rt.mlflow_metrics(rows)
+        assert cells and len(set(rows["horizon_s"])) == 5
+        for key, value in cells.items():
+            got = logged.get(f"floor.{terrain}.{key}", np.nan)
+            assert got == value or (np.isnan(value) and np.isnan(got)), (terrain, key)

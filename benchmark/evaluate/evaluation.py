@@ -235,12 +235,18 @@ def _checked_default_fit_fn(models: list[str]) -> Callable[[Any, str, str], Any]
 
 def _log_terrain_references(ctx: ChildContext, td: TerrainData, protocol: str) -> dict[str, float]:
     """What the parent run holds of a terrain beside its models' runs: the wheel response's steps (report
-    data) and the floor (a perfect model: the simulator's exact velocities); returns the floor's metrics."""
+    data) and the floor (a perfect model: the simulator's exact velocities), whose cells are the results
+    file's floor rows (role ``floor``, the parent run's id); returns the floor's metrics."""
     steps = write_wheel_response_steps(ctx.fit.calibrations, ctx.layout, td.terrain)
     ctx.tracker.artifact(ctx.parent_id, steps, "report_data")
     stem = ctx.layout.eval_stem(FLOOR, td.terrain, protocol)
-    return log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, ctx.horizons, ctx.hcfg,
-                     ctx.intervals, protocol, td.inputs, ctx.layout.extracted)  # fmt: skip
+    h = ctx.horizons
+    metrics, scores = log_floor(ctx.tracker, ctx.parent_id, stem, td.terrain, td.tests, h, ctx.hcfg,
+                                ctx.intervals, protocol, td.inputs, ctx.layout.extracted)  # fmt: skip
+    if scores and ctx.results is not None and ctx.base is not None:
+        facts = replace(ctx.base, run_id=ctx.parent_id, model=FLOOR, terrain=td.terrain, role=rt.REFERENCE)
+        ctx.results.add(rt.rows(facts, scores))
+    return metrics
 
 
 def _score_strata(ctx: ChildContext, protocol: str) -> None:

@@ -26,8 +26,9 @@ from skidbench.benchmark.scoring.predictions import (
     Inputs,
     Score,
     TestSequence,
+    keyed,
     predict_and_score,
-    summarise,
+    score_cells,
 )
 from skidbench.benchmark.scoring.rollout import state_windows
 from skidbench.benchmark.scoring.settings import IntervalConfig
@@ -70,15 +71,16 @@ def log_floor(
     protocol: str,
     inputs: Inputs | None = None,
     truth_dir: Path | None = None,
-) -> dict[str, float]:
+) -> tuple[dict[str, float], list[Score]]:
     """The floor of one terrain, scored as a model is (every metric and its interval): its windows written
     next to the models' (``<stem>.windows.parquet``, ``<ds>/eval/floor/<terrain>[.<inputs>]``: what
     compare reads) and its metrics logged on the parent run as ``floor.<terrain>.<metric>``. Not a child
     run: it is never ranked. Under ``state`` (``inputs``' settings) its windows are the state windows, each
     rolled out with the exact velocities. Where the data hold no simulator truth (``truth_dir``: the
     dataset's extracted tables) the windows file is empty, its metadata and the parent run's tag
-    ``floor.<terrain>.unknown`` say why, and no metric is logged. Returns the metrics."""
-    frames, metrics = [], {}
+    ``floor.<terrain>.unknown`` say why, and no metric is logged. Returns the metrics and the cells they
+    are (the results table's floor rows; none when the floor is unknown)."""
+    frames, scores = [], []
     exact, unknown = exact_velocities(truth_dir, tests) if truth_dir is not None else ({}, "no truth folder")
     for split, seqs in exact.items():
         if protocol == "state":
@@ -92,7 +94,8 @@ def log_floor(
         if len(w):
             w.insert(0, "split", split)
             frames.append(w)
-        metrics.update(summarise(w, split, horizons, intervals))
+        scores += score_cells(w, split, horizons, intervals)
+    metrics = keyed(scores)
     windows = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     stem.parent.mkdir(parents=True, exist_ok=True)
     path = stem.with_name(stem.name + ".windows.parquet")
@@ -103,10 +106,10 @@ def log_floor(
     tracker.artifact(parent_id, path, "floor")
     if unknown:
         tracker.log(parent_id, tags={f"{FLOOR}.{terrain}.unknown": unknown})
-        return {}
+        return {}, []
     finite = {k: v for k, v in metrics.items() if np.isfinite(v)}
     tracker.log(parent_id, metrics={f"{FLOOR}.{terrain}.{k}": v for k, v in finite.items()})
-    return metrics
+    return metrics, scores
 
 
 def seed_spread(
