@@ -37,6 +37,7 @@ model) and compare (every model) give a cell the same interval.
 
 from __future__ import annotations
 
+import functools
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -202,10 +203,19 @@ class Sample:
         replacement; default: its units), from ``(seed, key, K)`` alone."""
         K = int(self.strata[key].n_blocks if n_blocks is None else n_blocks)
         if (key, K) not in self._weights:
-            rng = np.random.default_rng([int(self.cfg.seed), zlib.crc32(key.encode()), K])
-            self._weights[(key, K)] = rng.multinomial(K, np.full(K, 1.0 / K), size=int(self.cfg.resamples)
-                                                      ).astype(float)  # fmt: skip
+            self._weights[(key, K)] = _draws(int(self.cfg.seed), key, K, int(self.cfg.resamples))
         return self._weights[(key, K)]
+
+
+@functools.lru_cache(maxsize=16)
+def _draws(seed: int, key: str, K: int, resamples: int) -> np.ndarray:
+    """(resamples, K) bootstrap counts of K blocks, from ``(seed, key, K)`` alone: the same draws for every
+    sample that resamples that stratum (compare's paired samples rank many pairs on the same strata;
+    drawing them once per process, not once per sample, is the same numbers). Read-only."""
+    rng = np.random.default_rng([seed, zlib.crc32(key.encode()), K])
+    w = rng.multinomial(K, np.full(K, 1.0 / K), size=resamples).astype(float)
+    w.setflags(write=False)
+    return w
 
 
 def pair_windows(
