@@ -57,6 +57,7 @@ import os
 import subprocess
 import sys
 import time
+from collections import Counter
 from collections.abc import Iterable
 from multiprocessing import get_context
 from pathlib import Path
@@ -356,21 +357,27 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return (max(0.0, c - h), min(1.0, c + h))
 
 
-def summary(rows: list[dict[str, Any]], command: str) -> str:
+def summary(rows: list[dict[str, Any]], command: str, asked: dict[str, int] | None = None) -> str:
+    """The page: per set, the datasets run (of those the options ask for, ``asked``), the exact answers
+    with their Wilson interval and the wrong ones, then every answer that was not exact and every name."""
     lines = [
         f"discovery false-discovery measurement ({time.strftime('%Y-%m-%d')}): `{command}`",
         "",
-        "| set | datasets | exact | exact % (95 % interval) | something false named | false catalogue name |",
+        "| set | datasets run | exact | exact % (95 % interval) | something false named "
+        "| false catalogue name |",
         "|---|---:|---:|---|---:|---:|",
     ]
-    for s in dict.fromkeys(r["set"] for r in rows):
+    for s in dict.fromkeys(
+        [*(s for s in asked or {} if any(r["set"] == s for r in rows)), *(r["set"] for r in rows)]
+    ):
         rs = [r for r in rows if r["set"] == s and "error" not in r]
         k = sum(r["exact"] for r in rs)
         lo, hi = wilson(k, len(rs))
         false = sum(1 for r in rs if not r["exact"])
         false_cat = sum(1 for r in rs if false_catalogue_names(r, r["steps"]))
+        of = f" of {asked[s]}" if asked and asked.get(s, 0) > len(rs) else ""
         lines.append(
-            f"| {s} | {len(rs)} | {k} | {100 * k / max(len(rs), 1):.0f} ({100 * lo:.0f}-{100 * hi:.0f}) "
+            f"| {s} | {len(rs)}{of} | {k} | {100 * k / max(len(rs), 1):.0f} ({100 * lo:.0f}-{100 * hi:.0f}) "
             f"| {false} | {false_cat} |"
         )
     lines += ["", "Not exact:"]
@@ -439,7 +446,7 @@ def main(argv: list[str] | None = None) -> None:
     # the verdicts from the recorded answers by the current definition of exact
     rows = [r if "error" in r else {**r, "exact": exact(r)} for k, r in done.items() if k in wanted]
     command = "python -m perf.discover_fdr " + " ".join(sys.argv[1:] if argv is None else argv)
-    text = summary(rows, command.strip())
+    text = summary(rows, command.strip(), Counter(c["set"] for c in wanted_cases))
     if len(rows) < len(wanted):
         text = f"{len(rows)} of the {len(wanted)} datasets these options ask for were run.\n\n" + text
     (out / "summary.md").write_text(text)
