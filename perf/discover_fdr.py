@@ -363,7 +363,7 @@ def summary(rows: list[dict[str, Any]], command: str, asked: dict[str, int] | No
     lines = [
         f"discovery false-discovery measurement ({time.strftime('%Y-%m-%d')}): `{command}`",
         "",
-        "| set | datasets run | exact | exact % (95 % interval) | something false named "
+        "| set | datasets run | exact | exact % (95 % interval) | not exact (a name missing or false) "
         "| false catalogue name |",
         "|---|---:|---:|---|---:|---:|",
     ]
@@ -389,7 +389,10 @@ def summary(rows: list[dict[str, Any]], command: str, asked: dict[str, int] | No
                 f"{st['name']} (gain {st['heldout_gain']:.3f}, p_search {st['p_search']:.3g})"
                 for st in r["steps"]
             )
-            lines.append(f"- {r['id']}: {named or 'nothing named'}")
+            small = (
+                f"; detected, too small to act on: {', '.join(r['too_small'])}" if r.get("too_small") else ""
+            )
+            lines.append(f"- {r['id']}: {named or 'nothing named'}{small}")
     named = [st for r in rows for st in r.get("steps", [])]
     if named:
         lines += [
