@@ -17,11 +17,12 @@ model fitted last week. Top-level keys because they choose the *layout* a fit re
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.models.fitting.fit import FitSettings
@@ -74,8 +75,10 @@ def scored_from_cfg(cfg: Any, ts: TransferSettings) -> Any:
     with the transfer experiment (:attr:`TransferSettings.scored_experiment`)."""
     if not ts.on:
         return cfg
-    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    out.mlflow.experiment = ts.scored_experiment
+    out = copy.deepcopy(cfg)  # its typed sections stay typed (OmegaConf.to_object gives their dataclasses)
+    OmegaConf.resolve(out)
+    with open_dict(out):
+        out.mlflow.experiment = ts.scored_experiment
     return out
 
 

@@ -21,12 +21,19 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 def _with_stage(cfg: DictConfig, stage: str) -> DictConfig:
-    """``cfg`` plus the stage's own section from ``conf/<stage>.yaml`` when ``cfg`` lacks it."""
+    """``cfg`` plus the stage's own section when ``cfg`` lacks it: its settings dataclass's defaults
+    (:data:`~skidbench.pipeline.cli.config_schema.STRUCTURED`, the schema ``conf/<stage>.yaml`` lists)
+    with the values ``conf/<stage>.yaml`` sets over them."""
+    from skidbench.pipeline.cli.config_schema import STRUCTURED, schema_node
+
     if stage in cfg:
         return cfg
 
     text = (importlib.resources.files("skidbench.conf") / f"{stage}.yaml").read_text()
     section = OmegaConf.create(text).get(stage)
+    if stage in STRUCTURED:
+        node = schema_node(STRUCTURED[stage])
+        section = node if section is None else OmegaConf.merge(node, section)
     out = cfg.copy()
     with open_dict(out):
         out[stage] = section
