@@ -118,6 +118,22 @@ def test_the_papers_claim_holds_fails_or_is_not_resolved():
     assert any("not resolved" in line for line in close.claim["overall"][1])
 
 
+def test_the_overall_only_standings_equal_the_full_ones():
+    """detail=False (the error-against-horizon report's) computes only the overall ranking and claim: the
+    same rows, intervals, ranks and claim as the full standings, and nothing per terrain."""
+    others = {m: {"trans": {"cv": 7, "ld": 6}} for m in ("ideal", "edd", "roc")}
+    w = _board(
+        {**others, "friction": {"trans": {"cv": 7, "ld": 4}}, FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}}
+    )
+    full, light = st.build(w, H), st.build(w, H, detail=False)
+    cols = ["model", "estimate", "lo", "hi", "n_blocks", "rankable", "rank", "standing"]
+    pd.testing.assert_frame_equal(light.overall[cols], full.overall[cols])
+    pd.testing.assert_frame_equal(light.differences, full.differences)
+    assert light.claim == {"overall": full.claim["overall"]} and light.claim["overall"][0] == st.HOLDS
+    assert light.verdicts == {"overall": full.verdicts["overall"]}
+    assert light.cells.empty and light.per_terrain.empty and not full.per_terrain.empty
+
+
 def test_a_board_of_one_window_splits_ranks_nothing_and_says_why():
     w = _board({"friction": {"trans": {"cv": 74, "ld": 6}}, "full_linear": {"trans": {"cv": 3.8, "ld": 78}}},
                terrains=("grass",), seconds=0.2)  # fmt: skip

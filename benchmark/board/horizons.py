@@ -54,11 +54,12 @@ def strata_standings(
     layout: Layout, board: pd.DataFrame, protocol: str, horizon_s: float, intervals: IntervalConfig,
     rank_by: str, half_track: float,
 ) -> dict[str, st.Standings]:  # fmt: skip
-    """``{stratum: Standings}`` of one board at one horizon (``all`` and the terciles, module docstring)."""
+    """``{stratum: Standings}`` of one board at one horizon (``all`` and the terciles, module docstring):
+    each the overall ranking and claim only (``st.build(..., detail=False)``: what the report shows)."""
     windows, _ = read_windows(layout, board, protocol, horizon_s)
     if not any(m != FLOOR for m, _ in windows):
         return {}
-    return {name: st.build(part, horizon_s, intervals, rank_by)
+    return {name: st.build(part, horizon_s, intervals, rank_by, detail=False)
             for name, part in stratum_windows(layout, windows, horizon_s, half_track).items()}  # fmt: skip
 
 

@@ -86,14 +86,60 @@ def build(
     horizon_s: float,
     settings: IntervalConfig | None = None,
     rank_by: str = AGGREGATE,
+    detail: bool = True,
 ) -> Standings:
     """Every statistic of a board from its windows (:func:`read_windows`), ranked by ``rank_by``
-    (:data:`AGGREGATE`, or ``<split>_<short>`` of a headline metric: its mean over terrains)."""
-    sample = iv.Sample(settings or IntervalConfig())
+    (:data:`AGGREGATE`, or ``<split>_<short>`` of a headline metric: its mean over terrains).
+    ``detail=False``: the overall ranking (its rows without the paper metrics' means over terrains) and the
+    overall verdict and claim only, the same values as with detail; ``cells`` and ``per_terrain`` are left
+    empty and no terrain gets a verdict or claim (what the error-against-horizon report shows of each
+    horizon and stratum, at a fraction of the intervals to compute)."""
     terrains = sorted({t for _, t in windows})
     models = _order([m for m, _ in windows if m != FLOOR])
     has_floor = any(m == FLOOR for m, _ in windows)
     everyone = models + ([FLOOR] if has_floor else [])
+    sample, cell_stats = _paired_sample(windows, horizon_s, settings, terrains, everyone)
+    cells = _cells(sample, cell_stats if detail else {})
+    paper = [m.name for m in mt.PAPER]
+
+    def agg_stat(model: str, terrain_list: Sequence[str], name: str) -> tuple[iv.Stat | None, str]:
+        """The aggregate over ``terrain_list`` (or one metric when ranking by it), or why there is none."""
+        wanted = _ranked_cells(rank_by, paper)
+        parts = []
+        for t in terrain_list:
+            for split, metric in wanted:
+                s = cell_stats.get((model, t, split, metric))
+                if s is None:
+                    return None, f"no {metric} score on {t} {split.upper()}"
+                parts.append(s)
+        return (iv.mean_of(name, parts), "") if parts else (None, "no score")
+
+    overall, differences = _rank_rows(sample, models, has_floor, terrains, agg_stat, "overall")
+    margin = sample.cfg.margin
+    verdicts = {"overall": rk.board_verdict(overall.set_index("model")["standing"], margin)}
+    claim = {"overall": _claim(sample, cell_stats, models, terrains)}
+    if not detail:
+        return Standings(cells, overall, pd.DataFrame(), verdicts, claim, rank_by, differences)
+    _terrain_means(sample, cell_stats, everyone, terrains, paper, overall)
+    per_terrain = pd.concat(
+        [_rank_rows(sample, models, has_floor, [t], agg_stat, t)[0].assign(terrain=t) for t in terrains],
+        ignore_index=True,
+    ) if terrains else pd.DataFrame()  # fmt: skip
+    for t in terrains:
+        pt = per_terrain[per_terrain["terrain"] == t]
+        verdicts[t] = rk.board_verdict(pt.set_index("model")["standing"], margin)
+    for t in terrains:
+        claim[t] = _claim(sample, cell_stats, models, [t])
+    return Standings(cells, overall, per_terrain, verdicts, claim, rank_by, differences)
+
+
+def _paired_sample(
+    windows: Mapping[tuple[str, str], pd.DataFrame], horizon_s: float, settings: IntervalConfig | None,
+    terrains: Sequence[str], everyone: Sequence[str],
+) -> tuple[iv.Sample, dict[tuple[str, str, str, str], iv.Stat]]:  # fmt: skip
+    """The board's paired sample (each terrain's test split: the same windows and blocks for every model)
+    and every cell's statistic in it, keyed (model, terrain, split, metric)."""
+    sample = iv.Sample(settings or IntervalConfig())
     cell_stats: dict[tuple[str, str, str, str], iv.Stat] = {}
     for terrain in terrains:
         for split in SPLITS:
@@ -126,36 +172,7 @@ def build(
                             f"{model}|{terrain}|{split}|{m.name}", key, f"{model}|{m.name}"
                         )
             sample.add(key, paired["sequence"], paired["t0"].to_numpy(float), cols, horizon_s, aggs)
-    cells = _cells(sample, cell_stats)
-    paper = [m.name for m in mt.PAPER]
-
-    def agg_stat(model: str, terrain_list: Sequence[str], name: str) -> tuple[iv.Stat | None, str]:
-        """The aggregate over ``terrain_list`` (or one metric when ranking by it), or why there is none."""
-        wanted = _ranked_cells(rank_by, paper)
-        parts = []
-        for t in terrain_list:
-            for split, metric in wanted:
-                s = cell_stats.get((model, t, split, metric))
-                if s is None:
-                    return None, f"no {metric} score on {t} {split.upper()}"
-                parts.append(s)
-        return (iv.mean_of(name, parts), "") if parts else (None, "no score")
-
-    overall, differences = _rank_rows(sample, models, has_floor, terrains, agg_stat, "overall")
-    _terrain_means(sample, cell_stats, everyone, terrains, paper, overall)
-    per_terrain = pd.concat(
-        [_rank_rows(sample, models, has_floor, [t], agg_stat, t)[0].assign(terrain=t) for t in terrains],
-        ignore_index=True,
-    ) if terrains else pd.DataFrame()  # fmt: skip
-    margin = sample.cfg.margin
-    verdicts = {"overall": rk.board_verdict(overall.set_index("model")["standing"], margin)}
-    for t in terrains:
-        pt = per_terrain[per_terrain["terrain"] == t]
-        verdicts[t] = rk.board_verdict(pt.set_index("model")["standing"], margin)
-    claim = {"overall": _claim(sample, cell_stats, models, terrains)}
-    for t in terrains:
-        claim[t] = _claim(sample, cell_stats, models, [t])
-    return Standings(cells, overall, per_terrain, verdicts, claim, rank_by, differences)
+    return sample, cell_stats
 
 
 def _terrain_means(sample, cell_stats, everyone, terrains, paper, overall: pd.DataFrame) -> None:
