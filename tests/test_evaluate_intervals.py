@@ -16,6 +16,7 @@ import scipy.signal
 
 from skidbench.benchmark.scoring import intervals as iv
 from skidbench.benchmark.scoring import ranks as rk
+from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR, floor_windows, truth_velocities
 from skidbench.benchmark.scoring.horizon import HorizonConfig, rmsre, window_errors
 from skidbench.benchmark.scoring.predictions import TestSequence, score_split
@@ -130,7 +131,7 @@ def test_paired_difference_of_a_model_with_itself_is_exactly_zero():
     assert not rk.resolved(0.0, 0.0)
     # two copies of one model's windows, paired by pair_windows: still exactly 0
     frame = pd.DataFrame({"sequence": seq, "start": np.arange(len(t0)), "t0": t0, "rel_trans": ea})
-    both = iv.pair_windows({"A": frame, "A2": frame})
+    both = st.pair_windows({"A": frame, "A2": frame})
     s = iv.Sample()
     s.add("g/ld", both["sequence"], both["t0"], {"A": both["rel_trans.A"], "A2": both["rel_trans.A2"]}, H)
     d = iv.estimate(s, [iv.difference("d", iv.cell("A", "g/ld", "A"), iv.cell("A2", "g/ld", "A2"))]).iloc[0]
@@ -307,3 +308,29 @@ def test_the_floor_is_a_perfect_models_score_against_a_drifting_ground_truth():
     assert 100 * rmsre(own["rel_trans"]) < trans / 3  # the round trip: the drift cancels
     with pytest.raises(ValueError, match="does not cover"):
         truth_velocities(table["stamp_ns"].to_numpy() + 10**9, true_pose, "true_pose.parquet")
+
+
+def test_pairing_windows_is_the_outer_join_whether_or_not_the_models_share_every_window():
+    """pair_windows sets models with the same windows side by side and joins the others: both give the
+    table of the outer join on (sequence, start, t0), sorted by window."""
+    rng = np.random.default_rng(3)
+    seq = np.repeat(["b_01", "a_00"], 6)
+    base = pd.DataFrame(
+        {"sequence": seq, "start": np.tile(np.arange(6) * 5, 2), "t0": np.tile(np.arange(6.0), 2)}
+    )
+    frames = {m: base.assign(rel_trans=rng.random(12), rel_rot=rng.random(12)) for m in ("A", "B", "C")}
+
+    def joined(fr):
+        out = None
+        for m, df in fr.items():
+            df = df.rename(columns={c: f"{c}.{m}" for c in ("rel_trans", "rel_rot")})
+            out = df if out is None else out.merge(df, on=["sequence", "start", "t0"], how="outer")
+        return out.sort_values(["sequence", "start"], kind="stable").reset_index(drop=True)
+
+    same = st.pair_windows(frames)
+    pd.testing.assert_frame_equal(same, joined(frames))
+    assert same["sequence"].tolist()[:2] == ["a_00", "a_00"] and len(same) == 12
+    frames["C"] = frames["C"].iloc[1:]  # C lacks a window: joined, NaN there
+    gap = st.pair_windows(frames)
+    pd.testing.assert_frame_equal(gap, joined(frames))
+    assert len(gap) == 12 and int(gap["rel_trans.C"].isna().sum()) == 1

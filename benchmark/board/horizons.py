@@ -160,16 +160,21 @@ def horizon_report(
 ) -> list[Path]:  # fmt: skip
     """Writes ``horizons.md`` (and a figure per protocol when ``figures_dpi``) in ``out`` for the boards
     ``{protocol: board rows}`` whose evaluates scored more than one horizon; returns the files written."""
-    results: dict[str, dict[float, dict[str, st.Standings]]] = {}
-    for protocol, board in boards.items():
-        horizons = board_horizons(layout, board, protocol)
-        if len(horizons) < 2:
-            continue
-        try:  # the strata of a protocol other than state are read from the test splits' commands
-            results[protocol] = {h: strata_standings(layout, board, protocol, h, intervals, rank_by,
-                                                     half_track) for h in horizons}  # fmt: skip
-        except EvaluationError as exc:  # the splits are gone: the boards stand, this report cannot
-            log.warning("compare: no error against horizon for inputs=%s: %s", protocol, exc)
+    todo = {p: board_horizons(layout, b, p) for p, b in boards.items()}
+    results: dict[str, dict[float, dict[str, st.Standings]]] = {
+        p: {} for p, hs in todo.items() if len(hs) > 1
+    }
+    # horizon by horizon, every protocol's boards in turn: they resample the same strata (the same bootstrap
+    # draws, kept while they are recent)
+    for h in sorted({h for p in results for h in todo[p]}):
+        for protocol in [p for p in results if h in todo[p]]:
+            try:  # the strata of a protocol other than state are read from the test splits' commands
+                results[protocol][h] = strata_standings(layout, boards[protocol], protocol, h, intervals,
+                                                        rank_by, half_track)  # fmt: skip
+            except EvaluationError as exc:  # the splits are gone: the boards stand, this report cannot
+                log.warning("compare: no error against horizon for inputs=%s: %s", protocol, exc)
+                del results[protocol]
+    results = {p: dict(sorted(by_h.items())) for p, by_h in results.items()}
     if not results:
         return []
     files = [out / "horizons.md"]

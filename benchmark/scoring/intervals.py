@@ -37,8 +37,9 @@ model) and compare (every model) give a cell the same interval.
 
 from __future__ import annotations
 
-import functools
+import threading
 import zlib
+from collections import OrderedDict
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -179,7 +180,7 @@ class Sample:
         elif st.n_blocks != n_units or st.n_windows != len(unit):
             raise IntervalError(
                 f"stratum {key}: {len(unit)} windows in {n_units} units, but its columns so far are on "
-                f"{st.n_windows} windows in {st.n_blocks} units; pair the windows first (pair_windows)"
+                f"{st.n_windows} windows in {st.n_blocks} units; pair them first (standings.pair_windows)"
             )
         for col, v in values.items():
             agg = aggregation if isinstance(aggregation, str) else aggregation[col]
@@ -207,34 +208,33 @@ class Sample:
         return self._weights[(key, K)]
 
 
-@functools.lru_cache(maxsize=16)
+#: bytes of bootstrap draws kept per process (least recently used first out): a board's strata at every
+#: horizon and protocol reuse the same draws (a few MB each), so the reuse within one horizon's boards stays
+#: in memory whatever the dataset's size
+DRAWS_CACHE_BYTES = 64 * 2**20
+_drawn: OrderedDict[tuple[int, str, int, int], np.ndarray] = OrderedDict()
+_drawn_lock = threading.Lock()
+
+
 def _draws(seed: int, key: str, K: int, resamples: int) -> np.ndarray:
     """(resamples, K) bootstrap counts of K blocks, from ``(seed, key, K)`` alone: the same draws for every
     sample that resamples that stratum (compare's paired samples rank many pairs on the same strata;
-    drawing them once per process, not once per sample, is the same numbers). Read-only."""
+    drawing them once per process, not once per sample, is the same numbers). Read-only; kept while the
+    draws of the process stay under :data:`DRAWS_CACHE_BYTES`."""
+    k = (seed, key, K, resamples)
+    with _drawn_lock:
+        if k in _drawn:
+            _drawn.move_to_end(k)
+            return _drawn[k]
     rng = np.random.default_rng([seed, zlib.crc32(key.encode()), K])
     w = rng.multinomial(K, np.full(K, 1.0 / K), size=resamples).astype(float)
     w.setflags(write=False)
+    with _drawn_lock:
+        _drawn[k] = w
+        total = sum(v.nbytes for v in _drawn.values())
+        while total > DRAWS_CACHE_BYTES and len(_drawn) > 1:
+            total -= _drawn.popitem(last=False)[1].nbytes
     return w
-
-
-def pair_windows(
-    frames: Mapping[str, pd.DataFrame], on: Sequence[str] = ("sequence", "start")
-) -> pd.DataFrame:
-    """The windows of several models (``frames[model]``, each with the columns ``on`` and ``t0``) on one
-    table: one row per window any model has, the other columns suffixed ``.<model>`` (NaN where a model
-    lacks the window). Windows come from the ground truth alone, so models scored on the same split have
-    the same ones; the outer join keeps a model that lacks one from dropping it for the others."""
-    out = None
-    for model, df in frames.items():
-        keep = df.rename(columns={c: f"{c}.{model}" for c in df.columns if c not in (*on, "t0")})
-        if out is None:
-            out = keep
-        else:
-            out = out.merge(keep, on=[*on, "t0"], how="outer")
-    if out is None:
-        return pd.DataFrame(columns=[*on, "t0"])
-    return out.sort_values(list(on), kind="stable").reset_index(drop=True)
 
 
 # -- statistics -------------------------------------------------------------------------------------------
