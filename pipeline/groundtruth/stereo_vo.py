@@ -137,20 +137,18 @@ class StereoVO:
         """Keep the strongest keypoints per grid cell so features cover the image."""
         gx, gy = self.cfg.grid
         h, w = shape[:2]
-        pts = np.array([k.pt for k in kps])
+        pts = np.asarray(cv2.KeyPoint_convert(kps), dtype=float)  # the same doubles as each k.pt
         resp = np.array([k.response for k in kps])
         cell = (np.minimum((pts[:, 0] * gx / w).astype(int), gx - 1) * gy) + np.minimum(
             (pts[:, 1] * gy / h).astype(int), gy - 1
         )
         order = np.lexsort((-resp, cell))
         per = int(np.ceil(n / (gx * gy)))
-        keep, counts = [], {}
-        for i in order:
-            k = cell[i]
-            if counts.get(k, 0) < per:
-                counts[k] = counts.get(k, 0) + 1
-                keep.append(kps[i])
-        return keep
+        # the first ``per`` of each cell in that order: rank within the cell = position - the cell's start
+        sorted_cell = cell[order]
+        start = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
+        rank = np.arange(order.size) - np.repeat(start, np.diff(np.r_[start, order.size]))
+        return [kps[i] for i in order[rank < per]]
 
     def _stereo(self, left: np.ndarray, right: np.ndarray):
         """Keyframe points: (pts (N,2) float32, X (N,3), desc (N,32))."""
@@ -330,20 +328,28 @@ class StereoVO:
             p1, st, _ = cv2.calcOpticalFlowPyrLK(
                 src, left, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk
             )
-            pb, st2, _ = cv2.calcOpticalFlowPyrLK(
-                left, src, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk
-            )
-            fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
             p1 = p1.reshape(-1, 2)
             good = (
                 (st.ravel() == 1)
-                & (st2.ravel() == 1)
-                & (fb < self.cfg.fb_max_px)
                 & (p1[:, 0] >= 0)
                 & (p1[:, 0] <= w - 1)
                 & (p1[:, 1] >= 0)
                 & (p1[:, 1] <= h - 1)
             )
+            # the backward check only for the points the forward pass kept (LK tracks each point on its own)
+            fwd = np.flatnonzero(good)
+            if fwd.size:
+                back = p0[fwd]
+                pb, st2, _ = cv2.calcOpticalFlowPyrLK(
+                    left,
+                    src,
+                    p1[fwd].reshape(-1, 1, 2),
+                    back.copy(),
+                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                    **self.lk,
+                )
+                fb = np.linalg.norm((pb - back).reshape(-1, 2), axis=1)
+                good[fwd] = (st2.ravel() == 1) & (fb < self.cfg.fb_max_px)
             p_out[sel] = p1
             ok[sel] = good
         return idx[ok], p_out[ok]
@@ -431,12 +437,14 @@ class StereoVO:
                 J[:, 0, 2] = -fx * xx * iz * iz
                 J[:, 1, 1] = fy * iz
                 J[:, 1, 2] = -fy * y * iz * iz
-                # dXc/dphi = -[Xc]x (perturbation applied in the current frame: Xc' = exp(xi) Xc)
-                dxdp = np.zeros((len(x), 3, 3))
-                dxdp[:, 0, 1], dxdp[:, 0, 2] = z, -y
-                dxdp[:, 1, 0], dxdp[:, 1, 2] = -z, x
-                dxdp[:, 2, 0], dxdp[:, 2, 1] = y, -x
-                J[:, :, 3:] = np.einsum("nij,njk->nik", J[:, :, :3], dxdp)
+                # dXc/dphi = -[Xc]x (perturbation applied in the current frame: Xc' = exp(xi) Xc): the
+                # product d(u,v)/dXc dXc/dphi written out (the zero terms dropped: adding 0 is exact)
+                J[:, 0, 3] = J[:, 0, 2] * y
+                J[:, 0, 4] = J[:, 0, 0] * z + J[:, 0, 2] * -x
+                J[:, 0, 5] = J[:, 0, 0] * -y
+                J[:, 1, 3] = J[:, 1, 1] * -z + J[:, 1, 2] * y
+                J[:, 1, 4] = J[:, 1, 2] * -x
+                J[:, 1, 5] = J[:, 1, 1] * x
                 if sel is not None:
                     r, J = r[sel], J[sel]
                 rows_r.append(r.reshape(-1))

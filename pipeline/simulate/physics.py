@@ -160,37 +160,24 @@ class SkidSteerSim:
         self.t = 0.0
 
     # -- pieces of the model -------------------------------------------------------------------------
+    # One step is a few straight-line functions on local variables (no per-wheel or per-side method calls):
+    # the same floating-point operations in the same order as the model's equations written out, so the
+    # trajectories are the same to the bit, at a fraction of the interpreter's call overhead.
     def normal_loads(self) -> list[float]:
         """Normal load per wheel, N: static share plus load transfer (``m a h / L``, ``m a h / B``)."""
         m, h = self.mass, self.robot.cg_height
         d_long = m * self.ax * h / self.robot.wheelbase / 2.0  # per wheel: rear gains under forward accel
         d_lat = m * self.ay * h / self.robot.track_width / 2.0  # per wheel: right gains under leftward accel
         s = self.static_load
+        n0, n1 = s[0] - d_long - d_lat, s[1] + d_long - d_lat
+        n2, n3 = s[2] - d_long + d_lat, s[3] + d_long + d_lat
+        # max(0.0, n) as max() evaluates it (the first argument unless the second is larger)
         return [
-            max(0.0, s[0] - d_long - d_lat),
-            max(0.0, s[1] + d_long - d_lat),
-            max(0.0, s[2] - d_long + d_lat),
-            max(0.0, s[3] + d_long + d_lat),
+            n0 if n0 > 0.0 else 0.0,
+            n1 if n1 > 0.0 else 0.0,
+            n2 if n2 > 0.0 else 0.0,
+            n3 if n3 > 0.0 else 0.0,
         ]
-
-    def _motor_torque_command(self, side: int, cmd_rate: float) -> float:
-        """The speed loop's torque command (PI, anti-windup by clamping the integral), N m."""
-        d = self.drive
-        err = cmd_rate - self.wheel_rate[side]
-        integral = self.speed_integral[side] + err * self.dt
-        lim = d.torque_limit / max(d.speed_ki, 1e-9)
-        integral = min(lim, max(-lim, integral))
-        self.speed_integral[side] = integral
-        return d.speed_kp * err + d.speed_ki * integral
-
-    def _torque_available(self, side: int, torque: float) -> float:
-        """Clip a torque to the current limit and, when driving, to the back-EMF line."""
-        d = self.drive
-        rate = self.wheel_rate[side]
-        lim = d.torque_limit
-        if torque * rate > 0.0:  # motoring: the voltage limit caps torque as speed approaches free speed
-            lim = min(lim, d.torque_limit * 4.0 * max(0.0, 1.0 - abs(rate) / d.free_speed))
-        return min(lim, max(-lim, torque))
 
     # -- one step ------------------------------------------------------------------------------------
     def step(self, cmd_left: float, cmd_right: float) -> None:
@@ -204,50 +191,50 @@ class SkidSteerSim:
         self._step_pose()
 
     def _step_motors(self, cmd_left: float, cmd_right: float) -> None:
-        """Motors: PI torque command, first-order current loop, limits."""
-        dt, drive = self.dt, self.drive
+        """Motors: the speed loop's torque command (PI, anti-windup by clamping the integral), N m, clipped
+        to the current limit and, when driving, to the back-EMF line (the voltage limit caps torque as speed
+        approaches free speed); then the first-order current loop towards it, clipped the same way."""
+        dt, d = self.dt, self.drive
+        tl = d.torque_limit
+        i_lim = tl / max(d.speed_ki, 1e-9)
+        rates, torques, integrals = self.wheel_rate, self.motor_torque, self.speed_integral
         for side, cmd in ((0, cmd_left), (1, cmd_right)):
-            target = self._torque_available(side, self._motor_torque_command(side, cmd))
-            tq = (
-                self.motor_torque[side] + dt * (target - self.motor_torque[side]) / drive.torque_time_constant
-            )
-            self.motor_torque[side] = self._torque_available(side, tq)
-
-    def _wheel_force(self, i: int, n: float) -> tuple[float, float, float, float]:
-        """Wheel ``i``'s ground force at normal load ``n``: (fx, fy) on the body in the body frame (brush
-        traction plus rolling resistance), its traction ``fx`` alone (what reacts on the wheel) and its
-        brush slope (for the implicit step)."""
-        r, ter, tyre = self.radius, self.terrain, self.tyre
-        ky, mu_ratio = ter.lateral_stiffness_ratio, ter.lateral_friction_ratio
-        px, py = self.wheel_xy[i]
-        v_wx = self.vx - self.wz * py  # wheel-centre velocity (eq. 4's V_wx, V_wy), m/s
-        v_wy = self.vy + self.wz * px
-        v_roll_i = r * self.wheel_rate[self.wheel_side[i]]  # rolling speed r*omega, m/s
-        # theoretical slip against the larger of rolling and travel speed (bounded below at rest)
-        v_ref = max(abs(v_roll_i), abs(v_wx), tyre.min_reference_speed)
-        slip_x = (v_roll_i - v_wx) / v_ref  # positive when the wheel drives (spins faster than it travels)
-        slip_y = -ky * v_wy / v_ref  # lateral slip, scaled by the bristles' stiffness ratio
-        slip = math.hypot(slip_x, slip_y)
-        if slip > 1e-12:
-            f = brush_force(slip, ter.friction, n, self.theta)
-            fx = f * slip_x / slip
-            fy = f * slip_y / slip * mu_ratio  # friction ellipse: lateral grip mu_y = ratio * mu_x
-        else:
-            fx = fy = 0.0
-        traction = fx  # the tyre's traction reacts on the wheel (and through it, the motor)
-        # rolling / bulldozing resistance against the wheel centre's travel (smooth near rest)
-        v_w = math.hypot(v_wx, v_wy)
-        if v_w > 1e-12:
-            rr = ter.rolling_resistance * n * math.tanh(v_w / tyre.rolling_sign_speed) / v_w
-            fx -= rr * v_wx
-            fy -= rr * v_wy
-        return fx, fy, traction, ter.slip_stiffness * n / v_ref  # initial brush slope dF/d(slip vel.)
+            rate = rates[side]
+            err = cmd - rate
+            integral = integrals[side] + err * dt
+            integral = -i_lim if not integral > -i_lim else integral  # max(-lim, integral)
+            integral = integral if integral < i_lim else i_lim  # min(lim, ...)
+            integrals[side] = integral
+            target = d.speed_kp * err + d.speed_ki * integral
+            lim = tl
+            if target * rate > 0.0:
+                b = 1.0 - abs(rate) / d.free_speed
+                emf = tl * 4.0 * (b if b > 0.0 else 0.0)
+                lim = emf if emf < lim else lim
+            target = -lim if not target > -lim else target
+            target = target if target < lim else lim
+            tq = torques[side] + dt * (target - torques[side]) / d.torque_time_constant
+            lim = tl
+            if tq * rate > 0.0:
+                b = 1.0 - abs(rate) / d.free_speed
+                emf = tl * 4.0 * (b if b > 0.0 else 0.0)
+                lim = emf if emf < lim else lim
+            tq = -lim if not tq > -lim else tq
+            torques[side] = tq if tq < lim else lim
 
     def _tyre_forces(self, loads: list[float]) -> tuple[tuple[float, ...], list[float], list[float]]:
-        """The four wheels' forces summed: ((fx, fy, mz) on the body and their slopes (k_x, k_y, k_z), N per
-        m/s and N m per rad/s, for the implicit step), the traction per side (N) and its slope bound per
-        side (N / (rad/s))."""
-        ky, mu_ratio = self.terrain.lateral_stiffness_ratio, self.terrain.lateral_friction_ratio
+        """The four wheels' ground forces summed: ((fx, fy, mz) on the body and their slopes (k_x, k_y,
+        k_z), N per m/s and N m per rad/s, for the implicit step), the traction per side (N) and its slope
+        bound per side (N / (rad/s)). Per wheel: the brush traction at the theoretical slip against the
+        larger of rolling and travel speed (bounded below at rest), the friction ellipse's lateral share,
+        rolling / bulldozing resistance against the wheel centre's travel (smooth near rest); its traction
+        alone reacts on the wheel, and its initial brush slope dF/d(slip vel.) bounds the implicit step."""
+        ter, tyre, r = self.terrain, self.tyre, self.radius
+        ky, mu_ratio = ter.lateral_stiffness_ratio, ter.lateral_friction_ratio
+        friction, theta, c_s = ter.friction, self.theta, ter.slip_stiffness
+        rolling, sign_speed, v_min = ter.rolling_resistance, tyre.rolling_sign_speed, tyre.min_reference_speed
+        vx, vy, wz = self.vx, self.vy, self.wz
+        rates = self.wheel_rate
         fx_tot = fy_tot = mz_tot = 0.0
         k_x = k_y = k_z = 0.0
         side_fx = [0.0, 0.0]
@@ -255,15 +242,37 @@ class SkidSteerSim:
         for i in range(4):
             px, py = self.wheel_xy[i]
             side = self.wheel_side[i]
-            fx, fy, traction, slope = self._wheel_force(i, loads[i])
-            side_fx[side] += traction
+            n = loads[i]
+            v_wx = vx - wz * py  # wheel-centre velocity (eq. 4's V_wx, V_wy), m/s
+            v_wy = vy + wz * px
+            v_roll_i = r * rates[side]  # rolling speed r*omega, m/s
+            v_ref = abs(v_roll_i)  # max(|r omega|, |V_wx|, v_min) as max() evaluates it
+            a = abs(v_wx)
+            v_ref = a if a > v_ref else v_ref
+            v_ref = v_min if v_min > v_ref else v_ref
+            slip_x = (v_roll_i - v_wx) / v_ref  # positive when the wheel drives
+            slip_y = -ky * v_wy / v_ref  # lateral slip, scaled by the bristles' stiffness ratio
+            slip = math.hypot(slip_x, slip_y)
+            if slip > 1e-12:
+                f = brush_force(slip, friction, n, theta)
+                fx = f * slip_x / slip
+                fy = f * slip_y / slip * mu_ratio  # friction ellipse: lateral grip mu_y = ratio * mu_x
+            else:
+                fx = fy = 0.0
+            side_fx[side] += fx  # the tyre's traction reacts on the wheel (and through it, the motor)
+            v_w = math.hypot(v_wx, v_wy)
+            if v_w > 1e-12:
+                rr = rolling * n * math.tanh(v_w / sign_speed) / v_w
+                fx -= rr * v_wx
+                fy -= rr * v_wy
+            slope = c_s * n / v_ref
             fx_tot += fx
             fy_tot += fy
             mz_tot += px * fy - py * fx
             k_x += slope
             k_y += slope * ky * mu_ratio
             k_z += slope * (py * py + ky * mu_ratio * px * px)
-            side_k[side] += slope * self.radius
+            side_k[side] += slope * r
         return (fx_tot, fy_tot, mz_tot, k_x, k_y, k_z), side_fx, side_k
 
     def _step_wheels(self, side_fx: list[float], side_k: list[float]) -> None:
