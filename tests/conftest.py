@@ -198,6 +198,28 @@ XDIST_GROUPS = {
 }
 #: files of long, independent tests (no module fixture): one test per unit, so they balance over workers
 XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")
+_NAMES = "tests/test_discover_hidden.py::test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap"
+#: tests that assert different things of one discovery run (tests/discover_data.py ``discovered``, made once
+#: per process): one unit per run, so one worker makes it
+XDIST_SHARED = {
+    f"discovered:{world}": tests
+    for world, tests in {
+        "angular_acceleration_slip": (
+            f"{_NAMES}[angular_acceleration_slip]",
+            "tests/test_discover_hidden.py::test_a_placebo_names_nothing",
+            "tests/test_discover_terms.py::test_catalogue_effect_keeps_its_catalogue_name_against_the_terms",
+        ),
+        "actuator_lag": (
+            f"{_NAMES}[actuator_lag]",
+            "tests/test_discover_protocol.py::"
+            "test_actuator_lag_is_named_under_commanded_and_not_again_under_response",
+        ),
+        "none": (
+            "tests/test_discover_hidden.py::test_discover_finds_no_missing_effect_when_there_is_none[7]",
+            "tests/test_discover_terms.py::test_noise_only_data_names_nothing_and_reports_the_residual_unexplained",
+        ),
+    }.items()
+}
 
 
 def docs_blocks_alone() -> tuple[str, ...]:
@@ -232,14 +254,17 @@ XDIST_FIRST = (
     "[curvature_dependent_icr]",
     *XDIST_ALONE,
     "lab_server",
-    "tests/test_discover_protocol.py",
+    "discovered:actuator_lag",
 )
 
 
 def xdist_unit(nodeid: str) -> str:
     """The work unit of a test under ``--dist loadgroup``: its file (as ``--dist loadfile``: a file's module
-    fixtures are built once), its group (``XDIST_GROUPS``) or, in ``XDIST_SPREAD`` or ``XDIST_ALONE``, the
-    test itself."""
+    fixtures are built once), its group (``XDIST_GROUPS``), its shared discovery (``XDIST_SHARED``) or, in
+    ``XDIST_SPREAD`` or ``XDIST_ALONE``, the test itself."""
+    shared = [unit for unit, tests in XDIST_SHARED.items() if nodeid in tests]
+    if shared:
+        return shared[0]
     path = nodeid.split("::")[0]
     if path in XDIST_SPREAD or nodeid in XDIST_ALONE:
         return nodeid

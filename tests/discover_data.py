@@ -346,3 +346,57 @@ def write_amrl(raw, root: Path, terrain: str = "Tile", t0: float = 1_600_000_000
             lc = np.column_stack([lo.t + t0 + 1000 * i, lo.x, lo.y, yaw])
             np.savetxt(base / "loc" / f"{i + 1}.txt", lc, fmt="%.6f", delimiter=",")
     return Path(root)
+
+
+def with_encoders(cmd: pd.DataFrame, loc: pd.DataFrame) -> pd.DataFrame:
+    """The split table of a sequence (:func:`to_split`) with its wheels' encoders (``enc_wl``, ``enc_wr``):
+    the motors' lag (``actuator_lag``'s default time constant) as :func:`sequence` applies it (180 Hz clock,
+    the commands held), sampled on the split's clock."""
+    from scipy.signal import lfilter
+
+    table = to_split(cmd, loc)
+    dt, tau = 1.0 / 180.0, DEFAULT_SIZES["actuator_lag"]
+    t = np.arange(cmd.t.iloc[0], cmd.t.iloc[-1] + dt / 2, dt)
+    idx = np.clip(np.searchsorted(cmd.t.to_numpy(), t + 1e-9, side="right") - 1, 0, len(cmd) - 1)
+    v, w = cmd.v.to_numpy()[idx], cmd.w.to_numpy()[idx]
+    a = 1 - np.exp(-dt / tau)
+    wheels = []
+    for u in ((v - w * TRACK / 2) / R_WHEEL, (v + w * TRACK / 2) / R_WHEEL):
+        wheels.append(lfilter([a], [1, a - 1], u, zi=[(1 - a) * u[0]])[0])
+    t_split = table["t"].to_numpy() + max(cmd.t.iloc[0], loc.t.iloc[0])
+    k = np.clip(np.searchsorted(t, t_split + 1e-9, side="right") - 1, 0, len(t) - 1)
+    out = table.assign(enc_wl=wheels[0][k], enc_wr=wheels[1][k])
+    out.attrs = dict(table.attrs)  # the hold's timing, as the split file's metadata has it
+    return out
+
+
+#: discovery runs already made in this process: {(names, seed, encoders, ...): (result, pool, tables)}
+_DISCOVERED: dict = {}
+
+
+def discovered(names: tuple[str, ...], seed: int, robot, encoders: bool = False, n_train: int = 8,
+               duration: float = 36.0):  # fmt: skip
+    """Discovery from ``edd`` (``robot``, the Jackal) with its default settings under ``commanded`` on the
+    ``n_train`` Train sequences of ``duration`` s of :func:`dataset` with the effects ``names`` hidden:
+    ``(result, pool, tables)``, the pool built from the split ``tables`` ([(table, meta)]; with the wheels'
+    encoders if ``encoders``: :func:`with_encoders`, which ``commanded`` does not read). Made once per
+    process for a world: the tests that assert different things of one discovery share it (read only), and
+    tests/conftest.py runs them on one xdist worker."""
+    from skidbench.benchmark.discovery.discover import discover_terrain
+    from skidbench.benchmark.discovery.pool import prepare_pool
+    from skidbench.models.augmented.fit import DiscoverSettings, build_pool
+    from skidbench.models.registry.specs import get_model_class
+
+    key = (tuple(names), seed, encoders, robot.name, n_train, duration)
+    if key not in _DISCOVERED:
+        raw = dataset(hidden(names), seed, n_train=n_train, duration=duration)
+        tables = []
+        for i, (c, lo) in enumerate(raw["train"]):
+            df = with_encoders(c, lo) if encoders else to_split(c, lo)
+            tables.append((df, split_meta(df, f"train_{i:02d}")))
+        s, edd = DiscoverSettings(), get_model_class("edd")
+        pool = build_pool(tables, s)
+        commanded = prepare_pool(pool, "commanded", robot)
+        res = discover_terrain(commanded, lambda: edd(robot), robot, s, "tile", "edd", progress=print)
+        _DISCOVERED[key] = (res, pool, tables)
+    return _DISCOVERED[key]

@@ -23,6 +23,10 @@ from skidbench.pipeline.core.layout import layout_from_cfg
 from skidbench.pipeline.core.schema import read_split
 
 DS = "sim-mini"
+#: the board's horizon only: these tests are about run selection, the boards and the report; a compare of
+#: evaluates scored at several horizons also ranks every horizon's aggressiveness strata (reports/horizons.md,
+#: which the README quick start's compare writes)
+H6 = "horizons=[6.0]"
 
 
 @pytest.fixture(scope="module")
@@ -31,13 +35,15 @@ def two_evaluations(tmp_path_factory):
     mp.delenv("MLFLOW_TRACKING_URI", raising=False)
     out = tmp_path_factory.mktemp("compare")
     write_splits(out / DS, counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
-    first = run_benchmark(compose("evaluate", out, ["models=[ideal_t]"]), fit_fn=fit_fn, log_figures=False)
+    first = run_benchmark(
+        compose("evaluate", out, ["models=[ideal_t]", H6]), fit_fn=fit_fn, log_figures=False
+    )
     second = run_benchmark(
-        compose("evaluate", out, ["models=[chi,ideal_t,broken]"]), fit_fn=fit_fn, log_figures=False
+        compose("evaluate", out, ["models=[chi,ideal_t,broken]", H6]), fit_fn=fit_fn, log_figures=False
     )
     # the newest evaluate is under another input protocol: never ranked with the commanded ones
     third = run_benchmark(
-        compose("evaluate", out, ["models=[chi,ideal_t]", "inputs=measured"]),
+        compose("evaluate", out, ["models=[chi,ideal_t]", "inputs=measured", H6]),
         fit_fn=fit_fn,
         log_figures=False,
     )
@@ -241,7 +247,7 @@ def test_compare_reads_the_callers_own_latest_runs_and_says_when_someone_evaluat
     runs = {}
     for user, models in (("alice", "[chi,ideal_t]"), ("bob", "[chi]")):
         monkeypatch.setenv("SKIDBENCH_USER", user)
-        runs[user] = run_benchmark(compose("evaluate", tmp_path, [f"models={models}"]), fit_fn=fit_fn,
+        runs[user] = run_benchmark(compose("evaluate", tmp_path, [f"models={models}", H6]), fit_fn=fit_fn,
                                    log_figures=False).parent_run_id  # fmt: skip
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     for user, run_id in runs.items():

@@ -29,7 +29,7 @@ from skidbench.pipeline.datasets.identity import (
 )
 
 FIXTURE = Path(__file__).parent / "fixtures" / "amrl"
-EVALUATE = ["models=[ideal,edd]", "log_figures=false"]
+EVALUATE = ["models=[ideal,edd]", "log_figures=false", "horizons=[6.0]"]  # the homes, not the horizons
 COMPARE = ["figures.enabled=false"]
 DISCOVER = [
     "model=edd",

@@ -31,14 +31,16 @@ DURATION = 36.0  # s each
 CLI_EFFECT = "speed_dependent_turn_slip"  # this one goes through amrl_txt text files and the CLI
 
 
-def _discover(effects: list[str], seed: int, jackal):
-    from skidbench.models.registry.specs import get_model_class
+#: the seed of each effect's data set (100 + its place in the catalogue); angular_acceleration_slip's is the
+#: placebo's world (test_discover_terms names it against the terms on the same world), actuator_lag's
+#: carries its wheels' encoders (test_discover_protocol's world: commanded reads none)
+SEEDS = {e: 100 + i for i, e in enumerate(EFFECT_IDS)} | {"angular_acceleration_slip": 101}
 
-    edd = get_model_class("edd")
-    raw = dd.dataset(dd.hidden(effects), seed, n_train=N_TRAIN, duration=DURATION)
-    s = DiscoverSettings()
-    pool = prepare_pool(build_pool(dd.split_tables(raw), s), "commanded", jackal)
-    return discover_terrain(pool, lambda: edd(jackal), jackal, s, "tile", "edd", progress=print)
+
+def _discover(effects: list[str], seed: int, jackal):
+    """Discovery on 8 Train sequences of 36 s with ``effects`` hidden, made once per process per world
+    (tests/discover_data.py ``discovered``)."""
+    return dd.discovered(tuple(effects), seed, jackal, encoders=effects == ["actuator_lag"])[0]
 
 
 def _gap(rm: dict) -> float:
@@ -58,7 +60,7 @@ def _assert_shrinks(step: dict) -> None:
     [e for e in EFFECT_IDS if e != CLI_EFFECT],
 )
 def test_discover_names_the_hidden_effect_alone_and_shrinks_the_gap(effect, jackal):
-    res = _discover([effect], seed=100 + EFFECT_IDS.index(effect), jackal=jackal)
+    res = _discover([effect], seed=SEEDS[effect], jackal=jackal)
     assert res.effects, f"{effect}: nothing found ({res.message})"
     assert res.effects == [effect] and res.terms == [], (res.effects, res.terms)  # nothing false after it
     assert res.calibration is None  # the generator's radius is the spec sheet's: no speed scale
@@ -175,8 +177,8 @@ def test_a_placebo_names_nothing(jackal):
     from skidbench.benchmark.discovery.app import placebo
     from skidbench.models.registry.specs import get_model_class
 
-    res, pool, robot = _discover_world(["angular_acceleration_slip"], 101, jackal)
+    res, pool, _ = dd.discovered(("angular_acceleration_slip",), SEEDS["angular_acceleration_slip"], jackal)
     assert res.effects == ["angular_acceleration_slip"]
     edd = get_model_class("edd")
-    out = placebo(pool, lambda: edd(robot), robot, DiscoverSettings(), "tile", "edd", EFFECT_IDS, 30.0)
+    out = placebo(pool, lambda: edd(jackal), jackal, DiscoverSettings(), "tile", "edd", EFFECT_IDS, 30.0)
     assert out["passed"] and out["named"] == [], out

@@ -280,14 +280,16 @@ def test_effect_outside_the_catalogue_is_named_by_its_term_with_the_injected_con
 
 @pytest.mark.slow
 def test_catalogue_effect_keeps_its_catalogue_name_against_the_terms(jackal):
-    res = _discover(dd.hidden(["angular_acceleration_slip"]), seed=103, jackal=jackal)
+    # the world of test_discover_hidden's angular_acceleration_slip case and its placebo: one discovery
+    res, _, _ = dd.discovered(("angular_acceleration_slip",), 101, jackal)
     assert res.effects and res.effects[0] == "angular_acceleration_slip", (res.effects, res.terms)
     assert res.steps[0]["kind"] == "catalogue"
 
 
 @pytest.mark.slow
 def test_noise_only_data_names_nothing_and_reports_the_residual_unexplained(jackal):
-    res = _discover({}, seed=8, jackal=jackal)
+    # the first world of test_discover_hidden's test of data without a missing effect: one discovery
+    res, _, _ = dd.discovered((), 7, jackal)
     assert res.effects == [] and res.terms == [], (res.effects, res.terms)
     u = res.unexplained
     assert u and u["text"].startswith("unexplained held-out residual")
