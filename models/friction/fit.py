@@ -53,6 +53,10 @@ LATERAL_CL_Z = 1.645
 #: a start, or a held value, stays inside its bounds by this fraction of the log range (on a bound it has
 #: no room to move)
 START_MARGIN = 0.05
+#: after the first evaluation, a point where more than this fraction of the steps has no root is solved
+#: without the acceleration fallback (``FrictionBased.velocities``): it changes neither the statuses nor
+#: the warm start, only the residuals of a trial point trf rejects
+FAR_TRIAL_ROOTLESS = 0.5
 
 
 def log_covariance(res) -> np.ndarray:
@@ -189,7 +193,8 @@ class FitProblem:
         if last.get("z") is not None and np.array_equal(last["z"], z):
             return last
         p = self.params(z)
-        v, sol = self.model.velocities(self.inp, p, theta0=self.theta)
+        far = None if self.scored is None else FAR_TRIAL_ROOTLESS
+        v, sol = self.model.velocities(self.inp, p, theta0=self.theta, fallback_below=far)
         if self.theta is None or np.all(sol.status > 0):
             # warm start for the next evaluation: the commanded problem's solution, not the fallback's
             self.theta = sol.info.get("commanded_theta", sol.theta)

@@ -83,7 +83,9 @@ class FrictionBased(KinematicModel):
         ``cmd_dwl``, ``cmd_dwr``, i.e. the inputs of the run's protocol (pipeline/core/protocol.py)."""
         return tuple(col(table, c) for c in ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"))
 
-    def velocities(self, inputs, params=None, theta0=None) -> tuple[np.ndarray, SolveResult]:
+    def velocities(
+        self, inputs, params=None, theta0=None, fallback_below: float | None = None
+    ) -> tuple[np.ndarray, SolveResult]:
         """(T, 3) body velocities and the per-step solve (eq. 12 then eq. 8).
 
         A step whose solve is not physical (no root, not converged, or a slip ratio outside [-1, 1], i.e.
@@ -93,7 +95,9 @@ class FrictionBased(KinematicModel):
         physical solution: the motion at the largest tried fraction of the commanded acceleration
         that the forces can balance (``sol.accel_scale``; 0 is the steady state). Without it such a
         step predicted body speeds of hundreds of m/s on DRIVE's command steps. ``sol.status`` stays
-        the status of the commanded problem. ``options.accel_fallback=false`` turns it off.
+        the status of the commanded problem. ``options.accel_fallback=false`` turns it off;
+        ``fallback_below`` (a fraction) skips it where more than that fraction of the steps has no root
+        (``FitProblem.evaluate``: a trial point far from any fit).
         """
         p = self.params if params is None else params
         geo = self.geometry
@@ -101,7 +105,10 @@ class FrictionBased(KinematicModel):
         wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in inputs)
         scale = np.ones(wl.size)
         bad = ~self._physical(sol.theta, sol.status, wl, wr)
-        if bad.any() and self.options.get("accel_fallback", True):
+        fallback = self.options.get("accel_fallback", True)
+        if fallback_below is not None and np.mean(sol.status != 1) > fallback_below:
+            fallback = False
+        if bad.any() and fallback:
             # every fraction of every such step in one batched solve (they are independent problems)
             idx = np.flatnonzero(bad)
             ks = np.repeat(np.asarray(ACCEL_SCALES, dtype=float), idx.size)
