@@ -31,7 +31,9 @@ STAGE_ARGS = {
     # calibrate.use=false: these runs are about faults and reruns, not the calibration (which only
     # `skidbench calibrate` computes; PIPELINE does not run it)
     "fit": [*SCALE, "model=edd", "terrain=tile", "track=false", "calibrate.use=false"],
-    "evaluate": [*SCALE, "models=[ideal,edd]", "log_figures=false", "calibrate.use=false"],
+    # horizons=[6.0]: the board's horizon only (these runs are about faults, reruns and the store; five
+    # horizons also make every compare rank each horizon's aggressiveness strata)
+    "evaluate": [*SCALE, "models=[ideal,edd]", "log_figures=false", "calibrate.use=false", "horizons=[6.0]"],
 }
 PIPELINE = ("simulate", "extract", "groundtruth", "split")
 

@@ -29,7 +29,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.skipif(bool(postgres_missing()), rea
 
 DS = "sim-mini"
 FAULTS = Path(__file__).resolve().parent / "fault_injection"
-EVALUATE = ["calibrate.use=false", "log_figures=false"]
+EVALUATE = ["calibrate.use=false", "log_figures=false", "horizons=[6.0]"]  # the board's horizon: no strata
 OUTAGE = "skidbench-outage"
 
 

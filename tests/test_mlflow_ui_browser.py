@@ -53,7 +53,9 @@ def ui(tmp_path_factory, lab_server):
     own = [f"mlflow.experiment={EXPERIMENT}"]
     write_splits(root / DS, counts={"train": 1, "cv": 1, "ld": 1}, duration_s=20.0)
     res = run_benchmark(
-        compose("evaluate", root, ["models=[chi,ideal_t]", *own]), fit_fn=fit_fn, log_figures=False
+        compose("evaluate", root, ["models=[chi,ideal_t]", "horizons=[6.0]", *own]),
+        fit_fn=fit_fn,
+        log_figures=False,
     )
     out = run_compare(compose("compare", root, ["figures.enabled=false", *own]))
     yield root, res, out.links

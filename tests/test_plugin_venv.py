@@ -228,7 +228,14 @@ def test_an_edited_plugin_is_refitted_and_rescored_alone_and_an_uninstalled_one_
     env = {**os.environ, "SKIDBENCH_OUT": str(out)}
     env.pop("MLFLOW_TRACKING_URI", None)
     cli = [str(py), "-m", "skidbench.pipeline.cli.main"]
-    evaluate = [*cli, "evaluate", "models=[ideal,tame]", "calibrate.use=false", "log_figures=false"]
+    evaluate = [
+        *cli,
+        "evaluate",
+        "models=[ideal,tame]",
+        "calibrate.use=false",
+        "log_figures=false",
+        "horizons=[6.0]",
+    ]
     run(evaluate, env=env, cwd=tmp_path)
     fits = out / "sim-mini" / "fits"
     ideal_fit = (fits / "ideal" / "tile.json").stat().st_mtime_ns

@@ -228,7 +228,7 @@ def test_a_plugin_that_raises_in_predict_fails_loudly_and_compare_ranks_the_othe
             filter(None, [str(_raising_plugin(tmp_path)), os.environ.get("PYTHONPATH")])
         )
     }
-    args = [*STAGE_ARGS["split"], "models=[ideal,raiser]", "log_figures=false", "calibrate.use=false"]
+    args = [*STAGE_ARGS["evaluate"], "models=[ideal,raiser]"]
     proc = skidbench("evaluate", root, env=env, base=args, check=False)
     assert proc.returncode == 3, proc.stderr[-3000:]
     (summary,) = [line for line in proc.stderr.splitlines() if "FAILED under inputs=" in line]
