@@ -28,6 +28,7 @@ from skidbench.benchmark.discovery.discover import (
 )
 from skidbench.benchmark.discovery.placebo import placebo
 from skidbench.benchmark.discovery.pool import load_pool, prepare_pool, too_small
+from skidbench.benchmark.discovery.scale import against_encoders
 from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS
 from skidbench.models.augmented.fit import DiscoverError, DiscoverSettings
 from skidbench.pipeline.cli.main import stage
@@ -142,6 +143,14 @@ def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool
     return resp
 
 
+def _radius_method(cfg: DictConfig, terrain: str) -> str:
+    """How ``calibrate`` measured the terrain's wheel radius (its record's ``method``; "" when it did not)."""
+    from skidbench.pipeline.calibrate.calibration import Calibrations, load_calibration
+
+    rec = (load_calibration(Calibrations.from_cfg(cfg), terrain) or {}).get("wheel_radius") or {}
+    return str(rec.get("method", "")) if rec.get("identified") else ""
+
+
 def _placebo_on(cfg: DictConfig) -> bool:
     """``discover.placebo``: auto runs it on recorded data (any source but the simulator)."""
     p = cfg.discover.get("placebo", "auto")
@@ -194,6 +203,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         factory = lambda r=robot_t: build_model(configs, base_name, r)  # noqa: E731
         res = discover_terrain(pool, factory, robot_t, settings, terrain, base_name, candidates=cands,
                                progress=lambda m: print(m, flush=True))  # fmt: skip
+        if own_splits and res.calibration:  # a radius calibrate measured against encoders is not the scale
+            against_encoders(res, _radius_method(cfg, terrain))
+            print(f"[{terrain}] calibration: {res.calibration['text']}", flush=True)
         if _placebo_on(cfg):
             shift = float(cfg.discover.get("placebo_shift_s", 30.0))
             res.placebo = placebo(pool, factory, robot_t, settings, terrain, base_name, cands, shift)

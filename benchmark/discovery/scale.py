@@ -143,3 +143,29 @@ def ask_speed_scale(run: Search) -> None:
     }
     run.steps[-1]["explanation"] = run.calibration["text"]
     run.say(f"[{run.terrain}] calibration: {run.calibration['text']}")
+
+
+def against_encoders(res, method: str) -> None:
+    """A speed scale found where ``calibrate`` measured the wheel radius against the wheel encoders
+    (``method``, its calibration record's): the encoders fix the radius, so a deficit against the
+    commands is the wheels turning slower than commanded, not a radius to put in the robot's config (on
+    the DRIVE Warthog, a scale of 0.690 was printed as "put wheel_radius: 0.1857" for an encoder-measured
+    0.2693 m). ``res`` (a :class:`~skidbench.benchmark.discovery.discover.TerrainDiscovery`): its
+    calibration's text, its message and the calibration step's explanation restated, in place."""
+    cal = res.calibration
+    if not cal or "encoders" not in method:
+        return
+    old, r = cal["text"], cal["configured"]
+    lo, hi = (c / r for c in cal["ci"])
+    cal["radius_measured"] = method
+    cal["text"] = (
+        f"the robot drives at {cal['speed_scale']:.3f} of the speed its commands ask for (95 % interval "
+        f"{lo:.3f}-{hi:.3f}), with its wheel radius ({r:.4f} m) measured against its wheel encoders: its "
+        "wheels turn slower than commanded (their response to the commands, which `skidbench calibrate` "
+        "identifies and `inputs=response` drives the models with), not a radius to put in the robot's "
+        "config"
+    )
+    res.message = res.message.replace(old, cal["text"])
+    for st in res.steps:
+        if st.get("kind") == "calibration":
+            st["explanation"] = cal["text"]

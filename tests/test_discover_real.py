@@ -1,8 +1,8 @@
-"""The placebo check on a real recording (issue 47; docs/discovery.md, "The placebo check"): the DRIVE
-Husky's commands moved 30 s. ``edd`` cannot be fitted to them (its yaw rate anti-correlates with the moved
-turn commands: 1/chi < 0), where the placebo used to say "nothing named" without searching; now the
-search runs from the base held at its recorded fit with channel gains, and names nothing. Skips when
-``../shared`` (or ``SKIDBENCH_SHARED_REAL``) is absent."""
+"""Discovery on real recordings (issue 47): the placebo check on the DRIVE Husky (its commands moved 30 s:
+``edd`` cannot be fitted to them, where the placebo used to say "nothing named" without searching; now
+the search runs from the base held at its recorded fit with channel gains, and names nothing; skips when
+``../shared`` or ``SKIDBENCH_SHARED_REAL`` is absent), and a speed scale against commands where the radius
+was measured against encoders (DRIVE's calibration) told as the wheels' shortfall, not a radius."""
 
 from __future__ import annotations
 
@@ -62,3 +62,28 @@ def test_a_placebo_on_the_drive_husky_searches_and_names_nothing(shared_real, tm
     assert out["searched"] and "1/chi" in out["fallback"], out
     assert out["n_candidates"] >= 8, out  # the catalogue's command-driven members at least
     assert out["named"] == [] and out["passed"] is True, out
+
+
+def test_a_speed_scale_against_encoder_measured_radius_is_not_a_radius_to_configure():
+    """The DRIVE Warthog case: a scale of 0.690 against an encoder-measured 0.2693 m is the wheels turning
+    slower than commanded; without encoders behind the radius the finding stays a radius."""
+    from types import SimpleNamespace
+
+    from skidbench.benchmark.discovery.scale import against_encoders
+
+    text = "the effective wheel radius is 0.1857 m ...; put wheel_radius: 0.1857 in the robot's config"
+    cal = {"configured": 0.2693, "ci": [0.1578, 0.2136], "speed_scale": 0.690, "text": text}
+    step = {"kind": "calibration", "explanation": text}
+    res = SimpleNamespace(calibration=dict(cal), message=f"calibration: {text}; no missing effect found",
+                          steps=[step])  # fmt: skip
+    against_encoders(res, "straight settled rows: vx = r (wl + wr) / 2 through the origin; wheels: encoders")
+    assert "0.690 of the speed its commands ask for" in res.calibration["text"]
+    assert "put wheel_radius" not in res.message and "put wheel_radius" not in step["explanation"]
+    assert res.calibration["text"] in res.message
+    lo, hi = res.calibration["text"].split("interval ")[1].split(")")[0].split("-")
+    assert float(lo) == pytest.approx(0.1578 / 0.2693, abs=1e-3) and float(hi) == pytest.approx(
+        0.2136 / 0.2693, abs=1e-3
+    )
+    res2 = SimpleNamespace(calibration=dict(cal), message=text, steps=[])
+    against_encoders(res2, "settled straight rows of the ground truth")  # no encoders: the radius it is
+    assert res2.calibration["text"] == text
