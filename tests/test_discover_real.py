@@ -87,3 +87,33 @@ def test_a_speed_scale_against_encoder_measured_radius_is_not_a_radius_to_config
     res2 = SimpleNamespace(calibration=dict(cal), message=text, steps=[])
     against_encoders(res2, "settled straight rows of the ground truth")  # no encoders: the radius it is
     assert res2.calibration["text"] == text
+
+
+def test_the_speed_scale_is_restated_as_the_final_model_has_it():
+    """Asked first, the scale takes what a lag named after it explains (DRIVE Warthog gravel: 0.719 asked
+    first, 1.007 in the final model): the finding is restated from the final fit and its folds, and an
+    interval that holds 1 is no finding."""
+    from types import SimpleNamespace
+
+    from skidbench.benchmark.discovery.scale import _calibration, restate_scale
+    from skidbench.models.augmented.effects import SPEED_SCALE
+
+    def run_with(final_ks):
+        cal = _calibration(0.2658, -0.281, -0.35, -0.21)
+        steps = [{"kind": "calibration", "effect": SPEED_SCALE, "explanation": cal["text"]},
+                 {"kind": "catalogue", "effect": "actuator_lag"}]  # fmt: skip
+        return SimpleNamespace(
+            calibration=cal, steps=steps, base_info={}, terrain="gravel", say=lambda m: None,
+            state=SimpleNamespace(params={SPEED_SCALE: np.array([np.mean(final_ks)])}),
+            cur=SimpleNamespace(fold_params=[{SPEED_SCALE: [k]} for k in final_ks]),
+        )  # fmt: skip
+
+    run = run_with([0.02, -0.01, 0.0, 0.015, 0.012])
+    restate_scale(run)
+    assert run.calibration is None and not run.base_info["speed_scale_check"]["final"]["holds"]
+    assert "no speed scale once actuator_lag" in run.steps[0]["explanation"]
+    assert "0.719 when asked first" in run.steps[0]["explanation"]
+    run = run_with([-0.10, -0.09, -0.095, -0.1, -0.09])
+    restate_scale(run)
+    assert run.calibration["holds"] and run.calibration["speed_scale"] == pytest.approx(0.905)
+    assert run.calibration["first_question"]["speed_scale"] == pytest.approx(0.719)
