@@ -26,11 +26,12 @@ from skidbench.benchmark.discovery.discover import (
     discover_terrain,
     refused_terrain,
 )
-from skidbench.benchmark.discovery.pool import load_pool, placebo_pool, prepare_pool, too_small
+from skidbench.benchmark.discovery.placebo import placebo
+from skidbench.benchmark.discovery.pool import load_pool, prepare_pool, too_small
+from skidbench.benchmark.discovery.scale import against_encoders
 from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS
 from skidbench.models.augmented.fit import DiscoverError, DiscoverSettings
 from skidbench.pipeline.cli.main import stage
-from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.io import atomic_path, write_json_atomic, write_text_atomic
 from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.manifest import Manifest
@@ -142,39 +143,12 @@ def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool
     return resp
 
 
-def placebo(pool, factory, robot, settings: DiscoverSettings, terrain: str, base_name: str, cands,
-            shift_s: float) -> dict[str, Any]:  # fmt: skip
-    """The placebo check (issue 47): the same search on the pool with its commands moved ``shift_s`` in
-    time (:func:`placebo_pool`), one step after the speed scale; nothing may be named. Command-free
-    candidates (``lateral_drift``, constant and time forms of the library) are left out: they do not read
-    the commands, so the placebo leaves them what they are. The speed scale is taken when it passes the
-    rule, whatever its spread over speeds (``scale_spread`` off): moved commands relate to the motion by
-    their overall level only (slow ones predict about the mean speed, fast ones much less), which is
-    neither a radius nor a drive's effect, so the check that tells those apart has nothing to tell here;
-    the placebo asks what the effect search names after that relation is taken out."""
-    import dataclasses
+def _radius_method(cfg: DictConfig, terrain: str) -> str:
+    """How ``calibrate`` measured the terrain's wheel radius (its record's ``method``; "" when it did not)."""
+    from skidbench.pipeline.calibrate.calibration import Calibrations, load_calibration
 
-    from skidbench.models.augmented import terms as termlib
-
-    try:
-        res = discover_terrain(
-            placebo_pool(pool, shift_s), factory, robot,
-            dataclasses.replace(settings, max_effects=1, scale_spread=float("inf")),
-            terrain, base_name, candidates=tuple(c for c in cands if c != "lateral_drift"),
-            progress=lambda m: None, exclude_forms=tuple(termlib.command_free_forms()),
-        )  # fmt: skip
-    except SkidbenchError as exc:  # the base model cannot be fitted to commands that did not drive it
-        return {"shift_s": shift_s, "named": [], "passed": True,
-                "text": f"placebo (commands moved {shift_s:g} s): nothing named (the base model cannot be "
-                f"fitted to them: {exc})"}  # fmt: skip
-    named = res.effects + res.terms
-    return {
-        "shift_s": shift_s,
-        "named": named,
-        "passed": not named,
-        "text": f"placebo (commands moved {shift_s:g} s): "
-        + ("nothing named" if not named else f"NAMED {', '.join(named)}: what this data names is suspect"),
-    }
+    rec = (load_calibration(Calibrations.from_cfg(cfg), terrain) or {}).get("wheel_radius") or {}
+    return str(rec.get("method", "")) if rec.get("identified") else ""
 
 
 def _placebo_on(cfg: DictConfig) -> bool:
@@ -229,6 +203,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         factory = lambda r=robot_t: build_model(configs, base_name, r)  # noqa: E731
         res = discover_terrain(pool, factory, robot_t, settings, terrain, base_name, candidates=cands,
                                progress=lambda m: print(m, flush=True))  # fmt: skip
+        if own_splits and res.calibration:  # a radius calibrate measured against encoders is not the scale
+            against_encoders(res, _radius_method(cfg, terrain))
+            print(f"[{terrain}] calibration: {res.calibration['text']}", flush=True)
         if _placebo_on(cfg):
             shift = float(cfg.discover.get("placebo_shift_s", 30.0))
             res.placebo = placebo(pool, factory, robot_t, settings, terrain, base_name, cands, shift)

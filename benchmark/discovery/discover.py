@@ -44,7 +44,7 @@ from skidbench.benchmark.discovery.ground_truth import ground_truth_findings
 from skidbench.benchmark.discovery.naming import best_catalogue, choose, keep_best_members, naming_record
 from skidbench.benchmark.discovery.panels import residual_panel, term_panel, unexplained_panels
 from skidbench.benchmark.discovery.pool import selected_on
-from skidbench.benchmark.discovery.scale import ask_speed_scale
+from skidbench.benchmark.discovery.scale import ask_speed_scale, restate_scale
 from skidbench.benchmark.discovery.search import (
     Scored,
     ScoredTerms,
@@ -327,6 +327,9 @@ def _result(run: Search, base_name: str, t_start: float) -> TerrainDiscovery:
         message += "; no further effect earns its place"
     if run.calibration:
         message = f"calibration: {run.calibration['text']}; " + message
+    restated = run.base_info.get("speed_scale_check", {}).get("final")
+    if restated and not restated["holds"]:
+        message = f"calibration: {restated['text']}; " + message
     by_speed = run.base_info.get("speed_scale_check", {}).get("by_speed", {})
     if not by_speed.get("proportional", True):
         message = f"speed deficit: {by_speed['text']}; " + message
@@ -391,6 +394,7 @@ def discover_terrain(
         if not _step(run, members(candidates)):
             break
         _retest(run)
+    restate_scale(run)
     run.base_info["too_small"] = list(run.too_small.values())
     run.base_info["dropped"] = run.dropped
     return _result(run, base_name, t_start)

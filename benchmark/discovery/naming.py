@@ -63,9 +63,16 @@ def tie_candidate(run: Search, scored: Scored) -> str | None:
     of the rule but its own 6 s sign-flip test (``paired_p_value``), marked ``named_on_tie``. That some
     effect is there is shown by the passing term (the search-wide test bounds the chance of any name on
     data with nothing missing, whichever is given); which name it gets is the naming rule's (a term is
-    named instead only when significantly better than this effect, :func:`choose`)."""
+    named instead only when significantly better than this effect, :func:`choose`). The effect must matter
+    to a lab by itself (``practical``, :func:`search.practical_check`): a name is a name, and on the DRIVE
+    Warthog an angular-acceleration slip that cut 1.8 % of the 6 s rotational error was named on a tie
+    with a yaw-rate saturation that cut far more."""
     alpha = run.settings.alpha
-    ok = [e for e, (ev, _) in scored.items() if ev["rule_ok"] and ev.get("p_search", 1.0) <= alpha]
+    ok = [
+        e
+        for e, (ev, _) in scored.items()
+        if ev["rule_ok"] and ev.get("p_search", 1.0) <= alpha and ev.get("practical", {}).get("ok", True)
+    ]
     if not ok:
         return None
     best = max(ok, key=lambda e: scored[e][0]["penalised_gain"])

@@ -127,26 +127,3 @@ def selected_on(pool: Pool, settings: DiscoverSettings) -> dict[str, Any]:
         "units": "time blocks" if pool.blocks else "sequences",
         "text": f"{'/'.join(settings.splits)} only: {pool.describe()}",
     }
-
-
-#: the command columns a placebo moves (everything a model or a candidate reads of the commands)
-PLACEBO_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr")
-
-
-def placebo_pool(pool: Pool, shift_s: float) -> Pool:
-    """The pool with every sequence's commands moved ``shift_s`` later in time, circularly (half the
-    sequence when it is shorter than twice the shift), the motion and the held-out units kept: commands
-    that did not drive this motion. What the search names on it comes from how the data and the search
-    are made, not from the robot (the placebo check of issue 47)."""
-    table = pool.table.copy()
-    for g in range(len(pool.sequences)):
-        rows = np.flatnonzero(pool.groups == g)
-        if len(rows) < 2:
-            continue
-        dt = float(np.median(np.diff(pool.t[rows])))
-        n = int(round(shift_s / max(dt, 1e-9)))
-        n = n if 2 * n <= len(rows) else len(rows) // 2
-        for c in PLACEBO_COLUMNS:
-            if c in table.columns:
-                table.loc[rows, c] = np.roll(table[c].to_numpy(float)[rows], n)
-    return dataclasses.replace(pool, table=table, note=pool.note + f"; placebo: commands moved {shift_s:g} s")

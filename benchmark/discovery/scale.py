@@ -128,18 +128,81 @@ def ask_speed_scale(run: Search) -> None:
     run.cur = ho
     reweight(run, "catalogue", None)
     k = float(run.state.params[SPEED_SCALE][0])
-    r = run.robot.wheel_radius
-    lo, hi = speed_scale_interval(ho, k)
-    run.calibration = {
+    run.calibration = _calibration(run.robot.wheel_radius, k, *speed_scale_interval(ho, k))
+    run.steps[-1]["explanation"] = run.calibration["text"]
+    run.say(f"[{run.terrain}] calibration: {run.calibration['text']}")
+
+
+def _calibration(r: float, k: float, lo: float, hi: float) -> dict[str, Any]:
+    """The calibration finding of a speed scale ``k`` (interval ``lo``-``hi``) at the configured radius r."""
+    return {
         "parameter": "wheel_radius",
         "value": r * (1 + k),
         "ci": [r * (1 + lo), r * (1 + hi)],
         "configured": r,
         "speed_scale": 1 + k,
+        "holds": True,
         "text": f"the effective wheel radius is {r * (1 + k):.4f} m (95 % interval {r * (1 + lo):.4f}-"
         f"{r * (1 + hi):.4f}), not the configured {r:.4f} m: a speed scale of {1 + k:.3f}; put "
         f"wheel_radius: {r * (1 + k):.4f} in the robot's config (a calibration finding, not a physical "
         "effect)",
     }
-    run.steps[-1]["explanation"] = run.calibration["text"]
-    run.say(f"[{run.terrain}] calibration: {run.calibration['text']}")
+
+
+def restate_scale(run: Search) -> None:
+    """The calibration finding as the final model has it. The scale is asked first, before any effect,
+    and refitted with every name after it: a deficit that a named effect explains leaves it (on the DRIVE
+    Warthog a scale of 0.690 asked first was 0.905 once a 1.5 s lag was named; on its gravel recording
+    0.719 became 1.007). The finding is restated from the final fit and its folds (``first_question``
+    keeps what was asked first); an interval that holds 1 is no finding (``calibration`` None, the
+    restatement in ``speed_scale_check.final`` with ``holds`` false, and the message says that the named
+    effects explain the deficit)."""
+    cal = run.calibration
+    if not cal or SPEED_SCALE not in run.state.params or len(run.steps) < 2:
+        return
+    k = float(run.state.params[SPEED_SCALE][0])
+    lo, hi = speed_scale_interval(run.cur, k)
+    first = {"speed_scale": cal["speed_scale"], "text": cal["text"]}
+    names = ", ".join(st["effect"] for st in run.steps if st["kind"] != "calibration")
+    new = _calibration(cal["configured"], k, lo, hi) | {"first_question": first}
+    if lo <= 0.0 <= hi:
+        new["holds"] = False
+        new["text"] = (
+            f"no speed scale once {names} is in the model: it refits to {1 + k:.3f} (95 % interval "
+            f"{1 + lo:.3f}-{1 + hi:.3f}; {first['speed_scale']:.3f} when asked first), so the radius "
+            f"configured ({cal['configured']:.4f} m) stands"
+        )
+    else:
+        new["text"] += f" (with {names} in the model; {first['speed_scale']:.3f} when asked first)"
+    run.base_info.setdefault("speed_scale_check", {})["final"] = new
+    run.calibration = new if new["holds"] else None  # k near 0 stays in the model: it changes nothing
+    for st in run.steps:
+        if st["kind"] == "calibration":
+            st["explanation"] = new["text"]
+    run.say(f"[{run.terrain}] calibration, as the final model has it: {new['text']}")
+
+
+def against_encoders(res, method: str) -> None:
+    """A speed scale found where ``calibrate`` measured the wheel radius against the wheel encoders
+    (``method``, its calibration record's): the encoders fix the radius, so a deficit against the
+    commands is the wheels turning slower than commanded, not a radius to put in the robot's config (on
+    the DRIVE Warthog, a scale of 0.690 was printed as "put wheel_radius: 0.1857" for an encoder-measured
+    0.2693 m). ``res`` (a :class:`~skidbench.benchmark.discovery.discover.TerrainDiscovery`): its
+    calibration's text, its message and the calibration step's explanation restated, in place."""
+    cal = res.calibration
+    if not cal or not cal.get("holds", True) or "encoders" not in method:
+        return
+    old, r = cal["text"], cal["configured"]
+    lo, hi = (c / r for c in cal["ci"])
+    cal["radius_measured"] = method
+    cal["text"] = (
+        f"the robot drives at {cal['speed_scale']:.3f} of the speed its commands ask for (95 % interval "
+        f"{lo:.3f}-{hi:.3f}), with its wheel radius ({r:.4f} m) measured against its wheel encoders: its "
+        "wheels turn slower than commanded (their response to the commands, which `skidbench calibrate` "
+        "identifies and `inputs=response` drives the models with), not a radius to put in the robot's "
+        "config"
+    )
+    res.message = res.message.replace(old, cal["text"])
+    for st in res.steps:
+        if st.get("kind") == "calibration":
+            st["explanation"] = cal["text"]
