@@ -46,6 +46,7 @@ from skidbench.benchmark.board import selection as sel
 from skidbench.benchmark.board.horizons import horizon_report
 from skidbench.benchmark.board.installed import code_not_here
 from skidbench.benchmark.board.selection import board_from_runs
+from skidbench.benchmark.board.settings import CompareOptions
 from skidbench.benchmark.board.tables import (
     CompareError,
     check_one_protocol,
@@ -67,8 +68,8 @@ from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
 from skidbench.models.registry.saved import board_findings
 from skidbench.pipeline.core.io import write_text_atomic
-from skidbench.pipeline.core.layout import Layout, layout_from_cfg
-from skidbench.pipeline.core.protocol import PROTOCOLS, protocol_from_cfg
+from skidbench.pipeline.core.layout import PROTOCOLS, CommonSettings, Layout, layout_from_cfg, root_from_cfg
+from skidbench.pipeline.core.protocol import check_protocol
 
 log = logging.getLogger(__name__)
 
@@ -230,21 +231,24 @@ class CompareSettings:
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> CompareSettings:
-        parent = cfg.get("parent_run_id", "latest")
-        parent_arg = None if parent in (None, "", "null") else str(parent)
+        """compare's root keys (:class:`~skidbench.benchmark.board.settings.CompareOptions`), the common
+        ones and the typed sections, each read once."""
+        opts, common = root_from_cfg(cfg, CompareOptions), root_from_cfg(cfg, CommonSettings)
+        parent_arg = None if opts.parent_run_id in (None, "", "null") else opts.parent_run_id
+        rank_by = opts.rank_by or st.AGGREGATE
         return cls(
-            horizon=float(cfg.horizon),
+            horizon=opts.horizon,
             parent_run_id=parent_arg,
-            user=sel.whose(cfg.get("user")),
-            filter=cfg.get("filter"),
-            asked=protocol_from_cfg(cfg) if parent_arg == "latest" else None,
-            inputs=str(cfg.get("inputs") or "commanded"),
-            rank_by=str(cfg.get("rank_by") or st.AGGREGATE),
+            user=sel.whose(opts.user),
+            filter=opts.filter,
+            asked=check_protocol(common.inputs) if parent_arg == "latest" else None,
+            inputs=common.inputs or "commanded",
+            rank_by=rank_by,
             intervals=OmegaConf.to_object(cfg.intervals),
-            report=ReportSettings.from_cfg(cfg),
+            report=ReportSettings(common.dataset, opts.filter, rank_by),
             figures=OmegaConf.to_object(cfg.figures),
             ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
-            log_to_mlflow=bool(cfg.get("log_to_mlflow", True)),
+            log_to_mlflow=opts.log_to_mlflow,
             half_track=float(cfg.robot.track_width) / 2.0 if cfg.get("robot") else 0.0,
         )
 

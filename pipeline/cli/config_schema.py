@@ -36,10 +36,14 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from skidbench.benchmark.board.settings import CompareOptions
+from skidbench.benchmark.evaluate.settings import EvaluateOptions
 from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.core.layout import CommonSettings
+from skidbench.pipeline.core.manifest import SPLITS
 from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.splits.settings import SplitSettings
 
@@ -192,6 +196,8 @@ def _section(cls: type, name: str) -> type | None:
 def structured_spec(key: str) -> Spec | None:
     """The declaration of a dotted key under a :data:`STRUCTURED` section (``split.consistency.min_rows``:
     through the nested dataclasses), None when the key is not under one or names no field."""
+    if "." not in key:
+        return next((spec_of(cls, key) for cls in ROOTS.values() if _has_field(cls, key)), None)
     package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
     if package is None:
         return None
@@ -205,6 +211,10 @@ def structured_spec(key: str) -> Spec | None:
             return Spec(_kind(typing.get_args(tp)[1])[0]) if is_map else None
         cls = sub
     return spec_of(cls, name)
+
+
+def _has_field(cls: type, name: str) -> bool:
+    return any(f.name == name for f in dataclasses.fields(cls))
 
 
 def structured_keys() -> Iterator[str]:
@@ -221,6 +231,8 @@ def structured_keys() -> Iterator[str]:
 
     for package, cls in STRUCTURED.items():
         yield from keys(cls, package)
+    for cls in ROOTS.values():
+        yield from (f.name for f in dataclasses.fields(cls))
 
 
 def schema_node(cls: type) -> Any:
@@ -257,15 +269,39 @@ STRUCTURED: dict[str, type] = {
 }
 
 
+#: the settings dataclasses that declare root keys: a config file (``common``, or a stage's) -> the
+#: dataclass. Each is stored in Hydra's ConfigStore as ``schema/root/<file>`` at the config's root
+#: (:func:`root_node`); the file lists it in its defaults list (``- /schema/root/evaluate``). A key two
+#: stages share (``force``) is declared alike by each stage's dataclass.
+ROOTS: dict[str, type] = {
+    "common": CommonSettings,
+    "evaluate": EvaluateOptions,
+    "compare": CompareOptions,
+}
+
+
+def root_node(cls: type) -> Any:
+    """``cls`` as root keys: an untyped mapping of its typed fields (each keeps its type and default, so
+    OmegaConf checks a value as Hydra composes), since a typed root would refuse every key of the other
+    config files."""
+    from omegaconf import OmegaConf
+
+    typed = schema_node(cls)
+    return OmegaConf.create({name: typed._get_node(name) for name in typed})
+
+
 @functools.cache
 def register_configs() -> None:
-    """Store every :data:`STRUCTURED` dataclass in Hydra's ConfigStore (once per process), before any
-    composition: ``skidbench.conf`` calls it when imported, as Hydra loads the configs from it."""
+    """Store every :data:`STRUCTURED` and :data:`ROOTS` dataclass in Hydra's ConfigStore (once per process),
+    before any composition: ``skidbench.conf`` calls it when imported, as Hydra loads the configs from
+    it."""
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
     for package, cls in STRUCTURED.items():
         cs.store(group="schema", name=package, node=schema_node(cls), package=package)
+    for name, cls in ROOTS.items():
+        cs.store(group="schema/root", name=name, node=root_node(cls), package="_global_")
 
 
 BOOL = Spec("bool")
@@ -276,17 +312,9 @@ POS = number(gt=0)
 NONNEG = number(0)
 FRACTION = number(0, 1)
 COUNT = integer(1)
-SPLITS = ("train", "cv", "ld")
 
 # fmt: off
 SCHEMA: dict[str, Spec] = {
-    # -- common.yaml (every stage) --------------------------------------------------------------------
-    "out_root": STR,
-    "dataset": STR,
-    "seed": integer(0),
-    "inputs": choice("commanded", "response", "measured", "state", what="the model input protocol"),
-    "train_dataset": Spec("str", nullable=True, what="a dataset under out_root to fit on"),
-    "train_terrain": Spec("str", nullable=True, what="the terrain of train_dataset to fit on"),
     # -- robot/ -----------------------------------------------------------------------------------------
     "robot.name": STR,
     "robot.mass": POS,
@@ -380,7 +408,7 @@ SCHEMA: dict[str, Spec] = {
     # -- card.yaml --------------------------------------------------------------------------------------
     "card.paper": BOOL,
     # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
-    "force": BOOL,
+    "force": BOOL,  # calibrate's and simulate's (evaluate's is EvaluateOptions')
     "track": BOOL,
     "reuse": BOOL,
     "terrain": OPT_STR,
@@ -403,23 +431,7 @@ SCHEMA: dict[str, Spec] = {
     "mlflow.artifact_root": STR,
     "mlflow.timeout_s": number(gt=0, what="s"),
     "mlflow.ui_url": STR,
-    # -- evaluate.yaml ----------------------------------------------------------------------------------
-    "models": listof(STR, 1),
-    "extra_models": listof(STR),
-    "terrains": listof(STR, 1, null=True),
-    "splits": listof(choice(*SPLITS), 1),
-    "horizons": listof(number(gt=0), 1, what="s"),
-    "min_distance_m": number(0, what="m"),
-    "min_rotation_deg": number(0, what="deg"),
-    "log_figures": BOOL,
-    "seeds": integer(1, 100),
-    # -- compare.yaml -----------------------------------------------------------------------------------
-    "parent_run_id": OPT_STR,
-    "filter": OPT_STR,
-    "user": OPT_STR,
-    "horizon": number(gt=0, what="s"),
-    "rank_by": STR,
-    "log_to_mlflow": BOOL,
+    "rank_by": STR,  # publish's (compare's is CompareOptions')
     # -- runs.yaml --------------------------------------------------------------------------------------
     "reap": BOOL,
     "stale_after_s": number(gt=0, what="s"),
@@ -471,11 +483,13 @@ SCHEMA: dict[str, Spec] = {
 
 
 def spec_for(key: str) -> Spec | None:
-    """The declaration of a dotted key: a field of a :data:`STRUCTURED` dataclass, else the first matching
-    entry of :data:`SCHEMA`, else None."""
+    """The declaration of a dotted key: a field of a :data:`STRUCTURED` or :data:`ROOTS` dataclass, else
+    the first matching entry of :data:`SCHEMA`, else None."""
     package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
     if package is not None:
         return structured_spec(key)
+    if "." not in key and (root := structured_spec(key)) is not None:
+        return root
     spec = SCHEMA.get(key)
     if spec is not None:
         return spec
