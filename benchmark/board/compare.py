@@ -66,6 +66,7 @@ from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import mlflow_ui as mu
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.benchmark.tracking.settings import MlflowSettings, mlflow_from_cfg, tracking_uri
 from skidbench.models.registry.saved import board_findings
 from skidbench.pipeline.core.io import write_text_atomic
 from skidbench.pipeline.core.layout import PROTOCOLS, CommonSettings, Layout, layout_from_cfg, root_from_cfg
@@ -160,13 +161,14 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
     from skidbench.pipeline.core.cache import check_producers
     from skidbench.pipeline.datasets.imported import check_stage
 
-    uri = trk.tracking_uri_from_cfg(cfg, layout_from_cfg(cfg))
+    ms = mlflow_from_cfg(cfg)
+    uri = tracking_uri(ms, layout_from_cfg(cfg))
     if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
         raise CompareError(
             f"no MLflow store at {uri}: nothing was evaluated under this output root; "
             "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
         )
-    trk.check_reachable(uri, float((cfg.get("mlflow") or {}).get("timeout_s", 5.0)))
+    trk.check_reachable(uri, ms.timeout_s if ms is not None else MlflowSettings().timeout_s)
     try:
         target = sel.target_from_cfg(cfg, MlflowClient(tracking_uri=uri))
     except sel.SelectionError as exc:
@@ -235,7 +237,7 @@ class CompareSettings:
         ones and the typed sections, each read once."""
         opts, common = root_from_cfg(cfg, CompareOptions), root_from_cfg(cfg, CommonSettings)
         parent_arg = None if opts.parent_run_id in (None, "", "null") else opts.parent_run_id
-        rank_by = opts.rank_by or st.AGGREGATE
+        rank_by, ms = opts.rank_by or st.AGGREGATE, mlflow_from_cfg(cfg)
         return cls(
             horizon=opts.horizon,
             parent_run_id=parent_arg,
@@ -247,7 +249,7 @@ class CompareSettings:
             intervals=OmegaConf.to_object(cfg.intervals),
             report=ReportSettings(common.dataset, opts.filter, rank_by),
             figures=OmegaConf.to_object(cfg.figures),
-            ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
+            ui_url=ms.ui_url if ms is not None else None,
             log_to_mlflow=opts.log_to_mlflow,
             half_track=float(cfg.robot.track_width) / 2.0 if cfg.get("robot") else 0.0,
         )

@@ -89,19 +89,19 @@ class StoreSettings:
 
     @classmethod
     def from_cfg(cls, cfg: Any, layout: Layout) -> StoreSettings:
-        from skidbench.benchmark.tracking import store as trk
+        from skidbench.benchmark.tracking.settings import mlflow_from_cfg, tracking_uri
 
-        node = cfg.mlflow
+        ms = mlflow_from_cfg(cfg)
         dataset_id = None
         if cfg.get("source") is not None:
             from skidbench.pipeline.datasets.identity import identity_from_cfg
 
             dataset_id = identity_from_cfg(cfg).fingerprint
         return cls(
-            trk.tracking_uri_from_cfg(cfg, layout),
-            str(node.experiment),
-            Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
-            float(node.get("timeout_s", 5.0)),
+            tracking_uri(ms, layout),
+            ms.experiment,
+            Path(ms.artifact_root or layout.mlflow_artifacts),
+            ms.timeout_s,
             dataset_id,
             cfg.get("out_root"),
         )

@@ -37,15 +37,18 @@ from dataclasses import dataclass
 from typing import Any
 
 from skidbench.benchmark.board.settings import CompareOptions
+from skidbench.benchmark.discovery.settings import DiscoverOptions
 from skidbench.benchmark.evaluate.settings import EvaluateOptions
+from skidbench.benchmark.release.settings import PublishOptions, ScoreOptions
 from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
+from skidbench.benchmark.tracking.settings import MlflowSettings
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.layout import CommonSettings
 from skidbench.pipeline.core.manifest import SPLITS
 from skidbench.pipeline.extract.settings import ExtractOptions
-from skidbench.pipeline.splits.settings import SplitSettings
+from skidbench.pipeline.splits.settings import CardSettings, SplitSettings
 
 _INF = math.inf
 
@@ -266,6 +269,11 @@ STRUCTURED: dict[str, type] = {
     "figures": FigureSettings,
     "split": SplitSettings,
     "extract": ExtractOptions,
+    "publish": PublishOptions,
+    "score": ScoreOptions,
+    "card": CardSettings,
+    "mlflow": MlflowSettings,
+    "discover": DiscoverOptions,
 }
 
 
@@ -405,8 +413,6 @@ SCHEMA: dict[str, Spec] = {
     "groundtruth.truth_key": STR,
     "groundtruth.relative_horizon": number(gt=0, what="s"),
     "groundtruth.loop_bound.*": number(gt=0),
-    # -- card.yaml --------------------------------------------------------------------------------------
-    "card.paper": BOOL,
     # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
     "force": BOOL,  # calibrate's and simulate's (evaluate's is EvaluateOptions')
     "track": BOOL,
@@ -425,12 +431,6 @@ SCHEMA: dict[str, Spec] = {
     "model.options.fit_params": listof(STR, 1, null=True),
     "model.options.*": ANY,  # a model's own options (its class validates them)
     "model.options.*.*": ANY,
-    # -- mlflow/ ----------------------------------------------------------------------------------------
-    "mlflow.tracking_uri": OPT_STR,
-    "mlflow.experiment": STR,
-    "mlflow.artifact_root": STR,
-    "mlflow.timeout_s": number(gt=0, what="s"),
-    "mlflow.ui_url": STR,
     "rank_by": STR,  # publish's (compare's is CompareOptions')
     # -- runs.yaml --------------------------------------------------------------------------------------
     "reap": BOOL,
@@ -442,42 +442,6 @@ SCHEMA: dict[str, Spec] = {
     "bundle.licence": OPT_STR,
     "bundle.provenance": OPT_STR,
     "bundle.name": OPT_STR,
-    # -- score.yaml (benchmark/release/score.py, submission.py) -------------------------------------------
-    "score.predictions": STR,
-    "score.name": OPT_STR,
-    "score.link": OPT_STR,
-    "score.submitter": OPT_STR,
-    "score.date": OPT_STR,
-    "score.description": OPT_STR,
-    "score.check": BOOL,
-    # -- publish.yaml (benchmark/release/publish.py) ----------------------------------------------------
-    "publish.dir": STR,
-    "publish.title": OPT_STR,
-    "publish.download": OPT_STR,
-    "publish.figures": BOOL,
-    "publish.dpi": integer(20, 600),
-    # -- discover.yaml ----------------------------------------------------------------------------------
-    "discover.out": STR,
-    "discover.splits": OPT_STR,
-    "discover.use": listof(choice(*SPLITS), 1),
-    "discover.horizon_s": number(gt=0, what="s"),
-    "discover.folds": integer(2),
-    "discover.min_units": integer(2),
-    "discover.chunk_s": number(gt=0, what="s"),
-    "discover.alpha": number(gt=0, hi=1),
-    "discover.penalty_per_param": NONNEG,
-    "discover.min_gain": NONNEG,
-    "discover.channel_tolerance": NONNEG,
-    "discover.max_effects": integer(0),
-    "discover.candidates": listof(STR, null=True),
-    "discover.figure": BOOL,
-    "discover.open_ended": BOOL,
-    "discover.max_terms": integer(0),
-    "discover.min_share": number(0, 1),
-    "discover.min_points": NONNEG,
-    "discover.scale_spread": NONNEG,
-    "discover.placebo": choice("auto", True, False),
-    "discover.placebo_shift_s": number(gt=0, what="s"),
 }
 # fmt: on
 

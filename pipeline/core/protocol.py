@@ -66,13 +66,6 @@ def check_protocol(protocol: Any) -> str:
     return name
 
 
-def protocol_from_cfg(cfg: Any) -> str:
-    """The checked protocol of a composed config (``inputs``; ``commanded`` when the key is absent): the
-    door from the config to the protocol a library function takes."""
-    value = cfg.get("inputs", "commanded") if hasattr(cfg, "get") else "commanded"
-    return check_protocol(value if value is not None else "commanded")
-
-
 def fit_protocol(protocol: str) -> str:
     """The protocol a model is fitted under in a run of ``protocol``: ``commanded`` for ``state`` (its
     windows' inputs are the commands; a dynamics model builds its training histories from the Train table's
