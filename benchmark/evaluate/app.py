@@ -153,11 +153,12 @@ def _code_key(model: str) -> dict | str:
 def _cached_result(es):
     """The last result when its parent run still exists in the configured MLflow store, else None."""
     from skidbench.benchmark.evaluate.evaluation import BenchmarkResult, ChildResult, last_file
+    from skidbench.benchmark.tracking import store as trk
     from skidbench.benchmark.tracking import tags as run_tags
 
     try:
         last = json.loads(last_file(es.layout, es.protocol).read_text())
-        tracker = es.store.open()
+        tracker = trk.open_store(es.store)
         if last.get("tracking_uri") != tracker.uri:
             return None
         run = tracker.client.get_run(last["parent_run_id"])

@@ -142,7 +142,7 @@ def run_benchmark(
         raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
 
     # 2. the store (an unreachable server is one line, here)
-    tracker = es.store.open()
+    tracker = trk.open_store(es.store)
     params = run_tags.config_params(es.conf)  # no model's config on the parent: each child logs its own
     commit = environment.git_commit()
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths

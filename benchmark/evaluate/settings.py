@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from skidbench.benchmark.report.settings import ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
+from skidbench.benchmark.tracking.settings import StoreSettings
 from skidbench.pipeline.core.layout import CommonSettings, Layout, root_from_cfg
 from skidbench.pipeline.core.manifest import SPLITS
 
@@ -76,47 +76,6 @@ class EvaluateOptions:
 
 
 @dataclass(frozen=True)
-class StoreSettings:
-    """The MLflow store and experiment of a run (``mlflow.*``): what :func:`tracking.tracker_from_cfg`
-    reads, opened later (:meth:`open`) so that an unreachable store is reported where the stage meets it."""
-
-    uri: str
-    experiment: str
-    artifact_root: Path
-    timeout_s: float
-    dataset_id: str | None
-    out_root: Any
-
-    @classmethod
-    def from_cfg(cls, cfg: Any, layout: Layout) -> StoreSettings:
-        from skidbench.benchmark.tracking.settings import mlflow_from_cfg, tracking_uri
-
-        ms = mlflow_from_cfg(cfg)
-        dataset_id = None
-        if cfg.get("source") is not None:
-            from skidbench.pipeline.datasets.identity import identity_from_cfg
-
-            dataset_id = identity_from_cfg(cfg).fingerprint
-        return cls(
-            tracking_uri(ms, layout),
-            ms.experiment,
-            Path(ms.artifact_root or layout.mlflow_artifacts),
-            ms.timeout_s,
-            dataset_id,
-            cfg.get("out_root"),
-        )
-
-    def open(self) -> trk.Tracker:
-        """The tracker (its dead runs reaped); EvaluationError (one line) for a store that cannot be
-        opened."""
-        from skidbench.benchmark.tracking import store as trk
-
-        return trk.open_tracker(self.uri, self.experiment, artifact_root=self.artifact_root,
-                                timeout_s=self.timeout_s, dataset_id=self.dataset_id,
-                                out_root=self.out_root)  # fmt: skip
-
-
-@dataclass(frozen=True)
 class EvaluateSettings:
     """What :func:`~skidbench.benchmark.evaluate.evaluation.run_benchmark` reads of the config. With a
     transfer (``train_dataset``/``train_terrain``) it is the scored runs' config: the transfer experiment
@@ -136,7 +95,7 @@ class EvaluateSettings:
     fit: FitSettings
     transfer: TransferSettings
     report_data: ReportDataSettings
-    store: StoreSettings
+    store: StoreSettings  # benchmark/tracking/settings.py
     conf: dict[str, Any]  # the config as plain data (resolved): the parent run's params
     state: StateSettings = StateSettings()  # noqa: RUF009 (frozen) the ``state`` protocol's windows (``state.*``)
     force: bool = False  # run every model again, even one whose earlier run is unchanged (evaluate/reuse.py)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -43,3 +44,35 @@ def tracking_uri(ms: MlflowSettings | None, layout: Layout) -> str:
     store of ``layout``."""
     uri = (ms.tracking_uri if ms is not None else None) or os.environ.get("MLFLOW_TRACKING_URI")
     return str(uri) if uri else layout.mlflow_uri
+
+
+@dataclass(frozen=True)
+class StoreSettings:
+    """The MLflow store and experiment of a run, for a dataset: read once from the ``mlflow`` section
+    (:meth:`from_cfg`), opened later (:func:`skidbench.benchmark.tracking.store.open_store`) so that an
+    unreachable store is reported where the stage meets it."""
+
+    uri: str
+    experiment: str
+    artifact_root: Path
+    timeout_s: float
+    dataset_id: str | None
+    out_root: Any
+
+    @classmethod
+    def from_cfg(cls, cfg: Any, layout: Layout, dataset_id: str | None = None) -> StoreSettings:
+        """``layout``'s dataset's store; ``dataset_id``: its identity (None: the configured source's,
+        pipeline/datasets/identity.py; a stage that names a dataset by its folder passes the one its
+        ``dataset.json`` records)."""
+        from skidbench.benchmark.errors import EvaluationError
+
+        ms = mlflow_from_cfg(cfg)
+        if ms is None:
+            raise EvaluationError("this stage's config has no mlflow section (mlflow=local)")
+        if dataset_id is None and cfg.get("source") is not None:
+            from skidbench.pipeline.datasets.identity import identity_from_cfg
+
+            dataset_id = identity_from_cfg(cfg).fingerprint
+        artifacts = Path(ms.artifact_root or layout.mlflow_artifacts)
+        return cls(tracking_uri(ms, layout), ms.experiment, artifacts, ms.timeout_s, dataset_id,
+                   cfg.get("out_root"))  # fmt: skip

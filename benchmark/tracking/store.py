@@ -30,7 +30,7 @@ from typing import Any
 
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.tracking import bookkeeping as bk
-from skidbench.benchmark.tracking.settings import mlflow_from_cfg, tracking_uri
+from skidbench.benchmark.tracking.settings import StoreSettings, mlflow_from_cfg, tracking_uri
 
 # what a run is and who made it (every name of provenance.__all__): callers use them as ``tracking.<name>``
 from skidbench.benchmark.tracking.tags import (
@@ -568,21 +568,16 @@ class Tracker:
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
-    """The store and experiment of ``cfg``, for ``layout``'s dataset; ``dataset_id``: its identity (default:
-    the configured source's, pipeline/datasets/identity.py; a stage that names a dataset by its folder passes
-    the
-    one its ``dataset.json`` records)."""
-    ms = mlflow_from_cfg(cfg)
-    if ms is None:
-        raise EvaluationError("this stage's config has no mlflow section (mlflow=local)")
-    if dataset_id is None and cfg.get("source") is not None:
-        from skidbench.pipeline.datasets.identity import identity_from_cfg
+    """The opened store of ``cfg`` for ``layout``'s dataset (:class:`~skidbench.benchmark.tracking.settings.
+    StoreSettings`)."""
+    return open_store(StoreSettings.from_cfg(cfg, layout, dataset_id))
 
-        dataset_id = identity_from_cfg(cfg).fingerprint
-    artifacts = Path(ms.artifact_root or layout.mlflow_artifacts)
-    options = {"artifact_root": artifacts, "timeout_s": ms.timeout_s}
-    return open_tracker(tracking_uri(ms, layout), ms.experiment, dataset_id=dataset_id,
-                        out_root=cfg.get("out_root"), **options)  # fmt: skip
+
+def open_store(s: StoreSettings) -> Tracker:
+    """The tracker of ``s`` (its dead runs reaped); EvaluationError (one line) for a store that cannot be
+    opened."""
+    return open_tracker(s.uri, s.experiment, artifact_root=s.artifact_root, timeout_s=s.timeout_s,
+                        dataset_id=s.dataset_id, out_root=s.out_root)  # fmt: skip
 
 
 def open_tracker(uri: str, experiment: str, **options: Any) -> Tracker:
