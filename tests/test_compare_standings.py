@@ -15,6 +15,7 @@ import pytest
 
 from skidbench.benchmark.board.boards import Board
 from skidbench.benchmark.release import publish
+from skidbench.benchmark.release.settings import PublishOptions
 from skidbench.benchmark.report import markdown
 from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import ranks as rk
@@ -172,7 +173,7 @@ def test_the_published_leaderboard_shows_intervals_ties_the_floor_and_the_claim(
     w = _board({"edd": {"trans": {"cv": 7, "ld": 6}}, "roc": {"trans": {"cv": 7.02, "ld": 6.02}},
                 FLOOR: {"trans": {"cv": 0.05, "ld": 0.05}}})  # fmt: skip
     board = Board("commanded", "parent", H, {}, _board_rows(w))
-    settings = publish.PublishSettings(figures=False, dpi=72)
+    settings = publish.PublishSettings(PublishOptions(figures=False, dpi=72))
     s = st.build(w, H)
     page = publish._protocol_section(board, tmp_path, settings, s)
     assert "tied for best: " in page and 'title="best"' not in page  # 0.3 % apart on the same windows

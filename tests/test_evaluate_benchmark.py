@@ -175,16 +175,15 @@ def test_the_evaluate_stamp_changes_when_a_models_config_changes(tmp_path, monke
     from hydra import compose, initialize_config_module
 
     from skidbench.benchmark.evaluate import app as evaluate_app
+    from skidbench.benchmark.evaluate.settings import EvaluateSettings
     from skidbench.models.fitting import fit as fitting
     from skidbench.pipeline.core.cache import Stamp
-    from skidbench.pipeline.core.layout import layout_from_cfg
 
     with initialize_config_module("skidbench.conf", version_base="1.3"):
-        cfg = compose("evaluate", [f"out_root={tmp_path}", "models=[edd,friction]"])
-        layout = layout_from_cfg(cfg)
+        es = EvaluateSettings.from_cfg(compose("evaluate", [f"out_root={tmp_path}", "models=[edd,friction]"]))
         stamp = Stamp(tmp_path / "evaluate.json", "evaluate")
-        key = evaluate_app._stamp_key(cfg, layout, stamp)
-        assert evaluate_app._stamp_key(cfg, layout, stamp) == key
+        key = evaluate_app._stamp_key(es, stamp)
+        assert evaluate_app._stamp_key(es, stamp) == key
         real = fitting.model_config
 
         def changed(c, name):
@@ -192,7 +191,7 @@ def test_the_evaluate_stamp_changes_when_a_models_config_changes(tmp_path, monke
             return {**mc, "options": {**mc["options"], "max_nfev": 1}} if name == "friction" else mc
 
         monkeypatch.setattr(fitting, "model_config", changed)
-        assert evaluate_app._stamp_key(cfg, layout, stamp) != key
+        assert evaluate_app._stamp_key(es, stamp) != key
 
 
 def _constant_twist_sequence(name: str, n: int, rate_hz: float, v: float, w: float):

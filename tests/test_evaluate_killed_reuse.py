@@ -122,7 +122,7 @@ def test_an_edit_of_one_models_module_runs_that_model_again_and_takes_the_others
     if rel:
         edited(monkeypatch, rel)
     with contextlib.redirect_stdout(io.StringIO()) as console:
-        plan = plan_reuse(es, es.store.open(), data.files_of, ["tile"])
+        plan = plan_reuse(es, trk.open_store(es.store), data.files_of, ["tile"])
     assert set(plan.again) == again and {m for m, _ in plan.taken} == {"ideal", "edd"} - again
     for model in again:
         assert f"evaluate: {model}: its code changed (digest " in console.getvalue()

@@ -147,7 +147,8 @@ def test_drive_splits_run_under_all_three_input_protocols(shared_real, tmp_path,
 
     from skidbench.models.kinematic.linear import FullLinear
     from skidbench.pipeline.calibrate.wheel_response import identify_response
-    from skidbench.pipeline.core.protocol import INPUT_COLUMNS, PROTOCOLS, fit_table, model_inputs
+    from skidbench.pipeline.core.layout import PROTOCOLS
+    from skidbench.pipeline.core.protocol import INPUT_COLUMNS, fit_table, model_inputs
     from skidbench.pipeline.core.robot import load_robot
 
     splits = drive_splits(shared_real / "drive", tmp_path, robot, *over)

@@ -35,8 +35,7 @@ from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.scoring.floor import FLOOR
 from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.io import read_parquet_metadata, write_json_atomic, write_text_atomic
-from skidbench.pipeline.core.layout import Layout
-from skidbench.pipeline.core.protocol import PROTOCOLS
+from skidbench.pipeline.core.layout import PROTOCOLS, Layout
 
 #: the columns a board adds to compare's, in this order (then ``env.<library>`` columns: the versions)
 PROVENANCE_COLUMNS = (

@@ -46,6 +46,7 @@ from skidbench.benchmark.board import selection as sel
 from skidbench.benchmark.board.horizons import horizon_report
 from skidbench.benchmark.board.installed import code_not_here
 from skidbench.benchmark.board.selection import board_from_runs
+from skidbench.benchmark.board.settings import CompareOptions
 from skidbench.benchmark.board.tables import (
     CompareError,
     check_one_protocol,
@@ -65,10 +66,11 @@ from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import mlflow_ui as mu
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
+from skidbench.benchmark.tracking.settings import MlflowSettings, mlflow_from_cfg, tracking_uri
 from skidbench.models.registry.saved import board_findings
 from skidbench.pipeline.core.io import write_text_atomic
-from skidbench.pipeline.core.layout import Layout, layout_from_cfg
-from skidbench.pipeline.core.protocol import PROTOCOLS, protocol_from_cfg
+from skidbench.pipeline.core.layout import PROTOCOLS, CommonSettings, Layout, layout_from_cfg, root_from_cfg
+from skidbench.pipeline.core.protocol import check_protocol
 
 log = logging.getLogger(__name__)
 
@@ -159,13 +161,14 @@ def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
     from skidbench.pipeline.core.cache import check_producers
     from skidbench.pipeline.datasets.imported import check_stage
 
-    uri = trk.tracking_uri_from_cfg(cfg, layout_from_cfg(cfg))
+    ms = mlflow_from_cfg(cfg)
+    uri = tracking_uri(ms, layout_from_cfg(cfg))
     if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
         raise CompareError(
             f"no MLflow store at {uri}: nothing was evaluated under this output root; "
             "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
         )
-    trk.check_reachable(uri, float((cfg.get("mlflow") or {}).get("timeout_s", 5.0)))
+    trk.check_reachable(uri, ms.timeout_s if ms is not None else MlflowSettings().timeout_s)
     try:
         target = sel.target_from_cfg(cfg, MlflowClient(tracking_uri=uri))
     except sel.SelectionError as exc:
@@ -230,21 +233,24 @@ class CompareSettings:
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> CompareSettings:
-        parent = cfg.get("parent_run_id", "latest")
-        parent_arg = None if parent in (None, "", "null") else str(parent)
+        """compare's root keys (:class:`~skidbench.benchmark.board.settings.CompareOptions`), the common
+        ones and the typed sections, each read once."""
+        opts, common = root_from_cfg(cfg, CompareOptions), root_from_cfg(cfg, CommonSettings)
+        parent_arg = None if opts.parent_run_id in (None, "", "null") else opts.parent_run_id
+        rank_by, ms = opts.rank_by or st.AGGREGATE, mlflow_from_cfg(cfg)
         return cls(
-            horizon=float(cfg.horizon),
+            horizon=opts.horizon,
             parent_run_id=parent_arg,
-            user=sel.whose(cfg.get("user")),
-            filter=cfg.get("filter"),
-            asked=protocol_from_cfg(cfg) if parent_arg == "latest" else None,
-            inputs=str(cfg.get("inputs") or "commanded"),
-            rank_by=str(cfg.get("rank_by") or st.AGGREGATE),
+            user=sel.whose(opts.user),
+            filter=opts.filter,
+            asked=check_protocol(common.inputs) if parent_arg == "latest" else None,
+            inputs=common.inputs or "commanded",
+            rank_by=rank_by,
             intervals=OmegaConf.to_object(cfg.intervals),
-            report=ReportSettings.from_cfg(cfg),
+            report=ReportSettings(common.dataset, opts.filter, rank_by),
             figures=OmegaConf.to_object(cfg.figures),
-            ui_url=(cfg.get("mlflow") or {}).get("ui_url"),
-            log_to_mlflow=bool(cfg.get("log_to_mlflow", True)),
+            ui_url=ms.ui_url if ms is not None else None,
+            log_to_mlflow=opts.log_to_mlflow,
             half_track=float(cfg.robot.track_width) / 2.0 if cfg.get("robot") else 0.0,
         )
 

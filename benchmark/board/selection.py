@@ -414,7 +414,7 @@ def board_lines(table: pd.DataFrame, horizon_s: float = 6.0) -> list[str]:
     """One line per input protocol the dataset's results ``table`` has runs under: the board's latest runs
     (the newest complete run of each (model, terrain): :func:`latest_complete`), how many evaluates they
     come from, the newest, and how many newer runs are left out."""
-    from skidbench.pipeline.core.protocol import PROTOCOLS
+    from skidbench.pipeline.core.layout import PROTOCOLS
 
     lines = []
     for p in PROTOCOLS:

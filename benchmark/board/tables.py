@@ -21,7 +21,7 @@ from skidbench.benchmark.scoring import metrics as mt
 from skidbench.benchmark.scoring import ranks as rk
 from skidbench.benchmark.scoring import standings as st
 from skidbench.benchmark.scoring.floor import FLOOR
-from skidbench.pipeline.core.protocol import PROTOCOLS
+from skidbench.pipeline.core.layout import PROTOCOLS
 
 SPLITS = ("cv", "ld")
 

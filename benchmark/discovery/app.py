@@ -29,43 +29,22 @@ from skidbench.benchmark.discovery.discover import (
 from skidbench.benchmark.discovery.placebo import placebo
 from skidbench.benchmark.discovery.pool import load_pool, prepare_pool, too_small
 from skidbench.benchmark.discovery.scale import against_encoders
+from skidbench.benchmark.discovery.settings import DiscoverOptions
 from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS
 from skidbench.models.augmented.fit import DiscoverError, DiscoverSettings
 from skidbench.pipeline.cli.main import stage
 from skidbench.pipeline.core.io import atomic_path, write_json_atomic, write_text_atomic
-from skidbench.pipeline.core.layout import Layout, layout_from_cfg
+from skidbench.pipeline.core.layout import CommonSettings, Layout, layout_from_cfg, root_from_cfg
 from skidbench.pipeline.core.manifest import Manifest
-from skidbench.pipeline.core.protocol import protocol_from_cfg
+from skidbench.pipeline.core.protocol import check_protocol
 from skidbench.pipeline.core.robot import robot_from_hydra
 
 log = logging.getLogger("skidbench.discover")
 
 
-def settings_from_cfg(cfg: DictConfig) -> DiscoverSettings:
-    d = cfg.discover
-    return DiscoverSettings(
-        horizon_s=float(d.horizon_s),
-        folds=int(d.folds),
-        min_units=int(d.min_units),
-        chunk_s=float(d.chunk_s),
-        alpha=float(d.alpha),
-        penalty_per_param=float(d.penalty_per_param),
-        min_gain=float(d.min_gain),
-        max_effects=int(d.max_effects),
-        channel_tolerance=float(d.get("channel_tolerance", 0.01)),
-        min_share=float(d.get("min_share", 0.10)),
-        min_points=float(d.get("min_points", 0.001)),
-        scale_spread=float(d.get("scale_spread", 0.5)),
-        open_ended=bool(d.get("open_ended", True)),
-        max_terms=int(d.get("max_terms", 4)),
-        splits=tuple(d.use),
-        seed=int(cfg.get("seed", 0) or 0),
-    )
-
-
-def _splits_root(cfg: DictConfig) -> Path:
-    if cfg.discover.get("splits"):
-        root = Path(str(cfg.discover.splits)).expanduser()
+def _splits_root(cfg: DictConfig, opts: DiscoverOptions) -> Path:
+    if opts.splits:
+        root = Path(opts.splits).expanduser()
         if not root.is_dir():
             raise DiscoverError(f"{root}: splits folder not found (discover.splits)")
         return root
@@ -120,21 +99,17 @@ def _model_name(cfg: DictConfig) -> str:
     return str(m) if isinstance(m, str) else str(m.get("name"))
 
 
-def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool):
+def _response(calib: Any, terrain: str, pool, inputs: str, own_splits: bool):
     """The wheel response of ``terrain`` under ``inputs=response``: the calibration's on the dataset's own
     splits; on another splits folder identified here, with the same implementation, from the pool's
-    encoders (its Train sequences, plus CV/LD when the pool had to add them)."""
+    encoders (its Train sequences, plus CV/LD when the pool had to add them). ``calib``: the dataset's
+    :class:`~skidbench.pipeline.calibrate.calibration.Calibrations`."""
     if inputs != "response":
         return None
-    from skidbench.pipeline.calibrate.calibration import (
-        Calibrations,
-        response_for,
-        wheel_response_doc,
-        wheel_response_of,
-    )
+    from skidbench.pipeline.calibrate.calibration import response_for, wheel_response_doc, wheel_response_of
 
     if own_splits:
-        resp = response_for(Calibrations.from_cfg(cfg), terrain)
+        resp = response_for(calib, terrain)
     else:
         resp = wheel_response_of(wheel_response_doc(pool.table.assign(sequence=pool.groups)))
     if resp is None:
@@ -143,17 +118,17 @@ def _response(cfg: DictConfig, terrain: str, pool, inputs: str, own_splits: bool
     return resp
 
 
-def _radius_method(cfg: DictConfig, terrain: str) -> str:
-    """How ``calibrate`` measured the terrain's wheel radius (its record's ``method``; "" when it did not)."""
-    from skidbench.pipeline.calibrate.calibration import Calibrations, load_calibration
+def _radius_method(calib: Any, terrain: str) -> str:
+    """How ``calibrate`` measured the terrain's wheel radius (its record's ``method``; "" when it did not).
+    ``calib``: the dataset's :class:`~skidbench.pipeline.calibrate.calibration.Calibrations`."""
+    from skidbench.pipeline.calibrate.calibration import load_calibration
 
-    rec = (load_calibration(Calibrations.from_cfg(cfg), terrain) or {}).get("wheel_radius") or {}
+    rec = (load_calibration(calib, terrain) or {}).get("wheel_radius") or {}
     return str(rec.get("method", "")) if rec.get("identified") else ""
 
 
-def _placebo_on(cfg: DictConfig) -> bool:
-    """``discover.placebo``: auto runs it on recorded data (any source but the simulator)."""
-    p = cfg.discover.get("placebo", "auto")
+def _placebo_on(cfg: DictConfig, p: Any) -> bool:
+    """``discover.placebo`` (``p``): auto runs it on recorded data (any source but the simulator)."""
     if p == "auto":
         return str(OmegaConf.select(cfg, "source.name", default="sim")) != "sim"
     return bool(p)
@@ -164,20 +139,21 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from skidbench.models.fitting.fit import ModelConfigs, build_model
 
     t0 = time.perf_counter()
-    settings = settings_from_cfg(cfg)
+    opts: DiscoverOptions = OmegaConf.to_object(cfg.discover)
+    common = root_from_cfg(cfg, CommonSettings)
+    settings, inputs = opts.search(common.seed), check_protocol(common.inputs)
     robot = robot_from_hydra(cfg.robot)
     base_name = _model_name(cfg)
     configs = ModelConfigs.from_cfg(cfg)
     build_model(configs, base_name, robot)  # fail early, with the model's one-line error
-    root = _splits_root(cfg)
-    out = Path(str(cfg.discover.out)).expanduser()
-    cands = tuple(cfg.discover.candidates) if cfg.discover.get("candidates") else EFFECT_IDS
+    root = _splits_root(cfg, opts)
+    out = Path(opts.out).expanduser()
+    cands = tuple(opts.candidates) if opts.candidates else EFFECT_IDS
     unknown = [c for c in cands if c not in CATALOGUE]
     if unknown:
         raise DiscoverError(
             f"discover.candidates: unknown effect(s) {unknown} (catalogue: {list(EFFECT_IDS)})"
         )
-    inputs = protocol_from_cfg(cfg)
     print(f"skidbench discover: base model {base_name}; inputs={inputs}; splits {root}")
     print("significance rule: " + settings.rule())
     results: list[TerrainDiscovery] = []
@@ -187,7 +163,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from skidbench.models.registry.specs import get_model_class
     from skidbench.pipeline.calibrate.calibration import Calibrations, robot_for_model
 
-    own_splits = root.resolve() == layout_from_cfg(cfg).splits.resolve()
+    layout = layout_from_cfg(cfg)
+    calib = Calibrations(layout, robot, cfg.calibrate.use)  # the dataset's, read on its own splits only
+    own_splits = root.resolve() == layout.splits.resolve()
     for terrain in _terrains(root, cfg, settings.splits, dataset):
         pool = load_pool(root, terrain, settings, files_of)
         reason = too_small(pool, settings)
@@ -197,18 +175,18 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             continue
         # the dataset's own splits: the base model takes the calibrated constants, as in evaluate
         constants = calibrated_constants(get_model_class(base_name))
-        robot_t = robot_for_model(Calibrations.from_cfg(cfg), constants, terrain)[0] if own_splits else robot
-        response = _response(cfg, terrain, pool, inputs, own_splits)
+        robot_t = robot_for_model(calib, constants, terrain)[0] if own_splits else robot
+        response = _response(calib, terrain, pool, inputs, own_splits)
         pool = prepare_pool(pool, inputs, robot, response)
         factory = lambda r=robot_t: build_model(configs, base_name, r)  # noqa: E731
         res = discover_terrain(pool, factory, robot_t, settings, terrain, base_name, candidates=cands,
                                progress=lambda m: print(m, flush=True))  # fmt: skip
         if own_splits and res.calibration:  # a radius calibrate measured against encoders is not the scale
-            against_encoders(res, _radius_method(cfg, terrain))
+            against_encoders(res, _radius_method(calib, terrain))
             print(f"[{terrain}] calibration: {res.calibration['text']}", flush=True)
-        if _placebo_on(cfg):
-            shift = float(cfg.discover.get("placebo_shift_s", 30.0))
-            res.placebo = placebo(pool, factory, robot_t, settings, terrain, base_name, cands, shift)
+        if _placebo_on(cfg, opts.placebo):
+            res.placebo = placebo(pool, factory, robot_t, settings, terrain, base_name, cands,
+                                  opts.placebo_shift_s)  # fmt: skip
             print(f"[{terrain}] {res.placebo['text']}", flush=True)
         results.append(res)
     if all(r.refused for r in results):
@@ -218,7 +196,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "discovery.json", doc)
     write_text_atomic(out / "discovery.md", summary_text(doc))
-    if cfg.discover.get("figure", True):
+    if opts.figure:
         figure(results, out / "discovery.png")
     print(summary_text(doc))
     print(f"written: {out / 'discovery.json'}")

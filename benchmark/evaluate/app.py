@@ -6,7 +6,7 @@ import json
 import logging
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from skidbench.pipeline.cli.main import stage
 
@@ -43,20 +43,20 @@ def _in_sweep() -> bool:
 
 def run(cfg: DictConfig):
     """The stage: skipped (the cached result) when its stamp is fresh and its parent run exists, else
-    :func:`run_benchmark`. Returns ``(result, skipped)``."""
+    :func:`run_benchmark`. Returns ``(result, skipped)``. The config is read once, into
+    :class:`~skidbench.benchmark.evaluate.settings.EvaluateSettings`."""
     from skidbench.benchmark.evaluate.console import format_result
-    from skidbench.benchmark.evaluate.evaluation import ProtocolSkipped, last_file
+    from skidbench.benchmark.evaluate.evaluation import ProtocolSkipped, last_file, run_benchmark
+    from skidbench.benchmark.evaluate.settings import EvaluateSettings
     from skidbench.pipeline.core.cache import Stamp, stamp_file
-    from skidbench.pipeline.core.layout import layout_from_cfg
-    from skidbench.pipeline.core.protocol import protocol_from_cfg
 
-    layout = layout_from_cfg(cfg)
-    inputs = protocol_from_cfg(cfg)
+    es = EvaluateSettings.from_cfg(cfg)
+    layout, inputs = es.layout, es.protocol
     # one stamp per input protocol: evaluating under another protocol does not stale this one
     name = "evaluate.json" if inputs == "commanded" else f"evaluate.{inputs}.json"
     stamp = Stamp(stamp_file(layout.root, "evaluate", name), "evaluate")
-    if not cfg.get("force", False) and stamp.is_fresh(_stamp_key(cfg, layout, stamp)):
-        cached = _cached_result(cfg, layout, stamp)
+    if not es.force and stamp.is_fresh(_stamp_key(es, stamp)):
+        cached = _cached_result(es)
         if cached is not None:
             print(format_result(cached, _findings(layout, cached)), flush=True)
             print(
@@ -66,7 +66,7 @@ def run(cfg: DictConfig):
             )
             return cached, True
     try:
-        result = benchmark(cfg)
+        result = run_benchmark(es)
     except ProtocolSkipped as exc:  # e.g. inputs=response on data without wheel encoders: said, not failed
         print(f"evaluate: {exc}", flush=True)
         return None, True
@@ -78,7 +78,7 @@ def run(cfg: DictConfig):
             len(result.children),
         )
     else:  # the key is taken after the run: the fits it (re)wrote are part of it
-        stamp.record(_stamp_key(cfg, layout, stamp), [last_file(layout, inputs)])
+        stamp.record(_stamp_key(es, stamp), [last_file(layout, inputs)])
     return result, False
 
 
@@ -99,40 +99,34 @@ def _findings(layout, result) -> list[str]:
     return board_findings(layout, rows, result.inputs)
 
 
-def _stamp_key(cfg: DictConfig, layout, stamp) -> str:
+def _stamp_key(es, stamp) -> str:
     """Evaluate's inputs: every split file, every fit of the configured models, the whole config, and
     each model's version and config."""
     from skidbench.benchmark.evaluate.reuse import scoring_digest
-    from skidbench.benchmark.evaluate.settings import models_from_cfg
-    from skidbench.models.fitting.fit import ModelConfigs, model_config
+    from skidbench.models.fitting.fit import model_config
     from skidbench.models.registry.saved import arrays_file
     from skidbench.pipeline.core.layout import split_terrains
     from skidbench.pipeline.core.manifest import Manifest
 
+    layout, inputs, models = es.layout, es.protocol, es.models
     # the current manifest's split files, fits and calibrations, never whatever else lies in the folders
     manifest = Manifest.read(layout.manifest) if layout.manifest.is_file() else Manifest([])
     files = [p for p in layout.split_files(manifest) if p.is_file()]
     terrains = split_terrains(manifest)
-    from skidbench.pipeline.core.protocol import protocol_from_cfg
-
-    inputs = protocol_from_cfg(cfg)
-    models = models_from_cfg(cfg)
     files += [layout.fit_file(m, t, inputs) for m in models for t in terrains]
     files += [arrays_file(layout.fit_file(m, t, inputs)) for m in models for t in terrains]
     files += [layout.calibration_file(t) for t in terrains]  # a changed calibration refits and re-scores
     if "discovered" in models:
         files.append(layout.discovery / "discovery.json")
     files = [p for p in files if p.is_file()]
-    conf = OmegaConf.to_container(cfg, resolve=True)
-    conf.pop("force", None)  # how to run, not what
+    conf = {k: v for k, v in es.conf.items() if k != "force"}  # force: how to run, not what
     # a model whose code changed (its version, or the digest of the files it runs: an edit without a
     # version bump) must be refitted and re-scored, even if its old fit file is intact; so must every model
     # when the scoring code changed (benchmark/evaluate/evaluation/reuse.py)
     conf["model_code"] = {m: _code_key(m) for m in models}
     conf["scoring_code"] = scoring_digest()
     # and one whose config (conf/model/<name>.yaml: initial params, options) changed must be refitted too
-    configs = ModelConfigs.from_cfg(cfg)
-    conf["model_configs"] = {m: model_config(configs, m) for m in models}
+    conf["model_configs"] = {m: model_config(es.fit.models, m) for m in models}
     return stamp.key(files, conf)
 
 
@@ -156,18 +150,15 @@ def _code_key(model: str) -> dict | str:
     return {**code, "class_version": str(getattr(cls, "version", "?"))}
 
 
-def _cached_result(cfg: DictConfig, layout, stamp):
+def _cached_result(es):
     """The last result when its parent run still exists in the configured MLflow store, else None."""
-    from skidbench.benchmark.evaluate.evaluation import BenchmarkResult, ChildResult
+    from skidbench.benchmark.evaluate.evaluation import BenchmarkResult, ChildResult, last_file
     from skidbench.benchmark.tracking import store as trk
     from skidbench.benchmark.tracking import tags as run_tags
 
     try:
-        from skidbench.benchmark.evaluate.evaluation import last_file
-        from skidbench.pipeline.core.protocol import protocol_from_cfg
-
-        last = json.loads(last_file(layout, protocol_from_cfg(cfg)).read_text())
-        tracker = trk.tracker_from_cfg(cfg, layout)
+        last = json.loads(last_file(es.layout, es.protocol).read_text())
+        tracker = trk.open_store(es.store)
         if last.get("tracking_uri") != tracker.uri:
             return None
         run = tracker.client.get_run(last["parent_run_id"])

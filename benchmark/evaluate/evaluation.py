@@ -142,7 +142,7 @@ def run_benchmark(
         raise ProtocolSkipped(f"inputs={protocol}: nothing to evaluate under this protocol: {skipped[0]}")
 
     # 2. the store (an unreachable server is one line, here)
-    tracker = es.store.open()
+    tracker = trk.open_store(es.store)
     params = run_tags.config_params(es.conf)  # no model's config on the parent: each child logs its own
     commit = environment.git_commit()
     # what made the numbers: skidbench's version and commit, the libraries, lock, platform, code paths
@@ -160,7 +160,7 @@ def run_benchmark(
             return _write_last(layout, BenchmarkResult(tracker.uri, tracker.experiment_name, done,
                                                        _logged_children(tracker, done), protocol,
                                                        skipped, horizons=list(horizons)))  # fmt: skip
-        about, _ = describe_run(layout, es.inputs_text, models, terrains, splits, horizons)
+        about, _ = describe_run(layout, es.protocol, models, terrains, splits, horizons)
         plan = reuse.plan_reuse(es, tracker, files_of, terrains) if keyed else reuse.ReusePlan()
         parent_tags = {
             **common_tags,
@@ -180,7 +180,7 @@ def run_benchmark(
                 tracker.log(parent_id, tags={"skidbench.inputs_skipped": " | ".join(skipped)})
             datasets_of = {t: split_inputs(layout, t, files_of[t], tests[t]) for t in terrains}
             tracker.log_datasets(parent_id, [d for t in terrains for d in datasets_of[t]])
-            ctx = ChildContext(es.inputs_text, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
+            ctx = ChildContext(es.protocol, es.report_data, tracker, parent_id, layout, horizons, es.hcfg,
                                fit_fn, es.fit, es.conf, common_tags, log_figures, es.intervals,
                                es.seeds, plan, rt.Writer(layout, parent_id),
                                es.row_facts(parent_id, tracker, env_tags, commit))  # fmt: skip
@@ -327,7 +327,7 @@ class ChildContext:
     ``conf`` the params are logged from), the store, the parent run, the output layout, the horizons and
     window thresholds, the fit function, the tags every child carries and whether to draw figures."""
 
-    inputs_text: str  # ``inputs`` as the config spells it
+    protocol: str  # the checked input protocol (``inputs``)
     report_data: ReportDataSettings
     tracker: Any
     parent_id: str
@@ -382,7 +382,7 @@ def _run_child(ctx: ChildContext, model_name: str, td: TerrainData) -> ChildResu
         fit, fit_metrics = _fit_and_log(ctx, run_id, model_name, td, stem, facts)
         stage("logging the model")
         record_path = stem.with_name(stem.name + ".mlflow_model.json")
-        log_model(ctx.inputs_text, ctx.tracker, run_id, fit, model_name, td.terrain,
+        log_model(ctx.protocol, ctx.tracker, run_id, fit, model_name, td.terrain,
                   record_path, next(iter(td.tests.values()))[0])  # fmt: skip
         # after the model: Model.log logs the run's metrics so far again, for the model (duplicate keys)
         ctx.tracker.log(run_id, metrics=fit_metrics)
@@ -436,7 +436,7 @@ def _start_child(ctx: ChildContext, model_name: str, td: TerrainData) -> tuple[s
     rk = ctx.plan.keys.get((model_name, td.terrain))
     keyed = {reuse.TAG_RESULT_KEY: rk.key, reuse.TAG_SCORING: rk.made_of["scoring"]} if rk else {}
     note, cmd = describe_run(
-        ctx.layout, ctx.inputs_text, [model_name], [td.terrain], list(td.tests), ctx.horizons
+        ctx.layout, ctx.protocol, [model_name], [td.terrain], list(td.tests), ctx.horizons
     )
     start = dt.datetime.now(dt.UTC)
     run_id = ctx.tracker.start(

@@ -1,76 +1,84 @@
-"""What evaluate reads of the config, made once by the evaluate app (:meth:`EvaluateSettings.from_cfg`):
+"""What evaluate reads of the config. :class:`EvaluateOptions` declares evaluate's own root keys (``models``,
+``horizons``, ...: their types, defaults and ranges; stored in Hydra's ConfigStore as
+``schema/root/evaluate``, ``pipeline/cli/config_schema.py``, and checked as Hydra composes). The evaluate app
+makes :class:`EvaluateSettings` once (:meth:`EvaluateSettings.from_cfg`), reading each key and section once:
 the dataset's layout, the models, terrains, splits and horizons, the windows and intervals, the input
-protocol, the fit, transfer, report-data settings, the MLflow store (:class:`StoreSettings`) and the
-config as plain data the parent run's params are logged from. :func:`~skidbench.benchmark.evaluate.evaluation.
-run_benchmark` takes it.
+protocol, the fit, transfer, report-data settings, the MLflow store (:class:`StoreSettings`) and the config
+as plain data the parent run's params are logged from. :func:`~skidbench.benchmark.evaluate.evaluation.
+run_benchmark` takes it. This module imports nothing heavy at its top (the schema is registered before
+every composition).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-from omegaconf import OmegaConf
-
-from skidbench.benchmark.board.results import RunFacts
-from skidbench.benchmark.errors import EvaluationError
-from skidbench.benchmark.evaluate.transfer import TransferSettings, scored_from_cfg
 from skidbench.benchmark.report.settings import ReportDataSettings
-from skidbench.benchmark.scoring.floor import FLOOR
-from skidbench.benchmark.scoring.horizon import HorizonConfig
-from skidbench.benchmark.scoring.intervals import block_length
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
-from skidbench.benchmark.tracking import store as trk
-from skidbench.benchmark.tracking import tags as run_tags
-from skidbench.models.fitting.fit import FitSettings, ModelConfigs
-from skidbench.pipeline.core.layout import Layout, layout_from_cfg
-from skidbench.pipeline.core.protocol import ProtocolError, check_protocol
+from skidbench.benchmark.tracking.settings import StoreSettings
+from skidbench.pipeline.core.layout import CommonSettings, Layout, root_from_cfg
+from skidbench.pipeline.core.manifest import SPLITS
+
+if TYPE_CHECKING:
+    from skidbench.benchmark.board.results import RunFacts
+    from skidbench.benchmark.evaluate.transfer import TransferSettings
+    from skidbench.benchmark.scoring.horizon import HorizonConfig
+    from skidbench.benchmark.tracking import store as trk
+    from skidbench.models.fitting.fit import FitSettings
+
+BUILT_IN = ["ideal", "edd", "full_linear", "roc", "enhanced", "friction", "drive_blr", "gp_residual"]
 
 
 @dataclass(frozen=True)
-class StoreSettings:
-    """The MLflow store and experiment of a run (``mlflow.*``): what :func:`tracking.tracker_from_cfg`
-    reads, opened later (:meth:`open`) so that an unreachable store is reported where the stage meets it."""
+class EvaluateOptions:
+    """evaluate's own root keys (``conf/evaluate.yaml`` lists their schema, ``/schema/root/evaluate``)."""
 
-    uri: str
-    experiment: str
-    artifact_root: Path
-    timeout_s: float
-    dataset_id: str | None
-    out_root: Any
+    # any installed model (`skidbench models`)
+    models: list[str] = field(default_factory=lambda: list(BUILT_IN), metadata={"min_len": 1})
+    # evaluated after `models`: extra_models=[myplugin] adds a plugin to the default list
+    extra_models: list[str] = field(default_factory=list)
+    # null: every terrain of the dataset's manifest (raw/manifest.json)
+    terrains: list[str] | None = field(default=None, metadata={"min_len": 1})
+    # test splits (Train is for fitting)
+    splits: list[str] = field(
+        default_factory=lambda: ["cv", "ld"], metadata={"min_len": 1, "item": {"choices": SPLITS}}
+    )
+    # the first is the board's (the paper's 6 s), the others the error-against-horizon curve (compare:
+    # reports/horizons.md)
+    horizons: list[float] = field(
+        default_factory=lambda: [6.0, 0.5, 1.0, 2.0, 4.0],
+        metadata={"min_len": 1, "item": {"gt": 0}, "what": "s"},
+    )
+    # windows that travel less in 6 s are left out of the translational RMSRE (scaled: h/6 s of it at
+    # horizon h)
+    min_distance_m: float = field(default=0.5, metadata={"lo": 0, "what": "m"})
+    # windows that turn less in 6 s are left out of the rotational RMSRE (scaled as min_distance_m)
+    min_rotation_deg: float = field(default=10.0, metadata={"lo": 0, "what": "deg"})
+    log_figures: bool = True  # a per-window error figure per (model, terrain) as a run artifact
+    # fits per model with random parts (a `seed` option: gp_residual, plugins declaring one), seeds seed,
+    # seed+1, ...; >1: each cell reports the spread over seeds
+    seeds: int = field(default=1, metadata={"lo": 1, "hi": 100})
+    force: bool = False  # true: re-run even when the inputs (splits, fits, config) are unchanged
+    # transfer (benchmark/evaluate/transfer.py): fit on another dataset's (same robot) and/or terrain's Train
+    # split and score this dataset's CV/LD; its runs go to the experiment <experiment>-transfer
+    train_dataset: str | None = field(default=None, metadata={"what": "a dataset under out_root to fit on"})
+    train_terrain: str | None = field(
+        default=None, metadata={"what": "the terrain of train_dataset to fit on"}
+    )
 
-    @classmethod
-    def from_cfg(cls, cfg: Any, layout: Layout) -> StoreSettings:
-        node = cfg.mlflow
-        dataset_id = None
-        if cfg.get("source") is not None:
-            from skidbench.pipeline.datasets.identity import identity_from_cfg
-
-            dataset_id = identity_from_cfg(cfg).fingerprint
-        return cls(
-            trk.tracking_uri_from_cfg(cfg, layout),
-            str(node.experiment),
-            Path(str(node.get("artifact_root") or layout.mlflow_artifacts)),
-            float(node.get("timeout_s", 5.0)),
-            dataset_id,
-            cfg.get("out_root"),
-        )
-
-    def open(self) -> trk.Tracker:
-        """The tracker (its dead runs reaped); EvaluationError (one line) for a store that cannot be
-        opened."""
-        return trk.open_tracker(self.uri, self.experiment, artifact_root=self.artifact_root,
-                                timeout_s=self.timeout_s, dataset_id=self.dataset_id,
-                                out_root=self.out_root)  # fmt: skip
+    @property
+    def all_models(self) -> list[str]:
+        """``models``, then each of ``extra_models`` not among them (``extra_models=[myplugin]``: the default
+        list and a plugin, without retyping the list)."""
+        return list(dict.fromkeys(str(m) for m in [*self.models, *self.extra_models]))
 
 
 @dataclass(frozen=True)
 class EvaluateSettings:
     """What :func:`~skidbench.benchmark.evaluate.evaluation.run_benchmark` reads of the config. With a
-    transfer
-    (``train_dataset``/``train_terrain``) it is the scored runs' config: the transfer experiment
+    transfer (``train_dataset``/``train_terrain``) it is the scored runs' config: the transfer experiment
     (:func:`transfer.scored_from_cfg`)."""
 
     layout: Layout
@@ -82,34 +90,43 @@ class EvaluateSettings:
     hcfg: HorizonConfig
     intervals: IntervalConfig
     protocol: str  # the checked input protocol (``inputs``)
-    inputs_text: str  # ``inputs`` as the config spells it (``commanded`` when the key is absent)
     log_figures: bool
     seeds: int
     fit: FitSettings
     transfer: TransferSettings
     report_data: ReportDataSettings
-    store: StoreSettings
+    store: StoreSettings  # benchmark/tracking/settings.py
     conf: dict[str, Any]  # the config as plain data (resolved): the parent run's params
     state: StateSettings = StateSettings()  # noqa: RUF009 (frozen) the ``state`` protocol's windows (``state.*``)
     force: bool = False  # run every model again, even one whose earlier run is unchanged (evaluate/reuse.py)
 
     @classmethod
     def from_cfg(cls, cfg: Any) -> EvaluateSettings:
-        models, terrains, splits, horizons, hcfg = _lists_from_cfg(cfg)
+        """Each key and section of ``cfg`` read once: evaluate's root keys (:class:`EvaluateOptions`), the
+        common ones (``inputs``, ...) and the typed sections (``intervals``, ``report_data``, ``state``)."""
+        from omegaconf import OmegaConf
+
+        from skidbench.benchmark.evaluate.transfer import TransferSettings, scored_from_cfg
+        from skidbench.benchmark.scoring.horizon import HorizonConfig
+        from skidbench.benchmark.scoring.intervals import block_length
+        from skidbench.models.fitting.fit import FitSettings
+
+        opts, common = root_from_cfg(cfg, EvaluateOptions), root_from_cfg(cfg, CommonSettings)
+        models, horizons = opts.all_models, [float(h) for h in opts.horizons]
         intervals = OmegaConf.to_object(cfg.intervals)
         for h in horizons:  # blocks shorter than a horizon: one line before anything runs
             block_length(intervals, h)
-        protocol = _checked_protocol(cfg.get("inputs"), models)
-        transfer = TransferSettings.from_cfg(cfg)
-        fit = FitSettings.from_cfg(cfg)
+        protocol = _checked_protocol(common.inputs, models)
+        fit = FitSettings.from_cfg(cfg, common, models)
+        transfer = TransferSettings(opts.train_dataset, opts.train_terrain, common.dataset,
+                                    str(cfg.robot.name), str(cfg.mlflow.experiment))  # fmt: skip
         cfg = scored_from_cfg(cfg, transfer)
-        layout = layout_from_cfg(cfg)
+        hcfg = HorizonConfig(horizons[0], opts.min_distance_m, math.radians(opts.min_rotation_deg))
         return cls(
-            layout, str(cfg.dataset), models, terrains, splits, horizons, hcfg, intervals,
-            protocol, str(cfg.get("inputs", "commanded")), bool(cfg.get("log_figures", True)),
-            int(cfg.get("seeds") or 1),
-            fit, transfer, OmegaConf.to_object(cfg.report_data), StoreSettings.from_cfg(cfg, layout),
-            _container_from_cfg(cfg), OmegaConf.to_object(cfg.state), bool(cfg.get("force", False)),
+            fit.layout, common.dataset, models, opts.terrains or None, list(opts.splits), horizons, hcfg,
+            intervals, protocol, opts.log_figures, opts.seeds, fit, transfer,
+            OmegaConf.to_object(cfg.report_data), StoreSettings.from_cfg(cfg, fit.layout),
+            _container_from_cfg(cfg), OmegaConf.to_object(cfg.state), opts.force,
         )  # fmt: skip
 
     def row_facts(
@@ -118,6 +135,9 @@ class EvaluateSettings:
         """What every row of an evaluate's results table carries (benchmark/board/results.py): the
         settings it scores with, the dataset and the environment (``env_tags``: the run tags of
         :func:`skidbench.pipeline.runner.environment.run_tags`)."""
+        from skidbench.benchmark.board.results import RunFacts
+        from skidbench.benchmark.tracking import tags as run_tags
+
         env = "skidbench.env."
         return RunFacts(
             evaluate_id=evaluate_id, run_id="", model="", inputs=self.protocol, terrain="",
@@ -131,49 +151,26 @@ class EvaluateSettings:
         )  # fmt: skip
 
 
-def models_from_cfg(cfg: Any) -> list[str]:
-    """The models an evaluate evaluates (models/fitting/fit.py ``ModelConfigs``): ``models``, then each of
-    ``extra_models`` not among them (``extra_models=[myplugin]``: the default list and a plugin, without
-    retyping the list)."""
-    return list(ModelConfigs.from_cfg(cfg).models or ())
+def _checked_protocol(inputs: str, models: list[str]) -> str:
+    """The run's input protocol (``inputs``); EvaluationError (one line) for a bad one, or the floor named a
+    model."""
+    from skidbench.benchmark.errors import EvaluationError
+    from skidbench.benchmark.scoring.floor import FLOOR
+    from skidbench.pipeline.core.protocol import ProtocolError, check_protocol
 
-
-def _lists_from_cfg(cfg: Any) -> tuple[list[str], list[str] | None, list[str], list[float], HorizonConfig]:
-    models = models_from_cfg(cfg)
-    if not models:
-        raise EvaluationError("no models to evaluate; set models=[ideal,friction,...]")
-    terrains = [str(t) for t in cfg.terrains] if cfg.get("terrains") else None
-    splits = [str(s) for s in (cfg.splits or [])]
-    if not splits:
-        raise EvaluationError("no test splits; set splits=[cv,ld]")
-    horizons = [float(h) for h in (cfg.horizons or [])]
-    if not horizons:
-        raise EvaluationError("no horizons; set horizons=[6.0]")
-    hcfg = HorizonConfig(
-        horizons[0], float(cfg.min_distance_m), float(np.deg2rad(float(cfg.min_rotation_deg)))
-    )
-    return models, terrains, splits, horizons, hcfg
-
-
-def _checked_protocol(inputs: str | None, models: list[str]) -> str:
-    """The run's input protocol (``inputs``; ``commanded`` when unset); EvaluationError (one line) for a bad
-    one, or the floor named a model."""
     if FLOOR in models:
         raise EvaluationError(f"models=[...]: {FLOOR!r} is the reference row (a perfect model against "
                               "the ground truth, on every board), not a model name")  # fmt: skip
     try:
-        return check_protocol(inputs if inputs is not None else "commanded")
+        return check_protocol(inputs)
     except ProtocolError as exc:
         raise EvaluationError(str(exc)) from None
 
 
 def _container_from_cfg(cfg: Any) -> dict[str, Any]:
     """The config as plain data (resolved): what the parent run's params are logged from."""
-    try:
-        from omegaconf import OmegaConf
+    from omegaconf import OmegaConf
 
-        if OmegaConf.is_config(cfg):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover
-        pass
+    if OmegaConf.is_config(cfg):
+        return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
     return dict(cfg)

@@ -38,25 +38,14 @@ TAG_TRAIN_TERRAIN = "skidbench.train_terrain"
 @dataclass(frozen=True)
 class TransferSettings:
     """What a transfer reads of the config: the training dataset and terrain (None: the scored ones), the
-    scored dataset, its robot and the configured MLflow experiment. The evaluate app makes it
-    (:meth:`from_cfg`)."""
+    scored dataset, its robot and the configured MLflow experiment
+    (:meth:`~skidbench.benchmark.evaluate.settings.EvaluateSettings.from_cfg` makes it)."""
 
     train_dataset: str | None
     train_terrain: str | None
     scored: str
     robot: str
     experiment: str
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> TransferSettings:
-        train_ds, train_terrain = cfg.get("train_dataset"), cfg.get("train_terrain")
-        return cls(
-            str(train_ds) if train_ds else None,
-            str(train_terrain) if train_terrain is not None else None,
-            str(cfg.dataset),
-            str(cfg.robot.name),
-            str(cfg.mlflow.experiment),
-        )
 
     @property
     def on(self) -> bool:

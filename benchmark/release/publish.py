@@ -30,14 +30,13 @@ from pathlib import Path
 from string import Template
 from typing import Any
 
-from omegaconf import OmegaConf
-
 from skidbench.benchmark.board import boards as brd
 from skidbench.benchmark.board import compare as cmp
 from skidbench.benchmark.board.selection import results_of
 from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.release import halves as hv
 from skidbench.benchmark.release import page as pg
+from skidbench.benchmark.release.settings import PublishOptions
 from skidbench.benchmark.report import compare_figures as cfigs
 from skidbench.benchmark.report import figures as figs
 from skidbench.benchmark.scoring import metrics as mt
@@ -90,28 +89,13 @@ class PublishResult:
 
 @dataclass(frozen=True)
 class PublishSettings:
-    """What ``publish`` reads of its config: whether the page has figures (``publish.figures``) and their
-    ``publish.dpi``, how the boards are ranked (``rank_by``, ``intervals``, as compare ranks them), the
-    page's ``publish.title`` and where readers get the public half (``publish.download``; None: unset)."""
+    """What ``publish`` reads of its config: the ``publish`` section (:class:`~skidbench.benchmark.release.
+    settings.PublishOptions`: figures, dpi, title, download) and how the boards are ranked (``rank_by``,
+    ``intervals``, as compare ranks them). The publish app makes it, reading each once."""
 
-    figures: bool
-    dpi: int
+    page: PublishOptions = field(default_factory=PublishOptions)
     rank_by: str = st.AGGREGATE
     intervals: IntervalConfig = field(default_factory=IntervalConfig)
-    title: str | None = None
-    download: str | None = None
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> PublishSettings:
-        p = cfg.publish
-        return cls(
-            bool(p.figures),
-            int(p.dpi),
-            str(cfg.get("rank_by") or st.AGGREGATE),
-            OmegaConf.to_object(cfg.intervals),
-            p.get("title") or None,
-            p.get("download") or None,
-        )
 
 
 # -- figures ---------------------------------------------------------------------------------------------
@@ -174,10 +158,10 @@ def _protocol_section(
                 "<details><summary>The paper's claim (friction-based best on LD, comparable on CV)"
                 f"</summary><ul>{claim}</ul></details>"
             )
-    if settings.figures:
+    if settings.page.figures:
         parts.append(
             "<details><summary>Figures 3 and 4 (per terrain, with the floor)</summary>"
-            + "".join(_protocol_figures(board, tmp, settings.dpi, standings))
+            + "".join(_protocol_figures(board, tmp, settings.page.dpi, standings))
             + "</details>"
         )
     parts.append("</section>")
@@ -222,11 +206,11 @@ def _card_section(
     doc = bundle_doc or {}
     lic = doc.get("licence") or (SIMULATED_LICENCE if rec.get("source") == "sim" else "see its provenance")
     card = hv.public_card(layout, Manifest.read(layout.manifest), robot, release, lic)
-    title = settings.title or card.splitlines()[0].lstrip("# ").strip()
+    title = settings.page.title or card.splitlines()[0].lstrip("# ").strip()
+    url = settings.page.download
     get = (
-        f'<a href="{esc(settings.download)}">{esc(settings.download)}</a>, then <code>skidbench import '
-        "&lt;its folder&gt;</code>"
-        if settings.download
+        f'<a href="{esc(url)}">{esc(url)}</a>, then <code>skidbench import &lt;its folder&gt;</code>'
+        if url
         else "from the maintainer (<code>skidbench export</code> writes it), then <code>skidbench import "
         "&lt;its folder&gt;</code>"
     )
@@ -344,14 +328,14 @@ def build_page(
     figs_html = [
         _figure(layout.reports / n, c)
         for n, c in REPORT_FIGURES
-        if settings.figures and (layout.reports / n).is_file()
+        if settings.page.figures and (layout.reports / n).is_file()
     ]
     body.append('<section id="figures"><h2>Figures of the last compare report</h2>')
     body += figs_html or ["<p class='note'>No figures: run <code>skidbench compare</code> first.</p>"]
     body += ["</section>", _reproduce_section(layout, rec, boards, bundle_doc), "</main>"]
     template = Template((files("skidbench.benchmark.release") / "publish_template.html").read_text())
     page = template.substitute(title=esc(title), body="\n".join(body))
-    return page, len(figs_html) + (2 * len(boards) if settings.figures else 0)
+    return page, len(figs_html) + (2 * len(boards) if settings.page.figures else 0)
 
 
 def write_index(site: Path) -> Path:

@@ -38,7 +38,6 @@ import logging
 import re
 import shlex
 from dataclasses import dataclass, field, replace
-from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -78,12 +77,13 @@ EXTERNAL_VERSION = "external"
 
 # -- the settings every row of the board is scored with -----------------------------------------------
 def evaluate_defaults() -> dict[str, Any]:
-    """``splits``, ``horizons``, ``min_distance_m``, ``min_rotation_deg`` of the packaged evaluate.yaml."""
-    from omegaconf import OmegaConf
+    """``splits``, ``horizons``, ``min_distance_m``, ``min_rotation_deg`` of evaluate's defaults (its root
+    keys' dataclass, :class:`~skidbench.benchmark.evaluate.settings.EvaluateOptions`)."""
+    from skidbench.benchmark.evaluate.settings import EvaluateOptions
 
-    conf = OmegaConf.create((files("skidbench.conf") / "evaluate.yaml").read_text())
-    return {k: OmegaConf.to_container(conf, resolve=False)[k]
-            for k in ("splits", "horizons", "min_distance_m", "min_rotation_deg")}  # fmt: skip
+    d = EvaluateOptions()
+    return {"splits": list(d.splits), "horizons": list(d.horizons), "min_distance_m": d.min_distance_m,
+            "min_rotation_deg": d.min_rotation_deg}  # fmt: skip
 
 
 def board_settings(table: pd.DataFrame, protocol: str, root: Path) -> tuple[dict[str, Any], str | None, str]:

@@ -1,7 +1,7 @@
 """The text of a compare: the report's Markdown (``<out_root>/<dataset>/reports/report.md``), section by
 section, and the console summary. Pure functions of what compare selected and computed
-(:class:`ReportContent`) and of the few settings it reads (:class:`ReportSettings`, built from the config
-at the door).
+(:class:`ReportContent`) and of the few settings it reads (:class:`ReportSettings`, made by compare's
+:meth:`~skidbench.benchmark.board.compare.CompareSettings.from_cfg`).
 """
 
 from __future__ import annotations
@@ -72,10 +72,6 @@ class ReportSettings:
     dataset: str
     filter: str | None = None
     rank_by: str = st.AGGREGATE
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> ReportSettings:
-        return cls(str(cfg.dataset), cfg.get("filter"), str(cfg.rank_by))
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from omegaconf import DictConfig
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.tracking import bookkeeping as bk
 from skidbench.benchmark.tracking import store as trk
+from skidbench.benchmark.tracking.settings import mlflow_from_cfg, tracking_uri
 from skidbench.pipeline.cli.main import stage
 from skidbench.pipeline.core.errors import one_line
 from skidbench.pipeline.core.layout import layout_from_cfg
@@ -50,8 +51,9 @@ def call_store(uri: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="runs")
 @stage("runs", home=False)
 def main(cfg: DictConfig) -> None:
-    uri = trk.tracking_uri_from_cfg(cfg, layout_from_cfg(cfg))
-    client = store_client(uri, float(cfg.mlflow.get("timeout_s", 5.0)))
+    ms = mlflow_from_cfg(cfg)
+    uri = tracking_uri(ms, layout_from_cfg(cfg))
+    client = store_client(uri, ms.timeout_s)
     if client is None:
         print(f"no MLflow store at {uri}: nothing was evaluated under this output root")
         return

@@ -30,6 +30,7 @@ from typing import Any
 
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.tracking import bookkeeping as bk
+from skidbench.benchmark.tracking.settings import StoreSettings, mlflow_from_cfg, tracking_uri
 
 # what a run is and who made it (every name of provenance.__all__): callers use them as ``tracking.<name>``
 from skidbench.benchmark.tracking.tags import (
@@ -137,11 +138,8 @@ def quiet_mlflow_logs() -> None:
 
 
 def tracking_uri_from_cfg(cfg: Any, layout: Layout) -> str:
-    """The door from the config to the store: ``mlflow.tracking_uri`` (the config reads
-    ``MLFLOW_TRACKING_URI``) or the local SQLite store."""
-    node = cfg.get("mlflow") if hasattr(cfg, "get") else None
-    uri = (node.get("tracking_uri") if node is not None else None) or os.environ.get("MLFLOW_TRACKING_URI")
-    return str(uri) if uri else layout.mlflow_uri
+    """:func:`tracking_uri` of a composed config's ``mlflow`` section."""
+    return tracking_uri(mlflow_from_cfg(cfg), layout)
 
 
 def is_server(uri: str) -> bool:
@@ -570,21 +568,16 @@ class Tracker:
 
 
 def tracker_from_cfg(cfg: Any, layout: Layout, dataset_id: str | None = None) -> Tracker:
-    """The store and experiment of ``cfg``, for ``layout``'s dataset; ``dataset_id``: its identity (default:
-    the configured source's, pipeline/datasets/identity.py; a stage that names a dataset by its folder passes
-    the
-    one its ``dataset.json`` records)."""
-    node = cfg.mlflow
-    uri = tracking_uri_from_cfg(cfg, layout)
-    if dataset_id is None and cfg.get("source") is not None:
-        from skidbench.pipeline.datasets.identity import identity_from_cfg
+    """The opened store of ``cfg`` for ``layout``'s dataset (:class:`~skidbench.benchmark.tracking.settings.
+    StoreSettings`)."""
+    return open_store(StoreSettings.from_cfg(cfg, layout, dataset_id))
 
-        dataset_id = identity_from_cfg(cfg).fingerprint
-    artifacts = Path(str(node.get("artifact_root") or layout.mlflow_artifacts))
-    options = {"artifact_root": artifacts, "timeout_s": float(node.get("timeout_s", 5.0))}
-    return open_tracker(
-        uri, str(node.experiment), dataset_id=dataset_id, out_root=cfg.get("out_root"), **options
-    )
+
+def open_store(s: StoreSettings) -> Tracker:
+    """The tracker of ``s`` (its dead runs reaped); EvaluationError (one line) for a store that cannot be
+    opened."""
+    return open_tracker(s.uri, s.experiment, artifact_root=s.artifact_root, timeout_s=s.timeout_s,
+                        dataset_id=s.dataset_id, out_root=s.out_root)  # fmt: skip
 
 
 def open_tracker(uri: str, experiment: str, **options: Any) -> Tracker:

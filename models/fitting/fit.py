@@ -42,9 +42,9 @@ from skidbench.pipeline.calibrate.calibration import (
 from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 from skidbench.pipeline.core.cache import Stamp, stamp_file
 from skidbench.pipeline.core.io import write_json_atomic
-from skidbench.pipeline.core.layout import Layout, layout_from_cfg
+from skidbench.pipeline.core.layout import CommonSettings, Layout, root_from_cfg
 from skidbench.pipeline.core.manifest import Manifest
-from skidbench.pipeline.core.protocol import INPUT_COLUMNS, ProtocolError, fit_protocol_from_cfg, fit_table
+from skidbench.pipeline.core.protocol import INPUT_COLUMNS, ProtocolError, fit_protocol, fit_table
 from skidbench.pipeline.core.robot import Robot, robot_from_hydra
 from skidbench.pipeline.core.schema import concat_sequences, read_split
 from skidbench.pipeline.runner.environment import CodeIdentity, code_change, code_identity
@@ -71,21 +71,22 @@ class ModelConfigs:
     """What a run's config says of its models: ``node``, its ``model`` entry (resolved; None without one),
     which is the model config group of a one-model stage (``fit``), or, on a stage that evaluates a list
     of models (``models``, not None: the config's ``models`` then each of ``extra_models`` not among them),
-    the ``+model.params/options.*`` overrides of its command line."""
+    the ``+model.params/options.*`` overrides of its command line. ``from_cfg(cfg, models)``: the list
+    evaluate read (``EvaluateOptions.all_models``); None: the config's."""
 
     node: Any = None
     models: tuple[str, ...] | None = None
 
     @classmethod
-    def from_cfg(cls, cfg: Any) -> ModelConfigs:
+    def from_cfg(cls, cfg: Any, models: Sequence[str] | None = None) -> ModelConfigs:
         from omegaconf import OmegaConf
 
         node = cfg.get("model") if hasattr(cfg, "get") else None
-        models = cfg.get("models") if hasattr(cfg, "get") else None
         if OmegaConf.is_config(node):
             node = OmegaConf.to_container(node, resolve=True)
-        extra = [*(models or []), *(cfg.get("extra_models") or [])] if models is not None else []
-        return cls(node, None if models is None else tuple(dict.fromkeys(str(m) for m in extra)))
+        if models is None and hasattr(cfg, "get") and cfg.get("models") is not None:
+            models = [*cfg.get("models"), *(cfg.get("extra_models") or [])]
+        return cls(node, None if models is None else tuple(dict.fromkeys(str(m) for m in models)))
 
     @property
     def overrides_only(self) -> bool:
@@ -97,7 +98,7 @@ class ModelConfigs:
 @dataclass(frozen=True)
 class FitSettings:
     """What fitting reads of a run's config: the dataset's layout, the spec sheet's robot, the input
-    protocol a model is fitted under (:func:`~skidbench.pipeline.core.protocol.fit_protocol_from_cfg`), the
+    protocol a model is fitted under (:func:`~skidbench.pipeline.core.protocol.fit_protocol`), the
     calibrations (``calibrate.use``) and the models' configs. The apps make it
     (:meth:`from_cfg`)."""
 
@@ -108,14 +109,12 @@ class FitSettings:
     models: ModelConfigs
 
     @classmethod
-    def from_cfg(cls, cfg: Any) -> FitSettings:
-        return cls(
-            layout_from_cfg(cfg),
-            robot_from_hydra(cfg.robot),
-            fit_protocol_from_cfg(cfg),
-            Calibrations.from_cfg(cfg),
-            ModelConfigs.from_cfg(cfg),
-        )
+    def from_cfg(cls, cfg: Any, common: CommonSettings | None = None, models: Sequence[str] | None = None):
+        """``common``: the root keys if the caller read them; ``models``: :meth:`ModelConfigs.from_cfg`."""
+        common = common if common is not None else root_from_cfg(cfg, CommonSettings)
+        layout, robot = Layout(Path(common.out_root), common.dataset), robot_from_hydra(cfg.robot)
+        calib, configs = Calibrations(layout, robot, cfg.calibrate.use), ModelConfigs.from_cfg(cfg, models)
+        return cls(layout, robot, fit_protocol(common.inputs), calib, configs)
 
 
 def model_config(configs: ModelConfigs, model_name: str) -> dict[str, Any]:

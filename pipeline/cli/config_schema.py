@@ -36,12 +36,19 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from skidbench.benchmark.board.settings import CompareOptions
+from skidbench.benchmark.discovery.settings import DiscoverOptions
+from skidbench.benchmark.evaluate.settings import EvaluateOptions
+from skidbench.benchmark.release.settings import PublishOptions, ScoreOptions
 from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
+from skidbench.benchmark.tracking.settings import MlflowSettings
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
+from skidbench.pipeline.core.layout import CommonSettings
+from skidbench.pipeline.core.manifest import SPLITS
 from skidbench.pipeline.extract.settings import ExtractOptions
-from skidbench.pipeline.splits.settings import SplitSettings
+from skidbench.pipeline.splits.settings import CardSettings, SplitSettings
 
 _INF = math.inf
 
@@ -192,6 +199,8 @@ def _section(cls: type, name: str) -> type | None:
 def structured_spec(key: str) -> Spec | None:
     """The declaration of a dotted key under a :data:`STRUCTURED` section (``split.consistency.min_rows``:
     through the nested dataclasses), None when the key is not under one or names no field."""
+    if "." not in key:
+        return next((spec_of(cls, key) for cls in ROOTS.values() if _has_field(cls, key)), None)
     package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
     if package is None:
         return None
@@ -205,6 +214,10 @@ def structured_spec(key: str) -> Spec | None:
             return Spec(_kind(typing.get_args(tp)[1])[0]) if is_map else None
         cls = sub
     return spec_of(cls, name)
+
+
+def _has_field(cls: type, name: str) -> bool:
+    return any(f.name == name for f in dataclasses.fields(cls))
 
 
 def structured_keys() -> Iterator[str]:
@@ -221,6 +234,8 @@ def structured_keys() -> Iterator[str]:
 
     for package, cls in STRUCTURED.items():
         yield from keys(cls, package)
+    for cls in ROOTS.values():
+        yield from (f.name for f in dataclasses.fields(cls))
 
 
 def schema_node(cls: type) -> Any:
@@ -254,18 +269,47 @@ STRUCTURED: dict[str, type] = {
     "figures": FigureSettings,
     "split": SplitSettings,
     "extract": ExtractOptions,
+    "publish": PublishOptions,
+    "score": ScoreOptions,
+    "card": CardSettings,
+    "mlflow": MlflowSettings,
+    "discover": DiscoverOptions,
 }
+
+
+#: the settings dataclasses that declare root keys: a config file (``common``, or a stage's) -> the
+#: dataclass. Each is stored in Hydra's ConfigStore as ``schema/root/<file>`` at the config's root
+#: (:func:`root_node`); the file lists it in its defaults list (``- /schema/root/evaluate``). A key two
+#: stages share (``force``) is declared alike by each stage's dataclass.
+ROOTS: dict[str, type] = {
+    "common": CommonSettings,
+    "evaluate": EvaluateOptions,
+    "compare": CompareOptions,
+}
+
+
+def root_node(cls: type) -> Any:
+    """``cls`` as root keys: an untyped mapping of its typed fields (each keeps its type and default, so
+    OmegaConf checks a value as Hydra composes), since a typed root would refuse every key of the other
+    config files."""
+    from omegaconf import OmegaConf
+
+    typed = schema_node(cls)
+    return OmegaConf.create({name: typed._get_node(name) for name in typed})
 
 
 @functools.cache
 def register_configs() -> None:
-    """Store every :data:`STRUCTURED` dataclass in Hydra's ConfigStore (once per process), before any
-    composition: ``skidbench.conf`` calls it when imported, as Hydra loads the configs from it."""
+    """Store every :data:`STRUCTURED` and :data:`ROOTS` dataclass in Hydra's ConfigStore (once per process),
+    before any composition: ``skidbench.conf`` calls it when imported, as Hydra loads the configs from
+    it."""
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
     for package, cls in STRUCTURED.items():
         cs.store(group="schema", name=package, node=schema_node(cls), package=package)
+    for name, cls in ROOTS.items():
+        cs.store(group="schema/root", name=name, node=root_node(cls), package="_global_")
 
 
 BOOL = Spec("bool")
@@ -276,17 +320,9 @@ POS = number(gt=0)
 NONNEG = number(0)
 FRACTION = number(0, 1)
 COUNT = integer(1)
-SPLITS = ("train", "cv", "ld")
 
 # fmt: off
 SCHEMA: dict[str, Spec] = {
-    # -- common.yaml (every stage) --------------------------------------------------------------------
-    "out_root": STR,
-    "dataset": STR,
-    "seed": integer(0),
-    "inputs": choice("commanded", "response", "measured", "state", what="the model input protocol"),
-    "train_dataset": Spec("str", nullable=True, what="a dataset under out_root to fit on"),
-    "train_terrain": Spec("str", nullable=True, what="the terrain of train_dataset to fit on"),
     # -- robot/ -----------------------------------------------------------------------------------------
     "robot.name": STR,
     "robot.mass": POS,
@@ -377,10 +413,8 @@ SCHEMA: dict[str, Spec] = {
     "groundtruth.truth_key": STR,
     "groundtruth.relative_horizon": number(gt=0, what="s"),
     "groundtruth.loop_bound.*": number(gt=0),
-    # -- card.yaml --------------------------------------------------------------------------------------
-    "card.paper": BOOL,
     # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
-    "force": BOOL,
+    "force": BOOL,  # calibrate's and simulate's (evaluate's is EvaluateOptions')
     "track": BOOL,
     "reuse": BOOL,
     "terrain": OPT_STR,
@@ -397,29 +431,7 @@ SCHEMA: dict[str, Spec] = {
     "model.options.fit_params": listof(STR, 1, null=True),
     "model.options.*": ANY,  # a model's own options (its class validates them)
     "model.options.*.*": ANY,
-    # -- mlflow/ ----------------------------------------------------------------------------------------
-    "mlflow.tracking_uri": OPT_STR,
-    "mlflow.experiment": STR,
-    "mlflow.artifact_root": STR,
-    "mlflow.timeout_s": number(gt=0, what="s"),
-    "mlflow.ui_url": STR,
-    # -- evaluate.yaml ----------------------------------------------------------------------------------
-    "models": listof(STR, 1),
-    "extra_models": listof(STR),
-    "terrains": listof(STR, 1, null=True),
-    "splits": listof(choice(*SPLITS), 1),
-    "horizons": listof(number(gt=0), 1, what="s"),
-    "min_distance_m": number(0, what="m"),
-    "min_rotation_deg": number(0, what="deg"),
-    "log_figures": BOOL,
-    "seeds": integer(1, 100),
-    # -- compare.yaml -----------------------------------------------------------------------------------
-    "parent_run_id": OPT_STR,
-    "filter": OPT_STR,
-    "user": OPT_STR,
-    "horizon": number(gt=0, what="s"),
-    "rank_by": STR,
-    "log_to_mlflow": BOOL,
+    "rank_by": STR,  # publish's (compare's is CompareOptions')
     # -- runs.yaml --------------------------------------------------------------------------------------
     "reap": BOOL,
     "stale_after_s": number(gt=0, what="s"),
@@ -430,52 +442,18 @@ SCHEMA: dict[str, Spec] = {
     "bundle.licence": OPT_STR,
     "bundle.provenance": OPT_STR,
     "bundle.name": OPT_STR,
-    # -- score.yaml (benchmark/release/score.py, submission.py) -------------------------------------------
-    "score.predictions": STR,
-    "score.name": OPT_STR,
-    "score.link": OPT_STR,
-    "score.submitter": OPT_STR,
-    "score.date": OPT_STR,
-    "score.description": OPT_STR,
-    "score.check": BOOL,
-    # -- publish.yaml (benchmark/release/publish.py) ----------------------------------------------------
-    "publish.dir": STR,
-    "publish.title": OPT_STR,
-    "publish.download": OPT_STR,
-    "publish.figures": BOOL,
-    "publish.dpi": integer(20, 600),
-    # -- discover.yaml ----------------------------------------------------------------------------------
-    "discover.out": STR,
-    "discover.splits": OPT_STR,
-    "discover.use": listof(choice(*SPLITS), 1),
-    "discover.horizon_s": number(gt=0, what="s"),
-    "discover.folds": integer(2),
-    "discover.min_units": integer(2),
-    "discover.chunk_s": number(gt=0, what="s"),
-    "discover.alpha": number(gt=0, hi=1),
-    "discover.penalty_per_param": NONNEG,
-    "discover.min_gain": NONNEG,
-    "discover.channel_tolerance": NONNEG,
-    "discover.max_effects": integer(0),
-    "discover.candidates": listof(STR, null=True),
-    "discover.figure": BOOL,
-    "discover.open_ended": BOOL,
-    "discover.max_terms": integer(0),
-    "discover.min_share": number(0, 1),
-    "discover.min_points": NONNEG,
-    "discover.scale_spread": NONNEG,
-    "discover.placebo": choice("auto", True, False),
-    "discover.placebo_shift_s": number(gt=0, what="s"),
 }
 # fmt: on
 
 
 def spec_for(key: str) -> Spec | None:
-    """The declaration of a dotted key: a field of a :data:`STRUCTURED` dataclass, else the first matching
-    entry of :data:`SCHEMA`, else None."""
+    """The declaration of a dotted key: a field of a :data:`STRUCTURED` or :data:`ROOTS` dataclass, else
+    the first matching entry of :data:`SCHEMA`, else None."""
     package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
     if package is not None:
         return structured_spec(key)
+    if "." not in key and (root := structured_spec(key)) is not None:
+        return root
     spec = SCHEMA.get(key)
     if spec is not None:
         return spec

@@ -58,19 +58,19 @@ STAGES: dict[str, tuple[str, str]] = {
         "MLflow runs left open; --reap ends those whose process is gone",
     ),
     "export": (
-        "skidbench.benchmark.release.export_app:export_main",
+        "skidbench.benchmark.release.release_app:export_main",
         "<dataset> <dir>: dataset, board as a bundle",
     ),
     "import": (
-        "skidbench.benchmark.release.export_app:import_main",
+        "skidbench.benchmark.release.release_app:import_main",
         "<dir>: verify a bundle, make a dataset of it",
     ),
     "score": (
-        "skidbench.benchmark.release.score_app:main",
+        "skidbench.benchmark.release.release_app:score_main",
         "<dataset> --predictions <file>: score a model's output",
     ),
     "publish": (
-        "skidbench.benchmark.release.publish_app:main",
+        "skidbench.benchmark.release.release_app:publish_main",
         "<dataset> <dir>: the boards as a static web page",
     ),
 }

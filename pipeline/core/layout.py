@@ -25,7 +25,7 @@ import json
 import os
 import re
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -37,6 +37,38 @@ if TYPE_CHECKING:
     from skidbench.pipeline.core.manifest import Manifest
 
 DEFAULT_OUT_ROOT = "outputs"
+#: the input protocols (config key ``inputs``): what drives every model, pipeline/core/protocol.py
+PROTOCOLS = ("commanded", "response", "measured", "state")
+
+
+@dataclass(frozen=True)
+class CommonSettings:
+    """The root keys every stage's config has: their schema and defaults (``conf/common.yaml`` lists it,
+    ``/schema/root/common``; ``pipeline/cli/config_schema.py``). Read whole with :func:`root_from_cfg`."""
+
+    out_root: str = "${oc.env:SKIDBENCH_OUT,outputs}"  # every generated file lives under here
+    dataset: str = "${source.dataset}"  # the folder under out_root for this dataset
+    seed: int = field(default=0, metadata={"lo": 0})
+    # what drives every model (pipeline/core/protocol.py): commanded (the paper's: commanded wheel rates and
+    # their derivatives), response (the commands through the wheel response `calibrate` identified per
+    # terrain from the Train encoders), measured (the encoders' rates: an oracle), state (each window from
+    # the robot's state, for dynamics models). Every model of a run gets the same inputs.
+    inputs: str = field(
+        default="commanded", metadata={"choices": PROTOCOLS, "what": "the model input protocol"}
+    )
+
+
+def root_from_cfg(cfg: Any, cls: type) -> Any:
+    """The root keys of a composed config that dataclass ``cls`` declares (a stage's schema stored at the
+    root, ``pipeline/cli/config_schema.py`` ``ROOTS``), read once into a ``cls``; a key the config lacks
+    (a config composed for another stage) takes its default."""
+    register_resolvers()
+    values = {}
+    for f in fields(cls):
+        if f.name in cfg:
+            node = cfg[f.name]
+            values[f.name] = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+    return cls(**values)
 
 
 def default_out_root() -> Path:

@@ -20,7 +20,7 @@ every model alike, built-in or plugin (SPEC.md "Evaluation").
   ``state.history_s``, the past commands and, when the split has them, the past encoders) and the window's
   commanded inputs, nothing after t0 (models/rollout.py); every window is its own rollout
   (benchmark/scoring/rollout.py). A model without a ``rollout`` method is driven by the commanded inputs
-  as under ``commanded``, and it is fitted as under ``commanded`` (:func:`fit_protocol_from_cfg`: the same
+  as under ``commanded``, and it is fitted as under ``commanded`` (:func:`fit_protocol`: the same
   fit).
 
 Whatever the protocol, the model sees it in the columns it already reads: :func:`model_inputs` returns ONLY
@@ -39,9 +39,9 @@ import pandas as pd
 from scipy.signal import savgol_filter
 
 from skidbench.pipeline.core.errors import SkidbenchError
+from skidbench.pipeline.core.layout import PROTOCOLS
 from skidbench.pipeline.core.robot import Robot
 
-PROTOCOLS = ("commanded", "response", "measured", "state")
 #: the version of this contract (the protocols, ``INPUT_COLUMNS``, how each protocol's columns are made); a
 #: released bundle records it (benchmark/release/bundle.py). Bump it when a protocol's inputs change.
 PROTOCOL_VERSION = 1
@@ -66,19 +66,11 @@ def check_protocol(protocol: Any) -> str:
     return name
 
 
-def protocol_from_cfg(cfg: Any) -> str:
-    """The checked protocol of a composed config (``inputs``; ``commanded`` when the key is absent): the
-    door from the config to the protocol a library function takes."""
-    value = cfg.get("inputs", "commanded") if hasattr(cfg, "get") else "commanded"
-    return check_protocol(value if value is not None else "commanded")
-
-
-def fit_protocol_from_cfg(cfg: Any) -> str:
-    """The protocol a model is fitted under in a run of :func:`protocol_from_cfg`: ``commanded`` for
-    ``state`` (its windows' inputs are the commands; a dynamics model builds its training histories from the
-    Train table's poses, so the fit is the commanded one), else the run's protocol itself."""
-    protocol = protocol_from_cfg(cfg)
-    return "commanded" if protocol == "state" else protocol
+def fit_protocol(protocol: str) -> str:
+    """The protocol a model is fitted under in a run of ``protocol``: ``commanded`` for ``state`` (its
+    windows' inputs are the commands; a dynamics model builds its training histories from the Train table's
+    poses, so the fit is the commanded one), else the run's (ProtocolError for an unknown one)."""
+    return "commanded" if check_protocol(protocol) == "state" else protocol
 
 
 def _groups(table: pd.DataFrame) -> np.ndarray:

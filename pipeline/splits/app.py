@@ -36,7 +36,7 @@ from skidbench.pipeline.groundtruth.trajectory import read_tum
 from skidbench.pipeline.runner.tasks import map_items
 from skidbench.pipeline.splits.build import build_split_table
 from skidbench.pipeline.splits.card import dataset_card
-from skidbench.pipeline.splits.settings import SplitSettings
+from skidbench.pipeline.splits.settings import CardSettings, SplitSettings
 
 log = logging.getLogger("skidbench.split")
 
@@ -273,9 +273,12 @@ def _card_conf(cfg: DictConfig) -> Any:
 
 
 def write_card(cfg: DictConfig, layout: Layout, robot: Robot) -> str:
-    card_cfg: Any = cfg.get("card") or {}
+    """The dataset card (``<ds>/splits/card.md``) with the ``card`` section's settings
+    (:class:`~skidbench.pipeline.splits.settings.CardSettings`; its defaults for a stage without one)."""
+    node = cfg.get("card")
+    card = OmegaConf.to_object(node) if node is not None else CardSettings()
     files = [p for p in layout.split_files(Manifest.read(layout.manifest)) if p.is_file()]
-    text = dataset_card(layout.splits, robot, bool(card_cfg.get("paper", True)), files)
+    text = dataset_card(layout.splits, robot, card.paper, files)
     text += gate_section(files) + recording_section(layout) + segments_section(layout)
     write_text_atomic(layout.splits / "card.md", text)
     return text

@@ -58,3 +58,11 @@ class SplitSettings:
     max_gap: float = field(default=0.5, metadata={"gt": 0, "what": "s"})
     differentiator: Differentiator = field(default_factory=Differentiator)
     consistency: GateConfig = field(default_factory=GateConfig)
+
+
+@dataclass(frozen=True)
+class CardSettings:
+    """The ``card:`` section of ``skidbench card`` (conf/card.yaml): ``paper``, the paper's Table I columns
+    in the dataset card. The split stage, which writes the card too, has no such section: the defaults."""
+
+    paper: bool = True
