@@ -1,6 +1,7 @@
-"""Is a speed deficit a scale, and is the ground truth's distance scale steady? What discovery's two checks
-of speed (``benchmark/discovery/scale.py``, ``scale_by_speed``; ``benchmark/discovery/ground_truth.py``,
-``scale_drift_finding``) see on worlds whose truth is known (docs/discovery.md, steps 1 and 2):
+"""Is a speed deficit a scale, and is the ground truth's distance scale steady? What discovery's two
+checks of speed (``benchmark/discovery/checks/scale.py``, ``scale_by_speed``;
+``benchmark/discovery/checks/ground_truth.py``, ``scale_drift_finding``) see on worlds whose truth is
+known (docs/discovery.md, steps 1 and 2):
 
     python -m perf.discover_scale [--seeds 2] [--publish]      # from the repository root
 
@@ -54,9 +55,9 @@ def worlds(seeds: int) -> list[tuple[str, dict]]:
 
 
 def measure(case: dict) -> dict:
-    from skidbench.benchmark.discovery.ground_truth import scale_drift_finding
+    from skidbench.benchmark.discovery.checks.ground_truth import scale_drift_finding
+    from skidbench.benchmark.discovery.checks.scale import scale_by_speed
     from skidbench.benchmark.discovery.pool import prepare_pool
-    from skidbench.benchmark.discovery.scale import scale_by_speed
     from skidbench.benchmark.discovery.search import fit_base
     from skidbench.models.augmented.fit import DiscoverSettings, build_pool
     from skidbench.models.registry.specs import get_model_class

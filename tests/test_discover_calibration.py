@@ -75,7 +75,7 @@ def test_a_speed_deficit_is_a_scale_only_when_slow_and_fast_commands_lose_the_sa
     0.098 m wheel); a wheel-rate limit loses nothing on the slow half. Noise alone is a scale."""
     from types import SimpleNamespace
 
-    from skidbench.benchmark.discovery.scale import scale_by_speed
+    from skidbench.benchmark.discovery.checks.scale import scale_by_speed
 
     rng = np.random.default_rng(0)
     n_units, n = 8, 900

@@ -1,5 +1,5 @@
-"""The ground truth's own consistency (benchmark/discovery/ground_truth.py): a heading that disagrees with
-the direction of travel and a distance scale that drifts are ground-truth findings with their size, the
+"""The ground truth's own consistency (benchmark/discovery/checks/ground_truth.py): a heading that disagrees
+with the direction of travel and a distance scale that drifts are ground-truth findings with their size, the
 pool corrected by them, never robot effects; a robot whose own speed or turn changes is not one."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discover_data as dd  # noqa: E402
 
-from skidbench.benchmark.discovery.ground_truth import ground_truth_findings  # noqa: E402
+from skidbench.benchmark.discovery.checks.ground_truth import ground_truth_findings  # noqa: E402
 from skidbench.benchmark.discovery.pool import prepare_pool  # noqa: E402
 from skidbench.models.augmented.fit import DiscoverSettings, build_pool  # noqa: E402
 
@@ -85,7 +85,7 @@ def test_heading_estimates_that_noise_explains_are_not_a_finding(jackal):
     several degrees that cancel each other gave a 2.3 deg RMS heading offset, reported as "check the
     ground truth"; noise (the measured vy's sign flipped in 2 s blocks) gives offsets as large 42 % of the
     time, so it is no finding."""
-    from skidbench.benchmark.discovery.ground_truth import heading_finding
+    from skidbench.benchmark.discovery.checks.ground_truth import heading_finding
 
     pool = _bench_pool(1007, jackal, style="gentle")
     _, estimate = heading_finding(pool, p_max=1.0)  # the estimate alone, as the check had it
@@ -97,7 +97,7 @@ def test_a_heading_offset_in_every_sequence_is_found_beside_a_poorly_determined_
     """The bench's heading/6605 case (3 deg, 1.5 deg/min in each of eight drives): one drive has 72
     moving low-turn rows whose offset and drift noise could match the offsets of all others together;
     each drive weighed by its own noise, the offset is beyond every draw."""
-    from skidbench.benchmark.discovery.ground_truth import heading_finding
+    from skidbench.benchmark.discovery.checks.ground_truth import heading_finding
 
     _, found = heading_finding(_bench_pool(6605, jackal, heading=(3.0, 1.5)))
     assert found is not None and found["p_noise"] < 0.001

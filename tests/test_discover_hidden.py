@@ -174,7 +174,7 @@ def test_a_slip_with_a_pose_clock_offset_names_the_slip_and_the_delay_and_nothin
 def test_a_placebo_names_nothing(jackal):
     """The commands moved 30 s: commands that did not drive the motion; the effect hidden in the data
     (an angular-acceleration slip) is not named on them, nor anything else."""
-    from skidbench.benchmark.discovery.placebo import placebo
+    from skidbench.benchmark.discovery.checks.placebo import placebo
     from skidbench.models.registry.specs import get_model_class
 
     res, pool, _ = dd.discovered(("angular_acceleration_slip",), SEEDS["angular_acceleration_slip"], jackal)

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def test_gained_base_takes_a_channel_that_does_not_follow_its_commands_to_zero():
     """A channel whose prediction anti-correlates with the measurement gets gain 0 (the bounded least
     squares), one that follows it its least-squares gain, one the base never predicts gain 1."""
-    from skidbench.benchmark.discovery.placebo import GainedBase
+    from skidbench.benchmark.discovery.checks.placebo import GainedBase
     from skidbench.models.registry.specs import get_model_class
     from skidbench.pipeline.core.robot import load_robot
 
@@ -43,7 +43,7 @@ def test_a_placebo_on_the_drive_husky_searches_and_names_nothing(shared_real, tm
     the search-wide test made) and names nothing."""
     from drive_data import drive_splits
 
-    from skidbench.benchmark.discovery.placebo import placebo
+    from skidbench.benchmark.discovery.checks.placebo import placebo
     from skidbench.benchmark.discovery.pool import prepare_pool
     from skidbench.models.augmented.effects import EFFECT_IDS
     from skidbench.models.augmented.fit import DiscoverSettings, build_pool
@@ -69,7 +69,7 @@ def test_a_speed_scale_against_encoder_measured_radius_is_not_a_radius_to_config
     slower than commanded; without encoders behind the radius the finding stays a radius."""
     from types import SimpleNamespace
 
-    from skidbench.benchmark.discovery.scale import against_encoders
+    from skidbench.benchmark.discovery.checks.scale import against_encoders
 
     text = "the effective wheel radius is 0.1857 m ...; put wheel_radius: 0.1857 in the robot's config"
     cal = {"configured": 0.2693, "ci": [0.1578, 0.2136], "speed_scale": 0.690, "text": text}
@@ -95,7 +95,7 @@ def test_the_speed_scale_is_restated_as_the_final_model_has_it():
     interval that holds 1 is no finding."""
     from types import SimpleNamespace
 
-    from skidbench.benchmark.discovery.scale import _calibration, restate_scale
+    from skidbench.benchmark.discovery.checks.scale import _calibration, restate_scale
     from skidbench.models.augmented.effects import SPEED_SCALE
 
     def run_with(final_ks):

@@ -20,15 +20,15 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from skidbench.benchmark.discovery.checks.placebo import placebo
+from skidbench.benchmark.discovery.checks.scale import against_encoders
 from skidbench.benchmark.discovery.discover import (
     NO_EFFECT_MESSAGE,
     TerrainDiscovery,
     discover_terrain,
     refused_terrain,
 )
-from skidbench.benchmark.discovery.placebo import placebo
 from skidbench.benchmark.discovery.pool import load_pool, prepare_pool, too_small
-from skidbench.benchmark.discovery.scale import against_encoders
 from skidbench.benchmark.discovery.settings import DiscoverOptions
 from skidbench.models.augmented.effects import CATALOGUE, EFFECT_IDS
 from skidbench.models.augmented.fit import DiscoverError, DiscoverSettings

@@ -40,11 +40,11 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
-from skidbench.benchmark.discovery.ground_truth import ground_truth_findings
+from skidbench.benchmark.discovery.checks.ground_truth import ground_truth_findings
+from skidbench.benchmark.discovery.checks.scale import ask_speed_scale, restate_scale
 from skidbench.benchmark.discovery.naming import best_catalogue, choose, keep_best_members, naming_record
 from skidbench.benchmark.discovery.panels import residual_panel, term_panel, unexplained_panels
 from skidbench.benchmark.discovery.pool import selected_on
-from skidbench.benchmark.discovery.scale import ask_speed_scale, restate_scale
 from skidbench.benchmark.discovery.search import (
     Scored,
     ScoredTerms,
