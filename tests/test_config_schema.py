@@ -221,3 +221,16 @@ def test_a_mistyped_or_misspelt_section_override_of_another_stage_is_one_line(st
         foreign, cfg = check_overrides(stage, [override])
         validate(cfg)
     assert "\n" not in str(exc.value) and str(exc.value).startswith(message), str(exc.value)
+
+
+def test_discover_takes_the_settings_of_the_stages_it_runs_for_a_raw_source():
+    """`skidbench discover source=...` runs extract and split itself: their sections are its own (a DRIVE
+    recording with flagged sequences needs ``split.drop_flagged=true``), never "another stage's setting"."""
+    from skidbench.pipeline.cli.api import _with_stage
+
+    args = ["split.drop_flagged=true", "extract.batch_rows=64"]
+    dropped, cfg = check_overrides("discover", args)
+    assert dropped == [] and cfg.split.drop_flagged is True and cfg.extract.batch_rows == 64
+    assert _with_stage(cfg, "split").split.drop_flagged is True  # what prepare_splits hands the split stage
+    with pytest.raises(ConfigError, match="split.drop_flagged"):
+        check_overrides("discover", ["split.drop_flaged=true"])
