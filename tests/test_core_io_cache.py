@@ -1,6 +1,9 @@
 """Atomic writes and stage stamps."""
 
 import json
+import os
+import subprocess
+import sys
 
 import pyarrow as pa
 import pytest
@@ -42,6 +45,29 @@ def test_stamp_is_fresh_until_input_config_or_output_changes(tmp_path):
     src.write_bytes(b"abc")
     out.write_bytes(b"resu")  # truncated output
     assert not Stamp(tmp_path / "_stamp.json", "stage").is_fresh(key)
+
+
+def test_a_unit_found_fresh_clears_what_a_killed_writer_left_beside_its_stamp_and_outputs(tmp_path):
+    # A worker killed after its output was final but before its new stamp was renamed leaves the old
+    # stamp, which still matches the output's bytes: the rerun skips the unit, so it must clear the
+    # temporary files there itself (a live writer's are kept, and other files' are not touched).
+    src, out = tmp_path / "in.bin", tmp_path / "data" / "out.bin"
+    src.write_bytes(b"abc")
+    out.parent.mkdir()
+    out.write_bytes(b"result")
+    path = tmp_path / ".stamps" / "unit.json"
+    stamp = Stamp(path, "stage")
+    key = stamp.key([src], {"k": 1})
+    stamp.record(key, [out])
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True)
+    dead_pid = int(dead.stdout)
+    left = [path.parent / f".tmp-unit.json.{dead_pid}.x1", out.parent / f".tmp-out.bin.{dead_pid}.x2"]
+    kept = [path.parent / f".tmp-unit.json.{os.getpid()}.x3", out.parent / f".tmp-other.bin.{dead_pid}.x4"]
+    for p in left + kept:
+        p.write_bytes(b"half")
+    again = Stamp(path, "stage")
+    assert again.is_fresh(again.key([src], {"k": 1}))
+    assert [p.exists() for p in left + kept] == [False, False, True, True]
 
 
 def test_stamp_records_what_its_key_was_made_of_and_readers_get_a_reason(tmp_path):

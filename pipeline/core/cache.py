@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.pipeline.core.errors import ConfigError
-from skidbench.pipeline.core.io import fingerprint_file, fingerprint_obj, write_json_atomic
+from skidbench.pipeline.core.io import fingerprint_file, fingerprint_obj, remove_stale_tmp, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -165,6 +165,9 @@ class Stamp:
             else:
                 log.warning("%s: %s; rebuilding", self.stage, why)
             return False
+        # a writer killed after the outputs were final and before this stamp was (or while rewriting an
+        # output to the same bytes) left temporary files that no rewrite of this unit will now clear
+        remove_stale_tmp(self.path, *(self._here(p) for p in self.data.get("outputs") or {}))
         if schema != STAMP_SCHEMA and key in self._made_of:
             # the same key formula, without what the key was made of: add that now rather than rebuild
             self.data.update(

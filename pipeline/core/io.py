@@ -81,23 +81,30 @@ def atomic_path(final: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
         raise err from exc
 
 
-def remove_stale_tmp(final: str | os.PathLike) -> list[Path]:
-    """Delete the temporary files of ``final`` left by a killed process (``.tmp-<name>.<pid>.*`` whose
-    process is gone); a live writer's files are kept. Returns the paths removed."""
-    final = Path(final)
-    head = f"{TMP_PREFIX}{final.name}."
+def remove_stale_tmp(*finals: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files of each of ``finals`` left by a killed process (``.tmp-<name>.<pid>.*``
+    whose process is gone); a live writer's files are kept. Each folder is listed once. Returns the paths
+    removed."""
+    by_folder: dict[Path, set[str]] = {}
+    for final in map(Path, finals):
+        by_folder.setdefault(final.parent, set()).add(f"{TMP_PREFIX}{final.name}.")
     removed = []
-    try:
-        entries = [p for p in final.parent.iterdir() if p.name.startswith(head)]
-    except FileNotFoundError:
-        return removed
-    for p in entries:
-        pid = p.name[len(head) :].split(".", 1)[0]
-        if pid.isdigit() and process_alive(int(pid)):
+    for folder, heads in by_folder.items():
+        try:
+            names = [n for n in os.listdir(folder) if n.startswith(TMP_PREFIX)]
+        except (FileNotFoundError, NotADirectoryError):
             continue
-        with contextlib.suppress(FileNotFoundError, PermissionError, IsADirectoryError):
-            p.unlink()
-            removed.append(p)
+        for name in names:
+            head = next((h for h in heads if name.startswith(h)), None)
+            if head is None:
+                continue
+            pid = name[len(head) :].split(".", 1)[0]
+            if pid.isdigit() and process_alive(int(pid)):
+                continue
+            p = folder / name
+            with contextlib.suppress(FileNotFoundError, PermissionError, IsADirectoryError):
+                p.unlink()
+                removed.append(p)
     return removed
 
 
