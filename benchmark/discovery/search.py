@@ -72,12 +72,14 @@ class Search:
 
 def show(run: Search, name: str, ev: dict[str, Any]) -> None:
     """One progress line: a candidate's held-out gains, its own and its search-wide p-value, and whether
-    it passes the rule."""
+    it passes the rule (or passed the statistics but not the practical check)."""
+    verdict = "PASS" if ev["passes"] else "detected, one metric worse" if ev.get("one_metric") else ""
+    verdict = verdict or ("detected, too small" if ev.get("too_small") else "")
     run.say(
         f"[{run.terrain}]   {name:28s} gain {ev['heldout_gain']:+.4f} (penalised "
         f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} p_search={ev.get('p_search', 1.0):.3g} "
         f"velocity gain {ev['velocity_gain']:+.4f}{'' if ev['stable_across_folds'] else ' unstable'}"
-        f"{'  PASS' if ev['passes'] else ''}"
+        f"{'  ' + verdict if verdict else ''}"
     )
 
 
