@@ -339,6 +339,7 @@ def run_case(c: dict[str, Any]) -> dict[str, Any]:
         "calibration": res.calibration["value"] if res.calibration else None,
         "ground_truth": [q["text"] for q in res.base.get("ground_truth", [])],
         "too_small": [q["name"] for q in res.base.get("too_small", [])],
+        "one_metric": [q["name"] for q in res.base.get("one_metric", [])],
         "false_catalogue": false_catalogue_names(c, steps),
         "rejected_best": (res.rejected or {}).get("best_candidate"),
         "cpu_s": round(time.process_time() - started, 1),
@@ -391,6 +392,10 @@ def summary(rows: list[dict[str, Any]], command: str, asked: dict[str, int] | No
             )
             small = (
                 f"; detected, too small to act on: {', '.join(r['too_small'])}" if r.get("too_small") else ""
+            ) + (
+                f"; detected, does not help both metrics: {', '.join(r['one_metric'])}"
+                if r.get("one_metric")
+                else ""
             )
             lines.append(f"- {r['id']}: {named or 'nothing named'}{small}")
     named = [st for r in rows for st in r.get("steps", [])]

@@ -164,6 +164,44 @@ def test_a_gain_too_small_to_act_on_is_detected_and_not_named():
     assert not tiny_base["passes"]
 
 
+def test_a_name_that_makes_the_other_metric_worse_is_detected_and_not_named():
+    """The DRIVE Husky's lag: translational 54.2 -> 41.5 % but rotational 46.6 -> 52.4 % (+5.8 points,
+    12 % of it: as much as a name must gain). It passes the statistics and the summed log gains (+0.30),
+    and is listed as "does not help both metrics", not named; a rise under the practical bar (46.6 ->
+    48.0 %, 3 %) does not stop a name, nor does one under 0.1 point; a candidate that gains too little
+    and costs on the other metric is too small."""
+    from types import SimpleNamespace
+
+    from skidbench.benchmark.discovery.discover import _detected_row
+    from skidbench.benchmark.discovery.search import practical_check
+
+    run = SimpleNamespace(settings=DiscoverSettings())
+
+    def ev(trans, rot):
+        before, after = ({"translational": trans[i], "rotational": rot[i]} for i in (0, 1))
+        return {
+            "passes": True,
+            "heldout_gain": 0.30,
+            "heldout_rmsre_before": before,
+            "heldout_rmsre_after": after,
+        }
+
+    lag = ev((0.542, 0.415), (0.466, 0.524))
+    practical_check(run, lag)
+    assert lag["detected"] and lag["one_metric"] and not lag["passes"] and not lag.get("too_small")
+    assert lag["practical"]["worse"] == ["rotational"] and not lag["practical"]["ok"]
+    row = _detected_row("actuator_lag", lag)
+    assert "does not help both metrics (rotational worse)" in row["text"] and "+5.800 points" in row["text"]
+    assert "-12.700 points" in row["text"] and row["worse"] == ["rotational"]
+    for rot in ((0.466, 0.480), (0.0060, 0.0069)):  # 3 % worse; 15 % worse but 0.09 point
+        small_rise = ev((0.542, 0.415), rot)
+        practical_check(run, small_rise)
+        assert small_rise["passes"] and not small_rise["practical"]["worse"], rot
+    both_small = ev((0.00461, 0.00450), (0.466, 0.524))
+    practical_check(run, both_small)
+    assert both_small["too_small"] and not both_small.get("one_metric") and not both_small["passes"]
+
+
 def test_a_fold_trains_on_other_blocks_less_one_horizon_around_its_held_out_blocks():
     """Time blocks of one sequence: a fold's training rows leave out every row within one horizon of a
     held-out block (the buffer), and whole sequences need none."""

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def test_gained_base_takes_a_channel_that_does_not_follow_its_commands_to_zero():
     """A channel whose prediction anti-correlates with the measurement gets gain 0 (the bounded least
     squares), one that follows it its least-squares gain, one the base never predicts gain 1."""
-    from skidbench.benchmark.discovery.checks.placebo import GainedBase
+    from skidbench.benchmark.discovery.checks.placebo import GainedBase, RecordedFits
     from skidbench.models.registry.specs import get_model_class
     from skidbench.pipeline.core.robot import load_robot
 
@@ -30,10 +30,56 @@ def test_gained_base_takes_a_channel_that_does_not_follow_its_commands_to_zero()
     table = pd.DataFrame(
         {"cmd_wl": wl, "cmd_wr": wr, "vx": 0.7 * v, "vy": 0.0, "wz": -0.5 * w, "valid": True}
     )
-    inner = get_model_class("edd")(robot).fit(table.assign(wz=0.5 * w))  # chi 2
-    m = GainedBase(inner).fit(table)
+    recorded = RecordedFits(table.assign(wz=0.5 * w), lambda: get_model_class("edd")(robot))  # chi 2
+    m = GainedBase(recorded).fit(table)
     assert m.params["gains"] == pytest.approx([0.7, 1.0, 0.0])
     assert np.allclose(m.predict(table)[:, 0], 0.7 * v) and np.allclose(m.predict(table)[:, 2], 0.0)
+
+
+def test_the_placebos_inner_base_never_sees_a_folds_held_out_rows(jackal):
+    """The base model behind the placebo's gained base is fitted, in each fold, on that fold's training rows
+    (less the buffer around its held-out blocks) with their recorded commands, never on the whole pool:
+    a base fitted on every row has seen the held-out units it then predicts. A base that refuses the moved
+    commands (as ``edd`` does on DRIVE) sends the placebo to the gained base; every fit of it on the
+    recorded commands is logged. Three 60 s sequences (time blocks, so the buffer applies)."""
+    import discover_data as dd
+
+    from skidbench.benchmark.discovery.checks.placebo import placebo
+    from skidbench.benchmark.discovery.pool import prepare_pool
+    from skidbench.benchmark.discovery.stats import folds_of, training_rows
+    from skidbench.models.augmented.fit import DiscoverSettings, build_pool
+    from skidbench.models.registry.specs import get_model_class
+    from skidbench.pipeline.core.errors import SkidbenchError
+
+    rng, train = np.random.default_rng(3), []
+    for i in range(3):
+        cmd, loc = dd.sequence(rng, {}, 60.0)
+        df = dd.to_split(cmd, loc)
+        train.append((df, dd.split_meta(df, f"train_{i:02d}")))
+    s = DiscoverSettings(open_ended=False)
+    pool = prepare_pool(build_pool(train, s), "commanded", jackal)
+    recorded, fits = pool.table, []
+
+    class RefusesMovedCommands(get_model_class("edd")):
+        def fit(self, table):
+            if not np.allclose(table["cmd_w"], recorded.loc[table.index, "cmd_w"]):
+                raise SkidbenchError("cannot be fitted to commands that did not drive the motion")
+            fits.append(frozenset(table.index[table["valid"].to_numpy(bool)]))
+            return super().fit(table)
+
+    out = placebo(
+        pool, lambda: RefusesMovedCommands(jackal), jackal, s, "tile", "edd", ("actuator_lag",), 30.0
+    )
+    assert out["searched"] and "did not drive" in out["fallback"], out
+    assert pool.blocks and fits
+    every = frozenset(pool.table.index[pool.valid])
+    fold_rows = [
+        frozenset(pool.table.index[training_rows(pool, held, s.horizon_s)])
+        for held in folds_of(pool, s.folds)
+    ]
+    for rows in fold_rows:  # each fold's inner base, fitted on its training rows
+        assert rows in fits and len(rows) < len(every)
+    assert set(fits) <= set(fold_rows) | {every}  # and no other: the whole pool only for the final model
 
 
 @pytest.mark.slow

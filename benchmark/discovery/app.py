@@ -217,6 +217,7 @@ def to_document(
             "placebo": r.placebo,
             "ground_truth": r.base.get("ground_truth", []),
             "too_small": r.base.get("too_small", []),
+            "one_metric": r.base.get("one_metric", []),
             "dropped": r.base.get("dropped", []),
             "message": r.message,
             "unexplained": r.unexplained,
@@ -282,7 +283,7 @@ def summary_text(doc: dict[str, Any]) -> str:
             eq = [q["term"] for q in (st.get("naming") or {}).get("equivalent_terms") or []]
             if eq:
                 lines.append(f"      equivalent terms (the same residual in other forms): {', '.join(eq)}")
-        for q in r.get("too_small") or []:
+        for q in (r.get("too_small") or []) + (r.get("one_metric") or []):
             lines.append(f"[{terrain}] {q['text']}")
         for q in r.get("dropped") or []:
             lines.append(f"[{terrain}] {q['name']} dropped after step {q['after_step']}: {q['why']}")

@@ -396,6 +396,7 @@ def discover_terrain(
         _retest(run)
     restate_scale(run)
     run.base_info["too_small"] = list(run.too_small.values())
+    run.base_info["one_metric"] = list(run.one_metric.values())
     run.base_info["dropped"] = run.dropped
     return _result(run, base_name, t_start)
 
@@ -414,8 +415,9 @@ def _step(run: Search, candidates: tuple[str, ...]) -> bool:
     for name, ev in every.items():
         practical_check(run, ev)
         show(run, name, ev)
-        if ev.get("too_small"):
-            run.too_small[family_of(name)] = _too_small_row(family_of(name), ev)
+        if ev.get("too_small") or ev.get("one_metric"):
+            kept = run.one_metric if ev.get("one_metric") else run.too_small
+            kept[family_of(name)] = _detected_row(family_of(name), ev)
     evidence = {
         "candidates": {e: evidence_row(v[0]) for e, v in scored.items()},
         "terms": {k: evidence_row(v[0]) for k, v in scored_t.items()},
@@ -431,22 +433,31 @@ def _step(run: Search, candidates: tuple[str, ...]) -> bool:
         ho, term = _add_effect(run, name, scored, scored_t, evidence, equivalents), None
     else:
         ho, term = _add_term(run, name, scored, scored_t, evidence)
-    run.too_small.pop(family_of(name) if kind == "catalogue" else term.form, None)
+    for kept in (run.too_small, run.one_metric):
+        kept.pop(family_of(name) if kind == "catalogue" else term.form, None)
     _accept(run, name if kind == "catalogue" else term.key, kind, ho)
     reweight(run, kind, term)
     return True
 
 
-def _too_small_row(name: str, ev: dict[str, Any]) -> dict[str, Any]:
+def _detected_row(name: str, ev: dict[str, Any]) -> dict[str, Any]:
+    """A candidate that passed the statistical rule but not the practical check (:func:`practical_check`):
+    too small to act on, or worse on one 6 s metric by as much as a name must gain (``worse``)."""
     pr = ev["practical"]
+    what = (
+        f"detected, does not help both metrics ({' and '.join(pr['worse'])} worse)"
+        if ev.get("one_metric")
+        else "detected, too small to act on"
+    )
     return {
         "name": name,
         "heldout_gain": ev["heldout_gain"],
         "p_search": ev.get("p_search"),
         "points": {m: pr[m]["points"] for m in ("translational", "rotational")},
         "share": {m: pr[m]["share"] for m in ("translational", "rotational")},
-        "text": f"{name}: detected, too small to act on (held-out 6 s RMSRE "
-        + ", ".join(f"{m} -{pr[m]['points']:.3f} points ({100 * pr[m]['share']:.1f} %)"
+        "worse": list(pr.get("worse", [])),
+        "text": f"{name}: {what} (held-out 6 s RMSRE "
+        + ", ".join(f"{m} {-pr[m]['points']:+.3f} points ({-100 * pr[m]['share']:+.1f} %)"
                     for m in ("translational", "rotational")) + ")",
     }  # fmt: skip
 

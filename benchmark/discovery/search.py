@@ -65,35 +65,44 @@ class Search:
     unexplained: dict[str, Any] | None = None
     calibration: dict[str, Any] | None = None  # the speed scale found first (discover.ask_speed_scale)
     too_small: dict[str, dict[str, Any]] = field(default_factory=dict)  # detected, too small to act on
+    one_metric: dict[str, dict[str, Any]] = field(default_factory=dict)  # detected, worse on the other metric
     dropped: list[dict[str, Any]] = field(default_factory=list)  # names re-tested out of the model
     excluded: tuple[str, ...] = ()  # library forms not searched (a placebo's command-free forms)
 
 
 def show(run: Search, name: str, ev: dict[str, Any]) -> None:
     """One progress line: a candidate's held-out gains, its own and its search-wide p-value, and whether
-    it passes the rule."""
+    it passes the rule (or passed the statistics but not the practical check)."""
+    verdict = "PASS" if ev["passes"] else "detected, one metric worse" if ev.get("one_metric") else ""
+    verdict = verdict or ("detected, too small" if ev.get("too_small") else "")
     run.say(
         f"[{run.terrain}]   {name:28s} gain {ev['heldout_gain']:+.4f} (penalised "
         f"{ev['penalised_gain']:+.4f}) p={ev['paired_p_value']:.3g} p_search={ev.get('p_search', 1.0):.3g} "
         f"velocity gain {ev['velocity_gain']:+.4f}{'' if ev['stable_across_folds'] else ' unstable'}"
-        f"{'  PASS' if ev['passes'] else ''}"
+        f"{'  ' + verdict if verdict else ''}"
     )
 
 
 def practical_check(run: Search, ev: dict[str, Any]) -> None:
-    """A name must matter to a lab (``discover.min_share``, ``discover.min_points``): in one of the two
-    6 s metrics it cuts the held-out error that remains by at least ``min_share`` of it and by at least
-    ``min_points`` (fractions of RMSRE). A candidate that passes the statistical rule but not this is
-    "detected, too small to act on" (``run.too_small``), not added; ``passes`` is updated in place."""
+    """A name must matter to a lab, on both 6 s metrics (``discover.min_share``, ``discover.min_points``):
+    in one of them it cuts the held-out error that remains by at least ``min_share`` of it and by at least
+    ``min_points`` (fractions of RMSRE), and it makes neither worse by as much (a rise of at least
+    ``min_share`` of the error and ``min_points``: a change a lab would see). A candidate that passes the
+    statistical rule but gains too little is "detected, too small to act on" (``too_small``); one that
+    gains on one metric and costs as much on the other is "detected, does not help both metrics"
+    (``one_metric``); neither is added. ``passes`` is updated in place."""
     s = run.settings
     b, a = ev["heldout_rmsre_before"], ev["heldout_rmsre_after"]
     drops = {m: (b[m] - a[m], (b[m] - a[m]) / max(b[m], 1e-12)) for m in ("translational", "rotational")}
-    ok = any(d >= s.min_points and r >= s.min_share for d, r in drops.values())
-    ev["practical"] = {m: {"points": 100 * d, "share": r} for m, (d, r) in drops.items()} | {"ok": ok}
+    gains = any(d >= s.min_points and r >= s.min_share for d, r in drops.values())
+    worse = [m for m, (d, r) in drops.items() if -d >= s.min_points and -r >= s.min_share]
+    ok = gains and not worse
+    ev["practical"] = {m: {"points": 100 * d, "share": r} for m, (d, r) in drops.items()}
+    ev["practical"] |= {"ok": ok, "worse": worse}
     ev["detected"] = bool(ev["passes"])
     if ev["passes"] and not ok:
         ev["passes"] = False
-        ev["too_small"] = True
+        ev["one_metric" if gains else "too_small"] = True
     return None
 
 

@@ -4,10 +4,10 @@ motion. Nothing may be named.
 
 When the base model cannot be fitted to the moved commands (``edd``'s least squares gives 1/chi <= 0 when
 the moved turn commands happen to anti-correlate with the measured yaw rate, as on every shift tried on
-the DRIVE Husky), the search still runs, from :class:`GainedBase`: the base model held at its fit on the
-recorded commands, each velocity channel's prediction times a gain of at least 0 fitted, fold by fold,
-on the moved ones (for ``edd``, the bounded version of its own least squares, 1/chi >= 0, plus a free
-forward gain). Before, such a placebo said "nothing named" without searching.
+the DRIVE Husky), the search still runs, from :class:`GainedBase`: the base model fitted on the recorded
+commands of the same training rows (fold by fold: a fold's inner model never sees its held-out units),
+each velocity channel's prediction times a gain of at least 0 fitted on the moved ones (for ``edd``, the
+bounded version of its own least squares, 1/chi >= 0, plus a free forward gain).
 """
 
 from __future__ import annotations
@@ -46,36 +46,64 @@ def placebo_pool(pool: Pool, shift_s: float) -> Pool:
     return dataclasses.replace(pool, table=table, note=pool.note + f"; placebo: commands moved {shift_s:g} s")
 
 
+class RecordedFits:
+    """The base model fitted on the recorded commands of the rows a fit is given (by their index labels in
+    ``pool.table``, which every sub-table of the pool keeps), cached per set of rows: :class:`GainedBase`'s
+    inner model, so that a fold's inner model has seen that fold's training rows only, never its held-out
+    units. ``fitted_on``: the labels of every fit made (the record the tests read)."""
+
+    def __init__(self, recorded: pd.DataFrame, factory):
+        self.recorded = recorded
+        self.factory = factory
+        self.fitted_on: list[pd.Index] = []
+        self._cache: dict[bytes, KinematicModel] = {}
+
+    def __call__(self, labels: pd.Index) -> KinematicModel:
+        key = np.asarray(labels).tobytes()
+        if key not in self._cache:
+            if len(self._cache) > 64:
+                self._cache.clear()
+            self._cache[key] = self.factory().fit(self.recorded.loc[labels])
+            self.fitted_on.append(labels)
+        return self._cache[key]
+
+
 class GainedBase(KinematicModel):
-    """The placebo's base when the base model cannot be fitted to the moved commands: ``inner`` (the base
-    model fitted on the recorded commands, never refitted) with its prediction of each velocity channel
-    times a gain g >= 0, fitted by least squares through the origin on the training rows (g = 0 where the
-    channel's prediction anti-correlates with the measurement: "these commands do not drive it"; 1 where
-    the prediction is identically 0, as ``edd``'s vy). Fitted to anything, and able to shrink a prediction
+    """The placebo's base when the base model cannot be fitted to the moved commands: an inner model (the
+    base model fitted on the recorded commands of the same training rows, :class:`RecordedFits`, with the
+    measured motion) with its prediction of each velocity channel times a gain g >= 0, fitted by least
+    squares through the origin on the training rows with the moved commands (g = 0 where the channel's
+    prediction anti-correlates with the measurement: "these commands do not drive it"; 1 where the
+    prediction is identically 0, as ``edd``'s vy). Fitted to anything, and able to shrink a prediction
     that moved commands make too large: a base held at the recorded fit (or the ideal model) would
     predict the moved commands' full turn rate and speed, and every candidate that damps a prediction (a
     long lag, a yaw factor) would gain on every unit for that reason alone."""
 
     name = "placebo_base"
 
-    def __init__(self, inner: KinematicModel):
-        super().__init__(inner.robot)
-        self.inner = inner
-        self.required_columns = inner.required_columns
-        self.params = {"inner": inner.name, "inner_params": inner.get_params(), "gains": [1.0, 1.0, 1.0]}
+    def __init__(self, recorded: RecordedFits):
+        proto = recorded.factory()
+        super().__init__(proto.robot)
+        self.recorded = recorded
+        self.inner: KinematicModel | None = None
+        self.required_columns = proto.required_columns
+        self.params = {"inner": None, "inner_params": None, "gains": [1.0, 1.0, 1.0]}
 
     def fit(self, table: pd.DataFrame) -> GainedBase:
         self.check_columns(table, fitting=True)
         train = training_rows(table)
+        self.inner = self.recorded(train.index)
         p, y = self.inner.predict(train), targets(train)
         gains = []
         for c in range(3):
             den = float(p[:, c] @ p[:, c])
             gains.append(1.0 if den <= 1e-12 else max(0.0, float(p[:, c] @ y[:, c]) / den))
-        self.params = {**self.params, "gains": gains}
+        self.params = {"inner": self.inner.name, "inner_params": self.inner.get_params(), "gains": gains}
         return self
 
     def predict(self, table: pd.DataFrame) -> np.ndarray:
+        if self.inner is None:
+            raise SkidbenchError("placebo_base: predict before fit")
         return self.inner.predict(table) * np.asarray(self.params["gains"], float)
 
 
@@ -121,13 +149,13 @@ def placebo(pool: Pool, factory, robot, settings: DiscoverSettings, terrain: str
     except SkidbenchError as exc:  # the base model cannot be fitted to commands that did not drive it
         fallback = f"the base model cannot be fitted to them: {exc}"
         try:
-            inner = factory().fit(pool.table.loc[pool.valid])  # the base as the recorded commands fit it
-            res = _search(moved, lambda: GainedBase(inner), robot, settings, terrain, base_name, cands)
+            recorded = RecordedFits(pool.table, factory)  # each fit's rows with their recorded commands
+            res = _search(moved, lambda: GainedBase(recorded), robot, settings, terrain, base_name, cands)
         except SkidbenchError as exc2:
             return {"shift_s": shift_s, "named": [], "passed": None, "searched": False, "fallback": fallback,
-                    "text": f"{head}): NOT RUN ({fallback}; nor from the base held at its recorded fit "
-                    f"with channel gains: {exc2})"}  # fmt: skip
-        base = f"{base_name} held at its fit on the recorded commands, channel gains >= 0 fitted"
+                    "text": f"{head}): NOT RUN ({fallback}; nor from the base fitted on the recorded "
+                    f"commands with channel gains: {exc2})"}  # fmt: skip
+        base = f"{base_name} fitted on the recorded commands of each fit's rows, channel gains >= 0 fitted"
         head += f"; {fallback}, so from {base}"
     named = res.effects + res.terms
     tested, best = _last_step(res)
