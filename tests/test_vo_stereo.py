@@ -12,7 +12,7 @@ import yaml
 from skidbench.pipeline.core.errors import GroundTruthError
 from skidbench.pipeline.core.geometry import quaternion_from_yaw, se3_from_xyz_rpy
 from skidbench.pipeline.groundtruth.loop import evaluate_against_truth, loop_error, summarize_loops
-from skidbench.pipeline.groundtruth.stereo_vo import (
+from skidbench.pipeline.groundtruth.stereo.stereo_vo import (
     StereoCamera,
     StereoVO,
     VOConfig,
@@ -20,8 +20,8 @@ from skidbench.pipeline.groundtruth.stereo_vo import (
     camera_extrinsic,
     camera_to_base,
 )
+from skidbench.pipeline.groundtruth.stereo.vo import StereoSettings, run_stereo_vo
 from skidbench.pipeline.groundtruth.trajectory import Trajectory
-from skidbench.pipeline.groundtruth.vo import StereoSettings, run_stereo_vo
 from skidbench.pipeline.simulate.render import StereoRenderer
 
 REPO = Path(__file__).resolve().parents[1]

@@ -170,7 +170,7 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
         return traj, {**report, "files": files}
     if method == "vo":
         try:
-            vo = importlib.import_module("skidbench.pipeline.groundtruth.vo")
+            vo = importlib.import_module("skidbench.pipeline.groundtruth.stereo.vo")
         except ImportError as exc:
             raise GroundTruthError(f"groundtruth.method=vo is not available ({exc}); use pose_topic") from exc
         bag = manifest.resolve(seq)
@@ -198,7 +198,7 @@ def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Se
         if o.associate_to:
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
-        vo_code = ("vo.py", "stereo_vo.py", "stereo_bag.py", "app.py")
+        vo_code = ("stereo/vo.py", "stereo/stereo_vo.py", "stereo/stereo_bag.py", "app.py")
         files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in vo_code)]
         files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
@@ -211,7 +211,7 @@ def stage_config(cfg: DictConfig) -> dict[str, Any]:
     gt.pop("jobs", None)  # how many processes compute it does not change the result
     out = {"groundtruth": gt, "robot": OmegaConf.to_container(cfg.robot, resolve=True)}
     if gt.get("method") == "vo":  # VO reads the stereo topics of source.topics
-        from skidbench.pipeline.groundtruth.vo import source_image_topics
+        from skidbench.pipeline.groundtruth.stereo.vo import source_image_topics
 
         out["vo_topics"] = source_image_topics(cfg.source.get("topics"))
     return out

@@ -23,13 +23,13 @@ from omegaconf import OmegaConf
 
 from skidbench.pipeline.core.errors import GroundTruthError, SkidbenchError, one_line
 from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
-from skidbench.pipeline.groundtruth.stereo_bag import (
+from skidbench.pipeline.groundtruth.stereo.stereo_bag import (
     check_image_topics,
     iter_stereo_frames,
     open_stereo_bag,
     read_stereo_camera,
 )
-from skidbench.pipeline.groundtruth.stereo_vo import (
+from skidbench.pipeline.groundtruth.stereo.stereo_vo import (
     StereoCamera,
     StereoVO,
     VOConfig,
