@@ -17,12 +17,13 @@ def main(cfg: DictConfig) -> None:
 
 
 def run(cfg: DictConfig):
-    """The stage: the dataset, store and experiment the config names (``open_target_from_cfg``), the
-    settings compare reads of the config as it stands for that dataset, then :func:`run_compare`."""
-    from skidbench.benchmark.board.compare import CompareSettings, open_target_from_cfg, run_compare
+    """The stage: the settings compare reads of the config (each value once), the dataset, store and
+    experiment they name (``open_target``), then :func:`run_compare`."""
+    from skidbench.benchmark.board.compare import CompareSettings, open_target, run_compare
 
-    cfg, target, tracker = open_target_from_cfg(cfg)
-    return run_compare(CompareSettings.from_cfg(cfg), target, tracker)
+    cs = CompareSettings.from_cfg(cfg)
+    target, tracker = open_target(cs, cfg)
+    return run_compare(cs, target, tracker)
 
 
 if __name__ == "__main__":
