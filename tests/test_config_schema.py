@@ -301,3 +301,41 @@ def test_a_bundle_key_of_the_other_release_stage_is_reported_as_its_setting():
     assert dropped == ["bundle.answers=x"] and "answers" not in cfg.bundle and cfg.bundle.release == "open"
     dropped, cfg = check_overrides("import", ["bundle.release=open", "bundle.name=n"])
     assert dropped == ["bundle.release=open"] and cfg.bundle.name == "n"
+
+
+def test_the_discover_section_takes_the_searchs_defaults_from_one_place():
+    """The significance rule's and the search's keys (``discover.alpha`` ...) are null in the section: the
+    search's own defaults (DiscoverSettings, which an augmented model's fit uses too) are declared once;
+    a value given still overrides them, and is still checked."""
+    import dataclasses as dc
+
+    from skidbench.benchmark.discovery.settings import DiscoverOptions
+    from skidbench.models.augmented.fit import DiscoverSettings
+
+    _, cfg = check_overrides("discover", [])
+    opts = OmegaConf.to_object(cfg.discover)
+    assert opts.search(0) == DiscoverSettings()
+    shared = {f.name for f in dc.fields(DiscoverSettings)} & {f.name for f in dc.fields(DiscoverOptions)}
+    assert shared and all(getattr(opts, name) is None for name in shared)
+    _, cfg = check_overrides("discover", ["discover.folds=3", "discover.open_ended=false"])
+    search = OmegaConf.to_object(cfg.discover).search(7)
+    assert (search.folds, search.open_ended, search.seed, search.alpha) == (
+        3,
+        False,
+        7,
+        DiscoverSettings().alpha,
+    )
+
+
+def test_orbslam_without_its_folder_is_one_line_naming_the_key(tmp_path):
+    """``groundtruth.orbslam.dir`` is null until the method needs it: then one line says what to set (it
+    was ``???``, whose read ended in an OmegaConf traceback)."""
+    from types import SimpleNamespace
+
+    from skidbench.pipeline.core.layout import Layout
+    from skidbench.pipeline.groundtruth.app import GroundTruthConfig, sequence_groundtruth
+    from skidbench.pipeline.groundtruth.settings import GroundTruthSettings
+
+    job = GroundTruthConfig(GroundTruthSettings(method="orbslam"), robot={})
+    with pytest.raises(ConfigError, match=r"^groundtruth.method=orbslam: set groundtruth.orbslam.dir="):
+        sequence_groundtruth(job, Layout(tmp_path, "d"), None, SimpleNamespace(name="s"))

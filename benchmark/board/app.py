@@ -19,10 +19,14 @@ def main(cfg: DictConfig) -> None:
 def run(cfg: DictConfig):
     """The stage: the settings compare reads of the config (each value once), the dataset, store and
     experiment they name (``open_target``), then :func:`run_compare`."""
+    from dataclasses import asdict
+
     from skidbench.benchmark.board.compare import CompareSettings, open_target, run_compare
+    from skidbench.pipeline.datasets.identity import identity_from_cfg
 
     cs = CompareSettings.from_cfg(cfg)
-    target, tracker = open_target(cs, cfg)
+    robot = cfg.get("robot") if hasattr(cfg, "get") else None
+    target, tracker = open_target(cs, robot, lambda: asdict(identity_from_cfg(cfg)))
     return run_compare(cs, target, tracker)
 
 

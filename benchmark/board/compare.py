@@ -150,18 +150,17 @@ class CompareResult:
     )  # every other protocol's ranked board, Markdown
 
 
-def open_target(cs: CompareSettings, cfg: Any) -> tuple[sel.Target, trk.Tracker]:
+def open_target(
+    cs: CompareSettings, robot: Any, identity: Callable[[], dict]
+) -> tuple[sel.Target, trk.Tracker]:
     """The dataset compare reads, in the store and experiment ``cs`` names: ``(target, tracker)``
-    (:func:`selection.find_target`; ``cfg``: the robot and source, for an imported dataset's check and
-    for the identity of a folder no stage recorded). CompareError (one line) when there is no store, no
-    such dataset or run; StaleInputError when the dataset's last evaluate failed as a stage (a model run
-    that failed does not count)."""
-    from dataclasses import asdict
-
+    (:func:`selection.find_target`; ``robot``: the configured robot, for an imported dataset's check;
+    ``identity``: the configured source's identity record, for a folder no stage recorded). CompareError
+    (one line) when there is no store, no such dataset or run; StaleInputError when the dataset's last
+    evaluate failed as a stage (a model run that failed does not count)."""
     from mlflow.tracking import MlflowClient
 
     from skidbench.pipeline.core.cache import check_producers
-    from skidbench.pipeline.datasets.identity import identity_from_cfg
     from skidbench.pipeline.datasets.imported import check_stage
 
     ms, out_root = cs.mlflow, Path(cs.out_root)
@@ -174,15 +173,14 @@ def open_target(cs: CompareSettings, cfg: Any) -> tuple[sel.Target, trk.Tracker]
     trk.check_reachable(uri, ms.timeout_s)
     try:
         client = MlflowClient(tracking_uri=uri)
-        target = sel.find_target(out_root, cs.dataset, ms.experiment, cs.parent_run_id, client,
-                                 lambda: asdict(identity_from_cfg(cfg)))  # fmt: skip
+        target = sel.find_target(out_root, cs.dataset, ms.experiment, cs.parent_run_id, client, identity)
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
     if target.note:
         log.info("compare: %s", target.note)
     if target.layout.root.is_dir():
         check_producers(target.layout.root, "compare")
-        check_stage(cfg.get("robot") if hasattr(cfg, "get") else None, "compare", target.layout.root)
+        check_stage(robot, "compare", target.layout.root)
     artifacts = Path(ms.artifact_root or target.layout.mlflow_artifacts)
     store = StoreSettings(tracking_uri(ms, target.layout), target.experiment, artifacts, ms.timeout_s,
                           target.dataset_id or "", cs.out_root)  # fmt: skip
