@@ -16,6 +16,7 @@ from skidbench.pipeline.cli.config_schema import (
     SCHEMA,
     STRUCTURED,
     check_value,
+    package_of,
     spec_for,
     spec_of,
     structured_keys,
@@ -104,7 +105,7 @@ def test_the_keys_other_issues_add_are_declared():
 
 # -- the settings dataclasses that are configs (STRUCTURED): one declaration per key ---------------------
 def test_a_structured_key_is_declared_by_its_dataclass_only():
-    twice = [k for k in SCHEMA if any(k.startswith(f"{p}.") for p in STRUCTURED)]
+    twice = [k for k in SCHEMA if any(k.startswith(f"{package_of(p)}.") for p in STRUCTURED)]
     assert not twice, f"declared by a settings dataclass and again in SCHEMA: {twice}"
     keys = list(structured_keys())
     leaves = [k for k in keys if not any(o.startswith(f"{k}.") for o in keys)]
@@ -113,10 +114,11 @@ def test_a_structured_key_is_declared_by_its_dataclass_only():
         assert spec_for(key) is not None, key
 
 
-@pytest.mark.parametrize("package", sorted(STRUCTURED))
-def test_the_composed_section_is_its_dataclass_with_its_defaults(package):
-    cls = STRUCTURED[package]
-    composed = OmegaConf.select(_compose(_stage_with(package), []), package)
+@pytest.mark.parametrize("entry", sorted(STRUCTURED))
+def test_the_composed_section_is_its_dataclass_with_its_defaults(entry):
+    cls, package = STRUCTURED[entry], package_of(entry)
+    stage = entry.partition("/")[2] or _stage_with(package)  # bundle/export: export's bundle section
+    composed = OmegaConf.select(_compose(stage, []), package)
     # as written, before resolving: publish.dir is ??? (an argument), mlflow.experiment skidbench-${dataset}
     assert OmegaConf.to_container(composed) == OmegaConf.to_container(OmegaConf.structured(cls))
     if not OmegaConf.missing_keys(composed) and "${" not in str(OmegaConf.to_container(composed)):
@@ -214,6 +216,46 @@ def test_a_mistyped_or_misspelt_root_override_is_one_line_naming_the_key(overrid
             "mlflow.experimnt=x",
             "unknown config key 'mlflow.experimnt'; did you mean 'mlflow.experiment'?",
         ),
+        ("groundtruth", "groundtruth.method=slam", "invalid value groundtruth.method=slam: allowed one of"),
+        ("groundtruth", "groundtruth.jobs=0", "invalid value groundtruth.jobs=0: allowed an integer >= 1"),
+        (
+            "groundtruth",
+            "groundtruth.pose_topic.tf_max_gap=abc",
+            "invalid value groundtruth.pose_topic.tf_max_gap=abc: allowed a number > 0 (or null) (s; null: ",
+        ),
+        (
+            "groundtruth",
+            "groundtruth.orbslam.max_diff=0",
+            "invalid value groundtruth.orbslam.max_diff=0: allowed a number > 0 (s)",
+        ),
+        (
+            "groundtruth",
+            "groundtruth.loop_bound.rotational=-1",
+            "invalid value groundtruth.loop_bound.rotational=-1: allowed a number > 0",
+        ),
+        (
+            "groundtruth",
+            "groundtruth.pose_topic.stmp=stamp_ns",
+            "unknown config key 'groundtruth.pose_topic.stmp'; did you mean 'groundtruth.pose_topic.stamp'?",
+        ),
+        (
+            "groundtruth",
+            "groundtruth.max_gpa=1",
+            "unknown config key 'groundtruth.max_gpa'; did you mean 'groundtruth.max_gap'?",
+        ),
+        (
+            "export",
+            "bundle.release=public",
+            "invalid value bundle.release=public: allowed one of withheld|open",
+        ),
+        ("export", "bundle.licnce=MIT", "unknown config key 'bundle.licnce'; did you mean 'bundle.licence'?"),
+        ("import", "bundle.answrs=x", "unknown config key 'bundle.answrs'; did you mean 'bundle.answers'?"),
+        ("import", "bundle.name=[a,b]", "invalid value bundle.name=[a,b]: allowed a string (or null)"),
+        (
+            "evaluate",
+            "groundtruth.max_gap=abc",
+            "invalid value groundtruth.max_gap=abc: allowed a number > 0 (s)",
+        ),
     ],
 )
 def test_a_mistyped_or_misspelt_section_override_of_another_stage_is_one_line(stage, override, message):
@@ -234,3 +276,66 @@ def test_discover_takes_the_settings_of_the_stages_it_runs_for_a_raw_source():
     assert _with_stage(cfg, "split").split.drop_flagged is True  # what prepare_splits hands the split stage
     with pytest.raises(ConfigError, match="split.drop_flagged"):
         check_overrides("discover", ["split.drop_flaged=true"])
+
+
+def test_the_groundtruth_section_reads_the_sources_method_and_takes_free_vo_options():
+    """``groundtruth.method`` and ``groundtruth.pose_topic.key`` default to what the source names (a raw
+    source's pose table); ``+groundtruth.vo.*`` add the stereo VO's options, free (VOConfig names an
+    unknown one when VO runs); ``orbslam.dir`` is unset until the method needs it."""
+    from skidbench.pipeline.groundtruth.app import GroundTruthConfig
+
+    _, cfg = check_overrides("groundtruth", ["source=drive_df", "+groundtruth.vo.n_features=300"])
+    job = GroundTruthConfig.from_cfg(cfg)
+    assert (job.gt.method, job.gt.pose_topic.key) == ("pose_topic", "gt_pose")
+    assert job.gt.vo == {"n_features": 300} and job.gt.orbslam.dir is None
+    assert job.gt.tf_max_gap == job.gt.max_gap == 0.5
+    _, cfg = check_overrides("groundtruth", [])
+    assert GroundTruthConfig.from_cfg(cfg).gt.method == "vo"
+
+
+def test_a_bundle_key_of_the_other_release_stage_is_reported_as_its_setting():
+    """export and import give ``bundle`` different keys: ``export bundle.answers=x`` is import's setting,
+    dropped with a note (as ``make reproduce ARGS=...`` passes it to every stage), never accepted as
+    export's own."""
+    dropped, cfg = check_overrides("export", ["bundle.answers=x", "bundle.release=open"])
+    assert dropped == ["bundle.answers=x"] and "answers" not in cfg.bundle and cfg.bundle.release == "open"
+    dropped, cfg = check_overrides("import", ["bundle.release=open", "bundle.name=n"])
+    assert dropped == ["bundle.release=open"] and cfg.bundle.name == "n"
+
+
+def test_the_discover_section_takes_the_searchs_defaults_from_one_place():
+    """The significance rule's and the search's keys (``discover.alpha`` ...) are null in the section: the
+    search's own defaults (DiscoverSettings, which an augmented model's fit uses too) are declared once;
+    a value given still overrides them, and is still checked."""
+    import dataclasses as dc
+
+    from skidbench.benchmark.discovery.settings import DiscoverOptions
+    from skidbench.models.augmented.fit import DiscoverSettings
+
+    _, cfg = check_overrides("discover", [])
+    opts = OmegaConf.to_object(cfg.discover)
+    assert opts.search(0) == DiscoverSettings()
+    shared = {f.name for f in dc.fields(DiscoverSettings)} & {f.name for f in dc.fields(DiscoverOptions)}
+    assert shared and all(getattr(opts, name) is None for name in shared)
+    _, cfg = check_overrides("discover", ["discover.folds=3", "discover.open_ended=false"])
+    search = OmegaConf.to_object(cfg.discover).search(7)
+    assert (search.folds, search.open_ended, search.seed, search.alpha) == (
+        3,
+        False,
+        7,
+        DiscoverSettings().alpha,
+    )
+
+
+def test_orbslam_without_its_folder_is_one_line_naming_the_key(tmp_path):
+    """``groundtruth.orbslam.dir`` is null until the method needs it: then one line says what to set (it
+    was ``???``, whose read ended in an OmegaConf traceback)."""
+    from types import SimpleNamespace
+
+    from skidbench.pipeline.core.layout import Layout
+    from skidbench.pipeline.groundtruth.app import GroundTruthConfig, sequence_groundtruth
+    from skidbench.pipeline.groundtruth.settings import GroundTruthSettings
+
+    job = GroundTruthConfig(GroundTruthSettings(method="orbslam"), robot={})
+    with pytest.raises(ConfigError, match=r"^groundtruth.method=orbslam: set groundtruth.orbslam.dir="):
+        sequence_groundtruth(job, Layout(tmp_path, "d"), None, SimpleNamespace(name="s"))

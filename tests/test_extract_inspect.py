@@ -237,7 +237,7 @@ def test_vo_reads_the_stereo_topics_that_auto_chose_for_the_bag(tmp_path):
 
     from omegaconf import OmegaConf
 
-    from skidbench.pipeline.groundtruth.vo import source_image_topics
+    from skidbench.pipeline.groundtruth.stereo.vo import source_image_topics
 
     chosen = {
         "left_image": "/cam/left/image_raw",

@@ -15,7 +15,7 @@ from rosbags.rosbag1 import Writer
 
 from skidbench.pipeline.extract.images import ImageDecodeError, gray8, png_bytes, raw_pixels
 from skidbench.pipeline.extract.synthetic import T0_NS, _Factory, typestore_for
-from skidbench.pipeline.groundtruth.vo import StereoSettings, run_stereo_vo
+from skidbench.pipeline.groundtruth.stereo.vo import StereoSettings, run_stereo_vo
 from skidbench.pipeline.simulate.render import StereoRenderer
 
 REPO = Path(__file__).resolve().parents[1]

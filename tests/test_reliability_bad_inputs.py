@@ -119,9 +119,9 @@ def _read(reader: str, corpus: Path, name: str, opts: dict, tmp_path: Path) -> P
 
         run(extract_cfg(tmp_path / "out", path, "source.terrain=tile", "source.category=cv"))
     elif reader == "vo":
-        from skidbench.pipeline.groundtruth.vo import StereoSettings, run_stereo_vo
+        from skidbench.pipeline.groundtruth.stereo.vo import StereoSettings, run_stereo_vo
 
-        run_stereo_vo(path, StereoSettings.from_cfg({"robot": {"name": "husky"}}))
+        run_stereo_vo(path, StereoSettings())
     elif reader == "pose":
         from skidbench.pipeline.groundtruth.pose_topic import read_pose_table
 

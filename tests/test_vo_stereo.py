@@ -12,7 +12,7 @@ import yaml
 from skidbench.pipeline.core.errors import GroundTruthError
 from skidbench.pipeline.core.geometry import quaternion_from_yaw, se3_from_xyz_rpy
 from skidbench.pipeline.groundtruth.loop import evaluate_against_truth, loop_error, summarize_loops
-from skidbench.pipeline.groundtruth.stereo_vo import (
+from skidbench.pipeline.groundtruth.stereo.stereo_vo import (
     StereoCamera,
     StereoVO,
     VOConfig,
@@ -20,8 +20,8 @@ from skidbench.pipeline.groundtruth.stereo_vo import (
     camera_extrinsic,
     camera_to_base,
 )
+from skidbench.pipeline.groundtruth.stereo.vo import StereoSettings, run_stereo_vo
 from skidbench.pipeline.groundtruth.trajectory import Trajectory
-from skidbench.pipeline.groundtruth.vo import StereoSettings, run_stereo_vo
 from skidbench.pipeline.simulate.render import StereoRenderer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -168,16 +168,16 @@ def test_bag_without_right_images_is_one_line_error_naming_the_bag(tmp_path):
     from skidbench.pipeline.extract.synthetic import write_bag
 
     bag = write_bag(tmp_path / "left_only.bag", "ros1", duration_s=1.0)
-    cfg = {"robot": {"camera": {"xyz": [0.2, 0.06, 0.3], "rpy": [-1.78, 0.0, -1.57], "baseline": 0.12}}}
+    camera = {"xyz": [0.2, 0.06, 0.3], "rpy": [-1.78, 0.0, -1.57], "baseline": 0.12}
     with pytest.raises(GroundTruthError) as info:
-        run_stereo_vo(bag, StereoSettings.from_cfg(cfg))
+        run_stereo_vo(bag, StereoSettings(camera=camera))
     msg = str(info.value)
     assert str(bag) in msg and "/stereo/right/image_raw/compressed" in msg and "\n" not in msg
     # a truncated bag
     cut = tmp_path / "cut.bag"
     cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 3])
     with pytest.raises(GroundTruthError) as info:
-        run_stereo_vo(cut, StereoSettings.from_cfg(cfg))
+        run_stereo_vo(cut, StereoSettings(camera=camera))
     assert str(cut) in str(info.value) and "\n" not in str(info.value)
 
 

@@ -17,12 +17,17 @@ def main(cfg: DictConfig) -> None:
 
 
 def run(cfg: DictConfig):
-    """The stage: the dataset, store and experiment the config names (``open_target_from_cfg``), the
-    settings compare reads of the config as it stands for that dataset, then :func:`run_compare`."""
-    from skidbench.benchmark.board.compare import CompareSettings, open_target_from_cfg, run_compare
+    """The stage: the settings compare reads of the config (each value once), the dataset, store and
+    experiment they name (``open_target``), then :func:`run_compare`."""
+    from dataclasses import asdict
 
-    cfg, target, tracker = open_target_from_cfg(cfg)
-    return run_compare(CompareSettings.from_cfg(cfg), target, tracker)
+    from skidbench.benchmark.board.compare import CompareSettings, open_target, run_compare
+    from skidbench.pipeline.datasets.identity import identity_from_cfg
+
+    cs = CompareSettings.from_cfg(cfg)
+    robot = cfg.get("robot") if hasattr(cfg, "get") else None
+    target, tracker = open_target(cs, robot, lambda: asdict(identity_from_cfg(cfg)))
+    return run_compare(cs, target, tracker)
 
 
 if __name__ == "__main__":

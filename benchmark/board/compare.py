@@ -27,7 +27,7 @@ predicts nothing. A figure whose data is absent is skipped, with a note in the r
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import datetime as dt
 import hashlib
 import logging
@@ -66,10 +66,10 @@ from skidbench.benchmark.scoring.settings import IntervalConfig
 from skidbench.benchmark.tracking import mlflow_ui as mu
 from skidbench.benchmark.tracking import store as trk
 from skidbench.benchmark.tracking import tags as run_tags
-from skidbench.benchmark.tracking.settings import MlflowSettings, mlflow_from_cfg, tracking_uri
+from skidbench.benchmark.tracking.settings import MlflowSettings, StoreSettings, mlflow_from_cfg, tracking_uri
 from skidbench.models.registry.saved import board_findings
 from skidbench.pipeline.core.io import write_text_atomic
-from skidbench.pipeline.core.layout import PROTOCOLS, CommonSettings, Layout, layout_from_cfg, root_from_cfg
+from skidbench.pipeline.core.layout import PROTOCOLS, CommonSettings, Layout, root_from_cfg
 from skidbench.pipeline.core.protocol import check_protocol
 
 log = logging.getLogger(__name__)
@@ -150,40 +150,41 @@ class CompareResult:
     )  # every other protocol's ranked board, Markdown
 
 
-def open_target_from_cfg(cfg: Any) -> tuple[Any, sel.Target, trk.Tracker]:
-    """The dataset compare reads, its store and experiment: ``(cfg with that dataset and experiment,
-    target, tracker)`` (:func:`selection.target_from_cfg`). CompareError (one line) when there is no store,
-    no such dataset or run; StaleInputError when the dataset's last evaluate failed as a stage (a model run
-    that failed does not count)."""
+def open_target(
+    cs: CompareSettings, robot: Any, identity: Callable[[], dict]
+) -> tuple[sel.Target, trk.Tracker]:
+    """The dataset compare reads, in the store and experiment ``cs`` names: ``(target, tracker)``
+    (:func:`selection.find_target`; ``robot``: the configured robot, for an imported dataset's check;
+    ``identity``: the configured source's identity record, for a folder no stage recorded). CompareError
+    (one line) when there is no store, no such dataset or run; StaleInputError when the dataset's last
+    evaluate failed as a stage (a model run that failed does not count)."""
     from mlflow.tracking import MlflowClient
-    from omegaconf import OmegaConf, open_dict
 
     from skidbench.pipeline.core.cache import check_producers
     from skidbench.pipeline.datasets.imported import check_stage
 
-    ms = mlflow_from_cfg(cfg)
-    uri = tracking_uri(ms, layout_from_cfg(cfg))
+    ms, out_root = cs.mlflow, Path(cs.out_root)
+    uri = tracking_uri(ms, Layout(out_root, cs.dataset))
     if not trk.has_store(uri):  # compare only reads: it does not create an empty store to find nothing in
         raise CompareError(
             f"no MLflow store at {uri}: nothing was evaluated under this output root; "
             "run `skidbench evaluate` first (or set mlflow.tracking_uri)"
         )
-    trk.check_reachable(uri, ms.timeout_s if ms is not None else MlflowSettings().timeout_s)
+    trk.check_reachable(uri, ms.timeout_s)
     try:
-        target = sel.target_from_cfg(cfg, MlflowClient(tracking_uri=uri))
+        client = MlflowClient(tracking_uri=uri)
+        target = sel.find_target(out_root, cs.dataset, ms.experiment, cs.parent_run_id, client, identity)
     except sel.SelectionError as exc:
         raise CompareError(str(exc)) from None
     if target.note:
         log.info("compare: %s", target.note)
-    if OmegaConf.is_config(cfg) and (cfg.dataset, cfg.mlflow.experiment) != (target.name, target.experiment):
-        cfg = copy.deepcopy(cfg)
-        with open_dict(cfg):
-            cfg.dataset = target.name
-            cfg.mlflow.experiment = target.experiment
     if target.layout.root.is_dir():
         check_producers(target.layout.root, "compare")
-        check_stage(cfg.get("robot") if hasattr(cfg, "get") else None, "compare", target.layout.root)
-    return cfg, target, trk.tracker_from_cfg(cfg, target.layout, dataset_id=target.dataset_id or "")
+        check_stage(robot, "compare", target.layout.root)
+    artifacts = Path(ms.artifact_root or target.layout.mlflow_artifacts)
+    store = StoreSettings(tracking_uri(ms, target.layout), target.experiment, artifacts, ms.timeout_s,
+                          target.dataset_id or "", cs.out_root)  # fmt: skip
+    return target, trk.open_store(store)
 
 
 def protocol_selections(
@@ -212,10 +213,11 @@ def protocol_selections(
 
 @dataclass(frozen=True)
 class CompareSettings:
-    """What compare's orchestration reads of the config (made by the compare app, after
-    :func:`open_target_from_cfg` set the dataset and experiment found): the horizon, which runs
-    (``parent_run_id``, ``user``, ``filter``, the protocol asked for), how to rank, the report, the figures
-    and whether to log to MLflow."""
+    """What compare reads of the config, each value once (:meth:`from_cfg`, made by the compare app): the
+    output root, the dataset asked for and the ``mlflow`` section (:func:`open_target` finds the dataset
+    and experiment from them), the horizon, which runs (``parent_run_id``, ``user``, ``filter``, the
+    protocol asked for), how to rank, the report (its dataset: the one found), the figures and whether to
+    log to MLflow."""
 
     horizon: float
     parent_run_id: str | None  # "latest", a run id, or None (every child run)
@@ -229,6 +231,9 @@ class CompareSettings:
     figures: FigureSettings
     ui_url: str | None
     log_to_mlflow: bool
+    out_root: str
+    dataset: str  # the dataset asked for (``dataset``)
+    mlflow: MlflowSettings
     half_track: float = 0.0  # m: the robot's, for the windows' aggressiveness (benchmark/board/horizons.py)
 
     @classmethod
@@ -238,6 +243,8 @@ class CompareSettings:
         opts, common = root_from_cfg(cfg, CompareOptions), root_from_cfg(cfg, CommonSettings)
         parent_arg = None if opts.parent_run_id in (None, "", "null") else opts.parent_run_id
         rank_by, ms = opts.rank_by or st.AGGREGATE, mlflow_from_cfg(cfg)
+        if ms is None:
+            raise CompareError("compare's config has no mlflow section (mlflow=local)")
         return cls(
             horizon=opts.horizon,
             parent_run_id=parent_arg,
@@ -249,15 +256,18 @@ class CompareSettings:
             intervals=OmegaConf.to_object(cfg.intervals),
             report=ReportSettings(common.dataset, opts.filter, rank_by),
             figures=OmegaConf.to_object(cfg.figures),
-            ui_url=ms.ui_url if ms is not None else None,
+            ui_url=ms.ui_url,
             log_to_mlflow=opts.log_to_mlflow,
+            out_root=common.out_root,
+            dataset=common.dataset,
+            mlflow=ms,
             half_track=float(cfg.robot.track_width) / 2.0 if cfg.get("robot") else 0.0,
         )
 
 
 def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -> CompareResult:
     """Compare's orchestration on the dataset ``target`` of ``tracker``'s store and experiment (the compare
-    app makes the three: :func:`open_target_from_cfg`, :meth:`CompareSettings.from_cfg`)."""
+    app makes the three: :meth:`CompareSettings.from_cfg`, :func:`open_target`)."""
     layout = target.layout
     horizon = cs.horizon
     parent_arg = cs.parent_run_id
@@ -268,7 +278,7 @@ def run_compare(cs: CompareSettings, target: sel.Target, tracker: trk.Tracker) -
     # the protocol of the runs shown (the files evaluate wrote for them)
     inputs = protocol if protocol in PROTOCOLS else cs.inputs
     _check_horizon(table, runs, horizon)
-    settings = cs.report
+    settings = dataclasses.replace(cs.report, dataset=target.name)  # the dataset found
     interval_notes: list[str] = []
     standings = standings_of(cs.rank_by, cs.intervals, layout, board, protocol, horizon, interval_notes)
     summary = summary_table(board, horizon, settings.rank_by, standings)

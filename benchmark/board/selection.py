@@ -19,7 +19,7 @@ not write (a run or evaluate the store's bookkeeping reaped KILLED since, with i
 :func:`store_statuses`), and the runs of other output roots on a shared server (:func:`newer_elsewhere`,
 :func:`same_data_elsewhere`).
 
-**The dataset** (:func:`target_from_cfg`): ``dataset=<name>`` names a folder of the output root, and its
+**The dataset** (:func:`find_target`): ``dataset=<name>`` names a folder of the output root, and its
 ``dataset.json`` gives the identity the runs carry, whatever ``source`` is configured (so ``compare
 dataset=<name>`` needs no source arguments); ``parent_run_id=<run id>`` takes the dataset and experiment
 of that run; ``mlflow.experiment=<name>`` alone takes the dataset of that experiment's runs.
@@ -352,15 +352,16 @@ def _no_dataset(out_root: Path, name: str) -> SelectionError:
     return SelectionError(f"{Path(out_root) / name}: no dataset {name!r} under {out_root}; {held}")
 
 
-def target_from_cfg(cfg: Any, client: Any | None) -> Target:
-    """The dataset and experiment ``cfg`` asks for (see the module docstring). ``client``: an MlflowClient
-    of the store (None: no store yet)."""
+def find_target(
+    out_root: Path, name: str, experiment: str, parent: str | None, client: Any | None, identity: Any
+) -> Target:
+    """The dataset and experiment a command asks for (see the module docstring): ``dataset=<name>`` in
+    ``out_root``, ``mlflow.experiment`` (``experiment``), ``parent_run_id`` (``parent``). ``client``: an
+    MlflowClient of the store (None: no store yet). ``identity``: the configured source's identity record
+    (a dict), called only for a folder no stage recorded."""
     from skidbench.pipeline.datasets.identity import read_record
 
-    out_root = Path(str(cfg.out_root))
-    name = str(cfg.dataset)
-    experiment = str(cfg.mlflow.experiment)
-    parent = cfg.get("parent_run_id")
+    out_root = Path(out_root)
     if client is not None and parent not in (None, "", "null", "latest"):
         from mlflow.exceptions import MlflowException
 
@@ -398,12 +399,8 @@ def target_from_cfg(cfg: Any, client: Any | None) -> Target:
         if not layout.root.is_dir():
             raise _no_dataset(out_root, name)
         # a folder no stage recorded (runs logged by a library call): the configured source's identity
-        from dataclasses import asdict
-
-        from skidbench.pipeline.datasets.identity import identity_from_cfg
-
         try:
-            rec = asdict(identity_from_cfg(cfg))
+            rec = identity()
         except Exception:  # noqa: BLE001 - a source that cannot say: as if the folder were not there
             raise _no_dataset(out_root, name) from None
     return Target(name, layout, str(rec.get("fingerprint") or "") or None, experiment, rec)

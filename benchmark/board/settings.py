@@ -1,8 +1,8 @@
 """compare's own root keys (``conf/compare.yaml``): which runs, the board's horizon, how to rank and whether
 to log the report. :class:`CompareOptions` is their schema and defaults (stored in Hydra's ConfigStore as
-``schema/root/compare``, ``pipeline/cli/config_schema.py``); compare reads them once
-(:meth:`~skidbench.benchmark.board.compare.CompareSettings.from_cfg`). Imports nothing heavy (the schema
-is registered before every composition)."""
+``schema/root/compare``, ``pipeline/cli/config_schema.py``); compare reads them once, with the common keys
+and the MLflow section (:meth:`~skidbench.benchmark.board.compare.CompareSettings.from_cfg`). Imports
+nothing heavy (the schema is registered before every composition)."""
 
 from __future__ import annotations
 

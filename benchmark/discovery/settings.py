@@ -6,7 +6,7 @@ heavy (the schema is registered before every composition)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 from skidbench.pipeline.core.manifest import SPLITS
@@ -26,40 +26,41 @@ class DiscoverOptions:
     use: list[str] = field(
         default_factory=lambda: ["train"], metadata={"min_len": 1, "item": {"choices": SPLITS}}
     )
-    horizon_s: float = field(default=6.0, metadata={"gt": 0, "what": "s"})
-    folds: int = field(default=5, metadata={"lo": 2})  # k-fold over whole sequences
+    # the significance rule and the search (:class:`~skidbench.models.augmented.fit.DiscoverSettings`): null
+    # takes the search's own default, declared there only (what an augmented model's fit uses too)
+    horizon_s: float | None = field(default=None, metadata={"gt": 0, "what": "s"})
+    folds: int | None = field(default=None, metadata={"lo": 2})  # k-fold over whole sequences
     # fewer Train sequences than this: cut them into contiguous time blocks of at most chunk_s (shorter to
     # reach min_units, never under one horizon)
-    min_units: int = field(default=8, metadata={"lo": 2})
-    chunk_s: float = field(default=30.0, metadata={"gt": 0, "what": "s"})
-    alpha: float = field(default=0.05, metadata={"gt": 0, "hi": 1})  # paired sign-flip test, one-sided
-    penalty_per_param: float = field(default=0.02, metadata={"lo": 0})  # held-out log gain per parameter
-    min_gain: float = field(default=0.02, metadata={"lo": 0})  # held-out log gain left after the penalty
+    min_units: int | None = field(default=None, metadata={"lo": 2})
+    chunk_s: float | None = field(default=None, metadata={"gt": 0, "what": "s"})
+    alpha: float | None = field(default=None, metadata={"gt": 0, "hi": 1})  # sign-flip test, one-sided
+    # held-out log gain per parameter, and the gain left after that penalty
+    penalty_per_param: float | None = field(default=None, metadata={"lo": 0})
+    min_gain: float | None = field(default=None, metadata={"lo": 0})
     # held-out log-MSE loss allowed on a velocity channel the effect changes
-    channel_tolerance: float = field(default=0.01, metadata={"lo": 0})
+    channel_tolerance: float | None = field(default=None, metadata={"lo": 0})
     # a name cuts the held-out 6 s error that remains by this share of it (one metric) and by at least
     # min_points (RMSRE as a fraction: 0.1 percentage point)
-    min_share: float = field(default=0.10, metadata={"lo": 0, "hi": 1})
-    min_points: float = field(default=0.001, metadata={"lo": 0})
+    min_share: float | None = field(default=None, metadata={"lo": 0, "hi": 1})
+    min_points: float | None = field(default=None, metadata={"lo": 0})
     # a speed scale is one when its slow and fast halves differ by less than this share of it
-    scale_spread: float = field(default=0.5, metadata={"lo": 0})
+    scale_spread: float | None = field(default=None, metadata={"lo": 0})
     # the search again with the commands shifted in time (auto: on recorded data, any source but sim)
     placebo: Any = field(default="auto", metadata={"choices": ("auto", True, False)})
     placebo_shift_s: float = field(default=30.0, metadata={"gt": 0, "what": "s"})  # half a shorter sequence
-    max_effects: int = field(default=4, metadata={"lo": 0})
+    max_effects: int | None = field(default=None, metadata={"lo": 0})
     candidates: list[str] | None = None  # None: the whole catalogue; or a list of effect ids
-    open_ended: bool = True  # also search the term library beyond the catalogue (models/augmented/terms.py)
-    max_terms: int = field(default=4, metadata={"lo": 0})  # library terms validated per step
+    # also search the term library beyond the catalogue (models/augmented/terms.py)
+    open_ended: bool | None = None
+    max_terms: int | None = field(default=None, metadata={"lo": 0})  # library terms validated per step
     figure: bool = True
 
     def search(self, seed: int) -> DiscoverSettings:
-        """The search's settings (its rule, folds and units), with the run's ``seed``."""
+        """The search's settings (its rule, folds and units), with the run's ``seed``: the values set here,
+        the search's defaults for the others (None)."""
         from skidbench.models.augmented.fit import DiscoverSettings
 
-        return DiscoverSettings(
-            horizon_s=self.horizon_s, folds=self.folds, min_units=self.min_units, chunk_s=self.chunk_s,
-            alpha=self.alpha, penalty_per_param=self.penalty_per_param, min_gain=self.min_gain,
-            max_effects=self.max_effects, channel_tolerance=self.channel_tolerance, min_share=self.min_share,
-            min_points=self.min_points, scale_spread=self.scale_spread, open_ended=self.open_ended,
-            max_terms=self.max_terms, splits=tuple(self.use), seed=seed,
-        )  # fmt: skip
+        names = [f.name for f in fields(DiscoverSettings) if f.name not in ("splits", "seed")]
+        given = {n: getattr(self, n) for n in names if getattr(self, n, None) is not None}
+        return DiscoverSettings(**given, splits=tuple(self.use), seed=seed)

@@ -195,29 +195,15 @@ def _calibration_settings(layout: Layout, terrain: str) -> dict[str, Any] | None
 
 @dataclass(frozen=True)
 class ExportSettings:
-    """What ``export`` reads of its config: the robot (``robot``) and calibrations the inputs are made
-    with, the release (``bundle.release``: withheld or open), the source data's ``bundle.licence`` and
-    ``bundle.provenance`` (None: unset)."""
+    """What ``export`` reads of its config (the app builds it): the robot (``robot``) and calibrations the
+    inputs are made with, and of the ``bundle`` section (:class:`~.settings.ExportBundle`) the release
+    (withheld or open), the source data's licence and provenance (None: unset)."""
 
     robot: Any  # pipeline.core.robot.Robot
     calibrations: Any  # pipeline.calibrate.calibration.Calibrations
     release: str
     licence: str | None
     provenance: str | None
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> ExportSettings:
-        from skidbench.pipeline.calibrate.calibration import Calibrations
-        from skidbench.pipeline.core.robot import robot_from_hydra
-
-        b = cfg.bundle
-        return cls(
-            robot_from_hydra(cfg.robot),
-            Calibrations.from_cfg(cfg),
-            str(b.get("release") or hv.WITHHELD),
-            str(b.get("licence")) if b.get("licence") else None,
-            b.get("provenance") or None,
-        )
 
 
 def licence_of(licence: str | None, source: str) -> str:

@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from skidbench.benchmark.release.settings import RELEASES
 from skidbench.benchmark.scoring.horizon import horizon_steps
 from skidbench.pipeline.core.errors import SkidbenchError
 from skidbench.pipeline.core.io import (
@@ -54,8 +55,7 @@ from skidbench.pipeline.core.protocol import (
 )
 from skidbench.pipeline.core.schema import read_split
 
-WITHHELD, OPEN = "withheld", "open"
-RELEASES = (WITHHELD, OPEN)
+WITHHELD, OPEN = RELEASES  # bundle.release's choices
 PUBLIC, PRIVATE = "public", "private"
 TEST_SPLITS = ("cv", "ld")
 ANSWERS = "answers.json"

@@ -17,16 +17,21 @@ from skidbench.pipeline.cli.main import stage
 @stage("export", home=False)
 def export_main(cfg: DictConfig) -> None:
     from skidbench.benchmark.release.bundle import ExportSettings, describe_export, export_bundle
+    from skidbench.benchmark.release.settings import ExportBundle
     from skidbench.benchmark.tracking import store as trk
+    from skidbench.pipeline.calibrate.calibration import Calibrations
     from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.robot import robot_from_hydra
     from skidbench.pipeline.datasets.imported import named_dataset
 
     layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "export")
     tracker = None  # export reads the store: it does not create an empty one to find nothing in
     if trk.has_store(trk.tracking_uri_from_cfg(cfg, layout)):
         tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
-    settings = ExportSettings.from_cfg(cfg)
-    print(describe_export(export_bundle(settings, layout, Path(str(cfg.bundle.dir)), tracker)), flush=True)
+    b: ExportBundle = OmegaConf.to_object(cfg.bundle)
+    robot, calibrations = robot_from_hydra(cfg.robot), Calibrations.from_cfg(cfg)
+    settings = ExportSettings(robot, calibrations, b.release, b.licence or None, b.provenance or None)
+    print(describe_export(export_bundle(settings, layout, Path(b.dir), tracker)), flush=True)
 
 
 export_main.positional = (("dataset", "bundle.dir"), {})
@@ -36,16 +41,13 @@ export_main.positional = (("dataset", "bundle.dir"), {})
 @stage("import", home=False)
 def import_main(cfg: DictConfig) -> None:
     from skidbench.benchmark.release.importer import describe_import, import_bundle
+    from skidbench.benchmark.release.settings import ImportBundle
+    from skidbench.pipeline.core.layout import CommonSettings, root_from_cfg
 
-    folder = Path(str(cfg.bundle.dir))
-    answers = cfg.bundle.get("answers")
-    res = import_bundle(
-        folder,
-        Path(str(cfg.out_root)),
-        cfg.bundle.get("name"),
-        bool(cfg.source.get("replace")),
-        Path(str(answers)) if answers else None,
-    )
+    b: ImportBundle = OmegaConf.to_object(cfg.bundle)
+    folder, out_root = Path(b.dir), Path(root_from_cfg(cfg, CommonSettings).out_root)
+    replace = bool(cfg.source.get("replace"))
+    res = import_bundle(folder, out_root, b.name, replace, Path(b.answers) if b.answers else None)
     print(describe_import(res, folder), flush=True)
 
 

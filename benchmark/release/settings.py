@@ -1,12 +1,17 @@
-"""The config sections of the release stages: publish's ``publish:`` (:class:`PublishOptions`) and score's
-``score:`` (:class:`ScoreOptions`). Each dataclass is its section's schema and defaults (stored in Hydra's
-ConfigStore, ``pipeline/cli/config_schema.py``); the app reads a section whole,
-``OmegaConf.to_object(cfg.publish)``. Imports nothing heavy (the schema is registered before every
+"""The config sections of the release stages: publish's ``publish:`` (:class:`PublishOptions`), score's
+``score:`` (:class:`ScoreOptions`) and the ``bundle:`` section, whose keys differ between export
+(:class:`ExportBundle`) and import (:class:`ImportBundle`). Each dataclass is its section's schema and
+defaults (stored in Hydra's ConfigStore, ``pipeline/cli/config_schema.py``); the app reads a section
+whole, ``OmegaConf.to_object(cfg.publish)``. Imports nothing heavy (the schema is registered before every
 composition)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
+#: a bundle's releases (``bundle.release``): ``withheld`` (a public half without the CV/LD ground truth,
+#: and a private half with it) or ``open`` (one bundle with everything)
+RELEASES = ("withheld", "open")
 
 
 @dataclass(frozen=True)
@@ -39,3 +44,27 @@ class ScoreOptions:
     date: str | None = None
     description: str | None = None
     check: bool = False
+
+
+@dataclass(frozen=True)
+class ExportBundle:
+    """Export's ``bundle`` section: the bundle folder to write (new or empty: the second argument), the
+    release (:data:`RELEASES`; ``open``: one bundle, test truth included, for public data), the licence of
+    the source data (an SPDX id or the terms; None: only for simulated data) and where the data come from
+    (a URL, a DOI, a sentence; None: from dataset.json)."""
+
+    dir: str = "???"
+    release: str = field(default="withheld", metadata={"choices": RELEASES})
+    licence: str | None = None
+    provenance: str | None = None
+
+
+@dataclass(frozen=True)
+class ImportBundle:
+    """Import's ``bundle`` section: the bundle folder (the argument), the dataset's name under out_root
+    (None: the exported dataset's) and the private half (``<dir>/private`` of export: the CV/LD answers, to
+    score; None: without them)."""
+
+    dir: str = "???"
+    name: str | None = None
+    answers: str | None = None

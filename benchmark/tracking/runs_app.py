@@ -11,10 +11,10 @@ from omegaconf import DictConfig
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.tracking import bookkeeping as bk
 from skidbench.benchmark.tracking import store as trk
-from skidbench.benchmark.tracking.settings import mlflow_from_cfg, tracking_uri
+from skidbench.benchmark.tracking.settings import RunsOptions, mlflow_from_cfg, tracking_uri
 from skidbench.pipeline.cli.main import stage
 from skidbench.pipeline.core.errors import one_line
-from skidbench.pipeline.core.layout import layout_from_cfg
+from skidbench.pipeline.core.layout import layout_from_cfg, root_from_cfg
 
 
 def store_client(uri: str, timeout_s: float = 5.0) -> Any | None:
@@ -58,7 +58,8 @@ def main(cfg: DictConfig) -> None:
         print(f"no MLflow store at {uri}: nothing was evaluated under this output root")
         return
     experiments = call_store(uri, client.search_experiments, filter_string="name LIKE 'skidbench-%'")
-    lines = call_store(uri, bk.runs_report, client, experiments, bool(cfg.reap), float(cfg.stale_after_s))
+    opts = root_from_cfg(cfg, RunsOptions)
+    lines = call_store(uri, bk.runs_report, client, experiments, opts.reap, opts.stale_after_s)
     print("\n".join(lines))
 
 

@@ -2,7 +2,7 @@
 experiment every stage that tracks runs opens (:mod:`skidbench.benchmark.tracking.store`). The dataclass is
 the section's schema and defaults (stored in Hydra's ConfigStore, ``pipeline/cli/config_schema.py``); a stage
 reads it whole, ``OmegaConf.to_object(cfg.mlflow)``. Imports nothing heavy (the schema is registered before
-every composition)."""
+every composition). :class:`RunsOptions`: the root keys of ``skidbench runs`` (``conf/runs.yaml``)."""
 
 from __future__ import annotations
 
@@ -28,6 +28,16 @@ class MlflowSettings:
     artifact_root: str = "${out_root}/mlartifacts"
     timeout_s: float = field(default=5.0, metadata={"gt": 0, "what": "s"})
     ui_url: str = "http://127.0.0.1:5000"
+
+
+@dataclass(frozen=True)
+class RunsOptions:
+    """``skidbench runs``' own root keys (``/schema/root/runs``, read with ``root_from_cfg``): ``reap``
+    marks KILLED the runs whose process is gone (on another machine: no heartbeat for ``stale_after_s``; a
+    live evaluate beats every 30 s)."""
+
+    reap: bool = False
+    stale_after_s: float = field(default=600.0, metadata={"gt": 0, "what": "s"})
 
 
 def mlflow_from_cfg(cfg: Any) -> MlflowSettings | None:

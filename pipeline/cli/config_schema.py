@@ -39,15 +39,16 @@ from typing import Any
 from skidbench.benchmark.board.settings import CompareOptions
 from skidbench.benchmark.discovery.settings import DiscoverOptions
 from skidbench.benchmark.evaluate.settings import EvaluateOptions
-from skidbench.benchmark.release.settings import PublishOptions, ScoreOptions
+from skidbench.benchmark.release.settings import ExportBundle, ImportBundle, PublishOptions, ScoreOptions
 from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
-from skidbench.benchmark.tracking.settings import MlflowSettings
+from skidbench.benchmark.tracking.settings import MlflowSettings, RunsOptions
 from skidbench.pipeline.calibrate.settings import CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.layout import CommonSettings
 from skidbench.pipeline.core.manifest import SPLITS
 from skidbench.pipeline.extract.settings import ExtractOptions
+from skidbench.pipeline.groundtruth.settings import GroundTruthSettings
 from skidbench.pipeline.splits.settings import CardSettings, SplitSettings
 
 _INF = math.inf
@@ -201,11 +202,23 @@ def structured_spec(key: str) -> Spec | None:
     through the nested dataclasses), None when the key is not under one or names no field."""
     if "." not in key:
         return next((spec_of(cls, key) for cls in ROOTS.values() if _has_field(cls, key)), None)
-    package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
-    if package is None:
-        return None
-    cls: type | None = STRUCTURED[package]
-    *path, name = key[len(package) + 1 :].split(".")
+    for entry, cls in STRUCTURED.items():
+        package = package_of(entry)
+        if key.startswith(f"{package}.") and (spec := _field_spec(cls, key[len(package) + 1 :])) is not None:
+            return spec
+    return None
+
+
+def package_of(entry: str) -> str:
+    """The config section a :data:`STRUCTURED` entry declares: the entry up to a ``/`` (``bundle/export``,
+    the export stage's ``bundle`` section -> ``bundle``)."""
+    return entry.partition("/")[0]
+
+
+def _field_spec(cls: type, key: str) -> Spec | None:
+    """The declaration of dotted ``key`` below dataclass ``cls`` (through its nested dataclasses), None
+    when it names no field."""
+    *path, name = key.split(".")
     for i, part in enumerate(path):
         sub = _section(cls, part)
         if sub is None:  # a mapping field (extract.typestores): its values' type
@@ -232,8 +245,8 @@ def structured_keys() -> Iterator[str]:
             if isinstance(default, dict):
                 yield from (f"{key}.{k}" for k in default)  # a mapping's default entries
 
-    for package, cls in STRUCTURED.items():
-        yield from keys(cls, package)
+    for entry, cls in STRUCTURED.items():
+        yield from keys(cls, package_of(entry))
     for cls in ROOTS.values():
         yield from (f.name for f in dataclasses.fields(cls))
 
@@ -260,7 +273,9 @@ def schema_node(cls: type) -> Any:
 #: the settings dataclasses that are the schema of a config section: where they sit in a stage's config
 #: (the package) -> the dataclass. Each is stored in Hydra's ConfigStore as ``schema/<package>``; a YAML
 #: file lists it in its defaults list (``- /schema/calibrate``), and the dataclass gives the keys, their
-#: types, defaults and ranges (:func:`spec_of`).
+#: types, defaults and ranges (:func:`spec_of`). A section two stages give different keys is one entry
+#: per stage, ``<package>/<stage>`` (``bundle/export``: ``- /schema/bundle/export``), so that a key of
+#: the other stage's (``export bundle.answers=...``) is reported as another stage's setting.
 STRUCTURED: dict[str, type] = {
     "calibrate": CalibrationSettings,
     "intervals": IntervalConfig,
@@ -274,6 +289,9 @@ STRUCTURED: dict[str, type] = {
     "card": CardSettings,
     "mlflow": MlflowSettings,
     "discover": DiscoverOptions,
+    "groundtruth": GroundTruthSettings,
+    "bundle/export": ExportBundle,
+    "bundle/import": ImportBundle,
 }
 
 
@@ -285,6 +303,7 @@ ROOTS: dict[str, type] = {
     "common": CommonSettings,
     "evaluate": EvaluateOptions,
     "compare": CompareOptions,
+    "runs": RunsOptions,
 }
 
 
@@ -306,8 +325,9 @@ def register_configs() -> None:
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
-    for package, cls in STRUCTURED.items():
-        cs.store(group="schema", name=package, node=schema_node(cls), package=package)
+    for entry, cls in STRUCTURED.items():
+        group, _, name = f"schema/{entry}".rpartition("/")
+        cs.store(group=group, name=name, node=schema_node(cls), package=package_of(entry))
     for name, cls in ROOTS.items():
         cs.store(group="schema/root", name=name, node=root_node(cls), package="_global_")
 
@@ -390,29 +410,6 @@ SCHEMA: dict[str, Spec] = {
     "jobs": COUNT,
     "rates.*": number(gt=0, what="Hz"),
     "sensors.*": number(0, what="1-sigma noise"),
-    # -- groundtruth.yaml -------------------------------------------------------------------------------
-    "groundtruth.method": choice("vo", "orbslam", "pose_topic"),
-    "groundtruth.jobs": COUNT,
-    "groundtruth.max_gap": number(gt=0, what="s"),
-    "groundtruth.allow_wheel_odometry": BOOL,
-    "groundtruth.pose_topic.key": STR,
-    "groundtruth.pose_topic.stamp": choice("bag_time_ns", "stamp_ns"),
-    "groundtruth.pose_topic.parent": OPT_STR,
-    "groundtruth.pose_topic.child": OPT_STR,
-    "groundtruth.pose_topic.static_key": OPT_STR,
-    "groundtruth.pose_topic.tf_max_gap": number(gt=0, what="s"),
-    "groundtruth.orbslam.dir": STR,
-    "groundtruth.orbslam.pattern": STR,
-    "groundtruth.orbslam.times_pattern": STR,
-    "groundtruth.orbslam.format": choice("auto", "tum", "euroc", "kitti"),
-    "groundtruth.orbslam.unit": choice("auto", "s", "ns"),
-    "groundtruth.orbslam.time_offset": number(what="s"),
-    "groundtruth.orbslam.associate_to": OPT_STR,
-    "groundtruth.orbslam.max_diff": number(gt=0, what="s"),
-    "groundtruth.orbslam.max_speed": number(gt=0, what="m/s"),
-    "groundtruth.truth_key": STR,
-    "groundtruth.relative_horizon": number(gt=0, what="s"),
-    "groundtruth.loop_bound.*": number(gt=0),
     # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
     "force": BOOL,  # calibrate's and simulate's (evaluate's is EvaluateOptions')
     "track": BOOL,
@@ -432,16 +429,6 @@ SCHEMA: dict[str, Spec] = {
     "model.options.*": ANY,  # a model's own options (its class validates them)
     "model.options.*.*": ANY,
     "rank_by": STR,  # publish's (compare's is CompareOptions')
-    # -- runs.yaml --------------------------------------------------------------------------------------
-    "reap": BOOL,
-    "stale_after_s": number(gt=0, what="s"),
-    # -- export.yaml / import.yaml (benchmark/release/bundle.py, importer.py) ---------------------------
-    "bundle.dir": STR,
-    "bundle.release": choice("withheld", "open"),
-    "bundle.answers": OPT_STR,
-    "bundle.licence": OPT_STR,
-    "bundle.provenance": OPT_STR,
-    "bundle.name": OPT_STR,
 }
 # fmt: on
 
@@ -449,8 +436,7 @@ SCHEMA: dict[str, Spec] = {
 def spec_for(key: str) -> Spec | None:
     """The declaration of a dotted key: a field of a :data:`STRUCTURED` or :data:`ROOTS` dataclass, else
     the first matching entry of :data:`SCHEMA`, else None."""
-    package = next((p for p in STRUCTURED if key.startswith(f"{p}.")), None)
-    if package is not None:
+    if any(key.startswith(f"{package_of(entry)}.") for entry in STRUCTURED):
         return structured_spec(key)
     if "." not in key and (root := structured_spec(key)) is not None:
         return root

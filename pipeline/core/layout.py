@@ -259,11 +259,11 @@ def prune_stale(layout: Layout, manifest: Manifest) -> list[Path]:
 
 
 def layout_from_cfg(cfg) -> Layout:
-    """The layout of ``cfg``'s dataset (``cfg.out_root``, ``cfg.dataset``). Registers the config's resolvers
-    first (idempotent): ``cfg.dataset`` resolves lazily, so a library caller that composed the config
-    without the CLI gets its dataset name too."""
-    register_resolvers()
-    return Layout(Path(cfg.out_root), str(cfg.dataset))
+    """The layout of ``cfg``'s dataset (``out_root``, ``dataset``: :class:`CommonSettings`, read with
+    :func:`root_from_cfg`, which registers the config's resolvers first: ``dataset`` resolves lazily, so a
+    library caller that composed the config without the CLI gets its dataset name too)."""
+    common = root_from_cfg(cfg, CommonSettings)
+    return Layout(Path(common.out_root), common.dataset)
 
 
 # -- dataset names (the folder under out_root a configured source writes to) ----------------------

@@ -45,13 +45,14 @@ from omegaconf import OmegaConf
 from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.io import write_json_atomic
 from skidbench.pipeline.core.layout import (
+    CommonSettings,
     Layout,
     data_key,
     data_path,
     fingerprint_of,
-    layout_from_cfg,
     prune_stale,
     remove_atomic,
+    root_from_cfg,
 )
 from skidbench.pipeline.core.manifest import Manifest
 from skidbench.pipeline.sources import registry
@@ -88,13 +89,15 @@ def read_record(layout: Layout) -> dict[str, Any] | None:
         return None
 
 
-def identity_from_cfg(cfg: Any) -> DatasetIdentity:
+def identity_from_cfg(cfg: Any, common: CommonSettings | None = None) -> DatasetIdentity:
     """The identity of the configured dataset. A source whose ``root`` is not given (``dataset=<name>``
-    alone, e.g. for ``compare``) takes the identity recorded in that dataset's folder."""
-    layout = layout_from_cfg(cfg)
+    alone, e.g. for ``compare``) takes the identity recorded in that dataset's folder. ``common``: the
+    config's common keys when the caller has read them (:func:`root_from_cfg`)."""
+    common = common or root_from_cfg(cfg, CommonSettings)
+    layout = Layout(Path(common.out_root), common.dataset)
     source = cfg.source
     if is_sim(source):
-        key = {"source": "sim", "scale": str(cfg.scale.name), "seed": int(cfg.get("seed") or 0)}
+        key = {"source": "sim", "scale": str(cfg.scale.name), "seed": int(common.seed or 0)}
         return DatasetIdentity(layout.dataset, "sim", str(layout.raw), fingerprint_of(key))
     if OmegaConf.is_config(source) and OmegaConf.is_missing(source, "root"):
         rec = read_record(layout)
@@ -103,7 +106,7 @@ def identity_from_cfg(cfg: Any) -> DatasetIdentity:
                 layout.dataset, str(rec["source"]), str(rec["root"]), str(rec["fingerprint"])
             )
         data_path(source)  # the one-line error
-    key = data_key(source, Path(str(cfg.out_root)))
+    key = data_key(source, Path(common.out_root))
     return DatasetIdentity(layout.dataset, key["source"], str(data_path(source)), fingerprint_of(key))
 
 
@@ -134,13 +137,14 @@ def home_from_cfg(cfg: Any) -> Home:
     try:
         source = OmegaConf.to_container(cfg.source, resolve=True, throw_on_missing=False)
         check_source_settings(source)
-        ident = identity_from_cfg(cfg)
+        common = root_from_cfg(cfg, CommonSettings)
+        ident = identity_from_cfg(cfg, common)
     except OmegaConfBaseException as exc:
         cause = _unwrap(exc)
         if isinstance(cause, ConfigError):
             raise cause from None
         raise
-    return Home(Path(str(cfg.out_root)), ident, bool(source.get("replace", False)))
+    return Home(Path(common.out_root), ident, bool(source.get("replace", False)))
 
 
 def open_home(home: Home, stage: str = "") -> tuple[Layout, DatasetIdentity]:

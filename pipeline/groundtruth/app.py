@@ -9,9 +9,11 @@ When the simulator's truth table is present the ground truth is also scored agai
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,7 @@ from skidbench.pipeline.core.layout import Layout, layout_from_cfg
 from skidbench.pipeline.core.manifest import Manifest, Sequence
 from skidbench.pipeline.groundtruth.orbslam import read_orbslam
 from skidbench.pipeline.groundtruth.pose_topic import read_pose_table
+from skidbench.pipeline.groundtruth.settings import GroundTruthSettings, OrbslamSettings, PoseTopicSettings
 from skidbench.pipeline.groundtruth.tf import is_tf_table, read_tf_trajectory
 from skidbench.pipeline.groundtruth.trajectory import Trajectory, read_tum, write_tum
 from skidbench.pipeline.runner.cpu import code_paths
@@ -39,16 +42,41 @@ log = logging.getLogger("skidbench.groundtruth")
 LOOP_REPORT = "loop_closure.json"
 
 
-def camera_extrinsic(cfg: DictConfig) -> np.ndarray:
+@dataclass(frozen=True)
+class GroundTruthConfig:
+    """What the stage reads of its config, read once (:meth:`from_cfg`): the ``groundtruth`` section, the
+    robot (its camera; the stamps' config), the stereo topics as ``source.topics`` names them and the
+    typestore per bag format (``extract.typestores``, when the config has it: VO reads the bag)."""
+
+    gt: GroundTruthSettings
+    robot: dict[str, Any]
+    topics: Any = None
+    typestores: dict[str, str] | None = None
+
+    @classmethod
+    def from_cfg(cls, cfg: DictConfig) -> GroundTruthConfig:
+        def plain(node: Any) -> Any:
+            return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+
+        extract = cfg.get("extract")
+        return cls(
+            gt=OmegaConf.to_object(cfg.groundtruth),
+            robot=plain(cfg.robot),
+            topics=plain(cfg.source.get("topics")) if cfg.get("source") is not None else None,
+            typestores=plain(extract.get("typestores")) if extract is not None else None,
+        )
+
+
+def camera_extrinsic(robot: dict[str, Any]) -> np.ndarray:
     """``T_b_c`` from ``robot.camera`` (xyz + rpy); ConfigError naming the settings to add when the robot's
     config has no camera (or only part of its pose): ``+robot.camera...`` adds what a robot config lacks."""
-    cam = cfg.robot.get("camera") or {}
+    cam = robot.get("camera") or {}
     missing = [k for k in ("xyz", "rpy") if cam.get(k) is None]
     if missing:
         add = " ".join(f"+robot.camera.{k}=[{'x,y,z' if k == 'xyz' else 'roll,pitch,yaw'}]" for k in missing)
         absent = " and ".join(f"robot.camera.{k}" for k in missing)
         raise ConfigError(
-            f"robot={cfg.robot.name}: no camera extrinsic ({absent} absent); add it: {add} (the camera in "
+            f"robot={robot.get('name')}: no camera extrinsic ({absent} absent); add it: {add} (the camera in "
             "the base frame, m and rad; '+' adds a setting the robot's config does not have)"
         )
     return se3_from_xyz_rpy(np.array(cam["xyz"], dtype=float), np.array(cam["rpy"], dtype=float))
@@ -60,17 +88,19 @@ def _extracted_bytes(layout: Layout, seq: Sequence) -> int:
     return sum(p.stat().st_size for p in folder.glob("*") if p.is_file()) if folder.is_dir() else 0
 
 
-def _sequence_task(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None):
+def _sequence_task(
+    cfg: GroundTruthConfig, layout: Layout, manifest: Manifest, seq: Sequence, threads: int | None
+):
     """Bring one sequence's ground truth up to date, in whatever process runs it (a forked worker, a Ray
     task): skipped when its stamp is fresh, else computed (:func:`sequence_groundtruth`), written and
     stamped here. Returns only its summary: ``(name, skipped, truth error or None, loop error or None)``
     (the loop error of a ``loop`` sequence, for the loop-closure check). ``threads`` limits OpenCV's
     thread pool (one per worker when the workers already fill the cores: its idle threads otherwise spin
     and take CPU time from the other worker; the workers' BLAS is limited by their runner)."""
-    gt_cfg, out = cfg.groundtruth, layout.groundtruth
+    out = layout.groundtruth
     tum, rep = out / f"{seq.name}.tum", out / f"{seq.name}.json"
     stamp = Stamp(stamp_file(layout.root, "groundtruth", f"{seq.name}.json"), "groundtruth")
-    key = stamp.key(sequence_inputs(cfg, layout, manifest, seq), stage_config(cfg))
+    key = stamp.key(sequence_inputs(cfg.gt, layout, manifest, seq), stage_config(cfg))
     if stamp.is_fresh(key):
         report = json.loads(rep.read_text())
         loop = _loop_error(read_tum(tum), seq) if seq.category == "loop" else None
@@ -81,7 +111,7 @@ def _sequence_task(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Seq
         cv2.setNumThreads(threads)
     traj, report = sequence_groundtruth(cfg, layout, manifest, seq)
     report["code_paths"] = code_paths()  # the processor code paths it ran on (pipeline/runner/cpu.py)
-    score = _write_sequence(gt_cfg, layout, seq, traj, report)
+    score = _write_sequence(cfg.gt, layout, seq, traj, report)
     stamp.record(key, [tum, rep])
     return seq.name, False, score, _loop_error(traj, seq) if seq.category == "loop" else None
 
@@ -124,35 +154,37 @@ def _check_overlap(path: Path, traj, ext: Path, seq: str) -> None:
         )
 
 
-def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence):
+def sequence_groundtruth(cfg: GroundTruthConfig, layout: Layout, manifest: Manifest, seq: Sequence):
     """One sequence's ground truth: ``(Trajectory, report)``; report lists the source files consumed."""
-    gt = cfg.groundtruth
-    method = str(gt.method)
+    gt = cfg.gt
+    method = gt.method
     ext = layout.extracted / seq.name
-    max_gap = float(gt.max_gap)
+    max_gap = gt.max_gap
     if method == "pose_topic":
         path = ext / f"{gt.pose_topic.key}.parquet"
         if not path.is_file():
             raise GroundTruthError(_no_pose_table(path, ext, seq.name))
         pt = gt.pose_topic
-        if not gt.get("allow_wheel_odometry", False):
+        if not gt.allow_wheel_odometry:
             check_independent(path, ext, pt)
         if is_tf_table(path):  # /tf (+ /tf_static): compose parent -> child through the tree
-            static = ext / f"{pt.static_key}.parquet" if pt.get("static_key") else None
+            static = ext / f"{pt.static_key}.parquet" if pt.static_key else None
             paths = [path] + ([static] if static not in (None, path) and static.is_file() else [])
-            traj = read_tf_trajectory(
-                paths, pt.get("parent"), pt.get("child"), max_gap, str(pt.stamp), float(pt.tf_max_gap)
-            )
-            frames = {"parent": pt.get("parent"), "child": pt.get("child")}
+            traj = read_tf_trajectory(paths, pt.parent, pt.child, max_gap, pt.stamp, gt.tf_max_gap)
+            frames = {"parent": pt.parent, "child": pt.child}
             return traj, {"files": {str(p): fingerprint_file(p) for p in paths}, "tf": frames}
-        traj = read_pose_table(path, max_gap, str(pt.stamp))
+        traj = read_pose_table(path, max_gap, pt.stamp)
         return traj, {"files": {str(path): fingerprint_file(path)}}
     if method == "orbslam":
         o = gt.orbslam
-        path = Path(str(o.dir)) / str(o.pattern).format(seq=seq.name)
+        if o.dir is None:
+            raise ConfigError(
+                "groundtruth.method=orbslam: set groundtruth.orbslam.dir=<the folder of the ORB-SLAM files>"
+            )
+        path = Path(o.dir) / o.pattern.format(seq=seq.name)
         if not path.is_file():
             raise GroundTruthError(_no_orbslam_file(path, o, seq.name))
-        times = Path(str(o.dir)) / str(o.times_pattern).format(seq=seq.name)
+        times = Path(o.dir) / o.times_pattern.format(seq=seq.name)
         ref_stamp = ref_bag = None
         if o.associate_to:
             ref = ext / f"{o.associate_to}.parquet"
@@ -162,58 +194,64 @@ def sequence_groundtruth(cfg: DictConfig, layout: Layout, manifest: Manifest, se
             else:
                 log.warning("%s absent: ORB-SLAM stamps + time_offset are taken as bag time", ref)
         traj, report = read_orbslam(
-            path, camera_extrinsic(cfg), str(o.format), str(o.unit), times if times.is_file() else None,
-            float(o.time_offset), ref_stamp, ref_bag, float(o.max_diff), max_gap, float(o.max_speed),
+            path, camera_extrinsic(cfg.robot), o.format, o.unit, times if times.is_file() else None,
+            o.time_offset, ref_stamp, ref_bag, o.max_diff, max_gap, o.max_speed,
         )  # fmt: skip
         _check_overlap(path, traj, ext, seq.name)
         files = {str(p): fingerprint_file(p) for p in (path, times) if p.is_file()}
         return traj, {**report, "files": files}
     if method == "vo":
         try:
-            vo = importlib.import_module("skidbench.pipeline.groundtruth.vo")
+            vo = importlib.import_module("skidbench.pipeline.groundtruth.stereo.vo")
         except ImportError as exc:
             raise GroundTruthError(f"groundtruth.method=vo is not available ({exc}); use pose_topic") from exc
         bag = manifest.resolve(seq)
-        traj = vo.run_stereo_vo(bag, vo.StereoSettings.from_cfg(cfg), extracted=ext)
+        stereo = vo.StereoSettings(cfg.robot.get("camera"), gt.vo, cfg.topics, cfg.typestores)
+        traj = vo.run_stereo_vo(bag, stereo, extracted=ext)
         fp = fingerprint_file(bag) if bag.is_file() else None
         return traj, {"files": {str(bag): fp}}
     raise ConfigError(f"groundtruth.method={method!r}: expected vo, orbslam or pose_topic")
 
 
-def sequence_inputs(cfg: DictConfig, layout: Layout, manifest: Manifest, seq: Sequence) -> list[Path]:
+def sequence_inputs(gt: GroundTruthSettings, layout: Layout, manifest: Manifest, seq: Sequence) -> list[Path]:
     """The files one sequence's ground truth reads (for its stamp): the method's source files, the
     simulator truth table when present, and for ``vo`` the VO code itself."""
-    gt = cfg.groundtruth
-    method = str(gt.method)
+    method = gt.method
     ext = layout.extracted / seq.name
     files: list[Path] = []
     if method == "pose_topic":
         files.append(ext / f"{gt.pose_topic.key}.parquet")
-        if gt.pose_topic.get("static_key"):  # read with a TF table
+        if gt.pose_topic.static_key:  # read with a TF table
             files.append(ext / f"{gt.pose_topic.static_key}.parquet")
     elif method == "orbslam":
         o = gt.orbslam
-        d = Path(str(o.dir))
-        files += [d / str(o.pattern).format(seq=seq.name), d / str(o.times_pattern).format(seq=seq.name)]
+        d = Path(o.dir or ".")
+        files += [d / o.pattern.format(seq=seq.name), d / o.times_pattern.format(seq=seq.name)]
         if o.associate_to:
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
-        vo_code = ("vo.py", "stereo_vo.py", "stereo_bag.py", "app.py")
+        vo_code = (
+            "stereo/vo.py",
+            "stereo/stereo_vo.py",
+            "stereo/stereo_bag.py",
+            "stereo/vo_settings.py",
+            "app.py",
+        )
         files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in vo_code)]
         files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
     return [f for f in files if f.exists()]
 
 
-def stage_config(cfg: DictConfig) -> dict[str, Any]:
+def stage_config(cfg: GroundTruthConfig) -> dict[str, Any]:
     """The config sections ground truth reads (its stamps' config)."""
-    gt = OmegaConf.to_container(cfg.groundtruth, resolve=True)
+    gt = dataclasses.asdict(cfg.gt)
     gt.pop("jobs", None)  # how many processes compute it does not change the result
-    out = {"groundtruth": gt, "robot": OmegaConf.to_container(cfg.robot, resolve=True)}
-    if gt.get("method") == "vo":  # VO reads the stereo topics of source.topics
-        from skidbench.pipeline.groundtruth.vo import source_image_topics
+    out = {"groundtruth": gt, "robot": cfg.robot}
+    if cfg.gt.method == "vo":  # VO reads the stereo topics of source.topics
+        from skidbench.pipeline.groundtruth.stereo.vo import source_image_topics
 
-        out["vo_topics"] = source_image_topics(cfg.source.get("topics"))
+        out["vo_topics"] = source_image_topics(cfg.topics)
     return out
 
 
@@ -223,13 +261,13 @@ def _write_if_changed(path: Path, obj: Any) -> None:
         write_text_atomic(path, text)
 
 
-def check_independent(path: Path, ext: Path, pt: DictConfig) -> None:
+def check_independent(path: Path, ext: Path, pt: PoseTopicSettings) -> None:
     """GroundTruthError when the pose table is wheel odometry (:func:`wheel_odometry`): a pose computed
     from the wheel encoders, the same wheels whose commands and rates drive the models, would score them
     against their own inputs. ``groundtruth.allow_wheel_odometry=true`` takes it anyway."""
     info = json.loads((ext / "_extract.json").read_text()) if (ext / "_extract.json").is_file() else {}
-    topic = (info.get("topics") or {}).get(str(pt.key), {})
-    why = wheel_odometry(str(pt.key), topic.get("topic"), pt.get("parent") if is_tf_table(path) else None)
+    topic = (info.get("topics") or {}).get(pt.key, {})
+    why = wheel_odometry(pt.key, topic.get("topic"), pt.parent if is_tf_table(path) else None)
     if why:
         raise GroundTruthError(
             f"{path}: {why}, not ground truth: the wheel encoders it is computed from are the models' own "
@@ -284,7 +322,7 @@ def _no_pose_table(path: Path, ext: Path, seq: str) -> str:
     return f"{path}: pose table not found{why}; set groundtruth.pose_topic.key or run `skidbench extract`"
 
 
-def _no_orbslam_file(path: Path, o: DictConfig, seq: str) -> str:
+def _no_orbslam_file(path: Path, o: OrbslamSettings, seq: str) -> str:
     """Why ``path`` is not there, naming the setting that fixes it: ``groundtruth.orbslam.dir`` when the
     folder does not exist or holds no trajectory file, else ``groundtruth.orbslam.pattern`` (with the
     pattern that names the file there, when one file or one naming with the sequence's name fits)."""
@@ -315,10 +353,10 @@ def truth_errors(gt: Trajectory, truth: Trajectory, horizon_s: float) -> dict[st
         return None
 
 
-def loop_closure(cfg: DictConfig, errors: dict[str, Any]) -> dict[str, Any]:
+def loop_closure(gt: GroundTruthSettings, errors: dict[str, Any]) -> dict[str, Any]:
     """The loop-closure check (the paper's localization accuracy) with :mod:`.loop`'s formulas, from each
     loop trial's :class:`.loop.LoopError` (None where the loop module is not available)."""
-    bounds = {k: float(v) for k, v in cfg.groundtruth.loop_bound.items()}
+    bounds = dataclasses.asdict(gt.loop_bound)
     if not errors:
         return {"trials": 0, "flagged": False, "bounds": bounds, "note": "no loop sequences in the manifest"}
     try:
@@ -343,7 +381,9 @@ def loop_closure(cfg: DictConfig, errors: dict[str, Any]) -> dict[str, Any]:
     }  # fmt: skip
 
 
-def _write_sequence(gt_cfg, layout, seq: Sequence, traj: Trajectory, report: dict) -> dict | None:
+def _write_sequence(
+    gt_cfg: GroundTruthSettings, layout: Layout, seq: Sequence, traj: Trajectory, report: dict
+) -> dict | None:
     """Write one computed sequence's TUM and report (with its error against the recording's own truth
     pose, when it has one that is not the ground truth itself); returns that error (None without)."""
     out = layout.groundtruth
@@ -354,14 +394,14 @@ def _write_sequence(gt_cfg, layout, seq: Sequence, traj: Trajectory, report: dic
     is_truth = gt_cfg.method == "pose_topic" and gt_cfg.pose_topic.key == gt_cfg.truth_key
     score = None
     if truth_path.is_file() and not is_truth:
-        truth = read_pose_table(truth_path, float(gt_cfg.max_gap))
-        score = truth_errors(traj, truth, float(gt_cfg.relative_horizon)) or None
+        truth = read_pose_table(truth_path, gt_cfg.max_gap)
+        score = truth_errors(traj, truth, gt_cfg.relative_horizon) or None
         if score:
             report["truth_error"] = score
     dur = (traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9
     report.update(
         {"sequence": seq.name, "terrain": seq.terrain, "category": seq.category,
-         "method": str(gt_cfg.method),
+         "method": gt_cfg.method,
          "poses": len(traj), "duration_s": dur, "gaps": [[a, b] for a, b in traj.gaps]}
     )  # fmt: skip
     write_tum(traj, tum, header=f"skidbench groundtruth {seq.name} method={gt_cfg.method}")
@@ -370,14 +410,16 @@ def _write_sequence(gt_cfg, layout, seq: Sequence, traj: Trajectory, report: dic
     return score
 
 
-def _loop_report(cfg: DictConfig, manifest: Manifest, loops: dict, truth_scores: dict) -> dict[str, Any]:
+def _loop_report(
+    gt: GroundTruthSettings, manifest: Manifest, loops: dict, truth_scores: dict
+) -> dict[str, Any]:
     """The loop-closure report of the loops, with the mean truth errors, in manifest order (whatever order
     the workers finished in: the dataset means are summed in it)."""
     rank = {seq.name: i for i, seq in enumerate(manifest.sequences)}
     loops = dict(sorted(loops.items(), key=lambda kv: rank[kv[0]]))
     truth_scores = dict(sorted(truth_scores.items(), key=lambda kv: rank[kv[0]]))
-    result = loop_closure(cfg, loops)
-    result["method"] = str(cfg.groundtruth.method)
+    result = loop_closure(gt, loops)
+    result["method"] = gt.method
     if truth_scores:
         keys = ("ate_rms_m", "rpe_trans_rms_m", "rpe_trans_rel_rms", "rpe_yaw_rms_rad")
         result["truth_error"] = {
@@ -392,24 +434,23 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     """Bring every sequence's ground truth up to date and write the loop-closure report; returns it."""
     layout = layout_from_cfg(cfg)
     manifest = Manifest.read(layout.manifest)
-    gt_cfg = cfg.groundtruth
+    job = GroundTruthConfig.from_cfg(cfg)
     seqs = manifest.sequences
     # Sequences are independent: each is a task (pipeline/tasks.py: forked workers here, or Ray tasks on
     # a cluster) that checks its stamp, computes, writes and stamps its ground truth and returns its
     # scores, longest first (by extracted bytes) so that no worker is left alone with a long one at the
     # end; a stopped run keeps the finished sequences. Stereo VO is CPU-bound and gets a worker per core;
     # reading a pose table or an ORB-SLAM file takes less than starting a worker process: in this one.
-    vo = str(gt_cfg.method) == "vo"
-    jobs = int(gt_cfg.get("jobs", 1)) if len(seqs) > 1 and vo else 1
+    jobs = job.gt.jobs if len(seqs) > 1 and job.gt.method == "vo" else 1
     order = sorted(seqs, key=lambda seq: -_extracted_bytes(layout, seq))
     threads = 1 if jobs > 1 else None
-    calls = [(cfg, layout, manifest, seq, threads) for seq in order]
+    calls = [(job, layout, manifest, seq, threads) for seq in order]
     names = [seq.name for seq in order]
     results = map_items(_sequence_task, calls, names, what="groundtruth", unit="seq", jobs=jobs)
     skipped = sum(r[1] for r in results)
     truth_scores = {name: score for name, _, score, _ in results if score}
     loops = {name: err for name, _, _, err in results if err is not None}
-    result = _loop_report(cfg, manifest, loops, truth_scores)
+    result = _loop_report(job.gt, manifest, loops, truth_scores)
     _write_if_changed(layout.groundtruth / LOOP_REPORT, result)
     n = len(seqs)
     if skipped == n:

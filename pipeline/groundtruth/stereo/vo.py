@@ -7,7 +7,7 @@ Three modules: the algorithm on arrays (:mod:`.stereo_vo`: :class:`StereoVO`, :c
 stereo pairs (:mod:`.stereo_bag`: camera_info, topics, left/right pairing by header stamp, decoding); and
 this one, the method's entry point: :func:`run_stereo_vo` takes what it reads of the stage config as a
 :class:`StereoSettings` (``robot.camera``, ``groundtruth.vo``, ``source.topics``,
-``extract.typestores``; ``StereoSettings.from_cfg`` at the app), streams the bag's pairs through the
+``extract.typestores``; the app reads them once), streams the bag's pairs through the
 algorithm and returns the base-frame trajectory ``T_b0_bi = T_b_c T_c0_ci T_b_c^-1``.
 """
 
@@ -19,17 +19,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
-
 from skidbench.pipeline.core.errors import GroundTruthError, SkidbenchError, one_line
 from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
-from skidbench.pipeline.groundtruth.stereo_bag import (
+from skidbench.pipeline.groundtruth.stereo.stereo_bag import (
     check_image_topics,
     iter_stereo_frames,
     open_stereo_bag,
     read_stereo_camera,
 )
-from skidbench.pipeline.groundtruth.stereo_vo import (
+from skidbench.pipeline.groundtruth.stereo.stereo_vo import (
     StereoCamera,
     StereoVO,
     VOConfig,
@@ -67,10 +65,6 @@ def _get(node: Any, path: str, default: Any = None) -> Any:
     return cur
 
 
-def _plain(value: Any) -> Any:
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
-
-
 @dataclass(frozen=True)
 class StereoSettings:
     """What the ``vo`` method reads of the stage config: the left camera's pose on the robot
@@ -82,16 +76,6 @@ class StereoSettings:
     options: Mapping[str, Any] = field(default_factory=dict)
     topics: Any = None
     typestores: Mapping[str, str] | None = None
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> StereoSettings:
-        """From a stage config (a DictConfig or a plain mapping)."""
-        return cls(
-            camera=_plain(_get(cfg, "robot.camera")),
-            options=dict(_plain(_get(cfg, "groundtruth.vo")) or {}),
-            topics=_plain(_get(cfg, "source.topics")),
-            typestores=_plain(_get(cfg, "extract.typestores")),
-        )
 
 
 def _vo_config(
@@ -146,7 +130,7 @@ def run_stereo_vo(
     """Stereo VO over a bag's images -> base-frame trajectory (first pose = identity), header stamps.
 
     ``settings``: the camera extrinsic, the VO options (``vo``, when given, replaces them), the stereo
-    topics and the typestores (:meth:`StereoSettings.from_cfg`). ``stats``, if given, receives the run's
+    topics and the typestores (built by the app from its config). ``stats``, if given, receives the run's
     counters (frames, keyframes, lost frames, frames/s). ``extracted``: the sequence's extracted folder,
     whose ``_extract.json`` names the stereo topics when ``source.topics=auto``. Every bag problem is one
     GroundTruthError.

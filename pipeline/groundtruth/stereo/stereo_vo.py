@@ -34,8 +34,13 @@ import numpy as np
 
 from skidbench.pipeline.core.geometry import matrix_to_quaternion, se3_inverse
 from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
+from skidbench.pipeline.groundtruth.stereo.vo_settings import (
+    StereoCamera,
+    VOConfig,
+    VOStats,
+    camera_extrinsic,
+)
 from skidbench.pipeline.groundtruth.trajectory import Trajectory
-from skidbench.pipeline.groundtruth.vo_settings import StereoCamera, VOConfig, VOStats, camera_extrinsic
 
 __all__ = [
     "VOConfig",
