@@ -5,14 +5,19 @@ Frame-to-keyframe tracking on a rectified stereo pair:
 1. keyframe: ORB features (detection + descriptors) in the left image, spread over a grid; stereo
    matching against the right image's ORB features under the row constraint (|dv| <= ``max_row_diff``)
    and disparity limits, Hamming distance and ratio test; the disparity is refined to sub-pixel
-   accuracy by pyramidal Lucas-Kanade (left -> right, initialised at the descriptor match) and the
-   points are triangulated (Z = fx b / d);
+   accuracy by Lucas-Kanade (left -> right, initialised at the descriptor match, whose result must lie
+   within 2 px of it: the pyramid reaches that far) and the points are triangulated (Z = fx b / d);
 2. every frame: the keyframe points are predicted into the current left image with a constant-velocity
-   motion model and tracked there by Lucas-Kanade (forward-backward checked); if that fails (tracking
-   lost, a low-texture frame) the current ORB features are matched to the keyframe descriptors instead;
+   motion model and tracked there by Lucas-Kanade (forward-backward checked), with a pyramid only as
+   deep as the last frame's prediction error needs (:meth:`VOConfig.pyramid_levels`); a frame that then
+   gives no pose, or so few inliers that it would become a keyframe, is tracked again with the full
+   pyramid. If that fails too (a jump the motion model did not predict, a keyframe whose points are
+   mostly out of view), the last tracked frame becomes the keyframe and the frame is tracked against
+   it; then the current ORB features are matched to the keyframe descriptors;
 3. pose: ``cv2.solvePnPRansac`` (keyframe 3D points -> current 2D), then a robust (Huber) Gauss-Newton
    refinement of the inliers' reprojection error in both current images (stereo PnP, sub-pixel right
-   positions again by LK);
+   positions again by LK, from the disparity the pose predicts, with the pyramid the last frame's
+   largest disparity error needs), until a step is under ``refine_tol``;
 4. a new keyframe when the tracked inliers fall below ``min_keyframe_inliers`` or the keyframe is
    ``keyframe_max_dist_m`` / ``keyframe_max_rot_deg`` away. A frame whose pose cannot be estimated is a
    tracking loss: the motion model bridges it and a ``gap`` is recorded in the trajectory.
@@ -119,9 +124,13 @@ class StereoVO:
         self.bf = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.lk = {
             "winSize": (c.lk_window, c.lk_window),
-            "maxLevel": c.lk_levels,
             "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
         }
+        # the last frame's largest prediction error of an inlier, px, in keyframe -> frame tracking and in
+        # the right image's disparity (None: unknown, the full pyramid)
+        self.track_err: float | None = None
+        self.disp_err: float | None = None
+        self.last = None  # the last tracked frame's (left, right, T_w_c), a keyframe to re-anchor on
         self.kf: _Keyframe | None = None
         self.T_w_c = np.eye(4)  # current camera pose in the first camera frame
         self.T_k_c = np.eye(4)  # current pose relative to the keyframe
@@ -188,7 +197,8 @@ class StereoVO:
         p0 = pl[il]
         # sub-pixel right positions: LK from left to right, started at the descriptor match
         d0 = p0[:, 0] - pr[ir, 0]
-        p1, good = self._right_positions(left, right, p0, d0, None)
+        # the result must land within 2 px of the descriptor match: the pyramid need only reach that far
+        p1, good = self._right_positions(left, right, p0, d0, None, self.cfg.pyramid_levels(2.0))
         d = p0[:, 0] - p1[:, 0]
         ok = (
             good
@@ -218,8 +228,9 @@ class StereoVO:
             right, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
         )
 
-    def _right_positions(self, left, right, p0, d0, ground):
-        """Right-image positions of left points ``p0`` with disparity guesses ``d0`` (LK, sub-pixel).
+    def _right_positions(self, left, right, p0, d0, ground, levels: int):
+        """Right-image positions of left points ``p0`` with disparity guesses ``d0`` (LK with ``levels``
+        pyramid levels, sub-pixel).
 
         Ground-aware: points are also tracked in the ground-aligned right image (``ground``: which to
         use, or None to keep the better LK residual of both). Returns (positions (N, 2), ok (N,))."""
@@ -236,6 +247,7 @@ class StereoVO:
                 p0[use_raw].reshape(-1, 1, 2),
                 g.reshape(-1, 1, 2),
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                maxLevel=levels,
                 **self.lk,
             )
             st = st.ravel() == 1
@@ -256,6 +268,7 @@ class StereoVO:
                     q0.reshape(-1, 1, 2),
                     g.reshape(-1, 1, 2),
                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                    maxLevel=levels,
                     **self.lk,
                 )
                 p1 = p1.reshape(-1, 2)
@@ -292,22 +305,19 @@ class StereoVO:
             uv = np.column_stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]])
         return uv, z
 
-    def _track_lk(self, left: np.ndarray, T_k_pred: np.ndarray):
-        """Keyframe points tracked into ``left`` by LK (initialised by the prediction): (idx, pts)."""
+    def _track_lk(self, left: np.ndarray, T_k_pred: np.ndarray, levels: int):
+        """Keyframe points tracked into ``left`` by LK with ``levels`` pyramid levels, initialised by the
+        prediction: (idx, pts, distance of each from its prediction)."""
         kf = self.kf
         T_c_k = se3_inverse(T_k_pred)
         guess, z = self._project(kf.X, T_c_k)
         h, w = left.shape[:2]
-        vis = (
-            (z > 0.05)
-            & (guess[:, 0] > -20)
-            & (guess[:, 0] < w + 20)
-            & (guess[:, 1] > -20)
-            & (guess[:, 1] < h + 20)
-        )
+        u, v = guess[:, 0], guess[:, 1]
+        vis = (z > 0.05) & (u > -20) & (u < w + 20) & (v > -20) & (v < h + 20)
         idx = np.nonzero(vis)[0]
         if idx.size < self.cfg.min_inliers:
-            return idx[:0], np.zeros((0, 2), np.float32)
+            return idx[:0], np.zeros((0, 2), np.float32), np.zeros(0)
+        lk = {**self.lk, "maxLevel": levels}
         p_out = np.zeros((idx.size, 2), np.float32)
         ok = np.zeros(idx.size, bool)
         if self.plane is not None and self.cfg.ground_aware_tracking:
@@ -331,16 +341,11 @@ class StereoVO:
                 # the keyframe patch at p_k sits at H p_k in the warped image (exactly, ground or not)
                 p0 = cv2.perspectiveTransform(p0.astype(np.float64), Hm).astype(np.float32)
             p1, st, _ = cv2.calcOpticalFlowPyrLK(
-                src, left, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk
+                src, left, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk
             )
             p1 = p1.reshape(-1, 2)
-            good = (
-                (st.ravel() == 1)
-                & (p1[:, 0] >= 0)
-                & (p1[:, 0] <= w - 1)
-                & (p1[:, 1] >= 0)
-                & (p1[:, 1] <= h - 1)
-            )
+            u, v = p1[:, 0], p1[:, 1]
+            good = (st.ravel() == 1) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
             # the backward check only for the points the forward pass kept (LK tracks each point on its own)
             fwd = np.flatnonzero(good)
             if fwd.size:
@@ -351,13 +356,36 @@ class StereoVO:
                     p1[fwd].reshape(-1, 1, 2),
                     back.copy(),
                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                    **self.lk,
+                    **lk,
                 )
                 fb = np.linalg.norm((pb - back).reshape(-1, 2), axis=1)
                 good[fwd] = (st2.ravel() == 1) & (fb < self.cfg.fb_max_px)
             p_out[sel] = p1
             ok[sel] = good
-        return idx[ok], p_out[ok]
+        err = np.linalg.norm(p_out - guess[idx], axis=1)
+        return idx[ok], p_out[ok], err[ok]
+
+    def _track(self, left: np.ndarray, T_k_pred: np.ndarray):
+        """LK tracking and PnP (step 2): (idx, pts, PnP result or None, prediction errors). Again with the
+        full pyramid after no pose or under ``min_keyframe_inliers`` inliers; the result with more kept."""
+        levels = self.cfg.pyramid_levels(self.track_err)
+        idx, pts, err = self._track_lk(left, T_k_pred, levels)
+        res = self._pnp(idx, pts, T_k_pred)
+        if levels < self.cfg.lk_levels and (res is None or res[1].sum() < self.cfg.min_keyframe_inliers):
+            self.stats.retracked += 1
+            again = self._track_lk(left, T_k_pred, self.cfg.lk_levels)
+            res_again = self._pnp(again[0], again[1], T_k_pred)
+            if res_again is not None and (res is None or res_again[1].sum() > res[1].sum()):
+                (idx, pts, err), res = again, res_again
+        return idx, pts, res, err
+
+    def _reanchor(self) -> bool:
+        """The last tracked frame as the keyframe (step 2), unless it is already: True if it became one."""
+        last, self.last = self.last, None
+        if last is None or last[0] is self.kf.img or not self._new_keyframe(*last):
+            return False
+        self.stats.reanchored += 1
+        return True
 
     def _match_descriptors(self, left: np.ndarray):
         """Fallback association: current ORB features matched to the keyframe descriptors."""
@@ -465,7 +493,7 @@ class StereoVO:
             except np.linalg.LinAlgError:
                 break
             T = _exp_se3(dx) @ T
-            if np.linalg.norm(dx) < 1e-8:
+            if np.linalg.norm(dx) < c.refine_tol:
                 break
         return se3_inverse(T)
 
@@ -487,12 +515,15 @@ class StereoVO:
             self.stats.lost += 1
             return None if self.stats.keyframes else self.T_w_c.copy()
         T_k_pred = self.T_k_c @ self.velocity
-        idx, pts = self._track_lk(left, T_k_pred)
-        res = self._pnp(idx, pts, T_k_pred)
+        idx, pts, res, err = self._track(left, T_k_pred)
+        if res is None and self._reanchor():
+            T_k_pred = self.velocity  # the last frame is the keyframe now
+            idx, pts, res, err = self._track(left, T_k_pred)
         if res is None:
             self.stats.fallback += 1
             idx, pts = self._match_descriptors(left)
-            res = self._pnp(idx, pts, None)
+            res, err = self._pnp(idx, pts, None), None
+        self.track_err = None
         if res is None:
             # lost: bridge with the motion model and restart from this frame
             self.stats.lost += 1
@@ -514,20 +545,23 @@ class StereoVO:
             self._new_keyframe(left, right, self.T_w_c)
             return None
         idx, pts = idx[inl], pts[inl]
+        self.track_err = float(err[inl].max()) if err is not None else None
         # stereo refinement: right positions of the inliers by LK (started from the predicted disparity)
         X = self.kf.X[idx]
         uv, z = self._project(X, se3_inverse(T_k_c))
         d_pred = self.cam.fx * self.cam.baseline / np.maximum(z, 1e-3)
-        pr, has_r = self._right_positions(left, right, pts, d_pred, self.kf.ground[idx])
-        has_r &= (np.abs(pr[:, 1] - pts[:, 1]) <= c.max_row_diff) & (
-            np.abs(pts[:, 0] - pr[:, 0] - d_pred) < 3.0
-        )
+        levels = self.cfg.pyramid_levels(self.disp_err)
+        pr, has_r = self._right_positions(left, right, pts, d_pred, self.kf.ground[idx], levels)
+        d_err = np.abs(pts[:, 0] - pr[:, 0] - d_pred)
+        has_r &= (np.abs(pr[:, 1] - pts[:, 1]) <= c.max_row_diff) & (d_err < 3.0)
+        self.disp_err = float(d_err[has_r].max()) if has_r.any() else None
         T_k_c = self._refine(T_k_c, X, pts, pr if self.cfg.refine_stereo else None, has_r)
         self.stats.inliers.append(len(idx))
         T_prev_k = se3_inverse(self.T_k_c)
         self.velocity = T_prev_k @ T_k_c
         self.T_k_c = T_k_c
         self.T_w_c = self.kf.T_w_k @ T_k_c
+        self.last = (left, right, self.T_w_c)
         ang = np.degrees(np.arccos(np.clip((np.trace(T_k_c[:3, :3]) - 1) / 2, -1, 1)))
         if (
             len(idx) < c.min_keyframe_inliers

@@ -27,7 +27,9 @@ class VOConfig:
     max_hamming: int = 64  # descriptor distance bound (stereo and fallback matching)
     ratio: float = 0.85  # Lowe ratio test
     lk_window: int = 15  # px, Lucas-Kanade window side
-    lk_levels: int = 3
+    lk_levels: int = 3  # the full pyramid: keyframe stereo matching, and tracking without a prediction
+    lk_adaptive: bool = True  # tracking from a prediction: the pyramid only as deep as its error needs
+    lk_capture_margin: float = 2.0  # x the last frame's largest prediction error that the pyramid covers
     fb_max_px: float = 0.5  # forward-backward LK consistency, px
     ransac_reproj_px: float = 1.5
     ransac_iters: int = 100
@@ -39,6 +41,7 @@ class VOConfig:
     keyframe_max_rot_deg: float = 20.0
     huber_px: float = 1.0
     refine_iters: int = 6
+    refine_tol: float = 1e-6  # stop when the step's norm is under this (m and rad)
     refine_stereo: bool = True  # use the current right image in the refinement
     ground_aware: bool = True  # LK on ground-plane-aligned images (removes the ground's stereo shear and
     # the keyframe-to-frame perspective change of ground points); needs the extrinsic, flat ground
@@ -51,6 +54,17 @@ class VOConfig:
     right_info_topic: str = "/stereo/right/camera_info"
     max_pair_dt_ms: float = 2.0  # left/right header stamps further apart are not a pair
     stride: int = 1  # use every n-th stereo pair (1: all)
+
+    def pyramid_levels(self, err: float | None) -> int:
+        """LK pyramid levels for points predicted ``err`` px from where they are (None: unknown). Started
+        at a prediction, LK converges to the same sub-pixel position whatever the depth of its pyramid,
+        which only widens how far from the prediction it finds a point: about half a window at level 0,
+        twice as far per level. So: the fewest levels that reach ``lk_capture_margin`` x ``err``, at most
+        ``lk_levels`` (always ``lk_levels`` without ``lk_adaptive``)."""
+        if err is None or not self.lk_adaptive:
+            return self.lk_levels
+        need = self.lk_capture_margin * err / (self.lk_window / 2)  # in half windows at level 0
+        return int(min(max(np.ceil(np.log2(max(need, 1.0))), 0), self.lk_levels))
 
     @classmethod
     def from_mapping(cls, options: Mapping[str, Any] | None) -> VOConfig:
@@ -107,6 +121,8 @@ class VOStats:
     lost: int = 0
     rejected: int = 0
     fallback: int = 0
+    retracked: int = 0
+    reanchored: int = 0
     inliers: list[int] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -122,6 +138,8 @@ class VOStats:
             "lost_frames": self.lost,
             "rejected_poses": self.rejected,
             "fallback_matches": self.fallback,
+            "retracked_frames": self.retracked,
+            "reanchored_keyframes": self.reanchored,
             "inliers_mean": float(inl.mean()),
             "inliers_min": int(inl.min()),
             "seconds": round(self.seconds, 3),
