@@ -5,8 +5,8 @@ Frame-to-keyframe tracking on a rectified stereo pair:
 1. keyframe: ORB features (detection + descriptors) in the left image, spread over a grid; stereo
    matching against the right image's ORB features under the row constraint (|dv| <= ``max_row_diff``)
    and disparity limits, Hamming distance and ratio test; the disparity is refined to sub-pixel
-   accuracy by Lucas-Kanade (left -> right, initialised at the descriptor match, whose result must lie
-   within 2 px of it: the pyramid reaches that far) and the points are triangulated (Z = fx b / d);
+   accuracy by pyramidal Lucas-Kanade (left -> right, initialised at the descriptor match) and the
+   points are triangulated (Z = fx b / d);
 2. every frame: the keyframe points are predicted into the current left image with a constant-velocity
    motion model and tracked there by Lucas-Kanade (forward-backward checked), with a pyramid only as
    deep as the last frame's prediction error needs (:meth:`VOConfig.pyramid_levels`); a frame that then
@@ -197,8 +197,8 @@ class StereoVO:
         p0 = pl[il]
         # sub-pixel right positions: LK from left to right, started at the descriptor match
         d0 = p0[:, 0] - pr[ir, 0]
-        # the result must land within 2 px of the descriptor match: the pyramid need only reach that far
-        p1, good = self._right_positions(left, right, p0, d0, None, self.cfg.pyramid_levels(2.0))
+        # the full pyramid: every frame until the next keyframe uses these depths (an error here is drift)
+        p1, good = self._right_positions(left, right, p0, d0, None, self.cfg.lk_levels)
         d = p0[:, 0] - p1[:, 0]
         ok = (
             good
