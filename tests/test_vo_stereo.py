@@ -229,7 +229,7 @@ def test_box_faces_cover_exactly_their_pinhole_projection(camera_cfg, pose):
 
 
 def test_the_lk_pyramid_is_as_deep_as_the_prediction_error_needs():
-    c = VOConfig(lk_window=15, lk_levels=3, lk_capture_margin=2.0)
+    c = VOConfig(lk_adaptive=True, lk_window=15, lk_levels=3, lk_capture_margin=2.0)
     assert c.pyramid_levels(None) == 3  # no prediction error known: the full pyramid
     assert c.pyramid_levels(0.5) == 0  # 2 x 0.5 px is within half a window (7.5 px) at level 0
     assert c.pyramid_levels(3.0) == 0 and c.pyramid_levels(3.9) == 1  # 7.8 px: one level (15 px)
@@ -239,10 +239,10 @@ def test_the_lk_pyramid_is_as_deep_as_the_prediction_error_needs():
 
 
 def test_vo_tracks_through_a_jump_the_motion_model_did_not_predict(camera_cfg, renderer):
-    """Two frames missing from a turn at 0.6 rad/s: for the frame after them the prediction is about 4.6
-    degrees (some 20 px) off, beyond the shallow pyramid the steady frames before chose; it is tracked
-    again with the full pyramid, by LK (without that, only the descriptor fallback finds its pose), with no
-    gap and no jump in the pose."""
+    """``lk_adaptive``: two frames missing from a turn at 0.6 rad/s; for the frame after them the
+    prediction is about 4.6 degrees (some 20 px) off, beyond the shallow pyramid the steady frames before
+    chose; it is tracked again with the full pyramid, by LK (without that, only the descriptor fallback
+    finds its pose), with no gap and no jump in the pose."""
     info = renderer.camera_info()
     cam = StereoCamera.from_camera_info(info["left"], info["right"])
     T_b_c = camera_extrinsic(camera_cfg)
@@ -258,7 +258,7 @@ def test_vo_tracks_through_a_jump_the_motion_model_did_not_predict(camera_cfg, r
             left, right = renderer.render(x0 + c * x - s * y, y0 + s * x + c * y, th0 + th)
             yield int(round(ti * 1e9)), left, right
 
-    vo = StereoVO(cam, VOConfig(), T_b_c)
+    vo = StereoVO(cam, VOConfig(lk_adaptive=True), T_b_c)
     traj = vo.run(frames(), T_b_c)
     assert len(traj) == len(path) and not traj.gaps
     assert vo.stats.retracked + vo.stats.reanchored >= 1 and vo.stats.fallback == 0

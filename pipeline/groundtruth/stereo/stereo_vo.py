@@ -8,16 +8,17 @@ Frame-to-keyframe tracking on a rectified stereo pair:
    accuracy by pyramidal Lucas-Kanade (left -> right, initialised at the descriptor match) and the
    points are triangulated (Z = fx b / d);
 2. every frame: the keyframe points are predicted into the current left image with a constant-velocity
-   motion model and tracked there by Lucas-Kanade (forward-backward checked), with a pyramid only as
-   deep as the last frame's prediction error needs (:meth:`VOConfig.pyramid_levels`); a frame that then
-   gives no pose, or so few inliers that it would become a keyframe, is tracked again with the full
-   pyramid. If that fails too (a jump the motion model did not predict, a keyframe whose points are
-   mostly out of view), the last tracked frame becomes the keyframe and the frame is tracked against
-   it; then the current ORB features are matched to the keyframe descriptors;
+   motion model and tracked there by pyramidal Lucas-Kanade (forward-backward checked). With
+   ``lk_adaptive`` (off by default) the pyramid is only as deep as the last frame's prediction error
+   needs (:meth:`VOConfig.pyramid_levels`), and a frame that then gives no pose, or so few inliers that
+   it would become a keyframe, is tracked again with the full pyramid. If tracking fails (a jump the
+   motion model did not predict, a keyframe whose points are mostly out of view), the last tracked
+   frame becomes the keyframe and the frame is tracked against it; then the current ORB features are
+   matched to the keyframe descriptors;
 3. pose: ``cv2.solvePnPRansac`` (keyframe 3D points -> current 2D), then a robust (Huber) Gauss-Newton
    refinement of the inliers' reprojection error in both current images (stereo PnP, sub-pixel right
-   positions again by LK, from the disparity the pose predicts, with the pyramid the last frame's
-   largest disparity error needs), until a step is under ``refine_tol``;
+   positions again by LK, from the disparity the pose predicts; with ``lk_adaptive``, with the pyramid
+   the last frame's largest disparity error needs), until a step is under ``refine_tol``;
 4. a new keyframe when the tracked inliers fall below ``min_keyframe_inliers`` or the keyframe is
    ``keyframe_max_dist_m`` / ``keyframe_max_rot_deg`` away. A frame whose pose cannot be estimated is a
    tracking loss: the motion model bridges it and a ``gap`` is recorded in the trajectory.

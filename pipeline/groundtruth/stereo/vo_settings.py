@@ -28,7 +28,7 @@ class VOConfig:
     ratio: float = 0.85  # Lowe ratio test
     lk_window: int = 15  # px, Lucas-Kanade window side
     lk_levels: int = 3  # the full pyramid: keyframe stereo matching, and tracking without a prediction
-    lk_adaptive: bool = True  # tracking from a prediction: the pyramid only as deep as its error needs
+    lk_adaptive: bool = False  # tracking from a prediction: the pyramid only as deep as its error needs
     lk_capture_margin: float = 2.0  # x the last frame's largest prediction error that the pyramid covers
     fb_max_px: float = 0.5  # forward-backward LK consistency, px
     ransac_reproj_px: float = 1.5
@@ -41,7 +41,7 @@ class VOConfig:
     keyframe_max_rot_deg: float = 20.0
     huber_px: float = 1.0
     refine_iters: int = 6
-    refine_tol: float = 1e-6  # stop when the step's norm is under this (m and rad)
+    refine_tol: float = 1e-8  # stop when the step's norm is under this (m and rad)
     refine_stereo: bool = True  # use the current right image in the refinement
     ground_aware: bool = True  # LK on ground-plane-aligned images (removes the ground's stereo shear and
     # the keyframe-to-frame perspective change of ground points); needs the extrinsic, flat ground
