@@ -254,7 +254,7 @@ class LegacyFrictionFit(FrictionBased):
         sol = solve_v15(*inputs, p, geo, theta0=theta0)
         wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in inputs)
         scale = np.ones(wl.size)
-        bad = ~self.physical(sol.theta, sol.status, wl, wr)
+        bad = ~self._physical(sol.theta, sol.status, wl, wr)
         if bad.any() and self.options.get("accel_fallback", True):
             # every fraction of every such step in one batched solve (they are independent problems)
             idx = np.flatnonzero(bad)
@@ -263,7 +263,7 @@ class LegacyFrictionFit(FrictionBased):
             sub = solve_v15(
                 wl[rep], wr[rep], ks * dwl[rep], ks * dwr[rep], p, geo, restarts=False, max_iter=FALLBACK_ITER
             )
-            ok = self.physical(sub.theta, sub.status, wl[rep], wr[rep]).reshape(len(ACCEL_SCALES), idx.size)
+            ok = self._physical(sub.theta, sub.status, wl[rep], wr[rep]).reshape(len(ACCEL_SCALES), idx.size)
             found = ok.any(axis=0)
             first = np.argmax(ok, axis=0)  # the largest fraction with a physical solution
             pick = first * idx.size + np.arange(idx.size)

@@ -8,7 +8,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.constants
-from scipy.optimize import least_squares
 
 from skidbench.models.fitting.synthetic import command_table, label_with
 from skidbench.models.friction.balance import (
@@ -19,7 +18,6 @@ from skidbench.models.friction.balance import (
     residual,
     velocity_sensitivity,
 )
-from skidbench.models.friction.fit import FrictionFit, robust_cost
 from skidbench.models.friction.model import FrictionBased
 from skidbench.models.friction.solver import solve, solve_reference
 from skidbench.pipeline.core.constants import STANDARD_GRAVITY
@@ -187,40 +185,3 @@ def test_fit_on_data_from_the_model_recovers_its_parameters_to_solver_precision(
         assert fitted.params[k] == pytest.approx(truth_p[k], rel=1e-8), k
     assert fitted.fit_loss_ < 1e-20
     assert fitted.fit_info_["mu_x_identified"] is False
-
-
-@pytest.mark.parametrize("loss", ["linear", "soft_l1", "huber", "cauchy", "arctan"])
-def test_robust_cost_is_the_cost_scipy_reports(loss):
-    """The cost a trial must beat is computed as least_squares computes its own (0.5 f_scale^2 sum rho)."""
-    rng = np.random.default_rng(0)
-    A, b = rng.normal(size=(50, 2)), rng.normal(scale=0.5, size=50)
-    res = least_squares(lambda x: A @ x - b, np.zeros(2), loss=loss, f_scale=0.1, max_nfev=3)
-    assert robust_cost(res.fun, loss, 0.1) == pytest.approx(res.cost, rel=1e-12)
-
-
-def test_fit_gives_up_only_trial_points_trf_rejects(jackal):
-    """A trial whose settled steps alone cost more than the accepted point stops after the solve's first
-    pass; trf asks for the Jacobian only at points it accepts, and none of those was given up."""
-    truth_p = {"mu_r": 0.05, "mu_x": 0.9, "mu_y": 0.6, "lambda": 6.0, "C": 0.3}
-    table = command_table(jackal, 600, seed=3)
-    data = label_with(table, FrictionBased(jackal, truth_p).predict(table))
-    fit = FrictionFit.prepare(FrictionBased(jackal, {"mu_r": 0.01, "mu_x": 0.3, "lambda": 2.0}), data)
-    given_up, accepted = [], []
-    evaluate, jacobian = fit.problem.evaluate, fit.problem.jacobian
-
-    def record_evaluate(z, settle=False):
-        cached = fit.problem.last.get("z") is not None and np.array_equal(fit.problem.last["z"], z)
-        e = evaluate(z, settle)
-        if not cached:
-            given_up.append(bool(e["sol"].info["given_up"]))
-        return e
-
-    def record_jacobian(z):
-        accepted.append(given_up[-1])
-        return jacobian(z)
-
-    fit.problem.evaluate, fit.problem.jacobian = record_evaluate, record_jacobian
-    fit.run()
-    assert any(given_up)
-    assert not any(accepted)
-    assert len(given_up) == fit.free.res.nfev + fit.lateral.get("nfev_held", 0)

@@ -29,13 +29,7 @@ from scipy.optimize import OptimizeResult, least_squares
 
 from skidbench.models.base import ModelError
 from skidbench.models.columns import mse, targets, training_rows
-from skidbench.models.friction.balance import (
-    PARAM_NAMES,
-    FrictionGeometry,
-    body_velocity,
-    free_mask,
-    velocity_sensitivity,
-)
+from skidbench.models.friction.balance import PARAM_NAMES, FrictionGeometry, free_mask, velocity_sensitivity
 from skidbench.models.friction.solver import SolveResult
 
 #: (low, high) of each parameter during a fit; `options.param_ranges` overrides
@@ -59,27 +53,10 @@ LATERAL_CL_Z = 1.645
 #: a start, or a held value, stays inside its bounds by this fraction of the log range (on a bound it has
 #: no room to move)
 START_MARGIN = 0.05
-#: a trial point is given up (``FitProblem.beyond_accepted``) where its settled steps alone cost more than
-#: the accepted point by more than this fraction (a margin for the order of summation, not a tolerance)
-GIVE_UP_MARGIN = 1e-9
 #: after the first evaluation, a point where more than this fraction of the steps has no root is solved
 #: without the acceleration fallback (``FrictionBased.velocities``): it changes neither the statuses nor
 #: the warm start, only the residuals of a trial point trf rejects
 FAR_TRIAL_ROOTLESS = 0.5
-#: scipy ``least_squares``'s losses rho(z) of z = (f / f_scale)^2 (its documentation), for the robust cost
-LOSSES = {
-    "linear": lambda z: z,
-    "soft_l1": lambda z: 2.0 * (np.sqrt(1.0 + z) - 1.0),
-    "huber": lambda z: np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0),
-    "cauchy": np.log1p,
-    "arctan": np.arctan,
-}
-
-
-def robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
-    """scipy ``least_squares``'s cost of residuals r: 0.5 f_scale^2 sum rho((r / f_scale)^2)."""
-    z = (np.asarray(r, dtype=float).ravel() / f_scale) ** 2
-    return float(0.5 * f_scale**2 * np.sum(LOSSES[loss](z)))
 
 
 def log_covariance(res) -> np.ndarray:
@@ -166,15 +143,10 @@ class FitProblem:
     stays out; a scored step that loses its root later keeps its least-squares residual (what ``predict``
     returns for it), so the optimizer cannot buy a lower loss by pushing steps into "no root"; a scored
     step the solver has not finished (status 0) keeps its best iterate's residual too: dropping it would
-    let the optimizer escape into parameters the solver cannot handle. A trial point whose settled steps
-    (scored, with a physical root after the solve's first pass: nothing later changes them) already cost
-    more than the point trf accepted last is rejected by trf whatever the other steps give, and trf's next
-    step does not depend on by how much: its solve stops there (``beyond_accepted``: no restarts, no
-    acceleration fallback; its slips are the next warm start only if every step converged, as for any
-    evaluation). The Jacobian is analytic (``jacobian``: the implicit-function derivative of the solved
-    slips, one 3x3 solve per step at the converged balance, not five more solves of every step) unless
-    ``analytic`` is False (scipy's finite differences, ``options.jacobian: fd``; then no solve stops
-    early)."""
+    let the optimizer escape into parameters the solver cannot handle. The Jacobian is analytic
+    (``jacobian``: the implicit-function derivative of the solved slips, one 3x3 solve per step at the
+    converged balance, not five more solves of every step) unless ``analytic`` is False (scipy's
+    finite differences, ``options.jacobian: fd``)."""
 
     model: Any  # the FrictionBased being fitted (its velocities and geometry)
     inp: tuple[np.ndarray, ...]  # (wl, wr, dwl, dwr) of the valid Train rows
@@ -186,7 +158,6 @@ class FitProblem:
     analytic: bool = True
     theta: np.ndarray | None = None  # warm start of the next evaluation
     scored: np.ndarray | None = None  # (T,) bool, fixed at the first evaluation
-    accepted_cost: float | None = None  # robust cost at the point trf last accepted (this solve)
     last: dict = field(default_factory=dict)  # the last evaluation: z, p, sol, r
 
     @classmethod
@@ -199,9 +170,7 @@ class FitProblem:
             loss=str(o.get("loss", "soft_l1")),
             f_scale=float(o.get("f_scale", 0.1)),  # m/s, rad/s: where soft_l1 turns linear
             xtol=float(o.get("xtol", 1e-10)),
-            # 1e-8 (scipy's default): on the bench's 48k rows 1e-12 added about 20 evaluations that moved
-            # the robust cost by under 1e-7 of itself (CHANGELOG 2026-12-07)
-            ftol=float(o.get("ftol", 1e-8)),
+            ftol=float(o.get("ftol", 1e-12)),
             gtol=float(o.get("gtol", 1e-12)),
             max_nfev=int(o.get("max_nfev", 200)),
             x_scale=o.get("x_scale", 1.0),
@@ -218,17 +187,14 @@ class FitProblem:
         p.update({n: float(np.exp(v)) for n, v in zip(self.names, z, strict=True)})
         return p
 
-    def evaluate(self, z: np.ndarray, settle: bool = False) -> dict:
-        """The solve at z (cached: scipy asks for the residual and then the Jacobian at the same z); given
-        up where ``beyond_accepted`` says so, unless ``settle``."""
+    def evaluate(self, z: np.ndarray) -> dict:
+        """The solve at z (cached: scipy asks for the residual and then the Jacobian at the same z)."""
         last = self.last
         if last.get("z") is not None and np.array_equal(last["z"], z):
             return last
         p = self.params(z)
-        early = self.analytic and self.accepted_cost is not None and not settle
-        give_up = self.beyond_accepted if early else None
         far = None if self.scored is None else FAR_TRIAL_ROOTLESS
-        v, sol = self.model.velocities(self.inp, p, theta0=self.theta, give_up=give_up, fallback_below=far)
+        v, sol = self.model.velocities(self.inp, p, theta0=self.theta, fallback_below=far)
         if self.theta is None or np.all(sol.status > 0):
             # warm start for the next evaluation: the commanded problem's solution, not the fallback's
             self.theta = sol.info.get("commanded_theta", sol.theta)
@@ -240,19 +206,6 @@ class FitProblem:
         last.update(z=np.array(z, copy=True), p=p, sol=sol, r=r.ravel())
         return last
 
-    def beyond_accepted(self, theta: np.ndarray, status: np.ndarray) -> bool:
-        """Whether the settled steps of a solve (scored, with a physical root: later passes leave them
-        as they are) cost more than the point trf accepted last: then trf rejects the point whatever the
-        others' residuals, and its next step depends only on the step length (the radius shrinks to a
-        quarter of it), so they need not be solved."""
-        lsq = self.lsq_options
-        wl, wr = self.inp[:2]
-        keep = self.scored & self.model.physical(theta, status, wl, wr)
-        geo = self.model.geometry
-        v = body_velocity(theta[keep], wl[keep], wr[keep], geo.r, geo.B)
-        cost = robust_cost(v - self.y[keep], lsq["loss"], lsq["f_scale"])
-        return cost > self.accepted_cost * (1.0 + GIVE_UP_MARGIN)
-
     def residuals(self, z: np.ndarray) -> np.ndarray:
         return self.evaluate(z)["r"]
 
@@ -260,12 +213,6 @@ class FitProblem:
         """d residual / d log p: the implicit-function derivative of the solved slips (one 3x3 solve per
         step at the converged Jacobian), not 5 more solves of every step."""
         e = self.evaluate(z)
-        if e["sol"].info.get("given_up"):  # trf accepts no such point; solved in full if it ever did
-            self.last.clear()
-            e = self.evaluate(z, settle=True)
-        # trf asks for the Jacobian at a point exactly when it accepts it: the cost a trial must beat
-        if isinstance(self.lsq_options["loss"], str):
-            self.accepted_cost = robust_cost(e["r"], self.lsq_options["loss"], self.lsq_options["f_scale"])
         sol, p = e["sol"], e["p"]
         wl, wr, dwl, dwr = self.inp
         k = np.ones(len(self.y)) if sol.accel_scale is None else sol.accel_scale
@@ -281,7 +228,6 @@ class FitProblem:
         hi = np.log([float(self.ranges[n][1]) for n in self.names])
         z0 = np.clip(np.log([float(start[n]) for n in self.names]), lo + 1e-9, hi - 1e-9)
         self.last.clear()
-        self.accepted_cost = None
         jac = self.jacobian if self.analytic else "2-point"
         res = least_squares(self.residuals, z0, bounds=(lo, hi), jac=jac, **self.lsq_options)
         return Solution(list(self.names), z0, res, self.params(res.x))

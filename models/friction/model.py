@@ -84,7 +84,7 @@ class FrictionBased(KinematicModel):
         return tuple(col(table, c) for c in ("cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"))
 
     def velocities(
-        self, inputs, params=None, theta0=None, give_up=None, fallback_below: float | None = None
+        self, inputs, params=None, theta0=None, fallback_below: float | None = None
     ) -> tuple[np.ndarray, SolveResult]:
         """(T, 3) body velocities and the per-step solve (eq. 12 then eq. 8).
 
@@ -95,25 +95,20 @@ class FrictionBased(KinematicModel):
         physical solution: the motion at the largest tried fraction of the commanded acceleration
         that the forces can balance (``sol.accel_scale``; 0 is the steady state). Without it such a
         step predicted body speeds of hundreds of m/s on DRIVE's command steps. ``sol.status`` stays
-        the status of the commanded problem. ``options.accel_fallback=false`` turns it off.
-
-        ``give_up`` (a callable of theta and status, ``FitProblem.beyond_accepted``): asked after the
-        solve's first pass and again before this fallback; where it returns True both are skipped
-        (``sol.info["given_up"]``) and the steps not physical keep the commanded problem's solution.
+        the status of the commanded problem. ``options.accel_fallback=false`` turns it off;
+        ``fallback_below`` (a fraction) skips it where more than that fraction of the steps has no root
+        (``FitProblem.evaluate``: a trial point far from any fit).
         """
         p = self.params if params is None else params
         geo = self.geometry
-        sol = solve(*inputs, p, geo, theta0=theta0, give_up=give_up)
+        sol = solve(*inputs, p, geo, theta0=theta0)
         wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in inputs)
         scale = np.ones(wl.size)
-        bad = ~self.physical(sol.theta, sol.status, wl, wr)
-        fallback = bool(self.options.get("accel_fallback", True) and bad.any())
-        if fallback and give_up is not None and (sol.info["given_up"] or give_up(sol.theta, sol.status)):
-            sol.info["given_up"] = True
-            fallback = False
+        bad = ~self._physical(sol.theta, sol.status, wl, wr)
+        fallback = self.options.get("accel_fallback", True)
         if fallback_below is not None and np.mean(sol.status != 1) > fallback_below:
             fallback = False
-        if fallback:
+        if bad.any() and fallback:
             # every fraction of every such step in one batched solve (they are independent problems)
             idx = np.flatnonzero(bad)
             ks = np.repeat(np.asarray(ACCEL_SCALES, dtype=float), idx.size)
@@ -121,7 +116,7 @@ class FrictionBased(KinematicModel):
             sub = solve(
                 wl[rep], wr[rep], ks * dwl[rep], ks * dwr[rep], p, geo, restarts=False, max_iter=FALLBACK_ITER
             )
-            ok = self.physical(sub.theta, sub.status, wl[rep], wr[rep]).reshape(len(ACCEL_SCALES), idx.size)
+            ok = self._physical(sub.theta, sub.status, wl[rep], wr[rep]).reshape(len(ACCEL_SCALES), idx.size)
             found = ok.any(axis=0)
             first = np.argmax(ok, axis=0)  # the largest fraction with a physical solution
             pick = first * idx.size + np.arange(idx.size)
@@ -135,9 +130,8 @@ class FrictionBased(KinematicModel):
         return body_velocity(sol.theta, wl, wr, geo.r, geo.B), sol
 
     @staticmethod
-    def physical(theta: np.ndarray, status: np.ndarray, wl: np.ndarray, wr: np.ndarray) -> np.ndarray:
-        """(T,) a root with both slip ratios in [-1, 1] (a side with no commanded rate has none): the steps
-        ``velocities`` predicts from the commanded problem's solution."""
+    def _physical(theta: np.ndarray, status: np.ndarray, wl: np.ndarray, wr: np.ndarray) -> np.ndarray:
+        """(T,) a root with both slip ratios in [-1, 1] (a side with no commanded rate has none)."""
         free = free_mask(wl, wr)[:, :2]
         return (status == 1) & ~np.any(free & (np.abs(theta[:, :2]) > 1.0), axis=1)
 

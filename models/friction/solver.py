@@ -243,7 +243,6 @@ def solve(
     stall_iter: int = 8,
     restarts: bool = True,
     fallback_max: int = 10,
-    give_up=None,
 ) -> SolveResult:
     """Batched Levenberg-Marquardt on all steps at once (eq. 12), with restarts for the steps it leaves
     without a root.
@@ -268,10 +267,6 @@ def solve(
     F^T F. Steps still descending get a last pass with 4 x max_iter iterations, and if at most
     ``fallback_max`` remain, a per-step scipy trf solve from their best point. Where the first pass
     finds a root it is kept, so roots are the ones a zero-slip (or warm) start leads to, like the reference's.
-
-    ``give_up`` (a callable of the first pass's theta and status): where it returns True, the restarts and
-    the trf fallback are skipped and ``info["given_up"]`` is set (``FitProblem.beyond_accepted``: a trial
-    point the fit rejects whatever the unsettled steps would give).
     """
     wl, wr, dwl, dwr = (np.asarray(a, dtype=float).ravel() for a in (wl, wr, dwl, dwr))
     inp = (wl, wr, dwl, dwr)
@@ -300,12 +295,8 @@ def solve(
         "first_pass_not_converged": int(np.sum(status == 0)),
         "first_pass_no_root": int(np.sum(status == 2)),
         "restarted": 0,
-        "given_up": False,
     }
     todo = np.flatnonzero(status != 1)
-    if restarts and todo.size and give_up is not None and give_up(theta, status):
-        info["given_up"] = True
-        restarts = False
     if restarts and todo.size:
         info["restarted"] = int(todo.size)
         n_iter += _restart(theta, F, cost, status, todo, inp, p, geo, mask, zero_start, max_iter, opts)
