@@ -74,7 +74,8 @@ def render_sequence(n: int, seed: int = 7, **render_options) -> tuple[Any, list[
 def measure(n_frames: int, render_options: dict | None = None) -> dict[str, Any]:
     import cv2
 
-    from skidbench.pipeline.groundtruth.stereo.vo import StereoCamera, StereoVO, VOConfig, camera_extrinsic
+    from skidbench.pipeline.groundtruth.stereo.stereo_vo import StereoVO
+    from skidbench.pipeline.groundtruth.stereo.vo_settings import StereoCamera, VOConfig, camera_extrinsic
 
     cores = _limit_cores()
     renderer, pairs, camera_fps = render_sequence(n_frames, **(render_options or {}))

@@ -12,15 +12,10 @@ import yaml
 from skidbench.pipeline.core.errors import GroundTruthError
 from skidbench.pipeline.core.geometry import quaternion_from_yaw, se3_from_xyz_rpy
 from skidbench.pipeline.groundtruth.loop import evaluate_against_truth, loop_error, summarize_loops
-from skidbench.pipeline.groundtruth.stereo.stereo_vo import (
-    StereoCamera,
-    StereoVO,
-    VOConfig,
-    base_to_camera,
-    camera_extrinsic,
-    camera_to_base,
-)
+from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
+from skidbench.pipeline.groundtruth.stereo.stereo_vo import StereoVO
 from skidbench.pipeline.groundtruth.stereo.vo import StereoSettings, run_stereo_vo
+from skidbench.pipeline.groundtruth.stereo.vo_settings import StereoCamera, VOConfig, camera_extrinsic
 from skidbench.pipeline.groundtruth.trajectory import Trajectory
 from skidbench.pipeline.simulate.render import StereoRenderer
 

@@ -19,7 +19,7 @@ from skidbench.pipeline.extract.convert import header_stamp_ns
 from skidbench.pipeline.extract.images import ImageDecodeError, gray8
 from skidbench.pipeline.extract.reader import open_bag
 from skidbench.pipeline.extract.settings import DEFAULT_STORES
-from skidbench.pipeline.groundtruth.stereo.stereo_vo import StereoCamera, VOConfig
+from skidbench.pipeline.groundtruth.stereo.vo_settings import StereoCamera, VOConfig
 
 __all__ = ["open_stereo_bag", "read_stereo_camera", "check_image_topics", "iter_stereo_frames"]
 

@@ -20,37 +20,20 @@ from pathlib import Path
 from typing import Any
 
 from skidbench.pipeline.core.errors import GroundTruthError, SkidbenchError, one_line
-from skidbench.pipeline.groundtruth.orbslam import base_to_camera, camera_to_base
 from skidbench.pipeline.groundtruth.stereo.stereo_bag import (
     check_image_topics,
     iter_stereo_frames,
     open_stereo_bag,
     read_stereo_camera,
 )
-from skidbench.pipeline.groundtruth.stereo.stereo_vo import (
-    StereoCamera,
-    StereoVO,
+from skidbench.pipeline.groundtruth.stereo.stereo_vo import StereoVO
+from skidbench.pipeline.groundtruth.stereo.vo_settings import (
     VOConfig,
-    VOStats,
     camera_extrinsic,
 )
 from skidbench.pipeline.groundtruth.trajectory import Trajectory
 
-__all__ = [
-    "VOConfig",
-    "StereoVO",
-    "StereoCamera",
-    "VOStats",
-    "run_stereo_vo",
-    "StereoSettings",
-    "camera_extrinsic",
-    "camera_to_base",
-    "base_to_camera",
-    "read_stereo_camera",
-    "iter_stereo_frames",
-    "source_image_topics",
-    "extracted_image_topics",
-]
+__all__ = ["run_stereo_vo", "StereoSettings", "source_image_topics", "extracted_image_topics"]
 
 
 def _get(node: Any, path: str, default: Any = None) -> Any:
