@@ -17,7 +17,7 @@ from skidbench.models.augmented.effects import (
     base_targets,
     command_features,
 )
-from skidbench.pipeline.calibrate.wheel_response import lag_filter, lag_response
+from skidbench.pipeline.calibrate.actuator import lag_filter, lag_response
 
 SPEC = Path(__file__).resolve().parents[2] / "shared" / "SPEC.md"
 SPEC_IDS = (

@@ -13,7 +13,8 @@ from skidbench.models.friction.balance import FrictionGeometry, body_velocity
 from skidbench.models.friction.fit import PARAM_RANGES, bound_report
 from skidbench.models.friction.model import FrictionBased
 from skidbench.models.friction.solver import solve
-from skidbench.pipeline.calibrate import wheel_response as actuator
+from skidbench.pipeline.calibrate import actuator
+from skidbench.pipeline.calibrate.wheel_response import identify_response
 from skidbench.pipeline.core.robot import load_robot
 
 #: physically plausible friction on a Husky-sized robot; lambda |s| stays under mu_x (mu_x identifiable
@@ -216,7 +217,7 @@ def drive_husky_fit(shared_real, tmp_path_factory):
     husky = load_robot("husky")
     table = split_table(splits, rows=6000)
     # the fair protocol: driven by the wheel response identified from the Train encoders, as any model
-    response = actuator.identify_response(table)
+    response = identify_response(table)
     model = FrictionBased(husky, max_nfev=40).fit(fit_table(table, "response", husky, response.response))
     return model, response
 

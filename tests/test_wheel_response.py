@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from skidbench.pipeline.calibrate import wheel_response as actuator
+from skidbench.pipeline.calibrate import actuator, wheel_response
 from skidbench.pipeline.calibrate.wheel_response import WheelResponse
 
 RATE = 30.0
@@ -77,7 +77,7 @@ def test_response_follows_its_definition():
     """The closed form per run of a held command (ramp, then geometric decay) is the row-by-row recursion,
     and its rates are the clipped lag's (u - y) / tau."""
     table = _commands(n=1200, seed=3)
-    got = actuator.wheel_response(table, TRUTH)
+    got = wheel_response.wheel_response(table, TRUTH)
     assert got[:, :2] == pytest.approx(_reference(table, TRUTH), abs=1e-9)
     assert np.abs((got[:, 2] + got[:, 3]) / 2).max() <= TRUTH.accel_s + 1e-9
     assert np.abs((got[:, 3] - got[:, 2]) / 2).max() <= TRUTH.accel_d + 1e-9
@@ -96,7 +96,7 @@ def test_response_with_a_new_command_every_row_takes_the_loop_and_follows_the_de
         dt = t[k] - t[k - 1]
         step = (1 - np.exp(-dt / tau)) * (u[k] - ref[k - 1])
         ref[k] = ref[k - 1] + np.where(acc > 0, np.clip(step, -acc * dt, acc * dt), step)
-    assert actuator._slew_lag(t, u, tau, acc) == pytest.approx(ref, abs=1e-12)
+    assert wheel_response._slew_lag(t, u, tau, acc) == pytest.approx(ref, abs=1e-12)
 
 
 def test_unit_gain_and_no_limits_is_exactly_the_delay_lag_model():
@@ -105,18 +105,18 @@ def test_unit_gain_and_no_limits_is_exactly_the_delay_lag_model():
     lin = WheelResponse(delay_s=d, tau_s=0.45, tau_d_s=0.45)
     assert lin.is_delay_lag
     ref = actuator.apply(table, d, 0.45)[["cmd_wl", "cmd_wr", "cmd_dwl", "cmd_dwr"]].to_numpy()
-    assert actuator.wheel_response(table, lin) == pytest.approx(ref, abs=1e-9)
+    assert wheel_response.wheel_response(table, lin) == pytest.approx(ref, abs=1e-9)
     # and a model saved by friction 1.6 (delay and lag only) reads back as that model
     old = WheelResponse.from_params({"actuator_delay_s": d, "actuator_tau_s": 0.45})
     assert old == lin
-    assert actuator.respond(table, WheelResponse()) is table
+    assert wheel_response.respond(table, WheelResponse()) is table
 
 
 def test_identification_recovers_injected_gain_saturation_slew_delay_and_lag():
     table = _commands(n=3600, seed=0)
     enc = _reference(table, TRUTH)
     table = table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1])
-    fit = actuator.identify_response(table, ("delay+lag+slew+gain+modes",), max_nfev=200)
+    fit = wheel_response.identify_response(table, ("delay+lag+slew+gain+modes",), max_nfev=200)
     r = fit.response
     assert fit.rmse_response < 0.01 * fit.rmse_command
     assert r.delay_s == pytest.approx(TRUTH.delay_s, abs=0.5 / RATE)
@@ -134,14 +134,14 @@ def test_structure_choice_keeps_the_delay_lag_model_on_data_it_generated():
     lin = WheelResponse(delay_s=0.3, tau_s=0.4, tau_d_s=0.4)
     noise = np.random.default_rng(5).normal(0, 0.1, size=(len(table), 2))
     enc = _reference(table, lin) + noise
-    fit = actuator.identify_response(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
+    fit = wheel_response.identify_response(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
     assert fit.structure == "delay+lag"
     assert fit.response.delay_s == pytest.approx(0.3, abs=0.5 / RATE)
     assert fit.response.tau_s == pytest.approx(0.4, rel=0.05)
-    assert set(fit.candidates) == set(actuator.CANDIDATES)
+    assert set(fit.candidates) == set(wheel_response.CANDIDATES)
     limited = _commands(n=3600, seed=2)
     enc = _reference(limited, TRUTH) + noise
-    fit = actuator.identify_response(limited.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
+    fit = wheel_response.identify_response(limited.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
     assert fit.structure != "delay+lag"
     assert fit.candidates[fit.structure]["heldout_rmse"] < 0.5 * fit.candidates["delay+lag"]["heldout_rmse"]
 
@@ -166,7 +166,7 @@ def test_identified_response_reports_per_structure_heldout_rmse_and_parameter_un
     table = _commands(n=2400, seed=7)
     truth = WheelResponse(delay_s=0.2, tau_s=0.35, tau_d_s=0.35)
     enc = _reference(table, truth) + np.random.default_rng(1).normal(0, 0.05, (len(table), 2))
-    fit = actuator.identify_response(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
+    fit = wheel_response.identify_response(table.assign(enc_wl=enc[:, 0], enc_wr=enc[:, 1]))
     doc = fit.to_dict()
     assert doc["structure"] == "delay+lag" and doc["heldout_rmse"] > 0
     se = doc["param_se"]
@@ -183,7 +183,7 @@ def test_drive_warthog_response_beats_the_delay_lag_model(shared_real, tmp_path)
     from drive_data import drive_splits, split_table
 
     splits = drive_splits(shared_real / "drive", tmp_path, "warthog", "source.file=warthog_windows.parquet")
-    fit = actuator.identify_response(split_table(splits, rows=6000))
+    fit = wheel_response.identify_response(split_table(splits, rows=6000))
     lag = fit.candidates["delay+lag"]
     assert fit.structure != "delay+lag"
     assert fit.rmse_response < 0.8 * lag["train_rmse"] < fit.rmse_command

@@ -10,7 +10,7 @@ in which discovery found them:
 
 1. ``actuator_lag`` (an input transform): every command channel passes through a causal first-order
    lag ``tau * dy/dt = u - y`` (the continuous response of commands linear between clock samples,
-   ``pipeline.wheel_response.lag_response``), restarted at each sequence start; the command derivatives
+   ``pipeline.calibrate.actuator.lag_response``), restarted at each sequence start; the command derivatives
    become ``(u - y) / tau``. The base model then predicts from the lagged commands.
 2. multiplicative yaw-rate factors on the base prediction (``curvature_dependent_icr``,
    ``speed_dependent_turn_slip``);
@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from skidbench.models.augmented import terms as termlib
-from skidbench.pipeline.calibrate.wheel_response import CMD_COLUMNS, lag_response
+from skidbench.pipeline.calibrate.actuator import CMD_COLUMNS, lag_response
 
 INF = float("inf")
 
