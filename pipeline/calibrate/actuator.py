@@ -30,6 +30,12 @@ from scipy.signal import lfilter
 CMD_COLUMNS = ("cmd_v", "cmd_w", "cmd_wl", "cmd_wr")
 
 
+def runs(groups: np.ndarray) -> list[tuple[int, int]]:
+    """``(start, end)`` of each run of equal ``groups`` values (one per row: a sequence's rows), in order."""
+    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
+    return list(zip(starts.tolist(), np.r_[starts[1:], len(groups)].tolist(), strict=True))
+
+
 def lag_filter(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.DataFrame:
     """Commands through a causal first-order lag with time constant ``tau`` (s), restarted at each
     group (sequence) start with the first command (a robot at rest starts where it is told).
@@ -38,9 +44,7 @@ def lag_filter(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.DataFr
     t = table["t"].to_numpy(float)
     u = table[list(CMD_COLUMNS)].to_numpy(float)
     y = np.empty_like(u)
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    ends = np.r_[starts[1:], len(t)]
-    for a, b in zip(starts, ends, strict=True):
+    for a, b in runs(groups):
         y[a] = u[a]
         if b - a < 2:
             continue
@@ -72,8 +76,7 @@ def lag_response(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.Data
     ``cmd_dwl``/``cmd_dwr`` = (u - y) / tau, the response's derivative at the sample.
 
     The discovery effect ``actuator_lag`` (models/augmented/effects.py). The split's commands are samples of
-    the
-    commanded rates at the clock (aligned with what the velocities see by discovery's ``align_commands``),
+    the commanded rates at the clock (aligned with what the velocities see by discovery's ``align_commands``),
     and the horizon integrates the predicted velocities as linear between samples (the trapezoidal rule):
     the lag of that same piecewise-linear signal is the consistent one. :func:`lag_filter`'s recursion
     lets ``y_k`` respond to ``u_k`` over the whole step before it (half a step early), its delayed form in
@@ -84,9 +87,7 @@ def lag_response(table: pd.DataFrame, tau: float, groups: np.ndarray) -> pd.Data
     u = table[list(CMD_COLUMNS)].to_numpy(float)
     y = np.empty_like(u)
     tau = max(float(tau), 1e-6)
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    ends = np.r_[starts[1:], len(t)]
-    for a, b in zip(starts, ends, strict=True):
+    for a, b in runs(groups):
         y[a] = u[a]
         if b - a < 2:
             continue
@@ -145,9 +146,7 @@ def delay(table: pd.DataFrame, delay_s: float, groups: np.ndarray | None = None)
     t = table["t"].to_numpy(float)
     u = table[list(CMD_COLUMNS)].to_numpy(float)
     y = u.copy()
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    ends = np.r_[starts[1:], len(t)]
-    for a, b in zip(starts, ends, strict=True):
+    for a, b in runs(groups):
         src = np.searchsorted(t[a:b], t[a:b] - delay_s + 1e-9, side="right") - 1  # last sample <= t - d
         y[a:b] = u[a:b][np.clip(src, 0, None)]
     for j, c in enumerate(CMD_COLUMNS):

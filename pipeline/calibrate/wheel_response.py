@@ -24,6 +24,7 @@ from skidbench.pipeline.calibrate.actuator import (
     apply,
     groups_of,
     identify,
+    runs,
 )
 
 # --- the general wheel response ---------------------------------------------------------------------------
@@ -188,9 +189,7 @@ def wheel_response(table: pd.DataFrame, resp: WheelResponse, groups: np.ndarray 
     # to u_k, the continuous lag's y(t_k) to the command held before t_k)
     lag_step = step if (resp.tau_s > 0 or resp.tau_d_s > 0 or resp.accel_s > 0 or resp.accel_d > 0) else 0.0
     d = max(resp.delay_s, 0.0) + lag_step
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    ends = np.r_[starts[1:], len(t)]
-    for a, b in zip(starts, ends, strict=True):
+    for a, b in runs(groups):
         ts = t[a:b]
         if d > 0:
             # before the sequence: its first command; on a uniform clock in sample units (a delay on the
