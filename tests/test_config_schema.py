@@ -256,6 +256,20 @@ def test_a_mistyped_or_misspelt_root_override_is_one_line_naming_the_key(overrid
             "groundtruth.max_gap=abc",
             "invalid value groundtruth.max_gap=abc: allowed a number > 0 (s)",
         ),
+        ("simulate", "format=ros3", "invalid value format=ros3: allowed one of ros1|ros2|mcap"),
+        ("simulate", "dt=0.1", "invalid value dt=0.1: allowed a number > 0 and <= 0.01 (s, physics step)"),
+        ("simulate", "jobs=0", "invalid value jobs=0: allowed an integer >= 1"),
+        ("simulate", "images=2", "invalid value images=2: allowed true or false"),
+        ("simulate", "only=grass_cv_00", "invalid value only=grass_cv_00: allowed a list [a,b,...]"),
+        ("simulate", "rates.imu=0", "invalid value rates.imu=0: allowed a number > 0 (Hz)"),
+        ("simulate", "rates.imu=abc", "invalid value rates.imu=abc: allowed a number > 0 (Hz)"),
+        (
+            "simulate",
+            "sensors.gyro=-1",
+            "invalid value sensors.gyro=-1: allowed a number >= 0 (1-sigma noise)",
+        ),
+        ("simulate", "formt=ros2", "unknown config key 'formt'; did you mean 'format'?"),
+        ("simulate", "rates.imuu=100", "unknown config key 'rates.imuu'; did you mean 'rates.imu'?"),
     ],
 )
 def test_a_mistyped_or_misspelt_section_override_of_another_stage_is_one_line(stage, override, message):
