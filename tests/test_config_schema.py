@@ -269,6 +269,13 @@ def test_a_mistyped_or_misspelt_root_override_is_one_line_naming_the_key(overrid
             "invalid value sensors.gyro=-1: allowed a number >= 0 (1-sigma noise)",
         ),
         ("simulate", "formt=ros2", "unknown config key 'formt'; did you mean 'format'?"),
+        ("calibrate", "force=yes", "invalid value force=yes: allowed true or false"),
+        ("calibrate", "trak=false", "unknown config key 'trak'; did you mean 'track'?"),
+        ("fit", "split=test", "invalid value split=test: allowed one of train|"),
+        ("fit", "reuse=2", "invalid value reuse=2: allowed true or false"),
+        ("fit", "terain=tile", "unknown config key 'terain'; did you mean 'terrain'?"),
+        ("publish", "rank_by=[a,b]", "invalid value rank_by=[a,b]: allowed a string"),
+        ("publish", "rank_bi=mean4", "unknown config key 'rank_bi'; did you mean 'rank_by'?"),
         ("simulate", "rates.imuu=100", "unknown config key 'rates.imuu'; did you mean 'rates.imu'?"),
     ],
 )

@@ -36,17 +36,17 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from skidbench.benchmark.board.settings import CompareOptions
+from skidbench.benchmark.board.settings import CompareOptions, RankOptions
 from skidbench.benchmark.discovery.settings import DiscoverOptions
 from skidbench.benchmark.evaluate.settings import EvaluateOptions
 from skidbench.benchmark.release.settings import ExportBundle, ImportBundle, PublishOptions, ScoreOptions
 from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.benchmark.tracking.settings import MlflowSettings, RunsOptions
-from skidbench.pipeline.calibrate.settings import CalibrationSettings
+from skidbench.models.fitting.settings import FitOptions
+from skidbench.pipeline.calibrate.settings import CalibrateOptions, CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.layout import CommonSettings
-from skidbench.pipeline.core.manifest import SPLITS
 from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.groundtruth.settings import GroundTruthSettings
 from skidbench.pipeline.simulate.settings import SimulateOptions
@@ -316,6 +316,9 @@ ROOTS: dict[str, type] = {
     "compare": CompareOptions,
     "runs": RunsOptions,
     "simulate": SimulateOptions,
+    "calibrate": CalibrateOptions,
+    "fit": FitOptions,
+    "publish": RankOptions,
 }
 
 
@@ -412,12 +415,8 @@ SCHEMA: dict[str, Spec] = {
     "source.topics.*.topic": STR,
     "source.topics.*.type": STR,
     "source.topics.*.required": BOOL,
-    # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
-    "force": BOOL,  # calibrate's (evaluate's is EvaluateOptions', simulate's SimulateOptions')
-    "track": BOOL,
-    "reuse": BOOL,
-    "terrain": OPT_STR,
-    "split": choice(*SPLITS),  # fit's split (the split stage's `split` is the section above)
+    # -- discover.yaml --------------------------------------------------------------------------------
+    "terrain": OPT_STR,  # discover's (fit's is FitOptions', declared alike)
     # -- model/ -----------------------------------------------------------------------------------------
     "model.name": STR,
     "model.params": ANY,
@@ -430,7 +429,6 @@ SCHEMA: dict[str, Spec] = {
     "model.options.fit_params": listof(STR, 1, null=True),
     "model.options.*": ANY,  # a model's own options (its class validates them)
     "model.options.*.*": ANY,
-    "rank_by": STR,  # publish's (compare's is CompareOptions')
 }
 # fmt: on
 
