@@ -276,6 +276,16 @@ def test_a_mistyped_or_misspelt_root_override_is_one_line_naming_the_key(overrid
         ("fit", "terain=tile", "unknown config key 'terain'; did you mean 'terrain'?"),
         ("publish", "rank_by=[a,b]", "invalid value rank_by=[a,b]: allowed a string"),
         ("publish", "rank_bi=mean4", "unknown config key 'rank_bi'; did you mean 'rank_by'?"),
+        (
+            "groundtruth",
+            "+groundtruth.vo.n_featres=900",
+            "unknown config key 'groundtruth.vo.n_featres'; did you mean 'groundtruth.vo.n_features'?",
+        ),
+        (
+            "groundtruth",
+            "+groundtruth.vo.stride=abc",
+            "invalid value groundtruth.vo.stride=abc: allowed an integer",
+        ),
         ("simulate", "rates.imuu=100", "unknown config key 'rates.imuu'; did you mean 'rates.imu'?"),
     ],
 )
@@ -301,8 +311,8 @@ def test_discover_takes_the_settings_of_the_stages_it_runs_for_a_raw_source():
 
 def test_the_groundtruth_section_reads_the_sources_method_and_takes_free_vo_options():
     """``groundtruth.method`` and ``groundtruth.pose_topic.key`` default to what the source names (a raw
-    source's pose table); ``+groundtruth.vo.*`` add the stereo VO's options, free (VOConfig names an
-    unknown one when VO runs); ``orbslam.dir`` is unset until the method needs it."""
+    source's pose table); ``+groundtruth.vo.*`` add the stereo VO's options (VOConfig's fields, checked
+    at the start); ``orbslam.dir`` is unset until the method needs it."""
     from skidbench.pipeline.groundtruth.app import GroundTruthConfig
 
     _, cfg = check_overrides("groundtruth", ["source=drive_df", "+groundtruth.vo.n_features=300"])
