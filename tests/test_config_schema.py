@@ -256,6 +256,37 @@ def test_a_mistyped_or_misspelt_root_override_is_one_line_naming_the_key(overrid
             "groundtruth.max_gap=abc",
             "invalid value groundtruth.max_gap=abc: allowed a number > 0 (s)",
         ),
+        ("simulate", "format=ros3", "invalid value format=ros3: allowed one of ros1|ros2|mcap"),
+        ("simulate", "dt=0.1", "invalid value dt=0.1: allowed a number > 0 and <= 0.01 (s, physics step)"),
+        ("simulate", "jobs=0", "invalid value jobs=0: allowed an integer >= 1"),
+        ("simulate", "images=2", "invalid value images=2: allowed true or false"),
+        ("simulate", "only=grass_cv_00", "invalid value only=grass_cv_00: allowed a list [a,b,...]"),
+        ("simulate", "rates.imu=0", "invalid value rates.imu=0: allowed a number > 0 (Hz)"),
+        ("simulate", "rates.imu=abc", "invalid value rates.imu=abc: allowed a number > 0 (Hz)"),
+        (
+            "simulate",
+            "sensors.gyro=-1",
+            "invalid value sensors.gyro=-1: allowed a number >= 0 (1-sigma noise)",
+        ),
+        ("simulate", "formt=ros2", "unknown config key 'formt'; did you mean 'format'?"),
+        ("calibrate", "force=yes", "invalid value force=yes: allowed true or false"),
+        ("calibrate", "trak=false", "unknown config key 'trak'; did you mean 'track'?"),
+        ("fit", "split=test", "invalid value split=test: allowed one of train|"),
+        ("fit", "reuse=2", "invalid value reuse=2: allowed true or false"),
+        ("fit", "terain=tile", "unknown config key 'terain'; did you mean 'terrain'?"),
+        ("publish", "rank_by=[a,b]", "invalid value rank_by=[a,b]: allowed a string"),
+        ("publish", "rank_bi=mean4", "unknown config key 'rank_bi'; did you mean 'rank_by'?"),
+        (
+            "groundtruth",
+            "+groundtruth.vo.n_featres=900",
+            "unknown config key 'groundtruth.vo.n_featres'; did you mean 'groundtruth.vo.n_features'?",
+        ),
+        (
+            "groundtruth",
+            "+groundtruth.vo.stride=abc",
+            "invalid value groundtruth.vo.stride=abc: allowed an integer",
+        ),
+        ("simulate", "rates.imuu=100", "unknown config key 'rates.imuu'; did you mean 'rates.imu'?"),
     ],
 )
 def test_a_mistyped_or_misspelt_section_override_of_another_stage_is_one_line(stage, override, message):
@@ -280,8 +311,8 @@ def test_discover_takes_the_settings_of_the_stages_it_runs_for_a_raw_source():
 
 def test_the_groundtruth_section_reads_the_sources_method_and_takes_free_vo_options():
     """``groundtruth.method`` and ``groundtruth.pose_topic.key`` default to what the source names (a raw
-    source's pose table); ``+groundtruth.vo.*`` add the stereo VO's options, free (VOConfig names an
-    unknown one when VO runs); ``orbslam.dir`` is unset until the method needs it."""
+    source's pose table); ``+groundtruth.vo.*`` add the stereo VO's options (VOConfig's fields, checked
+    at the start); ``orbslam.dir`` is unset until the method needs it."""
     from skidbench.pipeline.groundtruth.app import GroundTruthConfig
 
     _, cfg = check_overrides("groundtruth", ["source=drive_df", "+groundtruth.vo.n_features=300"])

@@ -258,12 +258,13 @@ def _simulated_cv_drive():
     from skidbench.pipeline.simulate.physics import load_physics
     from skidbench.pipeline.simulate.scenarios import SequenceSpec
     from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence
+    from skidbench.pipeline.simulate.settings import SimulateOptions
 
     conf = files("skidbench.conf")
     robot = Robot.from_config(yaml.safe_load(conf.joinpath("robot/jackal.yaml").read_text()))
     terrains, drive, tyre = load_physics(yaml.safe_load(conf.joinpath("sim/jackal.yaml").read_text()))
-    sim = yaml.safe_load(conf.joinpath("simulate.yaml").read_text())
-    run = RunSettings(dt=sim["dt"], rates=sim["rates"], sensors=sim["sensors"])
+    sim = SimulateOptions()  # simulate's defaults
+    run = RunSettings(dt=sim.dt, rates=sim.rates, sensors=sim.sensors)
     spec = SequenceSpec("grass_cv_00", "grass", "cv", 12.0, {"cv_segment": 3})
     return robot, simulate_sequence(spec, 0, robot, terrains["grass"], drive, tyre, run, 0, None)
 

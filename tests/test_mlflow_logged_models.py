@@ -160,7 +160,7 @@ def test_a_fit_runs_model_is_logged_too(real_models):
     out, _, _, client, runs = real_models
     cfg = compose("fit", out, ["model=roc", "terrain=tile", "calibrate.use=false"])
     res = fit_model(FitSettings.from_cfg(cfg), "roc", "tile")  # the evaluate's fit, reused
-    run = client.get_run(log_fit_run(cfg, layout_from_cfg(cfg), "roc", "tile", res))
+    run = client.get_run(log_fit_run(cfg, layout_from_cfg(cfg), "roc", "tile", res, "train"))
     assert run.data.params["fitted.b1"] == runs["roc"].data.params["fitted.b1"]
     model = client.get_logged_model(run.data.tags["skidbench.logged_model"])
     assert model.source_run_id == run.info.run_id

@@ -16,6 +16,7 @@ from skidbench.pipeline.simulate.card import PAPER_TABLE_I
 from skidbench.pipeline.simulate.physics import load_physics
 from skidbench.pipeline.simulate.scenarios import SequenceSpec, plan_sequences
 from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence
+from skidbench.pipeline.simulate.settings import SimulateOptions
 
 CONF = files("skidbench.conf")
 
@@ -28,8 +29,8 @@ def scale(name: str) -> dict:
 def world():
     robot = Robot.from_config(yaml.safe_load(CONF.joinpath("robot/jackal.yaml").read_text()))
     terrains, drive, tyre = load_physics(yaml.safe_load(CONF.joinpath("sim/jackal.yaml").read_text()))
-    sim = yaml.safe_load(CONF.joinpath("simulate.yaml").read_text())
-    run_cfg = RunSettings(dt=sim["dt"], rates={**sim["rates"], "camera": 15.0}, sensors=sim["sensors"])
+    sim = SimulateOptions()  # simulate's defaults
+    run_cfg = RunSettings(dt=sim.dt, rates={**sim.rates, "camera": 15.0}, sensors=sim.sensors)
     return robot, terrains, drive, tyre, run_cfg
 
 

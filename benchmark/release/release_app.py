@@ -94,15 +94,18 @@ score_main.positional = (("dataset",), {"--predictions": "score.predictions"})
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="publish")
 @stage("publish", home=False)
 def publish_main(cfg: DictConfig) -> None:
+    from skidbench.benchmark.board.settings import RankOptions
     from skidbench.benchmark.release.publish import PublishSettings, describe, publish
     from skidbench.benchmark.tracking import store as trk
-    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.pipeline.core.layout import layout_from_cfg, root_from_cfg
     from skidbench.pipeline.datasets.imported import named_dataset
 
     layout, rec = named_dataset(layout_from_cfg(cfg), cfg.get("robot"), "publish")
     tracker = trk.tracker_from_cfg(cfg, layout, dataset_id=str(rec.get("fingerprint") or ""))
     settings = PublishSettings(
-        OmegaConf.to_object(cfg.publish), str(cfg.rank_by), OmegaConf.to_object(cfg.intervals)
+        OmegaConf.to_object(cfg.publish),
+        root_from_cfg(cfg, RankOptions).rank_by,
+        OmegaConf.to_object(cfg.intervals),
     )
     print(describe(publish(settings, layout, rec, tracker, Path(settings.page.dir))), flush=True)
 

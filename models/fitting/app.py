@@ -11,7 +11,7 @@ import json
 import logging
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from skidbench.models.base import ModelError
 from skidbench.pipeline.cli.main import stage
@@ -22,20 +22,16 @@ log = logging.getLogger(__name__)
 @hydra.main(version_base="1.3", config_path="pkg://skidbench.conf", config_name="fit")
 @stage("fit")
 def main(cfg: DictConfig) -> None:
-    from omegaconf.errors import MissingMandatoryValue
-
     from skidbench.models.fitting.fit import FitSettings, fit_model
-    from skidbench.pipeline.core.layout import layout_from_cfg
+    from skidbench.models.fitting.settings import FitOptions
+    from skidbench.pipeline.core.layout import layout_from_cfg, root_from_cfg
 
-    try:
-        terrain = str(cfg.terrain)
-    except MissingMandatoryValue:
-        raise ModelError(
-            "fit: no terrain given; add terrain=<t> (a folder under <dataset>/splits/)"
-        ) from None
+    if OmegaConf.is_missing(cfg, "terrain") or cfg.terrain is None:
+        raise ModelError("fit: no terrain given; add terrain=<t> (a folder under <dataset>/splits/)")
+    opts: FitOptions = root_from_cfg(cfg, FitOptions)
+    terrain = opts.terrain
     name = str(cfg.model.name)
     layout = layout_from_cfg(cfg)
-    track = bool(cfg.get("track", True))
 
     def log_run(res, name, terrain) -> None:
         loss = f"{res.fit_loss:.6g}" if res.fit_loss is not None else "n/a"
@@ -43,8 +39,8 @@ def main(cfg: DictConfig) -> None:
             f"fit {name} on {terrain}: {res.n_train} rows, loss {loss}, {res.fit_time_s:.2f} s, "
             f"params {res.model.params} -> {res.path}"
         )
-        if track:
-            log_fit_run(cfg, layout, name, terrain, res)
+        if opts.track:
+            log_fit_run(cfg, layout, name, terrain, res, opts.split)
 
     # up to date (fitting.fit_stamp, whichever stage made the fit): reused and nothing logged; else
     # fitted, logged, and only then stamped (a job killed before its run was logged refits when retried)
@@ -52,8 +48,8 @@ def main(cfg: DictConfig) -> None:
         FitSettings.from_cfg(cfg),
         name,
         terrain,
-        reuse=bool(cfg.get("reuse", True)),
-        split=str(cfg.split),
+        reuse=opts.reuse,
+        split=opts.split,
         hooks=[log_run],
     )
     if res.reused:
@@ -62,7 +58,7 @@ def main(cfg: DictConfig) -> None:
         print(f"fit: {name}/{terrain}: {res.refit_reason} since its last fit; refitted", flush=True)
 
 
-def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
+def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res, split: str) -> str:
     """One MLflow run for this fit (benchmark/tracking/store.py), tagged with model, terrain, the sweep id and
     the job's run key; a job retried after its run finished logs nothing more (returns that run's id)."""
     from skidbench.benchmark.tracking import store as trk
@@ -90,7 +86,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         **({run_tags.TAG_RUN_KEY: job_key} if job_key else {}),
     }
     tags[run_tags.TAG_NOTE] = run_tags.describe(
-        f"**{name}** fitted on the {cfg.split} split of **{terrain}**",
+        f"**{name}** fitted on the {split} split of **{terrain}**",
         {"dataset": f"`{cfg.dataset}` ({layout.root})", "fit": f"`{res.path}`"},
         run_tags.reproduce_command("fit", [f"model={name}", f"terrain={terrain}", "reuse=false"]),
     )
@@ -98,7 +94,7 @@ def log_fit_run(cfg: DictConfig, layout, name: str, terrain: str, res) -> str:
         params = {
             "model": name,
             "terrain": terrain,
-            "split": str(cfg.split),
+            "split": split,
             "inputs": str(cfg.get("inputs")),
         }
         params.update(

@@ -26,10 +26,11 @@ from skidbench.pipeline.calibrate.calibration import (
     calibrate_terrain,
     train_files,
 )
+from skidbench.pipeline.calibrate.settings import CalibrateOptions
 from skidbench.pipeline.cli.main import stage
 from skidbench.pipeline.core.cache import Fingerprints, stamp_file
 from skidbench.pipeline.core.io import fingerprint_obj
-from skidbench.pipeline.core.layout import layout_from_cfg
+from skidbench.pipeline.core.layout import layout_from_cfg, root_from_cfg
 from skidbench.pipeline.core.robot import robot_from_hydra
 from skidbench.pipeline.core.schema import read_split
 from skidbench.pipeline.runner.tasks import map_items
@@ -93,12 +94,13 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     layout = layout_from_cfg(cfg)
     spec = robot_from_hydra(cfg.robot)
     s = OmegaConf.to_object(cfg.calibrate)
+    opts = root_from_cfg(cfg, CalibrateOptions)
     terrains = sorted({p.parents[1].name for p in train_files(layout)})
     if not terrains:
         raise CalibrationError(
             f"{layout.splits}: no Train split files to calibrate from; run `skidbench split`"
         )
-    if bool(cfg.get("force", False)):
+    if opts.force:
         shutil.rmtree(stamp_file(layout.root, "calibrate"), ignore_errors=True)
     usage = calibration_usage()  # the models say how they take the constants; the calibration knows none
     docs, recomputed = {}, []
@@ -117,7 +119,7 @@ def run(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     else:
         print("models take: " + "; ".join(f"{m}: {u}" for m, u in usage.items()))
     print(f"written: {layout.calibration}/<terrain>.json" + ("" if recomputed else " (up to date, skipped)"))
-    if recomputed and bool(cfg.get("track", True)):
+    if recomputed and opts.track:
         log_run(cfg, layout, docs, spec.name)
     return docs
 

@@ -27,3 +27,13 @@ class CalibrationSettings:
     block_s: float = field(default=10.0, metadata={"gt": 0, "what": "s"})  # blocks of the block bootstrap
     bootstrap: int = field(default=400, metadata={"lo": 0})  # bootstrap resamples
     ci: float = field(default=0.95, metadata={"gt": 0, "hi": 1})  # confidence level of the intervals
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """``skidbench calibrate``'s own root keys (``conf/calibrate.yaml``; ``schema/root/calibrate``, read
+    with ``root_from_cfg``): ``force`` recomputes even when the Train split, robot and settings are
+    unchanged; ``track`` logs one MLflow run when anything was recomputed."""
+
+    force: bool = False
+    track: bool = True

@@ -36,19 +36,20 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from skidbench.benchmark.board.settings import CompareOptions
+from skidbench.benchmark.board.settings import CompareOptions, RankOptions
 from skidbench.benchmark.discovery.settings import DiscoverOptions
 from skidbench.benchmark.evaluate.settings import EvaluateOptions
 from skidbench.benchmark.release.settings import ExportBundle, ImportBundle, PublishOptions, ScoreOptions
 from skidbench.benchmark.report.settings import FigureSettings, ReportDataSettings
 from skidbench.benchmark.scoring.settings import IntervalConfig, StateSettings
 from skidbench.benchmark.tracking.settings import MlflowSettings, RunsOptions
-from skidbench.pipeline.calibrate.settings import CalibrationSettings
+from skidbench.models.fitting.settings import FitOptions
+from skidbench.pipeline.calibrate.settings import CalibrateOptions, CalibrationSettings
 from skidbench.pipeline.core.errors import ConfigError
 from skidbench.pipeline.core.layout import CommonSettings
-from skidbench.pipeline.core.manifest import SPLITS
 from skidbench.pipeline.extract.settings import ExtractOptions
 from skidbench.pipeline.groundtruth.settings import GroundTruthSettings
+from skidbench.pipeline.simulate.settings import SimulateOptions
 from skidbench.pipeline.splits.settings import CardSettings, SplitSettings
 
 _INF = math.inf
@@ -198,10 +199,13 @@ def _section(cls: type, name: str) -> type | None:
 
 
 def structured_spec(key: str) -> Spec | None:
-    """The declaration of a dotted key under a :data:`STRUCTURED` section (``split.consistency.min_rows``:
-    through the nested dataclasses), None when the key is not under one or names no field."""
-    if "." not in key:
-        return next((spec_of(cls, key) for cls in ROOTS.values() if _has_field(cls, key)), None)
+    """The declaration of a root key a :data:`ROOTS` dataclass declares (``jobs``; ``rates.imu``: an entry
+    of a mapping field, its ``item`` metadata), or of a dotted key under a :data:`STRUCTURED` section
+    (``split.consistency.min_rows``: through the nested dataclasses); None when it names no field."""
+    root = key.partition(".")[0]
+    for cls in ROOTS.values():  # a root key, or an entry of a root mapping (rates.imu)
+        if _has_field(cls, root) and (spec := _field_spec(cls, key)) is not None:
+            return spec
     for entry, cls in STRUCTURED.items():
         package = package_of(entry)
         if key.startswith(f"{package}.") and (spec := _field_spec(cls, key[len(package) + 1 :])) is not None:
@@ -221,10 +225,13 @@ def _field_spec(cls: type, key: str) -> Spec | None:
     *path, name = key.split(".")
     for i, part in enumerate(path):
         sub = _section(cls, part)
-        if sub is None:  # a mapping field (extract.typestores): its values' type
+        if sub is None:  # a mapping field (extract.typestores, rates): its values' type, range and unit
+            field = next((f for f in dataclasses.fields(cls) if f.name == part), None)
             tp = typing.get_type_hints(cls).get(part)
-            is_map = typing.get_origin(tp) is dict and i == len(path) - 1
-            return Spec(_kind(typing.get_args(tp)[1])[0]) if is_map else None
+            if field is None or typing.get_origin(tp) is not dict or i != len(path) - 1:
+                return None
+            m = field.metadata
+            return _spec(_kind(typing.get_args(tp)[1])[0], {**m.get("item", {}), "what": m.get("what", "")})
         cls = sub
     return spec_of(cls, name)
 
@@ -248,7 +255,11 @@ def structured_keys() -> Iterator[str]:
     for entry, cls in STRUCTURED.items():
         yield from keys(cls, package_of(entry))
     for cls in ROOTS.values():
-        yield from (f.name for f in dataclasses.fields(cls))
+        for f in dataclasses.fields(cls):
+            yield f.name
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+            if isinstance(default, dict):
+                yield from (f"{f.name}.{k}" for k in default)  # a root mapping's default entries (rates.imu)
 
 
 def schema_node(cls: type) -> Any:
@@ -304,6 +315,10 @@ ROOTS: dict[str, type] = {
     "evaluate": EvaluateOptions,
     "compare": CompareOptions,
     "runs": RunsOptions,
+    "simulate": SimulateOptions,
+    "calibrate": CalibrateOptions,
+    "fit": FitOptions,
+    "publish": RankOptions,
 }
 
 
@@ -400,22 +415,8 @@ SCHEMA: dict[str, Spec] = {
     "source.topics.*.topic": STR,
     "source.topics.*.type": STR,
     "source.topics.*.required": BOOL,
-    # -- simulate.yaml ----------------------------------------------------------------------------------
-    "format": choice("ros1", "ros2", "mcap"),
-    "images": BOOL,
-    "render": ANY,
-    "render.*": ANY,  # options of pipeline/simulate/render.py's StereoRenderer
-    "dt": number(gt=0, hi=0.01, what="s, physics step"),
-    "only": listof(STR, null=True),
-    "jobs": COUNT,
-    "rates.*": number(gt=0, what="Hz"),
-    "sensors.*": number(0, what="1-sigma noise"),
-    # -- calibrate.yaml / fit.yaml (and other stages' flags) -------------------------------------------
-    "force": BOOL,  # calibrate's and simulate's (evaluate's is EvaluateOptions')
-    "track": BOOL,
-    "reuse": BOOL,
-    "terrain": OPT_STR,
-    "split": choice(*SPLITS),  # fit's split (the split stage's `split` is the section above)
+    # -- discover.yaml --------------------------------------------------------------------------------
+    "terrain": OPT_STR,  # discover's (fit's is FitOptions', declared alike)
     # -- model/ -----------------------------------------------------------------------------------------
     "model.name": STR,
     "model.params": ANY,
@@ -428,7 +429,6 @@ SCHEMA: dict[str, Spec] = {
     "model.options.fit_params": listof(STR, 1, null=True),
     "model.options.*": ANY,  # a model's own options (its class validates them)
     "model.options.*.*": ANY,
-    "rank_by": STR,  # publish's (compare's is CompareOptions')
 }
 # fmt: on
 
@@ -438,7 +438,7 @@ def spec_for(key: str) -> Spec | None:
     the first matching entry of :data:`SCHEMA`, else None."""
     if any(key.startswith(f"{package_of(entry)}.") for entry in STRUCTURED):
         return structured_spec(key)
-    if "." not in key and (root := structured_spec(key)) is not None:
+    if (root := structured_spec(key)) is not None:
         return root
     spec = SCHEMA.get(key)
     if spec is not None:

@@ -11,6 +11,7 @@ additions, ``~key`` deletions and ``hydra.*`` settings are checked exactly as Hy
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import functools
 import re
@@ -24,6 +25,7 @@ from skidbench.pipeline.cli.config_schema import (
     check_value,
     describe,
     spec_for,
+    spec_of,
     structured_keys,
     structured_spec,
 )
@@ -383,3 +385,25 @@ def validate(cfg: Any, keys: Sequence[str] | None = None) -> None:
         if isinstance(value, DictConfig):  # a section given where a value belongs
             raise ConfigError(f"invalid value for {key}: a mapping; allowed {spec.allowed()}")
         check_value(key, value)
+    if keys is None:
+        _check_vo_options(cfg)
+
+
+def _check_vo_options(cfg: Any) -> None:
+    """ConfigError (one line naming the key) for a ``groundtruth.vo`` option the stereo VO does not have
+    (with the nearest one) or a value out of its type. The section is free in the schema (set with
+    ``+groundtruth.vo.<option>=...``); its options are the fields of
+    :class:`~skidbench.pipeline.groundtruth.stereo.vo_settings.VOConfig`, checked here so that a misspelt
+    option fails at the start, not when VO runs."""
+    vo = OmegaConf.select(cfg, "groundtruth.vo") if isinstance(cfg, DictConfig) else None
+    if not vo:
+        return
+    from skidbench.pipeline.groundtruth.stereo.vo_settings import VOConfig
+
+    known = ["groundtruth.vo"] + [f"groundtruth.vo.{f.name}" for f in dataclasses.fields(VOConfig)]
+    for name, value in OmegaConf.to_container(vo, resolve=True).items():
+        key, spec = f"groundtruth.vo.{name}", spec_of(VOConfig, str(name))
+        if spec is None:
+            raise ConfigError(f"unknown config key '{key}'{_nearest(key, known)}")
+        if not spec.accepts(value):
+            raise ConfigError(f"invalid value {key}={describe(value)}: allowed {spec.allowed()}")

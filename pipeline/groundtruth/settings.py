@@ -61,11 +61,11 @@ class LoopBound:
 class GroundTruthSettings:
     """``groundtruth.*``: the method (:data:`METHODS`; by default the source's ``groundtruth_method``, else
     ``vo``), how many processes compute stereo VO (a pose table or an ORB-SLAM file is read in one), the
-    longest hole between poses that is not a tracking-loss gap, whether wheel odometry may be taken as
-    ground truth (it is computed from the encoders the models' inputs come from), each method's options
-    (``vo``: free options of the stereo VO, :class:`~.stereo.vo_settings.VOConfig`, which names an
-    unknown one), the simulator's truth table (used only to score the ground truth), the horizon of the
-    relative error against it, and the loop-closure bounds."""
+    longest hole between poses that is not a tracking-loss gap, whether wheel odometry may be taken as ground
+    truth (it is computed from the encoders the models' inputs come from), each method's options (``vo``:
+    options of the stereo VO, added with ``+``, the fields of :class:`~.stereo.vo_settings.VOConfig`; the
+    config check names an unknown one before the stage starts), the simulator's truth table (used only to
+    score the ground truth), the horizon of the relative error against it, and the loop-closure bounds."""
 
     method: str = field(default="${oc.select:source.groundtruth_method,vo}", metadata={"choices": METHODS})
     jobs: int = field(default=2, metadata={"lo": 1})

@@ -33,14 +33,15 @@ from skidbench.pipeline.cli.main import stage
 from skidbench.pipeline.core.cache import Stamp
 from skidbench.pipeline.core.errors import SimulateError
 from skidbench.pipeline.core.io import atomic_path, fingerprint_file, write_text_atomic
-from skidbench.pipeline.core.layout import layout_from_cfg
+from skidbench.pipeline.core.layout import layout_from_cfg, root_from_cfg
 from skidbench.pipeline.core.manifest import Manifest, Sequence
 from skidbench.pipeline.core.robot import Robot, robot_from_hydra
-from skidbench.pipeline.simulate.bag import FORMATS, BagSink, bag_path
+from skidbench.pipeline.simulate.bag import BagSink, bag_path
 from skidbench.pipeline.simulate.card import build_rows, render_card, sequence_moments
 from skidbench.pipeline.simulate.physics import load_physics
 from skidbench.pipeline.simulate.scenarios import SequenceSpec, plan_sequences
 from skidbench.pipeline.simulate.sequence import RunSettings, simulate_sequence
+from skidbench.pipeline.simulate.settings import SimulateOptions
 
 log = logging.getLogger("skidbench.simulate")
 
@@ -53,9 +54,9 @@ def code_fingerprint() -> dict[str, str]:
     return {f: fingerprint_file(here / f) for f in _CODE_FILES if (here / f).is_file()}
 
 
-def make_renderer(robot: Robot, cfg: DictConfig, seed: int):
+def make_renderer(robot: Robot, opts: SimulateOptions, seed: int):
     """The stereo renderer (pipeline/simulate/render.py), or None when ``images=false``."""
-    if not cfg.images:
+    if not opts.images:
         return None
     try:
         from skidbench.pipeline.simulate.render import StereoRenderer
@@ -67,7 +68,7 @@ def make_renderer(robot: Robot, cfg: DictConfig, seed: int):
     if not camera:
         raise SimulateError(f"robot {robot.name}: no camera section in the robot config; set images=false")
     try:
-        return StereoRenderer(dict(camera), seed, **dict(cfg.render or {}))
+        return StereoRenderer(dict(camera), seed, **opts.render)
     except (ValueError, KeyError) as exc:
         raise SimulateError(f"simulate.render: {exc}") from exc
 
@@ -145,39 +146,43 @@ def _physics(cfg: DictConfig) -> tuple[Robot, dict, Any, Any, list[SequenceSpec]
     return robot, terrains, drive, tyre, specs
 
 
-def _run_settings(sim_cfg: dict[str, Any], robot: Robot) -> RunSettings:
+def _run_settings(opts: SimulateOptions, robot: Robot) -> RunSettings:
     """The integrator step, sensor rates (the camera's from the robot's camera, 15 fps without one) and
     sensor models of every sequence."""
-    rates = dict(sim_cfg["rates"])
+    rates = dict(opts.rates)
     camera = robot.extra.get("camera") or {}
     rates["camera"] = float(camera.get("fps", 15.0))
-    return RunSettings(dt=sim_cfg["dt"], rates=rates, sensors=sim_cfg["sensors"])
+    return RunSettings(dt=opts.dt, rates=rates, sensors=dict(opts.sensors))
 
 
-def _selected(cfg: DictConfig, specs: list[SequenceSpec]) -> list[tuple[int, SequenceSpec]]:
+def _selected(
+    only: list[str] | None, scale: str, specs: list[SequenceSpec]
+) -> list[tuple[int, SequenceSpec]]:
     """The sequences ``only`` names (all without it), each with its plan index: a subset keeps each
     sequence's plan index, hence its random streams and its bytes."""
-    only = set(cfg.get("only") or ())
+    only = set(only or ())
     unknown = sorted(only - {s.name for s in specs})
     if unknown:
-        raise SimulateError(f"only={unknown}: no such sequence at scale {cfg.scale.name}")
+        raise SimulateError(f"only={unknown}: no such sequence at scale {scale}")
     return [(i, s) for i, s in enumerate(specs) if not only or s.name in only]
 
 
-def _stamp_key(stamp: Stamp, index: int, spec: SequenceSpec, cfg: DictConfig, sim_cfg, run, robot, code):
+def _stamp_key(
+    stamp: Stamp, index: int, spec: SequenceSpec, seed: int, opts: SimulateOptions, physics, run, robot, code
+):
     """The key of one sequence's bag: everything its bytes depend on."""
     return stamp.key(
         [],
         {
             "spec": spec.__dict__,
             "index": index,
-            "seed": int(cfg.seed),
-            "format": str(cfg.format),
-            "images": bool(cfg.images),
-            "render": sim_cfg.get("render"),
+            "seed": seed,
+            "format": opts.format,
+            "images": opts.images,
+            "render": opts.render,
             "run": dataclasses.asdict(run),
             "robot": robot.to_dict(),
-            "physics": sim_cfg["sim"],
+            "physics": physics,
             "code": code,
         },
     )
@@ -259,27 +264,23 @@ def _write_manifest_and_card(layout, results: list[dict], robot: Robot, fmt: str
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Simulate every sequence of the configured scale; returns a summary (paths, card rows, timing)."""
     t_start = time.perf_counter()
-    fmt = str(cfg.format)
-    if fmt not in FORMATS:
-        raise SimulateError(f"format={fmt!r}: not one of {', '.join(FORMATS)}")
-    jobs = int(cfg.jobs)
-    if jobs < 1:
-        raise SimulateError(f"jobs={jobs}: must be at least 1")
+    opts: SimulateOptions = root_from_cfg(cfg, SimulateOptions)
+    fmt, jobs = opts.format, opts.jobs
     robot, terrains, drive, tyre, specs = _physics(cfg)
-    sim_cfg = OmegaConf.to_container(cfg, resolve=True)
-    seed = int(cfg.seed)
-    run = _run_settings(sim_cfg, robot)
+    physics = OmegaConf.to_container(cfg.sim, resolve=True)
+    run = _run_settings(opts, robot)
 
     layout = layout_from_cfg(cfg)
+    seed = int(cfg.seed)
     bags_dir = layout.raw / "bags"
     code = code_fingerprint()
     moments: dict[str, dict[str, float]] = {}
     todo: list[tuple[int, SequenceSpec, Path, Stamp, str]] = []
-    selected = _selected(cfg, specs)
+    selected = _selected(opts.only, str(cfg.scale.name), specs)
     for index, spec in selected:
         stamp = Stamp(layout.raw / ".stamps" / f"{spec.name}.json", "simulate")
-        key = _stamp_key(stamp, index, spec, cfg, sim_cfg, run, robot, code)
-        if not cfg.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
+        key = _stamp_key(stamp, index, spec, seed, opts, physics, run, robot, code)
+        if not opts.force and stamp.is_fresh(key) and "moments" in stamp.data.get("info", {}):
             moments[spec.name] = stamp.data["info"]["moments"]
         else:
             todo.append((index, spec, bag_path(bags_dir, spec.name, fmt), stamp, key))
@@ -294,7 +295,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         with _one_thread_per_worker(jobs > 1 and len(todo) > 1):
             _CONTEXT.update(
                 robot=robot, terrains=terrains, drive=drive, tyre=tyre, run=run, seed=seed, fmt=fmt,
-                renderer=make_renderer(robot, cfg, seed),
+                renderer=make_renderer(robot, opts, seed),
             )  # fmt: skip
             try:
                 _simulate_all(todo, jobs, f"simulate {layout.dataset}", finish)
@@ -310,6 +311,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         "card": card,
         "rows": rows,
         "sequences": len(results),
+        "format": fmt,
         "skipped": len(selected) - len(todo),
         "bytes": sum(_size(r["path"]) for r in results),
         "seconds": time.perf_counter() - t_start,
@@ -330,7 +332,7 @@ def main(cfg: DictConfig) -> None:
     print(summary["card"])
     print(
         f"simulate: {summary['sequences']} sequences ({summary['skipped']} up to date), "
-        f"{summary['bytes'] / 1e6:.1f} MB of {cfg.format} bags in {summary['seconds']:.1f} s"
+        f"{summary['bytes'] / 1e6:.1f} MB of {summary['format']} bags in {summary['seconds']:.1f} s"
     )
     print(f"simulate: bags     -> {layout.raw / 'bags'}")
     print(f"simulate: manifest -> {layout.manifest}")

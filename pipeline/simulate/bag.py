@@ -16,8 +16,7 @@ import numpy as np
 
 from skidbench.pipeline.core.errors import SimulateError
 from skidbench.pipeline.extract.reader import ROS1, ROS2, default_typestore
-
-FORMATS = ("ros1", "ros2", "mcap")
+from skidbench.pipeline.simulate.settings import FORMATS
 
 TOPICS = {
     "cmd_vel": ("/cmd_vel", "geometry_msgs/msg/Twist"),
