@@ -107,16 +107,6 @@ def _units(sequence: Sequence, t0: np.ndarray, unit_s: float) -> tuple[np.ndarra
     return unit.astype(int), (uniq // stride).astype(int), (uniq % stride).astype(int)
 
 
-def assign_blocks(sequence: Sequence, t0: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Block of every window: the windows of one sequence whose start ``t0`` (s) falls in the same
-    ``block_s`` interval from the sequence's first window. Returns ``(block (W,) int in 0..K-1, adjacent
-    (K-1,) bool)``: blocks are numbered by sequence (in order of first appearance) then time, and
-    ``adjacent[b]`` says blocks ``b`` and ``b + 1`` are consecutive intervals of one sequence."""
-    block, seq_of, pos_of = _units(sequence, t0, block_s)
-    adjacent = (seq_of[1:] == seq_of[:-1]) & (np.diff(pos_of) == 1)
-    return block, adjacent
-
-
 def stratum_key(split: str, horizon_s: float, sequences: Iterable[str]) -> str:
     """The key of a stratum: a test split's sequences at one horizon (``ld@6s:grass_ld_00``). It seeds the
     stratum's draws, so evaluate and compare, which name the terrain differently, draw the same ones."""

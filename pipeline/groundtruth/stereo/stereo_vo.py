@@ -55,6 +55,18 @@ class _Keyframe:
     ground: np.ndarray  # (N,) bool: the point lies on the ground plane
 
 
+def _orb(n_features: int, fast_threshold: int):
+    """The ORB detector of both images: 4 levels of scale 1.2, 15 px patches."""
+    return cv2.ORB_create(
+        nfeatures=n_features,
+        scaleFactor=1.2,
+        nlevels=4,
+        edgeThreshold=15,
+        patchSize=15,
+        fastThreshold=fast_threshold,
+    )
+
+
 class StereoVO:
     """Frame-to-keyframe stereo VO. ``process(left, right)`` -> T_c0_ci (4x4) or None when lost."""
 
@@ -73,22 +85,8 @@ class StereoVO:
                 self.plane = (n, d)
                 # ground disparity d_g(u, v) = fx b (n . K^-1 (u, v, 1)) / d, affine in (u, v)
                 self.disp_coef = camera.fx * camera.baseline * (n @ np.linalg.inv(camera.K)) / d
-        self.orb = cv2.ORB_create(
-            nfeatures=c.n_features * 2,
-            scaleFactor=1.2,
-            nlevels=4,
-            edgeThreshold=15,
-            patchSize=15,
-            fastThreshold=c.fast_threshold,
-        )
-        self.orb_right = cv2.ORB_create(
-            nfeatures=c.n_features * 3,
-            scaleFactor=1.2,
-            nlevels=4,
-            edgeThreshold=15,
-            patchSize=15,
-            fastThreshold=max(5, c.fast_threshold - 3),
-        )
+        self.orb = _orb(c.n_features * 2, c.fast_threshold)
+        self.orb_right = _orb(c.n_features * 3, max(5, c.fast_threshold - 3))
         self.bf = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.lk = {
             "winSize": (c.lk_window, c.lk_window),
