@@ -348,6 +348,28 @@ def test_fig6_and_fig7_drawing_from_arrays(tmp_path):
     assert figs.trajectories(samples, 6.0, tmp_path / "f7.png").stat().st_size > 10_000
 
 
+def test_the_window_error_figure_drawn_again_is_the_png_of_a_new_figure(tmp_path, monkeypatch):
+    """window_error_figure redraws one kept figure per number of splits: a run's PNG does not depend on
+    the runs drawn before it (more sequences, other splits, larger errors)."""
+    rng = np.random.default_rng(0)
+
+    def windows(splits, n_seq, scale):
+        rows = [{"split": sp, "horizon_s": h, "sequence": f"s{q}", "t0": t, "rel_trans": scale * rng.random(),
+                 "rel_rot": scale * rng.random()}
+                for h in (6.0, 2.0) for sp in splits for q in range(n_seq) for t in np.arange(0, 9, 0.5)]  # fmt: skip
+        return pd.DataFrame(rows)
+
+    runs = [windows(("cv", "ld"), 3, 5.0), windows(("cv",), 1, 1.0), windows(("cv", "ld"), 1, 0.2)]
+    for k, w in enumerate(runs):
+        figs.window_error_figure(w, f"run {k}", tmp_path / f"after{k}.png")
+    monkeypatch.setattr(figs, "_WINDOW_FIGURES", {})  # no figure kept: each drawn new
+    for k, w in enumerate(runs):
+        new = figs.window_error_figure(w, f"run {k}", tmp_path / f"new{k}.png")
+        assert new.read_bytes() == (tmp_path / f"after{k}.png").read_bytes()
+        monkeypatch.setattr(figs, "_WINDOW_FIGURES", {})
+    assert (tmp_path / "after0.png").read_bytes() != (tmp_path / "after2.png").read_bytes()
+
+
 def test_compare_draws_figs_5_to_7_from_what_evaluate_wrote_with_splits_and_fits_gone(tmp_path, monkeypatch):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     ds = tmp_path / DS

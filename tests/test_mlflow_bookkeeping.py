@@ -163,6 +163,27 @@ def test_a_write_that_lost_an_insert_race_is_tried_again_and_any_other_refusal_i
     assert len(calls) == 1
 
 
+def test_a_log_of_more_than_one_call_takes_is_split_within_mlflows_limits_and_loses_nothing(tmp_path):
+    """Tracker.log sends <= 100 params, <= 100 tags and <= 1000 entities per log_batch (MLflow's limits:
+    metrics fill the room params and tags leave), and every value arrives."""
+    tracker = trk.Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", "skidbench-x", artifact_root=tmp_path)
+    run_id = tracker.start("many", {})
+    sent = []
+    log_batch = tracker._raw.log_batch
+    tracker._raw.log_batch = lambda rid, **kw: sent.append(kw) or log_batch(rid, **kw)
+    params, tags = {f"p{i}": i for i in range(150)}, {f"t{i}": i for i in range(30)}
+    metrics = {f"m{i}": i / 7 for i in range(1900)}
+    tracker.log(run_id, params=params, metrics=metrics, tags=tags)
+    assert [(len(b["params"]), len(b["tags"]), len(b["metrics"])) for b in sent] == [
+        (100, 30, 870), (50, 0, 950), (0, 0, 80)
+    ]
+    tracker.log(run_id, tags={"one": "call"})
+    assert len(sent) == 4
+    data = MlflowClient(tracker.uri).get_run(run_id).data
+    assert data.params == {k: str(v) for k, v in params.items()} and data.metrics == metrics
+    assert {k: data.tags[k] for k in (*tags, "one")} == {**{k: str(v) for k, v in tags.items()}, "one": "call"}
+
+
 def _statuses(uri: str) -> dict[str, tuple[str, str]]:
     client = MlflowClient(uri)
     exps = [e.experiment_id for e in client.search_experiments()]

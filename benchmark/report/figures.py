@@ -399,11 +399,13 @@ def trajectories(samples: Sequence[Mapping], horizon_s: float, path: Path, dpi: 
 # -- per run ----------------------------------------------------------------------------------------
 def window_error_figure(windows: pd.DataFrame, title: str, path: Path, dpi: int = 110) -> Path:
     """Relative translational and rotational error of every window over time, per test split (first
-    horizon), for one (model, terrain) run."""
+    horizon), for one (model, terrain) run. Drawn for every run of every evaluate, so cheaply: one figure
+    per number of splits is made once (:func:`_window_axes`, fixed margins) and redrawn with each run's
+    points; the PNG is the one a new figure would give."""
     h = float(windows["horizon_s"].iloc[0])
     w = windows[windows["horizon_s"] == h]
     splits = list(dict.fromkeys(w["split"]))
-    fig, axes = plt.subplots(2, len(splits), figsize=(4.2 * len(splits), 4.6), squeeze=False, sharey="row")
+    fig, axes = _window_axes(len(splits))
     for c, sp in enumerate(splits):
         ws = w[w["split"] == sp]
         for r, (col, name) in enumerate((("rel_trans", "translational"), ("rel_rot", "rotational"))):
@@ -411,15 +413,48 @@ def window_error_figure(windows: pd.DataFrame, title: str, path: Path, dpi: int 
             for k, (seq, g) in enumerate(ws.groupby("sequence", sort=True)):
                 ax.plot(g["t0"], 100 * g[col], ".", ms=1.5, color=_PALETTE[k % 10], label=seq)
             ax.set_ylabel(f"{name} rel. error (%)", fontsize=8)
-            ax.grid(alpha=0.3)
-            ax.tick_params(labelsize=7)
             if r == 0:
                 ax.set_title(SPLIT_LABELS.get(sp, sp), fontsize=9)
             else:
                 ax.set_xlabel("window start (s)", fontsize=8)
     fig.suptitle(f"{title}: per-window errors, {h:g} s horizon", fontsize=10)
-    fig.tight_layout()
-    return _save(fig, path, dpi)
+    path = Path(path)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    return path
+
+
+#: the fixed margins of :func:`window_error_figure` (inches): room for the y tick labels and label on the
+#: left, the suptitle and the split's title on top, the x tick labels and label below, each column's
+#: y label between the columns
+_WINDOW_MARGINS_IN = {"left": 0.75, "right": 0.15, "bottom": 0.5, "top": 0.62, "wspace": 0.45,
+                      "hspace": 0.35}  # fmt: skip
+_WINDOW_FIGURES: dict[int, tuple] = {}  # number of splits -> (figure, axes), made once per process
+
+
+def _window_axes(n_splits: int) -> tuple:
+    """The figure and (2, ``n_splits``) axes of :func:`window_error_figure` (rows share y), emptied of the
+    last run's points with their data limits reset. A :class:`~matplotlib.figure.Figure` of no pyplot
+    window: made once, kept for the process (making the axes and their ticks is most of a figure's cost)."""
+    from matplotlib.figure import Figure
+
+    if n_splits not in _WINDOW_FIGURES:
+        width, height, m = 4.2 * n_splits, 4.6, _WINDOW_MARGINS_IN
+        fig = Figure(figsize=(width, height))
+        axes = fig.subplots(2, n_splits, squeeze=False, sharey="row")
+        fig.subplots_adjust(left=m["left"] / width, right=1 - m["right"] / width, bottom=m["bottom"] / height,
+                            top=1 - m["top"] / height, wspace=m["wspace"] / (width / n_splits),
+                            hspace=m["hspace"] / (height / 2))  # fmt: skip
+        for ax in axes.flat:
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=7)
+        _WINDOW_FIGURES[n_splits] = (fig, axes)
+    fig, axes = _WINDOW_FIGURES[n_splits]
+    for ax in axes.flat:
+        for line in list(ax.lines):
+            line.remove()
+        ax.relim()
+    return fig, axes
 
 
 # -- the input protocols side by side, and the wheel response ----------------------------------------

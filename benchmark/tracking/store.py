@@ -412,10 +412,13 @@ class Tracker:
         ps = [Param(k, str(v)[:MAX_PARAM_LEN]) for k, v in (params or {}).items()]
         ms = [Metric(k, float(v), now, 0) for k, v in (metrics or {}).items() if v is not None]
         ts = [RunTag(k, str(v)[:MAX_TAG_LEN]) for k, v in (tags or {}).items()]
-        for i in range(0, max(len(ps), len(ms), len(ts), 1), 100):  # the REST API takes <= 100 params a call
-            self.client.log_batch(
-                run_id, metrics=ms[i : i + 100], params=ps[i : i + 100], tags=ts[i : i + 100]
-            )
+        while True:  # one call takes <= 100 params, <= 100 tags and <= 1000 entities in all (MLflow's limits)
+            p, t = ps[:100], ts[:100]
+            m = ms[: 1000 - len(p) - len(t)]
+            self.client.log_batch(run_id, metrics=m, params=p, tags=t)
+            ps, ms, ts = ps[len(p) :], ms[len(m) :], ts[len(t) :]
+            if not (ps or ms or ts):
+                return
 
     def artifact(self, run_id: str, path: Path, artifact_path: str | None = None) -> None:
         path = Path(path)
