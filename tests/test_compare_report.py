@@ -354,9 +354,10 @@ def test_the_window_error_figure_drawn_again_is_the_png_of_a_new_figure(tmp_path
     rng = np.random.default_rng(0)
 
     def windows(splits, n_seq, scale):
-        rows = [{"split": sp, "horizon_s": h, "sequence": f"s{q}", "t0": t, "rel_trans": scale * rng.random(),
-                 "rel_rot": scale * rng.random()}
-                for h in (6.0, 2.0) for sp in splits for q in range(n_seq) for t in np.arange(0, 9, 0.5)]  # fmt: skip
+        keys = [(h, sp, q, t) for h in (6.0, 2.0) for sp in splits for q in range(n_seq) for t in range(18)]
+        rows = [{"split": sp, "horizon_s": h, "sequence": f"s{q}", "t0": t / 2,
+                 "rel_trans": scale * rng.random(), "rel_rot": scale * rng.random()}
+                for h, sp, q, t in keys]  # fmt: skip
         return pd.DataFrame(rows)
 
     runs = [windows(("cv", "ld"), 3, 5.0), windows(("cv",), 1, 1.0), windows(("cv", "ld"), 1, 0.2)]
