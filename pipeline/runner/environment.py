@@ -49,7 +49,10 @@ LOCK_FILE = "requirements.lock"
 REPO = Path(__file__).resolve().parents[2]  # the source tree of an editable install
 
 
+@functools.lru_cache(maxsize=None)
 def version_of(dist: str) -> str | None:
+    """The installed version of ``dist`` (None when it is not installed), read once per process: an
+    evaluate asks for the same few hundred times (each run's provenance)."""
     try:
         return md.version(dist)
     except md.PackageNotFoundError:
