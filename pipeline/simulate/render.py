@@ -373,7 +373,9 @@ class StereoRenderer:
         plane = (n_c @ self.Kinv) / np.einsum("fk,fk->f", n_c, pc[:, 0])[:, None]
         # texture axes in the camera: along the face (and down, the same for every face)
         e_c = np.column_stack([e2, np.zeros(n_f)]) @ R_c_w.T
-        return _Faces(b_i, pc, in_front, uv_all, plane, e_c, self._inst_tex[idx[b_i], f_i])
+        # the plane's row and column terms a1 v and a0 u of every pixel row and column (float64)
+        rows, cols = plane[:, 1:2] * self._v, plane[:, 0:1] * self._u
+        return _Faces(b_i, pc, in_front, uv_all, plane, rows, cols, e_c, self._inst_tex[idx[b_i], f_i])
 
     def _face_outline(self, faces: _Faces, j: int) -> np.ndarray | None:
         """Face ``j``'s outline in pixels (clipped at the near plane; None when nothing is left)."""
@@ -418,13 +420,14 @@ class StereoRenderer:
 
     def _paint_face(self, img, zbuf, faces: _Faces, j: int, poly, box, tex_maps, alpha: float) -> None:
         """Face ``j``'s pixels in front of ``zbuf`` within outline ``poly`` (:meth:`_pixel_boxes`) in pixel
-        box ``box``: its texture
-        (``tex_maps``: :meth:`_texture_maps` per mip level), fogged, blended with ``alpha`` into ``img``;
-        the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
+        box ``box``: its texture (``tex_maps``: :meth:`_texture_maps` per mip level), fogged, blended with
+        ``alpha`` into ``img``; the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
         x0, y0, x1, y1 = box
-        a = faces.plane[j]  # float64 scalars: the products are float64, rounded to float32 once
-        # a0 u + a1 v + a2 over the box: the row and column products once each, then summed per pixel
-        invz = (np.add.outer(a[1] * self._v[y0:y1], a[0] * self._u[x0:x1]) + a[2]).astype(np.float32)
+        # inverse depth a0 u + a1 v + a2 over the box in float64 (the row and column products of
+        # _face_geometry), rounded to float32 once
+        invz = np.add.outer(faces.rows[j, y0:y1], faces.cols[j, x0:x1])
+        invz += faces.plane[j, 2]
+        invz = invz.astype(np.float32)
         mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
         cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)
         zsub = zbuf[y0:y1, x0:x1]
@@ -497,13 +500,16 @@ class _Faces:
     """The front faces of :meth:`StereoRenderer._face_geometry`, one row each: the instance row ``b_i`` of the
     face, its corners in the camera ``pc`` (F, 4, 3; ``pc[:, 0]`` the top of its ground corner p0),
     whether they are all before the near plane, their pixels ``uv_all`` (F, 4, 2), the face's plane
-    (inverse depth = ``plane . (u, v, 1)``), its direction in the camera ``e_c`` and its texture offset."""
+    (inverse depth = ``plane . (u, v, 1)``) with its terms of every pixel row (``rows``: a1 v) and column
+    (``cols``: a0 u), its direction in the camera ``e_c`` and its texture offset."""
 
     b_i: np.ndarray
     pc: np.ndarray
     in_front: np.ndarray
     uv_all: np.ndarray
     plane: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
     e_c: np.ndarray
     tex_off: np.ndarray
 
