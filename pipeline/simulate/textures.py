@@ -30,7 +30,9 @@ def _periodic_noise(rng: np.random.Generator, n: int, cell: int) -> np.ndarray:
     )
     o = int(round(pad * f))
     up = up[o : o + n, o : o + n]
-    return (up - up.mean()) / (up.std() + 1e-9)
+    noise = up - up.mean()
+    noise /= up.std() + 1e-9  # in place: one fresh n x n array, not two
+    return noise
 
 
 @functools.lru_cache(maxsize=2)
@@ -39,9 +41,12 @@ def ground_texture(seed: int, n: int) -> np.ndarray:
     acc = np.zeros((n, n), np.float32)
     for cell, w in ((1024, 0.8), (256, 0.7), (64, 0.6), (16, 0.5), (4, 0.35)):
         if cell < n:
-            acc += w * _periodic_noise(rng, n, cell)
-    acc = 128.0 + 28.0 * acc
-    img = np.clip(acc, 0, 255).astype(np.uint8)
+            noise = _periodic_noise(rng, n, cell)
+            noise *= w
+            acc += noise
+    acc *= 28.0
+    acc += 128.0
+    img = np.clip(acc, 0, 255, out=acc).astype(np.uint8)
     # gravel: blobs of many sizes and grey levels, plus a few crack-like lines (corner features)
     n_blobs = n * n // 350
     xs = rng.integers(0, n, n_blobs)
@@ -50,7 +55,9 @@ def ground_texture(seed: int, n: int) -> np.ndarray:
     gs = rng.integers(0, 256, n_blobs)
     ax = rng.uniform(0.4, 1.0, n_blobs)
     an = rng.uniform(0, 180, n_blobs)
-    for x, y, r, g, a, t in zip(xs, ys, rs, gs, ax, an, strict=True):
+    # as Python numbers (the same values), drawn one by one
+    blobs = zip(xs.tolist(), ys.tolist(), rs.tolist(), gs.tolist(), ax.tolist(), an.tolist(), strict=True)
+    for x, y, r, g, a, t in blobs:
         if r < x < n - r and r < y < n - r:
             cv2.ellipse(img, (int(x), int(y)), (int(r), max(1, int(r * a))), float(t), 0, 360, int(g), -1)
     n_lines = n * n // 20000
