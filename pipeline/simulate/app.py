@@ -45,7 +45,7 @@ from skidbench.pipeline.simulate.settings import SimulateOptions
 
 log = logging.getLogger("skidbench.simulate")
 
-_CODE_FILES = ("physics.py", "scenarios.py", "sequence.py", "bag.py", "render.py")
+_CODE_FILES = ("physics.py", "scenarios.py", "sequence.py", "bag.py", "render.py", "textures.py")
 
 
 def code_fingerprint() -> dict[str, str]:

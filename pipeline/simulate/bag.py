@@ -7,6 +7,7 @@ Connections are added on a topic's first message, in a fixed order, so equal inp
 
 from __future__ import annotations
 
+import functools
 import math
 import shutil
 from pathlib import Path
@@ -48,6 +49,14 @@ def _cov(diag: tuple[float, ...]) -> np.ndarray:
 POSE_COV = _cov((1e-3, 1e-3, 1e6, 1e6, 1e6, 1e-3))  # planar robot: z, roll, pitch unknown
 TWIST_COV = _cov((1e-3, 1e-3, 1e6, 1e6, 1e6, 1e-3))
 TRUTH_COV = np.zeros(36)
+IMU_ORIENTATION_COV = _cov((1e-3, 1e-3, 1e-2))
+
+
+@functools.cache
+def _typestore(fmt: str):
+    """The typestore of ``fmt`` (``ROS1``/``ROS2``), built once per process: every bag of a worker shares it
+    (building one and its serialisers takes ~30 CPU-ms)."""
+    return default_typestore(fmt)
 
 
 class BagSink:
@@ -64,13 +73,13 @@ class BagSink:
         if fmt == "ros1":
             from rosbags.rosbag1 import Writer
 
-            self.store = default_typestore(ROS1)
+            self.store = _typestore(ROS1)
             self.writer = Writer(self.path)
             self._serialize = self.store.serialize_ros1
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
 
-            self.store = default_typestore(ROS2)
+            self.store = _typestore(ROS2)
             plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
             self.writer = Writer(self.path, version=9, storage_plugin=plugin)
             self._serialize = self.store.serialize_cdr
@@ -79,6 +88,8 @@ class BagSink:
         self.connections: dict[str, Any] = {}
         self.seq: dict[str, int] = {}
         self.count = 0
+        self._covs: dict[float, np.ndarray] = {}  # variance -> its 3 x 3 covariance (an IMU's are constant)
+        self._infos: dict[str, tuple] = {}  # side -> (info, its message fields but the header)
 
     def __enter__(self) -> BagSink:
         self.writer.open()
@@ -155,13 +166,19 @@ class BagSink:
         msg = self.types["sensor_msgs/msg/Imu"](
             header=self._header("imu", t_ns, "imu_link"),
             orientation=self._quat_yaw(yaw),
-            orientation_covariance=_cov((1e-3, 1e-3, 1e-2)),
+            orientation_covariance=IMU_ORIENTATION_COV,
             angular_velocity=self._vec(*gyro),
-            angular_velocity_covariance=_cov((gyro_var,) * 3),
+            angular_velocity_covariance=self._cov3(gyro_var),
             linear_acceleration=self._vec(*accel),
-            linear_acceleration_covariance=_cov((accel_var,) * 3),
+            linear_acceleration_covariance=self._cov3(accel_var),
         )
         self._write("imu", t_ns, msg)
+
+    def _cov3(self, var: float) -> np.ndarray:
+        cov = self._covs.get(var)
+        if cov is None:
+            cov = self._covs[var] = _cov((var,) * 3)
+        return cov
 
     def image(self, side: str, t_ns: int, jpeg: bytes) -> None:
         msg = self.types["sensor_msgs/msg/CompressedImage"](
@@ -172,6 +189,16 @@ class BagSink:
         self._write(f"{side}_image", t_ns, msg)
 
     def camera_info(self, side: str, t_ns: int, info: dict) -> None:
+        cached = self._infos.get(side)
+        if cached is None or cached[0] is not info:  # the same info every frame: its fields once
+            cached = self._infos[side] = (info, self._camera_info_fields(info))
+        msg = self.types["sensor_msgs/msg/CameraInfo"](
+            header=self._header(f"{side}_info", t_ns, CAMERA_FRAMES[side]), **cached[1]
+        )
+        self._write(f"{side}_info", t_ns, msg)
+
+    def _camera_info_fields(self, info: dict) -> dict[str, Any]:
+        """A sensor_msgs/CameraInfo's fields but its header, from a camera info dict."""
         T = self.types
         arrays = {
             "D": np.asarray(info["D"], dtype=np.float64).ravel(),
@@ -184,14 +211,12 @@ class BagSink:
         roi = T["sensor_msgs/msg/RegionOfInterest"](
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         )
-        msg = T["sensor_msgs/msg/CameraInfo"](
-            header=self._header(f"{side}_info", t_ns, CAMERA_FRAMES[side]),
-            height=int(info["height"]),
-            width=int(info["width"]),
-            distortion_model=str(info.get("distortion_model", "plumb_bob")),
-            binning_x=0,
-            binning_y=0,
-            roi=roi,
+        return {
+            "height": int(info["height"]),
+            "width": int(info["width"]),
+            "distortion_model": str(info.get("distortion_model", "plumb_bob")),
+            "binning_x": 0,
+            "binning_y": 0,
+            "roi": roi,
             **arrays,
-        )
-        self._write(f"{side}_info", t_ns, msg)
+        }

@@ -22,7 +22,6 @@ rectified pair.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import math
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ import cv2
 import numpy as np
 
 from skidbench.pipeline.core.geometry import se3_from_xyz_rpy
+from skidbench.pipeline.simulate.textures import ground_texture, pyramid, wall_texture
 
 DEFAULTS = {
     "width": 320,
@@ -54,89 +54,6 @@ DEFAULTS = {
     "fog_m": 40.0,  # contrast halves at ~0.7 * fog_m
     "near_m": 0.05,
 }
-
-
-# --------------------------------------------------------------------------------------------------
-# procedural textures (cached per seed: several renderers in one process share them)
-
-
-def _wrap_blur(img: np.ndarray, sigma: float) -> np.ndarray:
-    pad = int(3 * sigma) + 1
-    big = np.pad(img, pad, mode="wrap")
-    big = cv2.GaussianBlur(big, (0, 0), sigma)
-    return big[pad:-pad, pad:-pad]
-
-
-def _periodic_noise(rng: np.random.Generator, n: int, cell: int) -> np.ndarray:
-    """Smooth periodic noise of feature size ~``cell`` texels on an n x n tile (zero mean, unit std)."""
-    m = max(4, n // cell)
-    small = rng.standard_normal((m, m)).astype(np.float32)
-    small = _wrap_blur(small, 0.7)
-    pad = 2
-    big = np.pad(small, pad, mode="wrap")
-    f = n / m
-    up = cv2.resize(
-        big, (int(round(big.shape[1] * f)), int(round(big.shape[0] * f))), interpolation=cv2.INTER_CUBIC
-    )
-    o = int(round(pad * f))
-    up = up[o : o + n, o : o + n]
-    return (up - up.mean()) / (up.std() + 1e-9)
-
-
-@functools.lru_cache(maxsize=2)
-def ground_texture(seed: int, n: int) -> np.ndarray:
-    rng = np.random.default_rng([seed, 101])
-    acc = np.zeros((n, n), np.float32)
-    for cell, w in ((1024, 0.8), (256, 0.7), (64, 0.6), (16, 0.5), (4, 0.35)):
-        if cell < n:
-            acc += w * _periodic_noise(rng, n, cell)
-    acc = 128.0 + 28.0 * acc
-    img = np.clip(acc, 0, 255).astype(np.uint8)
-    # gravel: blobs of many sizes and grey levels, plus a few crack-like lines (corner features)
-    n_blobs = n * n // 350
-    xs = rng.integers(0, n, n_blobs)
-    ys = rng.integers(0, n, n_blobs)
-    rs = (2.0 + rng.pareto(2.0, n_blobs) * 3.0).clip(1, 30).astype(int)
-    gs = rng.integers(0, 256, n_blobs)
-    ax = rng.uniform(0.4, 1.0, n_blobs)
-    an = rng.uniform(0, 180, n_blobs)
-    for x, y, r, g, a, t in zip(xs, ys, rs, gs, ax, an, strict=True):
-        if r < x < n - r and r < y < n - r:
-            cv2.ellipse(img, (int(x), int(y)), (int(r), max(1, int(r * a))), float(t), 0, 360, int(g), -1)
-    n_lines = n * n // 20000
-    for _ in range(n_lines):
-        x0, y0 = rng.integers(40, n - 40, 2)
-        d = rng.integers(-35, 36, 2)
-        cv2.line(img, (int(x0), int(y0)), (int(x0 + d[0]), int(y0 + d[1])), int(rng.integers(0, 256)), 2)
-    img = cv2.addWeighted(img, 0.85, np.full_like(img, 128), 0.15, 0)
-    return _wrap_blur(img.astype(np.float32), 0.6).astype(np.uint8)
-
-
-@functools.lru_cache(maxsize=2)
-def wall_texture(seed: int, n: int) -> np.ndarray:
-    rng = np.random.default_rng([seed, 202])
-    acc = 120.0 + 30.0 * (_periodic_noise(rng, n, 128) + 0.6 * _periodic_noise(rng, n, 16))
-    img = np.clip(acc, 0, 255).astype(np.uint8)
-    for _ in range(n * n // 900):  # posters, bricks, bolts
-        x, y = rng.integers(10, n - 10, 2)
-        w, h = rng.integers(3, 60, 2)
-        g = int(rng.integers(0, 256))
-        if rng.random() < 0.7:
-            cv2.rectangle(img, (int(x), int(y)), (int(min(n - 1, x + w)), int(min(n - 1, y + h))), g, -1)
-        else:
-            cv2.circle(img, (int(x), int(y)), int(min(w, 10)), g, -1)
-    return _wrap_blur(img.astype(np.float32), 0.6).astype(np.uint8)
-
-
-def _pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
-    out = [img]
-    for _ in range(levels - 1):
-        a = out[-1]
-        # periodic downsample (wrap-pad so the tile stays seamless)
-        big = np.pad(a, 4, mode="wrap")
-        d = cv2.pyrDown(big)
-        out.append(np.ascontiguousarray(d[2:-2, 2:-2]))
-    return out
 
 
 # --------------------------------------------------------------------------------------------------
@@ -208,9 +125,9 @@ class StereoRenderer:
         self.texel = float(cfg["ground_texel_m"])
         n = int(cfg["ground_texture_px"])
         self.period = n * self.texel
-        self.ground = _pyramid(ground_texture(self.seed, n), 5)
+        self.ground = pyramid(ground_texture(self.seed, n), 5)
         self.wall_texel = float(cfg["wall_texel_m"])
-        self.wall = _pyramid(wall_texture(self.seed, int(cfg["wall_texture_px"])), 4)
+        self.wall = pyramid(wall_texture(self.seed, int(cfg["wall_texture_px"])), 4)
         self.boxes = _layout(self.seed, self.period, int(cfg["n_boxes"]), int(cfg["n_posts"]))
         rng = np.random.default_rng([self.seed, 404])
         self._noise = [
@@ -221,7 +138,11 @@ class StereoRenderer:
         ]
         v = np.arange(self.height, dtype=np.float64)
         self._sky = np.tile((170.0 + 40.0 * v / self.height)[:, None], (1, self.width)).astype(np.uint8)
-        self._rows = v
+        # the ray of every row through the principal column (camera frame, z = 1) and its length: the same
+        # for every pose
+        self._rays = self.Kinv @ np.vstack([np.full(self.height, self.K[0, 2]), v, np.ones(self.height)])
+        self._ray_len = np.linalg.norm(self._rays, axis=0)
+        self._grey = np.arange(256, dtype=np.float64)  # the grey levels, for per-face lookup tables
         self._inst = None
         # pixel column and row coordinates (float32, as the inverse depth of a face is computed from them)
         self._u = np.arange(self.width, dtype=np.float32)
@@ -328,34 +249,41 @@ class StereoRenderer:
         return ~(behind | left | right)
 
     def _render_one(self, T_w_c: np.ndarray, boxes, noise: np.ndarray) -> np.ndarray:
-        H, W = self.height, self.width
-        K = self.K
         R_c_w = T_w_c[:3, :3].T
         t_c_w = -R_c_w @ T_w_c[:3, 3]
-        cz = T_w_c[2, 3]
         img = self._sky.copy()
-        # ---- ground: ray z component per row (exact when the camera has no roll w.r.t. the ground)
-        rays = self.Kinv @ np.vstack([np.full(H, K[0, 2]), self._rows, np.ones(H)])  # camera frame, z = 1
-        dz = (T_w_c[:3, :3] @ rays)[2]  # world z of the ray per unit depth
+        zbuf = self._ground(img, T_w_c, R_c_w, t_c_w)
+        # ---- boxes: visible vertical faces, z-buffered
+        self._draw_faces(img, zbuf, boxes, R_c_w, t_c_w, T_w_c[:3, 3])
+        # img + noise saturated to 0..255 (the noise is int16): one OpenCV call
+        return cv2.add(img, noise, dtype=cv2.CV_8U)
+
+    def _ground(self, img: np.ndarray, T_w_c: np.ndarray, R_c_w: np.ndarray, t_c_w: np.ndarray) -> np.ndarray:
+        """Draw the ground, fogged, into ``img`` (its rows below the horizon); returns the inverse-depth
+        z-buffer (float32) of the ground (0 for the sky)."""
+        W, K = self.width, self.K
+        cz = T_w_c[2, 3]
+        # ray z component per row (exact when the camera has no roll w.r.t. the ground)
+        dz = (T_w_c[:3, :3] @ self._rays)[2]  # world z of the ray per unit depth
         with np.errstate(divide="ignore"):
             depth = np.where(dz < -1e-6, cz / -dz, np.inf)  # optical-axis depth of the ground per row
-        inv_depth = np.where(np.isfinite(depth), 1.0 / depth, 0.0)
-        zbuf = np.tile(inv_depth[:, None], (1, W)).astype(np.float32)
+        g = np.isfinite(depth)
+        inv_depth = np.where(g, 1.0 / depth, 0.0)
+        zbuf = np.repeat(inv_depth.astype(np.float32)[:, None], W, axis=1)
         # texel footprint per pixel grows with depth and with grazing angle
-        ray_len = np.linalg.norm(rays, axis=0)
-        grazing = np.clip(-dz / ray_len, 1e-3, 1.0)
-        footprint = depth * ray_len / (K[1, 1] * self.texel) / np.sqrt(grazing)
+        grazing = np.clip(-dz / self._ray_len, 1e-3, 1.0)
+        footprint = depth * self._ray_len / (K[1, 1] * self.texel) / np.sqrt(grazing)
         with np.errstate(divide="ignore"):
             level = np.clip(np.floor(np.log2(np.maximum(footprint, 1e-9) * 0.7)), 0, len(self.ground) - 1)
-        level = np.where(np.isfinite(depth), level, -1).astype(int)
+        level = np.where(g, level, -1).astype(int)
         G = np.column_stack([R_c_w[:, 0], R_c_w[:, 1], t_c_w])  # ground (X, Y, 1) -> camera
         H_img_world = K @ G
         bands = []  # (level, first row, end row, texel -> band pixel)
         for lev in range(len(self.ground)):
-            rows = np.nonzero(level == lev)[0]
+            rows = np.flatnonzero(level == lev)
             if rows.size == 0:
                 continue
-            r0, r1 = rows[0], rows[-1] + 1
+            r0, r1 = int(rows[0]), int(rows[-1]) + 1
             s = self.texel * (2**lev)
             A = np.diag([s, s, 1.0])
             Tr = np.array([[1, 0, 0], [0, 1, -r0], [0, 0, 1.0]])
@@ -363,23 +291,25 @@ class StereoRenderer:
         # band pixel -> texel: the bands' inverses in one call (the same numbers as one call each)
         inverses = np.linalg.inv(np.array([b[3] for b in bands])) if bands else []
         for (lev, r0, r1, _), M in zip(bands, inverses, strict=True):
-            band = cv2.warpPerspective(
+            cv2.warpPerspective(
                 self.ground[lev],
                 M,
-                (W, int(r1 - r0)),
+                (W, r1 - r0),
+                dst=img[r0:r1],
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                 borderMode=cv2.BORDER_WRAP,
             )
-            img[r0:r1] = band
-        # fog per row towards the sky grey (rows without ground keep f = 1: unchanged, so only the ground
-        # rows are blended)
-        fog = np.exp(-np.where(np.isfinite(depth), depth, 0.0) / float(self.opts["fog_m"]))[:, None]
-        g = np.isfinite(depth)
-        img[g] = (img[g] * fog[g] + 150.0 * (1 - fog[g])).astype(np.uint8)
-        # ---- boxes: visible vertical faces, z-buffered
-        self._draw_faces(img, zbuf, boxes, R_c_w, t_c_w, T_w_c[:3, 3])
-        out = img.astype(np.int16) + noise
-        return np.clip(out, 0, 255).astype(np.uint8)
+        # fog per row towards the sky grey, on the ground rows only (a run of rows, the sky above them,
+        # unless the camera rolls)
+        fog = np.exp(-np.where(g, depth, 0.0) / float(self.opts["fog_m"]))[:, None]
+        rows = np.flatnonzero(g)
+        if rows.size and rows[-1] - rows[0] + 1 == rows.size:
+            g = slice(int(rows[0]), int(rows[-1]) + 1)
+        f = fog[g]
+        shaded = img[g] * f
+        shaded += 150.0 * (1 - f)
+        img[g] = shaded  # float64 -> uint8 truncates, as astype does
+        return zbuf
 
     def _draw_faces(self, img, zbuf, boxes, R_c_w, t_c_w, cam) -> None:
         """Draw the visible vertical faces of the instances ``boxes`` = (indices, alphas), in instance
@@ -401,12 +331,12 @@ class StereoRenderer:
             return
         down_c = -R_c_w[:, 2]  # the texture's down axis in the camera
         outlines = [self._face_outline(faces, j) for j in range(len(faces.b_i))]
-        boxes = [None if uv is None else self._pixel_box(uv) for uv in outlines]
+        boxes, polys = self._pixel_boxes(faces, outlines)
         maps = self._texture_maps(faces, down_c, boxes)
-        for j, (uv, box) in enumerate(zip(outlines, boxes, strict=True)):
+        for j, (poly, box) in enumerate(zip(polys, boxes, strict=True)):
             if box is not None:
                 tex_maps = maps[j] if maps is not None else self._texture_maps(faces, down_c, boxes, j)[0]
-                self._paint_face(img, zbuf, faces, j, uv, box, tex_maps, float(alphas[faces.b_i[j]]))
+                self._paint_face(img, zbuf, faces, j, poly, box, tex_maps, float(alphas[faces.b_i[j]]))
 
     def _face_geometry(self, idx, R_c_w, t_c_w, cam) -> _Faces | None:
         """The front (not back) vertical faces of instances ``idx``, box-major, in the camera; None
@@ -443,7 +373,9 @@ class StereoRenderer:
         plane = (n_c @ self.Kinv) / np.einsum("fk,fk->f", n_c, pc[:, 0])[:, None]
         # texture axes in the camera: along the face (and down, the same for every face)
         e_c = np.column_stack([e2, np.zeros(n_f)]) @ R_c_w.T
-        return _Faces(b_i, pc, in_front, uv_all, plane, e_c, self._inst_tex[idx[b_i], f_i])
+        # the plane's row and column terms a1 v and a0 u of every pixel row and column (float64)
+        rows, cols = plane[:, 1:2] * self._v, plane[:, 0:1] * self._u
+        return _Faces(b_i, pc, in_front, uv_all, plane, rows, cols, e_c, self._inst_tex[idx[b_i], f_i])
 
     def _face_outline(self, faces: _Faces, j: int) -> np.ndarray | None:
         """Face ``j``'s outline in pixels (clipped at the near plane; None when nothing is left)."""
@@ -463,32 +395,59 @@ class StereoRenderer:
         y0, y1 = max(0, math.floor(vmin)), min(self.height, math.ceil(vmax) + 1)
         return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
 
-    def _paint_face(self, img, zbuf, faces: _Faces, j: int, uv, box, tex_maps, alpha: float) -> None:
-        """Face ``j``'s pixels in front of ``zbuf`` within outline ``uv`` (pixel box ``box``): its texture
-        (``tex_maps``: :meth:`_texture_maps` per mip level), fogged, blended with ``alpha`` into ``img``;
-        the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
+    def _pixel_boxes(self, faces: _Faces, outlines: list) -> tuple[list, list]:
+        """Every face's :meth:`_pixel_box` (None for a face without outline) and its outline as
+        ``fillConvexPoly`` points in that box (1/16 pixel, int32); those of the faces wholly before the
+        near plane (their outline is ``uv_all``) all at once: the same integers."""
+        boxes: list = [None] * len(outlines)
+        polys: list = [None] * len(outlines)
+        for j, uv in enumerate(outlines):
+            if uv is not None and not faces.in_front[j]:
+                boxes[j] = box = self._pixel_box(uv)
+                if box is not None:
+                    polys[j] = np.round((uv - box[:2]) * 16).astype(np.int32)
+        front = np.flatnonzero(faces.in_front)
+        if front.size:
+            uv = faces.uv_all[front]
+            lo = np.maximum(np.floor(uv.min(axis=1)).astype(np.int64), 0)
+            hi = np.minimum(np.ceil(uv.max(axis=1)).astype(np.int64) + 1, [self.width, self.height])
+            pts = np.round((uv - lo[:, None, :]) * 16).astype(np.int32)
+            corners = zip(lo.tolist(), hi.tolist(), strict=True)
+            for k, (j, ((x0, y0), (x1, y1))) in enumerate(zip(front.tolist(), corners, strict=True)):
+                if x0 < x1 and y0 < y1:
+                    boxes[j], polys[j] = (x0, y0, x1, y1), pts[k]
+        return boxes, polys
+
+    def _paint_face(self, img, zbuf, faces: _Faces, j: int, poly, box, tex_maps, alpha: float) -> None:
+        """Face ``j``'s pixels in front of ``zbuf`` within outline ``poly`` (:meth:`_pixel_boxes`) in pixel
+        box ``box``: its texture (``tex_maps``: :meth:`_texture_maps` per mip level), fogged, blended with
+        ``alpha`` into ``img``; the face's depth written to ``zbuf`` when ``alpha >= 0.5``."""
         x0, y0, x1, y1 = box
-        a = faces.plane[j]  # float64 scalars: the products are float64, rounded to float32 once
-        # a0 u + a1 v + a2 over the box: the row and column products once each, then summed per pixel
-        invz = (np.add.outer(a[1] * self._v[y0:y1], a[0] * self._u[x0:x1]) + a[2]).astype(np.float32)
+        # inverse depth a0 u + a1 v + a2 over the box in float64 (the row and column products of
+        # _face_geometry), rounded to float32 once
+        invz = np.add.outer(faces.rows[j, y0:y1], faces.cols[j, x0:x1])
+        invz += faces.plane[j, 2]
+        invz = invz.astype(np.float32)
         mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
-        cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
+        cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)
         zsub = zbuf[y0:y1, x0:x1]
         sel = mask.view(bool) & (invz > zsub)  # the mask holds 0 and 1
-        invz_sel = invz[sel]
-        if invz_sel.size == 0:
+        nearest = float(invz.max(where=sel, initial=-np.inf))  # -inf: no pixel (a NaN is never selected)
+        if nearest == -np.inf:
             return
-        dist = 1.0 / max(float(invz_sel.max()), 1e-6)
+        dist = 1.0 / max(nearest, 1e-6)
         patch = self._face_texture(dist, box, tex_maps)
         f = math.exp(-dist / float(self.opts["fog_m"]))
         sub = img[y0:y1, x0:x1]
+        # fogged grey of every grey level (the float64 sums a pixel of that level gets), looked up per pixel
+        fogged = self._grey * f + 150.0 * (1 - f)
         if alpha >= 1.0:
-            sub[sel] = (patch[sel] * f + 150.0 * (1 - f)).astype(np.uint8)
+            np.copyto(sub, cv2.LUT(patch, fogged.astype(np.uint8)), where=sel)
         else:
-            sub[sel] = (alpha * (patch[sel] * f + 150.0 * (1 - f)) + (1 - alpha) * sub[sel]).astype(np.uint8)
+            faded, behind = alpha * fogged, (1 - alpha) * self._grey
+            sub[sel] = (faded[patch[sel]] + behind[sub[sel]]).astype(np.uint8)
         if alpha >= 0.5:
-            zsub[sel] = invz_sel
+            np.copyto(zsub, invz, where=sel)
 
     def _texture_maps(self, faces: _Faces, down_c, boxes, only: int | None = None) -> np.ndarray | None:
         """Per face (or face ``only``) and wall mip level, the map from a pixel of its box (``boxes``, None
@@ -541,13 +500,16 @@ class _Faces:
     """The front faces of :meth:`StereoRenderer._face_geometry`, one row each: the instance row ``b_i`` of the
     face, its corners in the camera ``pc`` (F, 4, 3; ``pc[:, 0]`` the top of its ground corner p0),
     whether they are all before the near plane, their pixels ``uv_all`` (F, 4, 2), the face's plane
-    (inverse depth = ``plane . (u, v, 1)``), its direction in the camera ``e_c`` and its texture offset."""
+    (inverse depth = ``plane . (u, v, 1)``) with its terms of every pixel row (``rows``: a1 v) and column
+    (``cols``: a0 u), its direction in the camera ``e_c`` and its texture offset."""
 
     b_i: np.ndarray
     pc: np.ndarray
     in_front: np.ndarray
     uv_all: np.ndarray
     plane: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
     e_c: np.ndarray
     tex_off: np.ndarray
 
