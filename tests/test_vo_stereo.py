@@ -263,3 +263,47 @@ def test_vo_tracks_through_a_jump_the_motion_model_did_not_predict(camera_cfg, r
         quaternion_from_yaw(path[:, 3]),
     )
     assert evaluate_against_truth(traj, truth)["ate_max_m"] < 0.05
+
+
+@pytest.mark.parametrize("options", [{}, {"max_row_diff": 0.3, "min_disparity": 1.3, "max_disparity": 40.7}])
+def test_stereo_match_mask_is_the_all_pairs_rule(options):
+    """The candidate stereo pairs (row and disparity bounds) found from the right features sorted by row
+    are exactly those of the rule tested on every left x right pair, bounds included."""
+    c = VOConfig(**options)
+    vo = StereoVO(StereoCamera(np.array([[200.0, 0, 160], [0, 200, 120], [0, 0, 1]]), 0.12), c)
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        pl = (rng.random((rng.integers(0, 400), 2)) * [320, 240]).astype(np.float32)
+        pr = (rng.random((rng.integers(0, 600), 2)) * [320, 240]).astype(np.float32)
+        k = min(len(pl), len(pr))
+        if trial % 2 and k:  # pairs exactly on (and half-way to) the row and disparity bounds
+            pr[:k, 1] = pl[:k, 1] + np.float32(c.max_row_diff + 1.0) * rng.choice([-1.0, 1.0, 0.5], k)
+            pr[:k, 0] = pl[:k, 0] - rng.choice([c.max_disparity, c.min_disparity - 1.0, 10.0], k)
+        disp = pl[:, None, 0] - pr[None, :, 0]
+        rule = (np.abs(pl[:, None, 1] - pr[None, :, 1]) <= c.max_row_diff + 1.0) & (
+            (disp >= c.min_disparity - 1.0) & (disp <= c.max_disparity)
+        )
+        mask = vo._stereo_mask(pl, pr)
+        assert mask.dtype == np.uint8 and np.array_equal(mask, rule.astype(np.uint8))
+
+
+def test_pose_refinement_recovers_the_pose_of_exact_stereo_observations():
+    """From a pose 2 cm and 1 degree off, the Huber Gauss-Newton refinement returns the pose whose exact
+    left (and, for a subset, right) projections it is given."""
+    from skidbench.pipeline.core.geometry import se3_inverse
+    from skidbench.pipeline.groundtruth.stereo.pose import refine_pose
+
+    cam = StereoCamera(np.array([[200.0, 0, 160], [0, 200, 120], [0, 0, 1]]), 0.12)
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(-2, 2, 80), rng.uniform(-1, 1, 80), rng.uniform(2, 8, 80)])
+    T_k_c = se3_from_xyz_rpy(np.array([0.1, -0.05, 0.3]), np.array([0.02, -0.1, 0.05]))
+    T_c_k = se3_inverse(T_k_c)
+    Xc = X @ T_c_k[:3, :3].T + T_c_k[:3, 3]
+    pl = np.column_stack([200 * Xc[:, 0] / Xc[:, 2] + 160, 200 * Xc[:, 1] / Xc[:, 2] + 120])
+    pr = pl - np.column_stack([200 * 0.12 / Xc[:, 2], np.zeros(80)])
+    has_r = rng.random(80) < 0.6
+    start = T_k_c @ se3_from_xyz_rpy(np.array([0.02, 0.0, -0.01]), np.radians([1.0, 0.0, 0.5]))
+    c = VOConfig(refine_iters=20)
+    for right in (pr, None):
+        T = refine_pose(start, X, pl, right, has_r, cam, c)
+        assert np.allclose(T, T_k_c, atol=1e-7)

@@ -230,14 +230,9 @@ def sequence_inputs(gt: GroundTruthSettings, layout: Layout, manifest: Manifest,
         if o.associate_to:
             files.append(ext / f"{o.associate_to}.parquet")
     elif method == "vo":
-        vo_code = (
-            "stereo/vo.py",
-            "stereo/stereo_vo.py",
-            "stereo/stereo_bag.py",
-            "stereo/vo_settings.py",
-            "app.py",
-        )
-        files += [manifest.resolve(seq), *(Path(__file__).parent / f for f in vo_code)]
+        here = Path(__file__).parent
+        vo_code = [*sorted((here / "stereo").glob("*.py")), here / "app.py"]  # every module of the method
+        files += [manifest.resolve(seq), *vo_code]
         files.append(ext / "_extract.json")  # the stereo topics, when source.topics=auto
     files.append(ext / f"{gt.truth_key}.parquet")
     return [f for f in files if f.exists()]

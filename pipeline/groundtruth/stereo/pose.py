@@ -81,44 +81,36 @@ def refine_pose(
 ) -> np.ndarray:
     """Huber Gauss-Newton on the reprojection error of keyframe points ``X`` observed at ``pl`` in the
     current left image (and at ``pr`` in the right one, where ``has_r``), from ``T_k_c``; returns the
-    refined T_k_c."""
+    refined T_k_c.
+
+    The observations of both images are one array: the left image's (every point), then the right
+    image's (the points with ``has_r``), each a (u, v) pair of rows of the residual and the Jacobian."""
     K = cam.K
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    b = cam.baseline
+    if pr is None:
+        take, obs, cam_dx = np.arange(len(X)), pl, np.zeros(len(X))
+    else:
+        right = np.flatnonzero(has_r)
+        take = np.concatenate([np.arange(len(X)), right])
+        obs = np.concatenate([pl, pr[right]])
+        cam_dx = np.concatenate([np.zeros(len(X)), np.full(right.size, cam.baseline)])
     T = se3_inverse(T_k_c)  # current <- keyframe
     for _ in range(c.refine_iters):
-        Xc = X @ T[:3, :3].T + T[:3, 3]
+        Xc = (X @ T[:3, :3].T + T[:3, 3])[take]
         x, y, z = Xc[:, 0], Xc[:, 1], np.maximum(Xc[:, 2], 1e-3)
         iz = 1.0 / z
-        rows_r, rows_j = [], []
-        # left image residuals and Jacobian wrt a left-multiplied twist (rho, phi)
-        for cam_dx, obs, sel in ((0.0, pl, None), (b, pr, has_r)):
-            if obs is None:
-                continue
-            xx = x - cam_dx
-            u = fx * xx * iz + cx
-            v = fy * y * iz + cy
-            r = np.column_stack([u - obs[:, 0], v - obs[:, 1]])
-            # d(u,v)/dXc
-            J = np.zeros((len(x), 2, 6))
-            J[:, 0, 0] = fx * iz
-            J[:, 0, 2] = -fx * xx * iz * iz
-            J[:, 1, 1] = fy * iz
-            J[:, 1, 2] = -fy * y * iz * iz
-            # dXc/dphi = -[Xc]x (perturbation applied in the current frame: Xc' = exp(xi) Xc): the
-            # product d(u,v)/dXc dXc/dphi written out (the zero terms dropped: adding 0 is exact)
-            J[:, 0, 3] = J[:, 0, 2] * y
-            J[:, 0, 4] = J[:, 0, 0] * z + J[:, 0, 2] * -x
-            J[:, 0, 5] = J[:, 0, 0] * -y
-            J[:, 1, 3] = J[:, 1, 1] * -z + J[:, 1, 2] * y
-            J[:, 1, 4] = J[:, 1, 2] * -x
-            J[:, 1, 5] = J[:, 1, 1] * x
-            if sel is not None:
-                r, J = r[sel], J[sel]
-            rows_r.append(r.reshape(-1))
-            rows_j.append(J.reshape(-1, 6))
-        r = np.concatenate(rows_r)
-        J = np.concatenate(rows_j)
+        xx = x - cam_dx  # in the observing camera's frame (the right one at +baseline along x)
+        r = np.column_stack([fx * xx * iz + cx - obs[:, 0], fy * y * iz + cy - obs[:, 1]]).reshape(-1)
+        # d(u,v)/dXc, then d(u,v)/dXc dXc/dphi with dXc/dphi = -[Xc]x (a left-multiplied twist (rho,
+        # phi): Xc' = exp(xi) Xc), written out with the zero terms dropped (adding 0 is exact)
+        J = np.zeros((len(x), 12))
+        ux, uz = fx * iz, -fx * xx * iz * iz
+        vy, vz = fy * iz, -fy * y * iz * iz
+        J[:, 0], J[:, 2], J[:, 3] = ux, uz, uz * y
+        J[:, 4], J[:, 5] = ux * z + uz * -x, ux * -y
+        J[:, 7], J[:, 8], J[:, 9] = vy, vz, vy * -z + vz * y
+        J[:, 10], J[:, 11] = vz * -x, vy * x
+        J = J.reshape(-1, 6)
         a = np.abs(r)
         w = np.where(a <= c.huber_px, 1.0, c.huber_px / np.maximum(a, 1e-12))
         H = J.T @ (J * w[:, None])

@@ -96,6 +96,7 @@ class StereoVO:
         # the right image's disparity (None: unknown, the full pyramid)
         self.track_err: float | None = None
         self.disp_err: float | None = None
+        self._last_sheared: tuple[np.ndarray, np.ndarray] | None = None  # (right, its sheared image)
         self.last = None  # the last tracked frame's (left, right, T_w_c), a keyframe to re-anchor on
         self.kf: _Keyframe | None = None
         self.T_w_c = np.eye(4)  # current camera pose in the first camera frame
@@ -137,13 +138,9 @@ class StereoVO:
         kr, dr = self._detect(right, self.orb_right, int(c.n_features * 1.5))
         if dl is None or dr is None or len(kl) < 8 or len(kr) < 8:
             return None
-        pl = np.array([k.pt for k in kl], dtype=np.float32)
-        pr = np.array([k.pt for k in kr], dtype=np.float32)
-        disp = pl[:, None, 0] - pr[None, :, 0]
-        mask = (np.abs(pl[:, None, 1] - pr[None, :, 1]) <= c.max_row_diff + 1.0) & (
-            (disp >= c.min_disparity - 1.0) & (disp <= c.max_disparity)
-        )
-        matches = self.bf.knnMatch(dl, dr, k=2, mask=mask.astype(np.uint8))
+        pl = cv2.KeyPoint_convert(kl)  # (N, 2) float32, the same values as each k.pt
+        pr = cv2.KeyPoint_convert(kr)
+        matches = self.bf.knnMatch(dl, dr, k=2, mask=self._stereo_mask(pl, pr))
         il, ir = [], []
         for m in matches:
             if not m:
@@ -181,18 +178,42 @@ class StereoVO:
         X = np.column_stack([(p0[:, 0] - K[0, 2]) * Z / K[0, 0], (p0[:, 1] - K[1, 2]) * Z / K[1, 1], Z])
         return p0.astype(np.float32), X, desc
 
+    def _stereo_mask(self, pl: np.ndarray, pr: np.ndarray) -> np.ndarray:
+        """Which left (rows) and right (columns) features may match: rows at most ``max_row_diff`` + 1 px
+        apart, disparity in [``min_disparity`` - 1, ``max_disparity``] px. The test runs on the pairs whose
+        rows are within that bound + 1 px only (the right features sorted by row), in float32 as the
+        positions are."""
+        c = self.cfg
+        rows = c.max_row_diff + 1.0
+        order = np.argsort(pr[:, 1], kind="stable")
+        lo = np.searchsorted(pr[order, 1], pl[:, 1] - np.float32(rows + 1.0), "left")
+        hi = np.searchsorted(pr[order, 1], pl[:, 1] + np.float32(rows + 1.0), "right")
+        n = hi - lo
+        i = np.repeat(np.arange(len(pl)), n)
+        j = order[np.arange(n.sum()) - np.repeat(np.cumsum(n) - n - lo, n)]
+        disp = pl[i, 0] - pr[j, 0]
+        ok = (np.abs(pl[i, 1] - pr[j, 1]) <= rows) & ((disp >= c.min_disparity - 1.0) & (disp <= c.max_disparity))
+        mask = np.zeros((len(pl), len(pr)), np.uint8)
+        mask[i[ok], j[ok]] = 1
+        return mask
+
     def _ground_disp(self, p: np.ndarray) -> np.ndarray:
         a = self.disp_coef
         return a[0] * p[:, 0] + a[1] * p[:, 1] + a[2]
 
     def _sheared(self, right: np.ndarray) -> np.ndarray:
-        """The right image shifted per pixel by the ground disparity: ground points line up with left."""
+        """The right image shifted per pixel by the ground disparity: ground points line up with left
+        (kept for the last right image: a frame that becomes the keyframe uses it again)."""
+        if self._last_sheared is not None and self._last_sheared[0] is right:
+            return self._last_sheared[1]
         a = self.disp_coef
         M = np.array([[1.0 - a[0], -a[1], -a[2]], [0.0, 1.0, 0.0]])
         h, w = right.shape[:2]
-        return cv2.warpAffine(
+        sheared = cv2.warpAffine(
             right, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
         )
+        self._last_sheared = (right, sheared)
+        return sheared
 
     def _right_positions(self, left, right, p0, d0, ground, levels: int):
         """Right-image positions of left points ``p0`` with disparity guesses ``d0`` (LK with ``levels``
