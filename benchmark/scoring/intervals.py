@@ -199,31 +199,35 @@ class Sample:
 
 
 #: bytes of bootstrap draws kept per process (least recently used first out): a board's strata at every
-#: horizon and protocol reuse the same draws (a few MB each), so the reuse within one horizon's boards stays
-#: in memory whatever the dataset's size
+#: horizon and protocol reuse the same draws, so the reuse within one horizon's boards stays in memory
+#: whatever the dataset's size. The counts are kept in the smallest unsigned integer type that holds K (a
+#: count is at most K: one byte each below 256 blocks, an eighth of the floats they are used as)
 DRAWS_CACHE_BYTES = 64 * 2**20
 _drawn: OrderedDict[tuple[int, str, int, int], np.ndarray] = OrderedDict()
 _drawn_lock = threading.Lock()
 
 
 def _draws(seed: int, key: str, K: int, resamples: int) -> np.ndarray:
-    """(resamples, K) bootstrap counts of K blocks, from ``(seed, key, K)`` alone: the same draws for every
-    sample that resamples that stratum (compare's paired samples rank many pairs on the same strata;
-    drawing them once per process, not once per sample, is the same numbers). Read-only; kept while the
+    """(resamples, K) bootstrap counts of K blocks (floats), from ``(seed, key, K)`` alone: the same draws
+    for every sample that resamples that stratum (compare's paired samples rank many pairs on the same
+    strata; drawing them once per process, not once per sample, is the same numbers). Kept while the
     draws of the process stay under :data:`DRAWS_CACHE_BYTES`."""
     k = (seed, key, K, resamples)
     with _drawn_lock:
-        if k in _drawn:
+        counts = _drawn.get(k)
+        if counts is not None:
             _drawn.move_to_end(k)
-            return _drawn[k]
-    rng = np.random.default_rng([seed, zlib.crc32(key.encode()), K])
-    w = rng.multinomial(K, np.full(K, 1.0 / K), size=resamples).astype(float)
+    if counts is None:
+        rng = np.random.default_rng([seed, zlib.crc32(key.encode()), K])
+        counts = rng.multinomial(K, np.full(K, 1.0 / K), size=resamples)
+        counts = counts.astype(np.min_scalar_type(K))  # exact: every count is in 0..K
+        with _drawn_lock:
+            _drawn[k] = counts
+            total = sum(v.nbytes for v in _drawn.values())
+            while total > DRAWS_CACHE_BYTES and len(_drawn) > 1:
+                total -= _drawn.popitem(last=False)[1].nbytes
+    w = counts.astype(float)
     w.setflags(write=False)
-    with _drawn_lock:
-        _drawn[k] = w
-        total = sum(v.nbytes for v in _drawn.values())
-        while total > DRAWS_CACHE_BYTES and len(_drawn) > 1:
-            total -= _drawn.popitem(last=False)[1].nbytes
     return w
 
 
