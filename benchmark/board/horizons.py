@@ -50,15 +50,19 @@ def board_horizons(layout: Layout, board: pd.DataFrame, protocol: str) -> list[f
     return []
 
 
+#: the columns of the per-window tables the strata and their boards read
+COLUMNS = ("horizon_s", "aggressiveness", *st.WINDOW_COLUMNS)
+
+
 def strata_standings(
-    layout: Layout, tables: Mapping[tuple[str, str], pd.DataFrame], horizon_s: float,
-    intervals: IntervalConfig, rank_by: str, half_track: float, commands: Commands | None = None,
+    layout: Layout, board: pd.DataFrame, protocol: str, horizon_s: float, intervals: IntervalConfig,
+    rank_by: str, half_track: float, commands: Commands | None = None,
 ) -> dict[str, st.Standings]:  # fmt: skip
-    """``{stratum: Standings}`` of one board at one horizon (``all`` and the terciles, module docstring)
-    from its per-window tables (:func:`~skidbench.benchmark.board.boards.read_tables`): each the overall
-    ranking and claim only (``st.build(..., detail=False)``: what the report shows). ``commands``: the test
-    splits' commands read so far (:func:`~skidbench.benchmark.board.strata.add_aggressiveness`)."""
-    windows = at_horizon(dict(tables), horizon_s)
+    """``{stratum: Standings}`` of one board at one horizon (``all`` and the terciles, module docstring):
+    each the overall ranking and claim only (``st.build(..., detail=False)``: what the report shows).
+    ``commands``: the test splits' commands read so far
+    (:func:`~skidbench.benchmark.board.strata.add_aggressiveness`)."""
+    windows = at_horizon(read_tables(layout, board, protocol, COLUMNS)[0], horizon_s)
     if not any(m != FLOOR for m, _ in windows):
         return {}
     strata = stratum_windows(layout, windows, horizon_s, half_track, commands)
@@ -167,16 +171,14 @@ def horizon_report(
     results: dict[str, dict[float, dict[str, st.Standings]]] = {
         p: {} for p, hs in todo.items() if len(hs) > 1
     }
-    # each board's tables read once; horizon by horizon, every protocol's boards in turn: they resample the
-    # same strata (the same bootstrap draws, kept while they are recent)
-    columns = ("horizon_s", "aggressiveness", *st.WINDOW_COLUMNS)  # what the strata and their boards read
-    tables = {p: read_tables(layout, boards[p], p, columns)[0] for p in results}
+    # horizon by horizon, every protocol's boards in turn: they resample the same strata (the same bootstrap
+    # draws, kept while they are recent); the test splits' commands are read once for every horizon
     commands: dict[str, Commands] = {p: {} for p in results}
     for h in sorted({h for p in results for h in todo[p]}):
         for protocol in [p for p in results if h in todo[p]]:
             try:  # the strata of a protocol other than state are read from the test splits' commands
-                results[protocol][h] = strata_standings(layout, tables[protocol], h, intervals, rank_by,
-                                                        half_track, commands[protocol])  # fmt: skip
+                results[protocol][h] = strata_standings(layout, boards[protocol], protocol, h, intervals,
+                                                        rank_by, half_track, commands[protocol])  # fmt: skip
             except EvaluationError as exc:  # the splits are gone: the boards stand, this report cannot
                 log.warning("compare: no error against horizon for inputs=%s: %s", protocol, exc)
                 del results[protocol]
