@@ -335,3 +335,56 @@ def test_pairing_windows_is_the_outer_join_whether_or_not_the_models_share_every
     gap = st.pair_windows(frames)
     pd.testing.assert_frame_equal(gap, joined(frames))
     assert len(gap) == 12 and int(gap["rel_trans.C"].isna().sum()) == 1
+
+
+def test_paired_columns_are_the_joined_table_of_pair_windows():
+    """The paired sample's arrays (standings._pair_columns) are pair_windows' table: the same windows in the
+    same order (sorted by sequence, then start, stably) and the same values, whether the models share every
+    window (set side by side), one lacks a window (joined) or a window repeats."""
+    rng = np.random.default_rng(5)
+    seq = np.array(["b_01"] * 5 + ["a_00"] * 5 + ["b_01"] * 2, dtype=object)
+    base = {"sequence": seq, "start": np.r_[np.arange(5) * 5, np.arange(5) * 5, 30, 35],
+            "t0": np.r_[np.arange(5.0), np.arange(5.0), 6.0, 7.0]}  # fmt: skip
+    frames = {m: {**base, "translational": rng.random(12), "rotational": rng.random(12)} for m in "ABC"}
+
+    def check(fr):
+        got = st._pair_columns(fr)
+        want = st.pair_windows({m: pd.DataFrame(f) for m, f in fr.items()})
+        assert got["sequence"].tolist() == want["sequence"].tolist()
+        for col in ["t0", *(f"{c}.{m}" for m in fr for c in ("translational", "rotational"))]:
+            assert np.array_equal(got[col], want[col].to_numpy(float), equal_nan=True), col
+
+    check(frames)
+    check({m: {k: v[1:] if m == "C" else v for k, v in f.items()} for m, f in frames.items()})
+    check({m: {k: np.r_[v, v[-1:]] for k, v in f.items()} for m, f in frames.items()})  # a repeated window
+
+
+def test_resampled_statistics_are_the_same_in_any_chunk_and_the_draws_are_the_multinomials(monkeypatch):
+    """The resamples' statistics computed a chunk of resamples at a time are those of all at once, bit for
+    bit; the cached draws are numpy's multinomial counts of (seed, key, K), in any order of asking."""
+    rng = np.random.default_rng(2)
+    K, n = 37, 400
+    block = np.sort(np.r_[np.arange(K), rng.integers(0, K, n - K)])
+    N = rng.integers(0, 9, n).astype(float)
+    cols = [(N * rng.random(n) ** 2, N, agg, c) for agg, c in (("rms", 0.5), ("mean", -0.25), ("rms", 1.0))]
+    part = iv._Part(None, np.zeros(K), cols, K)  # type: ignore[arg-type]
+    W = iv._draws(7, "ld@6s:x", K, 500)
+    want = np.random.default_rng([7, iv.zlib.crc32(b"ld@6s:x"), K]).multinomial(K, np.full(K, 1 / K), 500)
+    assert np.array_equal(W, want) and W.dtype == float
+    whole = iv._resampled(W, part, block, K)
+    theta_b, u_b = np.zeros(500), np.zeros((500, K))  # the formula on all resamples at once
+    for S, N, agg, c in cols:
+        Sk, Nk = np.bincount(block, weights=S, minlength=K), np.bincount(block, weights=N, minlength=K)
+        Sb, Nb = W @ Sk, W @ Nk
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mb = Sb / Nb
+            u_b += (c * iv._slope(mb, agg) / Nb)[:, None] * (Sk[None, :] - mb[:, None] * Nk[None, :])
+        theta_b += c * iv._score(Sb, Nb, agg)
+    assert np.array_equal(whole[0], theta_b, equal_nan=True)
+    assert np.array_equal(whole[1], K / (K - 1.0) * np.sum(W * u_b**2, axis=1), equal_nan=True)
+    monkeypatch.setattr(iv, "_CHUNK", 3 * K + 1)  # 3 resamples a chunk, the last one short
+    chunked = iv._resampled(W, part, block, K)
+    for a, b in zip(whole, chunked, strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+    iv._draws(7, "ld@6s:y", K, 500)
+    assert np.array_equal(iv._draws(7, "ld@6s:x", K, 500), W)

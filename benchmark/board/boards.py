@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 
 from skidbench.benchmark.board import results as rt
 from skidbench.benchmark.scoring.floor import FLOOR
@@ -266,6 +268,29 @@ def read_windows(
     status; ``run_id``) and of the floor of each of its terrains: ``{(model, terrain): windows}``, and a note
     per table that could not be read (a run whose files are elsewhere) or was written by another run than the
     row's (a later evaluate's, killed, say): those cells keep their logged intervals."""
+    tables, notes = read_tables(layout, rows, protocol)
+    return at_horizon(tables, horizon_s), notes
+
+
+def at_horizon(
+    tables: dict[tuple[str, str], pd.DataFrame], horizon_s: float
+) -> dict[tuple[str, str], pd.DataFrame]:
+    """The windows at ``horizon_s`` of tables of :func:`read_tables` (a table without one left out)."""
+    out = {}
+    for k, w in tables.items():
+        if "horizon_s" in w:
+            w = w[np.isclose(w["horizon_s"].to_numpy(float), horizon_s)]
+        if len(w):
+            out[k] = w
+    return out
+
+
+def read_tables(
+    layout: Layout, rows: pd.DataFrame, protocol: str, columns: Sequence[str] | None = None
+) -> tuple[dict[tuple[str, str], pd.DataFrame], list[str]]:
+    """The per-window tables (every horizon) of a board's FINISHED (model, terrain) and its floors, read
+    once for :func:`at_horizon` to take each horizon's windows from, and the notes of
+    :func:`read_windows`; an empty table is left out. ``columns``: only those of a table's columns."""
     out, notes = {}, []
     ok = rows[rows["status"] == "FINISHED"]
     wanted = [(str(m), str(t)) for m, t in zip(ok["model"], ok["terrain"], strict=True)]
@@ -276,7 +301,8 @@ def read_windows(
         stem = layout.eval_stem(model, terrain, protocol)
         path = stem.with_name(stem.name + ".windows.parquet")
         try:
-            w = pd.read_parquet(path)
+            keep = None if columns is None else [c for c in pq.read_schema(path).names if c in columns]
+            w = pd.read_parquet(path, columns=keep)
             made_by = str(read_parquet_metadata(path).get("run_id") or "")
         except (OSError, ValueError, SkidbenchError) as exc:
             if model != FLOOR:  # an evaluate from before the floor existed: no floor row, silently
@@ -291,8 +317,6 @@ def read_windows(
             unknown = read_parquet_metadata(path).get("floor_unknown")
             if unknown:
                 notes.append(f"{terrain}: {unknown}")
-        if len(w) and "horizon_s" in w:
-            w = w[np.isclose(w["horizon_s"].to_numpy(float), horizon_s)]
         if len(w):
             out[(model, terrain)] = w
     return out, notes

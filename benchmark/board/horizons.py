@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from skidbench.benchmark.board.boards import read_windows
-from skidbench.benchmark.board.strata import stratum_windows
+from skidbench.benchmark.board.boards import at_horizon, read_tables
+from skidbench.benchmark.board.strata import Commands, stratum_windows
 from skidbench.benchmark.board.tables import scope_line
 from skidbench.benchmark.errors import EvaluationError
 from skidbench.benchmark.scoring import aggressiveness as ag
@@ -50,17 +50,24 @@ def board_horizons(layout: Layout, board: pd.DataFrame, protocol: str) -> list[f
     return []
 
 
+#: the columns of the per-window tables the strata and their boards read
+COLUMNS = ("horizon_s", "aggressiveness", *st.WINDOW_COLUMNS)
+
+
 def strata_standings(
     layout: Layout, board: pd.DataFrame, protocol: str, horizon_s: float, intervals: IntervalConfig,
-    rank_by: str, half_track: float,
+    rank_by: str, half_track: float, commands: Commands | None = None,
 ) -> dict[str, st.Standings]:  # fmt: skip
     """``{stratum: Standings}`` of one board at one horizon (``all`` and the terciles, module docstring):
-    each the overall ranking and claim only (``st.build(..., detail=False)``: what the report shows)."""
-    windows, _ = read_windows(layout, board, protocol, horizon_s)
+    each the overall ranking and claim only (``st.build(..., detail=False)``: what the report shows).
+    ``commands``: the test splits' commands read so far
+    (:func:`~skidbench.benchmark.board.strata.add_aggressiveness`)."""
+    windows = at_horizon(read_tables(layout, board, protocol, COLUMNS)[0], horizon_s)
     if not any(m != FLOOR for m, _ in windows):
         return {}
+    strata = stratum_windows(layout, windows, horizon_s, half_track, commands)
     return {name: st.build(part, horizon_s, intervals, rank_by, detail=False)
-            for name, part in stratum_windows(layout, windows, horizon_s, half_track).items()}  # fmt: skip
+            for name, part in strata.items()}  # fmt: skip
 
 
 def _cell(row: pd.Series) -> str:
@@ -165,12 +172,13 @@ def horizon_report(
         p: {} for p, hs in todo.items() if len(hs) > 1
     }
     # horizon by horizon, every protocol's boards in turn: they resample the same strata (the same bootstrap
-    # draws, kept while they are recent)
+    # draws, kept while they are recent); the test splits' commands are read once for every horizon
+    commands: dict[str, Commands] = {p: {} for p in results}
     for h in sorted({h for p in results for h in todo[p]}):
         for protocol in [p for p in results if h in todo[p]]:
             try:  # the strata of a protocol other than state are read from the test splits' commands
                 results[protocol][h] = strata_standings(layout, boards[protocol], protocol, h, intervals,
-                                                        rank_by, half_track)  # fmt: skip
+                                                        rank_by, half_track, commands[protocol])  # fmt: skip
             except EvaluationError as exc:  # the splits are gone: the boards stand, this report cannot
                 log.warning("compare: no error against horizon for inputs=%s: %s", protocol, exc)
                 del results[protocol]

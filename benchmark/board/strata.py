@@ -27,11 +27,16 @@ from skidbench.pipeline.core.io import read_parquet_metadata
 from skidbench.pipeline.core.layout import Layout
 
 Windows = dict[tuple[str, str], pd.DataFrame]  # (model, terrain) -> its windows at one horizon
+#: (terrain, split) -> {sequence: (its times, its wheel contact points' commanded acceleration)}
+Commands = dict[tuple[str, str], dict[str, tuple[np.ndarray, np.ndarray]]]
 
 
-def add_aggressiveness(layout: Layout, windows: Windows, horizon_s: float, half_track: float) -> None:
-    """Adds ``aggressiveness`` to every window table lacking it, from the test splits' commands."""
-    cache: dict[tuple[str, str], dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+def add_aggressiveness(
+    layout: Layout, windows: Windows, horizon_s: float, half_track: float, cache: Commands | None = None
+) -> None:
+    """Adds ``aggressiveness`` to every window table lacking it, from the test splits' commands (read into
+    ``cache``, when given, for the next horizon's windows: they are the same at every horizon)."""
+    cache = {} if cache is None else cache
     for (_model, terrain), w in windows.items():
         if "aggressiveness" in w:
             continue
@@ -50,12 +55,13 @@ def add_aggressiveness(layout: Layout, windows: Windows, horizon_s: float, half_
 
 
 def stratum_windows(
-    layout: Layout, windows: Windows, horizon_s: float, half_track: float
+    layout: Layout, windows: Windows, horizon_s: float, half_track: float, commands: Commands | None = None
 ) -> dict[str, Windows]:
     """``{stratum: windows}``: every window (``all``) and each tercile's, of the windows of one horizon
-    (copies with ``aggressiveness``); a stratum no model's window falls in is left out."""
+    (copies with ``aggressiveness``); a stratum no model's window falls in is left out. ``commands``: the
+    test splits' commands read so far (:func:`add_aggressiveness`)."""
     windows = {k: w.copy() for k, w in windows.items()}
-    add_aggressiveness(layout, windows, horizon_s, half_track)
+    add_aggressiveness(layout, windows, horizon_s, half_track, commands)
     first: dict[str, pd.DataFrame] = {}  # the dataset's terciles: each window once (one model per terrain)
     for (model, terrain), w in windows.items():
         if model != FLOOR:
@@ -105,9 +111,10 @@ def strata_records(
     template = {str(r["run_id"]): r for r in own.drop_duplicates("run_id").to_dict("records")}
     run_of = {(str(m), str(t)): str(r) for m, t, r in runs.itertuples(index=False)}
     out: list[dict] = []
+    commands: Commands = {}
     for h in horizons:
         at = {k: w[np.isclose(w["horizon_s"].to_numpy(float), h)] for k, w in files.items()}
-        by_stratum = stratum_windows(layout, {k: w for k, w in at.items() if len(w)}, h, half_track)
+        by_stratum = stratum_windows(layout, {k: w for k, w in at.items() if len(w)}, h, half_track, commands)
         for name, part in by_stratum.items():
             if name == ag.ALL:
                 continue

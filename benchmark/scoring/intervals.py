@@ -199,31 +199,35 @@ class Sample:
 
 
 #: bytes of bootstrap draws kept per process (least recently used first out): a board's strata at every
-#: horizon and protocol reuse the same draws (a few MB each), so the reuse within one horizon's boards stays
-#: in memory whatever the dataset's size
+#: horizon and protocol reuse the same draws, so the reuse within one horizon's boards stays in memory
+#: whatever the dataset's size. The counts are kept in the smallest unsigned integer type that holds K (a
+#: count is at most K: one byte each below 256 blocks, an eighth of the floats they are used as)
 DRAWS_CACHE_BYTES = 64 * 2**20
 _drawn: OrderedDict[tuple[int, str, int, int], np.ndarray] = OrderedDict()
 _drawn_lock = threading.Lock()
 
 
 def _draws(seed: int, key: str, K: int, resamples: int) -> np.ndarray:
-    """(resamples, K) bootstrap counts of K blocks, from ``(seed, key, K)`` alone: the same draws for every
-    sample that resamples that stratum (compare's paired samples rank many pairs on the same strata;
-    drawing them once per process, not once per sample, is the same numbers). Read-only; kept while the
+    """(resamples, K) bootstrap counts of K blocks (floats), from ``(seed, key, K)`` alone: the same draws
+    for every sample that resamples that stratum (compare's paired samples rank many pairs on the same
+    strata; drawing them once per process, not once per sample, is the same numbers). Kept while the
     draws of the process stay under :data:`DRAWS_CACHE_BYTES`."""
     k = (seed, key, K, resamples)
     with _drawn_lock:
-        if k in _drawn:
+        counts = _drawn.get(k)
+        if counts is not None:
             _drawn.move_to_end(k)
-            return _drawn[k]
-    rng = np.random.default_rng([seed, zlib.crc32(key.encode()), K])
-    w = rng.multinomial(K, np.full(K, 1.0 / K), size=resamples).astype(float)
+    if counts is None:
+        rng = np.random.default_rng([seed, zlib.crc32(key.encode()), K])
+        counts = rng.multinomial(K, np.full(K, 1.0 / K), size=resamples)
+        counts = counts.astype(np.min_scalar_type(K))  # exact: every count is in 0..K
+        with _drawn_lock:
+            _drawn[k] = counts
+            total = sum(v.nbytes for v in _drawn.values())
+            while total > DRAWS_CACHE_BYTES and len(_drawn) > 1:
+                total -= _drawn.popitem(last=False)[1].nbytes
+    w = counts.astype(float)
     w.setflags(write=False)
-    with _drawn_lock:
-        _drawn[k] = w
-        total = sum(v.nbytes for v in _drawn.values())
-        while total > DRAWS_CACHE_BYTES and len(_drawn) > 1:
-            total -= _drawn.popitem(last=False)[1].nbytes
     return w
 
 
@@ -480,19 +484,42 @@ def _scope(parts: Sequence[_Part]) -> str:
     return WITHIN_DRIVES
 
 
+#: elements of the (resamples, blocks) arrays :func:`_resampled` works on at once (512 kB an array): its
+#: passes over them stay in the processor's cache, and its two arrays are allocated once per call
+_CHUNK = 65536
+
+
 def _resampled(W: np.ndarray, part: _Part, block: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
     """Each resample's statistic over a stratum's blocks and its variance (resampled blocks are taken as
-    independent: the sum of the resample's squared block influence values, times K / (K - 1))."""
-    theta_b = np.zeros(W.shape[0])
-    u_b = np.zeros((W.shape[0], K))
+    independent: the sum of the resample's squared block influence values, times K / (K - 1)). Computed
+    for a chunk of resamples at a time (each resample's numbers are its own: the same in any chunk)."""
+    B = W.shape[0]
+    theta_b = np.zeros(B)
+    cols = []
     for S, N, agg, c in part.cols:
         Sk, Nk = np.bincount(block, weights=S, minlength=K), np.bincount(block, weights=N, minlength=K)
         Sb, Nb = W @ Sk, W @ Nk
         with np.errstate(divide="ignore", invalid="ignore"):
             mb = Sb / Nb
-            u_b += (c * _slope(mb, agg) / Nb)[:, None] * (Sk[None, :] - mb[:, None] * Nk[None, :])
+            cols.append((Sk, Nk, mb, c * _slope(mb, agg) / Nb))
         theta_b += c * _score(Sb, Nb, agg)
-    return theta_b, K / (K - 1.0) * np.sum(W * u_b**2, axis=1)
+    var_b = np.empty(B)
+    rows = max(1, _CHUNK // K)
+    u, t = np.empty((min(rows, B), K)), np.empty((min(rows, B), K))
+    for i in range(0, B, rows):
+        j = min(i + rows, B)
+        u_b, tmp = u[: j - i], t[: j - i]
+        u_b.fill(0.0)
+        for Sk, Nk, mb, f in cols:  # u_b += f (Sk - mb Nk), column by column
+            with np.errstate(divide="ignore", invalid="ignore"):
+                np.multiply.outer(mb[i:j], Nk, out=tmp)
+                np.subtract(Sk, tmp, out=tmp)
+                np.multiply(f[i:j, None], tmp, out=tmp)
+                np.add(u_b, tmp, out=u_b)
+        np.square(u_b, out=u_b)
+        np.multiply(W[i:j], u_b, out=u_b)
+        np.sum(u_b, axis=1, out=var_b[i:j])
+    return theta_b, K / (K - 1.0) * var_b
 
 
 def _bootstrap_t(theta, theta_b, var_b, var, a2) -> tuple[float, float, float]:

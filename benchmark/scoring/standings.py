@@ -33,6 +33,8 @@ AGGREGATE_LABEL = "mean of 4 %"
 #: the models of the paper (Rabiee & Biswas 2019), among which its claim is checked
 PAPER_MODELS = ("ideal", "edd", "full_linear", "roc", "enhanced", "friction")
 CLAIM_MODEL = "friction"
+#: the columns of a per-window table :func:`build` reads (the metrics' where a table has them)
+WINDOW_COLUMNS = ("split", "sequence", "start", "t0", *(m.column for m in mt.METRICS if m.bootstrap))
 HOLDS, FAILS, UNRESOLVED = "holds", "does not hold", "not resolved by these data"
 
 
@@ -141,24 +143,18 @@ def _paired_sample(
     and every cell's statistic in it, keyed (model, terrain, split, metric)."""
     sample = iv.Sample(settings or IntervalConfig())
     cell_stats: dict[tuple[str, str, str, str], iv.Stat] = {}
+    columns = {k: _columns(w) for k, w in windows.items() if "split" in w}
     for terrain in terrains:
         for split in SPLITS:
             frames = {}
             for model in everyone:
-                w = windows.get((model, terrain))
-                if w is None or "split" not in w:
-                    continue
-                w = w[w["split"] == split]
-                if not len(w):
-                    continue
-                frames[model] = pd.DataFrame(
-                    {"sequence": w["sequence"].astype(str).to_numpy(), "start": w["start"].to_numpy(),
-                     "t0": w["t0"].to_numpy(float),
-                     **{m.name: m.bootstrap.scale * m.window_values(w) for m in _metrics_of(w)}}
-                )  # fmt: skip
+                c = columns.get((model, terrain))
+                rows = c["split"] == split if c is not None else None
+                if rows is not None and rows.any():
+                    frames[model] = {k: v[rows] for k, v in c.items() if k != "split"}
             if not frames:
                 continue
-            paired = pair_windows(frames)
+            paired = _pair_columns(frames)
             key = iv.stratum_key(split, horizon_s, paired["sequence"])  # as evaluate's: the same draws
             if key in sample.strata:  # two terrains with the same sequence names: strata of their own
                 key = f"{key}|{terrain}"
@@ -166,13 +162,46 @@ def _paired_sample(
             for model, f in frames.items():
                 for m in mt.METRICS:
                     if m.name in f:
-                        cols[f"{model}|{m.name}"] = paired[f"{m.name}.{model}"].to_numpy(float)
+                        cols[f"{model}|{m.name}"] = paired[f"{m.name}.{model}"]
                         aggs[f"{model}|{m.name}"] = m.bootstrap.aggregation
                         cell_stats[(model, terrain, split, m.name)] = iv.cell(
                             f"{model}|{terrain}|{split}|{m.name}", key, f"{model}|{m.name}"
                         )
-            sample.add(key, paired["sequence"], paired["t0"].to_numpy(float), cols, horizon_s, aggs)
+            sample.add(key, paired["sequence"], paired["t0"], cols, horizon_s, aggs)
     return sample, cell_stats
+
+
+def _columns(w: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The columns of a windows table a paired sample is made of, as arrays: split, sequence (text),
+    start, t0 and each resampled metric's values in its logged unit (``<metric name>``)."""
+    return {"split": w["split"].to_numpy(), "sequence": w["sequence"].astype(str).to_numpy(),
+            "start": w["start"].to_numpy(), "t0": w["t0"].to_numpy(float),
+            **{m.name: m.bootstrap.scale * m.window_values(w) for m in _metrics_of(w)}}  # fmt: skip
+
+
+def _pair_columns(frames: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """:func:`pair_windows` of columns (``frames[model]``: sequence, start, t0 and its values) as arrays:
+    ``sequence``, ``t0`` and ``<column>.<model>`` (floats). When every model has the same windows in the
+    same order, without a repeated one, they are the first model's sorted by (sequence, start), stably,
+    as the join's table; else the join's."""
+    first = next(iter(frames.values()))
+    seq, start = first["sequence"], first["start"]
+    keys = ("sequence", "start", "t0")
+    same = all(len(f["start"]) == len(start) and all(np.array_equal(f[k], first[k]) for k in keys)
+               for f in frames.values())  # fmt: skip
+    if same:
+        _, code = np.unique(seq, return_inverse=True)
+        order = np.lexsort((start, code))  # stable: pandas' sort_values on (sequence, start)
+        a, b = code[order], start[order]
+        same = not bool(np.any((a[1:] == a[:-1]) & (b[1:] == b[:-1])))  # no repeated window
+    if not same:
+        paired = pair_windows({m: pd.DataFrame(f) for m, f in frames.items()})
+        return {c: paired[c].to_numpy(object if c == "sequence" else float) for c in paired.columns}
+    out = {"sequence": seq[order], "t0": first["t0"][order]}
+    for model, f in frames.items():
+        out.update({f"{c}.{model}": np.asarray(v, dtype=float)[order] for c, v in f.items()
+                    if c not in ("sequence", "start", "t0")})  # fmt: skip
+    return out
 
 
 def pair_windows(
