@@ -72,6 +72,17 @@ def lab_server(tmp_path_factory):
         yield server
 
 
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """The session's one local Ray cluster (tests/ray_cluster.py: a head and a worker node, one CPU each),
+    shared by the Ray sweeps and the data stages on Ray (one xdist unit: ``XDIST_GROUPS``). A test that
+    adds a node kills it before it ends; the one that does runs last (tests/test_cluster_stages.py)."""
+    from ray_cluster import running_ray_cluster
+
+    with running_ray_cluster() as cluster:
+        yield cluster
+
+
 @pytest.fixture
 def mlflow_server_up(lab_server):
     """:func:`lab_server`, running (started again when an earlier test killed it and failed before its
@@ -195,6 +206,8 @@ XDIST_GROUPS = {
     "tests/test_reliability_sweeps.py": "micro_root",
     "tests/test_mlflow_server.py": "lab_server",
     "tests/test_mlflow_ui_browser.py": "lab_server",
+    "tests/test_cluster_ray.py": "ray_cluster",
+    "tests/test_cluster_stages.py": "ray_cluster",
 }
 #: files of long, independent tests (no module fixture): one test per unit, so they balance over workers
 XDIST_SPREAD = ("tests/test_discover_hidden.py", "tests/test_discover_terms.py")

@@ -1,5 +1,6 @@
 """A real local Ray cluster for tests (:func:`skidbench.pipeline.runner.cluster.local_cluster`: ``ray start
---head`` on 127.0.0.1, small resources) in the tests' environment, and a Hydra callback that kills its own
+--head`` and a worker node on 127.0.0.1, small resources; one per test session, tests/conftest.py
+``ray_cluster``) in the tests' environment, and a Hydra callback that kills its own
 worker process once, mid-task (fault injection for the Ray sweeps)."""
 
 from __future__ import annotations
@@ -9,20 +10,28 @@ import os
 import signal
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from hydra.experimental.callback import Callback
 
 TESTS = Path(__file__).resolve().parent
 
 
+#: a lost node is noticed in about a second (Ray's default takes tens)
+FAST_FAILURE = {"health_check_period_ms": 500, "health_check_timeout_ms": 500}
+FAST_FAILURE["health_check_failure_threshold"] = 2
+
+
 @contextlib.contextmanager
-def running_ray_cluster(num_cpus: int = 2) -> Iterator[str]:
-    """A one-node cluster on 127.0.0.1 whose workers can import this folder (see :func:`ray_env`); yields
-    its address."""
+def running_ray_cluster() -> Iterator[Any]:
+    """A head node and one worker node on 127.0.0.1, one CPU each, whose workers can import this folder
+    (see :func:`ray_env`), a lost node noticed in about a second; yields it (its ``address``;
+    ``add_node``/``kill_node``)."""
     from skidbench.pipeline.runner.cluster import local_cluster
 
-    with local_cluster(num_cpus=num_cpus, env=ray_env()) as cluster:
-        yield cluster.address
+    with local_cluster(num_cpus=1, env=ray_env(), system_config=FAST_FAILURE) as cluster:
+        cluster.add_node(num_cpus=1)
+        yield cluster
 
 
 def ray_env(extra: dict | None = None) -> dict[str, str]:

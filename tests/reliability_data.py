@@ -141,6 +141,22 @@ def copy_splits(micro_root: Path, root: Path) -> None:
     shutil.copytree(micro_root / DATASET / "splits", root / DATASET / "splits")
     (root / DATASET / "raw").mkdir(parents=True)
     shutil.copy(micro_root / DATASET / "raw" / "manifest.json", root / DATASET / "raw" / "manifest.json")
+    migrated_store(f"sqlite:///{root / 'mlflow.db'}")
+
+
+def migrated_store(uri: str) -> None:
+    """MLflow's tables in the new SQLite store ``uri``, made here: in a test process a copy of the session's
+    migrated template (tests/conftest.py), so that a stage run in a subprocess finds them and does not run
+    MLflow's chain of schema migrations again (1-2 CPU-s per new store). MLflow goes on as with a store it
+    made: its schema check, then the Default experiment."""
+    import mlflow.store.db.utils as dbu
+    import sqlalchemy
+
+    engine = sqlalchemy.create_engine(uri)
+    try:
+        dbu._initialize_tables(engine)
+    finally:
+        engine.dispose()
 
 
 def build(out_root: Path, stages=PIPELINE) -> Path:

@@ -1,8 +1,9 @@
-"""Sweeps on a real Ray cluster (``hydra/launcher=ray``): a local one-node cluster on 127.0.0.1 started by
-``ray start --head``, a real ``mlflow server``, fits of two models on three terrains and an evaluation of
-two datasets as Ray tasks; a worker killed mid-task is retried and every job still yields exactly one
-finished run, with the metrics of a joblib sweep. Skipped, with the reason, where Ray is not installed
-(``pip install 'skidbench[cluster]'``; ``make test`` installs it when it can)."""
+"""Sweeps on a real Ray cluster (``hydra/launcher=ray``): the session's local two-node cluster on 127.0.0.1
+(``ray start --head`` and a worker node, tests/conftest.py ``ray_cluster``), a real ``mlflow server``, fits
+of two models on three terrains and an evaluation of two datasets as Ray tasks; a worker killed mid-task is
+retried and every job still yields exactly one finished run, with the metrics of a joblib sweep. Skipped,
+with the reason, where Ray is not installed (``pip install 'skidbench[cluster]'``; ``make test`` installs it
+when it can)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 from _bench_data import write_splits
 from mlflow_server import free_port, running_mlflow_server
-from ray_cluster import ray_env, running_ray_cluster
+from ray_cluster import ray_env
 from reliability_data import skidbench
 
 from skidbench.benchmark.tracking import store as trk
@@ -47,9 +48,9 @@ def out_root(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def ray_address():
-    with running_ray_cluster(num_cpus=2) as address:
-        yield address
+def ray_address(ray_cluster) -> str:
+    """The session's Ray cluster (tests/conftest.py ``ray_cluster``: two nodes, one CPU each)."""
+    return ray_cluster.address
 
 
 @pytest.fixture(scope="module")

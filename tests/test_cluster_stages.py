@@ -1,7 +1,8 @@
 """The data stages as Ray tasks on a real multi-node Ray cluster on this machine (``ray start --head`` and
-``ray start --address`` worker nodes on 127.0.0.1, one cluster for the module): ``extract``, stereo-VO
-``groundtruth``, ``split`` and ``calibrate`` of a micro stereo dataset through the cluster write the same
-bytes as the local forked workers; a worker node killed mid-stage, its task stopped between writing a
+``ray start --address`` worker nodes on 127.0.0.1: the session's one cluster, tests/conftest.py
+``ray_cluster``, shared with tests/test_cluster_ray.py): ``extract``, stereo-VO ``groundtruth``,
+``split`` and ``calibrate`` of a micro stereo dataset through the cluster write the same bytes as the
+local forked workers; a worker node killed mid-stage, its task stopped between writing a
 file and renaming it, leaves no partial file and the stage still completes. Skipped, with the reason,
 where Ray is not installed (``pip install 'skidbench[cluster]'``)."""
 
@@ -43,9 +44,6 @@ STAGES = {
     "split": SCALE,
     "calibrate": [*SCALE, "track=false"],
 }
-#: a lost node is noticed in about a second (Ray's default takes tens)
-FAST_FAILURE = {"health_check_period_ms": 500, "health_check_timeout_ms": 500}
-FAST_FAILURE["health_check_failure_threshold"] = 2
 
 
 def _outputs(ds: Path) -> None:
@@ -66,14 +64,11 @@ def local_run(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     return root, snapshot(root / DATASET)
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    """A head node and one worker node, one CPU each; the tests' folder importable on both."""
-    from skidbench.pipeline.runner.cluster import local_cluster
-
-    with local_cluster(num_cpus=1, env=ray_env(), system_config=FAST_FAILURE) as c:
-        c.add_node(num_cpus=1)
-        yield c
+@pytest.fixture
+def cluster(ray_cluster):
+    """The session's Ray cluster (tests/conftest.py ``ray_cluster``): a head and a worker node, one CPU
+    each, a lost node noticed in about a second; the tests' folder importable on both."""
+    return ray_cluster
 
 
 def _on_ray(cluster) -> list[str]:

@@ -6,6 +6,7 @@ value and what is allowed."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from importlib import resources
 
 import pytest
@@ -36,10 +37,17 @@ GROUPS = {
 }
 
 
+@functools.cache
+def _composed(stage: str) -> object:
+    """``_compose(stage, [])``, composed once per process (collection composes every stage; the tests
+    only read it)."""
+    return _compose(stage, [])
+
+
 def _configs():
     for stage in STAGES:
         yield stage, []
-        cfg = _compose(stage, [])
+        cfg = _composed(stage)
         for group, options in GROUPS.items():
             if group not in cfg.hydra.runtime.choices:
                 continue
@@ -49,7 +57,7 @@ def _configs():
 
 @pytest.mark.parametrize(("stage", "overrides"), list(_configs()), ids=lambda v: str(v))
 def test_every_key_is_declared_and_every_default_is_valid(stage, overrides):
-    cfg = _compose(stage, overrides)
+    cfg = _compose(stage, overrides) if overrides else _composed(stage)
     undeclared = [key for key, _ in leaves(cfg) if spec_for(key) is None]
     assert not undeclared, f"declare these in pipeline/cli/config_schema.py SCHEMA: {undeclared}"
     validate(cfg)
@@ -118,7 +126,7 @@ def test_a_structured_key_is_declared_by_its_dataclass_only():
 def test_the_composed_section_is_its_dataclass_with_its_defaults(entry):
     cls, package = STRUCTURED[entry], package_of(entry)
     stage = entry.partition("/")[2] or _stage_with(package)  # bundle/export: export's bundle section
-    composed = OmegaConf.select(_compose(stage, []), package)
+    composed = OmegaConf.select(_composed(stage), package)
     # as written, before resolving: publish.dir is ??? (an argument), mlflow.experiment skidbench-${dataset}
     assert OmegaConf.to_container(composed) == OmegaConf.to_container(OmegaConf.structured(cls))
     if not OmegaConf.missing_keys(composed) and "${" not in str(OmegaConf.to_container(composed)):
@@ -126,7 +134,7 @@ def test_the_composed_section_is_its_dataclass_with_its_defaults(entry):
 
 
 def _stage_with(package: str) -> str:
-    return next(s for s in STAGES if OmegaConf.is_config(OmegaConf.select(_compose(s, []), package)))
+    return next(s for s in STAGES if OmegaConf.is_config(OmegaConf.select(_composed(s), package)))
 
 
 @pytest.mark.parametrize(
@@ -157,7 +165,7 @@ def test_a_root_key_is_declared_by_its_dataclass_only():
 
 
 def test_the_composed_root_keys_are_their_dataclass_with_its_defaults():
-    cfg = _compose("evaluate", [])
+    cfg = _composed("evaluate")
     data = OmegaConf.to_container(cfg, resolve=False)  # out_root, dataset: interpolations
     for name in ("common", "evaluate"):
         assert ROOTS[name](**{f.name: data[f.name] for f in dataclasses.fields(ROOTS[name])}) == ROOTS[name]()
