@@ -67,7 +67,7 @@ def local_run(tmp_path_factory) -> tuple[Path, dict[str, str]]:
 @pytest.fixture
 def cluster(ray_cluster):
     """The session's Ray cluster (tests/conftest.py ``ray_cluster``): a head and a worker node, one CPU
-    each, a lost node noticed in about a second; the tests' folder importable on both."""
+    each, a lost node noticed in about three seconds; the tests' folder importable on both."""
     return ray_cluster
 
 
