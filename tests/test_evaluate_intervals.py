@@ -312,8 +312,8 @@ def test_the_floor_is_a_perfect_models_score_against_a_drifting_ground_truth():
 
 
 def test_pairing_windows_is_the_outer_join_whether_or_not_the_models_share_every_window():
-    """pair_windows sets models with the same windows side by side and joins the others: both give the
-    table of the outer join on (sequence, start, t0), sorted by window."""
+    """pair_windows is the table of the outer join on (sequence, start, t0), sorted by window, whether the
+    models share every window or one lacks a window."""
     rng = np.random.default_rng(3)
     seq = np.repeat(["b_01", "a_00"], 6)
     base = pd.DataFrame(

@@ -46,11 +46,14 @@ def label(model: str) -> str:
     return MODEL_LABELS.get(model, model)
 
 
-def _save(fig, path: Path, dpi: int = 130) -> Path:
+def _save(fig, path: Path, dpi: int = 130, *, kept: bool = False) -> Path:
+    """``fig`` as a PNG at ``path``, written atomically, then closed; ``kept``: a figure kept for the
+    process with fixed margins (:func:`_window_axes`): saved as laid out, and left open."""
     path = Path(path)
     with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
-    plt.close(fig)
+        fig.savefig(tmp, dpi=dpi, bbox_inches=None if kept else "tight", format="png")
+    if not kept:
+        plt.close(fig)
     return path
 
 
@@ -418,10 +421,7 @@ def window_error_figure(windows: pd.DataFrame, title: str, path: Path, dpi: int 
             else:
                 ax.set_xlabel("window start (s)", fontsize=8)
     fig.suptitle(f"{title}: per-window errors, {h:g} s horizon", fontsize=10)
-    path = Path(path)
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
-    return path
+    return _save(fig, path, dpi, kept=True)
 
 
 #: the fixed margins of :func:`window_error_figure` (inches): room for the y tick labels and label on the

@@ -209,18 +209,9 @@ def pair_windows(
 ) -> pd.DataFrame:
     """The windows of several models (``frames[model]``, each with the columns ``on`` and ``t0``) on one
     table: one row per window any model has, the other columns suffixed ``.<model>`` (NaN where a model
-    lacks the window). Windows come from the ground truth alone, so models scored on the same split have
-    the same ones; the outer join keeps a model that lacks one from dropping it for the others. When every
-    model has the same windows in the same order (the usual case), its columns are set side by side: the
-    join's table without the join."""
-    same = _same_windows(frames, [*on, "t0"])
-    if same is not None:
-        parts = [same] + [
-            df.drop(columns=[*on, "t0"]).rename(columns=lambda c, m=model: f"{c}.{m}").reset_index(drop=True)
-            for model, df in frames.items()
-        ]
-        out = pd.concat(parts, axis=1)
-        return out.sort_values(list(on), kind="stable").reset_index(drop=True)
+    lacks the window), sorted by ``on``. Windows come from the ground truth alone, so models scored on the
+    same split have the same ones; the outer join keeps a model that lacks one from dropping it for the
+    others. (:func:`_pair_columns` sets models that share every window side by side without the join.)"""
     out = None
     for model, df in frames.items():
         keep = df.rename(columns={c: f"{c}.{model}" for c in df.columns if c not in (*on, "t0")})
@@ -231,24 +222,6 @@ def pair_windows(
     if out is None:
         return pd.DataFrame(columns=[*on, "t0"])
     return out.sort_values(list(on), kind="stable").reset_index(drop=True)
-
-
-def _same_windows(frames: Mapping[str, pd.DataFrame], keys: Sequence[str]) -> pd.DataFrame | None:
-    """The key columns of the first frame when every frame has exactly these keys, in the same order and
-    without a repeated window (so the outer join is the frames side by side), else None."""
-    first = None
-    for df in frames.values():
-        if any(k not in df for k in keys):
-            return None
-        if first is None:
-            first = df[list(keys)].reset_index(drop=True)
-            if first.duplicated(list(keys[:-1])).any():
-                return None
-        elif len(df) != len(first) or not all(
-            np.array_equal(df[k].to_numpy(), first[k].to_numpy()) for k in keys
-        ):
-            return None
-    return first
 
 
 def _terrain_means(sample, cell_stats, everyone, terrains, paper, overall: pd.DataFrame) -> None:
